@@ -1,0 +1,104 @@
+// dtraced::scene description: the parsed scene as plain values, kept apart from the render-ready
+// scene (render/) that adds a BVH and float data. Positions stay in double here; the render layer
+// converts. Values only: thread-safe to share read-only.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "math/vec.h"
+
+namespace dtraced::scene {
+
+using math::Vec3d;
+
+// Linear RGB, each channel >= 0.
+using Color = Vec3d;
+
+// Whitted material. The shaded colour at a hit is
+//   (1 - reflectivity - transparency) * local
+//   + reflectivity * colour * L(mirror direction)
+//   + transparency * (F * L(reflection) + (1 - F) * L(refraction))
+// where local = sum over lights of visibility * I / r^2 * cos * (diffuse * colour / pi
+// + specular * (shininess + 8) / (8 pi) * (n.h)^shininess), F the exact dielectric Fresnel term.
+struct Material {
+  Color color{0.8, 0.8, 0.8};
+  double diffuse = 1.0;       // [0, 1]
+  double specular = 0.0;      // [0, 1]
+  double shininess = 32.0;    // >= 0 (Blinn-Phong exponent)
+  double reflectivity = 0.0;  // [0, 1]
+  double transparency = 0.0;  // [0, 1], reflectivity + transparency <= 1
+  double ior = 1.5;           // > 0
+  bool operator==(const Material&) const = default;
+};
+
+struct Sphere {
+  Vec3d center;
+  double radius = 1.0;  // > 0
+  bool operator==(const Sphere&) const = default;
+};
+
+struct Box {  // axis-aligned, min < max on every axis
+  Vec3d min;
+  Vec3d max;
+  bool operator==(const Box&) const = default;
+};
+
+struct Plane {  // infinite plane through `point` with unit `normal` (normalised at load)
+  Vec3d point;
+  Vec3d normal{0, 1, 0};
+  bool operator==(const Plane&) const = default;
+};
+
+enum class ObjectType { kSphere, kBox, kPlane };
+
+struct Object {
+  ObjectType type = ObjectType::kSphere;
+  Sphere sphere;  // valid when type == kSphere
+  Box box;        // valid when type == kBox
+  Plane plane;    // valid when type == kPlane
+  Material material;
+  bool operator==(const Object&) const = default;
+};
+
+struct PointLight {
+  Vec3d position;
+  Color color{1, 1, 1};
+  double intensity = 1.0;  // radiant intensity scale (W/sr), >= 0; emitted I = intensity * color
+  bool operator==(const PointLight&) const = default;
+};
+
+struct Camera {
+  Vec3d position{0, 0, 5};
+  Vec3d look_at{0, 0, 0};
+  Vec3d up{0, 1, 0};
+  double fov_deg = 45.0;  // vertical field of view, in (0, 180)
+  bool operator==(const Camera&) const = default;
+};
+
+// Render settings. The scene file gives defaults; every field can be overridden by a flag.
+struct RenderSettings {
+  std::uint32_t width = 640;     // [1, kMaxImageSide]
+  std::uint32_t height = 480;    // [1, kMaxImageSide]
+  std::uint32_t samples = 1;     // per pixel, [1, kMaxSamples]
+  std::uint32_t max_depth = 8;   // reflection/refraction bounces, [0, kMaxDepth]
+  Color background{0, 0, 0};
+  std::uint64_t seed = 0;
+  std::uint32_t frame = 0;
+  bool operator==(const RenderSettings&) const = default;
+};
+
+inline constexpr std::uint32_t kMaxImageSide = 16384;
+inline constexpr std::uint32_t kMaxSamples = 65536;
+inline constexpr std::uint32_t kMaxDepth = 64;
+
+struct SceneDesc {
+  std::vector<Object> objects;
+  std::vector<PointLight> lights;
+  Camera camera;
+  RenderSettings render;
+  bool operator==(const SceneDesc&) const = default;
+};
+
+}  // namespace dtraced::scene
