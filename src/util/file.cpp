@@ -1,11 +1,13 @@
 #include "util/file.h"
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 
 #include <fmt/format.h>
@@ -37,26 +39,33 @@ std::optional<std::string> read_file_limited(const std::string& path, std::uint6
 }
 
 bool write_file_atomic(const std::string& path, std::string_view bytes, std::string& error) {
-  const std::string tmp = fmt::format("{}.tmp.{}", path, ::getpid());
-  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  // mkstemp gives a name no other thread or process is using, in the target's directory so the
+  // rename stays on one file system.
+  std::string tmp = path + ".tmp.XXXXXX";
+  const int fd = ::mkstemp(tmp.data());
   if (fd < 0) {
-    error = fmt::format("{}: cannot create: {}", tmp, std::strerror(errno));
+    error = fmt::format("{}: cannot create a temporary file: {}", path, std::strerror(errno));
     return false;
   }
+  auto fail = [&](const char* what) {
+    error = fmt::format("{}: {}: {}", path, what, std::strerror(errno));
+    ::close(fd);
+    ::unlink(tmp.c_str());
+    return false;
+  };
+  if (::fchmod(fd, 0644) != 0) return fail("cannot set permissions");
   std::size_t off = 0;
   while (off < bytes.size()) {
     const ssize_t n = ::write(fd, bytes.data() + off, bytes.size() - off);
     if (n < 0) {
       if (errno == EINTR) continue;
-      error = fmt::format("{}: write failed: {}", tmp, std::strerror(errno));
-      ::close(fd);
-      ::unlink(tmp.c_str());
-      return false;
+      return fail("write failed");
     }
     off += static_cast<std::size_t>(n);
   }
-  if (::fsync(fd) != 0 || ::close(fd) != 0) {
-    error = fmt::format("{}: flush failed: {}", tmp, std::strerror(errno));
+  if (::fsync(fd) != 0) return fail("flush failed");
+  if (::close(fd) != 0) {
+    error = fmt::format("{}: close failed: {}", path, std::strerror(errno));
     ::unlink(tmp.c_str());
     return false;
   }
@@ -64,6 +73,13 @@ bool write_file_atomic(const std::string& path, std::string_view bytes, std::str
     error = fmt::format("{}: cannot rename into place: {}", path, std::strerror(errno));
     ::unlink(tmp.c_str());
     return false;
+  }
+  // The rename itself is durable only once the directory is synced.
+  const std::string dir = std::filesystem::path(path).parent_path().string();
+  const int dfd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dfd >= 0) {
+    ::fsync(dfd);
+    ::close(dfd);
   }
   return true;
 }
