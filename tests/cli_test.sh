@@ -1,1 +1,83 @@
-exit 0
+#!/usr/bin/env bash
+# End-to-end checks of the dtraced command line: exit codes, help, validation messages, and the
+# render -> compare round trip. Needs DTRACED (the binary) and SCENES (the scenes folder).
+set -uo pipefail
+
+: "${DTRACED:?set DTRACED to the dtraced binary}"
+: "${SCENES:?set SCENES to the scenes folder}"
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+
+passed=0
+failed=0
+check() {  # check NAME EXPECTED_EXIT CMD...
+  local name=$1 want=$2
+  shift 2
+  "$@" >"$work/out" 2>"$work/err"
+  local got=$?
+  if [ "$got" = "$want" ]; then
+    passed=$((passed + 1))
+  else
+    failed=$((failed + 1))
+    echo "FAIL: $name: exit $got, expected $want"
+    sed 's/^/  stdout: /' "$work/out"
+    sed 's/^/  stderr: /' "$work/err"
+  fi
+}
+expect_text() {  # expect_text NAME FILE PATTERN
+  if grep -q -- "$3" "$2"; then
+    passed=$((passed + 1))
+  else
+    failed=$((failed + 1))
+    echo "FAIL: $1: '$3' not found in:"
+    sed 's/^/  /' "$2"
+  fi
+}
+
+check "--version" 0 "$DTRACED" --version
+expect_text "--version prints a version" "$work/out" "[0-9]\+\.[0-9]\+\.[0-9]\+"
+check "--help" 0 "$DTRACED" --help
+expect_text "--help lists render" "$work/out" "render"
+for verb in render validate compare generate; do
+  check "$verb --help" 0 "$DTRACED" "$verb" --help
+done
+check "no verb is a usage error" 2 "$DTRACED"
+check "unknown verb" 2 "$DTRACED" frobnicate
+check "unknown flag" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --no-such-flag
+check "missing output" 2 "$DTRACED" render "$SCENES/snowman.json"
+check "bad bit depth" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --bit-depth 12
+
+check "validate good scenes" 0 "$DTRACED" validate "$SCENES"/*.json
+expect_text "validate says OK" "$work/out" "OK"
+
+cat >"$work/bad.json" <<'JSON'
+{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45},
+ "scene_objects": [
+   {"type": "sphere", "loc": [0, 0, 0], "radius": -1},
+   {"type": "sphere", "loc": [0, 0, 0], "radius": 1, "material": {"ior": 0}}],
+ "scene_lights": []}
+JSON
+check "validate a bad scene" 1 "$DTRACED" validate "$work/bad.json"
+expect_text "error names the radius path" "$work/err" "bad.json: /scene_objects/0/radius"
+expect_text "error names the ior path" "$work/err" "/scene_objects/1/material/ior"
+check "render refuses a bad scene" 1 "$DTRACED" render "$work/bad.json" -o "$work/bad.png"
+check "validate a missing file" 1 "$DTRACED" validate "$work/missing.json"
+expect_text "missing file is named" "$work/err" "missing.json"
+
+check "render png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.png" --width 64 --height 48 -s 2 -t 1
+expect_text "summary line" "$work/err" "Mrays/s"
+check "render pfm, other tiling" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.pfm" --width 64 --height 48 -s 2 -t 2 --tile-size 7
+check "render pfm, one thread" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/b.pfm" --width 64 --height 48 -s 2 -t 1 --tile-size 64
+check "compare identical" 0 "$DTRACED" compare "$work/a.pfm" "$work/b.pfm" --max-rmse 0
+expect_text "identical images have rmse 0" "$work/out" "rmse 0 "
+check "render ppm and 16-bit png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.ppm" --width 32 --height 24 -q
+check "16-bit png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a16.png" --width 32 --height 24 -q --bit-depth 16
+check "different seed differs" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/c.pfm" --width 64 --height 48 -s 2 --seed 99 -q
+check "compare with threshold fails" 1 "$DTRACED" compare "$work/a.pfm" "$work/c.pfm" --max-rmse 0
+check "compare different sizes" 1 "$DTRACED" compare "$work/a.pfm" "$work/a16.png"
+check "unsupported output extension" 1 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.tiff" -q
+check "generate" 0 "$DTRACED" generate --count 500 --seed 3 -o "$work/gen.json"
+check "generated scene validates" 0 "$DTRACED" validate "$work/gen.json"
+
+echo "$passed passed, $failed failed"
+[ "$failed" = 0 ]

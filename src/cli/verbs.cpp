@@ -1,0 +1,160 @@
+#include "cli/verbs.h"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+
+#include <fmt/format.h>
+
+#include "image/image_io.h"
+#include "image/metrics.h"
+#include "render/local_render.h"
+#include "render/render_scene.h"
+#include "scene/digest.h"
+#include "scene/generate.h"
+#include "scene/load.h"
+#include "util/file.h"
+
+namespace dtraced::cli {
+
+namespace {
+
+constexpr int kExitOk = 0;
+constexpr int kExitFailed = 1;
+
+void print_errors(const scene::LoadResult& r) {
+  for (const scene::SceneError& e : r.errors) fmt::print(stderr, "{}\n", e.to_string());
+}
+
+// A one-line progress bar on stderr, redrawn in place; only used when stderr is a terminal.
+class ProgressBar {
+ public:
+  void draw(std::size_t done, std::size_t total) {
+    constexpr int kWidth = 40;
+    const double frac = total ? double(done) / double(total) : 1.0;
+    const int filled = int(frac * kWidth);
+    const int pct = int(frac * 100.0);
+    if (pct == last_pct_) return;
+    last_pct_ = pct;
+    fmt::print(stderr, "\r[{:#<{}}{:-<{}}] {:3d}% {}/{} tiles", "", filled, "", kWidth - filled, pct, done, total);
+    if (done == total) fmt::print(stderr, "\n");
+    std::fflush(stderr);
+  }
+
+ private:
+  int last_pct_ = -1;
+};
+
+}  // namespace
+
+std::string_view version_string() { return DTRACED_VERSION; }
+
+int run_render(const RenderArgs& args) {
+  scene::LoadResult loaded = scene::load_scene_file(args.scene);
+  if (!loaded.ok()) {
+    print_errors(loaded);
+    return kExitFailed;
+  }
+  scene::SceneDesc& desc = *loaded.scene;
+  scene::RenderSettings& s = desc.render;
+  if (args.width) s.width = *args.width;
+  if (args.height) s.height = *args.height;
+  if (args.samples) s.samples = *args.samples;
+  if (args.max_depth) s.max_depth = *args.max_depth;
+  if (args.seed) s.seed = *args.seed;
+  if (args.frame) s.frame = *args.frame;
+  if (!image::format_from_path(args.output)) {
+    fmt::print(stderr, "{}: unsupported output format (use .png, .ppm or .pfm)\n", args.output);
+    return kExitFailed;
+  }
+
+  const auto build_start = std::chrono::steady_clock::now();
+  const render::RenderScene rs = render::RenderScene::build(desc);
+  const double build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+
+  render::LocalOptions opts;
+  opts.threads = args.threads;
+  opts.tile_size = args.tile_size;
+  ProgressBar bar;
+  if (!args.quiet && ::isatty(STDERR_FILENO)) {
+    opts.progress = [&bar](std::size_t done, std::size_t total) { bar.draw(done, total); };
+  }
+  const render::LocalResult result = render::render_local(rs, s, opts);
+
+  std::string error;
+  image::WriteOptions wopts;
+  wopts.png_bit_depth = args.bit_depth;
+  if (!image::write_image(args.output, result.image, wopts, error)) {
+    fmt::print(stderr, "{}\n", error);
+    return kExitFailed;
+  }
+  if (!args.quiet) {
+    const double mrays = double(result.stats.rays) / 1e6;
+    fmt::print(stderr,
+               "rendered {}x{} at {} spp in {:.3f} s ({} threads, {}-px tiles; scene build {:.3f} s): {:.2f} M rays, "
+               "{:.2f} Mrays/s, {} NaN and {} Inf samples; wrote {}\n",
+               s.width, s.height, s.samples, result.seconds, result.threads, args.tile_size, build_s, mrays,
+               result.seconds > 0 ? mrays / result.seconds : 0.0, result.stats.nan_samples, result.stats.inf_samples,
+               args.output);
+  }
+  return kExitOk;
+}
+
+int run_validate(const std::vector<std::string>& files) {
+  int code = kExitOk;
+  for (const std::string& f : files) {
+    const scene::LoadResult r = scene::load_scene_file(f);
+    if (r.ok()) {
+      fmt::print("{}: OK ({} objects, {} lights, digest {})\n", f, r.scene->objects.size(), r.scene->lights.size(),
+                 scene::scene_digest(*r.scene));
+    } else {
+      print_errors(r);
+      fmt::print("{}: {} error{}\n", f, r.errors.size(), r.errors.size() == 1 ? "" : "s");
+      code = kExitFailed;
+    }
+  }
+  return code;
+}
+
+int run_compare(const CompareArgs& args) {
+  std::string error;
+  const auto a = image::read_image(args.a, error);
+  if (!a) {
+    fmt::print(stderr, "{}\n", error);
+    return kExitFailed;
+  }
+  const auto b = image::read_image(args.b, error);
+  if (!b) {
+    fmt::print(stderr, "{}\n", error);
+    return kExitFailed;
+  }
+  const auto diff = image::compare_images(*a, *b, error);
+  if (!diff) {
+    fmt::print(stderr, "{}\n", error);
+    return kExitFailed;
+  }
+  const std::string psnr = std::isinf(diff->psnr_db) ? "inf" : fmt::format("{:.2f}", diff->psnr_db);
+  fmt::print("rmse {:.6g}  psnr {} dB  max_abs {:.6g}  ({}x{})\n", diff->rmse, psnr, diff->max_abs, a->width,
+             a->height);
+  if (args.max_rmse && !(diff->rmse <= *args.max_rmse)) {
+    fmt::print(stderr, "rmse {:.6g} is above --max-rmse {:.6g}\n", diff->rmse, *args.max_rmse);
+    return kExitFailed;
+  }
+  return kExitOk;
+}
+
+int run_generate(const GenerateArgs& args) {
+  const scene::SceneDesc desc = scene::generate_sphere_field(args.count, args.seed);
+  std::string error;
+  if (!util::write_file_atomic(args.output, scene::canonical_json(desc), error)) {
+    fmt::print(stderr, "{}\n", error);
+    return kExitFailed;
+  }
+  fmt::print(stderr, "wrote {} ({} objects, digest {})\n", args.output, desc.objects.size(),
+             scene::scene_digest(desc));
+  return kExitOk;
+}
+
+}  // namespace dtraced::cli

@@ -1,0 +1,42 @@
+// dtraced::cli verbs: one function per command, each returning the process exit code. They
+// print results to stdout and diagnostics to stderr, and never call exit().
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace dtraced::cli {
+
+std::string_view version_string();
+
+struct RenderArgs {
+  std::string scene;
+  std::string output;
+  std::optional<std::uint32_t> width, height, samples, max_depth, frame;
+  std::optional<std::uint64_t> seed;
+  std::uint32_t threads = 0;
+  std::uint32_t tile_size = 32;
+  int bit_depth = 8;
+  bool quiet = false;
+};
+int run_render(const RenderArgs& args);
+
+int run_validate(const std::vector<std::string>& files);
+
+struct CompareArgs {
+  std::string a, b;
+  std::optional<double> max_rmse;
+};
+int run_compare(const CompareArgs& args);
+
+struct GenerateArgs {
+  std::uint32_t count = 100000;
+  std::uint64_t seed = 1;
+  std::string output;
+};
+int run_generate(const GenerateArgs& args);
+
+}  // namespace dtraced::cli

@@ -1,0 +1,65 @@
+#include "render/local_render.h"
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+namespace dtraced::render {
+
+LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& settings, const LocalOptions& options) {
+  LocalResult result;
+  result.image = image::ImageRGBf(settings.width, settings.height);
+  const std::vector<TileRect> tiles = split_into_tiles(settings.width, settings.height, std::max(1u, options.tile_size));
+  std::uint32_t threads = options.threads ? options.threads : std::max(1u, std::thread::hardware_concurrency());
+  threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
+  result.threads = threads;
+
+  std::atomic<std::size_t> next{0};
+  std::mutex mu;
+  std::condition_variable cv;
+  std::size_t done = 0;       // guarded by mu
+  TraceStats stats;           // guarded by mu
+
+  const auto start = std::chrono::steady_clock::now();
+  auto worker = [&] {
+    TraceStats local;
+    for (std::size_t i = next.fetch_add(1); i < tiles.size(); i = next.fetch_add(1)) {
+      Tile t = render_tile(scene, settings, tiles[i]);
+      for (std::uint32_t row = 0; row < t.rect.height; ++row) {
+        const float* src = &t.rgb[std::size_t(row) * t.rect.width * 3];
+        std::copy(src, src + std::size_t(t.rect.width) * 3, result.image.pixel(t.rect.x0, t.rect.y0 + row));
+      }
+      local.add(t.stats);
+      std::lock_guard lock(mu);
+      ++done;
+      cv.notify_one();
+    }
+    std::lock_guard lock(mu);
+    stats.add(local);
+  };
+  {
+    std::vector<std::jthread> pool;
+    pool.reserve(threads);
+    for (std::uint32_t i = 0; i < threads; ++i) pool.emplace_back(worker);
+    std::unique_lock lock(mu);
+    while (done < tiles.size()) {
+      cv.wait_for(lock, std::chrono::milliseconds(200));
+      if (options.progress) {
+        const std::size_t d = done;
+        lock.unlock();
+        options.progress(d, tiles.size());
+        lock.lock();
+      }
+    }
+  }  // joins the pool
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  result.stats = stats;
+  if (options.progress) options.progress(tiles.size(), tiles.size());
+  return result;
+}
+
+}  // namespace dtraced::render

@@ -1,0 +1,33 @@
+// dtraced::render local rendering: a whole image on this machine's cores.
+//
+// Tiles are handed to a fixed set of threads through one atomic counter; each tile writes a
+// disjoint region of the image, so the result is bitwise identical for any tile size and thread
+// count. The progress callback runs on the calling thread only.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+
+#include "image/image.h"
+#include "render/render_scene.h"
+#include "render/tile.h"
+
+namespace dtraced::render {
+
+struct LocalOptions {
+  std::uint32_t threads = 0;     // 0: every hardware thread
+  std::uint32_t tile_size = 32;  // pixels per tile side, >= 1
+  // Called now and then, and once at the end, with (tiles done, tiles total).
+  std::function<void(std::size_t, std::size_t)> progress;
+};
+
+struct LocalResult {
+  image::ImageRGBf image;
+  TraceStats stats;
+  double seconds = 0.0;  // wall time of rendering (scene build excluded)
+  std::uint32_t threads = 0;
+};
+
+LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& settings, const LocalOptions& options);
+
+}  // namespace dtraced::render

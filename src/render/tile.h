@@ -1,0 +1,37 @@
+// dtraced::render tiles: the unit of work of both the local renderer and the farm.
+//
+// render_tile is a pure function of (scene, settings, rect): every sample's random numbers come
+// from a counter-based hash of (seed, frame, x, y, sample index) and each pixel sums its samples
+// in sample order, so a pixel has the same bits whichever tile, thread or host renders it.
+// Thread-safe: any number of tiles may render at once over one shared RenderScene.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "render/integrator.h"
+#include "render/render_scene.h"
+#include "scene/description.h"
+
+namespace dtraced::render {
+
+struct TileRect {
+  std::uint32_t x0 = 0, y0 = 0;
+  std::uint32_t width = 0, height = 0;
+  bool operator==(const TileRect&) const = default;
+};
+
+struct Tile {
+  TileRect rect;
+  std::vector<float> rgb;  // width * height * 3 linear floats, row-major, top row first
+  TraceStats stats;
+};
+
+// Renders the pixels of `rect`, which must lie inside the settings' image.
+Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings, const TileRect& rect);
+
+// The tiles of a width x height image in row-major order, each tile_size square except at the
+// right and bottom edges.
+std::vector<TileRect> split_into_tiles(std::uint32_t width, std::uint32_t height, std::uint32_t tile_size);
+
+}  // namespace dtraced::render
