@@ -7,6 +7,7 @@
 #include <numbers>
 #include <optional>
 
+#include "math/float_util.h"
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "render/shading.h"

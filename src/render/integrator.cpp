@@ -63,20 +63,24 @@ struct Tracer {
   }
 
   // Fraction of a point light's intensity that reaches the shadow ray's end. Opaque surfaces
-  // block; a transparent one passes transparency * (1 - F) at each crossing (no refraction of the
-  // shadow ray: the usual Whitted approximation), so an index-matched clear object casts none.
-  float transmittance(math::Ray ray) {
+  // block. A transparent one passes transparency * (1 - F) at each crossing, the shadow ray going
+  // straight on (the usual Whitted approximation: no caustics). The indices on both sides come
+  // from the same media stack as camera paths use, so an index-matched interface (eta == 1)
+  // passes exactly `transparency`, and F is taken from the less dense side: for a straight ray
+  // the exit angle is not the refracted one, and evaluating it from the dense side would report
+  // total internal reflection where, by reciprocity, the true path transmits 1 - F(entry).
+  float transmittance(math::Ray ray, MediumStack media) {
     float t = 1.0f;
     for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
       accel::Hit hit;
       if (!intersect(ray, hit)) return t;
       const MaterialF& m = scene.material(hit.shape);
       if (m.transparency <= 0.0f) return 0.0f;
-      if (m.ior != 1.0f) {
-        const bool entering = math::dot(ray.d, hit.n) < 0.0f;
+      const float eta = cross_interface(media, hit.shape);
+      if (eta != 1.0f) {
         const Vec3f wo = -ray.d;
-        const Vec3f nf = entering ? hit.n : -hit.n;
-        const Interface it = dielectric_interface(wo, nf, entering ? m.ior : 1.0f / m.ior);
+        const Vec3f nf = math::dot(wo, hit.n) >= 0.0f ? hit.n : -hit.n;
+        const Interface it = dielectric_interface(wo, nf, eta >= 1.0f ? eta : 1.0f / eta);
         t *= m.transparency * (1.0f - it.fresnel);
       } else {
         t *= m.transparency;
@@ -88,7 +92,19 @@ struct Tracer {
     return 0.0f;
   }
 
-  Vec3f direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf) {
+  // Updates `media` for a path crossing transparent shape `id` and returns the relative index of
+  // refraction n_after / n_before of that crossing.
+  float cross_interface(MediumStack& media, std::uint32_t id) const {
+    const float n_from = media.current_ior(scene);
+    if (media.contains(id)) {
+      media.remove(id);
+    } else {
+      media.push(id);
+    }
+    return media.current_ior(scene) / n_from;
+  }
+
+  Vec3f direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const MediumStack& media) {
     Vec3f sum{0, 0, 0};
     for (const PointLightF& light : scene.lights()) {
       const Vec3f to_light = light.position - hit.p;
@@ -104,7 +120,7 @@ struct Tracer {
       const float seg_len = math::length(seg);
       shadow.d = seg / seg_len;
       shadow.t_max = seg_len;  // a point light is not a surface: nothing to stop short of
-      const float vis = transmittance(shadow);
+      const float vis = transmittance(shadow, media);
       if (vis <= 0.0f) continue;
       const float e = vis * cos_l / dist2;  // irradiance per unit intensity
       Vec3f f = m.color * (m.diffuse * kInvPi);
@@ -136,26 +152,13 @@ struct Tracer {
       const bool front = math::dot(wo, hit.n) >= 0.0f;
       const Vec3f nf = front ? hit.n : -hit.n;
 
-      // Relative index of refraction across this surface, from the media stack.
-      float eta = 1.0f;
-      bool entering = false;
-      if (m.transparency > 0.0f) {
-        entering = !media.contains(hit.shape);
-        const float n_from = media.current_ior(scene);
-        float n_to;
-        if (entering) {
-          n_to = m.ior;
-        } else {
-          MediumStack after = media;
-          after.remove(hit.shape);
-          n_to = after.current_ior(scene);
-        }
-        eta = n_to / n_from;
-      }
+      // Relative index of refraction across this surface and the media beyond it.
+      MediumStack inside = media;
+      const float eta = m.transparency > 0.0f ? cross_interface(inside, hit.shape) : 1.0f;
 
       Vec3f radiance{0, 0, 0};
       if (m.local_weight > 0.0f && (m.diffuse > 0.0f || m.specular > 0.0f)) {
-        radiance += direct(hit, m, wo, nf) * m.local_weight;
+        radiance += direct(hit, m, wo, nf, media) * m.local_weight;
       }
       const bool deeper = depth < limits.max_depth;
       if (m.reflectivity > 0.0f && deeper && weight * m.reflectivity >= kMinBranchWeight) {
@@ -165,12 +168,6 @@ struct Tracer {
       }
       if (m.transparency <= 0.0f) return radiance;
 
-      MediumStack inside = media;
-      if (entering) {
-        inside.push(hit.shape);
-      } else {
-        inside.remove(hit.shape);
-      }
       if (eta == 1.0f) {
         // Index-matched: the surface does not bend or reflect light. Continue the very same ray
         // past it (no re-origin, no depth used), so a clear ior-1 object is exactly invisible.
@@ -179,6 +176,9 @@ struct Tracer {
           media = inside;
           continue;
         }
+        // Partly transparent: recurse along the same ray. The branch weight shrinks by the
+        // transparency at each such surface, so the cut-off bounds this recursion.
+        if (weight * m.transparency < kMinBranchWeight) return radiance;
         math::Ray cont = ray;
         cont.t_min = hit.t;
         return radiance + trace(cont, depth, weight * m.transparency, inside) * m.transparency;
