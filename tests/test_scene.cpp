@@ -1,1 +1,523 @@
+// Tests for dtraced::scene: strict loading with located errors, the canonical form and digest,
+// the generated stress scene, and the shipped scenes/*.json.
+#include <unistd.h>
+
+#include <algorithm>
 #include <catch2/catch.hpp>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "scene/digest.h"
+#include "scene/generate.h"
+#include "scene/load.h"
+
+namespace {
+
+using dtraced::scene::canonical_json;
+using dtraced::scene::format_errors;
+using dtraced::scene::generate_sphere_field;
+using dtraced::scene::load_scene_file;
+using dtraced::scene::load_scene_string;
+using dtraced::scene::LoadOptions;
+using dtraced::scene::LoadResult;
+using dtraced::scene::ObjectType;
+using dtraced::scene::scene_digest;
+using dtraced::scene::SceneDesc;
+
+constexpr const char* kFile = "bad.json";
+constexpr std::string_view kCamera = R"({"position": [0, 0, 5], "look_at": [0, 0, 0]})";
+constexpr std::string_view kSphere = R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1})";
+constexpr std::string_view kLight = R"({"type": "point", "loc": [5, 5, 5]})";
+
+// A scene that is valid until one part is replaced by a broken one.
+struct SceneParts {
+  std::string camera{kCamera};
+  std::string render = "{}";
+  std::string objects = "[" + std::string(kSphere) + "]";
+  std::string lights = "[" + std::string(kLight) + "]";
+
+  std::string json() const {
+    return "{\"camera\": " + camera + ", \"render\": " + render + ", \"scene_objects\": " + objects +
+           ", \"scene_lights\": " + lights + "}";
+  }
+};
+
+std::string with_camera(std::string camera) {
+  SceneParts p;
+  p.camera = std::move(camera);
+  return p.json();
+}
+std::string with_render(std::string render) {
+  SceneParts p;
+  p.render = std::move(render);
+  return p.json();
+}
+std::string with_object(std::string object) {
+  SceneParts p;
+  p.objects = "[" + object + "]";
+  return p.json();
+}
+std::string with_light(std::string light) {
+  SceneParts p;
+  p.lights = "[" + light + "]";
+  return p.json();
+}
+std::string with_material(std::string material) {
+  return with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1, "material": )" + material + "}");
+}
+
+bool has_error(const LoadResult& r, std::string_view path, std::string_view fragment) {
+  return std::any_of(r.errors.begin(), r.errors.end(), [&](const auto& e) {
+    return e.file == kFile && e.path == path && e.message.find(fragment) != std::string::npos;
+  });
+}
+
+std::string source_path(std::string_view relative) {
+  return std::string(DTRACED_SOURCE_DIR) + "/" + std::string(relative);
+}
+
+SceneDesc load_ok(std::string_view json) {
+  LoadResult r = load_scene_string(json, "ok.json");
+  INFO(format_errors(r.errors));
+  REQUIRE(r.ok());
+  return *r.scene;
+}
+
+// A file removed when the test ends, however it ends.
+class TempFile {
+ public:
+  explicit TempFile(std::string_view contents)
+      : path_((std::filesystem::temp_directory_path() / ("dtraced_test_scene_" + std::to_string(::getpid()) + ".json"))
+                  .string()) {
+    std::ofstream(path_, std::ios::binary) << contents;
+  }
+  ~TempFile() { std::filesystem::remove(path_); }
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+};
+
+struct BadCase {
+  const char* name;
+  std::string json;
+  std::string path;
+  std::string fragment;
+};
+
+std::string deep_nesting_scene(int arrays) {
+  SceneParts p;
+  p.render = "{\"x\": " + std::string(arrays, '[') + std::string(arrays, ']') + "}";
+  return p.json();
+}
+
+}  // namespace
+
+TEST_CASE("malformed scenes report the file and the exact JSON path", "[scene][errors]") {
+  // Root object, "render" object, then 62 arrays fill the 64 levels; the 63rd array is one too
+  // many and sits at index 0 of the 62nd.
+  std::string deep_path = "/render/x";
+  for (int i = 0; i < 62; ++i) deep_path += "/0";
+
+  const std::vector<BadCase> cases = {
+      {"syntax error, located by line and column",
+       "{\n  \"camera\": {\"position\": [0,0,5],, \"look_at\": [0,0,0]},\n \"scene_objects\": [], \"scene_lights\": "
+       "[]}",
+       "/camera", "invalid JSON at line 2, column 34"},
+      {"truncated document", "{\"camera\": {\"position\": [0, 0", "/camera/position/2", "unexpected end of input"},
+      {"empty input", "", "", "unexpected end of input"},
+      {"data after the document", SceneParts().json() + " {}", "", "unexpected data after the JSON document"},
+      {"nesting deeper than 64", deep_nesting_scene(63), deep_path, "deeper than the limit of 64 levels"},
+      {"1e400 overflows a double", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1e400})"),
+       "/scene_objects/0/radius", "overflows a double"},
+      {"1e39 overflows a float", with_object(R"({"type": "sphere", "loc": [0, 1e39, 0], "radius": 1})"),
+       "/scene_objects/0/loc/1", "outside the float range"},
+      {"-1e39 overflows a float", with_camera(R"({"position": [-1e39, 0, 5]})"), "/camera/position/0",
+       "outside the float range"},
+      {"string where a number goes", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": "1"})"),
+       "/scene_objects/0/radius", "expected a number, got a string"},
+      {"null where a number goes", with_material(R"({"color": [null, 0, 0]})"), "/scene_objects/0/material/color/0",
+       "expected a number, got null"},
+      {"object where an array goes", with_camera(R"({"up": {"x": 0}})"), "/camera/up",
+       "expected an array of 3 numbers, got an object"},
+      {"unknown object key, with a suggestion",
+       with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1, "raduis": 2})"), "/scene_objects/0/raduis",
+       "did you mean \"radius\"?"},
+      {"unknown material key", with_material(R"({"colour": [1, 0, 0]})"), "/scene_objects/0/material/colour",
+       "did you mean \"color\"?"},
+      {"unknown top-level key lists the known ones", SceneParts().json().insert(1, "\"frobnicate\": 1, "),
+       "/frobnicate", "known keys: camera, render, scene_objects, scene_lights"},
+      {"unknown render key, with an alias suggestion", with_render(R"({"spp": 4})"), "/render/spp",
+       "unknown key \"spp\" (did you mean \"samples\"?)"},
+      {"another renderer's name for loc",
+       with_object(R"({"type": "sphere", "loc": [0, 0, 0], "center": [0, 0, 0], "radius": 1})"),
+       "/scene_objects/0/center", "did you mean \"loc\"?"},
+      {"unknown light key", with_light(R"({"type": "point", "loc": [0, 5, 0], "power": 3})"), "/scene_lights/0/power",
+       "unknown key"},
+      {"key needing JSON Pointer escapes", SceneParts().json().insert(1, "\"a/b~c\": 1, "), "/a~1b~0c", "unknown key"},
+      {"duplicate key", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1, "radius": 2})"),
+       "/scene_objects/0/radius", "duplicate key \"radius\""},
+      {"missing radius", with_object(R"({"type": "sphere", "loc": [0, 0, 0]})"), "/scene_objects/0/radius",
+       "required key is missing"},
+      {"missing type", with_object(R"({"loc": [0, 0, 0], "radius": 1})"), "/scene_objects/0/type",
+       "required key is missing"},
+      {"missing light position", with_light(R"({"type": "point", "intensity": 3})"), "/scene_lights/0/loc",
+       "required key is missing"},
+      {"missing camera", R"({"scene_objects": [], "scene_lights": []})", "/camera", "required key is missing"},
+      {"top level is not an object", "[1, 2]", "", "expected a JSON object at the top level, got an array"},
+      {"scene_objects is not an array", SceneParts{.objects = "{}"}.json(), "/scene_objects",
+       "expected an array, got an object"},
+      {"object is not an object", SceneParts{.objects = "[1]"}.json(), "/scene_objects/0",
+       "expected an object, got a number"},
+      {"material is not an object", with_material("true"), "/scene_objects/0/material",
+       "expected an object, got a boolean"},
+      {"radius -1", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": -1})"), "/scene_objects/0/radius",
+       "must be > 0 (got -1)"},
+      {"radius 0", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 0})"), "/scene_objects/0/radius",
+       "must be > 0 (got 0)"},
+      {"ior 0", with_material(R"({"ior": 0})"), "/scene_objects/0/material/ior", "must be > 0 (got 0)"},
+      {"fov 180", with_camera(R"({"position": [0, 0, 5], "fov": 180})"), "/camera/fov",
+       "open interval (0, 180) (got 180)"},
+      {"fov 0", with_camera(R"({"position": [0, 0, 5], "fov": 0})"), "/camera/fov", "open interval (0, 180) (got 0)"},
+      {"zero plane normal", with_object(R"({"type": "plane", "loc": [0, 0, 0], "normal": [0, 0, 0]})"),
+       "/scene_objects/0/normal", "must not be zero length"},
+      {"up parallel to the view direction", with_camera(R"({"position": [0, 5, 0], "look_at": [0, 0, 0]})"),
+       "/camera/up", "must not be parallel to the view direction"},
+      {"up nearly parallel", with_camera(R"({"position": [0, 0, 5], "up": [0, 1e-9, -1]})"), "/camera/up",
+       "must not be parallel"},
+      {"zero up", with_camera(R"({"up": [0, 0, 0]})"), "/camera/up", "must not be the zero vector"},
+      {"position == look_at", with_camera(R"({"position": [1, 2, 3], "look_at": [1, 2, 3]})"), "/camera/look_at",
+       "must differ from the camera position"},
+      {"position == look_at once in float",
+       with_camera(R"({"position": [1, 2, 3], "look_at": [1.0000000000000002, 2, 3]})"), "/camera/look_at",
+       "must differ"},
+      {"array of the wrong length", with_object(R"({"type": "sphere", "loc": [0, 0], "radius": 1})"),
+       "/scene_objects/0/loc", "expected an array of 3 numbers, got 2 elements"},
+      {"colour of 4 channels", with_material(R"({"color": [1, 1, 1, 1]})"), "/scene_objects/0/material/color",
+       "got 4 elements"},
+      {"reflectivity + transparency > 1", with_material(R"({"reflectivity": 0.7, "transparency": 0.6})"),
+       "/scene_objects/0/material", "reflectivity + transparency must be <= 1 (got 0.7 + 0.6)"},
+      {"negative colour", with_material(R"({"color": [1, 1, -0.5]})"), "/scene_objects/0/material/color/2",
+       "must be >= 0 (got -0.5)"},
+      {"negative background", with_render(R"({"background": [-1, 0, 0]})"), "/render/background/0", "must be >= 0"},
+      {"diffuse above 1", with_material(R"({"diffuse": 1.5})"), "/scene_objects/0/material/diffuse",
+       "must be in [0, 1] (got 1.5)"},
+      {"specular below 0", with_material(R"({"specular": -0.1})"), "/scene_objects/0/material/specular",
+       "must be in [0, 1]"},
+      {"transparency above 1", with_material(R"({"transparency": 2})"), "/scene_objects/0/material/transparency",
+       "must be in [0, 1]"},
+      {"shininess above 1e4", with_material(R"({"shininess": 2e4})"), "/scene_objects/0/material/shininess",
+       "must be in [0, 10000] (got 20000)"},
+      {"shininess below 0", with_material(R"({"shininess": -1})"), "/scene_objects/0/material/shininess",
+       "must be in [0, 10000]"},
+      {"negative intensity", with_light(R"({"type": "point", "loc": [0, 5, 0], "intensity": -1})"),
+       "/scene_lights/0/intensity", "must be >= 0 (got -1)"},
+      {"width 0", with_render(R"({"width": 0})"), "/render/width", "must be an integer in [1, 16384] (got 0)"},
+      {"width 10.5", with_render(R"({"width": 10.5})"), "/render/width", "must be an integer (got 10.5)"},
+      {"width too large", with_render(R"({"width": 16385})"), "/render/width", "[1, 16384]"},
+      {"negative height", with_render(R"({"height": -3})"), "/render/height", "(got -3)"},
+      {"height as a string", with_render(R"({"height": "480"})"), "/render/height",
+       "expected an integer, got a string"},
+      {"samples 0", with_render(R"({"samples": 0})"), "/render/samples", "[1, 65536] (got 0)"},
+      {"samples too many", with_render(R"({"samples": 70000})"), "/render/samples", "[1, 65536]"},
+      {"max_depth too deep", with_render(R"({"max_depth": 65})"), "/render/max_depth", "[0, 64] (got 65)"},
+      {"seed 2^53", with_render(R"({"seed": 9007199254740992})"), "/render/seed", "[0, 9007199254740991]"},
+      {"seed negative", with_render(R"({"seed": -1})"), "/render/seed", "(got -1)"},
+      {"seed fractional", with_render(R"({"seed": 1.5})"), "/render/seed", "must be an integer"},
+      {"seed beyond uint64", with_render(R"({"seed": 1e30})"), "/render/seed", "[0, 9007199254740991]"},
+      {"unknown object type", with_object(R"({"type": "cone", "loc": [0, 0, 0], "radius": 1})"),
+       "/scene_objects/0/type", "unknown object type \"cone\"; known types: sphere, box, plane"},
+      {"type is not a string", with_object(R"({"type": 3, "loc": [0, 0, 0], "radius": 1})"), "/scene_objects/0/type",
+       "expected a string"},
+      {"unknown light type", with_light(R"({"type": "spot", "loc": [0, 5, 0]})"), "/scene_lights/0/type",
+       "unknown light type \"spot\"; known types: point"},
+      {"box size 0", with_object(R"({"type": "box", "loc": [0, 0, 0], "size": [1, 0, 1]})"), "/scene_objects/0/size/1",
+       "must be > 0 (got 0)"},
+      {"box in both forms", with_object(R"({"type": "box", "loc": [0, 0, 0], "size": [1, 1, 1], "max": [1, 1, 1]})"),
+       "/scene_objects/0", "not both"},
+      {"box with min only", with_object(R"({"type": "box", "min": [0, 0, 0]})"), "/scene_objects/0/max",
+       "required key is missing"},
+      {"box min not below max", with_object(R"({"type": "box", "min": [0, 0, 2], "max": [1, 1, 2]})"),
+       "/scene_objects/0/max/2", "must be greater than min"},
+      {"box too thin to represent", with_object(R"({"type": "box", "loc": [1e10, 0, 0], "size": [1e-10, 1, 1]})"),
+       "/scene_objects/0/size/0", "too small to be represented"},
+      {"sphere key on a plane", with_object(R"({"type": "plane", "loc": [0, 0, 0], "normal": [0, 1, 0], "radius": 1})"),
+       "/scene_objects/0/radius", "unknown key"},
+  };
+
+  for (const BadCase& c : cases) {
+    const LoadResult r = load_scene_string(c.json, kFile);
+    INFO("case: " << c.name << "\nerrors:\n" << format_errors(r.errors));
+    CHECK_FALSE(r.ok());
+    CHECK_FALSE(r.scene.has_value());
+    CHECK(r.errors.size() == 1);
+    CHECK(has_error(r, c.path, c.fragment));
+  }
+}
+
+TEST_CASE("an error prints as FILE: PATH: MESSAGE", "[scene][errors]") {
+  const LoadResult r = load_scene_string(with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": -1})"), kFile);
+  REQUIRE(r.errors.size() == 1);
+  CHECK(r.errors[0].to_string() == "bad.json: /scene_objects/0/radius: must be > 0 (got -1)");
+  CHECK(format_errors(r.errors) == "bad.json: /scene_objects/0/radius: must be > 0 (got -1)\n");
+}
+
+TEST_CASE("every error in a scene is reported, not just the first", "[scene][errors]") {
+  SceneParts p;
+  p.camera = R"({"position": [0, 0, 5], "fov": 180})";
+  p.objects = R"([{"type": "sphere", "loc": [0, 0, 0], "radius": -1},
+                  {"type": "sphere", "loc": [0, 2, 0], "radius": 1, "material": {"ior": 0}}])";
+  const LoadResult r = load_scene_string(p.json(), kFile);
+  INFO(format_errors(r.errors));
+  REQUIRE(r.errors.size() == 3);
+  CHECK(has_error(r, "/camera/fov", "(0, 180)"));
+  CHECK(has_error(r, "/scene_objects/0/radius", "must be > 0"));
+  CHECK(has_error(r, "/scene_objects/1/material/ior", "must be > 0"));
+}
+
+TEST_CASE("the error list is capped, with a count of the rest", "[scene][errors]") {
+  SceneParts p;
+  p.objects = "[";
+  for (int i = 0; i < 20; ++i)
+    p.objects += std::string(i ? "," : "") + R"({"type": "sphere", "loc": [0, 0, 0], "radius": -1})";
+  p.objects += "]";
+  LoadOptions options;
+  options.max_errors = 5;
+  const LoadResult r = load_scene_string(p.json(), kFile, options);
+  REQUIRE(r.errors.size() == 6);
+  CHECK(r.errors[4].path == "/scene_objects/4/radius");
+  CHECK(r.errors[5].message == "15 more errors not shown");
+}
+
+TEST_CASE("too many lights is one error on the list", "[scene][errors]") {
+  SceneParts p;
+  p.lights = "[";
+  for (std::size_t i = 0; i <= dtraced::scene::kMaxLights; ++i)
+    p.lights += std::string(i ? "," : "") + std::string(kLight);
+  p.lights += "]";
+  const LoadResult r = load_scene_string(p.json(), kFile);
+  REQUIRE(r.errors.size() == 1);
+  CHECK(has_error(r, "/scene_lights", "too many lights: 10001 (limit 10000)"));
+}
+
+TEST_CASE("defaults fill what a scene leaves out", "[scene][load]") {
+  const SceneDesc d = load_ok(SceneParts().json());
+  const SceneDesc defaults;
+  CHECK(d.render == defaults.render);
+  CHECK(d.camera.up == defaults.camera.up);
+  CHECK(d.camera.fov_deg == defaults.camera.fov_deg);
+  REQUIRE(d.objects.size() == 1);
+  CHECK(d.objects[0].material == dtraced::scene::Material{});
+  REQUIRE(d.lights.size() == 1);
+  CHECK(d.lights[0].intensity == 1.0);
+  CHECK(d.lights[0].color == dtraced::scene::Color{1, 1, 1});
+}
+
+TEST_CASE("boxes, planes and integral numbers are read as documented", "[scene][load]") {
+  SceneParts p;
+  p.objects = R"([{"type": "box", "loc": [1, 2, 3], "size": [2, 4, 6]},
+                  {"type": "box", "min": [-1, -1, -1], "max": [1, 1, 1]},
+                  {"type": "plane", "loc": [0, -1, 0], "normal": [0, 3, 4]}])";
+  p.render = R"({"width": 320.0, "height": 2e2, "seed": 9007199254740991})";
+  const SceneDesc d = load_ok(p.json());
+  REQUIRE(d.objects.size() == 3);
+  CHECK(d.objects[0].type == ObjectType::kBox);
+  CHECK(d.objects[0].box.min == dtraced::math::Vec3d{0, 0, 0});
+  CHECK(d.objects[0].box.max == dtraced::math::Vec3d{2, 4, 6});
+  CHECK(d.objects[1].box.min == dtraced::math::Vec3d{-1, -1, -1});
+  CHECK(d.objects[2].type == ObjectType::kPlane);
+  CHECK(d.objects[2].plane.normal.y == Approx(0.6));
+  CHECK(d.objects[2].plane.normal.z == Approx(0.8));
+  CHECK(d.render.width == 320);
+  CHECK(d.render.height == 200);
+  CHECK(d.render.seed == 9007199254740991ull);
+}
+
+TEST_CASE("doubles are read correctly rounded", "[scene][load]") {
+  // Boost.JSON 1.81's own conversion reads this one ulp off; the loader must not.
+  const SceneDesc d = load_ok(with_object(R"({"type": "sphere", "loc": [60.647264433458076, 0, 0], "radius": 1})"));
+  CHECK(d.objects[0].sphere.center.x == 60.647264433458076);
+}
+
+TEST_CASE("an empty scene loads, with warnings", "[scene][load]") {
+  const LoadResult r = load_scene_string(R"({"camera": {}, "scene_objects": [], "scene_lights": []})", "empty.json");
+  REQUIRE(r.ok());
+  CHECK(r.warnings.size() == 2);
+}
+
+TEST_CASE("every scene in scenes/ loads without errors or warnings", "[scene][files]") {
+  std::vector<std::string> files;
+  for (const auto& entry : std::filesystem::directory_iterator(source_path("scenes"))) {
+    if (entry.path().extension() == ".json") files.push_back(entry.path().string());
+  }
+  std::sort(files.begin(), files.end());
+  REQUIRE(files.size() >= 3);
+  for (const std::string& file : files) {
+    const LoadResult r = load_scene_file(file);
+    INFO(file << "\n" << format_errors(r.errors) << format_errors(r.warnings));
+    CHECK(r.ok());
+    CHECK(r.warnings.empty());
+    if (!r.ok()) continue;
+
+    // The canonical form is a scene file that reads back to the same scene, and is a fixed point.
+    const std::string canonical = canonical_json(*r.scene);
+    const LoadResult again = load_scene_string(canonical, file + " (canonical)");
+    REQUIRE(again.ok());
+    CHECK(*again.scene == *r.scene);
+    CHECK(canonical_json(*again.scene) == canonical);
+  }
+}
+
+TEST_CASE("the canonical form is pinned", "[scene][digest]") {
+  // A change here changes every digest in every cache: make it on purpose or not at all.
+  const SceneDesc d = load_ok(R"({"camera": {"position": [0, 0.5, 5]}, "render": {"seed": 3},
+      "scene_objects": [{"type": "box", "loc": [0, 0, 0], "size": [1, 1, 1], "material": {"ior": 1.25}}],
+      "scene_lights": [{"type": "point", "loc": [1, 2, 3], "intensity": 10}]})");
+  CHECK(canonical_json(d) ==
+        R"({"camera":{"position":[0,5E-1,5],"look_at":[0,0,0],"up":[0,1,0],"fov":45},)"
+        R"("render":{"width":640,"height":480,"samples":1,"max_depth":8,"background":[0,0,0],"seed":3,"frame":0},)"
+        R"("scene_objects":[{"type":"box","min":[-5E-1,-5E-1,-5E-1],"max":[5E-1,5E-1,5E-1],)"
+        R"("material":{"color":[8E-1,8E-1,8E-1],"diffuse":1,"specular":0,"shininess":32,"reflectivity":0,)"
+        R"("transparency":0,"ior":1.25E0}}],)"
+        R"("scene_lights":[{"type":"point","loc":[1,2,3],"color":[1,1,1],"intensity":10}]})");
+  CHECK(scene_digest(d).size() == 64);
+}
+
+TEST_CASE("the digest ignores layout and explicit defaults, and sees every semantic change", "[scene][digest]") {
+  const std::string base = R"({"camera": {"position": [0, 1, 6], "look_at": [0, 1, 0]},
+    "scene_objects": [
+      {"type": "sphere", "loc": [0, 1, 0], "radius": 1, "material": {"color": [1, 0, 0]}},
+      {"type": "plane", "loc": [0, 0, 0], "normal": [0, 1, 0]},
+      {"type": "box", "loc": [0, 0.5, 0], "size": [2, 1, 2]}],
+    "scene_lights": [{"type": "point", "loc": [5, 5, 5], "intensity": 100}]})";
+  // Same scene: keys reordered, other whitespace, defaults spelled out, integers as doubles,
+  // a non-unit normal, the box by its corners.
+  const std::string same = R"(
+  {
+    "scene_lights" : [ { "intensity" : 100.0, "loc" : [ 5, 5, 5 ], "color": [1, 1, 1], "type" : "point" } ],
+    "render": {"width": 640, "height": 480, "samples": 1, "max_depth": 8, "background": [0, 0, 0], "seed": 0, "frame": 0},
+    "scene_objects" : [
+      { "material" : { "ior": 1.5, "color" : [ 1, 0, 0 ], "diffuse": 1, "specular": 0, "shininess": 32,
+                       "reflectivity": 0, "transparency": 0 },
+        "radius" : 1e0, "loc" : [ 0, 1, 0 ], "type" : "sphere" },
+      { "type" : "plane", "normal" : [ 0, 2.5, 0 ], "loc" : [ -0.0, 0, 0 ], "material": {} },
+      { "type" : "box", "min" : [ -1, 0, -1 ], "max" : [ 1, 1, 1 ] }
+    ],
+    "camera" : { "up" : [ 0, 1, 0 ], "fov" : 45, "look_at" : [ 0, 1, 0 ], "position" : [ 0, 1, 6 ] }
+  }
+  )";
+  const std::string digest = scene_digest(load_ok(base));
+  CHECK(scene_digest(load_ok(same)) == digest);
+  CHECK(load_ok(same) == load_ok(base));
+
+  const auto changed = [&](std::string_view from, std::string_view to) {
+    std::string s = base;
+    const auto at = s.find(from);
+    REQUIRE(at != std::string::npos);
+    s.replace(at, from.size(), to);
+    return scene_digest(load_ok(s));
+  };
+  CHECK(changed(R"("radius": 1)", R"("radius": 1.0000000000000002)") != digest);
+  CHECK(changed(R"("color": [1, 0, 0])", R"("color": [1, 0, 0.001])") != digest);
+  CHECK(changed(R"("intensity": 100)", R"("intensity": 99)") != digest);
+  CHECK(changed(R"("size": [2, 1, 2])", R"("size": [2, 1, 2.5])") != digest);
+  CHECK(changed(R"("look_at": [0, 1, 0])", R"("look_at": [0, 1, 0], "fov": 46)") != digest);
+  CHECK(changed(R"("scene_objects")", R"("render": {"samples": 2}, "scene_objects")") != digest);
+  CHECK(changed(R"("scene_objects")", R"("render": {"frame": 1}, "scene_objects")") != digest);
+}
+
+TEST_CASE("the sphere field is deterministic and loadable", "[scene][generate]") {
+  const SceneDesc a = generate_sphere_field(1000, 7);
+  const SceneDesc b = generate_sphere_field(1000, 7);
+  CHECK(a == b);
+  CHECK(scene_digest(a) == scene_digest(b));
+  CHECK(scene_digest(generate_sphere_field(1000, 8)) != scene_digest(a));
+
+  std::vector<dtraced::scene::Sphere> spheres;
+  std::size_t planes = 0;
+  std::size_t mirrors = 0;
+  std::size_t glass = 0;
+  for (const auto& o : a.objects) {
+    if (o.type == ObjectType::kPlane) ++planes;
+    if (o.type != ObjectType::kSphere) continue;
+    spheres.push_back(o.sphere);
+    if (o.material.reflectivity > 0) ++mirrors;
+    if (o.material.transparency > 0) ++glass;
+    CHECK(o.sphere.center.y == o.sphere.radius);  // resting on the ground
+  }
+  CHECK(spheres.size() == 1000);
+  CHECK(planes >= 1);
+  CHECK(mirrors > 50);
+  CHECK(glass > 10);
+  CHECK(mirrors + glass < 400);
+  CHECK(a.lights.size() >= 2);
+  CHECK(a.lights.size() <= 3);
+  CHECK(a.render.width == 1280);
+  CHECK(a.render.height == 720);
+  CHECK(a.render.samples == 1);
+  CHECK(a.render.seed == 7);
+
+  std::size_t overlaps = 0;
+  for (std::size_t i = 0; i < spheres.size(); ++i) {
+    for (std::size_t j = i + 1; j < spheres.size(); ++j) {
+      const double r = spheres[i].radius + spheres[j].radius;
+      if (dtraced::math::length_squared(spheres[i].center - spheres[j].center) < r * r) ++overlaps;
+    }
+  }
+  CHECK(overlaps == 0);
+
+  // Arbitrary doubles everywhere: the canonical form must still read back bit for bit.
+  const LoadResult r = load_scene_string(canonical_json(a), "generated.json");
+  INFO(format_errors(r.errors));
+  REQUIRE(r.ok());
+  CHECK(*r.scene == a);
+  CHECK(r.warnings.empty());
+}
+
+TEST_CASE("an empty sphere field is still a valid scene", "[scene][generate]") {
+  const SceneDesc d = generate_sphere_field(0, 1);
+  const LoadResult r = load_scene_string(canonical_json(d), "generated.json");
+  REQUIRE(r.ok());
+  CHECK(*r.scene == d);
+}
+
+TEST_CASE("file-level errors name the file", "[scene][files]") {
+  SECTION("missing file") {
+    const std::string missing = "/nonexistent/dtraced/scene.json";
+    const LoadResult r = load_scene_file(missing);
+    REQUIRE(r.errors.size() == 1);
+    CHECK_FALSE(r.scene.has_value());
+    CHECK(r.errors[0].file == missing);
+    CHECK(r.errors[0].path.empty());
+    CHECK(r.errors[0].message.find("cannot open") != std::string::npos);
+    CHECK(r.errors[0].to_string().rfind(missing + ": ", 0) == 0);
+  }
+  SECTION("file over the size limit") {
+    const TempFile file(SceneParts().json());
+    LoadOptions options;
+    options.max_bytes = 100;
+    const LoadResult r = load_scene_file(file.path(), options);
+    REQUIRE(r.errors.size() == 1);
+    CHECK(r.errors[0].file == file.path());
+    CHECK(r.errors[0].message.find("larger than the limit of 100 bytes") != std::string::npos);
+    CHECK(load_scene_file(file.path()).ok());
+  }
+  SECTION("string over the size limit") {
+    LoadOptions options;
+    options.max_bytes = 10;
+    const LoadResult r = load_scene_string(SceneParts().json(), "upload.json", options);
+    REQUIRE(r.errors.size() == 1);
+    CHECK(r.errors[0].file == "upload.json");
+    CHECK(r.errors[0].message.find("larger than the limit of 10 bytes") != std::string::npos);
+  }
+  SECTION("syntax errors in a file name it") {
+    const TempFile file("{\"camera\": }");
+    const LoadResult r = load_scene_file(file.path());
+    REQUIRE(r.errors.size() == 1);
+    CHECK(r.errors[0].file == file.path());
+    CHECK(r.errors[0].path == "/camera");
+  }
+}

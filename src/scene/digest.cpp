@@ -1,0 +1,124 @@
+#include "scene/digest.h"
+
+#include <boost/json/array.hpp>
+#include <boost/json/monotonic_resource.hpp>
+#include <boost/json/object.hpp>
+#include <boost/json/serialize.hpp>
+#include <boost/json/value.hpp>
+#include <cmath>
+#include <cstdint>
+#include <utility>
+
+#include "util/sha256.h"
+
+namespace dtraced::scene {
+namespace {
+
+namespace json = boost::json;
+
+// Integral values print as integers ("640", not Boost's "6.4E2") for a readable canonical
+// file. Within 2^53 an integer converts back to the identical double. The loader has already
+// turned -0 into +0, so dropping the sign here loses nothing.
+json::value number(double d, const json::storage_ptr& sp) {
+  constexpr double kExactIntegers = 9007199254740992.0;  // 2^53
+  if (d == std::floor(d) && std::abs(d) <= kExactIntegers) return json::value(static_cast<std::int64_t>(d), sp);
+  // Boost serialises doubles with Ryu: the shortest digits that read back (correctly rounded,
+  // as the loader reads them) to the same double.
+  return json::value(d, sp);
+}
+
+json::value vec3(const math::Vec3d& v, const json::storage_ptr& sp) {
+  json::array a(sp);
+  a.reserve(3);
+  a.push_back(number(v.x, sp));
+  a.push_back(number(v.y, sp));
+  a.push_back(number(v.z, sp));
+  return json::value(std::move(a));
+}
+
+// Objects are built key by key: boost::json::object keeps insertion order, which is the
+// canonical order. Every value shares the caller's arena (`sp`): a value moved between storages
+// is copied, and a 100k-object tree built on the heap costs more than its serialisation.
+json::value material(const Material& m, const json::storage_ptr& sp) {
+  json::object o(7, sp);
+  o["color"] = vec3(m.color, sp);
+  o["diffuse"] = number(m.diffuse, sp);
+  o["specular"] = number(m.specular, sp);
+  o["shininess"] = number(m.shininess, sp);
+  o["reflectivity"] = number(m.reflectivity, sp);
+  o["transparency"] = number(m.transparency, sp);
+  o["ior"] = number(m.ior, sp);
+  return json::value(std::move(o));
+}
+
+json::value scene_object(const Object& object, const json::storage_ptr& sp) {
+  json::object o(6, sp);
+  switch (object.type) {
+    case ObjectType::kSphere:
+      o["type"] = "sphere";
+      o["loc"] = vec3(object.sphere.center, sp);
+      o["radius"] = number(object.sphere.radius, sp);
+      break;
+    case ObjectType::kBox:
+      // Corners, not centre and size: min -> centre/size -> min does not round-trip in double.
+      o["type"] = "box";
+      o["min"] = vec3(object.box.min, sp);
+      o["max"] = vec3(object.box.max, sp);
+      break;
+    case ObjectType::kPlane:
+      o["type"] = "plane";
+      o["loc"] = vec3(object.plane.point, sp);
+      o["normal"] = vec3(object.plane.normal, sp);
+      break;
+  }
+  o["material"] = material(object.material, sp);
+  return json::value(std::move(o));
+}
+
+}  // namespace
+
+std::string canonical_json(const SceneDesc& desc) {
+  json::monotonic_resource arena;
+  const json::storage_ptr sp(&arena);
+  json::object root(4, sp);
+
+  json::object camera(4, sp);
+  camera["position"] = vec3(desc.camera.position, sp);
+  camera["look_at"] = vec3(desc.camera.look_at, sp);
+  camera["up"] = vec3(desc.camera.up, sp);
+  camera["fov"] = number(desc.camera.fov_deg, sp);
+  root["camera"] = std::move(camera);
+
+  json::object render(7, sp);
+  render["width"] = desc.render.width;
+  render["height"] = desc.render.height;
+  render["samples"] = desc.render.samples;
+  render["max_depth"] = desc.render.max_depth;
+  render["background"] = vec3(desc.render.background, sp);
+  render["seed"] = desc.render.seed;
+  render["frame"] = desc.render.frame;
+  root["render"] = std::move(render);
+
+  json::array objects(sp);
+  objects.reserve(desc.objects.size());
+  for (const Object& object : desc.objects) objects.push_back(scene_object(object, sp));
+  root["scene_objects"] = std::move(objects);
+
+  json::array lights(sp);
+  lights.reserve(desc.lights.size());
+  for (const PointLight& light : desc.lights) {
+    json::object o(4, sp);
+    o["type"] = "point";
+    o["loc"] = vec3(light.position, sp);
+    o["color"] = vec3(light.color, sp);
+    o["intensity"] = number(light.intensity, sp);
+    lights.push_back(json::value(std::move(o)));
+  }
+  root["scene_lights"] = std::move(lights);
+
+  return json::serialize(root);
+}
+
+std::string scene_digest(const SceneDesc& desc) { return util::sha256_hex(canonical_json(desc)); }
+
+}  // namespace dtraced::scene
