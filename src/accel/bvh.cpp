@@ -1,0 +1,310 @@
+// dtraced::accel BVH: binned-SAH build into a depth-first node array, and iterative nearest-hit /
+// any-hit traversal with a fixed stack. Planes are infinite and tested linearly beside the tree.
+#include <algorithm>
+#include <array>
+#include <cassert>
+#include <chrono>
+#include <limits>
+#include <utility>
+
+#include "accel/geometry.h"
+#include "accel/kernels.h"
+
+namespace dtraced::accel {
+
+namespace {
+
+constexpr int kBins = 32;
+constexpr std::uint32_t kMaxLeafSize = 4;
+// Cost of visiting an interior node relative to testing one shape (SAH units).
+constexpr double kTraversalCost = 0.5;
+constexpr std::uint32_t kNoParent = std::numeric_limits<std::uint32_t>::max();
+
+struct BuildPrim {
+  Bounds3f bounds;
+  Vec3f centroid;
+  std::uint32_t id = 0;
+};
+
+// A range of build prims still to become a node. `parent` is set for second children, whose index
+// must be written into their parent's `offset` when they are created; first children need no
+// patch because they directly follow their parent.
+struct Task {
+  std::uint32_t begin = 0;
+  std::uint32_t end = 0;
+  std::uint32_t depth = 0;
+  std::uint32_t parent = kNoParent;
+};
+
+// Surface area in double: float extents up to 3e38 would overflow a float product.
+double area(const Bounds3f& b) {
+  if (b.empty()) return 0.0;
+  const double ex = double(b.hi.x) - b.lo.x, ey = double(b.hi.y) - b.lo.y, ez = double(b.hi.z) - b.lo.z;
+  return 2.0 * (ex * ey + ey * ez + ez * ex);
+}
+
+// Bin of a centroid coordinate, in double so a tiny extent cannot overflow the scale or hand a
+// NaN to the int conversion.
+int bin_of(float c, double lo, double scale) {
+  const double x = (double(c) - lo) * scale;
+  return std::clamp(int(x), 0, kBins - 1);
+}
+
+}  // namespace
+
+Geometry Geometry::build(std::vector<Shape> shapes) {
+  static_assert(sizeof(Node) == 32 && sizeof(Prim) == 32, "two nodes / prims per 64-byte cache line");
+  const auto start = std::chrono::steady_clock::now();
+  Geometry g;
+  g.shapes_ = std::move(shapes);
+
+  std::vector<BuildPrim> refs;
+  refs.reserve(g.shapes_.size());
+  for (std::uint32_t id = 0; id < g.shapes_.size(); ++id) {
+    const Shape& s = g.shapes_[id];
+    if (!detail::shape_is_valid(s)) continue;
+    if (s.type == ShapeType::kPlane) {
+      g.planes_.push_back(id);
+      continue;
+    }
+    const Bounds3f b = shape_bounds(s);
+    refs.push_back({b, b.centroid(), id});
+  }
+
+  std::uint32_t leaves = 0;
+  std::uint32_t max_depth = 0;
+  if (!refs.empty()) {
+    g.nodes_.reserve(2 * refs.size());
+    std::vector<Task> stack;
+    stack.push_back({0, std::uint32_t(refs.size()), 0, kNoParent});
+    while (!stack.empty()) {
+      const Task task = stack.back();
+      stack.pop_back();
+      const auto index = std::uint32_t(g.nodes_.size());
+      if (task.parent != kNoParent) g.nodes_[task.parent].offset = index;
+      g.nodes_.emplace_back();
+      max_depth = std::max(max_depth, task.depth);
+
+      Bounds3f bounds, centroids;
+      for (std::uint32_t i = task.begin; i < task.end; ++i) {
+        bounds.extend(refs[i].bounds);
+        centroids.extend(refs[i].centroid);
+      }
+      Node& node = g.nodes_.back();
+      for (int i = 0; i < 3; ++i) {
+        node.bounds[i] = bounds.lo[i];
+        node.bounds[3 + i] = bounds.hi[i];
+      }
+      node.count = 0;
+      node.axis = 0;
+
+      const std::uint32_t n = task.end - task.begin;
+      auto make_leaf = [&] {
+        node.offset = task.begin;
+        node.count = n;
+        ++leaves;
+      };
+      if (n == 1 || task.depth + 1 >= kMaxDepth) {
+        make_leaf();
+        continue;
+      }
+
+      const auto axis = std::uint32_t(math::max_dimension(centroids.extent()));
+      const double c_lo = centroids.lo[axis];
+      const double c_extent = double(centroids.hi[axis]) - c_lo;
+      std::uint32_t mid = 0;
+      if (!(c_extent > 0.0)) {
+        // All centroids coincide: SAH cannot separate them, split the range in half.
+        if (n <= kMaxLeafSize) {
+          make_leaf();
+          continue;
+        }
+        mid = task.begin + n / 2;
+      } else {
+        const double scale = kBins / c_extent;
+        std::array<Bounds3f, kBins> bin_bounds;
+        std::array<std::uint32_t, kBins> bin_count{};
+        for (std::uint32_t i = task.begin; i < task.end; ++i) {
+          const int b = bin_of(refs[i].centroid[axis], c_lo, scale);
+          ++bin_count[b];
+          bin_bounds[b].extend(refs[i].bounds);
+        }
+        // SAH cost of splitting after bin k, scaled by the node's area to avoid a division (flat or
+        // point-like nodes have zero area): kTraversalCost A + A_left n_left + A_right n_right.
+        std::array<double, kBins - 1> left_cost{};
+        Bounds3f acc;
+        std::uint32_t acc_n = 0;
+        for (int k = 0; k < kBins - 1; ++k) {
+          acc.extend(bin_bounds[k]);
+          acc_n += bin_count[k];
+          left_cost[k] = acc_n == 0 ? -1.0 : area(acc) * acc_n;  // -1: empty side, not a split
+        }
+        const double node_area = area(bounds);
+        double best_cost = std::numeric_limits<double>::infinity();
+        int best_k = -1;
+        acc = Bounds3f{};
+        acc_n = 0;
+        for (int k = kBins - 2; k >= 0; --k) {
+          acc.extend(bin_bounds[k + 1]);
+          acc_n += bin_count[k + 1];
+          if (acc_n == 0 || left_cost[k] < 0.0) continue;
+          const double cost = kTraversalCost * node_area + left_cost[k] + area(acc) * acc_n;
+          if (cost <= best_cost) {
+            best_cost = cost;
+            best_k = k;
+          }
+        }
+        const double leaf_cost = double(n) * node_area;
+        if (n <= kMaxLeafSize && leaf_cost <= best_cost) {
+          make_leaf();
+          continue;
+        }
+        if (best_k < 0) {
+          mid = task.begin + n / 2;  // NaN costs (cannot happen for valid shapes): split in half
+        } else {
+          auto* first = refs.data() + task.begin;
+          auto* last = refs.data() + task.end;
+          mid = std::uint32_t(
+              std::partition(first, last,
+                             [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
+              refs.data());
+        }
+      }
+      assert(mid > task.begin && mid < task.end);
+      node.axis = axis;
+      // LIFO: the first child is popped next and so lands at index + 1.
+      stack.push_back({mid, task.end, task.depth + 1, index});
+      stack.push_back({task.begin, mid, task.depth + 1, kNoParent});
+    }
+  }
+
+  g.prims_.reserve(refs.size());
+  for (const BuildPrim& ref : refs) {
+    const Shape& s = g.shapes_[ref.id];
+    Prim p;
+    p.id = ref.id;
+    p.type = s.type;
+    if (s.type == ShapeType::kSphere) {
+      p.data[0] = s.sphere.center.x;
+      p.data[1] = s.sphere.center.y;
+      p.data[2] = s.sphere.center.z;
+      p.data[3] = s.sphere.radius;
+      p.data[4] = p.data[5] = 0.0f;
+    } else {
+      p.data[0] = s.box.lo.x;
+      p.data[1] = s.box.lo.y;
+      p.data[2] = s.box.lo.z;
+      p.data[3] = s.box.hi.x;
+      p.data[4] = s.box.hi.y;
+      p.data[5] = s.box.hi.z;
+    }
+    g.prims_.push_back(p);
+  }
+
+  g.stats_.nodes = std::uint32_t(g.nodes_.size());
+  g.stats_.leaves = leaves;
+  g.stats_.max_depth = max_depth;
+  g.stats_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return g;
+}
+
+namespace {
+
+inline float prim_t(const float* data, ShapeType type, const detail::RayPre& r, float t_min) {
+  return type == ShapeType::kSphere ? detail::sphere_t(data, r, t_min) : detail::box_t(data, r, t_min);
+}
+
+}  // namespace
+
+bool Geometry::intersect(const Ray& ray, Hit& hit) const {
+  if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  const detail::RayPre r = detail::precompute(ray);
+
+  // Nearest so far; ties in t go to the smaller shape id, so the answer does not depend on the
+  // order shapes are visited in (best_id starts at 0: `id < 0` never holds before a first hit).
+  float best_t = ray.t_max;
+  std::uint32_t best_id = 0;
+  bool found = false;
+  auto consider = [&](float t, std::uint32_t id) {
+    if (!(t < best_t || (t == best_t && id < best_id))) return false;
+    best_t = t;
+    best_id = id;
+    found = true;
+    return true;
+  };
+
+  for (const std::uint32_t id : planes_) consider(detail::plane_t(shapes_[id].plane, r, ray.t_min), id);
+
+  if (!nodes_.empty()) {
+    // Nodes are culled against best_t enlarged like a far slab distance: the sphere kernel runs in
+    // double, and its float t may sit an ulp or two before the float entry distance of its box.
+    float cull_t = best_t * detail::kFarScale;
+    std::uint32_t stack[kMaxDepth];
+    std::uint32_t sp = 0;
+    std::uint32_t index = 0;
+    while (true) {
+      const Node& node = nodes_[index];
+      if (detail::node_hit(node.bounds, r, ray.t_min, cull_t)) {
+        if (node.count > 0) {
+          const Prim* prim = prims_.data() + node.offset;
+          for (std::uint32_t i = 0; i < node.count; ++i, ++prim) {
+            if (consider(prim_t(prim->data, prim->type, r, ray.t_min), prim->id)) {
+              cull_t = best_t * detail::kFarScale;
+            }
+          }
+        } else {
+          std::uint32_t first = index + 1;
+          std::uint32_t second = node.offset;
+          if (r.neg[node.axis]) std::swap(first, second);
+          assert(sp < kMaxDepth);
+          stack[sp++] = second;
+          index = first;
+          continue;
+        }
+      }
+      if (sp == 0) break;
+      index = stack[--sp];
+    }
+  }
+
+  if (!found) return false;
+  detail::finish_hit(shapes_[best_id], best_id, ray, r, best_t, hit);
+  return true;
+}
+
+bool Geometry::occluded(const Ray& ray) const {
+  if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  const detail::RayPre r = detail::precompute(ray);
+  for (const std::uint32_t id : planes_) {
+    if (detail::plane_t(shapes_[id].plane, r, ray.t_min) < ray.t_max) return true;
+  }
+  if (nodes_.empty()) return false;
+  const float cull_t = ray.t_max * detail::kFarScale;
+  std::uint32_t stack[kMaxDepth];
+  std::uint32_t sp = 0;
+  std::uint32_t index = 0;
+  while (true) {
+    const Node& node = nodes_[index];
+    if (detail::node_hit(node.bounds, r, ray.t_min, cull_t)) {
+      if (node.count > 0) {
+        const Prim* prim = prims_.data() + node.offset;
+        for (std::uint32_t i = 0; i < node.count; ++i, ++prim) {
+          if (prim_t(prim->data, prim->type, r, ray.t_min) < ray.t_max) return true;
+        }
+      } else {
+        std::uint32_t first = index + 1;
+        std::uint32_t second = node.offset;
+        if (r.neg[node.axis]) std::swap(first, second);
+        assert(sp < kMaxDepth);
+        stack[sp++] = second;
+        index = first;
+        continue;
+      }
+    }
+    if (sp == 0) break;
+    index = stack[--sp];
+  }
+  return false;
+}
+
+}  // namespace dtraced::accel

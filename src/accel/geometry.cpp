@@ -1,0 +1,209 @@
+// dtraced::accel single-shape entry points: validity, bounds, the full hit record (point, normal,
+// error bound) of the final nearest hit, and the pbrt-v4 origin offset. The kernels that decide
+// hit or miss live in kernels.h so the BVH traversal inlines them.
+#include "accel/geometry.h"
+
+#include <algorithm>
+#include <cassert>
+#include <cmath>
+
+#include "accel/kernels.h"
+#include "math/float_util.h"
+
+namespace dtraced::accel {
+
+using math::gamma;
+using math::next_float_down;
+using math::next_float_up;
+
+namespace detail {
+
+bool shape_is_valid(const Shape& shape) {
+  switch (shape.type) {
+    case ShapeType::kSphere: {
+      const SphereShape& s = shape.sphere;
+      if (!math::is_finite(s.center) || !std::isfinite(s.radius) || !(s.radius > 0.0f)) return false;
+      // The bounds must be finite too, or the SAH costs turn into inf - inf.
+      for (int i = 0; i < 3; ++i) {
+        if (!std::isfinite(float(std::abs(double(s.center[i])) + double(s.radius)))) return false;
+      }
+      return true;
+    }
+    case ShapeType::kBox: {
+      const BoxShape& b = shape.box;
+      return math::is_finite(b.lo) && math::is_finite(b.hi) && b.lo.x <= b.hi.x && b.lo.y <= b.hi.y && b.lo.z <= b.hi.z;
+    }
+    case ShapeType::kPlane: {
+      const PlaneShape& p = shape.plane;
+      return math::is_finite(p.point) && math::is_finite(p.normal) && !(p.normal == Vec3f{0, 0, 0});
+    }
+  }
+  return false;
+}
+
+void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit) {
+  hit.t = t;
+  hit.shape = id;
+  switch (shape.type) {
+    case ShapeType::kSphere: {
+      // Recompute the roots (the same arithmetic as the query, so the same root is chosen) and
+      // take the hit point in the sphere's frame from the double root: f + t d, then projected
+      // back onto the sphere. Using the float t instead would move the point along the ray by
+      // half an ulp of t, which near the silhouette of a far sphere tilts the normal visibly.
+      const SphereShape& s = shape.sphere;
+      const float sd[4] = {s.center.x, s.center.y, s.center.z, s.radius};
+      detail::SphereRoots sr{};
+      int root = 0;
+      [[maybe_unused]] const float t_again = sphere_t(sd, r, ray.t_min, &sr, &root);
+      assert(t_again == t);
+      const double td = root == 0 ? sr.t0 : sr.t1;
+      double pl[3];
+      for (int i = 0; i < 3; ++i) pl[i] = sr.f[i] + td * double(r.d[i]);
+      const double len = std::sqrt(pl[0] * pl[0] + pl[1] * pl[1] + pl[2] * pl[2]);
+      const double rad = s.radius;
+      const double scale = rad / len;
+      for (int i = 0; i < 3; ++i) {
+        pl[i] *= scale;
+        hit.n[i] = float(pl[i] / rad);
+        hit.p[i] = float(double(s.center[i]) + pl[i]);
+        // pbrt-v4's bound for the re-projected local point (our double arithmetic is far tighter),
+        // plus the final rounding of centre + local point to float.
+        hit.p_error[i] = gamma(5) * std::abs(float(pl[i])) + gamma(1) * std::abs(hit.p[i]);
+      }
+      return;
+    }
+    case ShapeType::kBox: {
+      // The coordinate on the hit axis is the face coordinate itself (exact); the others are
+      // o_j + t d_j clamped to the face, which can only move them closer to the true point.
+      // Error on the other axes: t = (face - o_i) * inv_d_i carries three roundings,
+      // t = t*(1 + th3); fl(t d_j) = t* d_j (1 + th4); fl(o_j + x) adds eps |o_j + x|. Hence
+      // |p_j - p*_j| <= gamma(4)|t* d_j| + eps (|o_j| + |x|) <= gamma(6) (|o_j| + |t d_j|) in
+      // terms of the computed x = t d_j, with one gamma to spare for rounding the bound itself.
+      const BoxShape& b = shape.box;
+      const float bd[6] = {b.lo.x, b.lo.y, b.lo.z, b.hi.x, b.hi.y, b.hi.z};
+      BoxFace face;
+      [[maybe_unused]] const float t_again = box_t(bd, r, ray.t_min, &face);
+      assert(t_again == t);
+      for (std::uint32_t j = 0; j < 3; ++j) {
+        if (j == face.axis) {
+          hit.p[j] = face.hi ? b.hi[j] : b.lo[j];
+          hit.p_error[j] = 0.0f;
+          hit.n[j] = face.hi ? 1.0f : -1.0f;
+        } else {
+          const float td = t * r.d[j];
+          const float raw = r.o[j] + td;
+          // Keep the point strictly inside the face when it has interior floats: an inward
+          // (refracted) ray from a point rounded onto an edge would otherwise leave through the
+          // adjacent face at t = 0 and be lost. The nudge is at most one ulp past the true point,
+          // and is added to the bound (which offsetting never reads: n_j = 0).
+          float lo = b.lo[j], hi = b.hi[j];
+          const float lo_in = next_float_up(lo), hi_in = next_float_down(hi);
+          if (lo_in <= hi_in) {
+            lo = lo_in;
+            hi = hi_in;
+          }
+          hit.p[j] = std::clamp(raw, lo, hi);
+          hit.p_error[j] = gamma(6) * (std::abs(r.o[j]) + std::abs(td)) + std::abs(hit.p[j] - raw);
+          hit.n[j] = 0.0f;
+        }
+      }
+      return;
+    }
+    case ShapeType::kPlane: {
+      // p = o + t d in float. What matters for offsetting is the distance of p from the plane
+      // along n. With v = point - o, num = dot(v, n) and dn = dot(d, n) each carry gamma(4) and
+      // gamma(3) relative error in the sums of absolute terms, so the point on the ray at the
+      // computed t lies within gamma(4) sum|v_i n_i| + gamma(4) sum|t d_i n_i| of the plane, and
+      // forming o + t d adds gamma(2)(|o_i| + |t d_i|) per axis. |v_i| <= |point_i| + |o_i|, so
+      // gamma(7)(|o| + |t d| + |point|) per axis bounds it: the box p +- p_error meets the plane
+      // iff |n . (p - point)| <= sum |n_i| p_error_i. The point term matters: a plane given by a
+      // far-away point has a far larger error than gamma(7)(|o| + |t d|) near the origin.
+      // We use gamma(11): the new ray's own numerator dot(point - o', n) is rounded too (another
+      // gamma(4) of the same sums), and the offset must exceed both for the sign of t to be
+      // right when the ray leaves the plane.
+      const PlaneShape& pl = shape.plane;
+      for (int i = 0; i < 3; ++i) {
+        const float td = t * r.d[i];
+        hit.p[i] = r.o[i] + td;
+        hit.p_error[i] = gamma(11) * (std::abs(r.o[i]) + std::abs(td) + std::abs(pl.point[i]));
+      }
+      hit.n = pl.normal;
+      return;
+    }
+  }
+}
+
+}  // namespace detail
+
+bool intersect_shape(const Shape& shape, std::uint32_t id, const Ray& ray, Hit& hit) {
+  if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  if (!detail::shape_is_valid(shape)) return false;
+  const detail::RayPre r = detail::precompute(ray);
+  float t = detail::kNaN;
+  switch (shape.type) {
+    case ShapeType::kSphere: {
+      const float s[4] = {shape.sphere.center.x, shape.sphere.center.y, shape.sphere.center.z, shape.sphere.radius};
+      t = detail::sphere_t(s, r, ray.t_min);
+      break;
+    }
+    case ShapeType::kBox: {
+      const BoxShape& b = shape.box;
+      const float bd[6] = {b.lo.x, b.lo.y, b.lo.z, b.hi.x, b.hi.y, b.hi.z};
+      t = detail::box_t(bd, r, ray.t_min);
+      break;
+    }
+    case ShapeType::kPlane:
+      t = detail::plane_t(shape.plane, r, ray.t_min);
+      break;
+  }
+  if (!(t < ray.t_max)) return false;
+  detail::finish_hit(shape, id, ray, r, t, hit);
+  return true;
+}
+
+Bounds3f shape_bounds(const Shape& shape) {
+  Bounds3f b;
+  if (!detail::shape_is_valid(shape)) return b;
+  switch (shape.type) {
+    case ShapeType::kSphere: {
+      // Rounded outward, with a pad far above the double rounding of the sphere test, so every
+      // point the double kernel reports lies inside the float box the BVH node tests see.
+      const SphereShape& s = shape.sphere;
+      for (int i = 0; i < 3; ++i) {
+        const double c = s.center[i];
+        const double r = s.radius;
+        const double pad = (std::abs(c) + r) * 0x1p-40;
+        b.lo[i] = next_float_down(float(c - r - pad));
+        b.hi[i] = next_float_up(float(c + r + pad));
+      }
+      return b;
+    }
+    case ShapeType::kBox:
+      b.lo = shape.box.lo;
+      b.hi = shape.box.hi;
+      return b;
+    case ShapeType::kPlane:
+      b.lo = Vec3f{-detail::kInf, -detail::kInf, -detail::kInf};
+      b.hi = Vec3f{detail::kInf, detail::kInf, detail::kInf};
+      return b;
+  }
+  return b;
+}
+
+Vec3f offset_ray_origin(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w) {
+  const float d = dot(math::abs(n), p_error);
+  Vec3f offset = d * n;
+  if (dot(w, n) < 0.0f) offset = -offset;
+  Vec3f po = p + offset;
+  // Round away from p so that the offset survives the rounding of p + offset.
+  for (int i = 0; i < 3; ++i) {
+    if (offset[i] > 0.0f) {
+      po[i] = next_float_up(po[i]);
+    } else if (offset[i] < 0.0f) {
+      po[i] = next_float_down(po[i]);
+    }
+  }
+  return po;
+}
+
+}  // namespace dtraced::accel

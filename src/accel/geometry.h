@@ -5,6 +5,17 @@
 // the bounded ones (planes stay outside the tree), nearest-hit queries with conservative
 // hit-point error bounds, and the pbrt-v4 style origin offset for secondary rays.
 // Thread-safety: a built Geometry is immutable; any number of threads may query it at once.
+//
+// Robustness contract (see /work/shared/notes/accuracy.md 1.2-1.5, 1.10):
+// - A hit has t in the open interval (ray.t_min, ray.t_max); NaN never counts as a hit. Rays are
+//   expected to have t_min >= 0 and a (float-)normalised direction.
+// - Spheres are intersected in double (Ray Tracing Gems ch. 7 form), boxes with the conservative
+//   slab test (Ize 2013 / pbrt-v4), planes in float. Hit.p comes with a per-axis bound p_error
+//   such that offset_ray_origin() yields an origin from which the same surface is not re-hit.
+// - Geometry::intersect returns exactly what intersect_shape() over all shapes returns (same
+//   shape, same t bits); among shapes hit at the same t the smallest index wins.
+// - Shapes with non-finite parameters, spheres with radius <= 0, boxes with lo > hi on some axis
+//   and planes with a zero normal are never hit.
 #pragma once
 
 #include <cstdint>
@@ -19,9 +30,17 @@ using math::Bounds3f;
 using math::Ray;
 using math::Vec3f;
 
-struct SphereShape { Vec3f center; float radius = 1.0f; };
-struct BoxShape { Vec3f lo, hi; };
-struct PlaneShape { Vec3f point; Vec3f normal{0, 1, 0}; };  // normal has unit length
+struct SphereShape {
+  Vec3f center;
+  float radius = 1.0f;
+};
+struct BoxShape {
+  Vec3f lo, hi;
+};
+struct PlaneShape {
+  Vec3f point;
+  Vec3f normal{0, 1, 0};  // unit length
+};
 
 enum class ShapeType : std::uint8_t { kSphere, kBox, kPlane };
 
@@ -34,39 +53,69 @@ struct Shape {
 
 // The nearest surface a ray meets.
 struct Hit {
-  float t = 0.0f;             // ray parameter of the hit, t_min < t < t_max
-  std::uint32_t shape = 0;    // index into the shapes given to Geometry::build
-  Vec3f p;                    // hit point (computed in the shape's own frame, not as o + t d)
-  Vec3f p_error;              // per-axis absolute bound on the rounding error of p
-  Vec3f n;                    // unit geometric normal, pointing out of the shape (not flipped)
+  float t = 0.0f;           // ray parameter of the hit, t_min < t < t_max
+  std::uint32_t shape = 0;  // index into the shapes given to Geometry::build
+  Vec3f p;                  // hit point (computed in the shape's own frame, not as o + t d)
+  Vec3f p_error;            // per-axis absolute bound on the rounding error of p
+  Vec3f n;                  // unit geometric normal, pointing out of the shape (not flipped)
 };
 
 struct BuildStats {
   std::uint32_t nodes = 0;
   std::uint32_t leaves = 0;
-  std::uint32_t max_depth = 0;
+  std::uint32_t max_depth = 0;  // depth of the deepest node; the root has depth 0
   double seconds = 0.0;
 };
 
 class Geometry {
  public:
+  // Deepest node level (root = 0) is kMaxDepth - 1; a range reaching it becomes a leaf whatever its
+  // size. Traversal uses a fixed stack of kMaxDepth entries.
+  static constexpr std::uint32_t kMaxDepth = 64;
+
   // Builds the BVH (binned SAH) over spheres and boxes; planes are kept in a separate list.
   static Geometry build(std::vector<Shape> shapes);
 
   // Nearest hit with t in the open interval (ray.t_min, ray.t_max). Returns false on a miss.
   bool intersect(const Ray& ray, Hit& hit) const;
 
+  // True if any shape is hit with t in (ray.t_min, ray.t_max) (shadow rays); stops at the first.
+  bool occluded(const Ray& ray) const;
+
   const std::vector<Shape>& shapes() const { return shapes_; }
   const BuildStats& stats() const { return stats_; }
 
  private:
-  struct Node;
+  // One BVH node, 32 bytes. Nodes are stored depth first: an interior node's first child is the
+  // next node in the array, `offset` holds the second child.
+  struct Node {
+    float bounds[6];           // lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    std::uint32_t offset = 0;  // leaf: first index into prims_; interior: second child's index
+    std::uint32_t count : 30;  // number of shapes in a leaf; 0 for an interior node
+    std::uint32_t axis : 2;    // split axis of an interior node (children ordered along it)
+  };
+  // A bounded shape packed for traversal (32 bytes), in BVH leaf order.
+  struct Prim {
+    float data[6];  // sphere: centre x, y, z, radius; box: lo x, y, z, hi x, y, z
+    std::uint32_t id = 0;
+    ShapeType type = ShapeType::kSphere;
+  };
+
   std::vector<Shape> shapes_;
-  std::vector<std::uint32_t> bounded_;  // shape ids in BVH leaf order
-  std::vector<std::uint32_t> planes_;   // shape ids of infinite planes
+  std::vector<Prim> prims_;            // bounded shapes in BVH leaf order
+  std::vector<std::uint32_t> planes_;  // shape ids of infinite planes
   std::vector<Node> nodes_;
   BuildStats stats_;
 };
+
+// Nearest hit of one shape with t in (ray.t_min, ray.t_max); fills every field of `hit` (with
+// hit.shape = id) and returns true, or returns false and leaves `hit` alone. The same arithmetic
+// as Geometry::intersect, which makes it the brute-force reference.
+bool intersect_shape(const Shape& shape, std::uint32_t id, const Ray& ray, Hit& hit);
+
+// Conservative float bounds of a shape (a sphere's are rounded outward); planes are unbounded and
+// invalid shapes (see above) get an empty box.
+Bounds3f shape_bounds(const Shape& shape);
 
 // Origin for a ray leaving a surface point p (error bound p_error, geometric normal n) in
 // direction w: pushed along +-n past the error bound and rounded one more ulp away (pbrt-v4's
