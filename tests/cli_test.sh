@@ -73,6 +73,10 @@ expect_text "identical images have rmse 0" "$work/out" "rmse 0 "
 check "render ppm and 16-bit png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.ppm" --width 32 --height 24 -q
 check "16-bit png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a16.png" --width 32 --height 24 -q --bit-depth 16
 check "different seed differs" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/c.pfm" --width 64 --height 48 -s 2 --seed 99 -q
+check "background override" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/bg.pfm" --width 64 --height 48 -s 2 --background 1,0,0 -q
+check "background override changes the image" 1 "$DTRACED" compare "$work/a.pfm" "$work/bg.pfm" --max-rmse 0
+check "non-finite background is a usage error" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --background 1,nan,0
+check "background needs three channels" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --background 1,0
 check "compare with threshold fails" 1 "$DTRACED" compare "$work/a.pfm" "$work/c.pfm" --max-rmse 0
 check "compare different sizes" 1 "$DTRACED" compare "$work/a.pfm" "$work/a16.png"
 check "unsupported output extension" 1 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.tiff" -q

@@ -35,7 +35,19 @@ int main(int argc, char** argv) {
   r->add_option("--height", render.height, "Image height in pixels")->check(CLI::Range(1u, 16384u));
   r->add_option("-s,--samples", render.samples, "Samples per pixel")->check(CLI::Range(1u, 65536u));
   r->add_option("--max-depth", render.max_depth, "Maximum reflection/refraction depth")->check(CLI::Range(0u, 64u));
-  r->add_option("--seed", render.seed, "Sampling seed");
+  r->add_option("--seed", render.seed, "Sampling seed")->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
+  r->add_option("--background", render.background, "Background colour, linear RGB: R,G,B")
+      ->delimiter(',')
+      ->expected(3)
+      ->check(CLI::Validator(
+          [](std::string& v) -> std::string {
+            double x = 0;
+            if (!CLI::detail::lexical_cast(v, x) || !(x >= 0.0 && x <= 3.4e38)) {
+              return "each channel must be a finite number >= 0, got " + v;
+            }
+            return {};
+          },
+          "R,G,B"));
   r->add_option("--frame", render.frame, "Frame number (part of every sample's random key)");
   r->add_option("-t,--threads", render.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
   r->add_option("--tile-size", render.tile_size, "Tile side in pixels")->check(CLI::Range(1u, 4096u));

@@ -65,6 +65,7 @@ int run_render(const RenderArgs& args) {
   if (args.max_depth) s.max_depth = *args.max_depth;
   if (args.seed) s.seed = *args.seed;
   if (args.frame) s.frame = *args.frame;
+  if (args.background.size() == 3) s.background = {args.background[0], args.background[1], args.background[2]};
   if (!image::format_from_path(args.output)) {
     fmt::print(stderr, "{}: unsupported output format (use .png, .ppm or .pfm)\n", args.output);
     return kExitFailed;

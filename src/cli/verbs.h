@@ -17,6 +17,7 @@ struct RenderArgs {
   std::string output;
   std::optional<std::uint32_t> width, height, samples, max_depth, frame;
   std::optional<std::uint64_t> seed;
+  std::vector<double> background;  // empty, or exactly 3 channels
   std::uint32_t threads = 0;
   std::uint32_t tile_size = 32;
   int bit_depth = 8;
