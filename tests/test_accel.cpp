@@ -4,7 +4,6 @@
 // Pass/fail only on correctness; timings are printed, never asserted.
 #include <algorithm>
 #include <bit>
-#include <catch2/catch.hpp>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -13,6 +12,8 @@
 #include <sstream>
 #include <string>
 #include <vector>
+
+#include <catch2/catch.hpp>
 
 #include "accel/geometry.h"
 #include "math/float_util.h"

@@ -10,7 +10,6 @@
 // Set DTRACED_HARD_VERBOSE=1 to print the measured margins of every check.
 
 #include <algorithm>
-#include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdarg>
 #include <cstdint>
@@ -21,6 +20,8 @@
 #include <numbers>
 #include <string>
 #include <vector>
+
+#include <catch2/catch.hpp>
 
 #include "accel/geometry.h"
 #include "math/ray.h"

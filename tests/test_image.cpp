@@ -3,7 +3,6 @@
 // every class of malformed file, the sRGB curves and the metrics on inputs with known answers.
 #include <algorithm>
 #include <bit>
-#include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -14,6 +13,8 @@
 #include <string_view>
 #include <utility>
 #include <vector>
+
+#include <catch2/catch.hpp>
 
 #include "image/image.h"
 #include "image/image_io.h"

@@ -1,10 +1,11 @@
 // Tests of dtraced::math: vectors, float helpers (ulp steps, gamma), counter-based RNG, boxes.
 #include <bit>
-#include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdint>
 #include <limits>
 #include <set>
+
+#include <catch2/catch.hpp>
 
 #include "math/float_util.h"
 #include "math/ray.h"

@@ -1,11 +1,11 @@
 // Closed-form checks of the Whitted integrator, Fresnel edge cases, and determinism of the
 // tiled renderer.
-#include <catch2/catch.hpp>
-
 #include <cmath>
 #include <cstring>
 #include <numbers>
 #include <optional>
+
+#include <catch2/catch.hpp>
 
 #include "math/float_util.h"
 #include "render/local_render.h"

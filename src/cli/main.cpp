@@ -35,7 +35,8 @@ int main(int argc, char** argv) {
   r->add_option("--height", render.height, "Image height in pixels")->check(CLI::Range(1u, 16384u));
   r->add_option("-s,--samples", render.samples, "Samples per pixel")->check(CLI::Range(1u, 65536u));
   r->add_option("--max-depth", render.max_depth, "Maximum reflection/refraction depth")->check(CLI::Range(0u, 64u));
-  r->add_option("--seed", render.seed, "Sampling seed")->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
+  r->add_option("--seed", render.seed, "Sampling seed")
+      ->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
   r->add_option("--background", render.background, "Background colour, linear RGB: R,G,B")
       ->delimiter(',')
       ->expected(3)
@@ -66,7 +67,8 @@ int main(int argc, char** argv) {
 
   GenerateArgs generate;
   CLI::App* g = app.add_subcommand("generate", "Write a generated stress scene (many spheres on a plane)");
-  g->add_option("-n,--count", generate.count, "Number of spheres")->check(CLI::Range(1u, 500000u));  // keeps the file under the loader's size limit
+  g->add_option("-n,--count", generate.count, "Number of spheres")
+      ->check(CLI::Range(1u, 500000u));  // keeps the file under the loader's size limit
   g->add_option("--seed", generate.seed, "Generator seed");
   g->add_option("-o,--output", generate.output, "Output scene file (JSON)")->required();
 

@@ -153,8 +153,7 @@ int run_generate(const GenerateArgs& args) {
     fmt::print(stderr, "{}\n", error);
     return kExitFailed;
   }
-  fmt::print(stderr, "wrote {} ({} objects, digest {})\n", args.output, desc.objects.size(),
-             scene::scene_digest(desc));
+  fmt::print(stderr, "wrote {} ({} objects, digest {})\n", args.output, desc.objects.size(), scene::scene_digest(desc));
   return kExitOk;
 }
 

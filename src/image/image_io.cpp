@@ -1,6 +1,5 @@
 #include "image/image_io.h"
 
-#include <fmt/format.h>
 #include <png.h>
 
 #include <algorithm>
@@ -13,6 +12,8 @@
 #include <cstring>
 #include <filesystem>
 #include <vector>
+
+#include <fmt/format.h>
 
 #include "util/file.h"
 

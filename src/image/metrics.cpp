@@ -1,10 +1,10 @@
 #include "image/metrics.h"
 
-#include <fmt/format.h>
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
+
+#include <fmt/format.h>
 
 #include "image/image_io.h"
 

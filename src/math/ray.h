@@ -22,8 +22,14 @@ struct Bounds3f {
   Vec3f hi{-std::numeric_limits<float>::infinity(), -std::numeric_limits<float>::infinity(),
            -std::numeric_limits<float>::infinity()};
 
-  void extend(const Vec3f& p) { lo = min(lo, p); hi = max(hi, p); }
-  void extend(const Bounds3f& b) { lo = min(lo, b.lo); hi = max(hi, b.hi); }
+  void extend(const Vec3f& p) {
+    lo = min(lo, p);
+    hi = max(hi, p);
+  }
+  void extend(const Bounds3f& b) {
+    lo = min(lo, b.lo);
+    hi = max(hi, b.hi);
+  }
   bool empty() const { return lo.x > hi.x || lo.y > hi.y || lo.z > hi.z; }
   Vec3f centroid() const { return (lo + hi) * 0.5f; }
   Vec3f extent() const { return hi - lo; }

@@ -127,8 +127,8 @@ struct Tracer {
       if (m.specular > 0.0f) {
         const Vec3f h = math::normalize(l + wo);
         const float cos_h = std::max(0.0f, math::dot(nf, h));
-        const float spec = m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>) *
-                           std::pow(cos_h, m.shininess);
+        const float spec =
+            m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*std::pow(cos_h, m.shininess);
         f += Vec3f{spec, spec, spec};
       }
       sum += math::mul(f, light.intensity) * e;
@@ -163,8 +163,8 @@ struct Tracer {
       const bool deeper = depth < limits.max_depth;
       if (m.reflectivity > 0.0f && deeper && weight * m.reflectivity >= kMinBranchWeight) {
         const Vec3f r = math::normalize(reflect(ray.d, nf));
-        radiance += math::mul(m.color, trace(spawn(hit, r), depth + 1, weight * m.reflectivity, media)) *
-                    m.reflectivity;
+        radiance +=
+            math::mul(m.color, trace(spawn(hit, r), depth + 1, weight * m.reflectivity, media)) * m.reflectivity;
       }
       if (m.transparency <= 0.0f) return radiance;
 

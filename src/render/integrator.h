@@ -14,9 +14,9 @@
 namespace dtraced::render {
 
 struct TraceStats {
-  std::uint64_t rays = 0;           // every ray cast: camera, secondary, shadow segments
-  std::uint64_t nan_samples = 0;    // samples whose radiance had a NaN (zeroed at the film)
-  std::uint64_t inf_samples = 0;    // samples whose radiance had an Inf (zeroed at the film)
+  std::uint64_t rays = 0;         // every ray cast: camera, secondary, shadow segments
+  std::uint64_t nan_samples = 0;  // samples whose radiance had a NaN (zeroed at the film)
+  std::uint64_t inf_samples = 0;  // samples whose radiance had an Inf (zeroed at the film)
   void add(const TraceStats& o) {
     rays += o.rays;
     nan_samples += o.nan_samples;

@@ -13,7 +13,8 @@ namespace dtraced::render {
 LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& settings, const LocalOptions& options) {
   LocalResult result;
   result.image = image::ImageRGBf(settings.width, settings.height);
-  const std::vector<TileRect> tiles = split_into_tiles(settings.width, settings.height, std::max(1u, options.tile_size));
+  const std::vector<TileRect> tiles =
+      split_into_tiles(settings.width, settings.height, std::max(1u, options.tile_size));
   std::uint32_t threads = options.threads ? options.threads : std::max(1u, std::thread::hardware_concurrency());
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;
@@ -21,8 +22,8 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   std::atomic<std::size_t> next{0};
   std::mutex mu;
   std::condition_variable cv;
-  std::size_t done = 0;       // guarded by mu
-  TraceStats stats;           // guarded by mu
+  std::size_t done = 0;  // guarded by mu
+  TraceStats stats;      // guarded by mu
 
   const auto start = std::chrono::steady_clock::now();
   auto worker = [&] {

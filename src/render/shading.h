@@ -17,9 +17,9 @@ inline Vec3f reflect(const Vec3f& d, const Vec3f& n) { return d - n * (2.0f * ma
 // Result of meeting a dielectric interface, computed from one sin²θt so the Fresnel term and the
 // refracted direction can never disagree about total internal reflection.
 struct Interface {
-  float fresnel = 1.0f;  // reflected fraction, in [0, 1]; exactly 1 under total internal reflection
-  bool refracts = false; // false under total internal reflection
-  Vec3f wt;              // refracted direction (unit), valid when refracts
+  float fresnel = 1.0f;   // reflected fraction, in [0, 1]; exactly 1 under total internal reflection
+  bool refracts = false;  // false under total internal reflection
+  Vec3f wt;               // refracted direction (unit), valid when refracts
 };
 
 // wo: unit direction towards the viewer; n: unit normal on wo's side (dot(wo, n) >= 0 expected,

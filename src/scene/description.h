@@ -79,10 +79,10 @@ struct Camera {
 
 // Render settings. The scene file gives defaults; every field can be overridden by a flag.
 struct RenderSettings {
-  std::uint32_t width = 640;     // [1, kMaxImageSide]
-  std::uint32_t height = 480;    // [1, kMaxImageSide]
-  std::uint32_t samples = 1;     // per pixel, [1, kMaxSamples]
-  std::uint32_t max_depth = 8;   // reflection/refraction bounces, [0, kMaxDepth]
+  std::uint32_t width = 640;    // [1, kMaxImageSide]
+  std::uint32_t height = 480;   // [1, kMaxImageSide]
+  std::uint32_t samples = 1;    // per pixel, [1, kMaxSamples]
+  std::uint32_t max_depth = 8;  // reflection/refraction bounces, [0, kMaxDepth]
   Color background{0, 0, 0};
   std::uint64_t seed = 0;
   std::uint32_t frame = 0;

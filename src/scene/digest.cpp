@@ -1,13 +1,14 @@
 #include "scene/digest.h"
 
+#include <cmath>
+#include <cstdint>
+#include <utility>
+
 #include <boost/json/array.hpp>
 #include <boost/json/monotonic_resource.hpp>
 #include <boost/json/object.hpp>
 #include <boost/json/serialize.hpp>
 #include <boost/json/value.hpp>
-#include <cmath>
-#include <cstdint>
-#include <utility>
 
 #include "util/sha256.h"
 

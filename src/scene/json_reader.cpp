@@ -8,13 +8,12 @@
 
 // basic_parser's member definitions live in this header; it must be included by exactly the
 // translation units that instantiate basic_parser with their own handler (this one).
-#include <fmt/format.h>
-
 #include <boost/json/basic_parser_impl.hpp>
 #include <boost/json/error.hpp>
 #include <boost/json/object.hpp>
 #include <boost/json/string.hpp>
 #include <boost/json/value_stack.hpp>
+#include <fmt/format.h>
 
 namespace dtraced::scene {
 namespace {

@@ -15,12 +15,13 @@
 // Stateless functions: thread-safe.
 #pragma once
 
-#include <boost/json/storage_ptr.hpp>
-#include <boost/json/value.hpp>
 #include <cstddef>
 #include <string>
 #include <string_view>
 #include <vector>
+
+#include <boost/json/storage_ptr.hpp>
+#include <boost/json/value.hpp>
 
 namespace dtraced::scene {
 

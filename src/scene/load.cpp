@@ -1,17 +1,17 @@
 #include "scene/load.h"
 
-#include <fmt/format.h>
-
 #include <algorithm>
 #include <array>
-#include <boost/json/monotonic_resource.hpp>
-#include <boost/json/value.hpp>
 #include <cassert>
 #include <cfloat>
 #include <cmath>
 #include <limits>
 #include <span>
 #include <utility>
+
+#include <boost/json/monotonic_resource.hpp>
+#include <boost/json/value.hpp>
+#include <fmt/format.h>
 
 #include "math/vec.h"
 #include "scene/json_reader.h"

@@ -1,11 +1,10 @@
 #include "util/sha256.h"
 
-#include <openssl/evp.h>
-
 #include <array>
 #include <stdexcept>
 
 #include <fmt/format.h>
+#include <openssl/evp.h>
 
 namespace dtraced::util {
 
