@@ -70,6 +70,11 @@ struct Tracer {
   // the exit angle is not the refracted one, and evaluating it from the dense side would report
   // total internal reflection where, by reciprocity, the true path transmits 1 - F(entry).
   float transmittance(math::Ray ray, MediumStack media) {
+    if (!scene.has_transparency()) {
+      // Only opaque surfaces: any hit blocks, so the traversal may stop at the first one.
+      ++stats.rays;
+      return scene.geometry().occluded(ray) ? 0.0f : 1.0f;
+    }
     float t = 1.0f;
     for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
       accel::Hit hit;
