@@ -12,6 +12,7 @@
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 
+#include "cli/client_verbs.h"
 #include "cli/verbs.h"
 
 namespace {
@@ -72,6 +73,58 @@ int main(int argc, char** argv) {
   g->add_option("--seed", generate.seed, "Generator seed");
   g->add_option("-o,--output", generate.output, "Output scene file (JSON)")->required();
 
+  // Client verbs: they talk to a collector.
+  ClientArgs client;
+  auto add_client_options = [&client](CLI::App* sub) {
+    sub->add_option("--collector", client.collector, "Collector base URL")
+        ->envname("DTRACED_COLLECTOR")
+        ->capture_default_str();
+    sub->add_option("--token-file", client.token_file, "File holding the bearer token")->envname("DTRACED_TOKEN_FILE");
+    sub->add_option("--timeout-ms", client.timeout_ms, "Per-request read/write timeout")
+        ->check(CLI::Range(100u, 3600000u))
+        ->capture_default_str();
+  };
+
+  SubmitArgs submit;
+  CLI::App* sub_submit = app.add_subcommand("submit", "Submit a render job to a collector; prints the job id");
+  add_client_options(sub_submit);
+  sub_submit->add_option("scene", submit.scene, "Scene file (JSON)")->required();
+  sub_submit->add_option("-o,--output", submit.output, "Output file name on the collector (.png, .ppm or .pfm)");
+  sub_submit->add_option("--priority", submit.priority, "Higher runs first")->check(CLI::Range(-1000, 1000));
+  sub_submit->add_option("--tile-size", submit.tile_size, "Tile side in pixels")->check(CLI::Range(8u, 1024u));
+  sub_submit->add_option("--width", submit.width, "Image width")->check(CLI::Range(1u, 16384u));
+  sub_submit->add_option("--height", submit.height, "Image height")->check(CLI::Range(1u, 16384u));
+  sub_submit->add_option("-s,--samples", submit.samples, "Samples per pixel")->check(CLI::Range(1u, 65536u));
+  sub_submit->add_option("--max-depth", submit.max_depth, "Maximum depth")->check(CLI::Range(0u, 64u));
+  sub_submit->add_option("--seed", submit.seed, "Sampling seed")
+      ->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
+  sub_submit->add_option("--frame", submit.frame, "Frame number");
+
+  bool list_json = false;
+  CLI::App* sub_list = app.add_subcommand("list", "List the collector's jobs");
+  add_client_options(sub_list);
+  sub_list->add_flag("--json", list_json, "Machine-readable JSON");
+
+  StatusArgs status;
+  CLI::App* sub_status = app.add_subcommand("status", "Show one job's progress");
+  add_client_options(sub_status);
+  sub_status->add_option("id", status.id, "Job id")->required();
+  sub_status->add_flag("--json", status.json, "Machine-readable JSON");
+  sub_status->add_flag("-w,--wait", status.wait, "Wait until the job is done (a progress bar on a terminal)");
+  sub_status->add_option("--poll-ms", status.poll_ms, "Poll interval with --wait")->check(CLI::Range(50u, 60000u));
+
+  std::uint64_t fetch_id = 0;
+  std::string fetch_out;
+  CLI::App* sub_fetch = app.add_subcommand("fetch", "Fetch a job's image (partial while it renders)");
+  add_client_options(sub_fetch);
+  sub_fetch->add_option("id", fetch_id, "Job id")->required();
+  sub_fetch->add_option("-o,--output", fetch_out, "Image file (.png, .ppm or .pfm)")->required();
+
+  std::uint64_t cancel_id = 0;
+  CLI::App* sub_cancel = app.add_subcommand("cancel", "Cancel a job");
+  add_client_options(sub_cancel);
+  sub_cancel->add_option("id", cancel_id, "Job id")->required();
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -82,5 +135,10 @@ int main(int argc, char** argv) {
   if (v->parsed()) return run_validate(validate_files);
   if (c->parsed()) return run_compare(compare);
   if (g->parsed()) return run_generate(generate);
+  if (sub_submit->parsed()) return run_submit(client, submit);
+  if (sub_list->parsed()) return run_list(client, list_json);
+  if (sub_status->parsed()) return run_status(client, status);
+  if (sub_fetch->parsed()) return run_fetch(client, fetch_id, fetch_out);
+  if (sub_cancel->parsed()) return run_cancel(client, cancel_id);
   return kExitUsage;
 }

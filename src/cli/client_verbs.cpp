@@ -1,0 +1,240 @@
+#include "cli/client_verbs.h"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <thread>
+
+#include <fmt/format.h>
+
+#include "http/client.h"
+#include "image/image_io.h"
+#include "protocol/messages.h"
+#include "scene/load.h"
+#include "util/file.h"
+
+namespace dtraced::cli {
+
+namespace {
+
+constexpr int kExitOk = 0;
+constexpr int kExitFailed = 1;
+constexpr std::size_t kMaxTokenBytes = 4096;
+// An image response can be a 16384^2 PFM.
+constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + (1 << 20);
+
+// One connection's worth of state for a verb: where, with which token, how patient.
+class Session {
+ public:
+  bool init(const ClientArgs& args) {
+    std::string error;
+    auto url = http::parse_base_url(args.collector, error);
+    if (!url) {
+      fmt::print(stderr, "--collector: {}\n", error);
+      return false;
+    }
+    url_ = *url;
+    if (!args.token_file.empty()) {
+      auto token = read_token_file(args.token_file, error);
+      if (!token) {
+        fmt::print(stderr, "{}\n", error);
+        return false;
+      }
+      token_ = *token;
+    }
+    timeouts_.read = timeouts_.write = std::chrono::milliseconds(args.timeout_ms);
+    return true;
+  }
+
+  // Sends one request; on a network failure or a non-2xx answer prints the reason and returns
+  // nullopt.
+  std::optional<http::Response> call(http::Verb verb, const std::string& target, std::string body = {},
+                                     std::uint64_t max_body = protocol::kMaxJobListBytes) {
+    http::Request req = http::make_request(verb, target, std::move(body),
+                                           verb == http::Verb::post ? http::kJsonContentType : std::string_view{});
+    if (!token_.empty()) req.set(boost::beast::http::field::authorization, "Bearer " + token_);
+    http::ClientResult r = http::request_sync(url_, std::move(req), timeouts_, max_body);
+    if (!r.ok()) {
+      fmt::print(stderr, "{}\n", r.message);
+      return std::nullopt;
+    }
+    const unsigned code = r.response.result_int();
+    if (code < 200 || code >= 300) {
+      const auto err = protocol::decode_error_body(r.response.body());
+      if (err.ok()) {
+        const auto& e = err.value();
+        fmt::print(stderr, "{} {}: {}{}{}\n", code, target, e.field, e.field.empty() ? "" : ": ", e.error);
+      } else {
+        fmt::print(stderr, "{} {}: HTTP {}\n", code, target, code);
+      }
+      return std::nullopt;
+    }
+    return std::move(r.response);
+  }
+
+ private:
+  http::Url url_;
+  std::string token_;
+  http::ClientTimeouts timeouts_;
+};
+
+template <typename T>
+std::optional<T> decode_or_report(const protocol::Decoded<T>& d, std::string_view what) {
+  if (d.ok()) return d.value();
+  fmt::print(stderr, "unexpected answer to {}: {}\n", what, d.error().to_string());
+  return std::nullopt;
+}
+
+std::string format_seconds(double s) {
+  if (s < 60) return fmt::format("{:.1f}s", s);
+  if (s < 3600) return fmt::format("{}m{:02}s", int(s) / 60, int(s) % 60);
+  return fmt::format("{}h{:02}m", int(s) / 3600, (int(s) % 3600) / 60);
+}
+
+void print_status_line(const protocol::JobStatus& s) {
+  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>6} spp  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}\n", s.id,
+             protocol::to_string(s.state), s.priority, s.width, s.height, s.samples, s.tiles_done, s.tiles_total,
+             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output);
+}
+
+bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s == protocol::JobState::kCancelled; }
+
+}  // namespace
+
+std::optional<std::string> read_token_file(const std::string& path, std::string& error) {
+  auto text = util::read_file_limited(path, kMaxTokenBytes, error);
+  if (!text) return std::nullopt;
+  std::string token = text->substr(0, text->find('\n'));
+  while (!token.empty() && (token.back() == '\r' || token.back() == ' ' || token.back() == '\t')) token.pop_back();
+  std::size_t start = token.find_first_not_of(" \t");
+  token = start == std::string::npos ? "" : token.substr(start);
+  if (token.empty()) {
+    error = fmt::format("{}: the token file is empty", path);
+    return std::nullopt;
+  }
+  return token;
+}
+
+int run_submit(const ClientArgs& client, const SubmitArgs& args) {
+  scene::LoadResult loaded = scene::load_scene_file(args.scene);
+  if (!loaded.ok()) {
+    for (const auto& e : loaded.errors) fmt::print(stderr, "{}\n", e.to_string());
+    return kExitFailed;
+  }
+  if (!args.output.empty()) {
+    if (auto why = protocol::check_output_name(args.output)) {
+      fmt::print(stderr, "--output: output name {}\n", *why);
+      return kExitFailed;
+    }
+  }
+  protocol::JobSubmit submit;
+  submit.scene = std::move(*loaded.scene);
+  submit.output = args.output;
+  submit.priority = args.priority;
+  submit.tile_size = args.tile_size;
+  submit.width = args.width;
+  submit.height = args.height;
+  submit.samples = args.samples;
+  submit.max_depth = args.max_depth;
+  submit.frame = args.frame;
+  submit.seed = args.seed;
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  auto resp = session.call(http::Verb::post, "/v1/jobs", protocol::encode(submit));
+  if (!resp) return kExitFailed;
+  auto created = decode_or_report(protocol::decode_job_created(resp->body()), "POST /v1/jobs");
+  if (!created) return kExitFailed;
+  fmt::print("{}\n", created->id);
+  return kExitOk;
+}
+
+int run_list(const ClientArgs& client, bool json) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  auto resp = session.call(http::Verb::get, "/v1/jobs");
+  if (!resp) return kExitFailed;
+  auto list = decode_or_report(protocol::decode_job_list(resp->body()), "GET /v1/jobs");
+  if (!list) return kExitFailed;
+  if (json) {
+    fmt::print("{}\n", protocol::encode(*list));
+    return kExitOk;
+  }
+  fmt::print("{:>6}  {:<10} {:>4}  {:>11} {:>10}  {:>13} tiles  {:>8}  {:>12}  {}\n", "id", "state", "prio", "size",
+             "samples", "done/total", "elapsed", "eta", "output");
+  for (const auto& s : list->jobs) print_status_line(s);
+  return kExitOk;
+}
+
+int run_status(const ClientArgs& client, const StatusArgs& args) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  const std::string target = fmt::format("/v1/jobs/{}", args.id);
+  const bool bar = args.wait && !args.json && ::isatty(STDERR_FILENO);
+  while (true) {
+    auto resp = session.call(http::Verb::get, target);
+    if (!resp) return kExitFailed;
+    auto st = decode_or_report(protocol::decode_job_status(resp->body()), "GET " + target);
+    if (!st) return kExitFailed;
+    const bool done = finished(st->state);
+    if (bar) {
+      constexpr int kWidth = 40;
+      const double frac = st->tiles_total ? double(st->tiles_done) / st->tiles_total : 0.0;
+      const int filled = int(frac * kWidth);
+      fmt::print(stderr, "\rjob {} [{:#<{}}{:-<{}}] {:3d}% {}/{} tiles, eta {}   ", st->id, "", filled, "",
+                 kWidth - filled, int(frac * 100), st->tiles_done, st->tiles_total,
+                 st->eta_s ? format_seconds(*st->eta_s) : "-");
+      if (done) fmt::print(stderr, "\n");
+    }
+    if (!args.wait || done) {
+      if (args.json) {
+        fmt::print("{}\n", protocol::encode(*st));
+      } else {
+        print_status_line(*st);
+      }
+      return st->state == protocol::JobState::kCancelled && args.wait ? kExitFailed : kExitOk;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(args.poll_ms));
+  }
+}
+
+int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output) {
+  const auto format = image::format_from_path(output);
+  if (!format) {
+    fmt::print(stderr, "{}: unsupported output format (use .png, .ppm or .pfm)\n", output);
+    return kExitFailed;
+  }
+  // The collector serves PNG and PFM; a PPM is converted here from the exact PFM.
+  const bool png = *format == image::ImageFormat::kPng;
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  auto resp = session.call(http::Verb::get, fmt::format("/v1/jobs/{}/image?format={}", id, png ? "png" : "pfm"), {},
+                           kMaxImageResponse);
+  if (!resp) return kExitFailed;
+  std::string error;
+  if (*format == image::ImageFormat::kPpm) {
+    auto img = image::decode_image(image::ImageFormat::kPfm, resp->body(), "collector image", error);
+    if (!img || !image::write_image(output, *img, {}, error)) {
+      fmt::print(stderr, "{}\n", error);
+      return kExitFailed;
+    }
+    return kExitOk;
+  }
+  if (!util::write_file_atomic(output, resp->body(), error)) {
+    fmt::print(stderr, "{}\n", error);
+    return kExitFailed;
+  }
+  return kExitOk;
+}
+
+int run_cancel(const ClientArgs& client, std::uint64_t id) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  auto resp = session.call(http::Verb::post, fmt::format("/v1/jobs/{}/cancel", id));
+  if (!resp) return kExitFailed;
+  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "cancel");
+  if (!st) return kExitFailed;
+  print_status_line(*st);
+  return kExitOk;
+}
+
+}  // namespace dtraced::cli

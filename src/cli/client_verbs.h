@@ -1,0 +1,46 @@
+// dtraced::cli client verbs: submit, list, status, fetch and cancel, spoken to a collector over
+// its HTTP API (one blocking request at a time on a private io_context). Results go to stdout,
+// diagnostics to stderr; each function returns the process exit code (0 ok, 1 failed).
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+namespace dtraced::cli {
+
+struct ClientArgs {
+  std::string collector = "http://127.0.0.1:7878";
+  std::string token_file;  // empty: no Authorization header
+  std::uint32_t timeout_ms = 30000;
+};
+
+struct SubmitArgs {
+  std::string scene;
+  std::string output;  // empty: the collector picks job-<id>.png
+  std::int32_t priority = 0;
+  std::uint32_t tile_size = 32;
+  std::optional<std::uint32_t> width, height, samples, max_depth, frame;
+  std::optional<std::uint64_t> seed;
+};
+int run_submit(const ClientArgs& client, const SubmitArgs& args);
+
+int run_list(const ClientArgs& client, bool json);
+
+struct StatusArgs {
+  std::uint64_t id = 0;
+  bool json = false;  // print the status as JSON (machine-readable)
+  bool wait = false;  // poll until the job is done or cancelled (a progress bar on a terminal)
+  std::uint32_t poll_ms = 500;
+};
+int run_status(const ClientArgs& client, const StatusArgs& args);
+
+int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output);
+
+int run_cancel(const ClientArgs& client, std::uint64_t id);
+
+// Reads a bearer token from a file: the first line, without surrounding whitespace; empty or
+// over 4096 bytes is an error (returned as nullopt with `error` set).
+std::optional<std::string> read_token_file(const std::string& path, std::string& error);
+
+}  // namespace dtraced::cli

@@ -1,0 +1,233 @@
+#include "collector/queue.h"
+
+#include <algorithm>
+#include <cassert>
+
+#include <fmt/format.h>
+
+namespace dtraced::collector {
+namespace {
+
+using std::chrono::milliseconds;
+
+constexpr Duration kMaxConfigDuration = std::chrono::hours(24 * 7);
+
+// `factor` x `d`, saturating well below Duration's range: the product of a large bound and a
+// large factor must not wrap around into a negative duration.
+Duration scaled(Duration d, double factor) {
+  const double ticks = static_cast<double>(d.count()) * factor;
+  const double cap = static_cast<double>(kMaxConfigDuration.count()) * kMaxCopyExpiryFactor;
+  return Duration(static_cast<Duration::rep>(std::min(ticks, cap)));
+}
+
+}  // namespace
+
+std::optional<std::string> check_queue_config(const QueueConfig& c) {
+  const auto positive = [](Duration d) { return d > Duration::zero() && d <= kMaxConfigDuration; };
+  if (!positive(c.reoffer_floor)) return "reoffer_floor must be > 0 and at most a week";
+  if (!positive(c.reoffer_ceiling) || c.reoffer_ceiling < c.reoffer_floor) {
+    return "reoffer_ceiling must be >= reoffer_floor and at most a week";
+  }
+  if (!(c.reoffer_factor >= 1 && c.reoffer_factor <= kMaxReofferFactor)) {
+    return fmt::format("reoffer_factor must be in [1, {}]", kMaxReofferFactor);
+  }
+  if (c.max_copies < 1 || c.max_copies > kMaxCopiesLimit) {
+    return fmt::format("max_copies must be in [1, {}]", kMaxCopiesLimit);
+  }
+  if (!(c.copy_expiry_factor >= 1 && c.copy_expiry_factor <= kMaxCopyExpiryFactor)) {
+    return fmt::format("copy_expiry_factor must be in [1, {}]", kMaxCopyExpiryFactor);
+  }
+  if (c.window_size < 1 || c.window_size > kMaxWindowSize) {
+    return fmt::format("window_size must be in [1, {}]", kMaxWindowSize);
+  }
+  if (!positive(c.min_retry_after) || !positive(c.max_retry_after) || c.min_retry_after > c.max_retry_after) {
+    return "min_retry_after and max_retry_after must be > 0, at most a week, and min <= max";
+  }
+  return std::nullopt;
+}
+
+WorkQueue::WorkQueue(QueueConfig config) : config_(config) { assert(!check_queue_config(config_)); }
+
+bool WorkQueue::add_job(JobId id, std::int32_t priority, TileIndex tile_count,
+                        std::span<const TileIndex> already_stored) {
+  if (tile_count == 0 || tile_count > kMaxQueueTiles || jobs_.contains(id)) return false;
+  if (std::any_of(already_stored.begin(), already_stored.end(), [&](TileIndex t) { return t >= tile_count; })) {
+    return false;
+  }
+  Job job;
+  job.priority = priority;
+  job.tiles_total = tile_count;
+  job.bound = config_.reoffer_floor;
+  job.tiles.resize(tile_count);
+  for (const TileIndex t : already_stored) {
+    if (!job.tiles[t].stored) ++job.tiles_done;
+    job.tiles[t].stored = true;
+  }
+  if (job.done()) {
+    release_tiles(job);
+  } else {
+    for (TileIndex t = 0; t < tile_count; ++t) {
+      if (!job.tiles[t].stored) job.ring.push_back(t);
+    }
+    active_.insert(order_key(id, job));
+  }
+  jobs_.emplace(id, std::move(job));
+  return true;
+}
+
+LeaseResult WorkQueue::lease(TimePoint now) {
+  Duration soonest = Duration::max();
+  for (const auto& [key, id] : active_) {
+    Job& job = jobs_.at(id);
+    // Bounded by the queue's length at the start: every tile is looked at once at most.
+    for (std::size_t n = job.ring.size(); n > 0; --n) {
+      const TileIndex t = job.ring.front();
+      job.ring.pop_front();
+      Tile& tile = job.tiles[t];
+      if (tile.stored) continue;  // completed since it was last here: it leaves the ring now
+      job.ring.push_back(t);
+      const Duration wait = until_eligible(tile, job, now);
+      if (wait <= Duration::zero()) {
+        ++stats_.leases;
+        if (tile.ever_leased) ++stats_.reoffers;
+        tile.ever_leased = true;
+        tile.leases.push_back(now);
+        return {LeaseGrant{id, t}, milliseconds(0)};
+      }
+      soonest = std::min(soonest, wait);
+    }
+  }
+  const Duration wait = std::clamp(soonest, config_.min_retry_after, config_.max_retry_after);
+  return {std::nullopt, std::chrono::ceil<milliseconds>(wait)};
+}
+
+CompleteResult WorkQueue::complete(JobId id, TileIndex t, TimePoint now) {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end() || it->second.cancelled || t >= it->second.tiles_total) return CompleteResult::kJobGone;
+  Job& job = it->second;
+  if (job.done() || job.tiles[t].stored) {
+    ++stats_.duplicates;
+    return CompleteResult::kAlreadyDone;
+  }
+  Tile& tile = job.tiles[t];
+  drop_expired(tile, job, now);
+  // A result for a lease that expired, or that a previous collector process handed out, has no
+  // start time here: it teaches nothing about tile times.
+  if (!tile.leases.empty()) {
+    const TimePoint oldest = *std::min_element(tile.leases.begin(), tile.leases.end());
+    record_duration(job, std::max(Duration::zero(), now - oldest));
+  }
+  tile.stored = true;
+  tile.leases = {};  // frees the vector
+  ++job.tiles_done;
+  ++stats_.stored;
+  if (job.done()) {
+    active_.erase(order_key(id, job));
+    release_tiles(job);
+  }
+  return CompleteResult::kStored;
+}
+
+TileStatus WorkQueue::tile_status(JobId id, TileIndex t) const {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end() || it->second.cancelled) return TileStatus::kJobGone;
+  const Job& job = it->second;
+  if (t >= job.tiles_total) return TileStatus::kNoSuchTile;
+  if (job.done() || job.tiles[t].stored) return TileStatus::kStored;
+  return TileStatus::kPending;
+}
+
+bool WorkQueue::is_done(JobId id) const {
+  const auto it = jobs_.find(id);
+  return it != jobs_.end() && !it->second.cancelled && it->second.done();
+}
+
+bool WorkQueue::cancel(JobId id) {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end() || it->second.cancelled || it->second.done()) return false;
+  active_.erase(order_key(id, it->second));
+  it->second.cancelled = true;
+  release_tiles(it->second);
+  return true;
+}
+
+bool WorkQueue::remove_job(JobId id) {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end()) return false;
+  active_.erase(order_key(id, it->second));
+  jobs_.erase(it);
+  return true;
+}
+
+std::optional<JobProgress> WorkQueue::progress(JobId id, TimePoint now) const {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end()) return std::nullopt;
+  const Job& job = it->second;
+  JobProgress p;
+  p.tiles_total = job.tiles_total;
+  p.tiles_done = job.tiles_done;
+  p.cancelled = job.cancelled;
+  const Duration lifetime = lease_lifetime(job);
+  for (const Tile& tile : job.tiles) {
+    if (tile.stored) continue;
+    for (const TimePoint t : tile.leases) {
+      if (now - t < lifetime) ++p.leases_outstanding;
+    }
+  }
+  return p;
+}
+
+Duration WorkQueue::reoffer_bound(JobId id) const {
+  const auto it = jobs_.find(id);
+  return it == jobs_.end() ? config_.reoffer_floor : it->second.bound;
+}
+
+QueueStats WorkQueue::stats() const {
+  QueueStats s = stats_;
+  s.active_jobs = active_.size();
+  return s;
+}
+
+Duration WorkQueue::lease_lifetime(const Job& job) const { return scaled(job.bound, config_.copy_expiry_factor); }
+
+void WorkQueue::drop_expired(Tile& tile, const Job& job, TimePoint now) const {
+  const Duration lifetime = lease_lifetime(job);
+  std::erase_if(tile.leases, [&](TimePoint t) { return now - t >= lifetime; });
+}
+
+Duration WorkQueue::until_eligible(Tile& tile, const Job& job, TimePoint now) const {
+  drop_expired(tile, job, now);
+  if (tile.leases.empty()) return Duration::min();
+  const Duration lifetime = lease_lifetime(job);
+  // Leases are appended as time goes on, so the last is the newest.
+  TimePoint eligible_at = tile.leases.back() + job.bound;
+  if (tile.leases.size() >= config_.max_copies) {
+    // At the copy cap: wait also for enough of the oldest leases to expire.
+    eligible_at = std::max(eligible_at, tile.leases[tile.leases.size() - config_.max_copies] + lifetime);
+  }
+  return eligible_at - now;
+}
+
+void WorkQueue::record_duration(Job& job, Duration d) {
+  if (job.window.size() < config_.window_size) {
+    job.window.push_back(d);
+  } else {
+    job.window[job.window_next] = d;
+    job.window_next = (job.window_next + 1) % config_.window_size;
+  }
+  // p90 by the nearest-rank method: the smallest sample with at least 90% of samples <= it.
+  std::vector<Duration> sorted = job.window;
+  const std::size_t rank = (sorted.size() * 9 + 9) / 10;  // ceil(0.9 n), >= 1
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(rank - 1), sorted.end());
+  const Duration p90 = sorted[rank - 1];
+  job.bound = std::clamp(scaled(p90, config_.reoffer_factor), config_.reoffer_floor, config_.reoffer_ceiling);
+}
+
+void WorkQueue::release_tiles(Job& job) {
+  job.tiles = {};
+  job.ring = {};
+  job.window = {};
+  job.window_next = 0;
+}
+
+}  // namespace dtraced::collector

@@ -1,0 +1,202 @@
+// dtraced::collector work queue: which tile a worker gets next, and when a tile is done.
+//
+// Owns: the scheduling rules of the farm (README.md, "Work queue"), as a pure data structure. No
+// sockets, no SQL, no clock reads: every call that depends on time takes `now`, a
+// std::chrono::steady_clock time point (monotonic: worker and collector wall clocks may disagree,
+// and a lease must not be re-offered because someone set the date). Tests drive it with a fake
+// clock.
+//
+// Rules.
+//  - Jobs are served by priority (higher first), then by id (lower first: submission order).
+//  - Per job, a circular queue of unfinished tiles. lease() looks at the front tile; if it may be
+//    leased it is handed out, otherwise skipped; either way it is rotated to the back. The scan
+//    goes on through that job's whole queue, then to the next job; so a lower-priority job gets
+//    work while a higher one has only tiles out.
+//  - A tile may be leased when it has no lease outstanding, or when its last lease is at least
+//    reoffer_bound(job) old AND fewer than max_copies of its leases are outstanding. A lease counts
+//    as outstanding until it is copy_expiry_factor x reoffer_bound old: after that its worker is
+//    presumed gone; without expiry, a tile whose max_copies holders all died would never be
+//    offered again.
+//  - reoffer_bound(job) = clamp(factor x p90 of the job's recent lease->result times, floor,
+//    ceiling). Those times are measured from the tile's oldest outstanding lease: when several
+//    copies were out it is not known which one answered, and overestimating is the safe side
+//    (a higher bound means fewer duplicates), while underestimating would feed back (a bound
+//    below the true tile time re-offers every tile, and every short measurement lowers it more).
+//  - A tile leaves the queue only through complete(), which the caller invokes after the pixels
+//    are durably stored. The first completion wins (kStored); later ones are kAlreadyDone.
+//  - Nothing eligible: lease() suggests when to ask again, the time until the first tile becomes
+//    eligible, clamped to [min_retry_after, max_retry_after].
+//
+// Memory per job: O(tiles) while it runs (a few dozen bytes per tile, at most max_copies lease
+// times each) plus a window of window_size durations; O(1) once done or cancelled. lease() costs
+// O(1) while a job has tiles never leased (they sit at the front) and at most the queue length
+// per job in the tail of a job, when everything left is out.
+//
+// Thread safety: none. One owner (the collector's event-loop strand) calls everything.
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <deque>
+#include <map>
+#include <optional>
+#include <set>
+#include <span>
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace dtraced::collector {
+
+using Clock = std::chrono::steady_clock;
+using TimePoint = Clock::time_point;
+using Duration = Clock::duration;
+using JobId = std::uint64_t;
+using TileIndex = std::uint32_t;
+
+// Largest job add_job accepts (protocol::kMaxTilesPerJob is the tighter bound on the wire): at
+// about 36 bytes a tile, 150 MiB of queue state.
+inline constexpr TileIndex kMaxQueueTiles = 1u << 22;
+
+// Upper bounds on the configuration itself (check_queue_config).
+inline constexpr std::uint32_t kMaxCopiesLimit = 16;
+inline constexpr std::size_t kMaxWindowSize = 4096;
+inline constexpr double kMaxReofferFactor = 100;
+inline constexpr double kMaxCopyExpiryFactor = 1000;
+
+struct QueueConfig {
+  // reoffer_bound = clamp(reoffer_factor x p90 of recent tile times, reoffer_floor, reoffer_ceiling)
+  Duration reoffer_floor = std::chrono::seconds(2);
+  double reoffer_factor = 3.0;
+  // Past this a slow tile is covered anyway: a worker silent for hours is not coming back.
+  Duration reoffer_ceiling = std::chrono::hours(6);
+  std::uint32_t max_copies = 3;      // outstanding leases per tile, first one included
+  double copy_expiry_factor = 10.0;  // a lease stops counting toward max_copies at this x bound
+  std::size_t window_size = 64;      // recent tile times kept per job for the p90
+  Duration min_retry_after = std::chrono::milliseconds(50);
+  Duration max_retry_after = std::chrono::seconds(5);
+};
+
+// nullopt when usable; otherwise what is wrong, naming the field.
+std::optional<std::string> check_queue_config(const QueueConfig& config);
+
+struct LeaseGrant {
+  JobId job = 0;
+  TileIndex tile = 0;
+  bool operator==(const LeaseGrant&) const = default;
+};
+
+struct LeaseResult {
+  std::optional<LeaseGrant> grant;
+  // When grant is empty: ask again after this long, in [min_retry_after, max_retry_after]
+  // (rounded up to whole milliseconds). Zero when a grant is given.
+  std::chrono::milliseconds retry_after{0};
+};
+
+enum class CompleteResult { kStored, kAlreadyDone, kJobGone };
+
+enum class TileStatus {
+  kJobGone,     // unknown, removed or cancelled job
+  kNoSuchTile,  // index past the job's last tile
+  kPending,     // not stored yet
+  kStored,      // a result was stored: a new one is a duplicate
+};
+
+struct JobProgress {
+  TileIndex tiles_total = 0;
+  TileIndex tiles_done = 0;
+  std::uint32_t leases_outstanding = 0;  // unexpired leases of unfinished tiles
+  bool cancelled = false;
+  bool done() const { return tiles_done == tiles_total; }
+};
+
+// Totals since construction, for /metrics.
+struct QueueStats {
+  std::uint64_t leases = 0;      // grants handed out
+  std::uint64_t reoffers = 0;    // grants of a tile that had been leased before
+  std::uint64_t stored = 0;      // kStored completions
+  std::uint64_t duplicates = 0;  // kAlreadyDone completions
+  std::size_t active_jobs = 0;   // jobs with unfinished tiles, not cancelled
+};
+
+class WorkQueue {
+ public:
+  explicit WorkQueue(QueueConfig config = {});  // asserts check_queue_config(config) is empty
+
+  // Adds a job of `tile_count` tiles, or restores one after a restart: `already_stored` tiles
+  // (from the store) count as done and are never leased. False, changing nothing, when the id is
+  // in use, tile_count is 0 or above kMaxQueueTiles, or an index is out of range.
+  bool add_job(JobId job, std::int32_t priority, TileIndex tile_count, std::span<const TileIndex> already_stored = {});
+
+  // The next tile to render, or nothing and when to ask again.
+  LeaseResult lease(TimePoint now);
+
+  // Records that the tile's pixels are durably stored. Call only after the store committed them.
+  // kJobGone for an unknown, removed or cancelled job and for an index out of range.
+  CompleteResult complete(JobId job, TileIndex tile, TimePoint now);
+
+  // For duplicate handling before touching the store.
+  TileStatus tile_status(JobId job, TileIndex tile) const;
+
+  // True when every tile of a known, not cancelled job is stored.
+  bool is_done(JobId job) const;
+
+  // Stops handing out the job's tiles and frees them; later completions get kJobGone. The job
+  // stays known (progress() reports it cancelled) until remove_job. False when the job is
+  // unknown, already cancelled or done.
+  bool cancel(JobId job);
+
+  // Forgets the job entirely (done and written, or cancelled). False when unknown.
+  bool remove_job(JobId job);
+
+  std::optional<JobProgress> progress(JobId job, TimePoint now) const;
+
+  // The job's current re-offer bound; the floor for an unknown job.
+  Duration reoffer_bound(JobId job) const;
+
+  QueueStats stats() const;
+  const QueueConfig& config() const { return config_; }
+
+ private:
+  struct Tile {
+    std::vector<TimePoint> leases;  // outstanding (unexpired) leases, at most max_copies
+    bool stored = false;
+    bool ever_leased = false;
+  };
+
+  struct Job {
+    std::int32_t priority = 0;
+    TileIndex tiles_total = 0;
+    TileIndex tiles_done = 0;
+    bool cancelled = false;
+    std::vector<Tile> tiles;  // empty once done or cancelled
+    // Unfinished tiles in lease order. A stored tile is dropped when it next reaches the front,
+    // not searched for at completion.
+    std::deque<TileIndex> ring;
+    std::vector<Duration> window;  // recent lease->result times, a ring of window_size
+    std::size_t window_next = 0;
+    Duration bound{};
+
+    bool done() const { return tiles_done == tiles_total; }
+  };
+
+  // Priority descending, then id ascending.
+  using OrderKey = std::pair<std::int64_t, JobId>;
+  static OrderKey order_key(JobId id, const Job& job) { return {-std::int64_t{job.priority}, id}; }
+
+  Duration lease_lifetime(const Job& job) const;
+  // Forgets the tile's leases that no longer count toward max_copies.
+  void drop_expired(Tile& tile, const Job& job, TimePoint now) const;
+  // How long until `tile` may be leased (<= 0: now). Drops expired leases first.
+  Duration until_eligible(Tile& tile, const Job& job, TimePoint now) const;
+  void record_duration(Job& job, Duration d);
+  void release_tiles(Job& job);
+
+  QueueConfig config_;
+  std::map<JobId, Job> jobs_;
+  std::set<OrderKey> active_;  // jobs with unfinished tiles, not cancelled
+  QueueStats stats_;
+};
+
+}  // namespace dtraced::collector

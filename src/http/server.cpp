@@ -1,0 +1,457 @@
+#include "http/server.h"
+
+#include <algorithm>
+#include <array>
+#include <cassert>
+#include <exception>
+#include <list>
+#include <optional>
+#include <string>
+#include <tuple>
+#include <utility>
+
+#include <boost/asio/as_tuple.hpp>
+#include <boost/asio/bind_cancellation_slot.hpp>
+#include <boost/asio/cancellation_signal.hpp>
+#include <boost/asio/co_spawn.hpp>
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/asio/post.hpp>
+#include <boost/asio/steady_timer.hpp>
+#include <boost/asio/use_awaitable.hpp>
+#include <boost/beast/core/error.hpp>
+#include <boost/beast/core/flat_buffer.hpp>
+#include <boost/beast/core/string.hpp>
+#include <boost/beast/core/tcp_stream.hpp>
+#include <boost/beast/http/empty_body.hpp>
+#include <boost/beast/http/error.hpp>
+#include <boost/beast/http/field.hpp>
+#include <boost/beast/http/parser.hpp>
+#include <boost/beast/http/read.hpp>
+#include <boost/beast/http/write.hpp>
+
+#include "util/log.h"
+
+namespace dtraced::http {
+namespace {
+
+namespace net = boost::asio;
+namespace beast = boost::beast;
+namespace bhttp = boost::beast::http;
+using tcp = net::ip::tcp;
+using boost::system::error_code;
+using Clock = std::chrono::steady_clock;
+
+// Deadlines are beast::tcp_stream's expires_at/after: one timer per connection, re-armed per
+// phase, that closes the socket when it fires. Racing each operation against a steady_timer with
+// awaitable_operators' || would spawn two coroutines per read or write for the same effect.
+//
+// One completion token for every awaited operation: errors come back as values, so a peer's
+// misbehaviour is handled where it happens instead of unwinding the session.
+constexpr auto kAwaitTuple = net::as_tuple(net::use_awaitable);
+
+// Bytes asked of the kernel per read while waiting for the start of a request.
+constexpr std::size_t kReadChunkBytes = 16 * 1024;
+// After a connection's last response the server half-closes and reads what the peer still sends
+// (the rest of a refused body, a pipelined request) before closing: closing with unread input
+// makes the kernel send a reset, and the peer may then lose the response it has not read yet.
+constexpr std::chrono::milliseconds kLingerTimeout{1000};
+constexpr std::size_t kLingerMaxBytes = 1 << 20;
+constexpr std::size_t kLingerChunkBytes = 4096;
+// Connections over max_connections are answered 503 by a short coroutine each; past this many
+// such answers at once, further ones are closed without a word.
+constexpr std::size_t kMaxRejectingConnections = 64;
+// Pause after a failed accept (EMFILE, ENFILE, ENOBUFS) so the loop does not spin on it.
+constexpr std::chrono::milliseconds kAcceptErrorBackoff{100};
+// How long stop() waits for cancelled sessions to unwind after its grace period.
+constexpr std::chrono::milliseconds kCutUnwindTimeout{1000};
+// Request targets quoted in log lines are cut to this length.
+constexpr std::size_t kMaxLoggedTargetBytes = 200;
+
+bool is_http_parse_error(const error_code& ec) {
+  return ec.category() == bhttp::make_error_code(bhttp::error::bad_method).category();
+}
+
+// The answer to a request that could not be read, or nullopt to drop the connection silently
+// (the peer closed, reset, or ran out of time: nobody is there to read an answer).
+std::optional<Response> answer_read_error(const error_code& ec, const ServerLimits& limits) {
+  if (ec == bhttp::error::body_limit) {
+    return make_error(Status::payload_too_large,
+                      fmt::format("request body exceeds the limit of {} bytes", limits.max_body_bytes));
+  }
+  if (ec == bhttp::error::header_limit || ec == bhttp::error::buffer_overflow) {
+    return make_error(Status::request_header_fields_too_large,
+                      fmt::format("request header exceeds the limit of {} bytes", limits.max_header_bytes));
+  }
+  if (ec == bhttp::error::end_of_stream || ec == bhttp::error::partial_message) return std::nullopt;
+  if (is_http_parse_error(ec)) {
+    return make_error(Status::bad_request, fmt::format("malformed HTTP request: {}", ec.message()));
+  }
+  return std::nullopt;
+}
+
+bool expects_continue(const Request& req) { return beast::iequals(req[bhttp::field::expect], "100-continue"); }
+
+std::string loggable_target(const Request& req) {
+  const auto target = req.target();
+  return std::string(target.data(), std::min(target.size(), kMaxLoggedTargetBytes));
+}
+
+// One accepted socket. Lives in Impl::connections from accept until its coroutine has ended.
+struct Connection {
+  Connection(tcp::socket socket, bool rejecting) : stream(std::move(socket)), rejecting(rejecting) {}
+
+  beast::tcp_stream stream;
+  const bool rejecting;             // over the cap: answered 503 and closed
+  bool busy = false;                // a request is being read, handled or written: stop() lets it finish
+  bool finished = false;            // its coroutine has completed; erased soon after
+  net::cancellation_signal cancel;  // cancels the coroutine (and the handler) when stop() gives up
+};
+
+}  // namespace
+
+struct Server::Impl {
+  Impl(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
+       Handler handler)
+      : executor(executor),
+        endpoint(address, port),
+        limits(limits),
+        handler(std::move(handler)),
+        acceptor(executor),
+        drained(executor) {}
+
+  static net::awaitable<void> accept_loop(std::shared_ptr<Impl> self);
+  static void spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, bool rejecting);
+  static void on_finished(const std::shared_ptr<Impl>& self, std::list<Connection>::iterator it,
+                          std::exception_ptr error);
+  static net::awaitable<void> session(std::shared_ptr<Impl> self, Connection& conn);
+  static net::awaitable<void> reject(std::shared_ptr<Impl> self, Connection& conn);
+  static net::awaitable<Response> call_handler(Impl& self, Request req);
+  static net::awaitable<void> respond_and_close(Impl& self, Connection& conn, Response res);
+  static net::awaitable<void> linger_and_close(Connection& conn);
+  static net::awaitable<void> stop(std::shared_ptr<Impl> self, std::chrono::milliseconds grace);
+  static net::awaitable<void> wait_until_drained(Impl& self, Clock::time_point deadline);
+  void cut_all();
+  void count_response(unsigned status);
+
+  // Immutable after construction.
+  const net::any_io_executor executor;
+  const tcp::endpoint endpoint;
+  const ServerLimits limits;
+  const Handler handler;
+
+  // Owned by the executor.
+  tcp::acceptor acceptor;
+  std::list<Connection> connections;  // stable addresses: sessions hold a reference to theirs
+  std::size_t sessions = 0;           // connections that are not rejecting
+  std::size_t rejecting = 0;
+  bool started = false;
+  bool stopping = false;      // no new connections; answers say Connection: close
+  bool cutting = false;       // the grace period is over: cancellations and errors are expected
+  net::steady_timer drained;  // poked when a connection is erased while stopping
+
+  // Read from any thread.
+  std::atomic<std::uint16_t> bound_port{0};
+  std::atomic<std::uint64_t> requests{0};
+  std::atomic<std::uint64_t> responses_4xx{0};
+  std::atomic<std::uint64_t> responses_5xx{0};
+  std::atomic<std::uint64_t> read_timeouts{0};
+  std::atomic<std::uint64_t> rejected_connections{0};
+  std::atomic<std::uint64_t> open_connections{0};
+};
+
+net::awaitable<void> Server::Impl::accept_loop(std::shared_ptr<Impl> self) {
+  for (;;) {
+    auto [ec, socket] = co_await self->acceptor.async_accept(kAwaitTuple);
+    if (self->stopping) co_return;  // an accepted socket closes with `socket`
+    if (ec) {
+      if (ec == net::error::operation_aborted || !self->acceptor.is_open()) co_return;
+      util::log_warn("http: accept failed: {}", ec.message());
+      net::steady_timer pause(self->executor, kAcceptErrorBackoff);
+      co_await pause.async_wait(kAwaitTuple);
+      continue;
+    }
+    if (self->sessions >= self->limits.max_connections) {
+      self->rejected_connections.fetch_add(1, std::memory_order_relaxed);
+      if (self->rejecting < kMaxRejectingConnections) spawn(self, std::move(socket), /*rejecting=*/true);
+      continue;
+    }
+    spawn(self, std::move(socket), /*rejecting=*/false);
+  }
+}
+
+void Server::Impl::spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, bool rejecting) {
+  // Requests and answers are small and written whole: Nagle would only add latency.
+  error_code ignored;
+  socket.set_option(tcp::no_delay(true), ignored);
+  const auto it = self->connections.emplace(self->connections.end(), std::move(socket), rejecting);
+  if (rejecting) {
+    ++self->rejecting;
+  } else {
+    ++self->sessions;
+    self->open_connections.fetch_add(1, std::memory_order_relaxed);
+  }
+  auto body = rejecting ? reject(self, *it) : session(self, *it);
+  net::co_spawn(self->executor, std::move(body),
+                net::bind_cancellation_slot(it->cancel.slot(), [self, it](std::exception_ptr error) {
+                  on_finished(self, it, std::move(error));
+                }));
+}
+
+void Server::Impl::on_finished(const std::shared_ptr<Impl>& self, std::list<Connection>::iterator it,
+                               std::exception_ptr error) {
+  if (error && !self->cutting) {
+    try {
+      std::rethrow_exception(error);
+    } catch (const std::exception& e) {
+      util::log_error("http: connection ended by an exception: {}", e.what());
+    } catch (...) {
+      util::log_error("http: connection ended by an unknown exception");
+    }
+  }
+  it->finished = true;
+  if (it->rejecting) {
+    --self->rejecting;
+  } else {
+    --self->sessions;
+    self->open_connections.fetch_sub(1, std::memory_order_relaxed);
+  }
+  // Erase later: this completion handler runs inside co_spawn's machinery, which still holds the
+  // cancellation slot that lives in *it.
+  net::post(self->executor, [self, it] {
+    self->connections.erase(it);
+    if (self->stopping) self->drained.cancel();
+  });
+}
+
+net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connection& conn) {
+  const ServerLimits& limits = self->limits;
+  beast::flat_buffer buffer;
+  bool first = true;
+  for (;;) {
+    // Between requests. A pipelined request may already be in the buffer; otherwise wait for the
+    // first byte of the next one.
+    conn.busy = false;
+    if (buffer.size() == 0) {
+      conn.stream.expires_after(first ? limits.read_timeout : limits.idle_keepalive_timeout);
+      auto [ec, n] = co_await conn.stream.async_read_some(buffer.prepare(kReadChunkBytes), kAwaitTuple);
+      if (ec) {
+        // A fresh connection that never speaks counts as a stalled request; an idle keep-alive
+        // connection timing out is ordinary.
+        if (ec == beast::error::timeout && first) self->read_timeouts.fetch_add(1, std::memory_order_relaxed);
+        co_return;
+      }
+      buffer.commit(n);
+    }
+    first = false;
+    conn.busy = true;
+
+    // One whole request before its deadline, within the size limits.
+    const auto read_deadline = Clock::now() + limits.read_timeout;
+    conn.stream.expires_at(read_deadline);
+    bhttp::request_parser<bhttp::string_body> parser;
+    parser.header_limit(limits.max_header_bytes);
+    parser.body_limit(limits.max_body_bytes);
+    error_code ec;
+    std::size_t n = 0;
+    std::tie(ec, n) = co_await bhttp::async_read_header(conn.stream, buffer, parser, kAwaitTuple);
+    if (!ec && !parser.is_done()) {
+      if (expects_continue(parser.get())) {
+        // The client waits for this before it sends the body (curl does for large bodies).
+        conn.stream.expires_after(limits.write_timeout);
+        bhttp::response<bhttp::empty_body> go_on{Status::continue_, parser.get().version()};
+        std::tie(ec, n) = co_await bhttp::async_write(conn.stream, go_on, kAwaitTuple);
+        conn.stream.expires_at(read_deadline);
+      }
+      if (!ec) std::tie(ec, n) = co_await bhttp::async_read(conn.stream, buffer, parser, kAwaitTuple);
+    }
+    if (ec) {
+      if (ec == beast::error::timeout) {
+        self->read_timeouts.fetch_add(1, std::memory_order_relaxed);
+        co_return;
+      }
+      std::optional<Response> answer = answer_read_error(ec, limits);
+      if (answer) co_await respond_and_close(*self, conn, std::move(*answer));
+      co_return;
+    }
+
+    Request req = parser.release();
+    const bool client_keep_alive = req.keep_alive();
+    const unsigned version = req.version();
+    conn.stream.expires_never();
+    Response res = co_await call_handler(*self, std::move(req));
+
+    const bool keep_alive = client_keep_alive && res.keep_alive() && !self->stopping;
+    res.version(version);
+    res.keep_alive(keep_alive);
+    self->count_response(res.result_int());
+    conn.stream.expires_after(limits.write_timeout);
+    std::tie(ec, n) = co_await bhttp::async_write(conn.stream, res, kAwaitTuple);
+    if (ec) co_return;
+    if (!keep_alive) {
+      co_await linger_and_close(conn);
+      co_return;
+    }
+  }
+}
+
+net::awaitable<void> Server::Impl::reject(std::shared_ptr<Impl> self, Connection& conn) {
+  conn.busy = true;
+  Response res =
+      make_error(Status::service_unavailable,
+                 fmt::format("too many open connections (limit {}); retry later", self->limits.max_connections));
+  res.set(bhttp::field::retry_after, "1");
+  co_await respond_and_close(*self, conn, std::move(res));
+}
+
+net::awaitable<Response> Server::Impl::call_handler(Impl& self, Request req) {
+  const std::string method(req.method_string());
+  const std::string target = loggable_target(req);
+  std::string failure;
+  try {
+    Response res = co_await self.handler(std::move(req));
+    res.prepare_payload();  // throws for a body where none is allowed (204, 304)
+    co_return res;
+  } catch (const std::exception& e) {
+    failure = e.what();
+  } catch (...) {
+    failure = "unknown exception";
+  }
+  if (!self.cutting) util::log_error("http: handler for {} {} threw: {}", method, target, failure);
+  co_return make_error(Status::internal_server_error, "internal error");
+}
+
+net::awaitable<void> Server::Impl::respond_and_close(Impl& self, Connection& conn, Response res) {
+  res.keep_alive(false);
+  self.count_response(res.result_int());
+  conn.stream.expires_after(self.limits.write_timeout);
+  auto [ec, n] = co_await bhttp::async_write(conn.stream, res, kAwaitTuple);
+  if (ec) co_return;
+  co_await linger_and_close(conn);
+}
+
+net::awaitable<void> Server::Impl::linger_and_close(Connection& conn) {
+  conn.busy = false;  // the answer is out: stop() may close this at once
+  error_code ec;
+  conn.stream.socket().shutdown(tcp::socket::shutdown_send, ec);
+  if (!ec) {
+    conn.stream.expires_after(kLingerTimeout);
+    std::array<char, kLingerChunkBytes> scratch;
+    std::size_t drained = 0;
+    while (drained < kLingerMaxBytes) {
+      auto [rec, n] = co_await conn.stream.async_read_some(net::buffer(scratch), kAwaitTuple);
+      if (rec) break;  // end of stream (the usual way out), reset, or the linger deadline
+      drained += n;
+    }
+  }
+  conn.stream.close();
+}
+
+net::awaitable<void> Server::Impl::stop(std::shared_ptr<Impl> self, std::chrono::milliseconds grace) {
+  if (self->stopping) co_return;
+  self->stopping = true;
+  error_code ignored;
+  self->acceptor.close(ignored);
+  for (Connection& conn : self->connections) {
+    if (!conn.busy && !conn.finished) conn.stream.close();
+  }
+  co_await wait_until_drained(*self, Clock::now() + grace);
+  if (self->connections.empty()) co_return;
+
+  const auto busy = std::count_if(self->connections.begin(), self->connections.end(),
+                                  [](const Connection& conn) { return !conn.finished; });
+  util::log_warn("http: {} connection(s) still busy {} ms after stop; cancelling them", busy, grace.count());
+  self->cut_all();
+  co_await wait_until_drained(*self, Clock::now() + kCutUnwindTimeout);
+  if (!self->connections.empty()) {
+    util::log_warn("http: {} connection(s) did not unwind after cancellation", self->connections.size());
+  }
+}
+
+net::awaitable<void> Server::Impl::wait_until_drained(Impl& self, Clock::time_point deadline) {
+  // The timer serves as a condition variable: erasing a connection while stopping cancels it.
+  while (!self.connections.empty() && Clock::now() < deadline) {
+    self.drained.expires_at(deadline);
+    co_await self.drained.async_wait(kAwaitTuple);
+  }
+}
+
+void Server::Impl::cut_all() {
+  stopping = true;
+  cutting = true;
+  error_code ignored;
+  acceptor.close(ignored);
+  for (Connection& conn : connections) {
+    if (conn.finished) continue;
+    conn.cancel.emit(net::cancellation_type::terminal);
+    conn.stream.close();
+  }
+}
+
+void Server::Impl::count_response(unsigned status) {
+  requests.fetch_add(1, std::memory_order_relaxed);
+  if (status >= 400 && status < 500) responses_4xx.fetch_add(1, std::memory_order_relaxed);
+  if (status >= 500 && status < 600) responses_5xx.fetch_add(1, std::memory_order_relaxed);
+}
+
+Server::Server(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
+               Handler handler)
+    : impl_(std::make_shared<Impl>(std::move(executor), address, port, limits, std::move(handler))) {
+  assert(limits.max_header_bytes > 0 && limits.max_body_bytes > 0 && limits.max_connections > 0);
+  assert(limits.read_timeout.count() > 0 && limits.write_timeout.count() > 0 &&
+         limits.idle_keepalive_timeout.count() > 0);
+}
+
+Server::~Server() {
+  // The executor may be running on another thread: close everything from there. If it never runs
+  // again, the io_context's destruction frees the internals instead.
+  net::post(impl_->executor, [impl = impl_] { impl->cut_all(); });
+}
+
+error_code Server::start() {
+  Impl& s = *impl_;
+  if (s.started) return net::error::already_started;
+  if (s.stopping) return net::error::shut_down;
+  error_code ec;
+  s.acceptor.open(s.endpoint.protocol(), ec);
+  if (!ec) s.acceptor.set_option(net::socket_base::reuse_address(true), ec);
+  if (!ec) s.acceptor.bind(s.endpoint, ec);
+  if (!ec) s.acceptor.listen(net::socket_base::max_listen_connections, ec);
+  tcp::endpoint bound;
+  if (!ec) bound = s.acceptor.local_endpoint(ec);
+  if (ec) {
+    error_code ignored;
+    s.acceptor.close(ignored);
+    return ec;
+  }
+  s.started = true;
+  s.bound_port.store(bound.port());
+  net::co_spawn(s.executor, Impl::accept_loop(impl_), [](std::exception_ptr error) {
+    if (!error) return;
+    try {
+      std::rethrow_exception(error);
+    } catch (const std::exception& e) {
+      util::log_error("http: accept loop ended by an exception: {}", e.what());
+    } catch (...) {
+      util::log_error("http: accept loop ended by an unknown exception");
+    }
+  });
+  return {};
+}
+
+std::uint16_t Server::port() const { return impl_->bound_port.load(); }
+
+net::awaitable<void> Server::stop(std::chrono::milliseconds grace) { return Impl::stop(impl_, grace); }
+
+ServerMetrics Server::metrics() const {
+  const Impl& s = *impl_;
+  ServerMetrics m;
+  m.requests = s.requests.load(std::memory_order_relaxed);
+  m.responses_4xx = s.responses_4xx.load(std::memory_order_relaxed);
+  m.responses_5xx = s.responses_5xx.load(std::memory_order_relaxed);
+  m.read_timeouts = s.read_timeouts.load(std::memory_order_relaxed);
+  m.rejected_connections = s.rejected_connections.load(std::memory_order_relaxed);
+  m.open_connections = s.open_connections.load(std::memory_order_relaxed);
+  return m;
+}
+
+}  // namespace dtraced::http

@@ -1,0 +1,247 @@
+// dtraced::protocol messages: the JSON bodies of the collector's HTTP API, as plain structs with
+// strict codecs.
+//
+// Owns: every JSON body that crosses the wire (README.md, "HTTP API", lists the endpoints) and the
+// limits on them. Encoders always produce a body that the matching decoder accepts and that
+// decodes to an equal struct (doubles included, bit for bit). Decoders are strict in the way the
+// scene loader is: unknown keys, duplicate keys, wrong types, integers out of range, numbers that
+// overflow a double, oversized or too deeply nested bodies are all errors, each located by the
+// JSON Pointer of the offending value ("/tile_size", "/scene/scene_objects/3/radius"); "" names
+// the body as a whole. A decoder returns either the struct or its errors, never a partial struct.
+//
+// Numbers: integers may be written as integral doubles (640.0, 1e3), as in scene files; ids,
+// seeds and counters stay within 2^53 - 1 so that a JavaScript client reads them exactly.
+//
+// Stateless functions over values: thread-safe.
+#pragma once
+
+#include <cassert>
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <variant>
+#include <vector>
+
+#include "render/tile.h"
+#include "scene/description.h"
+#include "scene/load.h"
+
+namespace dtraced::protocol {
+
+// ---- limits --------------------------------------------------------------------------------
+
+// Every body but a job submission and a job list: they are a few hundred bytes.
+inline constexpr std::size_t kMaxMessageBytes = 64 << 10;
+// POST /v1/jobs carries a whole scene. Scenes for the farm are bounded tighter than scene files
+// (scene::kMaxSceneBytes): the collector holds, parses and stores every one of them.
+inline constexpr std::size_t kMaxJobSubmitBytes = 64 << 20;
+// GET /v1/jobs: at most kMaxListedJobs statuses of a few hundred bytes each.
+inline constexpr std::size_t kMaxJobListBytes = 16 << 20;
+inline constexpr std::size_t kMaxListedJobs = 10'000;
+// Nesting depth of control messages; a submission adds one level above a scene's own limit.
+inline constexpr std::size_t kMaxMessageDepth = 8;
+inline constexpr std::size_t kMaxJobSubmitDepth = scene::kMaxJsonDepth + 1;
+// Errors reported per body; past this the rest are counted in one final error.
+inline constexpr std::size_t kMaxDecodeErrors = 100;
+
+inline constexpr std::uint64_t kMaxId = (1ull << 53) - 1;  // job ids, as JSON numbers
+inline constexpr std::int32_t kMinPriority = -1000;
+inline constexpr std::int32_t kMaxPriority = 1000;
+inline constexpr std::uint32_t kMinTileSize = 8;
+inline constexpr std::uint32_t kMaxTileSize = 1024;
+inline constexpr std::uint32_t kDefaultTileSize = 32;
+// A job's tile count is capped so that the collector's per-job queue state stays small: a
+// 16384 x 16384 image at the default tile size is exactly this many tiles.
+inline constexpr std::uint32_t kMaxTilesPerJob = 1u << 18;
+inline constexpr std::size_t kMaxOutputNameBytes = 255;  // NAME_MAX on Linux file systems
+inline constexpr std::size_t kMaxWorkerNameBytes = 128;
+inline constexpr std::uint32_t kMaxWorkerThreads = 4096;
+inline constexpr std::uint32_t kMaxRetryAfterMs = 60'000;
+inline constexpr std::size_t kMaxErrorMessageBytes = 16 << 10;
+inline constexpr std::size_t kDigestHexChars = 64;  // a scene digest: lower-case hex SHA-256
+
+// ---- results -------------------------------------------------------------------------------
+
+struct DecodeError {
+  std::string path;  // JSON Pointer into the body; "" for the body as a whole
+  std::string message;
+
+  // "/scene/camera/fov: must be in ..." or just the message when path is empty.
+  std::string to_string() const;
+  bool operator==(const DecodeError&) const = default;
+};
+
+// Either a decoded message or at least one error, the first being the most useful one.
+template <typename T>
+class Decoded {
+ public:
+  // Implicit, so that a decoder can `return value;` or `return errors;`.
+  Decoded(T value) : v_(std::move(value)) {}
+  Decoded(std::vector<DecodeError> errors) : v_(std::move(errors)) { assert(!std::get<1>(v_).empty()); }
+
+  bool ok() const { return v_.index() == 0; }
+  explicit operator bool() const { return ok(); }
+
+  const T& value() const& {
+    assert(ok());
+    return std::get<0>(v_);
+  }
+  T& value() & {
+    assert(ok());
+    return std::get<0>(v_);
+  }
+  T&& value() && {
+    assert(ok());
+    return std::get<0>(std::move(v_));
+  }
+
+  // Valid only when !ok().
+  const std::vector<DecodeError>& errors() const {
+    assert(!ok());
+    return std::get<1>(v_);
+  }
+  const DecodeError& error() const { return errors().front(); }
+
+ private:
+  std::variant<T, std::vector<DecodeError>> v_;
+};
+
+// ---- validation shared with the command line ----------------------------------------------
+
+// nullopt when `name` is acceptable as a job's output: a plain file name (no '/', '\\', "..",
+// control characters, no leading '.'), at most kMaxOutputNameBytes, ending in .png, .ppm or .pfm
+// (lower case). Otherwise the reason, phrased to follow "output name ".
+std::optional<std::string> check_output_name(std::string_view name);
+
+// True for kDigestHexChars lower-case hex digits.
+bool is_digest(std::string_view text);
+
+// ---- POST /v1/jobs -------------------------------------------------------------------------
+
+struct JobSubmit {
+  scene::SceneDesc scene;
+  // check_output_name, or empty when the submitter leaves the name to the collector (the key is
+  // then absent on the wire; an explicit "" is an error).
+  std::string output;
+  std::int32_t priority = 0;
+  std::uint32_t tile_size = kDefaultTileSize;
+  // Overrides of the scene's render block; limits as in scene files.
+  std::optional<std::uint32_t> width, height, samples, max_depth, frame;
+  std::optional<std::uint64_t> seed;
+  bool operator==(const JobSubmit&) const = default;
+};
+
+// The scene's render settings with the submission's overrides applied.
+scene::RenderSettings effective_settings(const JobSubmit& submit);
+
+std::string encode(const JobSubmit& m);
+// Also rejects a submission whose effective image has more than kMaxTilesPerJob tiles (at
+// "/tile_size"). Scene problems come back with paths under "/scene".
+Decoded<JobSubmit> decode_job_submit(std::string_view body);
+
+// 201 answer to POST /v1/jobs.
+struct JobCreated {
+  std::uint64_t id = 0;  // [1, kMaxId]
+  std::string digest;    // is_digest
+  bool operator==(const JobCreated&) const = default;
+};
+std::string encode(const JobCreated& m);
+Decoded<JobCreated> decode_job_created(std::string_view body);
+
+// ---- GET /v1/jobs, GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel ----------------------------
+
+enum class JobState { kQueued, kRendering, kDone, kCancelled };
+
+// "queued", "rendering", "done", "cancelled".
+std::string_view to_string(JobState state);
+std::optional<JobState> job_state_from_string(std::string_view text);
+
+struct JobStatus {
+  std::uint64_t id = 0;  // [1, kMaxId]
+  JobState state = JobState::kQueued;
+  std::string output;  // check_output_name
+  std::int32_t priority = 0;
+  std::uint32_t width = 0, height = 0, samples = 0;  // scene limits
+  std::uint32_t tiles_done = 0;                      // <= tiles_total
+  std::uint32_t tiles_total = 0;                     // [1, kMaxTilesPerJob]
+  double elapsed_s = 0;                              // finite, >= 0
+  std::optional<double> eta_s;                       // finite, >= 0; null on the wire when unknown
+  std::string digest;                                // is_digest
+  bool operator==(const JobStatus&) const = default;
+};
+std::string encode(const JobStatus& m);
+Decoded<JobStatus> decode_job_status(std::string_view body);
+
+struct JobList {
+  std::vector<JobStatus> jobs;  // at most kMaxListedJobs
+  bool operator==(const JobList&) const = default;
+};
+std::string encode(const JobList& m);
+Decoded<JobList> decode_job_list(std::string_view body);
+
+// ---- POST /v1/lease ------------------------------------------------------------------------
+
+struct LeaseRequest {
+  std::string worker;         // 1..kMaxWorkerNameBytes printable ASCII characters (0x20..0x7e)
+  std::uint32_t threads = 1;  // [1, kMaxWorkerThreads]
+  bool operator==(const LeaseRequest&) const = default;
+};
+std::string encode(const LeaseRequest& m);
+Decoded<LeaseRequest> decode_lease_request(std::string_view body);
+
+// One tile to render: render::render_tile(scene(digest), settings, rect).
+struct Lease {
+  std::uint64_t job = 0;   // [1, kMaxId]
+  std::string digest;      // is_digest
+  std::uint32_t tile = 0;  // < kMaxTilesPerJob
+  render::TileRect rect;   // 1..kMaxTileSize on each side, inside the settings' image
+  scene::RenderSettings settings;
+  bool operator==(const Lease&) const = default;
+};
+
+// "Nothing now": ask again after this long.
+struct RetryAfter {
+  std::uint32_t ms = 0;  // [0, kMaxRetryAfterMs]
+  bool operator==(const RetryAfter&) const = default;
+};
+
+// {"lease": {...}} or {"retry_after_ms": N}; exactly one of the two keys.
+using LeaseReply = std::variant<Lease, RetryAfter>;
+std::string encode(const LeaseReply& m);
+Decoded<LeaseReply> decode_lease_reply(std::string_view body);
+
+// ---- PUT /v1/jobs/{id}/tiles/{tile} answer -------------------------------------------------
+
+enum class SubmitResult { kStored, kAlreadyDone, kJobGone };
+
+// "stored", "already_done", "job_gone".
+std::string_view to_string(SubmitResult result);
+std::string encode(SubmitResult m);
+Decoded<SubmitResult> decode_submit_result(std::string_view body);
+
+// ---- every 4xx/5xx -------------------------------------------------------------------------
+
+struct ErrorBody {
+  std::string error;  // at most kMaxErrorMessageBytes
+  std::string field;  // JSON Pointer of the offending value; "" when no single field is at fault
+  bool operator==(const ErrorBody&) const = default;
+};
+
+// The first error, with a count of the others appended to its message.
+ErrorBody error_body(const std::vector<DecodeError>& errors);
+
+// "field" may be absent when decoding (it is then ""); it is always written.
+std::string encode(const ErrorBody& m);
+Decoded<ErrorBody> decode_error_body(std::string_view body);
+
+// ---- a job's effective settings, as the store keeps them (jobs.settings_json) --------------
+
+// {"width", "height", "samples", "max_depth", "background": [r, g, b], "seed", "frame"}, every key
+// required; the same object a Lease carries as "settings".
+std::string encode_settings(const scene::RenderSettings& settings);
+Decoded<scene::RenderSettings> decode_settings(std::string_view body);
+
+}  // namespace dtraced::protocol

@@ -1,0 +1,176 @@
+// dtraced::store: the collector's durable state in one SQLite database, <state_dir>/dtraced.db.
+// All SQL of dtraced lives in this module. The store knows nothing about HTTP, rendering or what
+// the JSON means: it keeps strings and blobs and reports what happened to them.
+//
+// Owns: opening the database (and refusing a bad one), the schema, and every query.
+//
+// Schema (version 1, STRICT tables, documented in README too):
+//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 1)
+//   scenes(digest TEXT PRIMARY KEY, json TEXT)       -- immutable, content-addressed
+//   jobs(id INTEGER PRIMARY KEY, digest -> scenes, settings_json, output, priority, tile_size,
+//        state IN ('queued','rendering','done','cancelled'), created_unix, finished_unix,
+//        client_key TEXT UNIQUE NULL)
+//   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
+//
+// Durability: journal_mode=WAL with synchronous=FULL, so a transaction whose COMMIT returned
+// survives a process kill and (given honest disks) a power loss. foreign_keys=ON.
+//
+// Opening never replaces, truncates or deletes an existing file. A file that is not an SQLite
+// database, fails PRAGMA quick_check, has another schema version, or lacks tables or columns is
+// refused with a message naming the file and the problem, and is left byte-for-byte as it was
+// (verification runs with query_only=ON and with checkpoint-on-close disabled). Only a database
+// with no schema objects at all (a new or zero-length file) gets the schema created.
+//
+// Thread safety: a Store is one SQLite connection with its own cache of prepared statements. Use
+// it from one thread at a time (it may be moved to another thread between calls). Several Store
+// objects opened on the same directory may be used concurrently from different threads: WAL lets
+// readers proceed while one writer commits. Every call does disk I/O and may wait up to
+// kBusyTimeout for another connection's write lock, so NEVER call a Store from the collector's
+// event loop once it runs: at start-up (before the loop) it is fine; afterwards, writes go through
+// TileWriter (tile_writer.h), which owns a Store on its own thread, and large reads (image
+// assembly) belong on a worker thread with its own Store.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "store/result.h"
+
+namespace dtraced::store {
+
+inline constexpr std::int64_t kSchemaVersion = 1;
+inline constexpr std::string_view kDatabaseFileName = "dtraced.db";
+// How long a statement waits for another connection's lock before failing with SQLITE_BUSY.
+inline constexpr std::chrono::milliseconds kBusyTimeout{5000};
+// After a checkpoint the WAL file is truncated back to at most this size, so a burst of tiles
+// does not leave a huge -wal file behind.
+inline constexpr std::int64_t kJournalSizeLimitBytes = 64 << 20;
+// How many lines of a failed quick_check are quoted in the error message.
+inline constexpr std::size_t kMaxIntegrityLinesReported = 8;
+
+using Blob = std::vector<std::uint8_t>;
+
+// The only states the schema accepts (a CHECK constraint); their meaning belongs to the collector.
+inline constexpr std::string_view kJobQueued = "queued";
+inline constexpr std::string_view kJobRendering = "rendering";
+inline constexpr std::string_view kJobDone = "done";
+inline constexpr std::string_view kJobCancelled = "cancelled";
+
+struct StoredJob {
+  std::int64_t id = 0;  // assigned by insert_job; ignored on input
+  std::string digest;   // must name a stored scene (foreign key)
+  std::string settings_json;
+  std::string output;
+  std::int32_t priority = 0;
+  std::uint32_t tile_size = 0;  // > 0
+  std::string state{kJobQueued};
+  std::int64_t created_unix = 0;
+  std::int64_t finished_unix = 0;  // 0 while unfinished
+  // Optional and unique: the one-shot collector stores a key derived from its command line so a
+  // restart with the same command line finds the job instead of enqueueing a copy.
+  std::optional<std::string> client_key;
+
+  bool operator==(const StoredJob&) const = default;
+};
+
+struct StoredTile {
+  std::uint32_t tile = 0;
+  Blob pixels;
+  std::string worker;
+  std::int64_t stored_unix = 0;
+};
+
+// One tile result to store. The first stored result for (job, tile) wins.
+struct TileWrite {
+  std::int64_t job = 0;
+  std::uint32_t tile = 0;
+  Blob pixels;
+  std::string worker;
+  std::int64_t stored_unix = 0;
+};
+
+enum class TileOutcome {
+  kStored,          // newly stored by this transaction, which committed
+  kAlreadyPresent,  // a row for (job, tile) existed (or came earlier in the same batch)
+  kRejected,        // this tile broke a constraint (no such job); the rest of the batch is unaffected
+  kFailed,          // the transaction failed: nothing of the batch was stored; may be retried
+};
+
+std::string_view to_string(TileOutcome outcome);
+
+struct CommitResult {
+  TileOutcome outcome = TileOutcome::kFailed;
+  // For kAlreadyPresent: whether the stored pixels equal the submitted ones byte for byte (the
+  // renderer is deterministic, so a difference points at a faulty worker).
+  bool identical = false;
+  std::string error;  // for kRejected and kFailed
+};
+
+struct OpenOptions {
+  // PRAGMA quick_check and foreign_key_check read the whole file. The first connection of a
+  // process runs them; further connections to a file already verified may skip them.
+  bool verify_integrity = true;
+  std::chrono::milliseconds busy_timeout = kBusyTimeout;
+  // A cap on the database's size (PRAGMA max_page_count), 0 for none. A write that would grow it
+  // further fails with "database or disk is full" and changes nothing, like a full disk.
+  std::uint64_t max_database_bytes = 0;
+};
+
+class Store {
+ public:
+  // Creates `state_dir` (and parents) if missing, then opens or creates <state_dir>/dtraced.db as
+  // described at the top of this file.
+  static Result<Store> open(const std::string& state_dir, const OpenOptions& options = {});
+
+  Store(Store&&) noexcept;
+  Store& operator=(Store&&) noexcept;
+  Store(const Store&) = delete;
+  Store& operator=(const Store&) = delete;
+  ~Store();
+
+  // The database file's path.
+  const std::string& path() const;
+
+  // Runs `body` inside one BEGIN IMMEDIATE ... COMMIT: every store call made by `body` on this
+  // Store is part of it. An error from `body` (or a failed COMMIT) rolls everything back. Not
+  // reentrant.
+  Status transaction(const std::function<Status()>& body);
+
+  // Scenes are immutable and content-addressed: storing a digest that exists already is a no-op.
+  Status put_scene(std::string_view digest, std::string_view json);
+  Result<std::optional<std::string>> get_scene(std::string_view digest);
+
+  // Inserts a job (job.id is ignored) and returns its id. Fails when the scene is missing, the
+  // client_key is taken, the state is unknown or tile_size is 0.
+  Result<std::int64_t> insert_job(const StoredJob& job);
+  // Fails when there is no such job or the state is unknown.
+  Status set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix);
+  Result<std::vector<StoredJob>> list_jobs();  // ascending id
+  Result<std::optional<StoredJob>> get_job(std::int64_t id);
+  Result<std::optional<StoredJob>> find_job_by_key(std::string_view client_key);
+
+  // Stores tile results in one transaction (or inside the caller's transaction()): INSERT OR
+  // IGNORE, so the first stored result wins. Returns one CommitResult per write, in order:
+  // kStored, kAlreadyPresent or kRejected. An error means the transaction failed and nothing
+  // was stored. TileWriter calls this on its thread; tests and tools may call it directly.
+  Result<std::vector<CommitResult>> insert_tiles(std::span<const TileWrite> writes);
+
+  Result<std::vector<std::uint32_t>> stored_tiles(std::int64_t job);  // ascending tile index
+  Result<std::uint64_t> count_tiles(std::int64_t job);
+  Result<std::optional<StoredTile>> get_tile(std::int64_t job, std::uint32_t tile);
+  Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);  // ascending tile index
+
+ private:
+  struct Impl;
+  explicit Store(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace dtraced::store

@@ -1,0 +1,549 @@
+// Tests for dtraced::protocol: every message's JSON codec round trips exactly, malformed bodies
+// are refused with the JSON path of the problem (embedded scenes included), and the binary tile
+// payload round trips bit for bit and detects each kind of corruption.
+#include <algorithm>
+#include <bit>
+#include <cfloat>
+#include <cstdint>
+#include <cstring>
+#include <functional>
+#include <limits>
+#include <string>
+#include <string_view>
+#include <variant>
+#include <vector>
+
+#include <catch2/catch.hpp>
+
+#include "protocol/messages.h"
+#include "protocol/tile_payload.h"
+#include "scene/load.h"
+#include "util/sha256.h"
+
+namespace {
+
+namespace protocol = dtraced::protocol;
+using protocol::Decoded;
+using protocol::DecodeError;
+
+const std::string kDigest(64, 'a');
+
+constexpr std::string_view kSceneJson = R"({
+  "camera": {"position": [0.1, 0.2, 5.3], "look_at": [0, 0, 0], "fov": 37.5},
+  "render": {"width": 64, "height": 48, "samples": 2, "background": [0.1, 0.2, 0.3], "seed": 7},
+  "scene_objects": [
+    {"type": "sphere", "loc": [0, 0, 0], "radius": 1, "material": {"color": [0.9, 0.1, 1e-7]}},
+    {"type": "box", "loc": [2, 0, 0], "size": [1, 1, 1]},
+    {"type": "plane", "loc": [0, -1, 0], "normal": [0, 1, 0]},
+    {"type": "sphere", "loc": [0.30000000000000004, 1, -2], "radius": 0.5}
+  ],
+  "scene_lights": [{"type": "point", "loc": [5, 5, 5], "intensity": 3.25}]
+})";
+
+// A submission body around a scene, with extra top-level members.
+std::string submit_body(std::string_view scene, std::string_view extra = "") {
+  std::string body = "{\"scene\": " + std::string(scene);
+  if (!extra.empty()) body += ", " + std::string(extra);
+  return body + "}";
+}
+
+// kSceneJson with its fourth object's radius replaced.
+std::string scene_with_radius(std::string_view radius) {
+  std::string scene(kSceneJson);
+  const std::string from = "\"radius\": 0.5";
+  scene.replace(scene.find(from), from.size(), "\"radius\": " + std::string(radius));
+  return scene;
+}
+
+dtraced::scene::SceneDesc test_scene() {
+  auto r = dtraced::scene::load_scene_string(kSceneJson, "test");
+  INFO(dtraced::scene::format_errors(r.errors));
+  REQUIRE(r.ok());
+  return *r.scene;
+}
+
+protocol::JobStatus test_status() {
+  protocol::JobStatus s;
+  s.id = 42;
+  s.state = protocol::JobState::kRendering;
+  s.output = "frame-0001.png";
+  s.priority = -7;
+  s.width = 640;
+  s.height = 480;
+  s.samples = 16;
+  s.tiles_done = 12;
+  s.tiles_total = 300;
+  s.elapsed_s = 12.345678901234567;
+  s.eta_s = 0.1;
+  s.digest = kDigest;
+  return s;
+}
+
+template <typename T>
+T round_trip(const T& m, Decoded<T> (*decode)(std::string_view)) {
+  const std::string text = protocol::encode(m);
+  Decoded<T> d = decode(text);
+  INFO(text);
+  if (!d.ok()) INFO(d.error().to_string());
+  REQUIRE(d.ok());
+  return std::move(d).value();
+}
+
+bool same_bits(double a, double b) { return std::bit_cast<std::uint64_t>(a) == std::bit_cast<std::uint64_t>(b); }
+
+}  // namespace
+
+// ---- round trips ---------------------------------------------------------------------------
+
+TEST_CASE("a job submission round trips, scene and overrides included", "[protocol][json]") {
+  protocol::JobSubmit m;
+  m.scene = test_scene();
+  m.output = "out.pfm";
+  m.priority = -1000;
+  m.tile_size = 16;
+  m.width = 1;
+  m.height = 16384;
+  m.samples = 65536;
+  m.max_depth = 0;
+  m.seed = dtraced::scene::kMaxSeed;
+  m.frame = std::numeric_limits<std::uint32_t>::max();
+  const protocol::JobSubmit back = round_trip(m, protocol::decode_job_submit);
+  CHECK(back == m);
+  CHECK(same_bits(back.scene.objects[3].sphere.center.x, 0.30000000000000004));
+
+  const auto s = protocol::effective_settings(back);
+  CHECK(s.width == 1);
+  CHECK(s.height == 16384);
+  CHECK(s.seed == dtraced::scene::kMaxSeed);
+  CHECK(s.background == m.scene.render.background);  // not overridable: from the scene
+}
+
+TEST_CASE("a minimal submission takes the defaults", "[protocol][json]") {
+  const auto d = protocol::decode_job_submit(submit_body(kSceneJson));
+  REQUIRE(d.ok());
+  CHECK(d.value().scene == test_scene());
+  CHECK(d.value().output.empty());
+  CHECK(d.value().priority == 0);
+  CHECK(d.value().tile_size == protocol::kDefaultTileSize);
+  CHECK_FALSE(d.value().width.has_value());
+  CHECK(protocol::effective_settings(d.value()) == test_scene().render);
+  // Written without the optional keys it did not have, and read back the same.
+  CHECK(round_trip(d.value(), protocol::decode_job_submit) == d.value());
+}
+
+TEST_CASE("integral doubles are accepted where integers are expected", "[protocol][json]") {
+  const auto d = protocol::decode_job_submit(submit_body(kSceneJson, R"("tile_size": 64.0, "width": 1e3)"));
+  REQUIRE(d.ok());
+  CHECK(d.value().tile_size == 64);
+  CHECK(d.value().width == 1000u);
+}
+
+TEST_CASE("job created, status and list round trip", "[protocol][json]") {
+  CHECK(round_trip(protocol::JobCreated{protocol::kMaxId, kDigest}, protocol::decode_job_created) ==
+        protocol::JobCreated{protocol::kMaxId, kDigest});
+
+  protocol::JobStatus s = test_status();
+  CHECK(round_trip(s, protocol::decode_job_status) == s);
+  CHECK(same_bits(round_trip(s, protocol::decode_job_status).elapsed_s, s.elapsed_s));
+  s.eta_s.reset();
+  CHECK(protocol::encode(s).find("\"eta_s\":null") != std::string::npos);
+  CHECK(round_trip(s, protocol::decode_job_status) == s);
+  for (const auto state : {protocol::JobState::kQueued, protocol::JobState::kRendering, protocol::JobState::kDone,
+                           protocol::JobState::kCancelled}) {
+    s.state = state;
+    CHECK(round_trip(s, protocol::decode_job_status) == s);
+  }
+
+  protocol::JobList list;
+  CHECK(round_trip(list, protocol::decode_job_list) == list);
+  list.jobs = {test_status(), s};
+  CHECK(round_trip(list, protocol::decode_job_list) == list);
+}
+
+TEST_CASE("lease request and both lease replies round trip", "[protocol][json]") {
+  const protocol::LeaseRequest req{"render-host-12 (rack 3)", 64};
+  CHECK(round_trip(req, protocol::decode_lease_request) == req);
+
+  protocol::Lease lease;
+  lease.job = 7;
+  lease.digest = kDigest;
+  lease.tile = 12;
+  lease.rect = {32, 16, 32, 16};
+  lease.settings = test_scene().render;
+  lease.settings.background = {0.1, 1e-30, 3.4028234663852886e38};
+  lease.settings.seed = dtraced::scene::kMaxSeed;
+  lease.settings.frame = 99;
+  const protocol::LeaseReply reply = lease;
+  const protocol::LeaseReply back = round_trip(reply, protocol::decode_lease_reply);
+  REQUIRE(std::holds_alternative<protocol::Lease>(back));
+  CHECK(std::get<protocol::Lease>(back) == lease);
+  for (std::size_t i = 0; i < 3; ++i) {
+    CHECK(same_bits(std::get<protocol::Lease>(back).settings.background[i], lease.settings.background[i]));
+  }
+
+  const protocol::LeaseReply retry = protocol::RetryAfter{500};
+  CHECK(protocol::encode(retry) == R"({"retry_after_ms":500})");
+  CHECK(round_trip(retry, protocol::decode_lease_reply) == retry);
+}
+
+TEST_CASE("submit results and error bodies round trip", "[protocol][json]") {
+  for (const auto r :
+       {protocol::SubmitResult::kStored, protocol::SubmitResult::kAlreadyDone, protocol::SubmitResult::kJobGone}) {
+    CHECK(round_trip(r, protocol::decode_submit_result) == r);
+  }
+  CHECK(protocol::encode(protocol::SubmitResult::kAlreadyDone) == R"({"result":"already_done"})");
+
+  const protocol::ErrorBody e{"must be > 0 (got -1) \xc3\xa9 \"quoted\"", "/scene/scene_objects/3/radius"};
+  CHECK(round_trip(e, protocol::decode_error_body) == e);
+  const auto no_field = protocol::decode_error_body(R"({"error": "unauthorized"})");
+  REQUIRE(no_field.ok());
+  CHECK(no_field.value() == protocol::ErrorBody{"unauthorized", ""});
+}
+
+TEST_CASE("settings round trip as the store keeps them", "[protocol][json]") {
+  dtraced::scene::RenderSettings s;
+  s.width = 16384;
+  s.height = 1;
+  s.samples = 3;
+  s.max_depth = 64;
+  s.background = {0.7, 0, 123.456e-20};
+  s.seed = 123456789;
+  s.frame = 4;
+  const std::string text = protocol::encode_settings(s);
+  const auto back = protocol::decode_settings(text);
+  REQUIRE(back.ok());
+  CHECK(back.value() == s);
+  CHECK(same_bits(back.value().background.z, s.background.z));
+  // Integral values are written as integers.
+  CHECK(text.find("\"width\":16384") != std::string::npos);
+  CHECK(text.find("[7E-1,0,") != std::string::npos);
+}
+
+// ---- malformed bodies ----------------------------------------------------------------------
+
+namespace {
+
+struct BadBody {
+  const char* name;
+  std::function<std::vector<DecodeError>(std::string_view)> decode;
+  std::string body;
+  std::string path;
+  std::string fragment;
+};
+
+template <typename T>
+std::function<std::vector<DecodeError>(std::string_view)> errors_of(Decoded<T> (*decode)(std::string_view)) {
+  return [decode](std::string_view body) {
+    Decoded<T> d = decode(body);
+    return d.ok() ? std::vector<DecodeError>{} : d.errors();
+  };
+}
+
+const auto submit = errors_of(protocol::decode_job_submit);
+const auto created = errors_of(protocol::decode_job_created);
+const auto status = errors_of(protocol::decode_job_status);
+const auto list = errors_of(protocol::decode_job_list);
+const auto lease_request = errors_of(protocol::decode_lease_request);
+const auto lease_reply = errors_of(protocol::decode_lease_reply);
+const auto submit_result = errors_of(protocol::decode_submit_result);
+const auto error_body = errors_of(protocol::decode_error_body);
+const auto settings = errors_of(protocol::decode_settings);
+
+std::string lease_body(std::string_view rect, std::string_view settings_json) {
+  return R"({"lease": {"job": 7, "digest": ")" + kDigest + R"(", "tile": 3, )" + std::string(rect) +
+         R"(, "settings": )" + std::string(settings_json) + "}}";
+}
+constexpr std::string_view kRect = R"("x": 0, "y": 0, "width": 32, "height": 32)";
+constexpr std::string_view kSettings =
+    R"({"width": 64, "height": 64, "samples": 1, "max_depth": 8, "background": [0, 0, 0], "seed": 0, "frame": 0})";
+
+std::string status_body(std::string_view field, std::string_view value) {
+  std::string body = protocol::encode(test_status());
+  const std::string key = "\"" + std::string(field) + "\":";
+  const std::size_t start = body.find(key) + key.size();
+  const std::size_t end = body.find_first_of(",}", body[start] == '"' ? body.find('"', start + 1) : start);
+  body.replace(start, end - start, value);
+  return body;
+}
+
+std::string nested_arrays(int n) { return std::string(n, '[') + std::string(n, ']'); }
+
+}  // namespace
+
+TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[protocol][json][errors]") {
+  // The body is level 1 and may nest 65 levels: 64 arrays fit under "x", the 65th is one too many
+  // and sits at index 0 of the 64th.
+  std::string deep_path = "/x";
+  for (int i = 0; i < 64; ++i) deep_path += "/0";
+
+  const std::vector<BadBody> cases = {
+      // submissions
+      {"unknown key", submit, submit_body(kSceneJson, R"("priorty": 1)"), "/priorty", "unknown key \"priorty\""},
+      {"priority as a string", submit, submit_body(kSceneJson, R"("priority": "high")"), "/priority",
+       "expected an integer, got a string"},
+      {"priority out of range", submit, submit_body(kSceneJson, R"("priority": 1001)"), "/priority",
+       "[-1000, 1000] (got 1001)"},
+      {"priority beyond int64", submit, submit_body(kSceneJson, R"("priority": 18446744073709551615)"), "/priority",
+       "[-1000, 1000]"},
+      {"tile size too small", submit, submit_body(kSceneJson, R"("tile_size": 4)"), "/tile_size", "[8, 1024] (got 4)"},
+      {"tile size fractional", submit, submit_body(kSceneJson, R"("tile_size": 32.5)"), "/tile_size",
+       "must be an integer (got 32.5)"},
+      {"width overflows a double", submit, submit_body(kSceneJson, R"("width": 1e999)"), "/width",
+       "overflows a double"},
+      {"width above the scene limit", submit, submit_body(kSceneJson, R"("width": 16385)"), "/width",
+       "[1, 16384] (got 16385)"},
+      {"samples 0", submit, submit_body(kSceneJson, R"("samples": 0)"), "/samples", "[1, 65536] (got 0)"},
+      {"seed 2^53", submit, submit_body(kSceneJson, R"("seed": 9007199254740992)"), "/seed", "[0, 9007199254740991]"},
+      {"too many tiles", submit, submit_body(kSceneJson, R"("width": 16384, "height": 16384, "tile_size": 8)"),
+       "/tile_size", "more than the limit of 262144"},
+      {"scene missing", submit, R"({"output": "a.png"})", "/scene", "required key is missing"},
+      {"scene not an object", submit, submit_body("[1, 2]"), "/scene", "expected an object (a scene), got an array"},
+      {"scene object with a negative radius", submit, submit_body(scene_with_radius("-1")),
+       "/scene/scene_objects/3/radius", "must be > 0 (got -1)"},
+      {"scene object with a radius as a string", submit, submit_body(scene_with_radius("\"big\"")),
+       "/scene/scene_objects/3/radius", "expected a number"},
+      {"scene with a misspelt camera key", submit,
+       submit_body(R"({"camera": {"fvo": 40}, "scene_objects": [], "scene_lights": []})"), "/scene/camera/fvo",
+       "unknown key \"fvo\""},
+      {"scene missing its lights", submit, submit_body(R"({"camera": {}, "scene_objects": []})"), "/scene/scene_lights",
+       "required key is missing"},
+      {"duplicate key inside the scene", submit,
+       submit_body(R"({"camera": {"fov": 40, "fov": 50}, "scene_objects": [], "scene_lights": []})"),
+       "/scene/camera/fov", "duplicate key \"fov\""},
+      {"output climbing out", submit, submit_body(kSceneJson, R"("output": "../x.png")"), "/output", "without '/'"},
+      {"output with dot-dot", submit, submit_body(kSceneJson, R"("output": "x..png")"), "/output",
+       "must not contain \"..\""},
+      {"output in a directory", submit, submit_body(kSceneJson, R"("output": "a/b.png")"), "/output", "without '/'"},
+      {"output with a backslash", submit, submit_body(kSceneJson, R"("output": "a\\b.png")"), "/output",
+       "without '/' or '\\'"},
+      {"output of the wrong type", submit, submit_body(kSceneJson, R"("output": "x.exe")"), "/output",
+       "must end in .png, .ppm or .pfm"},
+      {"output upper-case extension", submit, submit_body(kSceneJson, R"("output": "x.PNG")"), "/output",
+       "must end in .png"},
+      {"output only an extension", submit, submit_body(kSceneJson, R"("output": ".png")"), "/output",
+       "must not start with '.'"},
+      {"output empty", submit, submit_body(kSceneJson, R"("output": "")"), "/output", "must not be empty"},
+      {"output too long", submit, submit_body(kSceneJson, "\"output\": \"" + std::string(252, 'x') + ".png\""),
+       "/output", "256 bytes, longer than the limit of 255"},
+      {"output with a newline", submit, submit_body(kSceneJson, R"("output": "a\nb.png")"), "/output",
+       "control characters"},
+      {"duplicate top-level key", submit, submit_body(kSceneJson, R"("priority": 1, "priority": 2)"), "/priority",
+       "duplicate key \"priority\""},
+      {"truncated body", submit, R"({"scene": {"camera": )", "/scene/camera", "unexpected end of input"},
+      {"not an object", submit, "[]", "", "expected an object, got an array"},
+      {"empty body", submit, "", "", "unexpected end of input"},
+      {"trailing garbage", submit, submit_body(kSceneJson) + "x", "", "invalid JSON"},
+      {"too deep", submit, submit_body(kSceneJson, "\"x\": " + nested_arrays(65)), deep_path,
+       "deeper than the limit of 65 levels"},
+      {"body too large", submit, std::string(protocol::kMaxJobSubmitBytes + 1, ' '), "", "larger than the limit"},
+      // job created
+      {"id 0", created, R"({"id": 0, "digest": ")" + kDigest + "\"}", "/id", "[1, 9007199254740991] (got 0)"},
+      {"short digest", created, R"({"id": 1, "digest": "abc"})", "/digest", "64 lower-case hex digits"},
+      {"upper-case digest", created, R"({"id": 1, "digest": ")" + std::string(64, 'A') + "\"}", "/digest",
+       "lower-case hex"},
+      {"digest missing", created, R"({"id": 1})", "/digest", "required key is missing"},
+      // status and list
+      {"unknown state", status, status_body("state", "\"paused\""), "/state", "unknown state \"paused\""},
+      {"eta as a string", status, status_body("eta_s", "\"soon\""), "/eta_s", "expected a number, got a string"},
+      {"negative elapsed", status, status_body("elapsed_s", "-1"), "/elapsed_s", "(got -1)"},
+      {"more tiles done than total", status, status_body("tiles_done", "301"), "/tiles_done",
+       "must be <= tiles_total (got 301 > 300)"},
+      {"status output with a slash", status, status_body("output", "\"/etc/passwd.png\""), "/output", "without '/'"},
+      {"list element with a bad id", list,
+       R"({"jobs": [)" + protocol::encode(test_status()) + "," + status_body("id", "-3") + "]}", "/jobs/1/id",
+       "(got -3)"},
+      {"jobs not an array", list, R"({"jobs": {}})", "/jobs", "expected an array, got an object"},
+      // lease request
+      {"worker name too long", lease_request, R"({"worker": ")" + std::string(129, 'w') + R"(", "threads": 1})",
+       "/worker", "longer than the limit of 128"},
+      {"worker name with a control character", lease_request, R"({"worker": "a\tb", "threads": 1})", "/worker",
+       "printable ASCII"},
+      {"worker name empty", lease_request, R"({"worker": "", "threads": 1})", "/worker", "printable ASCII"},
+      {"threads 0", lease_request, R"({"worker": "w", "threads": 0})", "/threads", "[1, 4096] (got 0)"},
+      {"threads missing", lease_request, R"({"worker": "w"})", "/threads", "required key is missing"},
+      // lease reply
+      {"both lease and retry", lease_reply, R"({"lease": {}, "retry_after_ms": 5})", "", "exactly one of"},
+      {"neither lease nor retry", lease_reply, "{}", "", "exactly one of"},
+      {"retry too long", lease_reply, R"({"retry_after_ms": 1e9})", "/retry_after_ms", "[0, 60000]"},
+      {"negative background in a lease", lease_reply,
+       lease_body(kRect,
+                  R"({"width": 64, "height": 64, "samples": 1, "max_depth": 8, "background": [0, -1, 0],
+                      "seed": 0, "frame": 0})"),
+       "/lease/settings/background/1", "must be in [0, "},
+      {"tile wider than allowed", lease_reply, lease_body(R"("x": 0, "y": 0, "width": 2000, "height": 32)", kSettings),
+       "/lease/width", "[1, 1024] (got 2000)"},
+      {"tile past the image", lease_reply, lease_body(R"("x": 48, "y": 0, "width": 32, "height": 32)", kSettings),
+       "/lease/width", "tile columns [48, 80) extend past the image width 64"},
+      {"lease missing settings", lease_reply,
+       R"({"lease": {"job": 7, "digest": ")" + kDigest + R"(", "tile": 3, )" + std::string(kRect) + "}}",
+       "/lease/settings", "required key is missing"},
+      // submit result, error body, settings
+      {"unknown result", submit_result, R"({"result": "ok"})", "/result", "unknown result \"ok\""},
+      {"error field not a pointer", error_body, R"({"error": "x", "field": "priority"})", "/field", "JSON Pointer"},
+      {"settings missing the seed", settings,
+       R"({"width": 1, "height": 1, "samples": 1, "max_depth": 0, "background": [0, 0, 0], "frame": 0})", "/seed",
+       "required key is missing"},
+      {"settings frame beyond u32", settings,
+       R"({"width": 1, "height": 1, "samples": 1, "max_depth": 0, "background": [0, 0, 0], "seed": 0,
+           "frame": 4294967296})",
+       "/frame", "[0, 4294967295]"},
+      {"settings background of 2 numbers", settings,
+       R"({"width": 1, "height": 1, "samples": 1, "max_depth": 0, "background": [0, 0], "seed": 0, "frame": 0})",
+       "/background", "expected an array of 3 numbers, got 2 elements"},
+  };
+
+  for (const BadBody& c : cases) {
+    INFO(c.name);
+    const std::vector<DecodeError> errors = c.decode(c.body);
+    REQUIRE_FALSE(errors.empty());
+    std::string all;
+    for (const DecodeError& e : errors) all += e.to_string() + "\n";
+    INFO(all);
+    const bool found = std::any_of(errors.begin(), errors.end(), [&](const DecodeError& e) {
+      return e.path == c.path && e.message.find(c.fragment) != std::string::npos;
+    });
+    CHECK(found);
+  }
+}
+
+TEST_CASE("every problem of a body is reported, and the error body summarises them", "[protocol][json][errors]") {
+  const auto d = protocol::decode_job_submit(
+      submit_body(scene_with_radius("-1"), R"("priority": 5000, "tile_size": "big", "output": "a/b.png")"));
+  REQUIRE_FALSE(d.ok());
+  CHECK(d.errors().size() == 4);
+  const protocol::ErrorBody body = protocol::error_body(d.errors());
+  CHECK(body.field == "/scene/scene_objects/3/radius");
+  CHECK(body.error.starts_with("must be > 0 (got -1) (3 more: /output: output name"));
+  CHECK(body.error.find("/tile_size: expected an integer, got a string") != std::string::npos);
+
+  const protocol::ErrorBody one = protocol::error_body({{"/x", "bad"}});
+  CHECK(one == protocol::ErrorBody{"bad", "/x"});
+}
+
+TEST_CASE("output names", "[protocol]") {
+  for (const char* good : {"a.png", "frame-0001.ppm", "x y.pfm", "caf\xc3\xa9.png", "a.b.png"}) {
+    INFO(good);
+    CHECK_FALSE(protocol::check_output_name(good).has_value());
+  }
+  for (const char* bad : {"", "png", ".png", "a.png/", "/a.png", "..", "a..png", "a.jpg", "a.png.exe", "a\\b.png"}) {
+    INFO(bad);
+    CHECK(protocol::check_output_name(bad).has_value());
+  }
+  CHECK_FALSE(protocol::check_output_name(std::string(251, 'x') + ".png").has_value());
+  CHECK(protocol::check_output_name(std::string(252, 'x') + ".png").has_value());
+}
+
+// ---- tile payload --------------------------------------------------------------------------
+
+namespace {
+
+protocol::TilePayload test_tile(std::uint32_t w, std::uint32_t h) {
+  protocol::TilePayload p;
+  p.job = 0x0102030405060708ull;
+  p.tile = 77;
+  p.rect = {96, 64, w, h};
+  p.rgb.resize(std::size_t{w} * h * 3);
+  for (std::size_t i = 0; i < p.rgb.size(); ++i) p.rgb[i] = static_cast<float>(i) * 0.37f + 1e-3f;
+  return p;
+}
+
+protocol::TilePayloadError error_of(std::string_view bytes) {
+  auto d = protocol::decode_tile_payload(bytes);
+  REQUIRE(std::holds_alternative<protocol::TilePayloadFailure>(d));
+  INFO(std::get<protocol::TilePayloadFailure>(d).message);
+  return std::get<protocol::TilePayloadFailure>(d).code;
+}
+
+// Recomputes nothing: header edits keep the old checksum unless re-encoded, so corruptions that
+// must be caught before the checksum are built through the encoder with the checksum refreshed.
+std::string with_checksum(std::string bytes) {
+  bytes.resize(bytes.size() - protocol::kTileChecksumBytes);
+  const auto sum = dtraced::util::sha256_bytes(bytes);
+  bytes.append(reinterpret_cast<const char*>(sum.data()), sum.size());
+  return bytes;
+}
+
+}  // namespace
+
+TEST_CASE("a tile payload round trips bit for bit, special floats included", "[protocol][tile]") {
+  protocol::TilePayload p = test_tile(32, 17);
+  p.rgb[0] = -0.0f;
+  p.rgb[1] = std::numeric_limits<float>::denorm_min();
+  p.rgb[2] = std::numeric_limits<float>::infinity();
+  p.rgb[3] = std::bit_cast<float>(0x7fc12345u);  // a NaN with a payload
+  p.rgb[4] = FLT_MAX;
+  const std::string bytes = protocol::encode_tile_payload(p);
+  REQUIRE(bytes.size() == protocol::tile_payload_size(32, 17));
+  REQUIRE(bytes.size() == 40 + 32 * 17 * 12 + 32);
+
+  // The header layout, little-endian.
+  CHECK(bytes.substr(0, 8) == "DTTILE01");
+  CHECK(bytes.substr(8, 8) == std::string("\x08\x07\x06\x05\x04\x03\x02\x01", 8));
+  CHECK(bytes.substr(16, 4) == std::string("\x4d\0\0\0", 4));  // tile 77
+  CHECK(bytes.substr(20, 4) == std::string("\x60\0\0\0", 4));  // x 96
+  CHECK(bytes.substr(36, 4) == std::string(4, '\0'));          // reserved
+
+  auto d = protocol::decode_tile_payload(bytes);
+  REQUIRE(std::holds_alternative<protocol::TilePayload>(d));
+  const protocol::TilePayload& back = std::get<protocol::TilePayload>(d);
+  CHECK(back.job == p.job);
+  CHECK(back.tile == p.tile);
+  CHECK(back.rect == p.rect);
+  REQUIRE(back.rgb.size() == p.rgb.size());
+  CHECK(std::memcmp(back.rgb.data(), p.rgb.data(), p.rgb.size() * sizeof(float)) == 0);
+
+  // The largest tile is within the upload limit, exactly.
+  CHECK(protocol::tile_payload_size(protocol::kMaxTileSide, protocol::kMaxTileSide) == protocol::kMaxTilePayloadBytes);
+}
+
+TEST_CASE("each kind of payload corruption is detected and named", "[protocol][tile]") {
+  const std::string good = protocol::encode_tile_payload(test_tile(8, 8));
+  REQUIRE(std::holds_alternative<protocol::TilePayload>(protocol::decode_tile_payload(good)));
+  using E = protocol::TilePayloadError;
+
+  SECTION("a flipped pixel bit fails the checksum") {
+    std::string bad = good;
+    bad[40 + 100] ^= 0x10;
+    CHECK(error_of(bad) == E::kBadChecksum);
+  }
+  SECTION("a flipped header bit (the job) fails the checksum") {
+    std::string bad = good;
+    bad[9] ^= 0x01;
+    CHECK(error_of(bad) == E::kBadChecksum);
+  }
+  SECTION("a flipped checksum bit fails the checksum") {
+    std::string bad = good;
+    bad[bad.size() - 1] ^= 0x80;
+    CHECK(error_of(bad) == E::kBadChecksum);
+  }
+  SECTION("one byte short is the wrong size") { CHECK(error_of(good.substr(0, good.size() - 1)) == E::kWrongSize); }
+  SECTION("one byte long is the wrong size") { CHECK(error_of(good + "x") == E::kWrongSize); }
+  SECTION("a header claiming a bigger tile is the wrong size") {
+    std::string bad = good;
+    bad[28] = 9;  // width 9 with the pixels of width 8
+    CHECK(error_of(with_checksum(bad)) == E::kWrongSize);
+  }
+  SECTION("shorter than a header and checksum is truncated") {
+    CHECK(error_of(good.substr(0, 71)) == E::kTruncated);
+    CHECK(error_of("") == E::kTruncated);
+  }
+  SECTION("wrong magic") {
+    std::string bad = good;
+    bad[7] = '2';
+    CHECK(error_of(with_checksum(bad)) == E::kBadMagic);
+  }
+  SECTION("reserved word not zero") {
+    std::string bad = good;
+    bad[39] = 1;
+    CHECK(error_of(with_checksum(bad)) == E::kReservedNotZero);
+  }
+  SECTION("zero or oversized dimensions") {
+    std::string bad = good;
+    bad[28] = 0;
+    CHECK(error_of(with_checksum(bad)) == E::kBadDimensions);
+    bad = good;
+    bad[32] = 0x01;  // height 0x401 = 1025
+    bad[33] = 0x04;
+    CHECK(error_of(with_checksum(bad)) == E::kBadDimensions);
+  }
+}
