@@ -6,18 +6,33 @@
 
 #include <cmath>
 #include <cstdio>
+#include <memory>
 #include <optional>
+#include <set>
 #include <string>
 
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 
 #include "cli/client_verbs.h"
+#include "cli/json_config.h"
+#include "cli/roles.h"
 #include "cli/verbs.h"
 
 namespace {
 
 constexpr int kExitUsage = 2;
+
+// The file named by --config, for error messages ("" when none): CLI11 hands the formatter only
+// a stream.
+std::string config_file_argument(int argc, char** argv) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string_view a = argv[i];
+    if (a == "--config" && i + 1 < argc) return argv[i + 1];
+    if (a.starts_with("--config=")) return std::string(a.substr(9));
+  }
+  return "config";
+}
 
 }  // namespace
 
@@ -25,7 +40,21 @@ int main(int argc, char** argv) {
   using namespace dtraced::cli;
   CLI::App app{"dtraced: a distributed ray tracer. Renders JSON scenes locally or across a farm.", "dtraced"};
   app.set_version_flag("--version", std::string(version_string()));
-  app.require_subcommand(1);
+  app.require_subcommand(0, 1);
+
+  RoleArgs role;
+  add_role_options(app, role);
+  // --config FILE: a JSON object of long flag names in snake_case; flags on the command line win.
+  app.set_config("--config", "", "JSON file of role options (keys: long flag names, e.g. state_dir)");
+  {
+    std::set<std::string> known;
+    for (const CLI::Option* opt : app.get_options()) {
+      for (const std::string& name : opt->get_lnames()) {
+        if (name != "help" && name != "version" && name != "config") known.insert(name);
+      }
+    }
+    app.config_formatter(std::make_shared<JsonConfig>(config_file_argument(argc, argv), std::move(known)));
+  }
   app.fallthrough(false);
 
   RenderArgs render;
@@ -130,6 +159,18 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     const int code = app.exit(e);
     return code == 0 ? 0 : kExitUsage;
+  }
+  if (!role.role.empty()) {
+    if (app.get_subcommands().size() > 0) {
+      fmt::print(stderr, "--role runs a daemon; it does not combine with the verb {}\n",
+                 app.get_subcommands()[0]->get_name());
+      return kExitUsage;
+    }
+    return run_role(app, role);
+  }
+  if (app.get_subcommands().empty()) {
+    fmt::print(stderr, "dtraced: give a verb (render, validate, submit, ...) or --role collector|worker; see --help\n");
+    return kExitUsage;
   }
   if (r->parsed()) return run_render(render);
   if (v->parsed()) return run_validate(validate_files);

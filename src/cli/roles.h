@@ -1,0 +1,44 @@
+// dtraced::cli daemon roles: `dtraced --role collector` and `dtraced --role worker`.
+//
+// Adds the roles' flags to the top-level command line (each also settable from the JSON file
+// given by --config; flags win), turns them into the collector's or the worker's configuration,
+// and runs the daemon. Flags of the other role are usage errors.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include <CLI/CLI.hpp>
+
+namespace dtraced::cli {
+
+struct RoleArgs {
+  std::string role;  // "collector", "worker" or empty (a verb runs instead)
+  std::string token_file;
+  // collector
+  std::string listen = "127.0.0.1:7878";
+  std::string state_dir;
+  std::string output_dir;
+  std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, reoffer_floor_ms, max_copies,
+      shutdown_grace_ms, cpu_threads;
+  std::optional<std::uint64_t> max_body_bytes;
+  std::optional<double> reoffer_factor;
+  std::string scene;   // one-shot job
+  std::string output;  // one-shot job's image path
+  std::optional<std::uint32_t> width, height, samples, tile_size;
+  bool exit_when_done = false;
+  // worker
+  std::string collector;
+  std::string name;
+  std::uint32_t threads = 0;
+  std::optional<std::uint32_t> scene_cache, grace_seconds, connect_timeout_ms, request_timeout_ms, max_unacknowledged;
+};
+
+// Adds --role, the role flags and --config to `app`. Call before parsing.
+void add_role_options(CLI::App& app, RoleArgs& args);
+
+// Runs the chosen role; returns the exit code (2 for a usage or configuration error).
+int run_role(const CLI::App& app, const RoleArgs& args);
+
+}  // namespace dtraced::cli

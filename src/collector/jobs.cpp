@@ -1,0 +1,114 @@
+#include "collector/jobs.h"
+
+#include <algorithm>
+#include <bit>
+#include <cassert>
+#include <cstring>
+
+#include <fmt/format.h>
+
+#include "util/sha256.h"
+
+namespace dtraced::collector {
+
+static_assert(std::endian::native == std::endian::little,
+              "tile blobs and payloads carry little-endian floats; a big-endian collector would need byte swaps");
+
+std::string default_output_name(JobId id) { return fmt::format("job-{}.png", id); }
+
+std::uint64_t tile_count(const scene::RenderSettings& settings, std::uint32_t tile_size) {
+  assert(tile_size > 0);
+  const std::uint64_t columns = (std::uint64_t{settings.width} + tile_size - 1) / tile_size;
+  const std::uint64_t rows = (std::uint64_t{settings.height} + tile_size - 1) / tile_size;
+  return columns * rows;
+}
+
+render::TileRect tile_rect(const scene::RenderSettings& settings, std::uint32_t tile_size, TileIndex index) {
+  assert(index < tile_count(settings, tile_size));
+  const std::uint32_t columns = static_cast<std::uint32_t>((std::uint64_t{settings.width} + tile_size - 1) / tile_size);
+  const std::uint32_t x0 = (index % columns) * tile_size;
+  const std::uint32_t y0 = (index / columns) * tile_size;
+  return {x0, y0, std::min(tile_size, settings.width - x0), std::min(tile_size, settings.height - y0)};
+}
+
+store::Blob pixels_to_blob(std::span<const float> rgb) {
+  store::Blob blob(rgb.size_bytes());
+  if (!rgb.empty()) std::memcpy(blob.data(), rgb.data(), rgb.size_bytes());
+  return blob;
+}
+
+std::optional<std::vector<float>> blob_to_pixels(const store::Blob& blob, std::size_t floats) {
+  if (blob.size() != floats * sizeof(float)) return std::nullopt;
+  std::vector<float> rgb(floats);
+  if (floats != 0) std::memcpy(rgb.data(), blob.data(), blob.size());
+  return rgb;
+}
+
+void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb) {
+  assert(rect.x0 + rect.width <= image.width && rect.y0 + rect.height <= image.height);
+  assert(rgb.size() == std::size_t{rect.width} * rect.height * 3);
+  const std::size_t row_floats = std::size_t{rect.width} * 3;
+  for (std::uint32_t y = 0; y < rect.height; ++y) {
+    std::memcpy(image.pixel(rect.x0, rect.y0 + y), rgb.data() + y * row_floats, row_floats * sizeof(float));
+  }
+}
+
+bool tile_matches(const image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb) {
+  assert(rect.x0 + rect.width <= image.width && rect.y0 + rect.height <= image.height);
+  if (rgb.size() != std::size_t{rect.width} * rect.height * 3) return false;
+  const std::size_t row_floats = std::size_t{rect.width} * 3;
+  for (std::uint32_t y = 0; y < rect.height; ++y) {
+    // Bits, not values: NaN payloads and signed zeros count, as the renderer is deterministic.
+    if (std::memcmp(image.pixel(rect.x0, rect.y0 + y), rgb.data() + y * row_floats, row_floats * sizeof(float)) != 0) {
+      return false;
+    }
+  }
+  return true;
+}
+
+image::ImageRGBf& writable_framebuffer(JobRecord& job) {
+  if (!job.framebuffer) {
+    job.framebuffer = std::make_shared<image::ImageRGBf>(job.settings.width, job.settings.height);
+  } else if (job.framebuffer.use_count() > 1) {
+    // A reader (an image being encoded) holds the current one: it keeps its snapshot.
+    job.framebuffer = std::make_shared<image::ImageRGBf>(*job.framebuffer);
+  }
+  return *job.framebuffer;
+}
+
+protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, TimePoint now) {
+  protocol::JobStatus s;
+  s.id = job.id;
+  s.state = job.state;
+  s.output = job.output;
+  s.priority = job.priority;
+  s.width = job.settings.width;
+  s.height = job.settings.height;
+  s.samples = job.settings.samples;
+  s.tiles_done = job.tiles_done;
+  s.tiles_total = job.tiles_total;
+  s.digest = job.digest;
+  const std::int64_t end = job.unfinished() ? now_unix : job.finished_unix;
+  s.elapsed_s = static_cast<double>(std::max<std::int64_t>(0, end - job.created_unix));
+  if (job.state == protocol::JobState::kDone) {
+    s.eta_s = 0.0;
+  } else if (job.unfinished() && job.stored_this_run > 0 && job.first_lease) {
+    const double seconds = std::chrono::duration<double>(now - *job.first_lease).count();
+    if (seconds > 0) {
+      const double rate = job.stored_this_run / seconds;  // tiles per second
+      s.eta_s = static_cast<double>(job.tiles_total - job.tiles_done) / rate;
+    }
+  }
+  return s;
+}
+
+std::string one_shot_client_key(std::string_view digest, const scene::RenderSettings& settings, std::uint32_t tile_size,
+                                std::string_view output) {
+  // Newlines separate the parts: none of them can contain one (hex, JSON without whitespace, a
+  // number, a checked file name).
+  const std::string text = fmt::format("dtraced-one-shot-v1\n{}\n{}\n{}\n{}", digest,
+                                       protocol::encode_settings(settings), tile_size, output);
+  return util::sha256_hex(text);
+}
+
+}  // namespace dtraced::collector

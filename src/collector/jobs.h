@@ -1,0 +1,92 @@
+// dtraced::collector jobs: what the collector knows about each job, and the pure operations on it.
+//
+// Owns: JobRecord (a job's effective settings, output name, tiles, state, and while it is
+// unfinished its in-memory framebuffer and scene text), and the small pure functions around it:
+// tile pixels to and from the store's blobs, copying and comparing a tile against a framebuffer,
+// the status a client sees, a job's default output name and the one-shot job key.
+//
+// The framebuffer is copy-on-write: readers (image encoding on the thread pool) hold a
+// shared_ptr<const ImageRGBf> that is copied and released on the event loop only, and a writer
+// on the loop clones the image first when anyone else holds it (writable_framebuffer), so no
+// thread ever reads pixels another thread is writing.
+//
+// Thread safety: JobRecord is owned by the collector's event loop; the free functions are pure.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "collector/queue.h"
+#include "image/image.h"
+#include "protocol/messages.h"
+#include "render/tile.h"
+#include "scene/description.h"
+#include "store/store.h"
+
+namespace dtraced::collector {
+
+struct JobRecord {
+  JobId id = 0;
+  std::string digest;
+  scene::RenderSettings settings;
+  std::string output;  // the effective file name (default_output_name when none was given)
+  std::int32_t priority = 0;
+  std::uint32_t tile_size = 0;
+  protocol::JobState state = protocol::JobState::kQueued;
+  std::int64_t created_unix = 0;
+  std::int64_t finished_unix = 0;
+  TileIndex tiles_total = 0;
+  TileIndex tiles_done = 0;
+
+  // Unfinished jobs only (released once done or cancelled).
+  std::shared_ptr<image::ImageRGBf> framebuffer;  // null until the first tile arrives
+  std::shared_ptr<const std::string> scene_json;  // canonical scene text, served to workers
+  std::vector<bool> restored;                     // tiles already stored when this process started
+  bool finishing = false;                         // every tile is stored; the image is being written
+  bool finish_failed = false;                     // writing the image failed; retried later
+  bool rendering_persisted = false;               // the store has been told the job is rendering
+
+  // Progress of this process, for the ETA.
+  std::optional<TimePoint> first_lease;
+  TileIndex stored_this_run = 0;
+
+  bool unfinished() const { return state == protocol::JobState::kQueued || state == protocol::JobState::kRendering; }
+};
+
+// "job-<id>.png".
+std::string default_output_name(JobId id);
+
+// The number of tiles of the settings' image, and tile `index`'s rectangle, exactly as
+// render::split_into_tiles(width, height, tile_size) lists them (row-major), without the list.
+// tile_size > 0; index < tile_count.
+std::uint64_t tile_count(const scene::RenderSettings& settings, std::uint32_t tile_size);
+render::TileRect tile_rect(const scene::RenderSettings& settings, std::uint32_t tile_size, TileIndex index);
+
+// Tile pixels as the store keeps them: the float32 values' bytes in host order (the collector
+// only runs on little-endian hosts, asserted at compile time, so this is the wire's order too).
+store::Blob pixels_to_blob(std::span<const float> rgb);
+// nullopt when the blob does not hold exactly `floats` floats.
+std::optional<std::vector<float>> blob_to_pixels(const store::Blob& blob, std::size_t floats);
+
+// Copies a tile's rgb (rect.width * rect.height * 3 floats) into `image` at `rect`.
+void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb);
+// Whether `image` holds exactly these bits at `rect`.
+bool tile_matches(const image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb);
+
+// The job's framebuffer, allocated (black) if missing and cloned if a reader shares it. Call on
+// the event loop only.
+image::ImageRGBf& writable_framebuffer(JobRecord& job);
+
+// The status a client sees. `now_unix` for the elapsed time, `now` for the rate of this process.
+protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, TimePoint now);
+
+// The key a one-shot collector stores with its job, so that a restart with the same arguments
+// finds it: SHA-256 over the scene digest, the effective settings, the tile size and the output.
+std::string one_shot_client_key(std::string_view digest, const scene::RenderSettings& settings, std::uint32_t tile_size,
+                                std::string_view output);
+
+}  // namespace dtraced::collector

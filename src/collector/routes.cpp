@@ -1,0 +1,213 @@
+#include "collector/routes.h"
+
+#include <charconv>
+#include <optional>
+#include <vector>
+
+#include <boost/beast/core/string.hpp>
+#include <boost/beast/http/field.hpp>
+#include <fmt/format.h>
+#include <openssl/crypto.h>
+
+#include "protocol/messages.h"
+#include "protocol/tile_payload.h"
+
+namespace dtraced::collector {
+namespace {
+
+// Paths have at most five segments ("v1", "jobs", id, "tiles", tile); anything longer is 404
+// without looking further.
+constexpr std::size_t kMaxSegments = 6;
+
+RouteError not_found() { return RouteError{http::Status::not_found, "no such endpoint", "", ""}; }
+
+RouteError wrong_method(std::string_view allow) {
+  return RouteError{http::Status::method_not_allowed, fmt::format("method not allowed here; use {}", allow), "",
+                    std::string(allow)};
+}
+
+// Decimal digits without sign or leading zeros, at most `max`.
+std::optional<std::uint64_t> parse_decimal(std::string_view s, std::uint64_t max) {
+  if (s.empty() || (s.size() > 1 && s[0] == '0')) return std::nullopt;
+  std::uint64_t v = 0;
+  const auto [end, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
+  if (ec != std::errc() || end != s.data() + s.size() || v > max) return std::nullopt;
+  return v;
+}
+
+std::optional<JobId> parse_job_id(std::string_view s) {
+  auto v = parse_decimal(s, protocol::kMaxId);
+  if (!v || *v == 0) return std::nullopt;
+  return *v;
+}
+
+// Splits "/a/b/c" into {"a", "b", "c"}; nullopt past kMaxSegments.
+std::optional<std::vector<std::string_view>> split_path(std::string_view path) {
+  std::vector<std::string_view> segments;
+  std::size_t pos = 1;  // past the leading '/'
+  while (true) {
+    if (segments.size() == kMaxSegments) return std::nullopt;
+    const std::size_t next = path.find('/', pos);
+    segments.push_back(path.substr(pos, next == std::string_view::npos ? std::string_view::npos : next - pos));
+    if (next == std::string_view::npos) break;
+    pos = next + 1;
+  }
+  return segments;
+}
+
+// Only the image route takes a query: format=png|pfm, once.
+std::variant<image::ImageFormat, RouteError> parse_image_query(std::string_view query) {
+  image::ImageFormat format = image::ImageFormat::kPng;
+  bool seen = false;
+  while (!query.empty()) {
+    const std::size_t amp = query.find('&');
+    const std::string_view item = query.substr(0, amp);
+    query = amp == std::string_view::npos ? std::string_view() : query.substr(amp + 1);
+    if (item.empty()) continue;
+    const std::size_t eq = item.find('=');
+    const std::string_view key = item.substr(0, eq);
+    const std::string_view value = eq == std::string_view::npos ? std::string_view() : item.substr(eq + 1);
+    if (key != "format") {
+      return RouteError{http::Status::bad_request, fmt::format("unknown query parameter '{}'", key.substr(0, 64)),
+                        "/format", ""};
+    }
+    if (seen) return RouteError{http::Status::bad_request, "format given twice", "/format", ""};
+    seen = true;
+    if (value == "png") {
+      format = image::ImageFormat::kPng;
+    } else if (value == "pfm") {
+      format = image::ImageFormat::kPfm;
+    } else {
+      return RouteError{http::Status::bad_request, "format must be png or pfm", "/format", ""};
+    }
+  }
+  return format;
+}
+
+}  // namespace
+
+std::variant<Route, RouteError> match_route(http::Verb method, std::string_view target) {
+  if (target.empty() || target[0] != '/') {
+    return RouteError{http::Status::bad_request, "request target must be a path starting with '/'", "", ""};
+  }
+  const std::size_t qmark = target.find('?');
+  const std::string_view path = target.substr(0, qmark);
+  const std::string_view query = qmark == std::string_view::npos ? std::string_view() : target.substr(qmark + 1);
+  auto split = split_path(path);
+  if (!split) return not_found();
+  const std::vector<std::string_view>& seg = *split;
+
+  Route route;
+  std::string_view allow;  // the one method this path takes
+  const auto is = [&](std::initializer_list<std::string_view> expected) {
+    if (seg.size() != expected.size()) return false;
+    std::size_t i = 0;
+    for (std::string_view e : expected) {
+      if (!e.empty() && seg[i] != e) return false;  // "" matches any segment (a parameter)
+      ++i;
+    }
+    return true;
+  };
+
+  if (is({"healthz"})) {
+    route.kind = RouteKind::kHealthz;
+    allow = "GET";
+  } else if (is({"metrics"})) {
+    route.kind = RouteKind::kMetrics;
+    allow = "GET";
+  } else if (is({"v1", "jobs"})) {
+    if (method == http::Verb::post) {
+      route.kind = RouteKind::kSubmitJob;
+    } else if (method == http::Verb::get) {
+      route.kind = RouteKind::kListJobs;
+    } else {
+      return wrong_method("GET, POST");
+    }
+    allow = method == http::Verb::post ? "POST" : "GET";
+  } else if (is({"v1", "lease"})) {
+    route.kind = RouteKind::kLease;
+    allow = "POST";
+  } else if (is({"v1", "scenes", ""})) {
+    if (!protocol::is_digest(seg[2])) return not_found();
+    route.kind = RouteKind::kScene;
+    route.digest = std::string(seg[2]);
+    allow = "GET";
+  } else if (seg.size() >= 3 && seg[0] == "v1" && seg[1] == "jobs") {
+    const auto id = parse_job_id(seg[2]);
+    if (!id) return not_found();
+    route.job = *id;
+    if (is({"v1", "jobs", ""})) {
+      route.kind = RouteKind::kJobStatus;
+      allow = "GET";
+    } else if (is({"v1", "jobs", "", "image"})) {
+      route.kind = RouteKind::kJobImage;
+      allow = "GET";
+    } else if (is({"v1", "jobs", "", "cancel"})) {
+      route.kind = RouteKind::kCancelJob;
+      allow = "POST";
+    } else if (is({"v1", "jobs", "", "tiles", ""})) {
+      const auto tile = parse_decimal(seg[4], protocol::kMaxTilesPerJob - 1);
+      if (!tile) return not_found();
+      route.kind = RouteKind::kPutTile;
+      route.tile = static_cast<TileIndex>(*tile);
+      allow = "PUT";
+    } else {
+      return not_found();
+    }
+  } else {
+    return not_found();
+  }
+
+  const bool method_ok = (allow == "GET" && method == http::Verb::get) ||
+                         (allow == "POST" && method == http::Verb::post) ||
+                         (allow == "PUT" && method == http::Verb::put);
+  if (!method_ok) return wrong_method(allow);
+
+  if (route.kind == RouteKind::kJobImage) {
+    auto format = parse_image_query(query);
+    if (auto* error = std::get_if<RouteError>(&format)) return std::move(*error);
+    route.image_format = std::get<image::ImageFormat>(format);
+  } else if (!query.empty() && route.kind != RouteKind::kHealthz) {
+    return RouteError{http::Status::bad_request, "this endpoint takes no query parameters", "", ""};
+  }
+  return route;
+}
+
+std::uint64_t route_body_limit(RouteKind kind) {
+  switch (kind) {
+    case RouteKind::kPutTile:
+      return protocol::kMaxTilePayloadBytes;
+    case RouteKind::kSubmitJob:
+      return protocol::kMaxJobSubmitBytes;
+    default:
+      return protocol::kMaxMessageBytes;
+  }
+}
+
+bool is_health_check(http::Verb method, std::string_view target) {
+  return method == http::Verb::get && target.substr(0, target.find('?')) == "/healthz";
+}
+
+TokenCheck::TokenCheck(std::string_view token) : expected_(util::sha256_bytes(token)) {}
+
+bool TokenCheck::accepts(const http::Request& req) const {
+  constexpr std::string_view kScheme = "bearer";
+  const auto it = req.find(boost::beast::http::field::authorization);
+  std::string_view presented;
+  bool well_formed = false;
+  if (it != req.end()) {
+    const std::string_view value(it->value().data(), it->value().size());
+    if (value.size() > kScheme.size() && boost::beast::iequals(value.substr(0, kScheme.size()), kScheme) &&
+        value[kScheme.size()] == ' ') {
+      presented = value.substr(kScheme.size() + 1);
+      while (!presented.empty() && presented.front() == ' ') presented.remove_prefix(1);
+      well_formed = !presented.empty();
+    }
+  }
+  // Hash whatever was presented (even nothing), so a refusal costs the same either way.
+  const util::Sha256Digest digest = util::sha256_bytes(presented);
+  const bool equal = CRYPTO_memcmp(digest.data(), expected_.data(), digest.size()) == 0;
+  return well_formed && equal;
+}
+
+}  // namespace dtraced::collector

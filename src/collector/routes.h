@@ -1,0 +1,97 @@
+// dtraced::collector routes: which endpoint a request names, its body limit, and who may call it.
+//
+// Owns: the collector's URL space (README.md, "HTTP API") as pure functions of the request line,
+// and the bearer-token check. No state beyond the expected token's digest; nothing here touches
+// jobs, the queue or the store, so every rule is testable without sockets or an event loop.
+//
+//   GET  /healthz                      no token
+//   GET  /metrics
+//   POST /v1/jobs                      GET /v1/jobs
+//   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|pfm]
+//   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
+//   POST /v1/lease                     GET /v1/scenes/{digest}
+//
+// Targets must be in origin form ("/path?query"). Ids are decimal without sign or leading zeros
+// in [1, protocol::kMaxId]; tile indices decimal in [0, protocol::kMaxTilesPerJob); digests are
+// protocol::is_digest. No percent-decoding is done: none of these segments needs it, and an
+// encoded one is simply not a valid id. A path that matches nothing is 404; a known path with
+// another method is 405 (with the allowed methods); a query parameter a route does not take is
+// 400.
+//
+// Thread safety: match_route and route_body_limit are stateless; a TokenCheck is immutable after
+// construction and may be shared.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <variant>
+
+#include "collector/queue.h"
+#include "http/types.h"
+#include "image/image_io.h"
+#include "protocol/messages.h"
+#include "util/sha256.h"
+
+namespace dtraced::collector {
+
+using protocol::kWorkerHeader;
+
+enum class RouteKind {
+  kHealthz,
+  kMetrics,
+  kSubmitJob,
+  kListJobs,
+  kJobStatus,
+  kJobImage,
+  kCancelJob,
+  kLease,
+  kScene,
+  kPutTile,
+};
+
+struct Route {
+  RouteKind kind = RouteKind::kHealthz;
+  JobId job = 0;                                               // kJobStatus, kJobImage, kCancelJob, kPutTile
+  TileIndex tile = 0;                                          // kPutTile
+  std::string digest;                                          // kScene
+  image::ImageFormat image_format = image::ImageFormat::kPng;  // kJobImage: kPng or kPfm
+  bool operator==(const Route&) const = default;
+};
+
+// A request that names no endpoint: answer it with make_error(status, message, field), plus an
+// Allow field when `allow` is not empty (405).
+struct RouteError {
+  http::Status status = http::Status::not_found;
+  std::string message;
+  std::string field;
+  std::string allow;
+  bool operator==(const RouteError&) const = default;
+};
+
+std::variant<Route, RouteError> match_route(http::Verb method, std::string_view target);
+
+// The largest request body the route accepts: protocol::kMaxTilePayloadBytes for tiles,
+// kMaxJobSubmitBytes for submissions, kMaxMessageBytes for everything else.
+std::uint64_t route_body_limit(RouteKind kind);
+
+// Everything but the health check needs the token.
+inline bool route_needs_token(RouteKind kind) { return kind != RouteKind::kHealthz; }
+
+// True for exactly `GET /healthz` (with or without a query): answered before the token check.
+bool is_health_check(http::Verb method, std::string_view target);
+
+// Accepts `Authorization: Bearer <token>` (scheme case-insensitive) for the one token it was
+// built with. The comparison is over the SHA-256 digests of the presented and the expected token
+// with CRYPTO_memcmp, so its time depends neither on where they differ nor on their lengths.
+class TokenCheck {
+ public:
+  explicit TokenCheck(std::string_view token);
+  bool accepts(const http::Request& req) const;
+
+ private:
+  util::Sha256Digest expected_;
+};
+
+}  // namespace dtraced::collector

@@ -1,0 +1,99 @@
+// dtraced::collector service: the collector daemon, wired together.
+//
+// Owns: one io_context (the event loop) and everything that lives on it: the WorkQueue, the job
+// table (jobs.h), the HTTP server and its handler, the metrics counters. Beside the loop it owns
+// a store::TileWriter (SQLite on its own thread; results are posted back to the loop), a second,
+// read-only SQLite connection used from the thread pool, and a small thread pool for CPU work
+// (parsing and digesting submitted scenes, decoding large tile payloads, encoding and writing
+// images). There is no rendering here: the collector never builds a RenderScene.
+//
+// Lifecycle: open() (start-up, blocking, before the loop runs) -> listen() -> run() on one
+// thread until stop(). Start-up opens the database (a bad one stops start-up with a message and
+// is left as it was), increments the start counter ("epoch", kept in <state_dir>/collector.epoch),
+// and restores every unfinished job: its scene and settings from the store, its stored tiles into
+// its framebuffer and into the queue as already done, so they are never leased again. Jobs whose
+// tiles are all stored but whose image was not written get it written. A one-shot job (config.h)
+// is then found by its key and resumed, or stored and enqueued. listen() binds, then tells
+// systemd READY=1.
+//
+// Durability: a job is stored (scene and row, one transaction) before its 201; a tile is
+// acknowledged "stored" only after its transaction committed; a job is marked done in the store
+// only after its image was renamed into place. Each stored tile records the epoch that
+// acknowledged it, in its `worker` column ("epoch=N worker=NAME").
+//
+// Stop: stop() (any thread; run_collector calls it on SIGINT/SIGTERM through a signal_set on the
+// loop) sends STOPPING=1, stops the server gracefully (no new connections; requests in flight
+// finish within shutdown_grace), waits for image writes in flight within the same grace, drains
+// the TileWriter (everything accepted is committed and answered), closes the database and ends
+// run().
+//
+// Threading: open(), listen(), run(), handle_sync() and run_until_idle() from one thread, never
+// concurrently; handle() on the loop; stop() and port() from any thread.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include <boost/asio/awaitable.hpp>
+#include <boost/asio/io_context.hpp>
+
+#include "collector/config.h"
+#include "collector/metrics.h"
+#include "http/types.h"
+
+namespace dtraced::collector {
+
+// Name of the start counter's file in the state directory.
+inline constexpr std::string_view kEpochFileName = "collector.epoch";
+
+class Collector {
+ public:
+  explicit Collector(CollectorConfig config);
+  ~Collector();
+  Collector(const Collector&) = delete;
+  Collector& operator=(const Collector&) = delete;
+
+  // Start-up (see the top of this file). nullopt on success, else a message for the operator.
+  // Blocking; call once, before anything else.
+  std::optional<std::string> open();
+
+  // Binds and listens, then sends READY=1. Does nothing when the collector is already stopping
+  // (a one-shot job that was finished before this start).
+  std::optional<std::string> listen();
+
+  // Runs the loop on the calling thread until the stop sequence has ended. The exit code: 0, or
+  // 1 when the one-shot job of an exit_when_done collector was cancelled.
+  int run();
+
+  // Begins the graceful stop. Any thread, any number of times.
+  void stop();
+
+  // The bound port once listen() succeeded (the real one when port 0 was asked for), else 0.
+  std::uint16_t port() const;
+
+  // The request handler the server calls, on the loop.
+  boost::asio::awaitable<http::Response> handle(http::Request req);
+
+  // For tests and tools, while run() is not running and nothing listens: answers one request by
+  // running the loop on the calling thread until it is idle, so background work the request
+  // started (an image being written) is over too.
+  http::Response handle_sync(http::Request req);
+  void run_until_idle();
+
+  // A snapshot of every metric, as GET /metrics shows it. On the loop, or while it does not run.
+  MetricsSnapshot metrics() const;
+
+  boost::asio::io_context& io_context();
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+// The collector role, blocking: open, listen, run until SIGINT or SIGTERM (or the one-shot job is
+// written), stop. Logs every failure; returns the process exit code (0 on a clean stop).
+int run_collector(const CollectorConfig& config);
+
+}  // namespace dtraced::collector

@@ -1,0 +1,69 @@
+// dtraced::worker configuration: what a worker daemon is told, its defaults and its limits.
+//
+// Owns: the worker's options as plain values, their validation (every problem named by its field,
+// as "field: problem") and the defaults that depend on the host (name, thread count). The command
+// line fills a WorkerConfig from flags and a JSON file; the Worker takes a validated one.
+//
+// Stateless functions over values: thread-safe.
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "http/client.h"
+
+namespace dtraced::worker {
+
+// ---- limits --------------------------------------------------------------------------------
+
+inline constexpr std::size_t kMaxTokenBytes = 4096;
+inline constexpr std::uint32_t kMaxSceneCache = 1024;  // scenes kept built in memory
+inline constexpr std::chrono::seconds kMaxGrace{3600};
+inline constexpr std::chrono::milliseconds kMaxClientTimeout{10 * 60 * 1000};
+inline constexpr std::chrono::milliseconds kMaxBackoff{10 * 60 * 1000};
+// A slot holds up to two tiles (one rendering, the next leased), so the default leaves room for
+// two more per thread waiting for their acknowledgement before leasing pauses.
+inline constexpr std::uint32_t kInHandPerThread = 4;
+inline constexpr std::uint32_t kMaxUnacknowledged = 1u << 16;
+
+// ---- configuration -------------------------------------------------------------------------
+
+struct WorkerConfig {
+  std::string collector_url;  // http://host[:port] (http::parse_base_url)
+  std::string token;          // bearer token: 1..kMaxTokenBytes visible ASCII characters, no spaces
+  // Sent with every lease request; the collector logs it. Empty: default_worker_name().
+  // Otherwise 1..protocol::kMaxWorkerNameBytes printable ASCII characters.
+  std::string name;
+  std::uint32_t threads = 0;      // render threads; 0: every core. At most protocol::kMaxWorkerThreads
+  std::uint32_t scene_cache = 8;  // built scenes kept (least recently used evicted); [1, kMaxSceneCache]
+  // After SIGTERM/SIGINT: how long to keep submitting what is in hand before abandoning it.
+  std::chrono::seconds grace{60};  // [0, kMaxGrace]
+  http::ClientTimeouts timeouts;   // each in [1 ms, kMaxClientTimeout]
+  // Retry delays after a failed request: full jitter in [0, min(max, initial x 2^n)].
+  std::chrono::milliseconds backoff_initial{100};  // > 0
+  std::chrono::milliseconds backoff_max{10'000};   // [backoff_initial, kMaxBackoff]
+  // Tiles in hand at once: lease requests in flight, leases held, tiles rendering, and rendered
+  // tiles not yet acknowledged. At the bound the worker stops leasing until acknowledgements come
+  // in; so it is also the bound on the pixels held in memory. 0: kInHandPerThread x threads.
+  // Below 2 x threads some render threads wait while the collector is slow. [0, kMaxUnacknowledged]
+  std::uint32_t max_unacknowledged = 0;
+  // Seed of the retry jitter; 0: drawn from std::random_device (so that workers started together
+  // do not retry together). Tests fix it.
+  std::uint64_t jitter_seed = 0;
+};
+
+// "hostname-pid", reduced to printable ASCII and to the protocol's name length.
+std::string default_worker_name();
+
+// Every problem with `config`, each "field: problem" (fields named as in WorkerConfig, e.g.
+// "collector_url", "timeouts.connect"); empty when it is valid.
+std::vector<std::string> validate(const WorkerConfig& config);
+
+// `config` with its host-dependent defaults filled in: name, threads, max_unacknowledged.
+// Requires validate(config) to be empty.
+WorkerConfig resolve_defaults(WorkerConfig config);
+
+}  // namespace dtraced::worker

@@ -1,0 +1,98 @@
+// dtraced::worker daemon: leases tiles from a collector, renders them with every thread, and
+// submits the pixels until the collector acknowledges them.
+//
+// Owns: the worker's whole life (README.md, "HTTP API" for the endpoints it speaks).
+//  - Pipeline. One slot per render thread. A slot leases a tile (POST /v1/lease), makes sure the
+//    scene it names is built (cache by digest, else GET /v1/scenes/{digest}, verified against
+//    the digest, built once and shared), renders it on the render pool (render::render_tile, so
+//    the pixels are those of a local render, bit for bit), and hands the result to submission.
+//    While a tile renders, its slot already leases the next one, so the threads do not wait on
+//    the network between tiles.
+//  - Submission. Each rendered tile is PUT to /v1/jobs/{job}/tiles/{tile} (protocol tile payload)
+//    and kept until the collector answers: "stored" or "already done" ends it; "job gone" (410)
+//    drops it and every other tile and lease of that job; a 4xx saying the tile is bad is logged
+//    as the bug it is and dropped. Network errors, 5xx, 401, 408 and 429 are retried with
+//    exponential backoff and full jitter, across collector restarts, for as long as it takes.
+//  - Back-pressure. At most max_unacknowledged tiles are in hand (lease requests in flight,
+//    leases held, tiles rendering, tiles awaiting acknowledgement); at the bound the worker stops
+//    leasing until acknowledgements come in.
+//  - Failures. A collector that is not there yet, restarting, refusing the token (401) or
+//    answering 5xx is retried with backoff; while it fails, one request at a time probes it (one
+//    for leases, one for submissions), so a farm of waiting workers stays quiet. A worker started
+//    before its collector simply waits.
+//  - Stop (request_stop, or SIGTERM/SIGINT when asked to handle them): no more leases; leases held
+//    but not started are dropped (the collector re-offers them); tiles rendering are finished;
+//    everything rendered is submitted within the grace period, after which what is left is
+//    abandoned and logged. A second signal abandons at once. Counters are logged at exit.
+//
+// Threading: run() turns the calling thread into the worker's event loop (all networking, all
+// state) and starts `threads` render threads that only render tiles and build scenes. The worker
+// shares nothing with other workers in the process: no global state.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+
+#include "worker/config.h"
+
+namespace dtraced::worker {
+
+// Counters since construction; a snapshot, each field read atomically (not all together).
+struct WorkerStats {
+  bool started = false;   // run() is under way: signal handling installed, READY=1 sent
+  bool stopping = false;  // a stop was requested
+  std::uint64_t tiles_rendered = 0;
+  std::uint64_t tiles_submitted = 0;  // acknowledged: "stored" or "already done"
+  std::uint64_t tiles_dropped = 0;    // their job is gone (410, or known gone before submission)
+  std::uint64_t tiles_rejected = 0;   // refused as malformed by the collector (a bug somewhere)
+  std::uint64_t tiles_abandoned = 0;  // still unacknowledged when the grace period ran out
+  std::uint64_t submit_retries = 0;   // failed submissions (the tile is kept and sent again)
+  std::uint64_t lease_failures = 0;   // lease requests (or their scene fetch) that failed
+  std::uint64_t leases_dropped = 0;   // leases given up unrendered (stop, job gone, bad scene)
+  std::uint64_t scenes_fetched = 0;   // scenes fetched, verified and built
+  std::uint64_t scenes_rejected = 0;  // fetched scene bodies that failed verification
+  std::uint64_t tiles_held = 0;       // now: rendered, awaiting acknowledgement
+  std::uint64_t tiles_in_hand = 0;    // now: see max_unacknowledged in config.h
+  std::uint64_t tiles_in_hand_peak = 0;
+};
+
+struct RunOptions {
+  bool stop_on_signals = false;  // SIGTERM and SIGINT request a stop (a second one abandons)
+  bool notify_systemd = false;   // sd_notify READY=1 once running, STOPPING=1 on stop
+};
+
+class Worker {
+ public:
+  // Throws std::invalid_argument (listing every problem) unless validate(config) is empty.
+  // Host-dependent defaults are resolved here (see config()).
+  explicit Worker(const WorkerConfig& config);
+  ~Worker();
+  Worker(const Worker&) = delete;
+  Worker& operator=(const Worker&) = delete;
+
+  // Runs the worker on the calling thread until a stop has been requested and everything in hand
+  // is acknowledged or abandoned. At most once per Worker. Returns false when an internal error
+  // (logged) ended it rather than a stop.
+  bool run(const RunOptions& options = {});
+
+  // Asks run() to stop as described above. Any thread, any time (before run() too); idempotent.
+  void request_stop();
+
+  // Any thread.
+  WorkerStats stats() const;
+
+  // The configuration with its defaults resolved.
+  const WorkerConfig& config() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+// The daemon: validates `config` (each problem logged), then runs a Worker with SIGTERM/SIGINT
+// handling and systemd notification until it stops. Blocks. Returns the process exit code: 0
+// after a stop (even if the grace period ran out and tiles were abandoned), 2 when the
+// configuration is invalid, 1 after an internal error.
+int run_worker(const WorkerConfig& config);
+
+}  // namespace dtraced::worker
