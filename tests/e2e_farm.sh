@@ -208,5 +208,35 @@ after=$(client list --json)
 [ "$before" = "$after" ] && ok "bad requests changed nothing stored" || fail "state changed by bad requests"
 kill -0 "$COLLECTOR_PID" && ok "the collector is still running" || fail "the collector died"
 
+# ---- 6. the seed's one-shot use, killed and started again with the same command line ---------
+kill -9 "$COLLECTOR_PID" "${WORKER_PIDS[@]}"
+wait 2>/dev/null
+WORKER_PIDS=()
+mkdir -p "$work/out6"
+ONESHOT=(--scene "$SCENE" --output "$work/out6/six.pfm" --width 384 --height 216 --samples 24 --tile-size 16
+  --exit-when-done)
+start_collector c6 "$work/state6" 127.0.0.1:0 "${ONESHOT[@]}"
+port6=$PORT
+start_worker w6 "$URL"
+id6=$(client list --json | sed -n 's/.*"id":\([0-9]*\).*/\1/p' | head -n1)
+[ -n "$id6" ] || die "the one-shot job is not listed"
+total6=$(job_field "$id6" tiles_total)
+wait_tiles "$id6" $((total6 / 3))
+[ "$(job_field "$id6" tiles_done)" -lt "$total6" ] || die "the one-shot job finished before the kill; make it longer"
+kill -9 "$COLLECTOR_PID"
+wait "$COLLECTOR_PID" 2>/dev/null
+start_collector c6b "$work/state6" "127.0.0.1:$port6" "${ONESHOT[@]}"
+[ "$(client list --json | grep -o '"id":' | wc -l)" = 1 ] && ok "one-shot restart resumes the job instead of enqueuing a copy" ||
+  fail "one-shot restart enqueued another job"
+t=0
+while kill -0 "$COLLECTOR_PID" 2>/dev/null && [ $t -lt $((DEADLINE * 10)) ]; do
+  sleep 0.1
+  t=$((t + 1))
+done
+wait "$COLLECTOR_PID" && ok "--exit-when-done: the collector exits 0 once the image is written" ||
+  fail "one-shot collector did not exit 0"
+cmp -s "$work/ref3.pfm" "$work/out6/six.pfm" && ok "one-shot job killed and restarted: image identical" ||
+  fail "one-shot image differs"
+
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]
