@@ -83,5 +83,28 @@ check "unsupported output extension" 1 "$DTRACED" render "$SCENES/snowman.json" 
 check "generate" 0 "$DTRACED" generate --count 500 --seed 3 -o "$work/gen.json"
 check "generated scene validates" 0 "$DTRACED" validate "$work/gen.json"
 
+# Role configuration: JSON files, flags winning over them, unknown keys and misplaced flags.
+echo tok >"$work/token"
+echo '{"role": "collector", "listen": "127.0.0.1:0", "state_dir": "/nonexistent", "bogus_key": 1}' >"$work/c1.json"
+check "config with an unknown key" 2 "$DTRACED" --config "$work/c1.json"
+expect_text "the unknown key is named with its file" "$work/err" "c1.json: /bogus_key: unknown key"
+echo '[1' >"$work/c2.json"
+check "config that is not JSON" 2 "$DTRACED" --config "$work/c2.json" --role worker
+expect_text "the bad config file is named" "$work/err" "c2.json"
+check "a collector flag with --role worker" 2 "$DTRACED" --role worker --state-dir x --collector http://127.0.0.1:1 --token-file "$work/token"
+check "a role and a verb together" 2 "$DTRACED" --role worker validate "$SCENES/snowman.json"
+check "collector without a token file" 2 "$DTRACED" --role collector --state-dir "$work/s"
+echo '{"listen": "127.0.0.1:bad"}' >"$work/c3.json"
+check "a bad value in the config" 2 "$DTRACED" --role collector --config "$work/c3.json" --state-dir "$work/s" --token-file "$work/token"
+# The flag wins over the config's bad listen address, so start-up gets as far as the state
+# directory, which is a file here: a runtime failure (1), not a usage error (2).
+: >"$work/not-a-dir"
+check "flags win over the config" 1 "$DTRACED" --role collector --config "$work/c3.json" --listen 127.0.0.1:0 --state-dir "$work/not-a-dir" --token-file "$work/token"
+check "client verb against no collector" 1 "$DTRACED" list --collector http://127.0.0.1:1
+check "client verb with a bad URL" 1 "$DTRACED" list --collector https://example
+for verb in submit list status fetch cancel; do
+  check "$verb --help" 0 "$DTRACED" "$verb" --help
+done
+
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]
