@@ -1040,9 +1040,12 @@ std::shared_ptr<const std::string> Collector::Impl::intern_scene(const std::stri
 
 void Collector::Impl::persist_rendering(JobRecord& job) {
   if (job.rendering_persisted || !writer_) return;
-  // Informational (a restart derives the state from the stored tiles), so not awaited.
+  // Informational (a restart derives the state from the stored tiles), so not awaited; but the
+  // loop counts it as outstanding work until the store thread has run it, so a test that runs
+  // the loop until idle sees the state written.
   const auto id = static_cast<std::int64_t>(job.id);
-  const store::SubmitStatus status = writer_->post([id](store::Store& s) {
+  auto pending = std::make_shared<net::executor_work_guard<net::io_context::executor_type>>(ioc_->get_executor());
+  const store::SubmitStatus status = writer_->post([id, pending](store::Store& s) {
     if (store::Status st = s.set_job_state(id, store::kJobRendering, 0); !st) {
       util::log_warn("collector: job {}: cannot record the rendering state: {}", id, st.error());
     }
