@@ -322,7 +322,10 @@ TEST_CASE("restoring a job skips its stored tiles", "[queue]") {
 }
 
 TEST_CASE("with nothing eligible, lease suggests when to ask again", "[queue]") {
-  WorkQueue q;
+  // The clamping logic, with a longer upper bound than the default.
+  QueueConfig slow;
+  slow.max_retry_after = 5s;
+  WorkQueue q(slow);
   CHECK(q.lease(t0).retry_after == 5s);  // no work at all: the longest wait
 
   REQUIRE(q.add_job(1, 0, 2));
@@ -333,7 +336,7 @@ TEST_CASE("with nothing eligible, lease suggests when to ask again", "[queue]") 
   CHECK(q.lease(t0 + 1999999999ns).retry_after == 50ms);
 
   // Rounded up to whole milliseconds, so the worker never comes back too early.
-  QueueConfig config;
+  QueueConfig config = slow;
   config.min_retry_after = 1ms;
   WorkQueue fine(config);
   REQUIRE(fine.add_job(1, 0, 1));
@@ -341,13 +344,17 @@ TEST_CASE("with nothing eligible, lease suggests when to ask again", "[queue]") 
   CHECK(fine.lease(t0 + 1s + 500us).retry_after == 1000ms);
 
   // At the copy cap, the wait runs to the oldest lease's expiry, clamped.
-  WorkQueue capped;
+  WorkQueue capped(slow);
   REQUIRE(capped.add_job(1, 0, 1));
   must_lease(capped, t0);
   must_lease(capped, t0 + 2s);
   must_lease(capped, t0 + 4s);
   CHECK(capped.lease(t0 + 6s).retry_after == 5s);
   CHECK(capped.lease(t0 + 19s).retry_after == 1s);
+
+  // The default keeps idle workers close: a new job waits at most half a second for them.
+  WorkQueue idle;
+  CHECK(idle.lease(t0).retry_after == 500ms);
 }
 
 TEST_CASE("queue configuration is checked", "[queue]") {
