@@ -1,0 +1,238 @@
+#!/usr/bin/env bash
+# Collector capacity: durable tile submissions per second that one collector sustains on one core,
+# and the latency of a lease under that load. A benchmark, not a test: it prints figures and
+# fails only when it cannot run.
+#
+# A collector is pinned to one core (taskset -c COLLECTOR_CPU: its event loop, its SQLite writer
+# thread and its small pool all share that core); dtraced-load runs pinned to another core with
+# 16, 64 and 256 simulated workers. Each simulated worker leases a tile and uploads a valid payload
+# for it (made-up pixels) as fast as the collector answers; every request is its own connection, as
+# with the real worker. Each run gets a fresh job of many small tiles (an 8192 x 8192 image of a
+# one-sphere scene in 32-pixel tiles: 65,536 tiles of 12 KiB) on a fresh collector and database, a
+# 1 s warm-up that is not measured, then RUN_SECONDS measured. The collector never renders, so the
+# scene's cost is irrelevant. A last run leases without uploading: the rate of bare requests, the
+# floor that HTTP alone sets.
+#
+# Alongside the rates it reports the CPU each side used (from /proc and getrusage: a side near
+# 1.00 of its core is the limit) and the store writer's group commit (tiles per transaction and
+# the share of wall time spent inside tile transactions, from the collector's /metrics).
+#
+# Usage, after the README's build (cmake -B build && cmake --build build):
+#   tests/bench/collector_capacity.sh
+# Environment: DTRACED and DTRACED_LOAD (binaries; default build/src/cli/dtraced and
+# build/src/bench/dtraced-load), RUN_SECONDS (10), WARMUP_SECONDS (1), WORKER_COUNTS ("16 64 256"),
+# FLOOR_WORKERS (64), FLOOR_IMAGE_SIDE (16384), IMAGE_SIDE (8192), TILE_SIZE (32), COLLECTOR_CPU (0), LOAD_CPU (1),
+# KEEP_LOGS=1 to keep the temporary directory.
+# Needs curl; taskset (util-linux) for pinning, else it runs unpinned and says so.
+set -uo pipefail
+
+root=$(cd "$(dirname "$0")/../.." && pwd)
+DTRACED=${DTRACED:-$root/build/src/cli/dtraced}
+DTRACED_LOAD=${DTRACED_LOAD:-$root/build/src/bench/dtraced-load}
+RUN_SECONDS=${RUN_SECONDS:-10}
+WARMUP_SECONDS=${WARMUP_SECONDS:-1}
+FLOOR_WORKERS=${FLOOR_WORKERS:-64}
+# Bare leases run three to four times faster than lease + upload; the floor's job has the most
+# tiles a job may have (protocol::kMaxTilesPerJob at 32-px tiles), so that it does not run out of
+# never-leased tiles within the run. It stores nothing, so no framebuffer is allocated.
+FLOOR_IMAGE_SIDE=${FLOOR_IMAGE_SIDE:-16384}
+WORKER_COUNTS=${WORKER_COUNTS:-"16 64 256"}
+IMAGE_SIDE=${IMAGE_SIDE:-8192}
+TILE_SIZE=${TILE_SIZE:-32}
+COLLECTOR_CPU=${COLLECTOR_CPU:-0}
+LOAD_CPU=${LOAD_CPU:-1}
+START_DEADLINE=30  # seconds for the collector to listen
+# A run ends by itself after RUN_SECONDS plus the requests in flight (each bounded by the
+# generator's 10 s read timeout); this is the hard stop if it does not.
+RUN_DEADLINE=$((RUN_SECONDS + 60))
+
+for bin in "$DTRACED" "$DTRACED_LOAD"; do
+  [ -x "$bin" ] || {
+    echo "not found: $bin (build first, or set DTRACED / DTRACED_LOAD)" >&2
+    exit 1
+  }
+done
+command -v curl >/dev/null || {
+  echo "curl is needed" >&2
+  exit 1
+}
+
+work=$(mktemp -d)
+collector_pid=
+# Stops a process this script started: SIGTERM, then SIGKILL after 5 s.
+stop_pid() {
+  kill -TERM "$1" 2>/dev/null || return 0
+  for _ in $(seq 50); do
+    kill -0 "$1" 2>/dev/null || break
+    sleep 0.1
+  done
+  kill -9 "$1" 2>/dev/null
+  wait "$1" 2>/dev/null
+}
+cleanup() {
+  [ -n "$collector_pid" ] && stop_pid "$collector_pid"
+  if [ "${KEEP_LOGS:-0}" = 1 ]; then echo "logs kept in $work"; else rm -rf "$work"; fi
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+
+pin_collector=()
+pin_load=()
+if command -v taskset >/dev/null && [ "$(nproc)" -ge 2 ]; then
+  pin_collector=(taskset -c "$COLLECTOR_CPU")
+  pin_load=(taskset -c "$LOAD_CPU")
+  pinning="collector on CPU $COLLECTOR_CPU, load generator on CPU $LOAD_CPU"
+else
+  pinning="NOT pinned (taskset missing or fewer than 2 CPUs): the figures are not one-core figures"
+fi
+
+printf 'capacity-%s-token\n' "$$" >"$work/token"
+token=$(head -n1 "$work/token")
+
+# The cheapest valid scene: the collector validates and stores it, never renders it.
+cat >"$work/scene.json" <<'EOF'
+{
+  "camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 40},
+  "render": {"width": 64, "height": 64, "samples": 1, "max_depth": 1, "background": [0, 0, 0], "seed": 1},
+  "scene_objects": [
+    {"type": "sphere", "loc": [0, 0, 0], "radius": 1, "material": {"color": [1, 1, 1], "diffuse": 1}}
+  ],
+  "scene_lights": [{"type": "point", "loc": [0, 5, 5], "color": [1, 1, 1], "intensity": 10}]
+}
+EOF
+
+# start_collector: a fresh collector on a fresh state directory, pinned; sets collector_pid and url.
+# Every run gets its own, so that each row starts from the same empty database.
+collectors=0
+start_collector() {
+  local state port
+  collectors=$((collectors + 1))
+  state="$work/state-$collectors"
+  # The default connection cap (256) would refuse some of 256 simulated workers' connections while
+  # earlier ones close; the cap is not what this measures.
+  "${pin_collector[@]}" "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$state" \
+    --token-file "$work/token" --max-connections 1024 2>"$work/collector.log" &
+  collector_pid=$!
+  port=
+  for _ in $(seq $((START_DEADLINE * 10))); do
+    port=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/collector.log" | tail -n1)
+    [ -n "$port" ] && break
+    kill -0 "$collector_pid" 2>/dev/null || break
+    sleep 0.1
+  done
+  if [ -z "$port" ]; then
+    echo "the collector did not start:" >&2
+    tail -n 20 "$work/collector.log" >&2
+    exit 1
+  fi
+  url="http://127.0.0.1:$port"
+}
+# stop_collector: gracefully, and its state directory goes (a run stores up to ~1 GB of tiles).
+stop_collector() {
+  stop_pid "$collector_pid"
+  collector_pid=
+  rm -rf "$work/state-$collectors"
+}
+client() { "$DTRACED" "$@" --collector "$url" --token-file "$work/token"; }
+metric() { curl -sf -H "Authorization: Bearer $token" "$url/metrics" | sed -n "s/^$1 //p"; }
+# CPU seconds the collector used so far, all its threads (utime + stime from /proc/PID/stat).
+ticks=$(getconf CLK_TCK)
+collector_cpu() { awk -v t="$ticks" '{ sub(/.*\) /, ""); printf "%.3f", ($12 + $13) / t }' "/proc/$collector_pid/stat"; }
+# field NAME: a number from dtraced-load's flat JSON line in $work/load.json.
+field() { sed -n "s/.*\"$1\":\([^,}]*\).*/\1/p" "$work/load.json" | tr -d '"'; }
+
+echo "collector capacity: $(nproc) CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg), $pinning"
+echo "job per run: ${IMAGE_SIDE}x${IMAGE_SIDE} in ${TILE_SIZE}-px tiles" \
+  "($(((IMAGE_SIDE / TILE_SIZE) * (IMAGE_SIDE / TILE_SIZE))) tiles of $((TILE_SIZE * TILE_SIZE * 12 + 72)) bytes), ${RUN_SECONDS} s per run"
+echo
+rows=()
+problems=0
+# measure WORKERS SIDE [dtraced-load flags...]: a fresh collector and a SIDE x SIDE job, a warm-up,
+# then the measured run. Sets ROW (a table row) or returns 1.
+measure() {
+  local workers=$1 side=$2 id rc cpu0 cpu1 b0 b1 s0 s1 w0 w1 key v first
+  shift 2
+  ROW=
+  rm -f "$work/load.json"
+  start_collector
+  id=$(client submit "$work/scene.json" -o capacity.pfm --width "$side" --height "$side" \
+    --tile-size "$TILE_SIZE") || {
+    echo "submit failed" >&2
+    exit 1
+  }
+  # Warm-up, not measured: the job's first stored tile allocates its framebuffer (768 MiB for
+  # 8192 x 8192), once per job; the figures are for the steady state that follows.
+  timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
+    --job "$id" --workers "$workers" --seconds "$WARMUP_SECONDS" "$@" >/dev/null 2>"$work/load.err"
+  rc=$?
+  if [ "$rc" = 0 ]; then
+    b0=$(metric dtraced_store_commit_batches_total)
+    s0=$(metric dtraced_tiles_stored_total)
+    w0=$(metric dtraced_store_write_seconds_total)
+    cpu0=$(collector_cpu)
+    timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
+      --job "$id" --workers "$workers" --seconds "$RUN_SECONDS" --json "$@" >"$work/load.json" 2>"$work/load.err"
+    rc=$?
+    cpu1=$(collector_cpu)
+    b1=$(metric dtraced_store_commit_batches_total)
+    s1=$(metric dtraced_tiles_stored_total)
+    w1=$(metric dtraced_store_write_seconds_total)
+  fi
+  stop_collector
+  if [ "$rc" != 0 ] || [ ! -s "$work/load.json" ]; then
+    echo "dtraced-load with $workers workers $* failed (exit $rc):" >&2
+    cat "$work/load.err" >&2
+    problems=$((problems + 1))
+    return 1
+  fi
+  ROW=$(awk -v w="$workers" -v rate="$(field stored_per_s)" -v p50="$(field lease_p50_ms)" \
+    -v p99="$(field lease_p99_ms)" -v u50="$(field upload_p50_ms)" -v u99="$(field upload_p99_ms)" \
+    -v el="$(field elapsed_s)" -v c0="$cpu0" -v c1="$cpu1" -v gen="$(field generator_cpu)" \
+    -v b0="$b0" -v b1="$b1" -v s0="$s0" -v s1="$s1" -v w0="$w0" -v w1="$w1" \
+    'BEGIN {
+      batches = b1 - b0
+      per_commit = 0
+      if (batches > 0) per_commit = (s1 - s0) / batches
+      cpu_us = 0
+      if (rate > 0) cpu_us = 1e6 * (c1 - c0) / (rate * el)
+      printf "| %d | %.0f | %.2f | %.2f | %.2f | %.2f | %.2f | %.0f | %.2f | %.1f | %.0f%% |",
+        w, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, gen, per_commit, 100 * (w1 - w0) / el
+    }')
+  for key in busy http_errors network_errors retry_after; do
+    v=$(field "$key")
+    [ -n "$v" ] && [ "$v" != 0 ] && echo "note: $workers workers $*: $key = $v"
+  done
+  first=$(field first_problem)
+  [ -n "$first" ] && echo "note: $workers workers $*: first problem: $first"
+  awk -v g="$(field generator_cpu)" 'BEGIN { exit !(g >= 0.85) }' &&
+    echo "note: $workers workers $*: the load generator used $(field generator_cpu) of its core: near its own limit, so the rate is a lower bound"
+  return 0
+}
+
+for workers in $WORKER_COUNTS; do
+  measure "$workers" "$IMAGE_SIDE" && rows+=("$ROW")
+done
+# The floor of HTTP alone: leases without uploads, one request (and connection) each.
+floor=
+if measure "$FLOOR_WORKERS" "$FLOOR_IMAGE_SIDE" --lease-only; then
+  floor=$(awk -v r="$(field leases_per_s)" -v p50="$(field lease_p50_ms)" -v p99="$(field lease_p99_ms)" \
+    -v gen="$(field generator_cpu)" -v row="$ROW" 'BEGIN {
+      split(row, c, "|")
+      cpu = c[8] + 0
+      us = 0
+      if (r > 0) us = 1e6 * cpu / r
+      printf "%.0f requests/s, lease p50 %.2f ms, p99 %.2f ms, collector CPU %.2f (%.0f us a request), generator CPU %.2f",
+        r, p50, p99, cpu, us, gen
+    }')
+fi
+
+echo
+echo "| workers | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | generator CPU | tiles/commit | in tile txns |"
+echo "|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+for row in "${rows[@]}"; do echo "$row"; done
+[ -n "$floor" ] && echo && echo "HTTP floor, $FLOOR_WORKERS workers leasing without uploading: $floor"
+echo
+echo "CPU columns: cores busy (1.00 = the whole pinned core); us/tile: collector CPU time per stored tile (its lease"
+echo "and its upload). 'in tile txns': wall time the store writer spent inside tile transactions (inserts + COMMIT"
+echo "with fsync), as a share of the run. Target: >= 5000 stored/s."
+[ "$problems" = 0 ]
