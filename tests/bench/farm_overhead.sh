@@ -148,7 +148,18 @@ farm_run() {
   SPAN_S=$(elapsed "$t1" "$t2")
 }
 
+# Busy CPU seconds of the whole machine so far (/proc/stat: user nice system irq softirq steal).
+ticks=$(getconf CLK_TCK)
+machine_busy() { awk -v t="$ticks" '$1 == "cpu" { printf "%.3f", ($2 + $3 + $4 + $7 + $8 + $9) / t }' /proc/stat; }
+# CPU seconds of this shell and of every child it has waited for (bash's `times`).
+own_cpu() {
+  times | awk '{ for (i = 1; i <= NF; i++) { split($i, p, "m"); s += p[1] * 60 + p[2] } } END { printf "%.3f", s }'
+}
+
 cores=$(nproc)
+busy_start=$(machine_busy)
+own_start=$(own_cpu)
+wall_start=$EPOCHREALTIME
 echo "farm overhead: $cores CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg)"
 echo "job: $(basename "$SCENE") ${WIDTH}x${HEIGHT}, ${SAMPLES_PER_THREAD} x T samples, ${TILE_SIZE}-px tiles, $RUNS runs each"
 echo
@@ -187,6 +198,17 @@ for t in $THREADS; do
     echo "warning: T=$t: the local render took $lm s, under $MIN_RENDER_S s; raise SAMPLES_PER_THREAD"
 done
 
+# Every process this script started has been waited for once the collector is: what else kept the
+# machine busy meanwhile is a measure of how noisy these figures are.
+stop_pid "$collector_pid"
+collector_pid=
+others=$(awk -v b0="$busy_start" -v b1="$(machine_busy)" -v o0="$own_start" -v o1="$(own_cpu)" \
+  -v w0="$wall_start" -v w1="$EPOCHREALTIME" -v n="$cores" 'BEGIN {
+    x = (b1 - b0) - (o1 - o0)
+    if (x < 0) x = 0
+    printf "%.1f CPU-seconds (%.0f%% of the machine over %.0f s)", x, 100 * x / (n * (w1 - w0)), w1 - w0
+  }')
+
 echo
 echo "Medians of $RUNS runs, seconds. farm = submit to image file; pickup = submit to first lease; span = first lease to image file."
 echo
@@ -196,4 +218,5 @@ for row in "${rows[@]}"; do echo "$row"; done
 echo
 echo "identical: $all_identical"
 echo "target: farm/local <= 1.05"
+echo "other processes meanwhile: $others; load average now $(cut -d' ' -f1-3 /proc/loadavg)"
 [ "$all_identical" = yes ]
