@@ -151,14 +151,18 @@ farm_run() {
 # Busy CPU seconds of the whole machine so far (/proc/stat: user nice system irq softirq steal).
 ticks=$(getconf CLK_TCK)
 machine_busy() { awk -v t="$ticks" '$1 == "cpu" { printf "%.3f", ($2 + $3 + $4 + $7 + $8 + $9) / t }' /proc/stat; }
-# CPU seconds of this shell and of every child it has waited for (bash's `times`).
+# CPU seconds of this shell and of every child it has waited for (bash's `times`), into $work/times.
+# Not in a $(...): a subshell's `times` would count only the subshell.
 own_cpu() {
-  times | awk '{ for (i = 1; i <= NF; i++) { split($i, p, "m"); s += p[1] * 60 + p[2] } } END { printf "%.3f", s }'
+  times >"$work/times.raw"
+  awk '{ for (i = 1; i <= NF; i++) { split($i, p, "m"); s += p[1] * 60 + p[2] } } END { printf "%.3f", s }' \
+    "$work/times.raw" >"$work/times"
 }
 
 cores=$(nproc)
 busy_start=$(machine_busy)
-own_start=$(own_cpu)
+own_cpu
+own_start=$(cat "$work/times")
 wall_start=$EPOCHREALTIME
 echo "farm overhead: $cores CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg)"
 echo "job: $(basename "$SCENE") ${WIDTH}x${HEIGHT}, ${SAMPLES_PER_THREAD} x T samples, ${TILE_SIZE}-px tiles, $RUNS runs each"
@@ -202,7 +206,8 @@ done
 # machine busy meanwhile is a measure of how noisy these figures are.
 stop_pid "$collector_pid"
 collector_pid=
-others=$(awk -v b0="$busy_start" -v b1="$(machine_busy)" -v o0="$own_start" -v o1="$(own_cpu)" \
+own_cpu
+others=$(awk -v b0="$busy_start" -v b1="$(machine_busy)" -v o0="$own_start" -v o1="$(cat "$work/times")" \
   -v w0="$wall_start" -v w1="$EPOCHREALTIME" -v n="$cores" 'BEGIN {
     x = (b1 - b0) - (o1 - o0)
     if (x < 0) x = 0
