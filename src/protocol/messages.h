@@ -61,9 +61,9 @@ inline constexpr std::size_t kMaxWorkerNameBytes = 128;
 inline constexpr std::uint32_t kMaxWorkerThreads = 4096;
 inline constexpr std::uint32_t kMaxRetryAfterMs = 60'000;
 inline constexpr std::size_t kMaxErrorMessageBytes = 16 << 10;
-inline constexpr std::size_t kDigestHexChars = 64;
+inline constexpr std::size_t kDigestHexChars = 64;  // a scene digest: lower-case hex SHA-256
 // A worker names itself in this header on tile uploads; the collector records it with the tile.
-inline constexpr std::string_view kWorkerHeader = "X-Dtraced-Worker";  // a scene digest: lower-case hex SHA-256
+inline constexpr std::string_view kWorkerHeader = "X-Dtraced-Worker";
 
 // ---- results -------------------------------------------------------------------------------
 
