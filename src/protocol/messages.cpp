@@ -21,6 +21,8 @@ namespace dtraced::protocol {
 namespace {
 
 namespace json = boost::json;
+using scene::json_finite_number;
+using scene::json_kind_name;
 
 // Every integer bound below fits an int64 and is at most 2^53, so a bound is exact as a double.
 constexpr std::int64_t kMaxExactInteger = std::int64_t{1} << 53;
@@ -33,23 +35,6 @@ constexpr std::size_t kMaxKeywordBytes = 32;
 
 std::string child(const std::string& at, std::string_view key) { return at + "/" + scene::json_pointer_escape(key); }
 std::string child(const std::string& at, std::size_t index) { return at + "/" + std::to_string(index); }
-
-std::string_view kind_name(const json::value& v) {
-  switch (v.kind()) {
-    case json::kind::object:
-      return "an object";
-    case json::kind::array:
-      return "an array";
-    case json::kind::string:
-      return "a string";
-    case json::kind::bool_:
-      return "a boolean";
-    case json::kind::null:
-      return "null";
-    default:
-      return "a number";
-  }
-}
 
 // ---- reading -------------------------------------------------------------------------------
 
@@ -89,7 +74,7 @@ class Reader {
 
   const json::object* object(const json::value& v, const std::string& at) {
     if (const json::object* o = v.if_object()) return o;
-    error(at, fmt::format("expected an object, got {}", kind_name(v)));
+    error(at, fmt::format("expected an object, got {}", json_kind_name(v)));
     return nullptr;
   }
 
@@ -133,32 +118,20 @@ class Reader {
         return static_cast<std::int64_t>(d);
       }
       default:
-        error(at, fmt::format("expected an integer, got {}", kind_name(v)));
+        error(at, fmt::format("expected an integer, got {}", json_kind_name(v)));
         return std::nullopt;
     }
   }
 
   // A finite number in [lo, hi]; -0 becomes +0 (as in scene files).
   std::optional<double> number(const json::value& v, const std::string& at, double lo, double hi) {
-    double d = 0;
-    switch (v.kind()) {
-      case json::kind::double_:
-        d = v.get_double();
-        break;
-      case json::kind::int64:
-        d = static_cast<double>(v.get_int64());
-        break;
-      case json::kind::uint64:
-        d = static_cast<double>(v.get_uint64());
-        break;
-      default:
-        error(at, fmt::format("expected a number, got {}", kind_name(v)));
-        return std::nullopt;
-    }
-    if (!std::isfinite(d)) {
-      error(at, "number is out of range (overflows a double)");
+    std::string problem;
+    const std::optional<double> number = json_finite_number(v, problem);
+    if (!number) {
+      error(at, problem);
       return std::nullopt;
     }
+    const double d = *number;
     if (!(d >= lo && d <= hi)) {
       error(at, fmt::format("must be in [{}, {}] (got {})", lo, hi, d));
       return std::nullopt;
@@ -169,7 +142,7 @@ class Reader {
   std::optional<std::string> string(const json::value& v, const std::string& at, std::size_t max_bytes) {
     const json::string* s = v.if_string();
     if (s == nullptr) {
-      error(at, fmt::format("expected a string, got {}", kind_name(v)));
+      error(at, fmt::format("expected a string, got {}", json_kind_name(v)));
       return std::nullopt;
     }
     if (s->size() > max_bytes) {
@@ -272,7 +245,7 @@ std::optional<scene::RenderSettings> read_settings(Reader& r, const json::value&
     const std::string bg_at = f.path("background");
     const json::array* a = bg->if_array();
     if (a == nullptr || a->size() != 3) {
-      r.error(bg_at, a == nullptr ? fmt::format("expected an array of 3 numbers, got {}", kind_name(*bg))
+      r.error(bg_at, a == nullptr ? fmt::format("expected an array of 3 numbers, got {}", json_kind_name(*bg))
                                   : fmt::format("expected an array of 3 numbers, got {} elements", a->size()));
     } else {
       for (std::size_t i = 0; i < 3; ++i) {
@@ -476,7 +449,7 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
       for (scene::SceneError& e : loaded.errors) r.error("/scene" + e.path, std::move(e.message));
       if (loaded.ok()) m.scene = std::move(*loaded.scene);
     } else {
-      r.error("/scene", fmt::format("expected an object (a scene), got {}", kind_name(*s)));
+      r.error("/scene", fmt::format("expected an object (a scene), got {}", json_kind_name(*s)));
     }
   }
   read_output(r, f, m.output, Need::kOptional);
@@ -572,7 +545,7 @@ Decoded<JobList> decode_job_list(std::string_view text) {
   if (const json::value* v = f.get("jobs", Need::kRequired)) {
     const json::array* a = v->if_array();
     if (a == nullptr) {
-      r.error("/jobs", fmt::format("expected an array, got {}", kind_name(*v)));
+      r.error("/jobs", fmt::format("expected an array, got {}", json_kind_name(*v)));
     } else if (a->size() > kMaxListedJobs) {
       r.error("/jobs", fmt::format("too many jobs: {} (limit {})", a->size(), kMaxListedJobs));
     } else {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <charconv>
+#include <cmath>
 #include <cstdint>
 #include <system_error>
 #include <utility>
@@ -260,6 +261,46 @@ JsonDocument read_json_strict(std::string_view text, std::size_t max_depth, std:
   // Constructed, not assigned: assigning into a value with the default storage would deep-copy
   // the whole tree out of the caller's arena.
   return JsonDocument{parser.handler().release(), /* parsed = */ true, std::move(parser.handler().issues())};
+}
+
+std::string_view json_kind_name(const boost::json::value& v) {
+  switch (v.kind()) {
+    case boost::json::kind::object:
+      return "an object";
+    case boost::json::kind::array:
+      return "an array";
+    case boost::json::kind::string:
+      return "a string";
+    case boost::json::kind::bool_:
+      return "a boolean";
+    case boost::json::kind::null:
+      return "null";
+    default:
+      return "a number";
+  }
+}
+
+std::optional<double> json_finite_number(const boost::json::value& v, std::string& error) {
+  double d = 0;
+  switch (v.kind()) {
+    case boost::json::kind::double_:
+      d = v.get_double();
+      break;
+    case boost::json::kind::int64:
+      d = static_cast<double>(v.get_int64());
+      break;
+    case boost::json::kind::uint64:
+      d = static_cast<double>(v.get_uint64());
+      break;
+    default:
+      error = fmt::format("expected a number, got {}", json_kind_name(v));
+      return std::nullopt;
+  }
+  if (!std::isfinite(d)) {
+    error = "number is out of range (overflows a double)";
+    return std::nullopt;
+  }
+  return d;
 }
 
 }  // namespace dtraced::scene

@@ -16,6 +16,7 @@
 #pragma once
 
 #include <cstddef>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -46,5 +47,13 @@ JsonDocument read_json_strict(std::string_view text, std::size_t max_depth, std:
 
 // Escapes one reference token of a JSON Pointer (RFC 6901): '~' -> "~0", '/' -> "~1".
 std::string json_pointer_escape(std::string_view token);
+
+// "an object", "an array", "a string", "a boolean", "null" or "a number", for error messages.
+std::string_view json_kind_name(const boost::json::value& v);
+
+// The value of a JSON number as a finite double, or nullopt with `error` set ("expected a number,
+// got a string", "number is out of range (overflows a double)"). Shared by every strict reader so
+// scene files and wire messages treat numbers alike; range checks stay with the caller.
+std::optional<double> json_finite_number(const boost::json::value& v, std::string& error);
 
 }  // namespace dtraced::scene

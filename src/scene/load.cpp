@@ -76,23 +76,6 @@ class Path {
   bool is_index_ = false;
 };
 
-std::string_view kind_name(const json::value& v) {
-  switch (v.kind()) {
-    case json::kind::object:
-      return "an object";
-    case json::kind::array:
-      return "an array";
-    case json::kind::string:
-      return "a string";
-    case json::kind::bool_:
-      return "a boolean";
-    case json::kind::null:
-      return "null";
-    default:
-      return "a number";
-  }
-}
-
 std::size_t edit_distance(std::string_view a, std::string_view b) {
   std::vector<std::size_t> row(b.size() + 1);
   for (std::size_t j = 0; j <= b.size(); ++j) row[j] = j;
@@ -183,7 +166,7 @@ class Validator {
     const Path root;
     const json::object* root_obj = root_value.if_object();
     if (root_obj == nullptr) {
-      error(root, fmt::format("expected a JSON object at the top level, got {}", kind_name(root_value)));
+      error(root, fmt::format("expected a JSON object at the top level, got {}", json_kind_name(root_value)));
       return std::nullopt;
     }
     check_keys(*root_obj, root, kTopKeys);
@@ -221,14 +204,14 @@ class Validator {
 
   const json::object* object(const json::value& v, const Path& at) {
     if (const json::object* o = v.if_object()) return o;
-    error(at, fmt::format("expected an object, got {}", kind_name(v)));
+    error(at, fmt::format("expected an object, got {}", json_kind_name(v)));
     return nullptr;
   }
 
   const json::array* array(const json::value& v, const Path& at, std::size_t max_size, std::string_view what) {
     const json::array* a = v.if_array();
     if (a == nullptr) {
-      error(at, fmt::format("expected an array, got {}", kind_name(v)));
+      error(at, fmt::format("expected an array, got {}", json_kind_name(v)));
       return nullptr;
     }
     if (a->size() > max_size) {
@@ -257,25 +240,13 @@ class Validator {
 
   // Any JSON number that fits a float; -0 becomes +0 so the digest does not see the sign of zero.
   std::optional<double> number(const json::value& v, const Path& at) {
-    double d = 0;
-    switch (v.kind()) {
-      case json::kind::double_:
-        d = v.get_double();
-        break;
-      case json::kind::int64:
-        d = static_cast<double>(v.get_int64());
-        break;
-      case json::kind::uint64:
-        d = static_cast<double>(v.get_uint64());
-        break;
-      default:
-        error(at, fmt::format("expected a number, got {}", kind_name(v)));
-        return std::nullopt;
-    }
-    if (!std::isfinite(d)) {
-      error(at, "number is out of range (overflows a double)");
+    std::string problem;
+    const std::optional<double> number = json_finite_number(v, problem);
+    if (!number) {
+      error(at, problem);
       return std::nullopt;
     }
+    const double d = *number;
     if (std::abs(d) > kFloatMax) {
       error(at, fmt::format("number {} is outside the float range (magnitude at most {})", d, kFloatMax));
       return std::nullopt;
@@ -286,7 +257,7 @@ class Validator {
   std::optional<Vec3d> vec3(const json::value& v, const Path& at) {
     const json::array* a = v.if_array();
     if (a == nullptr) {
-      error(at, fmt::format("expected an array of 3 numbers, got {}", kind_name(v)));
+      error(at, fmt::format("expected an array of 3 numbers, got {}", json_kind_name(v)));
       return std::nullopt;
     }
     if (a->size() != 3) {
@@ -354,7 +325,7 @@ class Validator {
         return static_cast<std::uint64_t>(d);
       }
       default:
-        error(at, fmt::format("expected an integer, got {}", kind_name(v)));
+        error(at, fmt::format("expected an integer, got {}", json_kind_name(v)));
         return std::nullopt;
     }
   }
@@ -500,7 +471,7 @@ class Validator {
                 fmt::format("unknown object type \"{}\"; known types: sphere, box, plane", std::string_view(*s)));
         }
       } else {
-        error(type_at, fmt::format("expected a string (sphere, box or plane), got {}", kind_name(*t)));
+        error(type_at, fmt::format("expected a string (sphere, box or plane), got {}", json_kind_name(*t)));
       }
     }
 
@@ -609,7 +580,7 @@ class Validator {
     if (const json::value* t = required(*o, "type", at)) {
       const json::string* s = t->if_string();
       if (s == nullptr) {
-        error(at.key("type"), fmt::format("expected a string (point), got {}", kind_name(*t)));
+        error(at.key("type"), fmt::format("expected a string (point), got {}", json_kind_name(*t)));
       } else if (*s != "point") {
         error(at.key("type"), fmt::format("unknown light type \"{}\"; known types: point", std::string_view(*s)));
       }
