@@ -214,6 +214,38 @@ inline float prim_t(const float* data, ShapeType type, const detail::RayPre& r, 
   return type == ShapeType::kSphere ? detail::sphere_t(data, r, t_min) : detail::box_t(data, r, t_min);
 }
 
+// The one traversal loop, nearest child first. `cull_t` is read at every node, so a caller that
+// shrinks it from `leaf` prunes the rest of the walk; `leaf(prim)` returns true to end the walk.
+template <typename Nodes, typename Prims, typename Leaf>
+void walk(const Nodes& nodes, const Prims& prims, const detail::RayPre& r, float t_min, const float& cull_t,
+          Leaf&& leaf) {
+  constexpr std::uint32_t kStack = Geometry::kMaxDepth;
+  std::uint32_t stack[kStack];
+  std::uint32_t sp = 0;
+  std::uint32_t index = 0;
+  while (true) {
+    const auto& node = nodes[index];
+    if (detail::node_hit(node.bounds, r, t_min, cull_t)) {
+      if (node.count > 0) {
+        const auto* prim = prims.data() + node.offset;
+        for (std::uint32_t i = 0; i < node.count; ++i, ++prim) {
+          if (leaf(*prim)) return;
+        }
+      } else {
+        std::uint32_t first = index + 1;
+        std::uint32_t second = node.offset;
+        if (r.neg[node.axis]) std::swap(first, second);
+        assert(sp < kStack);
+        stack[sp++] = second;
+        index = first;
+        continue;
+      }
+    }
+    if (sp == 0) return;
+    index = stack[--sp];
+  }
+}
+
 }  // namespace
 
 bool Geometry::intersect(const Ray& ray, Hit& hit) const {
@@ -239,32 +271,10 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
     // Nodes are culled against best_t enlarged like a far slab distance: the sphere kernel runs in
     // double, and its float t may sit an ulp or two before the float entry distance of its box.
     float cull_t = best_t * detail::kFarScale;
-    std::uint32_t stack[kMaxDepth];
-    std::uint32_t sp = 0;
-    std::uint32_t index = 0;
-    while (true) {
-      const Node& node = nodes_[index];
-      if (detail::node_hit(node.bounds, r, ray.t_min, cull_t)) {
-        if (node.count > 0) {
-          const Prim* prim = prims_.data() + node.offset;
-          for (std::uint32_t i = 0; i < node.count; ++i, ++prim) {
-            if (consider(prim_t(prim->data, prim->type, r, ray.t_min), prim->id)) {
-              cull_t = best_t * detail::kFarScale;
-            }
-          }
-        } else {
-          std::uint32_t first = index + 1;
-          std::uint32_t second = node.offset;
-          if (r.neg[node.axis]) std::swap(first, second);
-          assert(sp < kMaxDepth);
-          stack[sp++] = second;
-          index = first;
-          continue;
-        }
-      }
-      if (sp == 0) break;
-      index = stack[--sp];
-    }
+    walk(nodes_, prims_, r, ray.t_min, cull_t, [&](const Prim& prim) {
+      if (consider(prim_t(prim.data, prim.type, r, ray.t_min), prim.id)) cull_t = best_t * detail::kFarScale;
+      return false;
+    });
   }
 
   if (!found) return false;
@@ -280,31 +290,12 @@ bool Geometry::occluded(const Ray& ray) const {
   }
   if (nodes_.empty()) return false;
   const float cull_t = ray.t_max * detail::kFarScale;
-  std::uint32_t stack[kMaxDepth];
-  std::uint32_t sp = 0;
-  std::uint32_t index = 0;
-  while (true) {
-    const Node& node = nodes_[index];
-    if (detail::node_hit(node.bounds, r, ray.t_min, cull_t)) {
-      if (node.count > 0) {
-        const Prim* prim = prims_.data() + node.offset;
-        for (std::uint32_t i = 0; i < node.count; ++i, ++prim) {
-          if (prim_t(prim->data, prim->type, r, ray.t_min) < ray.t_max) return true;
-        }
-      } else {
-        std::uint32_t first = index + 1;
-        std::uint32_t second = node.offset;
-        if (r.neg[node.axis]) std::swap(first, second);
-        assert(sp < kMaxDepth);
-        stack[sp++] = second;
-        index = first;
-        continue;
-      }
-    }
-    if (sp == 0) break;
-    index = stack[--sp];
-  }
-  return false;
+  bool hit = false;
+  walk(nodes_, prims_, r, ray.t_min, cull_t, [&](const Prim& prim) {
+    hit = prim_t(prim.data, prim.type, r, ray.t_min) < ray.t_max;
+    return hit;
+  });
+  return hit;
 }
 
 }  // namespace dtraced::accel
