@@ -52,7 +52,7 @@ int bin_of(float c, double lo, double scale) {
 
 }  // namespace
 
-Geometry Geometry::build(std::vector<Shape> shapes) {
+Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
   static_assert(sizeof(Node) == 32 && sizeof(Prim) == 32, "two nodes / prims per 64-byte cache line");
   const auto start = std::chrono::steady_clock::now();
   Geometry g;
@@ -184,7 +184,10 @@ Geometry Geometry::build(std::vector<Shape> shapes) {
     Prim p;
     p.id = ref.id;
     p.type = s.type;
-    if (s.type == ShapeType::kSphere) {
+    if (s.type == ShapeType::kTriangle) {
+      // The scalar path reads the vertices from shapes_ (9 floats do not fit a 32-byte prim).
+      for (float& x : p.data) x = 0.0f;
+    } else if (s.type == ShapeType::kSphere) {
       p.data[0] = s.sphere.center.x;
       p.data[1] = s.sphere.center.y;
       p.data[2] = s.sphere.center.z;
@@ -205,13 +208,33 @@ Geometry Geometry::build(std::vector<Shape> shapes) {
   g.stats_.leaves = leaves;
   g.stats_.max_depth = max_depth;
   g.stats_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  g.isa_ = isa;
+  if (isa != Isa::kScalar) {
+    const auto wide_start = std::chrono::steady_clock::now();
+    g.wide_ = detail::collapse_to_wide(g);
+    g.stats_.wide_nodes = std::uint32_t(g.wide_.nodes.size());
+    g.stats_.wide_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - wide_start).count();
+  }
   return g;
 }
 
 namespace {
 
-inline float prim_t(const float* data, ShapeType type, const detail::RayPre& r, float t_min) {
-  return type == ShapeType::kSphere ? detail::sphere_t(data, r, t_min) : detail::box_t(data, r, t_min);
+inline float triangle_prim_t(const TriangleShape& tr, const detail::RayPre& r, float t_min) {
+  const float v[9] = {tr.v0.x, tr.v0.y, tr.v0.z, tr.v1.x, tr.v1.y, tr.v1.z, tr.v2.x, tr.v2.y, tr.v2.z};
+  return detail::triangle_t(v, r, t_min);
+}
+
+inline float prim_t(const float* data, ShapeType type, const std::vector<Shape>& shapes, std::uint32_t id,
+                    const detail::RayPre& r, float t_min) {
+  switch (type) {
+    case ShapeType::kSphere:
+      return detail::sphere_t(data, r, t_min);
+    case ShapeType::kTriangle:
+      return triangle_prim_t(shapes[id].triangle, r, t_min);
+    default:
+      return detail::box_t(data, r, t_min);
+  }
 }
 
 // The one traversal loop, nearest child first. `cull_t` is read at every node, so a caller that
@@ -250,6 +273,15 @@ void walk(const Nodes& nodes, const Prims& prims, const detail::RayPre& r, float
 
 bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  if (isa_ != Isa::kScalar) {
+    float best_t = ray.t_max;
+    std::uint32_t best_id = 0;
+    const bool found = planes_hit(ray, best_t, best_id);
+    const bool tree = !wide_.empty() && wide_kernels().intersect1(wide_, ray, best_t, best_id);
+    if (!found && !tree) return false;
+    detail::finish_hit(shapes_[best_id], best_id, ray, detail::precompute(ray), best_t, hit);
+    return true;
+  }
   const detail::RayPre r = detail::precompute(ray);
 
   // Nearest so far; ties in t go to the smaller shape id, so the answer does not depend on the
@@ -272,7 +304,7 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
     // double, and its float t may sit an ulp or two before the float entry distance of its box.
     float cull_t = best_t * detail::kFarScale;
     walk(nodes_, prims_, r, ray.t_min, cull_t, [&](const Prim& prim) {
-      if (consider(prim_t(prim.data, prim.type, r, ray.t_min), prim.id)) cull_t = best_t * detail::kFarScale;
+      if (consider(prim_t(prim.data, prim.type, shapes_, prim.id, r, ray.t_min), prim.id)) cull_t = best_t * detail::kFarScale;
       return false;
     });
   }
@@ -284,6 +316,12 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
 
 bool Geometry::occluded(const Ray& ray) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  if (isa_ != Isa::kScalar) {
+    float best_t = ray.t_max;
+    std::uint32_t best_id = 0;
+    if (planes_hit(ray, best_t, best_id)) return true;
+    return !wide_.empty() && wide_kernels().occluded1(wide_, ray);
+  }
   const detail::RayPre r = detail::precompute(ray);
   for (const std::uint32_t id : planes_) {
     if (detail::plane_t(shapes_[id].plane, r, ray.t_min) < ray.t_max) return true;
@@ -292,10 +330,85 @@ bool Geometry::occluded(const Ray& ray) const {
   const float cull_t = ray.t_max * detail::kFarScale;
   bool hit = false;
   walk(nodes_, prims_, r, ray.t_min, cull_t, [&](const Prim& prim) {
-    hit = prim_t(prim.data, prim.type, r, ray.t_min) < ray.t_max;
+    hit = prim_t(prim.data, prim.type, shapes_, prim.id, r, ray.t_min) < ray.t_max;
     return hit;
   });
   return hit;
+}
+
+bool Geometry::planes_hit(const Ray& ray, float& best_t, std::uint32_t& best_id) const {
+  if (planes_.empty()) return false;
+  const detail::RayPre r = detail::precompute(ray);
+  bool found = false;
+  for (const std::uint32_t id : planes_) {
+    const float t = detail::plane_t(shapes_[id].plane, r, ray.t_min);
+    if (t < best_t || (found && t == best_t && id < best_id)) {
+      best_t = t;
+      best_id = id;
+      found = true;
+    }
+  }
+  return found;
+}
+
+const detail::Kernels& Geometry::wide_kernels() const { return detail::kernels_for(isa_); }
+
+namespace {
+bool ray_ok(const Ray& ray) { return ray.t_min < ray.t_max && math::is_finite(ray.o) && math::is_finite(ray.d); }
+}  // namespace
+
+std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const {
+  std::uint32_t live = 0;
+  for (int i = 0; i < kPacketSize; ++i) {
+    if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
+  }
+  if (live == 0) return 0;
+  if (isa_ == Isa::kScalar) {
+    std::uint32_t found = 0;
+    for (int i = 0; i < kPacketSize; ++i) {
+      if ((live >> i & 1u) && intersect(rays[i], hits[i])) found |= 1u << i;
+    }
+    return found;
+  }
+  float best_t[kPacketSize];
+  std::uint32_t best_id[kPacketSize];
+  std::uint32_t found = 0;
+  for (int i = 0; i < kPacketSize; ++i) {
+    best_t[i] = rays[i].t_max;
+    best_id[i] = 0;
+    if ((live >> i & 1u) && planes_hit(rays[i], best_t[i], best_id[i])) found |= 1u << i;
+  }
+  if (!wide_.empty()) found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
+  for (int i = 0; i < kPacketSize; ++i) {
+    if (found >> i & 1u) {
+      detail::finish_hit(shapes_[best_id[i]], best_id[i], rays[i], detail::precompute(rays[i]), best_t[i], hits[i]);
+    }
+  }
+  return found;
+}
+
+std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
+  std::uint32_t live = 0;
+  for (int i = 0; i < kPacketSize; ++i) {
+    if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
+  }
+  if (live == 0) return 0;
+  if (isa_ == Isa::kScalar) {
+    std::uint32_t blocked = 0;
+    for (int i = 0; i < kPacketSize; ++i) {
+      if ((live >> i & 1u) && occluded(rays[i])) blocked |= 1u << i;
+    }
+    return blocked;
+  }
+  std::uint32_t blocked = 0;
+  for (int i = 0; i < kPacketSize; ++i) {
+    float t = rays[i].t_max;
+    std::uint32_t id = 0;
+    if ((live >> i & 1u) && planes_hit(rays[i], t, id)) blocked |= 1u << i;
+  }
+  const std::uint32_t rest = live & ~blocked;
+  if (rest != 0 && !wide_.empty()) blocked |= wide_kernels().occluded8(wide_, rays, rest);
+  return blocked;
 }
 
 }  // namespace dtraced::accel

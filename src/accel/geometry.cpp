@@ -37,8 +37,20 @@ bool shape_is_valid(const Shape& shape) {
       const PlaneShape& p = shape.plane;
       return math::is_finite(p.point) && math::is_finite(p.normal) && !(p.normal == Vec3f{0, 0, 0});
     }
+    case ShapeType::kTriangle: {
+      const TriangleShape& t = shape.triangle;
+      if (!math::is_finite(t.v0) || !math::is_finite(t.v1) || !math::is_finite(t.v2)) return false;
+      // Zero area in double (collinear or repeated vertices): never hit, so no NaN normal.
+      const math::Vec3d n = triangle_normal_d(t);
+      return std::isfinite(n.x) && (n.x != 0.0 || n.y != 0.0 || n.z != 0.0);
+    }
   }
   return false;
+}
+
+math::Vec3d triangle_normal_d(const TriangleShape& t) {
+  const math::Vec3d a(t.v0), b(t.v1), c(t.v2);
+  return math::cross(b - a, c - a);
 }
 
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit) {
@@ -109,6 +121,25 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
       }
       return;
     }
+    case ShapeType::kTriangle: {
+      // pbrt-v4's triangle hit point: barycentric blend of the vertices, here with the
+      // barycentrics in double; the bound gamma(7) sum |b_i v_i| covers it with room to spare.
+      const TriangleShape& tri = shape.triangle;
+      const float vd[9] = {tri.v0.x, tri.v0.y, tri.v0.z, tri.v1.x, tri.v1.y, tri.v1.z, tri.v2.x, tri.v2.y, tri.v2.z};
+      TriangleUvw uvw{};
+      [[maybe_unused]] const float t_again = triangle_t(vd, r, ray.t_min, &uvw);
+      assert(t_again == t);
+      // u weighs a, v weighs b, w weighs c (each is the edge function opposite its vertex).
+      const double b0 = uvw.u / uvw.det, b1 = uvw.v / uvw.det, b2 = uvw.w / uvw.det;
+      for (int i = 0; i < 3; ++i) {
+        const double x0 = b0 * tri.v0[i], x1 = b1 * tri.v1[i], x2 = b2 * tri.v2[i];
+        hit.p[i] = float(x0 + x1 + x2);
+        hit.p_error[i] = gamma(7) * float(std::abs(x0) + std::abs(x1) + std::abs(x2));
+      }
+      const math::Vec3d n = math::normalize(triangle_normal_d(tri));
+      hit.n = Vec3f(n);
+      return;
+    }
     case ShapeType::kPlane: {
       // p = o + t d in float. What matters for offsetting is the distance of p from the plane
       // along n. With v = point - o, num = dot(v, n) and dn = dot(d, n) each carry gamma(4) and
@@ -155,6 +186,12 @@ bool intersect_shape(const Shape& shape, std::uint32_t id, const Ray& ray, Hit& 
     case ShapeType::kPlane:
       t = detail::plane_t(shape.plane, r, ray.t_min);
       break;
+    case ShapeType::kTriangle: {
+      const TriangleShape& tr = shape.triangle;
+      const float v[9] = {tr.v0.x, tr.v0.y, tr.v0.z, tr.v1.x, tr.v1.y, tr.v1.z, tr.v2.x, tr.v2.y, tr.v2.z};
+      t = detail::triangle_t(v, r, ray.t_min);
+      break;
+    }
   }
   if (!(t < ray.t_max)) return false;
   detail::finish_hit(shape, id, ray, r, t, hit);
@@ -182,6 +219,12 @@ Bounds3f shape_bounds(const Shape& shape) {
       b.lo = shape.box.lo;
       b.hi = shape.box.hi;
       return b;
+    case ShapeType::kTriangle: {
+      const TriangleShape& t = shape.triangle;
+      b.lo = math::min(math::min(t.v0, t.v1), t.v2);
+      b.hi = math::max(math::max(t.v0, t.v1), t.v2);
+      return b;
+    }
     case ShapeType::kPlane:
       b.lo = Vec3f{-detail::kInf, -detail::kInf, -detail::kInf};
       b.hi = Vec3f{detail::kInf, detail::kInf, detail::kInf};

@@ -1,9 +1,16 @@
 // dtraced::accel geometry: float shapes, robust ray/shape intersection, and the acceleration
 // structure over them.
 //
-// Owns: render-ready shapes (spheres, axis-aligned boxes, infinite planes), a binned-SAH BVH over
-// the bounded ones (planes stay outside the tree), nearest-hit queries with conservative
+// Owns: render-ready shapes (spheres, axis-aligned boxes, triangles, infinite planes), a binned-SAH
+// BVH over the bounded ones (planes stay outside the tree), nearest-hit queries with conservative
 // hit-point error bounds, and the pbrt-v4 style origin offset for secondary rays.
+//
+// Two traversal paths answer every query with the same bits (see accel/isa.h):
+// - Isa::kScalar, the reference: one ray at a time through the binary BVH, scalar kernels.
+// - a SIMD instruction set (SSE4, AVX2, AVX-512, picked at run time through Google Highway): the
+//   binary BVH collapsed to a 4-wide one; single rays test 4 child boxes at once, 8-ray packets
+//   (intersect8 / occluded8) test one box against 8 rays at once. The leaf kernels do the very
+//   same IEEE operations as the scalar ones (no FMA), so hit/miss, t and shape agree bit for bit.
 // Thread-safety: a built Geometry is immutable; any number of threads may query it at once.
 //
 // Robustness contract (see /work/shared/notes/accuracy.md 1.2-1.5, 1.10):
@@ -21,6 +28,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "accel/isa.h"
+#include "accel/wide_bvh.h"
 #include "math/ray.h"
 #include "math/vec.h"
 
@@ -37,19 +46,26 @@ struct SphereShape {
 struct BoxShape {
   Vec3f lo, hi;
 };
+struct TriangleShape {
+  Vec3f v0, v1, v2;  // the normal is cross(v1 - v0, v2 - v0), normalised
+};
 struct PlaneShape {
   Vec3f point;
   Vec3f normal{0, 1, 0};  // unit length
 };
 
-enum class ShapeType : std::uint8_t { kSphere, kBox, kPlane };
+enum class ShapeType : std::uint8_t { kSphere, kBox, kPlane, kTriangle };
 
 struct Shape {
   ShapeType type = ShapeType::kSphere;
   SphereShape sphere;
   BoxShape box;
   PlaneShape plane;
+  TriangleShape triangle;
 };
+
+// Rays traced together by intersect8 / occluded8.
+inline constexpr int kPacketSize = 8;
 
 // The nearest surface a ray meets.
 struct Hit {
@@ -64,7 +80,9 @@ struct BuildStats {
   std::uint32_t nodes = 0;
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;  // depth of the deepest node; the root has depth 0
-  double seconds = 0.0;
+  double seconds = 0.0;         // binary BVH build
+  std::uint32_t wide_nodes = 0;  // 4-wide nodes after collapsing (SIMD isa only)
+  double wide_seconds = 0.0;     // collapsing and packing the leaves (SIMD isa only)
 };
 
 class Geometry {
@@ -73,8 +91,10 @@ class Geometry {
   // size. Traversal uses a fixed stack of kMaxDepth entries.
   static constexpr std::uint32_t kMaxDepth = 64;
 
-  // Builds the BVH (binned SAH) over spheres and boxes; planes are kept in a separate list.
-  static Geometry build(std::vector<Shape> shapes);
+  // Builds the BVH (binned SAH) over the bounded shapes; planes are kept in a separate list. With
+  // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 4-wide
+  // layout that isa's kernels walk.
+  static Geometry build(std::vector<Shape> shapes, Isa isa = best_isa());
 
   // Nearest hit with t in the open interval (ray.t_min, ray.t_max). Returns false on a miss.
   bool intersect(const Ray& ray, Hit& hit) const;
@@ -82,8 +102,17 @@ class Geometry {
   // True if any shape is hit with t in (ray.t_min, ray.t_max) (shadow rays); stops at the first.
   bool occluded(const Ray& ray) const;
 
+  // Packets of kPacketSize rays: lane i is traced when bit i of `valid` is set. intersect8 fills
+  // hits[i] for each lane that hits and returns the mask of those lanes; occluded8 returns the
+  // mask of valid lanes that are occluded. Each lane's answer is exactly intersect / occluded of
+  // that ray alone. Coherent rays (camera rays of a pixel block, shadow rays towards one point)
+  // are what packets are for; incoherent rays are faster one at a time.
+  std::uint32_t intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const;
+  std::uint32_t occluded8(const Ray* rays, std::uint32_t valid) const;
+
   const std::vector<Shape>& shapes() const { return shapes_; }
   const BuildStats& stats() const { return stats_; }
+  Isa isa() const { return isa_; }
 
  private:
   // One BVH node, 32 bytes. Nodes are stored depth first: an interior node's first child is the
@@ -101,11 +130,19 @@ class Geometry {
     ShapeType type = ShapeType::kSphere;
   };
 
+  friend detail::WideBvh detail::collapse_to_wide(const Geometry& g);
+
+  // Nearest plane hit below best_t (ties to the smaller id); updates best_t / best_id.
+  bool planes_hit(const Ray& ray, float& best_t, std::uint32_t& best_id) const;
+  const detail::Kernels& wide_kernels() const;
+
   std::vector<Shape> shapes_;
   std::vector<Prim> prims_;            // bounded shapes in BVH leaf order
   std::vector<std::uint32_t> planes_;  // shape ids of infinite planes
   std::vector<Node> nodes_;
   BuildStats stats_;
+  Isa isa_ = Isa::kScalar;
+  detail::WideBvh wide_;  // empty for Isa::kScalar
 };
 
 // Nearest hit of one shape with t in (ray.t_min, ray.t_max); fills every field of `hit` (with

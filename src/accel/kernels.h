@@ -34,7 +34,23 @@ struct RayPre {
   std::uint32_t near_idx[3];
   std::uint32_t far_idx[3];
   std::uint32_t neg[3];  // 1 where the direction's sign bit is set
+  // Watertight triangle test (Woop, Benthin, Wald 2013): kz is the axis of the direction's
+  // largest magnitude, kx and ky the other two (swapped when d[kz] < 0 to keep the winding), and
+  // the shear that maps the ray onto +z: x' = x - sx z, y' = y - sy z, z' = sz z.
+  std::uint32_t kx, ky, kz;
+  float sx, sy, sz;
 };
+
+inline void set_shear(RayPre& r) {
+  const float ax = std::abs(r.d[0]), ay = std::abs(r.d[1]), az = std::abs(r.d[2]);
+  r.kz = ax > ay ? (ax > az ? 0u : 2u) : (ay > az ? 1u : 2u);
+  r.kx = r.kz == 2 ? 0u : r.kz + 1;
+  r.ky = r.kx == 2 ? 0u : r.kx + 1;
+  if (r.d[r.kz] < 0.0f) std::swap(r.kx, r.ky);
+  r.sx = r.d[r.kx] / r.d[r.kz];
+  r.sy = r.d[r.ky] / r.d[r.kz];
+  r.sz = 1.0f / r.d[r.kz];
+}
 
 inline RayPre precompute(const Ray& ray) {
   RayPre r;
@@ -46,6 +62,7 @@ inline RayPre precompute(const Ray& ray) {
     r.near_idx[i] = r.neg[i] ? 3 + i : i;
     r.far_idx[i] = r.neg[i] ? i : 3 + i;
   }
+  set_shear(r);
   return r;
 }
 
@@ -177,10 +194,61 @@ inline float plane_t(const PlaneShape& pl, const RayPre& r, float t_min) {
   return t;
 }
 
+// Watertight ray/triangle test for vertices v = [a.xyz, b.xyz, c.xyz]. Every operation is a
+// single IEEE float operation in a fixed order (the SIMD kernels repeat exactly this sequence),
+// and the edge functions fall back to double when one is exactly zero, as the paper prescribes,
+// so a ray through a shared edge or vertex hits at least one of the triangles sharing it.
+struct TriangleUvw {
+  double u, v, w, det;  // edge functions and their sum (all of one sign on a hit)
+};
+
+// The rest of the test when a float edge function came out exactly zero: the products of floats
+// are exact in double, so the signs of the edge functions are then right and a ray through a
+// shared edge or vertex is not lost. Rare; the SIMD kernels call this same function for such lanes.
+inline float triangle_t_double(float sax, float say, float sbx, float sby, float scx, float scy, float az, float bz,
+                               float cz, const RayPre& r, float t_min, TriangleUvw* uvw) {
+  const double u = double(scx) * double(sby) - double(scy) * double(sbx);
+  const double v = double(sax) * double(scy) - double(say) * double(scx);
+  const double w = double(sbx) * double(say) - double(sby) * double(sax);
+  if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) return kNaN;
+  const double det = u + v + w;
+  if (!(det != 0.0)) return kNaN;
+  const double tt = u * (double(r.sz) * az) + v * (double(r.sz) * bz) + w * (double(r.sz) * cz);
+  const float t = float(tt / det);
+  if (!(t > t_min && t < kInf)) return kNaN;
+  if (uvw) *uvw = {u, v, w, det};
+  return t;
+}
+
+inline float triangle_t(const float* v, const RayPre& r, float t_min, TriangleUvw* uvw = nullptr) {
+  const float ax = v[r.kx] - r.o[r.kx], ay = v[r.ky] - r.o[r.ky], az = v[r.kz] - r.o[r.kz];
+  const float bx = v[3 + r.kx] - r.o[r.kx], by = v[3 + r.ky] - r.o[r.ky], bz = v[3 + r.kz] - r.o[r.kz];
+  const float cx = v[6 + r.kx] - r.o[r.kx], cy = v[6 + r.ky] - r.o[r.ky], cz = v[6 + r.kz] - r.o[r.kz];
+  const float sax = ax - r.sx * az, say = ay - r.sy * az;
+  const float sbx = bx - r.sx * bz, sby = by - r.sy * bz;
+  const float scx = cx - r.sx * cz, scy = cy - r.sy * cz;
+  float u = scx * sby - scy * sbx;
+  float vv = sax * scy - say * scx;
+  float w = sbx * say - sby * sax;
+  if (u == 0.0f || vv == 0.0f || w == 0.0f) return triangle_t_double(sax, say, sbx, sby, scx, scy, az, bz, cz, r, t_min, uvw);
+  if ((u < 0.0f || vv < 0.0f || w < 0.0f) && (u > 0.0f || vv > 0.0f || w > 0.0f)) return kNaN;
+  const float det = u + vv + w;
+  if (!(det != 0.0f)) return kNaN;  // edge-on, degenerate, or NaN
+  const float saz = r.sz * az, sbz = r.sz * bz, scz = r.sz * cz;
+  const float tt = u * saz + vv * sbz + w * scz;
+  const float t = tt / det;
+  if (!(t > t_min && t < kInf)) return kNaN;
+  if (uvw) *uvw = {u, vv, w, det};
+  return t;
+}
+
 // Full hit record (p, n, p_error) for a shape already known to be hit at t; computed once per
 // query, for the final nearest hit only. Defined in geometry.cpp.
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit);
 
 bool shape_is_valid(const Shape& shape);
+
+// cross(v1 - v0, v2 - v0) in double (exact inputs, one rounding per product and difference).
+math::Vec3d triangle_normal_d(const TriangleShape& t);
 
 }  // namespace dtraced::accel::detail

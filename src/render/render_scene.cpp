@@ -56,7 +56,7 @@ math::Ray CameraF::generate(double fx, double fy, std::uint32_t width, std::uint
   return ray;
 }
 
-RenderScene RenderScene::build(const scene::SceneDesc& desc) {
+RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
   RenderScene rs;
   std::vector<accel::Shape> shapes;
   shapes.reserve(desc.objects.size());
@@ -66,7 +66,7 @@ RenderScene RenderScene::build(const scene::SceneDesc& desc) {
     rs.materials_.push_back(to_material(o.material));
     rs.has_transparency_ = rs.has_transparency_ || o.material.transparency > 0.0;
   }
-  rs.geometry_ = accel::Geometry::build(std::move(shapes));
+  rs.geometry_ = accel::Geometry::build(std::move(shapes), isa);
   for (const scene::PointLight& l : desc.lights) {
     rs.lights_.push_back({to_f(l.position), to_f(l.color * l.intensity)});
   }

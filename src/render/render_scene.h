@@ -45,7 +45,8 @@ struct CameraF {
 class RenderScene {
  public:
   // The description must have passed validation (scene::load_*); build asserts its invariants.
-  static RenderScene build(const scene::SceneDesc& desc);
+  // `isa` picks the traversal kernels (accel/isa.h); every choice renders the same bits.
+  static RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa());
 
   const accel::Geometry& geometry() const { return geometry_; }
   const MaterialF& material(std::uint32_t shape) const { return materials_[shape]; }

@@ -1,0 +1,161 @@
+// dtraced::accel: collapsing the binary BVH into the 4-wide SoA tree of wide_bvh.h.
+//
+// Each wide node takes a binary node's two children and keeps opening the interior child with
+// the largest surface area until it has four (Wald et al., "Getting rid of packets", 2008; the
+// usual collapse of Embree and tinybvh). The binary tree's SAH decisions are kept; only the
+// layout changes, so both trees hold exactly the same prims in their leaves.
+#include <algorithm>
+#include <cassert>
+#include <cmath>
+#include <limits>
+
+#include "accel/geometry.h"
+#include "accel/kernels.h"
+
+namespace dtraced::accel::detail {
+
+namespace {
+
+constexpr float kNaNf = std::numeric_limits<float>::quiet_NaN();
+
+double node_area(const float* b) {
+  const double ex = double(b[3]) - b[0], ey = double(b[4]) - b[1], ez = double(b[5]) - b[2];
+  return 2.0 * (ex * ey + ey * ez + ez * ex);
+}
+
+SphereBlock empty_sphere_block() {
+  SphereBlock b;
+  for (int i = 0; i < kWidth; ++i) {
+    b.cx[i] = b.cy[i] = b.cz[i] = b.r[i] = kNaNf;
+    b.id[i] = kEmptyChild;
+  }
+  return b;
+}
+
+TriangleBlock empty_triangle_block() {
+  TriangleBlock b;
+  for (auto& vertex : b.v)
+    for (auto& axis : vertex)
+      for (float& x : axis) x = kNaNf;
+  for (std::uint32_t& id : b.id) id = kEmptyChild;
+  return b;
+}
+
+}  // namespace
+
+WideBvh collapse_to_wide(const Geometry& g) {
+  WideBvh w;
+  const auto& nodes = g.nodes_;
+  if (nodes.empty()) return w;
+  w.nodes.reserve(nodes.size() / 2 + 1);
+
+  auto make_leaf = [&](std::uint32_t bin_index) {
+    const auto& node = nodes[bin_index];
+    WideLeaf leaf;
+    leaf.sphere_begin = std::uint32_t(w.spheres.size());
+    leaf.triangle_begin = std::uint32_t(w.triangles.size());
+    leaf.box_begin = std::uint32_t(w.boxes.size());
+    int ns = 0, nt = 0;
+    for (std::uint32_t k = 0; k < node.count; ++k) {
+      const auto& prim = g.prims_[node.offset + k];
+      const Shape& shape = g.shapes_[prim.id];
+      switch (prim.type) {
+        case ShapeType::kSphere: {
+          if (ns % kWidth == 0) w.spheres.push_back(empty_sphere_block());
+          SphereBlock& b = w.spheres.back();
+          const int lane = ns++ % kWidth;
+          b.cx[lane] = shape.sphere.center.x;
+          b.cy[lane] = shape.sphere.center.y;
+          b.cz[lane] = shape.sphere.center.z;
+          b.r[lane] = shape.sphere.radius;
+          b.id[lane] = prim.id;
+          break;
+        }
+        case ShapeType::kTriangle: {
+          if (nt % kWidth == 0) w.triangles.push_back(empty_triangle_block());
+          TriangleBlock& b = w.triangles.back();
+          const int lane = nt++ % kWidth;
+          const Vec3f* v[3] = {&shape.triangle.v0, &shape.triangle.v1, &shape.triangle.v2};
+          for (int vert = 0; vert < 3; ++vert)
+            for (int axis = 0; axis < 3; ++axis) b.v[vert][axis][lane] = (*v[vert])[axis];
+          b.id[lane] = prim.id;
+          break;
+        }
+        default: {
+          BoxPrim bp;
+          std::copy(prim.data, prim.data + 6, bp.b);
+          bp.id = prim.id;
+          w.boxes.push_back(bp);
+          ++leaf.box_count;
+          break;
+        }
+      }
+    }
+    leaf.sphere_blocks = std::uint16_t((ns + kWidth - 1) / kWidth);
+    leaf.triangle_blocks = std::uint16_t((nt + kWidth - 1) / kWidth);
+    w.leaves.push_back(leaf);
+    return kLeafBit | std::uint32_t(w.leaves.size() - 1);
+  };
+
+  auto children_of = [&](std::uint32_t bin_index) {
+    return std::pair<std::uint32_t, std::uint32_t>{bin_index + 1, nodes[bin_index].offset};
+  };
+
+  // Recursion depth is bounded by the binary tree's depth (Geometry::kMaxDepth).
+  auto build_node = [&](auto&& self, std::uint32_t bin_index) -> std::uint32_t {
+    const std::uint32_t index = std::uint32_t(w.nodes.size());
+    w.nodes.emplace_back();
+    std::uint32_t slots[kWidth];
+    int n = 0;
+    if (nodes[bin_index].count > 0) {
+      slots[n++] = bin_index;  // a leaf root: one child
+    } else {
+      auto [a, b] = children_of(bin_index);
+      slots[n++] = a;
+      slots[n++] = b;
+      while (n < kWidth) {
+        int open = -1;
+        double best = -1.0;
+        for (int i = 0; i < n; ++i) {
+          if (nodes[slots[i]].count > 0) continue;
+          const double area = node_area(nodes[slots[i]].bounds);
+          if (area > best) {
+            best = area;
+            open = i;
+          }
+        }
+        if (open < 0) break;
+        auto [c0, c1] = children_of(slots[open]);
+        slots[open] = c0;
+        slots[n++] = c1;
+      }
+    }
+    std::uint32_t child[kWidth];
+    for (int i = 0; i < kWidth; ++i) {
+      if (i < n) {
+        child[i] = nodes[slots[i]].count > 0 ? make_leaf(slots[i]) : self(self, slots[i]);
+      } else {
+        child[i] = kEmptyChild;
+      }
+    }
+    WideNode& wn = w.nodes[index];  // re-fetched: recursion may have grown the vector
+    for (int i = 0; i < kWidth; ++i) {
+      wn.child[i] = child[i];
+      for (int axis = 0; axis < 3; ++axis) {
+        if (i < n) {
+          wn.lo[axis][i] = nodes[slots[i]].bounds[axis];
+          wn.hi[axis][i] = nodes[slots[i]].bounds[3 + axis];
+        } else {
+          wn.lo[axis][i] = std::numeric_limits<float>::infinity();
+          wn.hi[axis][i] = -std::numeric_limits<float>::infinity();
+        }
+      }
+    }
+    for (std::uint32_t& p : wn.pad) p = 0;
+    return index;
+  };
+  build_node(build_node, 0);
+  return w;
+}
+
+}  // namespace dtraced::accel::detail

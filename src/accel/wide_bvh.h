@@ -1,0 +1,92 @@
+// dtraced::accel internal: the 4-wide BVH the SIMD kernels walk, in structure-of-arrays form.
+// Not part of the public API (Geometry owns one); shared between the collapse (wide_build.cpp)
+// and the per-instruction-set kernels (simd_kernels.cpp, compiled once per Highway target).
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "accel/isa.h"
+#include "math/ray.h"
+
+namespace dtraced::accel {
+struct Hit;
+class Geometry;
+}  // namespace dtraced::accel
+
+namespace dtraced::accel::detail {
+
+inline constexpr int kWidth = 4;        // children per node, prims per leaf block
+inline constexpr std::uint32_t kEmptyChild = 0xffffffffu;
+inline constexpr std::uint32_t kLeafBit = 0x80000000u;  // child refers to leaves[child & ~kLeafBit]
+
+// One node, two cache lines. Per axis a, lo[a][i] / hi[a][i] bound child i; an empty slot has
+// lo = +inf, hi = -inf and child = kEmptyChild. Children are in the binary tree's depth-first
+// order, so a slot's index says nothing about distance: traversal sorts by entry distance.
+struct alignas(64) WideNode {
+  float lo[3][kWidth];
+  float hi[3][kWidth];
+  std::uint32_t child[kWidth];
+  std::uint32_t pad[4];
+};
+static_assert(sizeof(WideNode) == 128);
+
+// A leaf: the prims of one binary-tree leaf (normally at most kWidth), split by type. Spheres and
+// triangles sit in kWidth-lane SoA blocks (unused lanes hold NaN and never hit); boxes are few and
+// tested one by one.
+struct WideLeaf {
+  std::uint32_t sphere_begin = 0;  // blocks [sphere_begin, sphere_begin + sphere_blocks) of WideBvh::spheres
+  std::uint32_t triangle_begin = 0;
+  std::uint32_t box_begin = 0;  // boxes [box_begin, box_begin + box_count) of WideBvh::boxes
+  std::uint16_t sphere_blocks = 0;
+  std::uint16_t triangle_blocks = 0;
+  std::uint32_t box_count = 0;
+};
+
+struct alignas(64) SphereBlock {
+  float cx[kWidth], cy[kWidth], cz[kWidth], r[kWidth];
+  std::uint32_t id[kWidth];
+};
+
+// Triangle vertices a, b, c as given (the watertight test needs the vertices themselves, relative
+// to the ray origin, not precomputed edges).
+struct alignas(64) TriangleBlock {
+  float v[3][3][kWidth];  // v[vertex][axis][lane]
+  std::uint32_t id[kWidth];
+};
+
+struct BoxPrim {
+  float b[6];  // lo x, y, z, hi x, y, z
+  std::uint32_t id = 0;
+};
+
+struct WideBvh {
+  std::vector<WideNode> nodes;  // nodes[0] is the root (when not empty)
+  std::vector<WideLeaf> leaves;
+  std::vector<SphereBlock> spheres;
+  std::vector<TriangleBlock> triangles;
+  std::vector<BoxPrim> boxes;
+  bool empty() const { return nodes.empty(); }
+};
+
+// What one instruction set provides. The planes and the final hit record are handled by Geometry
+// around these calls; `best_t`/`best_id` carry in the planes' result and come back as the nearest
+// hit over planes and tree (ties to the smaller id).
+struct Kernels {
+  // Single ray: updates best_t / best_id; returns true if the tree held a nearer hit.
+  bool (*intersect1)(const WideBvh& bvh, const math::Ray& ray, float& best_t, std::uint32_t& best_id);
+  bool (*occluded1)(const WideBvh& bvh, const math::Ray& ray);
+  // Packet of 8: lanes with bit set in `valid`; per lane best_t / best_id as above. Returns the
+  // mask of lanes whose best came from the tree.
+  std::uint32_t (*intersect8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
+                              std::uint32_t* best_id);
+  std::uint32_t (*occluded8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid);
+};
+
+// The kernels compiled for `isa` (a SIMD isa that supported_isas() lists).
+const Kernels& kernels_for(Isa isa);
+
+// The 4-wide tree of a built Geometry (collapsed from its binary BVH).
+WideBvh collapse_to_wide(const Geometry& g);
+
+}  // namespace dtraced::accel::detail
