@@ -32,8 +32,6 @@ std::vector<Isa> supported_isas() {
   // hwy::SupportedTargets() checks CPUID and the OS's saved register state (XCR0), and is
   // limited to the targets this binary was compiled for.
   const std::int64_t targets = hwy::SupportedTargets();
-  (void)targets;
-  return out;  // SIMD kernels not yet wired
   if (targets & HWY_SSE4) out.push_back(Isa::kSse4);
   if (targets & HWY_AVX2) out.push_back(Isa::kAvx2);
   if (targets & HWY_AVX3) out.push_back(Isa::kAvx512);

@@ -1,6 +1,721 @@
-// placeholder, replaced by the Highway kernels
-#include "accel/geometry.h"
+// dtraced::accel SIMD traversal kernels, compiled once per instruction set by Google Highway.
+//
+// This file includes itself once per target (foreach_target.h); everything between
+// HWY_BEFORE_NAMESPACE and HWY_AFTER_NAMESPACE is compiled for SSE4, AVX2 and AVX-512 (and
+// Highway's one-lane fallback), each in its own namespace, and kernels_for() at the end picks one
+// by the Isa value Geometry was built with. Nothing here is global state: the tables are constant.
+//
+// Exactness: every leaf test repeats the scalar kernel of kernels.h operation for operation (the
+// sphere in double, the triangle in float; separate Mul/Add/Sub/Div, never MulAdd, and the build
+// passes -ffp-contract=off), so a lane's t has the same bits as the scalar path's, and the nearest
+// hit is chosen by the same rule: smaller t, ties to the smaller shape id. Node tests only decide
+// what is visited; they are the scalar node_hit arithmetic too, and conservative, so they cannot
+// change an answer.
+//
+// Layouts: single rays test the 4 child boxes of a node in one 4-lane float vector and a leaf's
+// 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 rays in SoA arrays and test
+// one box, sphere or triangle against all 8 (one AVX2/AVX-512 vector, two SSE4 vectors), with a
+// per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
+// active at a node, those lanes finish that subtree as single rays.
+#undef HWY_TARGET_INCLUDE
+#define HWY_TARGET_INCLUDE "simd_kernels.cpp"
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>
+
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <cstdint>
 #include <cstdlib>
+#include <limits>
+
+#include "accel/geometry.h"
+#include "accel/kernels.h"
+#include "accel/wide_bvh.h"
+
+HWY_BEFORE_NAMESPACE();
 namespace dtraced::accel::detail {
-const Kernels& kernels_for(Isa) { std::abort(); }
+namespace HWY_NAMESPACE {
+namespace hn = hwy::HWY_NAMESPACE;
+
+constexpr int kStackSize = 3 * Geometry::kMaxDepth + 4;
+constexpr int kSwitch = 2;  // lanes at or below which a packet continues as single rays
+constexpr float kInfF = std::numeric_limits<float>::infinity();
+
+// ---------------------------------------------------------------------------------------------
+// Single ray.
+
+struct Single {
+  RayPre r;
+  float t_min;
+  double a;  // |d|^2 in double, as sphere_roots computes it
+};
+
+inline Single make_single(const math::Ray& ray) {
+  Single s;
+  s.r = precompute(ray);
+  s.t_min = ray.t_min;
+  const double dx = s.r.d[0], dy = s.r.d[1], dz = s.r.d[2];
+  s.a = dx * dx + dy * dy + dz * dz;
+  return s;
 }
+
+// Entry distances of the ray into the node's 4 child boxes (lanes whose bit is set in the
+// result pass node_hit against `cull`).
+inline std::uint32_t node_test1(const WideNode& node, const Single& s, float cull, float* t_near) {
+  const hn::CappedTag<float, kWidth> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t bits = 0;
+  for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
+    auto t0 = hn::Set(d, s.t_min);
+    auto tf = hn::Set(d, kInfF);
+    for (int a = 0; a < 3; ++a) {
+      const float* nb = s.r.neg[a] ? node.hi[a] : node.lo[a];
+      const float* fb = s.r.neg[a] ? node.lo[a] : node.hi[a];
+      const auto o = hn::Set(d, s.r.o[a]);
+      const auto inv = hn::Set(d, s.r.inv_d[a]);
+      const auto tn = hn::Mul(hn::Sub(hn::LoadU(d, nb + i), o), inv);
+      const auto tfa = hn::Mul(hn::Sub(hn::LoadU(d, fb + i), o), inv);
+      t0 = hn::IfThenElse(hn::Gt(tn, t0), tn, t0);
+      tf = hn::IfThenElse(hn::Lt(tfa, tf), tfa, tf);
+    }
+    tf = hn::Mul(tf, hn::Set(d, kFarScale));
+    const auto c = hn::Set(d, cull);
+    const auto lim = hn::IfThenElse(hn::Lt(tf, c), tf, c);
+    hn::StoreU(t0, d, t_near + i);
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, hn::Le(t0, lim), mb);
+    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+  }
+  return bits;
+}
+
+// Sphere roots of one ray against a block of 4 spheres, in double exactly as sphere_roots and
+// sphere_t; t[i] gets the chosen float root or NaN.
+inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
+  const hn::CappedTag<double, kWidth> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const std::size_t n = hn::Lanes(dd);
+  const auto ox = hn::Set(dd, double(s.r.o[0])), oy = hn::Set(dd, double(s.r.o[1])),
+             oz = hn::Set(dd, double(s.r.o[2]));
+  const auto dx = hn::Set(dd, double(s.r.d[0])), dy = hn::Set(dd, double(s.r.d[1])),
+             dz = hn::Set(dd, double(s.r.d[2]));
+  const auto a = hn::Set(dd, s.a);
+  const auto zero = hn::Zero(dd);
+  const auto nan = hn::Set(dd, std::numeric_limits<double>::quiet_NaN());
+  const auto tmin = hn::Set(df, s.t_min);
+  const auto inf = hn::Set(df, kInfF);
+  const auto nanf = hn::Set(df, std::numeric_limits<float>::quiet_NaN());
+  for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
+    const auto fx = hn::Sub(ox, hn::PromoteTo(dd, hn::LoadU(df, b.cx + i)));
+    const auto fy = hn::Sub(oy, hn::PromoteTo(dd, hn::LoadU(df, b.cy + i)));
+    const auto fz = hn::Sub(oz, hn::PromoteTo(dd, hn::LoadU(df, b.cz + i)));
+    const auto rad = hn::PromoteTo(dd, hn::LoadU(df, b.r + i));
+    const auto rr = hn::Mul(rad, rad);
+    const auto cx = hn::Sub(hn::Mul(fy, dz), hn::Mul(fz, dy));
+    const auto cy = hn::Sub(hn::Mul(fz, dx), hn::Mul(fx, dz));
+    const auto cz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
+    const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(cx, cx), hn::Mul(cy, cy)), hn::Mul(cz, cz)));
+    const auto ok = hn::Ge(disc, zero);
+    const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
+    const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
+    const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
+    const auto r0 = hn::Div(c, q);
+    const auto r1 = hn::Div(q, a);
+    const auto swap = hn::Gt(r0, r1);
+    const auto lo = hn::IfThenElse(ok, hn::IfThenElse(swap, r1, r0), nan);
+    const auto hi = hn::IfThenElse(ok, hn::IfThenElse(swap, r0, r1), nan);
+    const auto t0 = hn::DemoteTo(df, lo);
+    const auto t1 = hn::DemoteTo(df, hi);
+    const auto use0 = hn::And(hn::Gt(t0, tmin), hn::Lt(t0, inf));
+    const auto use1 = hn::And(hn::Gt(t1, tmin), hn::Lt(t1, inf));
+    hn::StoreU(hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf)), df, t + i);
+  }
+}
+
+// Watertight test of one ray against a block of 4 triangles, exactly as triangle_t; lanes whose
+// float edge function is zero are redone by the scalar triangle_t_double.
+inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
+  const hn::CappedTag<float, kWidth> d;
+  const std::size_t n = hn::Lanes(d);
+  const RayPre& r = s.r;
+  const auto ox = hn::Set(d, r.o[r.kx]), oy = hn::Set(d, r.o[r.ky]), oz = hn::Set(d, r.o[r.kz]);
+  const auto sx = hn::Set(d, r.sx), sy = hn::Set(d, r.sy), sz = hn::Set(d, r.sz);
+  const auto zero = hn::Zero(d);
+  const auto tmin = hn::Set(d, s.t_min);
+  const auto inf = hn::Set(d, kInfF);
+  const auto nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
+    const auto ax = hn::Sub(hn::LoadU(d, b.v[0][r.kx] + i), ox), ay = hn::Sub(hn::LoadU(d, b.v[0][r.ky] + i), oy),
+               az = hn::Sub(hn::LoadU(d, b.v[0][r.kz] + i), oz);
+    const auto bx = hn::Sub(hn::LoadU(d, b.v[1][r.kx] + i), ox), by = hn::Sub(hn::LoadU(d, b.v[1][r.ky] + i), oy),
+               bz = hn::Sub(hn::LoadU(d, b.v[1][r.kz] + i), oz);
+    const auto cx = hn::Sub(hn::LoadU(d, b.v[2][r.kx] + i), ox), cy = hn::Sub(hn::LoadU(d, b.v[2][r.ky] + i), oy),
+               cz = hn::Sub(hn::LoadU(d, b.v[2][r.kz] + i), oz);
+    const auto sax = hn::Sub(ax, hn::Mul(sx, az)), say = hn::Sub(ay, hn::Mul(sy, az));
+    const auto sbx = hn::Sub(bx, hn::Mul(sx, bz)), sby = hn::Sub(by, hn::Mul(sy, bz));
+    const auto scx = hn::Sub(cx, hn::Mul(sx, cz)), scy = hn::Sub(cy, hn::Mul(sy, cz));
+    const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
+    const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
+    const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
+    const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
+    const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
+    const auto det = hn::Add(hn::Add(u, v), w);
+    const auto tt = hn::Add(hn::Add(hn::Mul(u, hn::Mul(sz, az)), hn::Mul(v, hn::Mul(sz, bz))), hn::Mul(w, hn::Mul(sz, cz)));
+    const auto tv = hn::Div(tt, det);
+    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::Ne(det, zero), hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
+    hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
+    const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
+    if (!hn::AllFalse(d, zero_edge)) {
+      alignas(64) float l[6][kWidth], lz[3][kWidth];
+      hn::StoreU(sax, d, l[0]);
+      hn::StoreU(say, d, l[1]);
+      hn::StoreU(sbx, d, l[2]);
+      hn::StoreU(sby, d, l[3]);
+      hn::StoreU(scx, d, l[4]);
+      hn::StoreU(scy, d, l[5]);
+      hn::StoreU(az, d, lz[0]);
+      hn::StoreU(bz, d, lz[1]);
+      hn::StoreU(cz, d, lz[2]);
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, zero_edge, mb);
+      for (std::size_t k = 0; k < n; ++k) {
+        if (mb[0] >> k & 1u) {
+          t[i + k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], lz[0][k], lz[1][k],
+                                       lz[2][k], r, s.t_min, nullptr);
+        }
+      }
+    }
+  }
+}
+
+// The nearest-hit rule of Geometry::intersect.
+inline bool better(float t, std::uint32_t id, float best_t, std::uint32_t best_id) {
+  return t < best_t || (t == best_t && id < best_id);
+}
+
+// Tests a leaf. kAnyHit: returns true at the first prim with t < best_t. Otherwise updates
+// best_t / best_id and returns whether anything improved.
+template <bool kAnyHit>
+inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, float& best_t, std::uint32_t& best_id) {
+  bool improved = false;
+  alignas(64) float t[kWidth];
+  for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
+    const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
+    spheres1(b, s, t);
+    for (int i = 0; i < kWidth; ++i) {
+      if (kAnyHit) {
+        if (t[i] < best_t) return true;
+      } else if (better(t[i], b.id[i], best_t, best_id)) {
+        best_t = t[i];
+        best_id = b.id[i];
+        improved = true;
+      }
+    }
+  }
+  for (std::uint32_t k = 0; k < leaf.triangle_blocks; ++k) {
+    const TriangleBlock& b = bvh.triangles[leaf.triangle_begin + k];
+    triangles1(b, s, t);
+    for (int i = 0; i < kWidth; ++i) {
+      if (kAnyHit) {
+        if (t[i] < best_t) return true;
+      } else if (better(t[i], b.id[i], best_t, best_id)) {
+        best_t = t[i];
+        best_id = b.id[i];
+        improved = true;
+      }
+    }
+  }
+  for (std::uint32_t k = 0; k < leaf.box_count; ++k) {
+    const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
+    const float tb = box_t(bp.b, s.r, s.t_min);
+    if (kAnyHit) {
+      if (tb < best_t) return true;
+    } else if (better(tb, bp.id, best_t, best_id)) {
+      best_t = tb;
+      best_id = bp.id;
+      improved = true;
+    }
+  }
+  return improved;
+}
+
+struct Entry {
+  std::uint32_t ref;
+  float t_near;
+};
+
+// Single-ray traversal of the subtree at `start` (a node index or kLeafBit | leaf). For nearest
+// hits, best_t / best_id are updated and the result says whether they were; for any-hit, best_t
+// is the ray's t_max and the result says whether something lies before it.
+template <bool kAnyHit>
+bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& best_t, std::uint32_t& best_id) {
+  Entry stack[kStackSize];
+  int sp = 0;
+  std::uint32_t cur = start;
+  bool improved = false;
+  float cull = best_t * kFarScale;
+  while (true) {
+    if (cur & kLeafBit) {
+      if (leaf1<kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], s, best_t, best_id)) {
+        if (kAnyHit) return true;
+        improved = true;
+        cull = best_t * kFarScale;
+      }
+    } else {
+      const WideNode& node = bvh.nodes[cur];
+      alignas(16) float t_near[kWidth];
+      std::uint32_t bits = node_test1(node, s, cull, t_near);
+      if (bits != 0) {
+        // Order the hit children by entry distance: the nearest is visited now, the others
+        // pushed farthest first.
+        Entry hit[kWidth];
+        int n = 0;
+        while (bits != 0) {
+          const int i = std::countr_zero(bits);
+          bits &= bits - 1;
+          Entry e{node.child[i], t_near[i]};
+          int j = n++;
+          while (j > 0 && hit[j - 1].t_near < e.t_near) {
+            hit[j] = hit[j - 1];
+            --j;
+          }
+          hit[j] = e;
+        }
+        for (int i = 0; i < n - 1; ++i) stack[sp++] = hit[i];
+        cur = hit[n - 1].ref;
+        continue;
+      }
+    }
+    // Pop, skipping entries a nearer hit found since has ruled out.
+    while (true) {
+      if (sp == 0) return improved;
+      const Entry e = stack[--sp];
+      if (kAnyHit || e.t_near <= cull) {
+        cur = e.ref;
+        break;
+      }
+    }
+  }
+}
+
+bool Intersect1(const WideBvh& bvh, const math::Ray& ray, float& best_t, std::uint32_t& best_id) {
+  const Single s = make_single(ray);
+  return traverse1<false>(bvh, s, 0, best_t, best_id);
+}
+
+bool Occluded1(const WideBvh& bvh, const math::Ray& ray) {
+  const Single s = make_single(ray);
+  float t_max = ray.t_max;
+  std::uint32_t unused = 0;
+  return traverse1<true>(bvh, s, 0, t_max, unused);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Packets of 8 rays.
+
+constexpr int kP = kPacketSize;
+
+struct alignas(64) Packet {
+  float o[3][kP];
+  float inv[3][kP];
+  float negf[3][kP];  // 1 where the direction's sign bit is set, else 0
+  float t_min[kP];
+  float cull[kP];   // best_t * kFarScale (nearest) or t_max * kFarScale (any-hit)
+  float best[kP];   // nearest t so far (nearest) or t_max (any-hit)
+  std::uint32_t id[kP];
+  double od[3][kP];  // origin and direction in double, for the sphere test
+  double dd[3][kP];
+  double a[kP];
+  // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
+  float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
+  float sx[kP], sy[kP], sz[kP];
+  Single single[kP];  // the same rays as single rays (fallback, zero edge functions)
+};
+
+inline void make_packet(const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
+  for (int i = 0; i < kP; ++i) {
+    // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
+    // results are masked off.
+    const int src = (live >> i & 1u) ? i : std::countr_zero(live);
+    const math::Ray& ray = rays[src];
+    Single& s = p.single[i];
+    s = make_single(ray);
+    for (int a = 0; a < 3; ++a) {
+      p.o[a][i] = s.r.o[a];
+      p.inv[a][i] = s.r.inv_d[a];
+      p.negf[a][i] = s.r.neg[a] ? 1.0f : 0.0f;
+      p.od[a][i] = double(s.r.o[a]);
+      p.dd[a][i] = double(s.r.d[a]);
+    }
+    p.a[i] = s.a;
+    p.t_min[i] = ray.t_min;
+    p.kx0[i] = s.r.kx == 0 ? 1.0f : 0.0f;
+    p.kx1[i] = s.r.kx == 1 ? 1.0f : 0.0f;
+    p.ky0[i] = s.r.ky == 0 ? 1.0f : 0.0f;
+    p.ky1[i] = s.r.ky == 1 ? 1.0f : 0.0f;
+    p.kz0[i] = s.r.kz == 0 ? 1.0f : 0.0f;
+    p.kz1[i] = s.r.kz == 1 ? 1.0f : 0.0f;
+    p.sx[i] = s.r.sx;
+    p.sy[i] = s.r.sy;
+    p.sz[i] = s.r.sz;
+    if (any_hit) {
+      p.best[i] = ray.t_max;
+      p.cull[i] = ray.t_max * kFarScale;
+    }
+  }
+}
+
+// Which of the 8 lanes enter box `c` of the node, and the smallest entry distance among them.
+inline std::uint32_t node_test8(const WideNode& node, int c, const Packet& p, float& min_near) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t bits = 0;
+  auto near_min = hn::Set(d, kInfF);
+  const auto zero = hn::Zero(d);
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    auto t0 = hn::LoadU(d, p.t_min + i);
+    auto tf = hn::Set(d, kInfF);
+    for (int a = 0; a < 3; ++a) {
+      const auto o = hn::LoadU(d, p.o[a] + i);
+      const auto inv = hn::LoadU(d, p.inv[a] + i);
+      const auto tlo = hn::Mul(hn::Sub(hn::Set(d, node.lo[a][c]), o), inv);
+      const auto thi = hn::Mul(hn::Sub(hn::Set(d, node.hi[a][c]), o), inv);
+      const auto neg = hn::Gt(hn::LoadU(d, p.negf[a] + i), zero);
+      const auto tn = hn::IfThenElse(neg, thi, tlo);
+      const auto tfa = hn::IfThenElse(neg, tlo, thi);
+      t0 = hn::IfThenElse(hn::Gt(tn, t0), tn, t0);
+      tf = hn::IfThenElse(hn::Lt(tfa, tf), tfa, tf);
+    }
+    tf = hn::Mul(tf, hn::Set(d, kFarScale));
+    const auto cull = hn::LoadU(d, p.cull + i);
+    const auto lim = hn::IfThenElse(hn::Lt(tf, cull), tf, cull);
+    const auto m = hn::Le(t0, lim);
+    near_min = hn::Min(near_min, hn::IfThenElse(m, t0, hn::Set(d, kInfF)));
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, m, mb);
+    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+  }
+  min_near = hn::GetLane(hn::MinOfLanes(d, near_min));
+  return bits;
+}
+
+// Applies candidate distances t[lane] of prim `id` to the lanes in `mask`; returns the lanes
+// that improved (nearest) or that are now blocked (any-hit).
+template <bool kAnyHit>
+inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::uint32_t mask) {
+  std::uint32_t out = 0;
+  while (mask != 0) {
+    const int i = std::countr_zero(mask);
+    mask &= mask - 1;
+    if (kAnyHit) {
+      if (t[i] < p.best[i]) out |= 1u << i;
+    } else if (better(t[i], id, p.best[i], p.id[i])) {
+      p.best[i] = t[i];
+      p.id[i] = id;
+      p.cull[i] = t[i] * kFarScale;
+      out |= 1u << i;
+    }
+  }
+  return out;
+}
+
+// One sphere against the 8 rays, in double exactly as sphere_t.
+inline void sphere8(const Packet& p, float cx, float cy, float cz, float radius, float* t) {
+  const hn::CappedTag<double, kP> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const std::size_t n = hn::Lanes(dd);
+  const auto zero = hn::Zero(dd);
+  const auto nan = hn::Set(dd, std::numeric_limits<double>::quiet_NaN());
+  const auto inf = hn::Set(df, kInfF);
+  const auto nanf = hn::Set(df, std::numeric_limits<float>::quiet_NaN());
+  const auto ccx = hn::Set(dd, double(cx)), ccy = hn::Set(dd, double(cy)), ccz = hn::Set(dd, double(cz));
+  const auto rad = hn::Set(dd, double(radius));
+  const auto rr = hn::Mul(rad, rad);
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto fx = hn::Sub(hn::LoadU(dd, p.od[0] + i), ccx);
+    const auto fy = hn::Sub(hn::LoadU(dd, p.od[1] + i), ccy);
+    const auto fz = hn::Sub(hn::LoadU(dd, p.od[2] + i), ccz);
+    const auto dx = hn::LoadU(dd, p.dd[0] + i), dy = hn::LoadU(dd, p.dd[1] + i), dz = hn::LoadU(dd, p.dd[2] + i);
+    const auto a = hn::LoadU(dd, p.a + i);
+    const auto ux = hn::Sub(hn::Mul(fy, dz), hn::Mul(fz, dy));
+    const auto uy = hn::Sub(hn::Mul(fz, dx), hn::Mul(fx, dz));
+    const auto uz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
+    const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(ux, ux), hn::Mul(uy, uy)), hn::Mul(uz, uz)));
+    const auto ok = hn::Ge(disc, zero);
+    if (hn::AllFalse(dd, ok)) {
+      hn::StoreU(nanf, df, t + i);
+      continue;
+    }
+    const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
+    const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
+    const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
+    const auto r0 = hn::Div(c, q);
+    const auto r1 = hn::Div(q, a);
+    const auto swap = hn::Gt(r0, r1);
+    const auto lo = hn::IfThenElse(ok, hn::IfThenElse(swap, r1, r0), nan);
+    const auto hi = hn::IfThenElse(ok, hn::IfThenElse(swap, r0, r1), nan);
+    const auto t0 = hn::DemoteTo(df, lo);
+    const auto t1 = hn::DemoteTo(df, hi);
+    const auto tmin = hn::LoadU(df, p.t_min + i);
+    const auto use0 = hn::And(hn::Gt(t0, tmin), hn::Lt(t0, inf));
+    const auto use1 = hn::And(hn::Gt(t1, tmin), hn::Lt(t1, inf));
+    hn::StoreU(hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf)), df, t + i);
+  }
+}
+
+// One triangle (vertices v[vertex][axis]) against the 8 rays, exactly as triangle_t; each lane
+// picks its own shear axes.
+inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  const auto zero = hn::Zero(d);
+  const auto inf = hn::Set(d, kInfF);
+  const auto nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto kx0 = hn::Gt(hn::LoadU(d, p.kx0 + i), zero), kx1 = hn::Gt(hn::LoadU(d, p.kx1 + i), zero);
+    const auto ky0 = hn::Gt(hn::LoadU(d, p.ky0 + i), zero), ky1 = hn::Gt(hn::LoadU(d, p.ky1 + i), zero);
+    const auto kz0 = hn::Gt(hn::LoadU(d, p.kz0 + i), zero), kz1 = hn::Gt(hn::LoadU(d, p.kz1 + i), zero);
+    const auto o0 = hn::LoadU(d, p.o[0] + i), o1 = hn::LoadU(d, p.o[1] + i), o2 = hn::LoadU(d, p.o[2] + i);
+    auto pick = [&](const auto& m0, const auto& m1, const auto& x, const auto& y, const auto& z) {
+      return hn::IfThenElse(m0, x, hn::IfThenElse(m1, y, z));
+    };
+    // Vertex k relative to the origin, permuted per lane to (kx, ky, kz).
+    hn::Vec<decltype(d)> rel[3][3];
+    for (int k = 0; k < 3; ++k) {
+      const auto x = hn::Sub(hn::Set(d, v[k][0]), o0);
+      const auto y = hn::Sub(hn::Set(d, v[k][1]), o1);
+      const auto z = hn::Sub(hn::Set(d, v[k][2]), o2);
+      rel[k][0] = pick(kx0, kx1, x, y, z);
+      rel[k][1] = pick(ky0, ky1, x, y, z);
+      rel[k][2] = pick(kz0, kz1, x, y, z);
+    }
+    const auto sx = hn::LoadU(d, p.sx + i), sy = hn::LoadU(d, p.sy + i), sz = hn::LoadU(d, p.sz + i);
+    const auto sax = hn::Sub(rel[0][0], hn::Mul(sx, rel[0][2])), say = hn::Sub(rel[0][1], hn::Mul(sy, rel[0][2]));
+    const auto sbx = hn::Sub(rel[1][0], hn::Mul(sx, rel[1][2])), sby = hn::Sub(rel[1][1], hn::Mul(sy, rel[1][2]));
+    const auto scx = hn::Sub(rel[2][0], hn::Mul(sx, rel[2][2])), scy = hn::Sub(rel[2][1], hn::Mul(sy, rel[2][2]));
+    const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
+    const auto vv = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
+    const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
+    const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(vv, zero)), hn::Lt(w, zero));
+    const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(vv, zero)), hn::Gt(w, zero));
+    const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(vv, zero)), hn::Eq(w, zero));
+    const auto rejected = hn::AndNot(zero_edge, hn::And(neg, pos));
+    if (hn::AllTrue(d, rejected)) {
+      hn::StoreU(nan, d, t + i);
+      continue;
+    }
+    const auto det = hn::Add(hn::Add(u, vv), w);
+    const auto tt = hn::Add(hn::Add(hn::Mul(u, hn::Mul(sz, rel[0][2])), hn::Mul(vv, hn::Mul(sz, rel[1][2]))),
+                            hn::Mul(w, hn::Mul(sz, rel[2][2])));
+    const auto tv = hn::Div(tt, det);
+    const auto tmin = hn::LoadU(d, p.t_min + i);
+    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::Ne(det, zero), hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
+    hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
+    if (!hn::AllFalse(d, zero_edge)) {
+      alignas(64) float l[9][kP];
+      hn::StoreU(sax, d, l[0]);
+      hn::StoreU(say, d, l[1]);
+      hn::StoreU(sbx, d, l[2]);
+      hn::StoreU(sby, d, l[3]);
+      hn::StoreU(scx, d, l[4]);
+      hn::StoreU(scy, d, l[5]);
+      hn::StoreU(rel[0][2], d, l[6]);
+      hn::StoreU(rel[1][2], d, l[7]);
+      hn::StoreU(rel[2][2], d, l[8]);
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, zero_edge, mb);
+      for (std::size_t k = 0; k < n; ++k) {
+        if (mb[0] >> k & 1u) {
+          const Single& s = p.single[i + k];
+          t[i + k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], l[6][k], l[7][k], l[8][k],
+                                       s.r, s.t_min, nullptr);
+        }
+      }
+    }
+  }
+}
+
+// Tests a leaf against the lanes in `mask`. Returns the lanes that improved (nearest) or that are
+// blocked (any-hit).
+template <bool kAnyHit>
+inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, std::uint32_t mask) {
+  std::uint32_t out = 0;
+  alignas(64) float t[kP];
+  for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
+    const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
+    for (int j = 0; j < kWidth && mask != 0; ++j) {
+      if (b.id[j] == kEmptyChild) break;
+      sphere8(p, b.cx[j], b.cy[j], b.cz[j], b.r[j], t);
+      const std::uint32_t hit = apply8<kAnyHit>(p, t, b.id[j], mask);
+      out |= hit;
+      if (kAnyHit) mask &= ~hit;
+    }
+  }
+  for (std::uint32_t k = 0; k < leaf.triangle_blocks; ++k) {
+    const TriangleBlock& b = bvh.triangles[leaf.triangle_begin + k];
+    for (int j = 0; j < kWidth && mask != 0; ++j) {
+      if (b.id[j] == kEmptyChild) break;
+      const float v[3][3] = {{b.v[0][0][j], b.v[0][1][j], b.v[0][2][j]},
+                             {b.v[1][0][j], b.v[1][1][j], b.v[1][2][j]},
+                             {b.v[2][0][j], b.v[2][1][j], b.v[2][2][j]}};
+      triangle8(p, v, t);
+      const std::uint32_t hit = apply8<kAnyHit>(p, t, b.id[j], mask);
+      out |= hit;
+      if (kAnyHit) mask &= ~hit;
+    }
+  }
+  for (std::uint32_t k = 0; k < leaf.box_count && mask != 0; ++k) {
+    const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
+    std::uint32_t m = mask;
+    while (m != 0) {
+      const int i = std::countr_zero(m);
+      m &= m - 1;
+      t[i] = box_t(bp.b, p.single[i].r, p.single[i].t_min);
+    }
+    const std::uint32_t hit = apply8<kAnyHit>(p, t, bp.id, mask);
+    out |= hit;
+    if (kAnyHit) mask &= ~hit;
+  }
+  return out;
+}
+
+struct Entry8 {
+  std::uint32_t ref;
+  std::uint32_t mask;
+  float t_near;  // smallest entry distance over the entry's lanes
+};
+
+template <bool kAnyHit>
+std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
+  Entry8 stack[kStackSize];
+  int sp = 0;
+  std::uint32_t cur = 0;
+  std::uint32_t mask = live;
+  std::uint32_t result = 0;   // nearest: lanes that improved; any-hit: lanes blocked
+  std::uint32_t alive = live;  // any-hit: lanes not yet blocked
+  while (true) {
+    if (std::popcount(mask) <= kSwitch) {
+      // Few lanes left here: finish this subtree one ray at a time.
+      std::uint32_t m = mask;
+      while (m != 0) {
+        const int i = std::countr_zero(m);
+        m &= m - 1;
+        if (traverse1<kAnyHit>(bvh, p.single[i], cur, p.best[i], p.id[i])) {
+          result |= 1u << i;
+          if (kAnyHit) {
+            alive &= ~(1u << i);
+          } else {
+            p.cull[i] = p.best[i] * kFarScale;
+          }
+        }
+      }
+    } else if (cur & kLeafBit) {
+      const std::uint32_t hit = leaf8<kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], p, mask);
+      result |= hit;
+      if (kAnyHit) alive &= ~hit;
+    } else {
+      const WideNode& node = bvh.nodes[cur];
+      Entry8 hit[kWidth];
+      int n = 0;
+      for (int c = 0; c < kWidth; ++c) {
+        if (node.child[c] == kEmptyChild) continue;
+        float t_near = kInfF;
+        const std::uint32_t m = node_test8(node, c, p, t_near) & mask;
+        if (m == 0) continue;
+        Entry8 e{node.child[c], m, t_near};
+        int j = n++;
+        while (j > 0 && hit[j - 1].t_near < e.t_near) {
+          hit[j] = hit[j - 1];
+          --j;
+        }
+        hit[j] = e;
+      }
+      if (n > 0) {
+        for (int i = 0; i < n - 1; ++i) stack[sp++] = hit[i];
+        cur = hit[n - 1].ref;
+        mask = hit[n - 1].mask;
+        continue;
+      }
+    }
+    if (kAnyHit && alive == 0) return result;
+    // Pop; drop lanes whose nearest hit since is closer than the entry's nearest box entry.
+    while (true) {
+      if (sp == 0) return result;
+      const Entry8 e = stack[--sp];
+      std::uint32_t m = e.mask & alive;
+      if (!kAnyHit) {
+        std::uint32_t k = m;
+        while (k != 0) {
+          const int i = std::countr_zero(k);
+          k &= k - 1;
+          if (p.cull[i] < e.t_near) m &= ~(1u << i);
+        }
+      }
+      if (m != 0) {
+        cur = e.ref;
+        mask = m;
+        break;
+      }
+    }
+  }
+}
+
+std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
+                         std::uint32_t* best_id) {
+  Packet p;
+  make_packet(rays, valid, p, false);
+  for (int i = 0; i < kP; ++i) {
+    p.best[i] = (valid >> i & 1u) ? best_t[i] : -kInfF;
+    p.id[i] = best_id[i];
+    p.cull[i] = p.best[i] * kFarScale;
+  }
+  const std::uint32_t improved = traverse8<false>(bvh, p, valid);
+  for (int i = 0; i < kP; ++i) {
+    if (improved >> i & 1u) {
+      best_t[i] = p.best[i];
+      best_id[i] = p.id[i];
+    }
+  }
+  return improved;
+}
+
+std::uint32_t Occluded8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid) {
+  Packet p;
+  make_packet(rays, valid, p, true);
+  return traverse8<true>(bvh, p, valid);
+}
+
+extern const Kernels kKernels;
+const Kernels kKernels = {&Intersect1, &Occluded1, &Intersect8, &Occluded8};
+
+}  // namespace HWY_NAMESPACE
+}  // namespace dtraced::accel::detail
+HWY_AFTER_NAMESPACE();
+
+#if HWY_ONCE
+namespace dtraced::accel::detail {
+
+const Kernels& kernels_for(Isa isa) {
+  switch (isa) {
+#if HWY_TARGETS & HWY_SSE4
+    case Isa::kSse4:
+      return N_SSE4::kKernels;
+#endif
+#if HWY_TARGETS & HWY_AVX2
+    case Isa::kAvx2:
+      return N_AVX2::kKernels;
+#endif
+#if HWY_TARGETS & HWY_AVX3
+    case Isa::kAvx512:
+      return N_AVX3::kKernels;
+#endif
+    default:
+      break;
+  }
+  // Geometry::build only accepts isas supported_isas() lists, and those are compiled here.
+  std::abort();
+}
+
+}  // namespace dtraced::accel::detail
+#endif  // HWY_ONCE
