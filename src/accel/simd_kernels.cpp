@@ -76,12 +76,13 @@ inline std::uint32_t node_test1(const WideNode& node, const Single& s, float cul
       const auto inv = hn::Set(d, s.r.inv_d[a]);
       const auto tn = hn::Mul(hn::Sub(hn::LoadU(d, nb + i), o), inv);
       const auto tfa = hn::Mul(hn::Sub(hn::LoadU(d, fb + i), o), inv);
-      t0 = hn::IfThenElse(hn::Gt(tn, t0), tn, t0);
-      tf = hn::IfThenElse(hn::Lt(tfa, tf), tfa, tf);
+      // Max(tn, t0) is tn > t0 ? tn : t0 on x86 (maxps returns its second operand when one is
+      // NaN) and skips NaN on Highway's scalar target: a NaN slab (0 * inf) never constrains.
+      t0 = hn::Max(tn, t0);
+      tf = hn::Min(tfa, tf);
     }
     tf = hn::Mul(tf, hn::Set(d, kFarScale));
-    const auto c = hn::Set(d, cull);
-    const auto lim = hn::IfThenElse(hn::Lt(tf, c), tf, c);
+    const auto lim = hn::Min(tf, hn::Set(d, cull));
     hn::StoreU(t0, d, t_near + i);
     std::uint8_t mb[8] = {};
     hn::StoreMaskBits(d, hn::Le(t0, lim), mb);
@@ -117,6 +118,10 @@ inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
     const auto cz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
     const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(cx, cx), hn::Mul(cy, cy)), hn::Mul(cz, cz)));
     const auto ok = hn::Ge(disc, zero);
+    if (hn::AllFalse(dd, ok)) {  // most sphere tests miss: skip the square root and divisions
+      hn::StoreU(nanf, df, t + i);
+      continue;
+    }
     const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
     const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
     const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
@@ -384,12 +389,11 @@ inline std::uint32_t node_test8(const WideNode& node, int c, const Packet& p, fl
       const auto neg = hn::Gt(hn::LoadU(d, p.negf[a] + i), zero);
       const auto tn = hn::IfThenElse(neg, thi, tlo);
       const auto tfa = hn::IfThenElse(neg, tlo, thi);
-      t0 = hn::IfThenElse(hn::Gt(tn, t0), tn, t0);
-      tf = hn::IfThenElse(hn::Lt(tfa, tf), tfa, tf);
+      t0 = hn::Max(tn, t0);  // NaN skipped, see node_test1
+      tf = hn::Min(tfa, tf);
     }
     tf = hn::Mul(tf, hn::Set(d, kFarScale));
-    const auto cull = hn::LoadU(d, p.cull + i);
-    const auto lim = hn::IfThenElse(hn::Lt(tf, cull), tf, cull);
+    const auto lim = hn::Min(tf, hn::LoadU(d, p.cull + i));
     const auto m = hn::Le(t0, lim);
     near_min = hn::Min(near_min, hn::IfThenElse(m, t0, hn::Set(d, kInfF)));
     std::uint8_t mb[8] = {};
