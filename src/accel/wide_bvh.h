@@ -43,14 +43,14 @@ struct WideLeaf {
   std::uint32_t box_count = 0;
 };
 
-struct alignas(64) SphereBlock {
+struct alignas(16) SphereBlock {
   float cx[kWidth], cy[kWidth], cz[kWidth], r[kWidth];
   std::uint32_t id[kWidth];
 };
 
 // Triangle vertices a, b, c as given (the watertight test needs the vertices themselves, relative
 // to the ray origin, not precomputed edges).
-struct alignas(64) TriangleBlock {
+struct alignas(16) TriangleBlock {
   float v[3][3][kWidth];  // v[vertex][axis][lane]
   std::uint32_t id[kWidth];
 };
