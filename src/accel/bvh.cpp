@@ -308,7 +308,8 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
     // double, and its float t may sit an ulp or two before the float entry distance of its box.
     float cull_t = best_t * detail::kFarScale;
     walk(nodes_, prims_, r, ray.t_min, cull_t, [&](const Prim& prim) {
-      if (consider(prim_t(prim.data, prim.type, shapes_, prim.id, r, ray.t_min), prim.id)) cull_t = best_t * detail::kFarScale;
+      if (consider(prim_t(prim.data, prim.type, shapes_, prim.id, r, ray.t_min), prim.id))
+        cull_t = best_t * detail::kFarScale;
       return false;
     });
   }

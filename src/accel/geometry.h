@@ -79,8 +79,8 @@ struct Hit {
 struct BuildStats {
   std::uint32_t nodes = 0;
   std::uint32_t leaves = 0;
-  std::uint32_t max_depth = 0;  // depth of the deepest node; the root has depth 0
-  double seconds = 0.0;         // binary BVH build
+  std::uint32_t max_depth = 0;   // depth of the deepest node; the root has depth 0
+  double seconds = 0.0;          // binary BVH build
   std::uint32_t wide_nodes = 0;  // 4-wide nodes after collapsing (SIMD isa only)
   double wide_seconds = 0.0;     // collapsing and packing the leaves (SIMD isa only)
 };

@@ -6,6 +6,7 @@
 // so callers can write `if (t < best)` and a miss (or any NaN that crept in) never counts.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -202,6 +203,26 @@ struct TriangleUvw {
   double u, v, w, det;  // edge functions and their sum (all of one sign on a hit)
 };
 
+// pbrt-v4's conservative bound on the rounding error of a triangle's t (Pharr, Jakob, Humphreys,
+// "Physically Based Rendering" 4th ed., 6.5.3), from the sheared vertices (x, y, z per vertex),
+// the edge functions and their sum. A hit at t <= this bound may really be at t <= 0: a ray that
+// starts on the triangle (a secondary ray leaving a flat mesh whose hit point is exact and so
+// gets no offset) must not hit it again. Every operation is in a fixed order; the SIMD kernels
+// repeat it exactly. T is float or double (the zero-edge-function fallback).
+template <typename T>
+inline T triangle_t_error(T sax, T say, T sbx, T sby, T scx, T scy, T saz, T sbz, T scz, T u, T v, T w, T det) {
+  const T g2 = T(math::gamma(2)), g3 = T(math::gamma(3)), g5 = T(math::gamma(5));
+  const T max_zt = std::max(std::max(std::abs(saz), std::abs(sbz)), std::abs(scz));
+  const T max_xt = std::max(std::max(std::abs(sax), std::abs(sbx)), std::abs(scx));
+  const T max_yt = std::max(std::max(std::abs(say), std::abs(sby)), std::abs(scy));
+  const T delta_z = g3 * max_zt;
+  const T delta_x = g5 * (max_xt + max_zt);
+  const T delta_y = g5 * (max_yt + max_zt);
+  const T delta_e = T(2) * (g2 * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
+  const T max_e = std::max(std::max(std::abs(u), std::abs(v)), std::abs(w));
+  return T(3) * (g3 * max_e * max_zt + delta_e * max_zt + delta_z * max_e) / std::abs(det);
+}
+
 // The rest of the test when a float edge function came out exactly zero: the products of floats
 // are exact in double, so the signs of the edge functions are then right and a ray through a
 // shared edge or vertex is not lost. Rare; the SIMD kernels call this same function for such lanes.
@@ -213,9 +234,11 @@ inline float triangle_t_double(float sax, float say, float sbx, float sby, float
   if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) return kNaN;
   const double det = u + v + w;
   if (!(det != 0.0)) return kNaN;
-  const double tt = u * (double(r.sz) * az) + v * (double(r.sz) * bz) + w * (double(r.sz) * cz);
+  const double saz = double(r.sz) * az, sbz = double(r.sz) * bz, scz = double(r.sz) * cz;
+  const double tt = u * saz + v * sbz + w * scz;
   const float t = float(tt / det);
   if (!(t > t_min && t < kInf)) return kNaN;
+  if (!(tt / det > triangle_t_error<double>(sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, v, w, det))) return kNaN;
   if (uvw) *uvw = {u, v, w, det};
   return t;
 }
@@ -230,7 +253,8 @@ inline float triangle_t(const float* v, const RayPre& r, float t_min, TriangleUv
   float u = scx * sby - scy * sbx;
   float vv = sax * scy - say * scx;
   float w = sbx * say - sby * sax;
-  if (u == 0.0f || vv == 0.0f || w == 0.0f) return triangle_t_double(sax, say, sbx, sby, scx, scy, az, bz, cz, r, t_min, uvw);
+  if (u == 0.0f || vv == 0.0f || w == 0.0f)
+    return triangle_t_double(sax, say, sbx, sby, scx, scy, az, bz, cz, r, t_min, uvw);
   if ((u < 0.0f || vv < 0.0f || w < 0.0f) && (u > 0.0f || vv > 0.0f || w > 0.0f)) return kNaN;
   const float det = u + vv + w;
   if (!(det != 0.0f)) return kNaN;  // edge-on, degenerate, or NaN
@@ -238,6 +262,7 @@ inline float triangle_t(const float* v, const RayPre& r, float t_min, TriangleUv
   const float tt = u * saz + vv * sbz + w * scz;
   const float t = tt / det;
   if (!(t > t_min && t < kInf)) return kNaN;
+  if (!(t > triangle_t_error(sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, vv, w, det))) return kNaN;
   if (uvw) *uvw = {u, vv, w, det};
   return t;
 }

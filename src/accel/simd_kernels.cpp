@@ -19,15 +19,15 @@
 // active at a node, those lanes finish that subtree as single rays.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
-#include <hwy/foreach_target.h>  // IWYU pragma: keep
-#include <hwy/highway.h>
-
 #include <algorithm>
 #include <bit>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <limits>
+
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>
 
 #include "accel/geometry.h"
 #include "accel/kernels.h"
@@ -97,10 +97,8 @@ inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
   const hn::CappedTag<double, kWidth> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const std::size_t n = hn::Lanes(dd);
-  const auto ox = hn::Set(dd, double(s.r.o[0])), oy = hn::Set(dd, double(s.r.o[1])),
-             oz = hn::Set(dd, double(s.r.o[2]));
-  const auto dx = hn::Set(dd, double(s.r.d[0])), dy = hn::Set(dd, double(s.r.d[1])),
-             dz = hn::Set(dd, double(s.r.d[2]));
+  const auto ox = hn::Set(dd, double(s.r.o[0])), oy = hn::Set(dd, double(s.r.o[1])), oz = hn::Set(dd, double(s.r.o[2]));
+  const auto dx = hn::Set(dd, double(s.r.d[0])), dy = hn::Set(dd, double(s.r.d[1])), dz = hn::Set(dd, double(s.r.d[2]));
   const auto a = hn::Set(dd, s.a);
   const auto zero = hn::Zero(dd);
   const auto nan = hn::Set(dd, std::numeric_limits<double>::quiet_NaN());
@@ -138,6 +136,27 @@ inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
   }
 }
 
+// triangle_t_error of kernels.h, lane-wise, with the same operations in the same order (Max of
+// two non-NaN values is exact whichever operand wins).
+template <class D, class V>
+inline V triangle_t_error8(D d, V sax, V say, V sbx, V sby, V scx, V scy, V saz, V sbz, V scz, V u, V v, V w, V det) {
+  const auto g2 = hn::Set(d, math::gamma(2)), g3 = hn::Set(d, math::gamma(3)), g5 = hn::Set(d, math::gamma(5));
+  const auto max_zt = hn::Max(hn::Max(hn::Abs(saz), hn::Abs(sbz)), hn::Abs(scz));
+  const auto max_xt = hn::Max(hn::Max(hn::Abs(sax), hn::Abs(sbx)), hn::Abs(scx));
+  const auto max_yt = hn::Max(hn::Max(hn::Abs(say), hn::Abs(sby)), hn::Abs(scy));
+  const auto delta_z = hn::Mul(g3, max_zt);
+  const auto delta_x = hn::Mul(g5, hn::Add(max_xt, max_zt));
+  const auto delta_y = hn::Mul(g5, hn::Add(max_yt, max_zt));
+  const auto delta_e = hn::Mul(
+      hn::Set(d, 2.0f),
+      hn::Add(hn::Add(hn::Mul(hn::Mul(g2, max_xt), max_yt), hn::Mul(delta_y, max_xt)), hn::Mul(delta_x, max_yt)));
+  const auto max_e = hn::Max(hn::Max(hn::Abs(u), hn::Abs(v)), hn::Abs(w));
+  const auto num =
+      hn::Mul(hn::Set(d, 3.0f),
+              hn::Add(hn::Add(hn::Mul(hn::Mul(g3, max_e), max_zt), hn::Mul(delta_e, max_zt)), hn::Mul(delta_z, max_e)));
+  return hn::Div(num, hn::Abs(det));
+}
+
 // Watertight test of one ray against a block of 4 triangles, exactly as triangle_t; lanes whose
 // float edge function is zero are redone by the scalar triangle_t_double.
 inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
@@ -166,9 +185,12 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
     const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
     const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
     const auto det = hn::Add(hn::Add(u, v), w);
-    const auto tt = hn::Add(hn::Add(hn::Mul(u, hn::Mul(sz, az)), hn::Mul(v, hn::Mul(sz, bz))), hn::Mul(w, hn::Mul(sz, cz)));
+    const auto saz = hn::Mul(sz, az), sbz = hn::Mul(sz, bz), scz = hn::Mul(sz, cz);
+    const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(v, sbz)), hn::Mul(w, scz));
     const auto tv = hn::Div(tt, det);
-    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::Ne(det, zero), hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
+    const auto err = triangle_t_error8(d, sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, v, w, det);
+    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::And(hn::Ne(det, zero), hn::Gt(tv, err)),
+                                                          hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
     hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
     const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
     if (!hn::AllFalse(d, zero_edge)) {
@@ -326,8 +348,8 @@ struct alignas(64) Packet {
   float inv[3][kP];
   float negf[3][kP];  // 1 where the direction's sign bit is set, else 0
   float t_min[kP];
-  float cull[kP];   // best_t * kFarScale (nearest) or t_max * kFarScale (any-hit)
-  float best[kP];   // nearest t so far (nearest) or t_max (any-hit)
+  float cull[kP];  // best_t * kFarScale (nearest) or t_max * kFarScale (any-hit)
+  float best[kP];  // nearest t so far (nearest) or t_max (any-hit)
   std::uint32_t id[kP];
   double od[3][kP];  // origin and direction in double, for the sphere test
   double dd[3][kP];
@@ -510,11 +532,13 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
       continue;
     }
     const auto det = hn::Add(hn::Add(u, vv), w);
-    const auto tt = hn::Add(hn::Add(hn::Mul(u, hn::Mul(sz, rel[0][2])), hn::Mul(vv, hn::Mul(sz, rel[1][2]))),
-                            hn::Mul(w, hn::Mul(sz, rel[2][2])));
+    const auto saz = hn::Mul(sz, rel[0][2]), sbz = hn::Mul(sz, rel[1][2]), scz = hn::Mul(sz, rel[2][2]);
+    const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(vv, sbz)), hn::Mul(w, scz));
     const auto tv = hn::Div(tt, det);
     const auto tmin = hn::LoadU(d, p.t_min + i);
-    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::Ne(det, zero), hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
+    const auto err = triangle_t_error8(d, sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, vv, w, det);
+    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::And(hn::Ne(det, zero), hn::Gt(tv, err)),
+                                                          hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
     hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
     if (!hn::AllFalse(d, zero_edge)) {
       alignas(64) float l[9][kP];
@@ -596,7 +620,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
   int sp = 0;
   std::uint32_t cur = 0;
   std::uint32_t mask = live;
-  std::uint32_t result = 0;   // nearest: lanes that improved; any-hit: lanes blocked
+  std::uint32_t result = 0;    // nearest: lanes that improved; any-hit: lanes blocked
   std::uint32_t alive = live;  // any-hit: lanes not yet blocked
   while (true) {
     if (std::popcount(mask) <= kSwitch) {

@@ -16,7 +16,7 @@ class Geometry;
 
 namespace dtraced::accel::detail {
 
-inline constexpr int kWidth = 4;        // children per node, prims per leaf block
+inline constexpr int kWidth = 4;  // children per node, prims per leaf block
 inline constexpr std::uint32_t kEmptyChild = 0xffffffffu;
 inline constexpr std::uint32_t kLeafBit = 0x80000000u;  // child refers to leaves[child & ~kLeafBit]
 
