@@ -65,6 +65,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
   for (std::uint32_t id = 0; id < g.shapes_.size(); ++id) {
     const Shape& s = g.shapes_[id];
     if (!detail::shape_is_valid(s)) continue;
+    g.has_triangles_ = g.has_triangles_ || s.type == ShapeType::kTriangle;
     if (s.type == ShapeType::kPlane) {
       g.planes_.push_back(id);
       continue;
@@ -277,16 +278,16 @@ void walk(const Nodes& nodes, const Prims& prims, const detail::RayPre& r, float
 
 bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  const detail::RayPre r = detail::precompute(ray, has_triangles_);
   if (isa_ != Isa::kScalar) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
-    const bool found = planes_hit(ray, best_t, best_id);
-    const bool tree = !wide_.empty() && wide_kernels().intersect1(wide_, ray, best_t, best_id);
+    const bool found = planes_hit(r, ray.t_min, best_t, best_id);
+    const bool tree = !wide_.empty() && wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id);
     if (!found && !tree) return false;
-    detail::finish_hit(shapes_[best_id], best_id, ray, detail::precompute(ray), best_t, hit);
+    detail::finish_hit(shapes_[best_id], best_id, ray, r, best_t, hit);
     return true;
   }
-  const detail::RayPre r = detail::precompute(ray);
 
   // Nearest so far; ties in t go to the smaller shape id, so the answer does not depend on the
   // order shapes are visited in (best_id starts at 0: `id < 0` never holds before a first hit).
@@ -321,13 +322,13 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
 
 bool Geometry::occluded(const Ray& ray) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
+  const detail::RayPre r = detail::precompute(ray, has_triangles_);
   if (isa_ != Isa::kScalar) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
-    if (planes_hit(ray, best_t, best_id)) return true;
-    return !wide_.empty() && wide_kernels().occluded1(wide_, ray);
+    if (planes_hit(r, ray.t_min, best_t, best_id)) return true;
+    return !wide_.empty() && wide_kernels().occluded1(wide_, r, ray.t_min, ray.t_max);
   }
-  const detail::RayPre r = detail::precompute(ray);
   for (const std::uint32_t id : planes_) {
     if (detail::plane_t(shapes_[id].plane, r, ray.t_min) < ray.t_max) return true;
   }
@@ -341,12 +342,10 @@ bool Geometry::occluded(const Ray& ray) const {
   return hit;
 }
 
-bool Geometry::planes_hit(const Ray& ray, float& best_t, std::uint32_t& best_id) const {
-  if (planes_.empty()) return false;
-  const detail::RayPre r = detail::precompute(ray);
+bool Geometry::planes_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const {
   bool found = false;
   for (const std::uint32_t id : planes_) {
-    const float t = detail::plane_t(shapes_[id].plane, r, ray.t_min);
+    const float t = detail::plane_t(shapes_[id].plane, r, t_min);
     if (t < best_t || (found && t == best_t && id < best_id)) {
       best_t = t;
       best_id = id;
@@ -381,7 +380,10 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
   for (int i = 0; i < kPacketSize; ++i) {
     best_t[i] = rays[i].t_max;
     best_id[i] = 0;
-    if ((live >> i & 1u) && planes_hit(rays[i], best_t[i], best_id[i])) found |= 1u << i;
+    if ((live >> i & 1u) && !planes_.empty() &&
+        planes_hit(detail::precompute(rays[i], false), rays[i].t_min, best_t[i], best_id[i])) {
+      found |= 1u << i;
+    }
   }
   if (!wide_.empty()) found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
   for (int i = 0; i < kPacketSize; ++i) {
@@ -409,7 +411,9 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
   for (int i = 0; i < kPacketSize; ++i) {
     float t = rays[i].t_max;
     std::uint32_t id = 0;
-    if ((live >> i & 1u) && planes_hit(rays[i], t, id)) blocked |= 1u << i;
+    if ((live >> i & 1u) && !planes_.empty() && planes_hit(detail::precompute(rays[i], false), rays[i].t_min, t, id)) {
+      blocked |= 1u << i;
+    }
   }
   const std::uint32_t rest = live & ~blocked;
   if (rest != 0 && !wide_.empty()) blocked |= wide_kernels().occluded8(wide_, rays, rest);

@@ -133,7 +133,7 @@ class Geometry {
   friend detail::WideBvh detail::collapse_to_wide(const Geometry& g);
 
   // Nearest plane hit below best_t (ties to the smaller id); updates best_t / best_id.
-  bool planes_hit(const Ray& ray, float& best_t, std::uint32_t& best_id) const;
+  bool planes_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const;
   const detail::Kernels& wide_kernels() const;
 
   std::vector<Shape> shapes_;
@@ -142,7 +142,8 @@ class Geometry {
   std::vector<Node> nodes_;
   BuildStats stats_;
   Isa isa_ = Isa::kScalar;
-  detail::WideBvh wide_;  // empty for Isa::kScalar
+  bool has_triangles_ = false;  // rays then need the triangle test's shear constants
+  detail::WideBvh wide_;        // empty for Isa::kScalar
 };
 
 // Nearest hit of one shape with t in (ray.t_min, ray.t_max); fills every field of `hit` (with

@@ -53,7 +53,9 @@ inline void set_shear(RayPre& r) {
   r.sz = 1.0f / r.d[r.kz];
 }
 
-inline RayPre precompute(const Ray& ray) {
+// `shear`: also the triangle test's constants (three divisions), needed only where triangles
+// may be tested or finished.
+inline RayPre precompute(const Ray& ray, bool shear = true) {
   RayPre r;
   for (int i = 0; i < 3; ++i) {
     r.o[i] = ray.o[i];
@@ -63,7 +65,7 @@ inline RayPre precompute(const Ray& ray) {
     r.near_idx[i] = r.neg[i] ? 3 + i : i;
     r.far_idx[i] = r.neg[i] ? i : 3 + i;
   }
-  set_shear(r);
+  if (shear) set_shear(r);
   return r;
 }
 

@@ -51,10 +51,10 @@ struct Single {
   double a;  // |d|^2 in double, as sphere_roots computes it
 };
 
-inline Single make_single(const math::Ray& ray) {
+inline Single make_single(const RayPre& r, float t_min) {
   Single s;
-  s.r = precompute(ray);
-  s.t_min = ray.t_min;
+  s.r = r;
+  s.t_min = t_min;
   const double dx = s.r.d[0], dy = s.r.d[1], dz = s.r.d[2];
   s.a = dx * dx + dy * dy + dz * dz;
   return s;
@@ -326,14 +326,13 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   }
 }
 
-bool Intersect1(const WideBvh& bvh, const math::Ray& ray, float& best_t, std::uint32_t& best_id) {
-  const Single s = make_single(ray);
+bool Intersect1(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) {
+  const Single s = make_single(r, t_min);
   return traverse1<false>(bvh, s, 0, best_t, best_id);
 }
 
-bool Occluded1(const WideBvh& bvh, const math::Ray& ray) {
-  const Single s = make_single(ray);
-  float t_max = ray.t_max;
+bool Occluded1(const WideBvh& bvh, const RayPre& r, float t_min, float t_max) {
+  const Single s = make_single(r, t_min);
   std::uint32_t unused = 0;
   return traverse1<true>(bvh, s, 0, t_max, unused);
 }
@@ -360,14 +359,14 @@ struct alignas(64) Packet {
   Single single[kP];  // the same rays as single rays (fallback, zero edge functions)
 };
 
-inline void make_packet(const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
+inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
   for (int i = 0; i < kP; ++i) {
     // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
     // results are masked off.
     const int src = (live >> i & 1u) ? i : std::countr_zero(live);
     const math::Ray& ray = rays[src];
     Single& s = p.single[i];
-    s = make_single(ray);
+    s = make_single(precompute(ray, bvh.has_triangles), ray.t_min);
     for (int a = 0; a < 3; ++a) {
       p.o[a][i] = s.r.o[a];
       p.inv[a][i] = s.r.inv_d[a];
@@ -692,7 +691,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
 std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
                          std::uint32_t* best_id) {
   Packet p;
-  make_packet(rays, valid, p, false);
+  make_packet(bvh, rays, valid, p, false);
   for (int i = 0; i < kP; ++i) {
     p.best[i] = (valid >> i & 1u) ? best_t[i] : -kInfF;
     p.id[i] = best_id[i];
@@ -710,7 +709,7 @@ std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_
 
 std::uint32_t Occluded8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid) {
   Packet p;
-  make_packet(rays, valid, p, true);
+  make_packet(bvh, rays, valid, p, true);
   return traverse8<true>(bvh, p, valid);
 }
 

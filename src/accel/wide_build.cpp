@@ -72,6 +72,7 @@ WideBvh collapse_to_wide(const Geometry& g) {
           break;
         }
         case ShapeType::kTriangle: {
+          w.has_triangles = true;
           if (nt % kWidth == 0) w.triangles.push_back(empty_triangle_block());
           TriangleBlock& b = w.triangles.back();
           const int lane = nt++ % kWidth;

@@ -16,6 +16,8 @@ class Geometry;
 
 namespace dtraced::accel::detail {
 
+struct RayPre;  // kernels.h
+
 inline constexpr int kWidth = 4;  // children per node, prims per leaf block
 inline constexpr std::uint32_t kEmptyChild = 0xffffffffu;
 inline constexpr std::uint32_t kLeafBit = 0x80000000u;  // child refers to leaves[child & ~kLeafBit]
@@ -66,6 +68,7 @@ struct WideBvh {
   std::vector<SphereBlock> spheres;
   std::vector<TriangleBlock> triangles;
   std::vector<BoxPrim> boxes;
+  bool has_triangles = false;  // rays need the triangle test's shear constants
   bool empty() const { return nodes.empty(); }
 };
 
@@ -74,8 +77,9 @@ struct WideBvh {
 // hit over planes and tree (ties to the smaller id).
 struct Kernels {
   // Single ray: updates best_t / best_id; returns true if the tree held a nearer hit.
-  bool (*intersect1)(const WideBvh& bvh, const math::Ray& ray, float& best_t, std::uint32_t& best_id);
-  bool (*occluded1)(const WideBvh& bvh, const math::Ray& ray);
+  // `r` is precompute(ray, bvh.has_triangles).
+  bool (*intersect1)(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id);
+  bool (*occluded1)(const WideBvh& bvh, const RayPre& r, float t_min, float t_max);
   // Packet of 8: lanes with bit set in `valid`; per lane best_t / best_id as above. Returns the
   // mask of lanes whose best came from the tree.
   std::uint32_t (*intersect8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
