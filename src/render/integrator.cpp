@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cmath>
 #include <numbers>
 
@@ -50,6 +51,21 @@ struct MediumStack {
       }
     }
   }
+};
+
+// A point light as seen from one hit point (see Tracer::light_setup).
+struct LightSample {
+  Vec3f l;             // unit direction towards the light
+  float dist2 = 0.0f;  // squared distance to the light
+  float cos_l = 0.0f;  // dot(nf, l), > 0
+};
+
+// What the packet path already knows about the first surface of a camera ray: its hit (nullptr on
+// a miss) and, when the shadow rays were traced as packets, the direct light there (nullptr: the
+// tracer computes it itself).
+struct FirstHit {
+  const accel::Hit* hit = nullptr;
+  const Vec3f* direct = nullptr;
 };
 
 struct Tracer {
@@ -109,34 +125,57 @@ struct Tracer {
     return media.current_ior(scene) / n_from;
   }
 
+  // The geometry of one point light seen from a hit point, and the shadow ray towards it. False
+  // when the light cannot contribute (at the point itself, or below the shading normal), in which
+  // case no shadow ray is cast. Shared by the scalar and the packet path so both cast the very
+  // same shadow rays.
+  static bool light_setup(const accel::Hit& hit, const Vec3f& nf, const PointLightF& light, LightSample& ls,
+                          math::Ray& shadow) {
+    const Vec3f to_light = light.position - hit.p;
+    ls.dist2 = math::dot(to_light, to_light);
+    if (!(ls.dist2 > 0.0f)) return false;
+    const float dist = std::sqrt(ls.dist2);
+    ls.l = to_light / dist;
+    ls.cos_l = math::dot(nf, ls.l);
+    if (!(ls.cos_l > 0.0f)) return false;
+    shadow = math::Ray{};
+    shadow.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, ls.l);
+    const Vec3f seg = light.position - shadow.o;
+    const float seg_len = math::length(seg);
+    shadow.d = seg / seg_len;
+    shadow.t_max = seg_len;  // a point light is not a surface: nothing to stop short of
+    return true;
+  }
+
+  // Light reflected towards wo from one light whose shadow ray let `vis` (> 0) of it through.
+  static Vec3f light_contribution(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const PointLightF& light,
+                                  const LightSample& ls, float vis) {
+    const float e = vis * ls.cos_l / ls.dist2;  // irradiance per unit intensity
+    Vec3f f = m.color * (m.diffuse * kInvPi);
+    if (m.specular > 0.0f) {
+      const Vec3f h = math::normalize(ls.l + wo);
+      const float cos_h = std::max(0.0f, math::dot(nf, h));
+      const float spec =
+          m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*std::pow(cos_h, m.shininess);
+      f += Vec3f{spec, spec, spec};
+    }
+    return math::mul(f, light.intensity) * e;
+  }
+
+  // Whether a hit on material m gathers direct light at all.
+  static bool wants_direct(const MaterialF& m) {
+    return m.local_weight > 0.0f && (m.diffuse > 0.0f || m.specular > 0.0f);
+  }
+
   Vec3f direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const MediumStack& media) {
     Vec3f sum{0, 0, 0};
     for (const PointLightF& light : scene.lights()) {
-      const Vec3f to_light = light.position - hit.p;
-      const float dist2 = math::dot(to_light, to_light);
-      if (!(dist2 > 0.0f)) continue;
-      const float dist = std::sqrt(dist2);
-      const Vec3f l = to_light / dist;
-      const float cos_l = math::dot(nf, l);
-      if (!(cos_l > 0.0f)) continue;
+      LightSample ls;
       math::Ray shadow;
-      shadow.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, l);
-      const Vec3f seg = light.position - shadow.o;
-      const float seg_len = math::length(seg);
-      shadow.d = seg / seg_len;
-      shadow.t_max = seg_len;  // a point light is not a surface: nothing to stop short of
+      if (!light_setup(hit, nf, light, ls, shadow)) continue;
       const float vis = transmittance(shadow, media);
       if (vis <= 0.0f) continue;
-      const float e = vis * cos_l / dist2;  // irradiance per unit intensity
-      Vec3f f = m.color * (m.diffuse * kInvPi);
-      if (m.specular > 0.0f) {
-        const Vec3f h = math::normalize(l + wo);
-        const float cos_h = std::max(0.0f, math::dot(nf, h));
-        const float spec =
-            m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*std::pow(cos_h, m.shininess);
-        f += Vec3f{spec, spec, spec};
-      }
-      sum += math::mul(f, light.intensity) * e;
+      sum += light_contribution(m, wo, nf, light, ls, vis);
     }
     return sum;
   }
@@ -148,10 +187,20 @@ struct Tracer {
     return r;
   }
 
-  Vec3f trace(math::Ray ray, std::uint32_t depth, float weight, MediumStack media) {
+  // `first`, given only for camera rays of a packet, replaces the first intersection (and maybe
+  // the first direct-light sum) by what the packet traversal found; all else is unchanged, so the
+  // result has the same bits either way.
+  Vec3f trace(math::Ray ray, std::uint32_t depth, float weight, MediumStack media, const FirstHit* first = nullptr) {
     for (int pass = 0; pass <= kMaxPassThroughs; ++pass) {
       accel::Hit hit;
-      if (!intersect(ray, hit)) return limits.background;
+      const Vec3f* known_direct = nullptr;
+      if (pass == 0 && first != nullptr) {
+        if (first->hit == nullptr) return limits.background;
+        hit = *first->hit;
+        known_direct = first->direct;
+      } else if (!intersect(ray, hit)) {
+        return limits.background;
+      }
       const MaterialF& m = scene.material(hit.shape);
       const Vec3f wo = -ray.d;
       const bool front = math::dot(wo, hit.n) >= 0.0f;
@@ -162,8 +211,8 @@ struct Tracer {
       const float eta = m.transparency > 0.0f ? cross_interface(inside, hit.shape) : 1.0f;
 
       Vec3f radiance{0, 0, 0};
-      if (m.local_weight > 0.0f && (m.diffuse > 0.0f || m.specular > 0.0f)) {
-        radiance += direct(hit, m, wo, nf, media) * m.local_weight;
+      if (wants_direct(m)) {
+        radiance += (known_direct != nullptr ? *known_direct : direct(hit, m, wo, nf, media)) * m.local_weight;
       }
       const bool deeper = depth < limits.max_depth;
       if (m.reflectivity > 0.0f && deeper && weight * m.reflectivity >= kMinBranchWeight) {
@@ -210,6 +259,59 @@ struct Tracer {
 Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const TraceLimits& limits, TraceStats& stats) {
   Tracer tracer{scene, limits, stats};
   return tracer.trace(ray, 0, 1.0f, MediumStack{});
+}
+
+void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint32_t valid, const TraceLimits& limits,
+                     TraceStats& stats, Vec3f* out) {
+  constexpr int kN = accel::kPacketSize;
+  valid &= (1u << kN) - 1;
+  if (valid == 0) return;
+  Tracer tracer{scene, limits, stats};
+  const accel::Geometry& geometry = scene.geometry();
+
+  accel::Hit hits[kN];
+  stats.rays += std::popcount(valid);
+  const std::uint32_t hit_mask = geometry.intersect8(rays, valid, hits) & valid;
+
+  // Shadow rays of the first hits as packets: one occluded8 per light. Only without transparency,
+  // where a shadow ray is a pure any-hit query; with it, Tracer::transmittance walks each one.
+  Vec3f direct[kN];
+  std::uint32_t direct_mask = 0;  // lanes whose direct[] is final
+  if (!scene.has_transparency() && hit_mask != 0) {
+    Vec3f wo[kN], nf[kN];
+    for (int i = 0; i < kN; ++i) {
+      if (!(hit_mask >> i & 1u) || !Tracer::wants_direct(scene.material(hits[i].shape))) continue;
+      // The same wo and nf as Tracer::trace computes for this hit.
+      wo[i] = -rays[i].d;
+      nf[i] = math::dot(wo[i], hits[i].n) >= 0.0f ? hits[i].n : -hits[i].n;
+      direct[i] = Vec3f{0, 0, 0};
+      direct_mask |= 1u << i;
+    }
+    LightSample ls[kN];
+    math::Ray shadow[kN];
+    for (const PointLightF& light : scene.lights()) {
+      std::uint32_t cast = 0;
+      for (int i = 0; i < kN; ++i) {
+        if ((direct_mask >> i & 1u) && Tracer::light_setup(hits[i], nf[i], light, ls[i], shadow[i])) cast |= 1u << i;
+      }
+      if (cast == 0) continue;
+      stats.rays += std::popcount(cast);
+      const std::uint32_t blocked = geometry.occluded8(shadow, cast);
+      // Lights are summed in scene order per lane, as Tracer::direct does; a blocked light
+      // (visibility 0) adds nothing.
+      for (int i = 0; i < kN; ++i) {
+        if ((cast & ~blocked) >> i & 1u) {
+          direct[i] += Tracer::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
+        }
+      }
+    }
+  }
+
+  for (int i = 0; i < kN; ++i) {
+    if (!(valid >> i & 1u)) continue;
+    const FirstHit first{(hit_mask >> i & 1u) ? &hits[i] : nullptr, (direct_mask >> i & 1u) ? &direct[i] : nullptr};
+    out[i] = tracer.trace(rays[i], 0, 1.0f, MediumStack{}, &first);
+  }
 }
 
 }  // namespace dtraced::render

@@ -1,9 +1,13 @@
-// dtraced::render Whitted integrator (scalar reference path).
+// dtraced::render Whitted integrator.
 //
 // Direct light from point lights with hard shadows, Lambert diffuse plus normalised Blinn-Phong
 // specular, mirror reflection, and dielectric refraction with exact Fresnel and total internal
 // reflection. Nested and touching transparent objects are handled with a small per-path stack
 // of the media the path is inside. Pure function of (scene, ray, settings): thread-safe.
+//
+// trace_radiance follows one camera ray; trace_radiance8 follows up to 8 together, tracing their
+// first hits (and, without transparency, the shadow rays there) as packets and everything after
+// per ray. Both give every ray the same bits and count the same rays.
 #pragma once
 
 #include <cstdint>
@@ -31,5 +35,12 @@ struct TraceLimits {
 
 // Radiance arriving along `ray` (a camera ray).
 Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const TraceLimits& limits, TraceStats& stats);
+
+// Radiance along the camera rays rays[i] for each bit i set in `valid` (bits >= kPacketSize are
+// ignored), written to out[i]; other entries of `out` are left alone. out[i] is bitwise equal to
+// trace_radiance(rays[i]) and `stats` counts the same rays. Coherent rays (one pixel block) are
+// what it is for.
+void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint32_t valid, const TraceLimits& limits,
+                     TraceStats& stats, Vec3f* out);
 
 }  // namespace dtraced::render

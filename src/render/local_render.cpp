@@ -19,6 +19,7 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;
 
+  const TileOptions tile_options{.packets = options.packets};
   std::atomic<std::size_t> next{0};
   std::mutex mu;
   std::condition_variable cv;
@@ -29,7 +30,7 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   auto worker = [&] {
     TraceStats local;
     for (std::size_t i = next.fetch_add(1); i < tiles.size(); i = next.fetch_add(1)) {
-      Tile t = render_tile(scene, settings, tiles[i]);
+      Tile t = render_tile(scene, settings, tiles[i], tile_options);
       for (std::uint32_t row = 0; row < t.rect.height; ++row) {
         const float* src = &t.rgb[std::size_t(row) * t.rect.width * 3];
         std::copy(src, src + std::size_t(t.rect.width) * 3, result.image.pixel(t.rect.x0, t.rect.y0 + row));

@@ -17,6 +17,7 @@ namespace dtraced::render {
 struct LocalOptions {
   std::uint32_t threads = 0;     // 0: every hardware thread
   std::uint32_t tile_size = 32;  // pixels per tile side, >= 1
+  bool packets = true;           // TileOptions::packets: same image either way
   // Called now and then, and once at the end, with (tiles done, tiles total).
   std::function<void(std::size_t, std::size_t)> progress;
 };

@@ -2,7 +2,8 @@
 //
 // render_tile is a pure function of (scene, settings, rect): every sample's random numbers come
 // from a counter-based hash of (seed, frame, x, y, sample index) and each pixel sums its samples
-// in sample order, so a pixel has the same bits whichever tile, thread or host renders it.
+// in sample order, so a pixel has the same bits whichever tile, thread or host renders it, and
+// whether its camera rays were traced one by one or in packets.
 // Thread-safe: any number of tiles may render at once over one shared RenderScene.
 #pragma once
 
@@ -27,8 +28,16 @@ struct Tile {
   TraceStats stats;
 };
 
+struct TileOptions {
+  // Trace camera rays in packets of kPacketSize (blocks of 4x2 pixels, one sample index at a
+  // time; see trace_radiance8) rather than pixel by pixel. Both give the same bits and ray
+  // counts; the per-pixel path stays as the reference the tests compare against.
+  bool packets = true;
+};
+
 // Renders the pixels of `rect`, which must lie inside the settings' image.
-Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings, const TileRect& rect);
+Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings, const TileRect& rect,
+                 const TileOptions& options = {});
 
 // The tiles of a width x height image in row-major order, each tile_size square except at the
 // right and bottom edges.
