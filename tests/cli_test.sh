@@ -83,8 +83,48 @@ check "unsupported output extension" 1 "$DTRACED" render "$SCENES/snowman.json" 
 check "generate" 0 "$DTRACED" generate --count 500 --seed 3 -o "$work/gen.json"
 check "generated scene validates" 0 "$DTRACED" validate "$work/gen.json"
 
-# Role configuration: JSON files, flags winning over them, unknown keys and misplaced flags.
+# Mesh scenes: generated with their OBJ files, validated, rendered; the scene names its files
+# relative to itself, so it works from any directory.
+check "generate a mesh scene" 0 "$DTRACED" generate --mesh-triangles 3000 --seed 5 -o "$work/m/mesh.json" --models-dir models
+expect_text "the generator names its OBJ files" "$work/err" "3 OBJ files"
+check "generate --count and --mesh-triangles exclude each other" 2 "$DTRACED" generate --count 5 --mesh-triangles 300 -o "$work/x.json"
+check "the mesh scene validates" 0 "$DTRACED" validate "$work/m/mesh.json"
+expect_text "validate counts triangles and degenerate ones" "$work/out" "degenerate triangles"
+check "the mesh scene renders" 0 bash -c 'cd / && "$0" render "$1" -o "$2" --width 96 --height 54 -s 1' "$DTRACED" "$work/m/mesh.json" "$work/mesh.png"
+expect_text "the summary names the kernels" "$work/err" "kernels"
+check "the shipped mesh scene validates" 0 "$DTRACED" validate "$SCENES/mesh.json"
+printf 'v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n' >"$work/m/bad.obj"
+echo '{"camera": {}, "scene_objects": [{"type": "mesh", "file": "bad.obj"}], "scene_lights": []}' >"$work/m/bad.json"
+check "a NaN in an OBJ is an error" 1 "$DTRACED" validate "$work/m/bad.json"
+expect_text "the error names the scene, field, OBJ file and line" "$work/err" "bad.json: /scene_objects/0/file: bad.obj: line 2"
+
+# Instruction sets: --isa, DTRACED_ISA, and --version naming the kernels that run.
+check "--version names the kernels" 0 "$DTRACED" --version
+expect_text "--version lists kernels and supported sets" "$work/out" "kernels: .*supported: scalar"
+check "DTRACED_ISA is honoured by --version" 0 env DTRACED_ISA=scalar "$DTRACED" --version
+expect_text "DTRACED_ISA=scalar shows in --version" "$work/out" "kernels: scalar;"
+check "DTRACED_ISA is honoured by render" 0 env DTRACED_ISA=scalar "$DTRACED" render "$SCENES/snowman.json" -o "$work/isa.pfm" --width 32 --height 24
+expect_text "render runs the scalar kernels" "$work/err" "scalar kernels"
+check "--isa wins over DTRACED_ISA" 0 env DTRACED_ISA=bogus "$DTRACED" render "$SCENES/snowman.json" -o "$work/isa2.pfm" --width 32 --height 24 --isa best
+check "every kernel renders the same bits" 0 "$DTRACED" compare "$work/isa.pfm" "$work/isa2.pfm" --max-rmse 0
+check "--isa before the verb" 0 "$DTRACED" --isa scalar render "$SCENES/snowman.json" -o "$work/isa3.pfm" --width 32 --height 24 -q
+check "a bad --isa is a usage error" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --isa sse9
+expect_text "the bad --isa is named" "$work/err" "--isa sse9: not an instruction set"
+check "a bad DTRACED_ISA is a usage error" 2 env DTRACED_ISA=sse9 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png"
+expect_text "the bad DTRACED_ISA is named" "$work/err" "DTRACED_ISA=sse9"
+for isa in sse4 avx2 avx512; do
+  if ! grep -q "supported:.* $isa" <("$DTRACED" --version); then
+    check "an unsupported --isa is refused" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --isa "$isa"
+    expect_text "the refusal lists what the CPU supports" "$work/err" "--isa $isa: this CPU supports scalar"
+  fi
+done
 echo tok >"$work/token"
+echo '{"role": "worker", "isa": "sse9"}' >"$work/w1.json"
+check "a bad isa in a worker config" 2 "$DTRACED" --config "$work/w1.json" --collector http://127.0.0.1:1 --token-file "$work/token"
+expect_text "the worker config's isa is checked" "$work/err" "sse9"
+check "--isa is not a collector option" 2 "$DTRACED" --role collector --isa scalar --state-dir "$work/s" --token-file "$work/token"
+
+# Role configuration: JSON files, flags winning over them, unknown keys and misplaced flags.
 echo '{"role": "collector", "listen": "127.0.0.1:0", "state_dir": "/nonexistent", "bogus_key": 1}' >"$work/c1.json"
 check "config with an unknown key" 2 "$DTRACED" --config "$work/c1.json"
 expect_text "the unknown key is named with its file" "$work/err" "c1.json: /bogus_key: unknown key"

@@ -583,7 +583,8 @@ TEST_CASE("prepare_scene builds a scene whose body matches its digest and refuse
   const std::string digest = dtraced::scene::scene_digest(desc);
 
   SECTION("the canonical body renders exactly as the scene built locally") {
-    const dtraced::worker::PreparedScene prepared = dtraced::worker::prepare_scene(canonical, digest);
+    const dtraced::worker::PreparedScene prepared =
+        dtraced::worker::prepare_scene(canonical, digest, dtraced::accel::best_isa());
     REQUIRE(prepared.scene != nullptr);
     CHECK(prepared.error.empty());
     const dtraced::render::TileRect rect{16, 0, 16, 16};
@@ -591,25 +592,36 @@ TEST_CASE("prepare_scene builds a scene whose body matches its digest and refuse
                     dtraced::render::render_tile(*build(desc), desc.render, rect).rgb));
   }
   SECTION("a body with other whitespace but the same scene is accepted") {
-    CHECK(dtraced::worker::prepare_scene(kTinyScene, digest).scene != nullptr);
+    CHECK(dtraced::worker::prepare_scene(kTinyScene, digest, dtraced::accel::best_isa()).scene != nullptr);
   }
   SECTION("a tampered body is refused") {
     std::string tampered = canonical;
     const std::size_t at = tampered.find("\"radius\":1");
     REQUIRE(at != std::string::npos);
     tampered.replace(at, 10, "\"radius\":2");
-    const dtraced::worker::PreparedScene prepared = dtraced::worker::prepare_scene(tampered, digest);
+    const dtraced::worker::PreparedScene prepared =
+        dtraced::worker::prepare_scene(tampered, digest, dtraced::accel::best_isa());
     CHECK(prepared.scene == nullptr);
     CHECK_THAT(prepared.error, Catch::Contains("another scene"));
   }
   SECTION("a body that does not load is refused") {
-    const dtraced::worker::PreparedScene prepared = dtraced::worker::prepare_scene(canonical.substr(0, 40), digest);
+    const dtraced::worker::PreparedScene prepared =
+        dtraced::worker::prepare_scene(canonical.substr(0, 40), digest, dtraced::accel::best_isa());
     CHECK(prepared.scene == nullptr);
     CHECK_THAT(prepared.error, Catch::Contains("does not load"));
   }
   SECTION("a valid scene under another scene's digest is refused") {
     const std::string other = dtraced::scene::scene_digest(other_scene(0.5));
-    CHECK(dtraced::worker::prepare_scene(canonical, other).scene == nullptr);
+    CHECK(dtraced::worker::prepare_scene(canonical, other, dtraced::accel::best_isa()).scene == nullptr);
+  }
+  SECTION("a scene naming a mesh file is refused, whatever file it names") {
+    // A worker never reads its own disk on a scene's behalf; canonical scenes carry meshes inline.
+    const std::string with_file =
+        R"({"camera": {}, "scene_objects": [{"type": "mesh", "file": "/etc/hostname"}], "scene_lights": []})";
+    const dtraced::worker::PreparedScene prepared =
+        dtraced::worker::prepare_scene(with_file, digest, dtraced::accel::best_isa());
+    CHECK(prepared.scene == nullptr);
+    CHECK_THAT(prepared.error, Catch::Contains("/scene_objects/0/file") && Catch::Contains("inline"));
   }
 }
 

@@ -20,6 +20,8 @@ constexpr std::uint32_t kMaxLeafSize = 4;
 constexpr double kTraversalCost = 0.5;
 // Marginal cost of one more prim in a SIMD leaf block (SAH units; see the leaf cost in build).
 constexpr double kSimdLeafSlope = 0.3;
+// Bounded prims below which the SIMD layout is not built (see Geometry::build).
+constexpr std::size_t kMinWidePrims = 64;
 constexpr std::uint32_t kNoParent = std::numeric_limits<std::uint32_t>::max();
 
 struct BuildPrim {
@@ -214,7 +216,11 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
   g.stats_.max_depth = max_depth;
   g.stats_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   g.isa_ = isa;
-  if (isa != Isa::kScalar) {
+  // A tree of a few dozen prims is two or three wide levels: there the SIMD kernels' fixed costs
+  // (a 4-lane double sphere test for a leaf's one or two spheres, the packet setup) exceed what
+  // they save, and the showcase scene rendered ~20% slower with them. Such scenes keep the
+  // scalar walk, which answers with the same bits.
+  if (isa != Isa::kScalar && g.prims_.size() >= kMinWidePrims) {
     const auto wide_start = std::chrono::steady_clock::now();
     g.wide_ = detail::collapse_to_wide(g);
     g.stats_.wide_nodes = std::uint32_t(g.wide_.nodes.size());
@@ -279,11 +285,11 @@ void walk(const Nodes& nodes, const Prims& prims, const detail::RayPre& r, float
 bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
   const detail::RayPre r = detail::precompute(ray, has_triangles_);
-  if (isa_ != Isa::kScalar) {
+  if (!wide_.empty()) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
     const bool found = planes_hit(r, ray.t_min, best_t, best_id);
-    const bool tree = !wide_.empty() && wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id);
+    const bool tree = wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id);
     if (!found && !tree) return false;
     detail::finish_hit(shapes_[best_id], best_id, ray, r, best_t, hit);
     return true;
@@ -323,11 +329,11 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
 bool Geometry::occluded(const Ray& ray) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
   const detail::RayPre r = detail::precompute(ray, has_triangles_);
-  if (isa_ != Isa::kScalar) {
+  if (!wide_.empty()) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
     if (planes_hit(r, ray.t_min, best_t, best_id)) return true;
-    return !wide_.empty() && wide_kernels().occluded1(wide_, r, ray.t_min, ray.t_max);
+    return wide_kernels().occluded1(wide_, r, ray.t_min, ray.t_max);
   }
   for (const std::uint32_t id : planes_) {
     if (detail::plane_t(shapes_[id].plane, r, ray.t_min) < ray.t_max) return true;
@@ -367,7 +373,7 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
     if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
   }
   if (live == 0) return 0;
-  if (isa_ == Isa::kScalar) {
+  if (wide_.empty()) {
     std::uint32_t found = 0;
     for (int i = 0; i < kPacketSize; ++i) {
       if ((live >> i & 1u) && intersect(rays[i], hits[i])) found |= 1u << i;
@@ -385,7 +391,7 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
       found |= 1u << i;
     }
   }
-  if (!wide_.empty()) found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
+  found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
   for (int i = 0; i < kPacketSize; ++i) {
     if (found >> i & 1u) {
       detail::finish_hit(shapes_[best_id[i]], best_id[i], rays[i], detail::precompute(rays[i]), best_t[i], hits[i]);
@@ -400,7 +406,7 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
     if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
   }
   if (live == 0) return 0;
-  if (isa_ == Isa::kScalar) {
+  if (wide_.empty()) {
     std::uint32_t blocked = 0;
     for (int i = 0; i < kPacketSize; ++i) {
       if ((live >> i & 1u) && occluded(rays[i])) blocked |= 1u << i;
@@ -416,7 +422,7 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
     }
   }
   const std::uint32_t rest = live & ~blocked;
-  if (rest != 0 && !wide_.empty()) blocked |= wide_kernels().occluded8(wide_, rays, rest);
+  if (rest != 0) blocked |= wide_kernels().occluded8(wide_, rays, rest);
   return blocked;
 }
 

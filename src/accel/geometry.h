@@ -93,7 +93,8 @@ class Geometry {
 
   // Builds the BVH (binned SAH) over the bounded shapes; planes are kept in a separate list. With
   // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 4-wide
-  // layout that isa's kernels walk.
+  // layout that isa's kernels walk, unless the scene has fewer than 64 bounded shapes: there the
+  // scalar walk is faster (stats().wide_nodes is then 0).
   static Geometry build(std::vector<Shape> shapes, Isa isa = best_isa());
 
   // Nearest hit with t in the open interval (ray.t_min, ray.t_max). Returns false on a miss.

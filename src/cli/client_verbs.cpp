@@ -3,7 +3,9 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <map>
 #include <thread>
+#include <utility>
 
 #include <fmt/format.h>
 
@@ -127,6 +129,17 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
       return kExitFailed;
     }
   }
+  // Mesh files travel inside the scene: the canonical form (what protocol::encode sends) carries
+  // each OBJ's text as "obj", since a worker host has no such file.
+  // Name as written -> (bytes, objects using it): a file placed n times is inlined n times.
+  std::map<std::string, std::pair<std::size_t, std::size_t>> mesh_files;
+  for (const scene::Object& o : loaded.scene->objects) {
+    if (o.type == scene::ObjectType::kMesh && !o.mesh->file.empty()) {
+      auto& [bytes, uses] = mesh_files[o.mesh->file];
+      bytes = o.mesh->obj.size();
+      ++uses;
+    }
+  }
   protocol::JobSubmit submit;
   submit.scene = std::move(*loaded.scene);
   submit.output = args.output;
@@ -138,9 +151,21 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
   submit.max_depth = args.max_depth;
   submit.frame = args.frame;
   submit.seed = args.seed;
+  std::string body = protocol::encode(submit);
+  // Refused here with the reason, rather than by the collector as a bare 413.
+  if (body.size() > protocol::kMaxJobSubmitBytes) {
+    fmt::print(stderr,
+               "{}: the job is {} bytes with its meshes inlined, over the collector's limit of {} bytes ({} MiB)\n",
+               args.scene, body.size(), protocol::kMaxJobSubmitBytes, protocol::kMaxJobSubmitBytes >> 20);
+    for (const auto& [file, size] : mesh_files) {
+      fmt::print(stderr, "  mesh file {}: {} bytes, inlined {} time{}\n", file, size.first, size.second,
+                 size.second == 1 ? "" : "s");
+    }
+    return kExitFailed;
+  }
   Session session;
   if (!session.init(client)) return kExitFailed;
-  auto resp = session.call(http::Verb::post, "/v1/jobs", protocol::encode(submit));
+  auto resp = session.call(http::Verb::post, "/v1/jobs", std::move(body));
   if (!resp) return kExitFailed;
   auto created = decode_or_report(protocol::decode_job_created(resp->body()), "POST /v1/jobs");
   if (!created) return kExitFailed;

@@ -6,6 +6,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <memory>
 #include <optional>
 #include <set>
@@ -15,6 +16,7 @@
 #include <fmt/format.h>
 
 #include "cli/client_verbs.h"
+#include "cli/isa_option.h"
 #include "cli/json_config.h"
 #include "cli/roles.h"
 #include "cli/verbs.h"
@@ -39,7 +41,9 @@ std::string config_file_argument(int argc, char** argv) {
 int main(int argc, char** argv) {
   using namespace dtraced::cli;
   CLI::App app{"dtraced: a distributed ray tracer. Renders JSON scenes locally or across a farm.", "dtraced"};
-  app.set_version_flag("--version", std::string(version_string()));
+  // The environment is read here, at the edge, and handed down as values.
+  const char* isa_env = std::getenv("DTRACED_ISA");
+  app.set_version_flag("--version", version_line(version_string(), isa_env));
   app.require_subcommand(0, 1);
 
   RoleArgs role;
@@ -84,6 +88,7 @@ int main(int argc, char** argv) {
   r->add_option("--tile-size", render.tile_size, "Tile side in pixels")->check(CLI::Range(1u, 4096u));
   r->add_option("--bit-depth", render.bit_depth, "PNG bit depth: 8 or 16")->check(CLI::IsMember({8, 16}));
   r->add_flag("-q,--quiet", render.quiet, "No progress bar and no summary line");
+  r->add_option("--isa", role.isa, kIsaHelp);
 
   std::vector<std::string> validate_files;
   CLI::App* v = app.add_subcommand("validate", "Check scene files; print OK or every error found");
@@ -97,9 +102,15 @@ int main(int argc, char** argv) {
 
   GenerateArgs generate;
   CLI::App* g = app.add_subcommand("generate", "Write a generated stress scene (many spheres on a plane)");
-  g->add_option("-n,--count", generate.count, "Number of spheres")
-      ->check(CLI::Range(1u, 500000u));  // keeps the file under the loader's size limit
+  CLI::Option* count = g->add_option("-n,--count", generate.count, "Number of spheres")
+                           ->check(CLI::Range(1u, 500000u));  // keeps the file under the loader's size limit
   g->add_option("--seed", generate.seed, "Generator seed");
+  g->add_option("--mesh-triangles", generate.mesh_triangles,
+                "Write a mesh scene of about this many triangles (OBJ files beside the scene) instead of spheres")
+      ->check(CLI::Range(1u, 20000000u))
+      ->excludes(count);
+  g->add_option("--models-dir", generate.models_dir,
+                "With --mesh-triangles: directory of the OBJ files, relative to the scene's (default: beside it)");
   g->add_option("-o,--output", generate.output, "Output scene file (JSON)")->required();
 
   // Client verbs: they talk to a collector.
@@ -159,6 +170,16 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     const int code = app.exit(e);
     return code == 0 ? 0 : kExitUsage;
+  }
+  // The kernels, for the two commands that render: --isa, else $DTRACED_ISA, else the best.
+  if (r->parsed() || role.role == "worker") {
+    std::string error;
+    const std::optional<dtraced::accel::Isa> isa = choose_isa(role.isa, isa_env, error);
+    if (!isa) {
+      fmt::print(stderr, "{}\n", error);
+      return kExitUsage;
+    }
+    role.kernels = render.isa = *isa;
   }
   if (!role.role.empty()) {
     if (app.get_subcommands().size() > 0) {

@@ -119,6 +119,7 @@ int run_worker_role(const RoleArgs& a) {
   w.token = *token;
   w.name = a.name;
   w.threads = a.threads;
+  w.isa = a.kernels;
   if (a.scene_cache) w.scene_cache = *a.scene_cache;
   if (a.grace_seconds) w.grace = std::chrono::seconds(*a.grace_seconds);
   if (a.connect_timeout_ms) w.timeouts.connect = std::chrono::milliseconds(*a.connect_timeout_ms);
@@ -208,6 +209,8 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   app.add_option("--max-unacknowledged", a.max_unacknowledged, "Tiles in hand at most (0: 4 per thread)")
       ->check(CLI::Range(0u, 65536u))
       ->group(kWorkerGroup);
+  // Also an option of `render` (main adds it there, bound to the same value).
+  app.add_option("--isa", a.isa, kIsaHelp)->group(kWorkerGroup);
 }
 
 int run_role(const CLI::App& app, const RoleArgs& a) {

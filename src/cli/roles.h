@@ -11,6 +11,8 @@
 
 #include <CLI/CLI.hpp>
 
+#include "accel/isa.h"
+
 namespace dtraced::cli {
 
 struct RoleArgs {
@@ -33,7 +35,14 @@ struct RoleArgs {
   std::string name;
   std::uint32_t threads = 0;
   std::optional<std::uint32_t> scene_cache, grace_seconds, connect_timeout_ms, request_timeout_ms, max_unacknowledged;
+  // worker and `render`: --isa as given (main resolves it with $DTRACED_ISA into `kernels`)
+  std::optional<std::string> isa;
+  accel::Isa kernels = accel::Isa::kScalar;
 };
+
+inline constexpr const char* kIsaHelp =
+    "Traversal kernels: scalar, sse4, avx2, avx512 or best (default: $DTRACED_ISA if set, else best; "
+    "worker and render)";
 
 // Adds --role, the role flags and --config to `app`. Call before parsing.
 void add_role_options(CLI::App& app, RoleArgs& args);

@@ -8,6 +8,8 @@
 #include <string_view>
 #include <vector>
 
+#include "accel/isa.h"
+
 namespace dtraced::cli {
 
 std::string_view version_string();
@@ -22,6 +24,7 @@ struct RenderArgs {
   std::uint32_t tile_size = 32;
   int bit_depth = 8;
   bool quiet = false;
+  accel::Isa isa = accel::Isa::kScalar;  // resolved by main (cli/isa_option.h)
 };
 int run_render(const RenderArgs& args);
 
@@ -37,6 +40,10 @@ struct GenerateArgs {
   std::uint32_t count = 100000;
   std::uint64_t seed = 1;
   std::string output;
+  // Set: a mesh scene of about this many triangles instead of spheres, its OBJ files written
+  // under models_dir (relative to the scene's directory; "" = beside it).
+  std::optional<std::uint32_t> mesh_triangles;
+  std::string models_dir;
 };
 int run_generate(const GenerateArgs& args);
 

@@ -445,6 +445,9 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
       scene::LoadOptions options;
       options.max_bytes = std::numeric_limits<std::uint64_t>::max();
       options.max_errors = kMaxDecodeErrors;
+      // A submission carries its meshes inline: a "file" would make the collector read a file of
+      // its own host into the scene, and from there serve it to any worker.
+      options.allow_mesh_files = false;
       scene::LoadResult loaded = scene::load_scene_string(json::serialize(*s), "", options);
       for (scene::SceneError& e : loaded.errors) r.error("/scene" + e.path, std::move(e.message));
       if (loaded.ok()) m.scene = std::move(*loaded.scene);

@@ -22,14 +22,15 @@ constexpr int kMaxPassThroughs = 64;
 // Transparent surfaces a shadow ray may cross before the light counts as blocked.
 constexpr int kMaxShadowCrossings = 64;
 
-// The transparent objects a path is currently inside, innermost last. Bounded; an overflow only
+// The transparent objects a path is currently inside (scene object indices, so a closed mesh is
+// one medium whichever triangle the path crosses), innermost last. Bounded; an overflow only
 // loses the outermost entries' indices of refraction, never memory safety.
 struct MediumStack {
   static constexpr int kCapacity = 16;
   std::array<std::uint32_t, kCapacity> ids{};
   int size = 0;
 
-  float current_ior(const RenderScene& s) const { return size == 0 ? 1.0f : s.material(ids[size - 1]).ior; }
+  float current_ior(const RenderScene& s) const { return size == 0 ? 1.0f : s.object_material(ids[size - 1]).ior; }
   bool contains(std::uint32_t id) const {
     for (int i = 0; i < size; ++i)
       if (ids[i] == id) return true;
@@ -113,9 +114,10 @@ struct Tracer {
     return 0.0f;
   }
 
-  // Updates `media` for a path crossing transparent shape `id` and returns the relative index of
-  // refraction n_after / n_before of that crossing.
-  float cross_interface(MediumStack& media, std::uint32_t id) const {
+  // Updates `media` for a path crossing transparent shape `shape` and returns the relative index
+  // of refraction n_after / n_before of that crossing.
+  float cross_interface(MediumStack& media, std::uint32_t shape) const {
+    const std::uint32_t id = scene.object(shape);
     const float n_from = media.current_ior(scene);
     if (media.contains(id)) {
       media.remove(id);

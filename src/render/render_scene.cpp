@@ -2,6 +2,7 @@
 
 #include <cassert>
 #include <cmath>
+#include <limits>
 #include <numbers>
 
 namespace dtraced::render {
@@ -39,8 +40,28 @@ accel::Shape to_shape(const scene::Object& o) {
       s.type = accel::ShapeType::kPlane;
       s.plane = {to_f(o.plane.point), to_f(math::normalize(o.plane.normal))};
       break;
+    case scene::ObjectType::kMesh:
+      assert(false && "meshes become one shape per triangle (append_shapes)");
+      break;
   }
   return s;
+}
+
+// The shapes of one object: one, or one triangle per mesh triangle. Degenerate triangles are
+// kept (the accel layer never hits them) so shape ids stay in the description's triangle order.
+void append_shapes(const scene::Object& o, std::vector<accel::Shape>& shapes) {
+  if (o.type != scene::ObjectType::kMesh) {
+    shapes.push_back(to_shape(o));
+    return;
+  }
+  assert(o.mesh != nullptr);
+  const std::vector<Vec3f>& v = o.mesh->vertices;
+  accel::Shape s;
+  s.type = accel::ShapeType::kTriangle;
+  for (std::size_t i = 0; i + 2 < v.size(); i += 3) {
+    s.triangle = {v[i], v[i + 1], v[i + 2]};
+    shapes.push_back(s);
+  }
 }
 
 }  // namespace
@@ -58,11 +79,20 @@ math::Ray CameraF::generate(double fx, double fy, std::uint32_t width, std::uint
 
 RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
   RenderScene rs;
-  std::vector<accel::Shape> shapes;
-  shapes.reserve(desc.objects.size());
-  rs.materials_.reserve(desc.objects.size());
+  std::size_t shape_count = 0;
   for (const scene::Object& o : desc.objects) {
-    shapes.push_back(to_shape(o));
+    shape_count += o.type == scene::ObjectType::kMesh ? o.mesh->triangle_count() : 1;
+  }
+  // Shape ids are 32-bit (accel::Hit::shape); the loader's limits keep far below that.
+  assert(shape_count <= std::numeric_limits<std::uint32_t>::max());
+  std::vector<accel::Shape> shapes;
+  shapes.reserve(shape_count);
+  rs.shape_object_.reserve(shape_count);
+  rs.materials_.reserve(desc.objects.size());
+  for (std::size_t i = 0; i < desc.objects.size(); ++i) {
+    const scene::Object& o = desc.objects[i];
+    append_shapes(o, shapes);
+    rs.shape_object_.resize(shapes.size(), static_cast<std::uint32_t>(i));
     rs.materials_.push_back(to_material(o.material));
     rs.has_transparency_ = rs.has_transparency_ || o.material.transparency > 0.0;
   }

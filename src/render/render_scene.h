@@ -4,6 +4,7 @@
 // Thread-safety: immutable after build(); shared read-only by every render thread.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
 #include <vector>
 
@@ -49,14 +50,22 @@ class RenderScene {
   static RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa());
 
   const accel::Geometry& geometry() const { return geometry_; }
-  const MaterialF& material(std::uint32_t shape) const { return materials_[shape]; }
+  // The material of the object a shape belongs to.
+  const MaterialF& material(std::uint32_t shape) const { return materials_[shape_object_[shape]]; }
+  // The scene object (index into SceneDesc::objects) a shape belongs to: one shape per sphere,
+  // box or plane, one per triangle of a mesh. Shapes of one object share its material, and a
+  // closed mesh is one medium, entered through one triangle and left through another.
+  std::uint32_t object(std::uint32_t shape) const { return shape_object_[shape]; }
+  std::size_t object_count() const { return materials_.size(); }
+  const MaterialF& object_material(std::uint32_t object) const { return materials_[object]; }
   const std::vector<PointLightF>& lights() const { return lights_; }
   const CameraF& camera() const { return camera_; }
   bool has_transparency() const { return has_transparency_; }
 
  private:
   accel::Geometry geometry_;
-  std::vector<MaterialF> materials_;  // indexed by shape id (= object index)
+  std::vector<MaterialF> materials_;         // one per scene object
+  std::vector<std::uint32_t> shape_object_;  // shape id -> object index: 4 bytes per triangle
   std::vector<PointLightF> lights_;
   CameraF camera_;
   bool has_transparency_ = false;

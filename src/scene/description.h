@@ -3,7 +3,9 @@
 // converts. Values only: thread-safe to share read-only.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -51,15 +53,50 @@ struct Plane {  // infinite plane through `point` with unit `normal` (normalised
   bool operator==(const Plane&) const = default;
 };
 
-enum class ObjectType { kSphere, kBox, kPlane };
+// A triangle mesh from a Wavefront OBJ, placed by scale, then rotation about X, then Y, then Z
+// (degrees), then translation: p' = T * Rz * Ry * Rx * S * p, in double, rounded once to float.
+struct Mesh {
+  // The OBJ text exactly as read (from "file" or inline "obj"). Kept because it is the mesh's
+  // canonical form: canonical_json always writes it inline, so a scene means the same, and has
+  // the same digest, whether the mesh came from a file or inline.
+  std::string obj;
+  // The "file" the scene named (as written), empty for an inline mesh. For messages and for
+  // `dtraced submit`; not part of the scene's meaning (operator== and the digest ignore it).
+  std::string file;
+  Vec3d translate{0, 0, 0};
+  Vec3d rotate_deg{0, 0, 0};
+  Vec3d scale{1, 1, 1};  // every component non-zero
+  // The triangles after the transform, three vertices each (v0, v1, v2: triangle i is
+  // vertices[3i..3i+2]), in OBJ face order; the normal is normalize(cross(v1 - v0, v2 - v0)).
+  // A transform that mirrors (negative determinant) swaps v1 and v2 so the winding, and so the
+  // normal, keeps the side the OBJ's faces say. Every coordinate is finite.
+  std::vector<math::Vec3f> vertices;
+  // Triangles of zero area in float (cross(v1 - v0, v2 - v0) == 0): kept, never hit.
+  std::size_t degenerate_triangles = 0;
+
+  std::size_t triangle_count() const { return vertices.size() / 3; }
+  bool operator==(const Mesh& o) const {
+    return obj == o.obj && translate == o.translate && rotate_deg == o.rotate_deg && scale == o.scale &&
+           vertices == o.vertices && degenerate_triangles == o.degenerate_triangles;
+  }
+};
+
+enum class ObjectType { kSphere, kBox, kPlane, kMesh };
 
 struct Object {
   ObjectType type = ObjectType::kSphere;
   Sphere sphere;  // valid when type == kSphere
   Box box;        // valid when type == kBox
   Plane plane;    // valid when type == kPlane
+  // Valid (not null) when type == kMesh. Shared and immutable: a SceneDesc is copied (job
+  // submission, overrides) and a mesh may hold millions of triangles.
+  std::shared_ptr<const Mesh> mesh;
   Material material;
-  bool operator==(const Object&) const = default;
+  bool operator==(const Object& o) const {
+    const bool same_mesh = mesh == o.mesh || (mesh != nullptr && o.mesh != nullptr && *mesh == *o.mesh);
+    return type == o.type && sphere == o.sphere && box == o.box && plane == o.plane && same_mesh &&
+           material == o.material;
+  }
 };
 
 struct PointLight {

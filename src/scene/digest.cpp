@@ -71,6 +71,16 @@ json::value scene_object(const Object& object, const json::storage_ptr& sp) {
       o["loc"] = vec3(object.plane.point, sp);
       o["normal"] = vec3(object.plane.normal, sp);
       break;
+    case ObjectType::kMesh:
+      // Always inline, whether the scene named a file or not: the canonical form must load on a
+      // host that has no such file, and a mesh means its text, not where the text was kept. The
+      // scale is written per axis (a number and [s, s, s] mean the same).
+      o["type"] = "mesh";
+      o["obj"] = json::string(object.mesh->obj, sp);
+      o["translate"] = vec3(object.mesh->translate, sp);
+      o["rotate"] = vec3(object.mesh->rotate_deg, sp);
+      o["scale"] = vec3(object.mesh->scale, sp);
+      break;
   }
   o["material"] = material(object.material, sp);
   return json::value(std::move(o));

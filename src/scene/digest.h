@@ -9,6 +9,11 @@
 // to the same double (integral values as integers). For any scene produced by the loader,
 // load_scene_string(canonical_json(d)) gives back a SceneDesc equal to d, bit for bit.
 //
+// Meshes are written with their OBJ text inline ("obj", byte for byte as read) and their
+// transform spelled out ("translate", "rotate", "scale" as [x, y, z]), never as a "file": the
+// canonical form loads on any host, and a mesh read from a file has the same digest as the same
+// text given inline. Any byte of the OBJ text (even a comment) is part of the digest.
+//
 // Pure functions: thread-safe.
 #pragma once
 

@@ -5,7 +5,9 @@
 #include <cassert>
 #include <cfloat>
 #include <cmath>
+#include <filesystem>
 #include <limits>
+#include <memory>
 #include <span>
 #include <utility>
 
@@ -15,6 +17,7 @@
 
 #include "math/vec.h"
 #include "scene/json_reader.h"
+#include "scene/obj_mesh.h"
 #include "util/file.h"
 
 namespace dtraced::scene {
@@ -43,9 +46,11 @@ constexpr std::array<std::string_view, 7> kMaterialKeys = {"color",        "diff
 constexpr std::array<std::string_view, 4> kSphereKeys = {"type", "loc", "radius", "material"};
 constexpr std::array<std::string_view, 6> kBoxKeys = {"type", "loc", "size", "min", "max", "material"};
 constexpr std::array<std::string_view, 4> kPlaneKeys = {"type", "loc", "normal", "material"};
+constexpr std::array<std::string_view, 7> kMeshKeys = {"type",   "file",  "obj",     "translate",
+                                                       "rotate", "scale", "material"};
 // Keys checked when an object's type is missing or unknown, so typos are still reported.
-constexpr std::array<std::string_view, 8> kAnyObjectKeys = {"type", "loc", "radius", "size",
-                                                            "min",  "max", "normal", "material"};
+constexpr std::array<std::string_view, 13> kAnyObjectKeys = {
+    "type", "loc", "radius", "size", "min", "max", "normal", "material", "file", "obj", "translate", "rotate", "scale"};
 constexpr std::array<std::string_view, 4> kLightKeys = {"type", "loc", "color", "intensity"};
 
 // A JSON Pointer built only when an error needs it: validating a 10M-object scene must not
@@ -139,10 +144,47 @@ std::optional<Vec3d> unit_length(const Vec3d& v) {
   return s / math::length(s);
 }
 
+// The 1-based line of the first byte sequence that is not UTF-8 (RFC 3629: no overlong forms, no
+// surrogates, nothing above U+10FFFF), or 0 when all of `text` is UTF-8.
+std::size_t first_invalid_utf8_line(std::string_view text) {
+  std::size_t line = 1;
+  for (std::size_t i = 0; i < text.size();) {
+    const auto c = static_cast<unsigned char>(text[i]);
+    if (c < 0x80) {
+      line += c == '\n';
+      ++i;
+      continue;
+    }
+    std::size_t n = 0;
+    unsigned lo = 0x80, hi = 0xBF;  // allowed range of the second byte
+    if (c >= 0xC2 && c <= 0xDF) {
+      n = 1;
+    } else if (c >= 0xE0 && c <= 0xEF) {
+      n = 2;
+      if (c == 0xE0) lo = 0xA0;
+      if (c == 0xED) hi = 0x9F;
+    } else if (c >= 0xF0 && c <= 0xF4) {
+      n = 3;
+      if (c == 0xF0) lo = 0x90;
+      if (c == 0xF4) hi = 0x8F;
+    } else {
+      return line;
+    }
+    if (i + n >= text.size()) return line;  // truncated sequence
+    for (std::size_t k = 1; k <= n; ++k) {
+      const auto b = static_cast<unsigned char>(text[i + k]);
+      if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return line;
+    }
+    i += n + 1;
+  }
+  return 0;
+}
+
 // Walks the parsed JSON, filling a SceneDesc and recording every problem it meets.
 class Validator {
  public:
-  Validator(std::string file, std::size_t max_errors) : file_(std::move(file)), max_errors_(max_errors) {}
+  Validator(std::string file, const LoadOptions& options)
+      : file_(std::move(file)), max_errors_(options.max_errors), options_(options) {}
 
   void error(std::string path, std::string message) {
     ++error_count_;
@@ -465,13 +507,15 @@ class Validator {
           out.type = ObjectType::kBox;
         } else if (*s == "plane") {
           out.type = ObjectType::kPlane;
+        } else if (*s == "mesh") {
+          out.type = ObjectType::kMesh;
         } else {
           known_type = false;
           error(type_at,
-                fmt::format("unknown object type \"{}\"; known types: sphere, box, plane", std::string_view(*s)));
+                fmt::format("unknown object type \"{}\"; known types: sphere, box, plane, mesh", std::string_view(*s)));
         }
       } else {
-        error(type_at, fmt::format("expected a string (sphere, box or plane), got {}", json_kind_name(*t)));
+        error(type_at, fmt::format("expected a string (sphere, box, plane or mesh), got {}", json_kind_name(*t)));
       }
     }
 
@@ -487,6 +531,9 @@ class Validator {
           break;
         case ObjectType::kPlane:
           read_plane(*o, at, out.plane);
+          break;
+        case ObjectType::kMesh:
+          read_mesh(*o, at, out);
           break;
       }
     }
@@ -572,6 +619,102 @@ class Validator {
     }
   }
 
+  // "scale": one number for all axes or one per axis; each non-zero (a zero flattens the mesh
+  // into degenerate triangles, surely a mistake) and within the float range.
+  std::optional<Vec3d> scale(const json::value& v, const Path& at) {
+    std::optional<Vec3d> s;
+    if (v.is_array()) {
+      s = vec3(v, at);
+    } else if (auto d = number(v, at)) {
+      s = Vec3d{*d, *d, *d};
+    }
+    if (!s) return std::nullopt;
+    for (std::size_t i = 0; i < 3; ++i) {
+      if ((*s)[i] == 0) {
+        error(v.is_array() ? at.index(i).str() : at.str(), "must not be zero");
+        return std::nullopt;
+      }
+    }
+    return s;
+  }
+
+  // A Wavefront OBJ, from a file or inline, placed by scale, rotate, translate (description.h).
+  void read_mesh(const json::object& o, const Path& at, Object& out) {
+    check_keys(o, at, kMeshKeys);
+    const std::size_t errors_before = error_count_;
+    auto mesh = std::make_shared<Mesh>();
+    optional_field(o, "translate", at, mesh->translate, vec3_reader());
+    optional_field(o, "rotate", at, mesh->rotate_deg, vec3_reader());
+    optional_field(o, "scale", at, mesh->scale, [this](const json::value& v, const Path& p) { return scale(v, p); });
+
+    const json::value* file_v = o.if_contains("file");
+    const json::value* obj_v = o.if_contains("obj");
+    if (file_v != nullptr && obj_v != nullptr) {
+      error(at, "a mesh takes either \"file\" (an OBJ file) or \"obj\" (the OBJ text inline), not both");
+      return;
+    }
+    if (file_v == nullptr && obj_v == nullptr) {
+      error(at, "a mesh needs \"file\" (an OBJ file) or \"obj\" (the OBJ text inline)");
+      return;
+    }
+    const Path source_at = at.key(file_v != nullptr ? "file" : "obj");
+    const json::value& source = file_v != nullptr ? *file_v : *obj_v;
+    const json::string* text = source.if_string();
+    if (text == nullptr) {
+      error(source_at, fmt::format("expected a string, got {}", json_kind_name(source)));
+      return;
+    }
+    if (file_v != nullptr) {
+      mesh->file = std::string(*text);
+      if (!read_mesh_file(*mesh, source_at)) return;
+    } else {
+      mesh->obj = std::string(*text);
+    }
+    if (error_count_ != errors_before) return;
+
+    // Messages about a file's content name the file, so "line 7" can be found.
+    const std::string prefix = mesh->file.empty() ? std::string() : mesh->file + ": ";
+    std::vector<std::string> problems;
+    if (!build_obj_mesh(*mesh, options_.max_triangles - triangles_, problems)) {
+      for (const std::string& p : problems) error(source_at, prefix + p);
+      return;
+    }
+    triangles_ += mesh->triangle_count();
+    if (mesh->triangle_count() == 0) warning(source_at, prefix + "the OBJ has no faces: the mesh is invisible");
+    out.mesh = std::move(mesh);
+  }
+
+  bool read_mesh_file(Mesh& mesh, const Path& at) {
+    if (!options_.allow_mesh_files) {
+      error(at, fmt::format("mesh file \"{}\" not accepted here: a scene sent to a collector or worker must carry its "
+                            "meshes inline as \"obj\" (dtraced submit inlines them)",
+                            mesh.file));
+      return false;
+    }
+    if (mesh.file.empty()) {
+      error(at, "must name an OBJ file");
+      return false;
+    }
+    const std::filesystem::path relative(mesh.file);
+    const std::filesystem::path path = relative.is_absolute() || options_.base_dir.empty()
+                                           ? relative
+                                           : std::filesystem::path(options_.base_dir) / relative;
+    std::string read_error;
+    std::optional<std::string> text = util::read_file_limited(path.string(), options_.max_obj_bytes, read_error);
+    if (!text) {
+      error(at, read_error);
+      return false;
+    }
+    // The canonical form carries the text inside a JSON string, which must be UTF-8.
+    if (const std::size_t line = first_invalid_utf8_line(*text); line != 0) {
+      error(at, fmt::format("{}: line {}: not valid UTF-8 (an OBJ is inlined into the scene as JSON text)", mesh.file,
+                            line));
+      return false;
+    }
+    mesh.obj = std::move(*text);
+    return true;
+  }
+
   std::optional<PointLight> read_light(const json::value& v, const Path& at) {
     const json::object* o = object(v, at);
     if (o == nullptr) return std::nullopt;
@@ -600,6 +743,8 @@ class Validator {
 
   std::string file_;
   std::size_t max_errors_;
+  const LoadOptions& options_;
+  std::size_t triangles_ = 0;  // of the meshes read so far, against options_.max_triangles
   std::size_t error_count_ = 0;
   std::vector<SceneError> errors_;
   std::vector<SceneError> warnings_;
@@ -628,7 +773,7 @@ std::string format_errors(const std::vector<SceneError>& errors) {
 }
 
 LoadResult load_scene_string(std::string_view text, const std::string& file_name, const LoadOptions& options) {
-  Validator validator(file_name, options.max_errors);
+  Validator validator(file_name, options);
   if (text.size() > options.max_bytes) {
     validator.error(std::string(), fmt::format("scene is {} bytes, larger than the limit of {} bytes", text.size(),
                                                options.max_bytes));
@@ -655,7 +800,10 @@ LoadResult load_scene_file(const std::string& path, const LoadOptions& options) 
     result.errors.push_back({path, "", std::move(read_error)});
     return result;
   }
-  return load_scene_string(*text, path, options);
+  // Mesh files are named relative to the scene file, wherever the process runs from.
+  LoadOptions with_base = options;
+  with_base.base_dir = std::filesystem::path(path).parent_path().string();
+  return load_scene_string(*text, path, with_base);
 }
 
 }  // namespace dtraced::scene

@@ -8,7 +8,14 @@
 //
 // Beyond the invariants in description.h, a loaded scene also guarantees: every number fits a
 // float (|x| <= FLT_MAX), plane normals have unit length, the camera position and look_at differ
-// even after conversion to float, and `up` is not parallel to the view direction.
+// even after conversion to float, and `up` is not parallel to the view direction. A mesh object
+// holds its OBJ text (valid UTF-8, so the canonical form can carry it inline) and its finite,
+// transformed triangles; the scene's meshes hold at most LoadOptions::max_triangles in all.
+//
+// Mesh files ("file": a Wavefront OBJ) are the one thing a scene reads besides itself: relative
+// to the scene file's directory (load_scene_file) or to LoadOptions::base_dir (load_scene_string).
+// Scenes that arrive over the network are loaded with allow_mesh_files = false, so a scene can
+// never make a collector or a worker read a file of its host.
 //
 // Stateless functions: thread-safe; concurrent loads share nothing.
 #pragma once
@@ -30,6 +37,10 @@ inline constexpr std::size_t kMaxObjects = 10'000'000;
 inline constexpr std::size_t kMaxLights = 10'000;
 inline constexpr std::uint64_t kMaxSeed = (1ull << 53) - 1;  // seeds survive a trip through a JS double
 inline constexpr std::size_t kMaxReportedErrors = 1000;      // a broken 10M-object file stays readable
+inline constexpr std::uint64_t kMaxObjBytes = 512ull << 20;  // one OBJ file, 512 MiB
+// Triangles of all the meshes of one scene: 20M triangles are about 720 MB of float vertices in
+// the description, and as many again once built for rendering.
+inline constexpr std::size_t kMaxTriangles = 20'000'000;
 
 // One problem, located. `path` is a JSON Pointer into the file ("/scene_objects/3/radius"),
 // empty for problems with the file as a whole.
@@ -47,6 +58,14 @@ struct LoadOptions {
   std::uint64_t max_bytes = kMaxSceneBytes;
   // Past this many errors the rest are counted in one final error; tests lower it.
   std::size_t max_errors = kMaxReportedErrors;
+  // Whether meshes may name a "file". False for scenes from the network (the collector decoding
+  // a submission, a worker loading a fetched scene): each such mesh is then an error.
+  bool allow_mesh_files = true;
+  // Directory that relative mesh "file" paths are resolved against, for load_scene_string ("":
+  // the current directory). load_scene_file always uses the scene file's own directory.
+  std::string base_dir;
+  std::uint64_t max_obj_bytes = kMaxObjBytes;  // per OBJ file
+  std::size_t max_triangles = kMaxTriangles;   // per scene, all meshes together
 };
 
 struct LoadResult {
@@ -62,7 +81,8 @@ struct LoadResult {
 // options.max_bytes, gives one error naming the file.
 LoadResult load_scene_file(const std::string& path, const LoadOptions& options = {});
 
-// Validates scene JSON held in memory (an upload, a fetched scene). `file_name` only labels errors.
+// Validates scene JSON held in memory (an upload, a fetched scene). `file_name` only labels errors;
+// mesh files are found through options.base_dir.
 LoadResult load_scene_string(std::string_view json, const std::string& file_name, const LoadOptions& options = {});
 
 // One error per line, each formatted by SceneError::to_string; for stderr and HTTP bodies.

@@ -9,6 +9,7 @@
 #include <utility>
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include "protocol/messages.h"
 
@@ -73,6 +74,13 @@ std::vector<std::string> validate(const WorkerConfig& config) {
   if (config.scene_cache < 1 || config.scene_cache > kMaxSceneCache) {
     errors.push_back(
         fmt::format("scene_cache: must be in [1, {}] scenes (got {})", kMaxSceneCache, config.scene_cache));
+  }
+  if (const auto supported = accel::supported_isas();
+      std::find(supported.begin(), supported.end(), config.isa) == supported.end()) {
+    std::vector<std::string_view> names;
+    for (const accel::Isa i : supported) names.push_back(accel::isa_name(i));
+    errors.push_back(fmt::format("isa: {} is not supported by this CPU (supported: {})", accel::isa_name(config.isa),
+                                 fmt::join(names, ", ")));
   }
   check_range(errors, "grace", config.grace, std::chrono::seconds{0}, kMaxGrace, "s");
 

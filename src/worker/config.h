@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "accel/isa.h"
 #include "http/client.h"
 
 namespace dtraced::worker {
@@ -39,6 +40,9 @@ struct WorkerConfig {
   std::string name;
   std::uint32_t threads = 0;      // render threads; 0: every core. At most protocol::kMaxWorkerThreads
   std::uint32_t scene_cache = 8;  // built scenes kept (least recently used evicted); [1, kMaxSceneCache]
+  // Instruction set of the traversal kernels; one of accel::supported_isas(). Every choice
+  // renders the same bits, so workers of one farm may differ.
+  accel::Isa isa = accel::best_isa();
   // After SIGTERM/SIGINT: how long to keep submitting what is in hand before abandoning it.
   std::chrono::seconds grace{60};  // [0, kMaxGrace]
   http::ClientTimeouts timeouts;   // each in [1 ms, kMaxClientTimeout]

@@ -42,10 +42,12 @@ void SceneCache::insert(const std::string& digest, ScenePtr scene) {
 
 bool SceneCache::contains(std::string_view digest) const { return index_.contains(digest); }
 
-PreparedScene prepare_scene(std::string_view body, std::string_view digest) {
+PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa) {
   PreparedScene prepared;
   const std::string label = fmt::format("scene {}", digest);
-  scene::LoadResult loaded = scene::load_scene_string(body, label);
+  scene::LoadOptions options;
+  options.allow_mesh_files = false;
+  scene::LoadResult loaded = scene::load_scene_string(body, label, options);
   if (!loaded.ok()) {
     std::string reasons;
     for (std::size_t i = 0; i < loaded.errors.size() && i < kMaxQuotedErrors; ++i) {
@@ -62,7 +64,7 @@ PreparedScene prepare_scene(std::string_view body, std::string_view digest) {
     prepared.error = fmt::format("the body sent as {} is another scene (its digest is {})", label, actual);
     return prepared;
   }
-  prepared.scene = std::make_shared<const render::RenderScene>(render::RenderScene::build(*loaded.scene));
+  prepared.scene = std::make_shared<const render::RenderScene>(render::RenderScene::build(*loaded.scene, isa));
   return prepared;
 }
 

@@ -59,8 +59,10 @@ struct PreparedScene {
 
 // Loads `body` (scene JSON as GET /v1/scenes/{digest} answers it), checks that the scene it
 // describes has the digest `digest` (scene_digest of the loaded scene, i.e. the SHA-256 of its
-// canonical form), and builds the render-ready scene. A body that does not load, or that names
-// another scene (tampered, truncated, or from a collector of another version), is refused.
-PreparedScene prepare_scene(std::string_view body, std::string_view digest);
+// canonical form), and builds the render-ready scene with the kernels of `isa`. A body that does
+// not load, or that names another scene (tampered, truncated, or from a collector of another
+// version), is refused; so is one with a mesh "file": a worker reads nothing from its own disk
+// on a scene's behalf (canonical scenes carry their meshes inline).
+PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa);
 
 }  // namespace dtraced::worker

@@ -556,8 +556,10 @@ net::awaitable<void> Worker::Impl::main_loop(RunOptions options) {
   }
   started = true;
   if (notify_systemd) util::sd_notify_state("READY=1");
-  util::log_info("worker {} started: collector {}, {} render threads, up to {} tiles in hand, {} scenes cached",
-                 config.name, url.to_string(), config.threads, config.max_unacknowledged, config.scene_cache);
+  util::log_info(
+      "worker {} started: collector {}, {} render threads ({} kernels), up to {} tiles in hand, {} scenes cached",
+      config.name, url.to_string(), config.threads, accel::isa_name(config.isa), config.max_unacknowledged,
+      config.scene_cache);
   if (config.max_unacknowledged < 2 * std::uint64_t{config.threads}) {
     util::log_warn("max_unacknowledged {} is below 2 x {} threads: some threads will wait for the network",
                    config.max_unacknowledged, config.threads);
@@ -782,7 +784,9 @@ net::awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
     co_return outcome;
   }
   const std::size_t bytes = result.response.body().size();
-  auto prepare = [body = std::move(result.response.body()), &digest] { return prepare_scene(body, digest); };
+  auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa] {
+    return prepare_scene(body, digest, isa);
+  };
   PreparedScene prepared = co_await on_pool(pool, prepare);
   if (!prepared.scene) {
     count(scenes_rejected);
