@@ -8,7 +8,7 @@
 // Two traversal paths answer every query with the same bits (see accel/isa.h):
 // - Isa::kScalar, the reference: one ray at a time through the binary BVH, scalar kernels.
 // - a SIMD instruction set (SSE4, AVX2, AVX-512, picked at run time through Google Highway): the
-//   binary BVH collapsed to a 4-wide one; single rays test 4 child boxes at once, 8-ray packets
+//   binary BVH collapsed to an 8-wide one; single rays test 8 child boxes at once, 8-ray packets
 //   (intersect8 / occluded8) test one box against 8 rays at once. The leaf kernels do the very
 //   same IEEE operations as the scalar ones (no FMA), so hit/miss, t and shape agree bit for bit.
 // Thread-safety: a built Geometry is immutable; any number of threads may query it at once.
@@ -81,7 +81,7 @@ struct BuildStats {
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;   // depth of the deepest node; the root has depth 0
   double seconds = 0.0;          // binary BVH build
-  std::uint32_t wide_nodes = 0;  // 4-wide nodes after collapsing (SIMD isa only)
+  std::uint32_t wide_nodes = 0;  // 8-wide nodes after collapsing (SIMD isa only)
   double wide_seconds = 0.0;     // collapsing and packing the leaves (SIMD isa only)
 };
 
@@ -92,7 +92,7 @@ class Geometry {
   static constexpr std::uint32_t kMaxDepth = 64;
 
   // Builds the BVH (binned SAH) over the bounded shapes; planes are kept in a separate list. With
-  // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 4-wide
+  // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 8-wide
   // layout that isa's kernels walk, unless the scene has fewer than 64 bounded shapes: there the
   // scalar walk is faster (stats().wide_nodes is then 0).
   static Geometry build(std::vector<Shape> shapes, Isa isa = best_isa());

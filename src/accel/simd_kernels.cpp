@@ -12,8 +12,8 @@
 // what is visited; they are the scalar node_hit arithmetic too, and conservative, so they cannot
 // change an answer.
 //
-// Layouts: single rays test the 4 child boxes of a node in one 4-lane float vector and a leaf's
-// 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 rays in SoA arrays and test
+// Layouts: single rays test the 8 child boxes of a node in one 8-lane float vector (two on SSE4)
+// and a leaf's 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 rays in SoA arrays and test
 // one box, sphere or triangle against all 8 (one AVX2/AVX-512 vector, two SSE4 vectors), with a
 // per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
 // active at a node, those lanes finish that subtree as single rays.
@@ -38,7 +38,7 @@ namespace dtraced::accel::detail {
 namespace HWY_NAMESPACE {
 namespace hn = hwy::HWY_NAMESPACE;
 
-constexpr int kStackSize = 3 * Geometry::kMaxDepth + 4;
+constexpr int kStackSize = (kNodeWidth - 1) * Geometry::kMaxDepth + kNodeWidth;
 constexpr int kSwitch = 2;  // lanes at or below which a packet continues as single rays
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
@@ -60,13 +60,13 @@ inline Single make_single(const RayPre& r, float t_min) {
   return s;
 }
 
-// Entry distances of the ray into the node's 4 child boxes (lanes whose bit is set in the
+// Entry distances of the ray into the node's 8 child boxes (lanes whose bit is set in the
 // result pass node_hit against `cull`).
 inline std::uint32_t node_test1(const WideNode& node, const Single& s, float cull, float* t_near) {
-  const hn::CappedTag<float, kWidth> d;
+  const hn::CappedTag<float, kNodeWidth> d;
   const std::size_t n = hn::Lanes(d);
   std::uint32_t bits = 0;
-  for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
+  for (std::size_t i = 0; i < std::size_t(kNodeWidth); i += n) {
     auto t0 = hn::Set(d, s.t_min);
     auto tf = hn::Set(d, kInfF);
     for (int a = 0; a < 3; ++a) {
@@ -184,6 +184,11 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
     const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
     const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
     const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
+    const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
+    if (hn::AllTrue(d, hn::AndNot(zero_edge, hn::And(neg, pos)))) {  // the common case: all outside
+      hn::StoreU(nan, d, t + i);
+      continue;
+    }
     const auto det = hn::Add(hn::Add(u, v), w);
     const auto saz = hn::Mul(sz, az), sbz = hn::Mul(sz, bz), scz = hn::Mul(sz, cz);
     const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(v, sbz)), hn::Mul(w, scz));
@@ -192,7 +197,6 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
     const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::And(hn::Ne(det, zero), hn::Gt(tv, err)),
                                                           hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
     hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
-    const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
     if (!hn::AllFalse(d, zero_edge)) {
       alignas(64) float l[6][kWidth], lz[3][kWidth];
       hn::StoreU(sax, d, l[0]);
@@ -291,12 +295,12 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
       }
     } else {
       const WideNode& node = bvh.nodes[cur];
-      alignas(16) float t_near[kWidth];
+      alignas(32) float t_near[kNodeWidth];
       std::uint32_t bits = node_test1(node, s, cull, t_near);
       if (bits != 0) {
         // Order the hit children by entry distance: the nearest is visited now, the others
         // pushed farthest first.
-        Entry hit[kWidth];
+        Entry hit[kNodeWidth];
         int n = 0;
         while (bits != 0) {
           const int i = std::countr_zero(bits);
@@ -356,7 +360,9 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  Single single[kP];  // the same rays as single rays (fallback, zero edge functions)
+  Single single[kP];   // the same rays as single rays (fallback, zero edge functions)
+  bool uniform_signs;  // every lane has the direction signs sign[0..2]
+  std::uint32_t sign[3];
 };
 
 inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
@@ -390,39 +396,73 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
       p.cull[i] = ray.t_max * kFarScale;
     }
   }
+  p.uniform_signs = true;
+  for (int a = 0; a < 3; ++a) {
+    p.sign[a] = p.single[0].r.neg[a];
+    for (int i = 1; i < kP; ++i) p.uniform_signs = p.uniform_signs && p.single[i].r.neg[a] == p.sign[a];
+  }
 }
 
-// Which of the 8 lanes enter box `c` of the node, and the smallest entry distance among them.
-inline std::uint32_t node_test8(const WideNode& node, int c, const Packet& p, float& min_near) {
+// Which of the 8 lanes enter each child box of the node (bits[c]), and the smallest entry
+// distance among them (min_near[c], for children whose bits meet `mask`). The packet's origins,
+// inverse directions and direction signs are loaded once per node, not once per child; when
+// every lane has the same direction signs (camera and shadow packets nearly always do), the near
+// and far planes are picked per axis like a single ray's instead of lane by lane.
+inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask, std::uint32_t* bits,
+                       float* min_near) {
   const hn::CappedTag<float, kP> d;
+  using V = hn::Vec<decltype(d)>;
   const std::size_t n = hn::Lanes(d);
-  std::uint32_t bits = 0;
-  auto near_min = hn::Set(d, kInfF);
+  const auto inf = hn::Set(d, kInfF);
+  const auto scale = hn::Set(d, kFarScale);
   const auto zero = hn::Zero(d);
-  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
-    auto t0 = hn::LoadU(d, p.t_min + i);
-    auto tf = hn::Set(d, kInfF);
-    for (int a = 0; a < 3; ++a) {
-      const auto o = hn::LoadU(d, p.o[a] + i);
-      const auto inv = hn::LoadU(d, p.inv[a] + i);
-      const auto tlo = hn::Mul(hn::Sub(hn::Set(d, node.lo[a][c]), o), inv);
-      const auto thi = hn::Mul(hn::Sub(hn::Set(d, node.hi[a][c]), o), inv);
-      const auto neg = hn::Gt(hn::LoadU(d, p.negf[a] + i), zero);
-      const auto tn = hn::IfThenElse(neg, thi, tlo);
-      const auto tfa = hn::IfThenElse(neg, tlo, thi);
-      t0 = hn::Max(tn, t0);  // NaN skipped, see node_test1
-      tf = hn::Min(tfa, tf);
-    }
-    tf = hn::Mul(tf, hn::Set(d, kFarScale));
-    const auto lim = hn::Min(tf, hn::LoadU(d, p.cull + i));
-    const auto m = hn::Le(t0, lim);
-    near_min = hn::Min(near_min, hn::IfThenElse(m, t0, hn::Set(d, kInfF)));
-    std::uint8_t mb[8] = {};
-    hn::StoreMaskBits(d, m, mb);
-    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+  V near_min[kNodeWidth];
+  for (int c = 0; c < kNodeWidth; ++c) {
+    bits[c] = 0;
+    near_min[c] = inf;
   }
-  min_near = hn::GetLane(hn::MinOfLanes(d, near_min));
-  return bits;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    V o[3], inv[3];
+    for (int a = 0; a < 3; ++a) {
+      o[a] = hn::LoadU(d, p.o[a] + i);
+      inv[a] = hn::LoadU(d, p.inv[a] + i);
+    }
+    const auto tmin = hn::LoadU(d, p.t_min + i);
+    const auto cull = hn::LoadU(d, p.cull + i);
+    const std::uint32_t lane_mask = ((1u << n) - 1u) << i;
+    for (int c = 0; c < kNodeWidth; ++c) {
+      if (node.child[c] == kEmptyChild) break;  // empty slots come last
+      auto t0 = tmin;
+      auto tf = inf;
+      if (p.uniform_signs) {
+        for (int a = 0; a < 3; ++a) {
+          const float nb = p.sign[a] ? node.hi[a][c] : node.lo[a][c];
+          const float fb = p.sign[a] ? node.lo[a][c] : node.hi[a][c];
+          t0 = hn::Max(hn::Mul(hn::Sub(hn::Set(d, nb), o[a]), inv[a]), t0);  // NaN skipped, see node_test1
+          tf = hn::Min(hn::Mul(hn::Sub(hn::Set(d, fb), o[a]), inv[a]), tf);
+        }
+      } else {
+        for (int a = 0; a < 3; ++a) {
+          const auto tlo = hn::Mul(hn::Sub(hn::Set(d, node.lo[a][c]), o[a]), inv[a]);
+          const auto thi = hn::Mul(hn::Sub(hn::Set(d, node.hi[a][c]), o[a]), inv[a]);
+          const auto neg = hn::Gt(hn::LoadU(d, p.negf[a] + i), zero);
+          t0 = hn::Max(hn::IfThenElse(neg, thi, tlo), t0);
+          tf = hn::Min(hn::IfThenElse(neg, tlo, thi), tf);
+        }
+      }
+      const auto m = hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull));
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, m, mb);
+      const std::uint32_t b = (std::uint32_t(mb[0]) << i) & lane_mask & mask;
+      if (b != 0) {
+        bits[c] |= b;
+        near_min[c] = hn::Min(near_min[c], hn::IfThenElse(m, t0, inf));
+      }
+    }
+  }
+  for (int c = 0; c < kNodeWidth; ++c) {
+    if (bits[c] != 0) min_near[c] = hn::GetLane(hn::MinOfLanes(d, near_min[c]));
+  }
 }
 
 // Applies candidate distances t[lane] of prim `id` to the lanes in `mask`; returns the lanes
@@ -643,14 +683,14 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       if (kAnyHit) alive &= ~hit;
     } else {
       const WideNode& node = bvh.nodes[cur];
-      Entry8 hit[kWidth];
+      Entry8 hit[kNodeWidth];
       int n = 0;
-      for (int c = 0; c < kWidth; ++c) {
-        if (node.child[c] == kEmptyChild) continue;
-        float t_near = kInfF;
-        const std::uint32_t m = node_test8(node, c, p, t_near) & mask;
-        if (m == 0) continue;
-        Entry8 e{node.child[c], m, t_near};
+      std::uint32_t bits[kNodeWidth];
+      float near[kNodeWidth];
+      node_test8(node, p, mask, bits, near);
+      for (int c = 0; c < kNodeWidth; ++c) {
+        if (bits[c] == 0) continue;
+        Entry8 e{node.child[c], bits[c], near[c]};
         int j = n++;
         while (j > 0 && hit[j - 1].t_near < e.t_near) {
           hit[j] = hit[j - 1];

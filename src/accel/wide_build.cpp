@@ -1,7 +1,7 @@
-// dtraced::accel: collapsing the binary BVH into the 4-wide SoA tree of wide_bvh.h.
+// dtraced::accel: collapsing the binary BVH into the 8-wide SoA tree of wide_bvh.h.
 //
 // Each wide node takes a binary node's two children and keeps opening the interior child with
-// the largest surface area until it has four (Wald et al., "Getting rid of packets", 2008; the
+// the largest surface area until it has eight (Wald et al., "Getting rid of packets", 2008; the
 // usual collapse of Embree and tinybvh). The binary tree's SAH decisions are kept; only the
 // layout changes, so both trees hold exactly the same prims in their leaves.
 #include <algorithm>
@@ -106,7 +106,7 @@ WideBvh collapse_to_wide(const Geometry& g) {
   auto build_node = [&](auto&& self, std::uint32_t bin_index) -> std::uint32_t {
     const std::uint32_t index = std::uint32_t(w.nodes.size());
     w.nodes.emplace_back();
-    std::uint32_t slots[kWidth];
+    std::uint32_t slots[kNodeWidth];
     int n = 0;
     if (nodes[bin_index].count > 0) {
       slots[n++] = bin_index;  // a leaf root: one child
@@ -114,7 +114,7 @@ WideBvh collapse_to_wide(const Geometry& g) {
       auto [a, b] = children_of(bin_index);
       slots[n++] = a;
       slots[n++] = b;
-      while (n < kWidth) {
+      while (n < kNodeWidth) {
         int open = -1;
         double best = -1.0;
         for (int i = 0; i < n; ++i) {
@@ -131,8 +131,8 @@ WideBvh collapse_to_wide(const Geometry& g) {
         slots[n++] = c1;
       }
     }
-    std::uint32_t child[kWidth];
-    for (int i = 0; i < kWidth; ++i) {
+    std::uint32_t child[kNodeWidth];
+    for (int i = 0; i < kNodeWidth; ++i) {
       if (i < n) {
         child[i] = nodes[slots[i]].count > 0 ? make_leaf(slots[i]) : self(self, slots[i]);
       } else {
@@ -140,7 +140,7 @@ WideBvh collapse_to_wide(const Geometry& g) {
       }
     }
     WideNode& wn = w.nodes[index];  // re-fetched: recursion may have grown the vector
-    for (int i = 0; i < kWidth; ++i) {
+    for (int i = 0; i < kNodeWidth; ++i) {
       wn.child[i] = child[i];
       for (int axis = 0; axis < 3; ++axis) {
         if (i < n) {

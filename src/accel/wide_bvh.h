@@ -1,4 +1,4 @@
-// dtraced::accel internal: the 4-wide BVH the SIMD kernels walk, in structure-of-arrays form.
+// dtraced::accel internal: the 8-wide BVH the SIMD kernels walk, in structure-of-arrays form.
 // Not part of the public API (Geometry owns one); shared between the collapse (wide_build.cpp)
 // and the per-instruction-set kernels (simd_kernels.cpp, compiled once per Highway target).
 #pragma once
@@ -18,20 +18,21 @@ namespace dtraced::accel::detail {
 
 struct RayPre;  // kernels.h
 
-inline constexpr int kWidth = 4;  // children per node, prims per leaf block
+inline constexpr int kNodeWidth = 8;  // children per node (one AVX2/AVX-512 vector, two SSE4)
+inline constexpr int kWidth = 4;      // prims per leaf block
 inline constexpr std::uint32_t kEmptyChild = 0xffffffffu;
 inline constexpr std::uint32_t kLeafBit = 0x80000000u;  // child refers to leaves[child & ~kLeafBit]
 
-// One node, two cache lines. Per axis a, lo[a][i] / hi[a][i] bound child i; an empty slot has
+// One node, four cache lines. Per axis a, lo[a][i] / hi[a][i] bound child i; an empty slot has
 // lo = +inf, hi = -inf and child = kEmptyChild. Children are in the binary tree's depth-first
 // order, so a slot's index says nothing about distance: traversal sorts by entry distance.
 struct alignas(64) WideNode {
-  float lo[3][kWidth];
-  float hi[3][kWidth];
-  std::uint32_t child[kWidth];
-  std::uint32_t pad[4];
+  float lo[3][kNodeWidth];
+  float hi[3][kNodeWidth];
+  std::uint32_t child[kNodeWidth];
+  std::uint32_t pad[8];
 };
-static_assert(sizeof(WideNode) == 128);
+static_assert(sizeof(WideNode) == 256);
 
 // A leaf: the prims of one binary-tree leaf (normally at most kWidth), split by type. Spheres and
 // triangles sit in kWidth-lane SoA blocks (unused lanes hold NaN and never hit); boxes are few and
@@ -90,7 +91,7 @@ struct Kernels {
 // The kernels compiled for `isa` (a SIMD isa that supported_isas() lists).
 const Kernels& kernels_for(Isa isa);
 
-// The 4-wide tree of a built Geometry (collapsed from its binary BVH).
+// The 8-wide tree of a built Geometry (collapsed from its binary BVH).
 WideBvh collapse_to_wide(const Geometry& g);
 
 }  // namespace dtraced::accel::detail
