@@ -92,10 +92,26 @@ struct Tracer {
       ++stats.rays;
       return scene.geometry().occluded(ray) ? 0.0f : 1.0f;
     }
+    return transmittance_walk(ray, media, nullptr);
+  }
+
+  // The crossings of a shadow ray through transparent surfaces. `first`, when given, is the
+  // outcome of the first intersection, already traced (and counted) by a packet: its `found`
+  // says whether it hit; the rest of the walk is the same code either way.
+  struct KnownHit {
+    bool found;
+    accel::Hit hit;
+  };
+  float transmittance_walk(math::Ray ray, MediumStack media, const KnownHit* first) {
     float t = 1.0f;
     for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
       accel::Hit hit;
-      if (!intersect(ray, hit)) return t;
+      if (crossing == 0 && first != nullptr) {
+        if (!first->found) return t;
+        hit = first->hit;
+      } else if (!intersect(ray, hit)) {
+        return t;
+      }
       const MaterialF& m = scene.material(hit.shape);
       if (m.transparency <= 0.0f) return 0.0f;
       const float eta = cross_interface(media, hit.shape);
@@ -275,11 +291,13 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint3
   stats.rays += std::popcount(valid);
   const std::uint32_t hit_mask = geometry.intersect8(rays, valid, hits) & valid;
 
-  // Shadow rays of the first hits as packets: one occluded8 per light. Only without transparency,
-  // where a shadow ray is a pure any-hit query; with it, Tracer::transmittance walks each one.
+  // Shadow rays of the first hits as packets, one per light: occluded8 when the scene is opaque
+  // (a pure any-hit query); with transparent objects, intersect8 finds every lane's first
+  // crossing and Tracer::transmittance_walk continues from it one lane at a time (most shadow
+  // rays end there: they reach the light or meet an opaque surface).
   Vec3f direct[kN];
   std::uint32_t direct_mask = 0;  // lanes whose direct[] is final
-  if (!scene.has_transparency() && hit_mask != 0) {
+  if (hit_mask != 0) {
     Vec3f wo[kN], nf[kN];
     for (int i = 0; i < kN; ++i) {
       if (!(hit_mask >> i & 1u) || !Tracer::wants_direct(scene.material(hits[i].shape))) continue;
@@ -291,6 +309,7 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint3
     }
     LightSample ls[kN];
     math::Ray shadow[kN];
+    accel::Hit hits_scratch[kN];
     for (const PointLightF& light : scene.lights()) {
       std::uint32_t cast = 0;
       for (int i = 0; i < kN; ++i) {
@@ -298,13 +317,27 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint3
       }
       if (cast == 0) continue;
       stats.rays += std::popcount(cast);
-      const std::uint32_t blocked = geometry.occluded8(shadow, cast);
       // Lights are summed in scene order per lane, as Tracer::direct does; a blocked light
       // (visibility 0) adds nothing.
-      for (int i = 0; i < kN; ++i) {
-        if ((cast & ~blocked) >> i & 1u) {
-          direct[i] += Tracer::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
+      if (!scene.has_transparency()) {
+        const std::uint32_t blocked = geometry.occluded8(shadow, cast);
+        for (int i = 0; i < kN; ++i) {
+          if ((cast & ~blocked) >> i & 1u) {
+            direct[i] += Tracer::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
+          }
         }
+        continue;
+      }
+      Tracer::KnownHit first[kN];
+      const std::uint32_t crossed = geometry.intersect8(shadow, cast, hits_scratch);
+      for (int i = 0; i < kN; ++i) {
+        if (!(cast >> i & 1u)) continue;
+        first[i].found = crossed >> i & 1u;
+        if (first[i].found) first[i].hit = hits_scratch[i];
+        // A camera ray's first hit is seen from outside every medium, as Tracer::trace has it.
+        const float vis = tracer.transmittance_walk(shadow[i], MediumStack{}, &first[i]);
+        if (vis <= 0.0f) continue;
+        direct[i] += Tracer::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
       }
     }
   }
