@@ -530,3 +530,46 @@ TEST_CASE("rays leaving a flat triangle mesh never re-hit it", "[simd]") {
     CHECK(blocked == 0);
   }
 }
+
+TEST_CASE("huge shapes stay out of the tree and every path still equals brute force", "[simd]") {
+  // A room: floor, walls and ceiling as big boxes and two big triangles, with small spheres and
+  // boxes inside. The huge ones are tested beside the tree (stats().outside); answers must not
+  // change.
+  std::vector<Shape> shapes = sphere_scene(91, 3000);
+  shapes.pop_back();  // no plane
+  shapes.push_back(box({-60, -1, -60}, {60, 0, 60}));
+  shapes.push_back(box({-60, 0, 60}, {60, 30, 61}));
+  shapes.push_back(box({-61, 0, -60}, {-60, 30, 60}));
+  shapes.push_back(triangle({60, 0, -60}, {60, 0, 60}, {60, 30, 0}));
+  shapes.push_back(triangle({-60, 30, -60}, {60, 30, -60}, {0, 30, 60}));
+  const std::vector<Ray> rays = random_rays(92, 20000, 55.0);
+  for (const Isa isa : supported_isas()) {
+    const Geometry geo = Geometry::build(shapes, isa);
+    INFO("isa " << isa_name(isa));
+    CHECK(geo.stats().outside == 2);  // floor and ceiling; a wall has 1/6 of the area
+    int mismatches = 0;
+    for (const Ray& r : rays) {
+      Hit want;
+      bool w = false;
+      for (std::uint32_t id = 0; id < shapes.size(); ++id) {
+        Hit h;
+        Ray clipped = r;
+        if (w) clipped.t_max = want.t;
+        if (intersect_shape(shapes[id], id, clipped, h)) {
+          want = h;
+          w = true;
+        }
+      }
+      Hit got;
+      const bool g = geo.intersect(r, got);
+      mismatches += (w != g) || (w && !same_hit(want, got));
+      mismatches += geo.occluded(r) != w;
+    }
+    CHECK(mismatches == 0);
+  }
+  const Geometry ref = Geometry::build(shapes, Isa::kScalar);
+  std::vector<Ray> more = camera_rays(256, 160, {0, 15, -55}, {0, 5, 0});
+  const std::vector<Ray> extra = random_rays(93, 60000, 55.0);
+  more.insert(more.end(), extra.begin(), extra.end());
+  check_all_isas(shapes, more);
+}

@@ -22,6 +22,10 @@ constexpr double kTraversalCost = 0.5;
 constexpr double kSimdLeafSlope = 0.3;
 // Bounded prims below which the SIMD layout is not built (see Geometry::build).
 constexpr std::size_t kMinWidePrims = 64;
+// Shapes whose bounds have more than this fraction of the scene bounds' surface area are kept
+// out of the tree (at most kMaxOutside of them, besides the planes).
+constexpr double kHugeFraction = 0.25;
+constexpr std::size_t kMaxOutside = 16;
 constexpr std::uint32_t kNoParent = std::numeric_limits<std::uint32_t>::max();
 
 struct BuildPrim {
@@ -69,12 +73,43 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
     if (!detail::shape_is_valid(s)) continue;
     g.has_triangles_ = g.has_triangles_ || s.type == ShapeType::kTriangle;
     if (s.type == ShapeType::kPlane) {
-      g.planes_.push_back(id);
+      g.outside_.push_back(id);
       continue;
     }
     const Bounds3f b = shape_bounds(s);
     refs.push_back({b, b.centroid(), id});
   }
+
+  // Huge shapes (a floor or the walls of a room as boxes or big triangles) overlap every SAH
+  // split and make the tree worse for everything else; like planes, they are tested one by one
+  // beside it. Huge: bounds with more than a quarter of the surface area of all shapes' bounds.
+  // At most kMaxOutside are taken out, the largest first, so the linear part stays short.
+  if (refs.size() > 1) {
+    Bounds3f all;
+    for (const BuildPrim& ref : refs) all.extend(ref.bounds);
+    const double limit = kHugeFraction * area(all);
+    std::vector<std::pair<double, std::uint32_t>> huge;  // (area, index into refs)
+    for (std::uint32_t i = 0; i < refs.size(); ++i) {
+      const double a = area(refs[i].bounds);
+      if (a > limit) huge.push_back({a, i});
+    }
+    std::sort(huge.begin(), huge.end(), [](const auto& x, const auto& y) { return x.first > y.first; });
+    if (huge.size() > kMaxOutside) huge.resize(kMaxOutside);
+    if (!huge.empty() && huge.size() < refs.size()) {
+      std::vector<bool> out(refs.size(), false);
+      for (const auto& h : huge) {
+        out[h.second] = true;
+        g.outside_.push_back(refs[h.second].id);
+      }
+      std::size_t k = 0;
+      for (std::size_t i = 0; i < refs.size(); ++i) {
+        if (!out[i]) refs[k++] = refs[i];
+      }
+      refs.resize(k);
+    }
+  }
+  // Tested in id order, which the tie rule does not need but keeps the loop deterministic.
+  std::sort(g.outside_.begin(), g.outside_.end());
 
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;
@@ -213,6 +248,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
 
   g.stats_.nodes = std::uint32_t(g.nodes_.size());
   g.stats_.leaves = leaves;
+  g.stats_.outside = std::uint32_t(g.outside_.size());
   g.stats_.max_depth = max_depth;
   g.stats_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   g.isa_ = isa;
@@ -246,6 +282,25 @@ inline float prim_t(const float* data, ShapeType type, const std::vector<Shape>&
     default:
       return detail::box_t(data, r, t_min);
   }
+}
+
+// A shape tested outside the tree: a plane or a huge shape.
+inline float outside_t(const Shape& s, const detail::RayPre& r, float t_min) {
+  switch (s.type) {
+    case ShapeType::kPlane:
+      return detail::plane_t(s.plane, r, t_min);
+    case ShapeType::kSphere: {
+      const float d[4] = {s.sphere.center.x, s.sphere.center.y, s.sphere.center.z, s.sphere.radius};
+      return detail::sphere_t(d, r, t_min);
+    }
+    case ShapeType::kBox: {
+      const float d[6] = {s.box.lo.x, s.box.lo.y, s.box.lo.z, s.box.hi.x, s.box.hi.y, s.box.hi.z};
+      return detail::box_t(d, r, t_min);
+    }
+    case ShapeType::kTriangle:
+      return triangle_prim_t(s.triangle, r, t_min);
+  }
+  return detail::kNaN;
 }
 
 // The one traversal loop, nearest child first. `cull_t` is read at every node, so a caller that
@@ -288,7 +343,7 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!wide_.empty()) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
-    const bool found = planes_hit(r, ray.t_min, best_t, best_id);
+    const bool found = outside_hit(r, ray.t_min, best_t, best_id);
     const bool tree = wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id);
     if (!found && !tree) return false;
     detail::finish_hit(shapes_[best_id], best_id, ray, r, best_t, hit);
@@ -308,7 +363,7 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
     return true;
   };
 
-  for (const std::uint32_t id : planes_) consider(detail::plane_t(shapes_[id].plane, r, ray.t_min), id);
+  for (const std::uint32_t id : outside_) consider(outside_t(shapes_[id], r, ray.t_min), id);
 
   if (!nodes_.empty()) {
     // Nodes are culled against best_t enlarged like a far slab distance: the sphere kernel runs in
@@ -332,11 +387,11 @@ bool Geometry::occluded(const Ray& ray) const {
   if (!wide_.empty()) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
-    if (planes_hit(r, ray.t_min, best_t, best_id)) return true;
+    if (outside_hit(r, ray.t_min, best_t, best_id)) return true;
     return wide_kernels().occluded1(wide_, r, ray.t_min, ray.t_max);
   }
-  for (const std::uint32_t id : planes_) {
-    if (detail::plane_t(shapes_[id].plane, r, ray.t_min) < ray.t_max) return true;
+  for (const std::uint32_t id : outside_) {
+    if (outside_t(shapes_[id], r, ray.t_min) < ray.t_max) return true;
   }
   if (nodes_.empty()) return false;
   const float cull_t = ray.t_max * detail::kFarScale;
@@ -348,10 +403,10 @@ bool Geometry::occluded(const Ray& ray) const {
   return hit;
 }
 
-bool Geometry::planes_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const {
+bool Geometry::outside_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const {
   bool found = false;
-  for (const std::uint32_t id : planes_) {
-    const float t = detail::plane_t(shapes_[id].plane, r, t_min);
+  for (const std::uint32_t id : outside_) {
+    const float t = outside_t(shapes_[id], r, t_min);
     if (t < best_t || (found && t == best_t && id < best_id)) {
       best_t = t;
       best_id = id;
@@ -386,8 +441,8 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
   for (int i = 0; i < kPacketSize; ++i) {
     best_t[i] = rays[i].t_max;
     best_id[i] = 0;
-    if ((live >> i & 1u) && !planes_.empty() &&
-        planes_hit(detail::precompute(rays[i], false), rays[i].t_min, best_t[i], best_id[i])) {
+    if ((live >> i & 1u) && !outside_.empty() &&
+        outside_hit(detail::precompute(rays[i], has_triangles_), rays[i].t_min, best_t[i], best_id[i])) {
       found |= 1u << i;
     }
   }
@@ -417,7 +472,8 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
   for (int i = 0; i < kPacketSize; ++i) {
     float t = rays[i].t_max;
     std::uint32_t id = 0;
-    if ((live >> i & 1u) && !planes_.empty() && planes_hit(detail::precompute(rays[i], false), rays[i].t_min, t, id)) {
+    if ((live >> i & 1u) && !outside_.empty() &&
+        outside_hit(detail::precompute(rays[i], has_triangles_), rays[i].t_min, t, id)) {
       blocked |= 1u << i;
     }
   }

@@ -2,7 +2,7 @@
 // structure over them.
 //
 // Owns: render-ready shapes (spheres, axis-aligned boxes, triangles, infinite planes), a binned-SAH
-// BVH over the bounded ones (planes stay outside the tree), nearest-hit queries with conservative
+// BVH over the bounded ones (planes and a few huge shapes stay outside the tree), nearest-hit queries with conservative
 // hit-point error bounds, and the pbrt-v4 style origin offset for secondary rays.
 //
 // Two traversal paths answer every query with the same bits (see accel/isa.h):
@@ -83,6 +83,7 @@ struct BuildStats {
   double seconds = 0.0;          // binary BVH build
   std::uint32_t wide_nodes = 0;  // 8-wide nodes after collapsing (SIMD isa only)
   double wide_seconds = 0.0;     // collapsing and packing the leaves (SIMD isa only)
+  std::uint32_t outside = 0;     // shapes tested beside the tree: planes and huge shapes
 };
 
 class Geometry {
@@ -91,7 +92,8 @@ class Geometry {
   // size. Traversal uses a fixed stack of kMaxDepth entries.
   static constexpr std::uint32_t kMaxDepth = 64;
 
-  // Builds the BVH (binned SAH) over the bounded shapes; planes are kept in a separate list. With
+  // Builds the BVH (binned SAH) over the bounded shapes; planes and a few huge shapes (bounds of
+  // more than a quarter of the scene's surface area) are kept in a separate list. With
   // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 8-wide
   // layout that isa's kernels walk, unless the scene has fewer than 64 bounded shapes: there the
   // scalar walk is faster (stats().wide_nodes is then 0).
@@ -133,13 +135,14 @@ class Geometry {
 
   friend detail::WideBvh detail::collapse_to_wide(const Geometry& g);
 
-  // Nearest plane hit below best_t (ties to the smaller id); updates best_t / best_id.
-  bool planes_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const;
+  // Nearest hit below best_t among the shapes outside the tree (planes and huge shapes), ties to
+  // the smaller id; updates best_t / best_id.
+  bool outside_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const;
   const detail::Kernels& wide_kernels() const;
 
   std::vector<Shape> shapes_;
-  std::vector<Prim> prims_;            // bounded shapes in BVH leaf order
-  std::vector<std::uint32_t> planes_;  // shape ids of infinite planes
+  std::vector<Prim> prims_;             // bounded shapes in BVH leaf order
+  std::vector<std::uint32_t> outside_;  // shape ids tested beside the tree: planes and huge shapes
   std::vector<Node> nodes_;
   BuildStats stats_;
   Isa isa_ = Isa::kScalar;
