@@ -199,6 +199,13 @@ auth=(-H "Authorization: Bearer $TOKEN")
 head -c $((70 * 1024 * 1024)) /dev/zero >"$work/big"
 c=$(code "${auth[@]}" -X POST --data-binary @"$work/big" "$URL/v1/jobs")
 [ "$c" = 413 ] && ok "oversized body: 413" || fail "oversized body: $c"
+# Refused on the header alone: a wrong token with a big body, and a body over its route's own
+# limit (a lease is a small control message), whatever the server-wide limit.
+c=$(code -H 'Authorization: Bearer wrong' -X POST --data-binary @"$work/big" "$URL/v1/jobs")
+[ "$c" = 401 ] && ok "wrong token with a 70 MB body: 401" || fail "wrong token with a big body: $c"
+head -c $((2 * 1024 * 1024)) /dev/zero >"$work/big2"
+c=$(code "${auth[@]}" -X POST --data-binary @"$work/big2" "$URL/v1/lease")
+[ "$c" = 413 ] && ok "a 2 MB lease request: 413" || fail "big lease request: $c"
 # A client that never finishes its request is dropped at the read deadline; others are served.
 exec 3<>"/dev/tcp/127.0.0.1/$PORT"
 printf 'POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\n{"sce' >&3

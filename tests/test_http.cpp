@@ -2,6 +2,7 @@
 // graceful stop, and the client's errors. Every wait is bounded (kBound) and event-driven: a test
 // waits for a response, a close, or a counter, never for a guessed amount of time.
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <functional>
 #include <future>
@@ -123,8 +124,9 @@ ServerLimits generous_limits() {
 // A server on 127.0.0.1, on an ephemeral port, with its io_context on a thread of its own.
 class TestServer {
  public:
-  TestServer(ServerLimits limits, Server::Handler handler)
-      : server_(io_.get_executor(), net::ip::make_address("127.0.0.1"), 0, limits, std::move(handler)) {
+  TestServer(ServerLimits limits, Server::Handler handler, Server::HeaderCheck check = {})
+      : server_(io_.get_executor(), net::ip::make_address("127.0.0.1"), 0, limits, std::move(handler),
+                std::move(check)) {
     REQUIRE(!server_.start());
     REQUIRE(server_.port() != 0);
     thread_ = std::thread([this] { io_.run(); });
@@ -570,4 +572,58 @@ TEST_CASE("client: a host name is resolved", "[http]") {
   const ClientResult res = post_echo(Url{"localhost", server.port()}, R"({"by":"name"})");
   REQUIRE(res.ok());
   CHECK(json_body(res.response).at("by") == "name");
+}
+
+TEST_CASE("server: a header check answers before the body is read, or lowers the body limit", "[http]") {
+  std::atomic<int> handled{0};
+  Server::Handler handler = [&handled](Request req) -> net::awaitable<Response> {
+    ++handled;
+    co_return dtraced::http::make_json_response(Status::ok, boost::json::value{{"bytes", req.body().size()}});
+  };
+  Server::HeaderCheck check = [](const Request& header, std::uint64_t& body_limit) -> std::optional<Response> {
+    if (header.target() == "/throw") throw std::runtime_error("check failed");
+    if (header[bhttp::field::authorization] != "Bearer ok") {
+      return dtraced::http::make_error(Status::unauthorized, "missing or wrong bearer token");
+    }
+    if (header.target() == "/small") body_limit = 16;
+    return std::nullopt;
+  };
+  TestServer server(generous_limits(), handler, check);
+
+  // A wrong token with a 50 MB body announced: answered on the header, which is all that is sent.
+  RawConnection conn(server.port());
+  REQUIRE(
+      conn.send("POST /big HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer no\r\nContent-Length: 50000000\r\n\r\n"));
+  const auto refused = conn.read_response();
+  REQUIRE(refused);
+  CHECK(refused->result() == Status::unauthorized);
+  CHECK_FALSE(refused->keep_alive());
+  CHECK(conn.wait_closed());
+
+  // The route's own limit: 413 naming it; under it the request reaches the handler.
+  RawConnection small(server.port());
+  REQUIRE(
+      small.send(fmt::format("POST /small HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer ok\r\n"
+                             "Content-Length: 100\r\n\r\n{}",
+                             std::string(100, 'x'))));
+  const auto too_big = small.read_response();
+  REQUIRE(too_big);
+  CHECK(too_big->result() == Status::payload_too_large);
+  CHECK_THAT(json_body(*too_big).at("error").as_string().c_str(), Catch::Contains("16"));
+
+  RawConnection fits(server.port());
+  REQUIRE(fits.send(
+      "POST /small HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer ok\r\nContent-Length: 10\r\n\r\n0123456789"));
+  const auto ok = fits.read_response();
+  REQUIRE(ok);
+  CHECK(ok->result() == Status::ok);
+  CHECK(json_body(*ok).at("bytes").as_int64() == 10);
+
+  // A check that throws is a 500, and the server goes on.
+  RawConnection thrower(server.port());
+  REQUIRE(thrower.send("GET /throw HTTP/1.1\r\nHost: test\r\n\r\n"));
+  const auto failed = thrower.read_response();
+  REQUIRE(failed);
+  CHECK(failed->result() == Status::internal_server_error);
+  CHECK(handled == 1);
 }

@@ -359,6 +359,8 @@ struct Collector::Impl {
 
   // Requests.
   net::awaitable<http::Response> handle(http::Request req);
+  // The server's header check: the token and the route, before any body is read.
+  std::optional<http::Response> check_header(const http::Request& header, std::uint64_t& body_limit);
   net::awaitable<http::Response> submit_job(http::Request req);
   http::Response list_jobs() const;
   http::Response job_status_response(JobId id) const;
@@ -639,8 +641,9 @@ std::optional<std::string> Collector::Impl::listen() {
   boost::system::error_code ec;
   const auto address = net::ip::make_address(config_.listen_address, ec);
   if (ec) return fmt::format("listen_address '{}': {}", config_.listen_address, ec.message());
-  server_ = std::make_unique<http::Server>(ioc_->get_executor(), address, config_.port, limits,
-                                           [this](http::Request req) { return handle(std::move(req)); });
+  server_ = std::make_unique<http::Server>(
+      ioc_->get_executor(), address, config_.port, limits, [this](http::Request req) { return handle(std::move(req)); },
+      [this](const http::Request& header, std::uint64_t& body_limit) { return check_header(header, body_limit); });
   ec = server_->start();
   if (ec) {
     server_.reset();
@@ -653,6 +656,29 @@ std::optional<std::string> Collector::Impl::listen() {
 }
 
 // ---- requests -----------------------------------------------------------------------------------
+
+// Refuses a wrong token or an unknown route on the header alone, and gives the body the route's
+// own limit, so that no request buffers more than its endpoint accepts (a wrong token, none at
+// all). handle() checks the same again, for requests that reach it by other paths (tests).
+std::optional<http::Response> Collector::Impl::check_header(const http::Request& header, std::uint64_t& body_limit) {
+  const std::string_view target(header.target().data(), header.target().size());
+  if (is_health_check(header.method(), target)) return std::nullopt;
+  if (!token_.accepts(header)) {
+    ++counters_.auth_failures;
+    http::Response res = http::make_error(http::Status::unauthorized, "missing or wrong bearer token");
+    res.set(bhttp::field::www_authenticate, "Bearer");
+    return res;
+  }
+  auto matched = match_route(header.method(), target);
+  if (auto* error = std::get_if<RouteError>(&matched)) {
+    http::Response res = http::make_error(error->status, error->message, error->field);
+    if (!error->allow.empty()) res.set(bhttp::field::allow, error->allow);
+    return res;
+  }
+  body_limit = std::min<std::uint64_t>(
+      {body_limit, route_body_limit(std::get<Route>(matched).kind), config_.limits.max_body_bytes});
+  return std::nullopt;
+}
 
 net::awaitable<http::Response> Collector::Impl::handle(http::Request req) {
   const std::string_view target(req.target().data(), req.target().size());

@@ -111,11 +111,12 @@ struct Connection {
 
 struct Server::Impl {
   Impl(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-       Handler handler)
+       Handler handler, HeaderCheck header_check)
       : executor(executor),
         endpoint(address, port),
         limits(limits),
         handler(std::move(handler)),
+        header_check(std::move(header_check)),
         acceptor(executor),
         drained(executor) {}
 
@@ -138,6 +139,7 @@ struct Server::Impl {
   const tcp::endpoint endpoint;
   const ServerLimits limits;
   const Handler handler;
+  const HeaderCheck header_check;  // may be empty
 
   // Owned by the executor.
   tcp::acceptor acceptor;
@@ -250,10 +252,37 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     conn.stream.expires_at(read_deadline);
     bhttp::request_parser<bhttp::string_body> parser;
     parser.header_limit(limits.max_header_bytes);
-    parser.body_limit(limits.max_body_bytes);
+    // No body limit while the header is read: Beast would refuse a Content-Length over it when the
+    // header ends, before the header check could answer (a wrong token must get 401, not 413).
+    parser.body_limit(boost::none);
     error_code ec;
     std::size_t n = 0;
     std::tie(ec, n) = co_await bhttp::async_read_header(conn.stream, buffer, parser, kAwaitTuple);
+    ServerLimits request_limits = limits;  // the body limit as the header check leaves it
+    if (!ec) {
+      std::optional<Response> early;
+      try {
+        std::uint64_t body_limit = limits.max_body_bytes;
+        if (self->header_check) early = self->header_check(parser.get(), body_limit);
+        request_limits.max_body_bytes = std::min(body_limit, limits.max_body_bytes);
+      } catch (const std::exception& e) {
+        util::log_error("http: header check threw: {}", e.what());
+        early = make_error(Status::internal_server_error, "internal error");
+      }
+      if (!early) {
+        // A chunked body is held to the limit chunk by chunk; a Content-Length is checked here.
+        parser.body_limit(request_limits.max_body_bytes);
+        const auto length = parser.content_length();
+        if (length && *length > request_limits.max_body_bytes) {
+          early = answer_read_error(bhttp::error::body_limit, request_limits);
+        }
+      }
+      if (early) {
+        // Answered on the header alone; the body, if any, is never read (at most drained).
+        co_await respond_and_close(*self, conn, std::move(*early));
+        co_return;
+      }
+    }
     if (!ec && !parser.is_done()) {
       if (expects_continue(parser.get())) {
         // The client waits for this before it sends the body (curl does for large bodies).
@@ -269,7 +298,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
         self->read_timeouts.fetch_add(1, std::memory_order_relaxed);
         co_return;
       }
-      std::optional<Response> answer = answer_read_error(ec, limits);
+      std::optional<Response> answer = answer_read_error(ec, request_limits);
       if (answer) co_await respond_and_close(*self, conn, std::move(*answer));
       co_return;
     }
@@ -394,8 +423,9 @@ void Server::Impl::count_response(unsigned status) {
 }
 
 Server::Server(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-               Handler handler)
-    : impl_(std::make_shared<Impl>(std::move(executor), address, port, limits, std::move(handler))) {
+               Handler handler, HeaderCheck header_check)
+    : impl_(std::make_shared<Impl>(std::move(executor), address, port, limits, std::move(handler),
+                                   std::move(header_check))) {
   assert(limits.max_header_bytes > 0 && limits.max_body_bytes > 0 && limits.max_connections > 0);
   assert(limits.read_timeout.count() > 0 && limits.write_timeout.count() > 0 &&
          limits.idle_keepalive_timeout.count() > 0);

@@ -3,7 +3,8 @@
 // Owns: the listening socket, one coroutine per connection, and every limit a connection is held
 // to. A session waits for the first byte of a request (the idle deadline between requests, the
 // read deadline on a fresh connection), reads the whole request before the read deadline with the
-// header and body size limits, hands it to the handler, writes the answer before the write
+// header and body size limits (the body's lowered per request by an optional header check, which
+// may also answer before the body is read), hands it to the handler, writes the answer before the write
 // deadline, and keeps the connection for the next request when the client and the handler allow
 // it. Problems the server finds itself are answered with the JSON error shape of types.h and the
 // connection is closed:
@@ -32,6 +33,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 
 #include <boost/asio/any_io_executor.hpp>
 #include <boost/asio/awaitable.hpp>
@@ -67,10 +69,17 @@ class Server {
   // 500. The server sets the response's version, Connection and Content-Length.
   using Handler = std::function<boost::asio::awaitable<Response>(Request)>;
 
+  // Optional; called on the server's executor once a request's header has been read and before
+  // its body is (`header` has an empty body). It may answer at once: the connection then closes
+  // without the body ever being read, so a wrong token or an unknown route costs no body buffer.
+  // Or it may lower `body_limit` (which starts at ServerLimits::max_body_bytes) to the route's
+  // own limit, so an oversized body is refused with 413 as it arrives. An exception becomes a 500.
+  using HeaderCheck = std::function<std::optional<Response>(const Request& header, std::uint64_t& body_limit)>;
+
   // Nothing happens until start(). `port` 0 asks the kernel for a free port (see port()).
   // Limits must be positive (asserted).
   Server(boost::asio::any_io_executor executor, boost::asio::ip::address address, std::uint16_t port,
-         ServerLimits limits, Handler handler);
+         ServerLimits limits, Handler handler, HeaderCheck header_check = {});
   ~Server();
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
