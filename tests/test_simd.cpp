@@ -240,6 +240,22 @@ void check_all_isas(const std::vector<Shape>& shapes, const std::vector<Ray>& ra
   }
 }
 
+// The nearest hit over every shape, one by one; keeps the first of equal t (the smaller id),
+// which is the BVH's tie rule.
+bool brute_force(const std::vector<Shape>& shapes, const Ray& r, Hit& want) {
+  bool found = false;
+  for (std::uint32_t id = 0; id < shapes.size(); ++id) {
+    Hit h;
+    Ray clipped = r;
+    if (found) clipped.t_max = want.t;
+    if (intersect_shape(shapes[id], id, clipped, h)) {
+      want = h;
+      found = true;
+    }
+  }
+  return found;
+}
+
 }  // namespace
 
 TEST_CASE("supported isas start with the scalar path and parse by name", "[simd]") {
@@ -302,16 +318,7 @@ TEST_CASE("the BVH with triangles equals brute force over every shape", "[simd]"
     int mismatches = 0;
     for (const Ray& r : rays) {
       Hit want;
-      bool w = false;
-      for (std::uint32_t id = 0; id < shapes.size(); ++id) {
-        Hit h;
-        Ray clipped = r;
-        if (w) clipped.t_max = want.t;
-        if (intersect_shape(shapes[id], id, clipped, h)) {
-          want = h;
-          w = true;
-        }
-      }
+      const bool w = brute_force(shapes, r, want);
       Hit got;
       const bool g = geo.intersect(r, got);
       // Brute force keeps the first of equal t (the smaller id): the BVH's tie rule.
@@ -550,16 +557,7 @@ TEST_CASE("huge shapes stay out of the tree and every path still equals brute fo
     int mismatches = 0;
     for (const Ray& r : rays) {
       Hit want;
-      bool w = false;
-      for (std::uint32_t id = 0; id < shapes.size(); ++id) {
-        Hit h;
-        Ray clipped = r;
-        if (w) clipped.t_max = want.t;
-        if (intersect_shape(shapes[id], id, clipped, h)) {
-          want = h;
-          w = true;
-        }
-      }
+      const bool w = brute_force(shapes, r, want);
       Hit got;
       const bool g = geo.intersect(r, got);
       mismatches += (w != g) || (w && !same_hit(want, got));

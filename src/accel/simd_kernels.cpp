@@ -225,6 +225,19 @@ inline bool better(float t, std::uint32_t id, float best_t, std::uint32_t best_i
   return t < best_t || (t == best_t && id < best_id);
 }
 
+// One candidate (t, id) of a leaf test. kAnyHit: true when it blocks (t < best_t). Otherwise
+// applies the nearest-hit rule to best_t / best_id and records an improvement.
+template <bool kAnyHit>
+inline bool consider1(float t, std::uint32_t id, float& best_t, std::uint32_t& best_id, bool& improved) {
+  if (kAnyHit) return t < best_t;
+  if (better(t, id, best_t, best_id)) {
+    best_t = t;
+    best_id = id;
+    improved = true;
+  }
+  return false;
+}
+
 // Tests a leaf. kAnyHit: returns true at the first prim with t < best_t. Otherwise updates
 // best_t / best_id and returns whether anything improved.
 template <bool kAnyHit>
@@ -235,38 +248,19 @@ inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, flo
     const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
     spheres1(b, s, t);
     for (int i = 0; i < kWidth; ++i) {
-      if (kAnyHit) {
-        if (t[i] < best_t) return true;
-      } else if (better(t[i], b.id[i], best_t, best_id)) {
-        best_t = t[i];
-        best_id = b.id[i];
-        improved = true;
-      }
+      if (consider1<kAnyHit>(t[i], b.id[i], best_t, best_id, improved)) return true;
     }
   }
   for (std::uint32_t k = 0; k < leaf.triangle_blocks; ++k) {
     const TriangleBlock& b = bvh.triangles[leaf.triangle_begin + k];
     triangles1(b, s, t);
     for (int i = 0; i < kWidth; ++i) {
-      if (kAnyHit) {
-        if (t[i] < best_t) return true;
-      } else if (better(t[i], b.id[i], best_t, best_id)) {
-        best_t = t[i];
-        best_id = b.id[i];
-        improved = true;
-      }
+      if (consider1<kAnyHit>(t[i], b.id[i], best_t, best_id, improved)) return true;
     }
   }
   for (std::uint32_t k = 0; k < leaf.box_count; ++k) {
     const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
-    const float tb = box_t(bp.b, s.r, s.t_min);
-    if (kAnyHit) {
-      if (tb < best_t) return true;
-    } else if (better(tb, bp.id, best_t, best_id)) {
-      best_t = tb;
-      best_id = bp.id;
-      improved = true;
-    }
+    if (consider1<kAnyHit>(box_t(bp.b, s.r, s.t_min), bp.id, best_t, best_id, improved)) return true;
   }
   return improved;
 }
