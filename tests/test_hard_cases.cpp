@@ -108,8 +108,8 @@ scene::Object plane(Vec3d point, Vec3d normal, const scene::Material& m) {
   return o;
 }
 
-scene::PointLight point_light(Vec3d position, double intensity) {
-  scene::PointLight l;
+scene::Light point_light(Vec3d position, double intensity) {
+  scene::Light l;
   l.position = position;
   l.color = {1, 1, 1};
   l.intensity = intensity;
@@ -826,7 +826,7 @@ TEST_CASE("grazing rays at a sphere's silhouette: monotone hit/miss and finite r
 
         for (const render::RenderScene* rs : {&glass_scene, &mirror_scene, &diffuse_scene}) {
           render::TraceStats stats;
-          const Vec3f l = render::trace_radiance(*rs, ray, limits, stats);
+          const Vec3f l = render::trace_radiance(*rs, ray, math::SampleKey{}, limits, stats);
           non_finite += !math::is_finite(l);
           if (rs == &glass_scene) {
             for (int ch = 0; ch < 3; ++ch) {

@@ -274,13 +274,14 @@ struct Tracer {
 
 }  // namespace
 
-Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const TraceLimits& limits, TraceStats& stats) {
+Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& /*key*/,
+                     const TraceLimits& limits, TraceStats& stats) {
   Tracer tracer{scene, limits, stats};
   return tracer.trace(ray, 0, 1.0f, MediumStack{});
 }
 
-void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint32_t valid, const TraceLimits& limits,
-                     TraceStats& stats, Vec3f* out) {
+void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* /*keys*/,
+                     std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
   constexpr int kN = accel::kPacketSize;
   valid &= (1u << kN) - 1;
   if (valid == 0) return;

@@ -13,6 +13,7 @@
 #include <cstdint>
 
 #include "math/ray.h"
+#include "math/rng.h"
 #include "render/render_scene.h"
 
 namespace dtraced::render {
@@ -31,16 +32,25 @@ struct TraceStats {
 struct TraceLimits {
   Vec3f background;
   std::uint32_t max_depth = 8;
+  // Run the path specialised to the scene's features (RenderScene::features); false runs the
+  // generic path, which renders the same bits (the tests and the benchmark compare them).
+  bool specialise = true;
 };
 
-// Radiance arriving along `ray` (a camera ray).
-Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const TraceLimits& limits, TraceStats& stats);
+// Random-number dimensions of a camera sample: the film position takes the first two; the
+// integrator draws from kFirstIntegratorDim on, in a fixed order along the path.
+inline constexpr std::uint32_t kFirstIntegratorDim = 2;
 
-// Radiance along the camera rays rays[i] for each bit i set in `valid` (bits >= kPacketSize are
+// Radiance arriving along `ray` (a camera ray) of the pixel sample `key`, whose random numbers
+// (area-light samples) it draws.
+Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& key,
+                     const TraceLimits& limits, TraceStats& stats);
+
+// Radiance along the camera rays rays[i] (pixel samples keys[i]) for each bit i set in `valid` (bits >= kPacketSize are
 // ignored), written to out[i]; other entries of `out` are left alone. out[i] is bitwise equal to
-// trace_radiance(rays[i]) and `stats` counts the same rays. Coherent rays (one pixel block) are
+// trace_radiance(rays[i], keys[i]) and `stats` counts the same rays. Coherent rays (one pixel block) are
 // what it is for.
-void trace_radiance8(const RenderScene& scene, const math::Ray* rays, std::uint32_t valid, const TraceLimits& limits,
-                     TraceStats& stats, Vec3f* out);
+void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys, std::uint32_t valid,
+                     const TraceLimits& limits, TraceStats& stats, Vec3f* out);
 
 }  // namespace dtraced::render

@@ -19,7 +19,7 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;
 
-  const TileOptions tile_options{.packets = options.packets};
+  const TileOptions tile_options{.packets = options.packets, .specialise = options.specialise};
   std::atomic<std::size_t> next{0};
   std::mutex mu;
   std::condition_variable cv;

@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <vector>
 
 #include "image/image.h"
 #include "render/render_scene.h"
@@ -18,12 +19,15 @@ struct LocalOptions {
   std::uint32_t threads = 0;     // 0: every hardware thread
   std::uint32_t tile_size = 32;  // pixels per tile side, >= 1
   bool packets = true;           // TileOptions::packets: same image either way
+  bool specialise = true;        // TileOptions::specialise: same image either way
   // Called now and then, and once at the end, with (tiles done, tiles total).
   std::function<void(std::size_t, std::size_t)> progress;
 };
 
 struct LocalResult {
   image::ImageRGBf image;
+  // Samples each pixel took (width * height, row-major) with adaptive sampling; empty otherwise.
+  std::vector<std::uint32_t> spp;
   TraceStats stats;
   double seconds = 0.0;  // wall time of rendering (scene build excluded)
   std::uint32_t threads = 0;

@@ -97,7 +97,7 @@ RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
     rs.has_transparency_ = rs.has_transparency_ || o.material.transparency > 0.0;
   }
   rs.geometry_ = accel::Geometry::build(std::move(shapes), isa);
-  for (const scene::PointLight& l : desc.lights) {
+  for (const scene::Light& l : desc.lights) {
     rs.lights_.push_back({to_f(l.position), to_f(l.color * l.intensity)});
   }
   const scene::Camera& c = desc.camera;

@@ -12,11 +12,15 @@ namespace {
 
 // Film position of sample s of pixel (x, y). One sample per pixel goes through the pixel centre
 // (the closed-form tests rely on it); more are jittered uniformly over the pixel (box filter).
+math::SampleKey sample_key(const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y, std::uint32_t s) {
+  return math::SampleKey{settings.seed, settings.frame, x, y, s};
+}
+
 math::Ray camera_ray(const RenderScene& scene, const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y,
                      std::uint32_t s) {
   double jx = 0.5, jy = 0.5;
   if (settings.samples > 1) {
-    const math::SampleKey key{settings.seed, settings.frame, x, y, s};
+    const math::SampleKey key = sample_key(settings, x, y, s);
     jx = math::sample_uniform(key, 0);
     jy = math::sample_uniform(key, 1);
   }
@@ -51,7 +55,9 @@ void render_pixels(const RenderScene& scene, const scene::RenderSettings& settin
       const std::uint32_t x = rect.x0 + tx, y = rect.y0 + ty;
       double sum[3] = {0, 0, 0};
       for (std::uint32_t s = 0; s < settings.samples; ++s) {
-        accumulate(trace_radiance(scene, camera_ray(scene, settings, x, y, s), limits, tile.stats), sum, tile.stats);
+        accumulate(trace_radiance(scene, camera_ray(scene, settings, x, y, s), sample_key(settings, x, y, s), limits,
+                                  tile.stats),
+                   sum, tile.stats);
       }
       store(sum, settings.samples, &tile.rgb[(std::size_t(ty) * rect.width + tx) * 3]);
     }
@@ -77,14 +83,17 @@ void render_packets(const RenderScene& scene, const scene::RenderSettings& setti
       // render_pixels, only interleaved with its neighbours'.
       double sum[kBlockW * kBlockH][3] = {};
       math::Ray rays[kBlockW * kBlockH];
+      math::SampleKey keys[kBlockW * kBlockH];
       Vec3f radiance[kBlockW * kBlockH];
       for (std::uint32_t s = 0; s < settings.samples; ++s) {
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (valid >> i & 1u) {
-            rays[i] = camera_ray(scene, settings, rect.x0 + bx + i % kBlockW, rect.y0 + by + i / kBlockW, s);
+            const std::uint32_t x = rect.x0 + bx + i % kBlockW, y = rect.y0 + by + i / kBlockW;
+            rays[i] = camera_ray(scene, settings, x, y, s);
+            keys[i] = sample_key(settings, x, y, s);
           }
         }
-        trace_radiance8(scene, rays, valid, limits, tile.stats, radiance);
+        trace_radiance8(scene, rays, keys, valid, limits, tile.stats, radiance);
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (valid >> i & 1u) accumulate(radiance[i], sum[i], tile.stats);
         }
@@ -106,7 +115,7 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   Tile tile;
   tile.rect = rect;
   tile.rgb.assign(std::size_t(rect.width) * rect.height * 3, 0.0f);
-  const TraceLimits limits{Vec3f(settings.background), settings.max_depth};
+  const TraceLimits limits{Vec3f(settings.background), settings.max_depth, options.specialise};
   if (options.packets) {
     render_packets(scene, settings, limits, tile);
   } else {

@@ -25,6 +25,9 @@ struct TileRect {
 struct Tile {
   TileRect rect;
   std::vector<float> rgb;  // width * height * 3 linear floats, row-major, top row first
+  // Samples each pixel took, width * height, row-major: filled only with adaptive sampling
+  // (settings.error_target > 0); empty otherwise, when every pixel took settings.samples.
+  std::vector<std::uint32_t> spp;
   TraceStats stats;
 };
 
@@ -33,6 +36,8 @@ struct TileOptions {
   // time; see trace_radiance8) rather than pixel by pixel. Both give the same bits and ray
   // counts; the per-pixel path stays as the reference the tests compare against.
   bool packets = true;
+  // TraceLimits::specialise: false runs the generic integrator path (same bits).
+  bool specialise = true;
 };
 
 // Renders the pixels of `rect`, which must lie inside the settings' image.

@@ -99,12 +99,38 @@ struct Object {
   }
 };
 
-struct PointLight {
+enum class LightType { kPoint, kSphere, kRect, kDisk };
+
+// A light. `intensity * color` is the emitted quantity: radiant intensity I (W/sr) for a point
+// light, radiance Le (W/sr/m^2) leaving every point of an area light's emitting surface.
+//
+//   point   at `position`.
+//   sphere  centre `position`, `radius`; emits outwards from its whole surface.
+//   disk    centre `position`, `radius`, unit `normal`: emits on the normal's side only.
+//   rect    centre `position`, edge vectors `edge_u` and `edge_v` (full lengths, neither zero,
+//           not parallel; a parallelogram when they are not perpendicular), unit `normal` =
+//           normalize(cross(edge_u, edge_v)), possibly negated: emits on the normal's side only.
+//
+// Area lights are sampled by Monte Carlo (`samples` shadow rays per shading point), which gives
+// soft shadows. They are seen by camera, mirror and refracted rays (their emitting side shows Le;
+// the back of a disk or rect is not seen) but are not geometry: they cast no shadows themselves.
+// `cast_shadows` false lets a light's light through every object (no shadow rays are traced).
+struct Light {
   Vec3d position;
   Color color{1, 1, 1};
-  double intensity = 1.0;  // radiant intensity scale (W/sr), >= 0; emitted I = intensity * color
-  bool operator==(const PointLight&) const = default;
+  double intensity = 1.0;  // >= 0
+  LightType type = LightType::kPoint;
+  double radius = 0.0;        // sphere, disk: > 0
+  Vec3d normal{0, -1, 0};     // disk, rect: unit
+  Vec3d edge_u{1, 0, 0};      // rect
+  Vec3d edge_v{0, 0, 1};      // rect
+  std::uint32_t samples = 1;  // area lights: shadow rays per shading point, [1, kMaxLightSamples]
+  bool cast_shadows = true;
+  bool is_area() const { return type != LightType::kPoint; }
+  bool operator==(const Light&) const = default;
 };
+
+inline constexpr std::uint32_t kMaxLightSamples = 256;
 
 struct Camera {
   Vec3d position{0, 0, 5};
@@ -118,21 +144,27 @@ struct Camera {
 struct RenderSettings {
   std::uint32_t width = 640;    // [1, kMaxImageSide]
   std::uint32_t height = 480;   // [1, kMaxImageSide]
-  std::uint32_t samples = 1;    // per pixel, [1, kMaxSamples]
+  std::uint32_t samples = 1;    // per pixel, [1, kMaxSamples]; the most a pixel takes when adaptive
   std::uint32_t max_depth = 8;  // reflection/refraction bounces, [0, kMaxDepth]
   Color background{0, 0, 0};
   std::uint64_t seed = 0;
   std::uint32_t frame = 0;
+  // Adaptive sampling (0: off, every pixel takes `samples`). A pixel stops at the first checkpoint
+  // n = min_samples, 2 min_samples, 4 min_samples, ... (< samples) where its estimated relative
+  // standard error is below error_target; otherwise it takes all `samples`. [0, kMaxErrorTarget]
+  double error_target = 0.0;
+  std::uint32_t min_samples = 16;  // [1, kMaxSamples]; the first checkpoint
   bool operator==(const RenderSettings&) const = default;
 };
 
 inline constexpr std::uint32_t kMaxImageSide = 16384;
 inline constexpr std::uint32_t kMaxSamples = 65536;
 inline constexpr std::uint32_t kMaxDepth = 64;
+inline constexpr double kMaxErrorTarget = 1.0;
 
 struct SceneDesc {
   std::vector<Object> objects;
-  std::vector<PointLight> lights;
+  std::vector<Light> lights;
   Camera camera;
   RenderSettings render;
   bool operator==(const SceneDesc&) const = default;

@@ -100,7 +100,7 @@ std::string canonical_json(const SceneDesc& desc) {
   camera["fov"] = number(desc.camera.fov_deg, sp);
   root["camera"] = std::move(camera);
 
-  json::object render(7, sp);
+  json::object render(9, sp);
   render["width"] = desc.render.width;
   render["height"] = desc.render.height;
   render["samples"] = desc.render.samples;
@@ -108,6 +108,11 @@ std::string canonical_json(const SceneDesc& desc) {
   render["background"] = vec3(desc.render.background, sp);
   render["seed"] = desc.render.seed;
   render["frame"] = desc.render.frame;
+  // Only when adaptive sampling is on, so scenes without it keep the digests they always had.
+  if (desc.render.error_target > 0 || desc.render.min_samples != RenderSettings{}.min_samples) {
+    render["error_target"] = number(desc.render.error_target, sp);
+    render["min_samples"] = desc.render.min_samples;
+  }
   root["render"] = std::move(render);
 
   json::array objects(sp);
@@ -117,12 +122,35 @@ std::string canonical_json(const SceneDesc& desc) {
 
   json::array lights(sp);
   lights.reserve(desc.lights.size());
-  for (const PointLight& light : desc.lights) {
-    json::object o(4, sp);
-    o["type"] = "point";
+  for (const Light& light : desc.lights) {
+    json::object o(9, sp);
+    switch (light.type) {
+      case LightType::kPoint:
+        o["type"] = "point";
+        break;
+      case LightType::kSphere:
+        o["type"] = "sphere";
+        break;
+      case LightType::kDisk:
+        o["type"] = "disk";
+        break;
+      case LightType::kRect:
+        o["type"] = "rect";
+        break;
+    }
     o["loc"] = vec3(light.position, sp);
+    if (light.type == LightType::kSphere || light.type == LightType::kDisk) o["radius"] = number(light.radius, sp);
+    if (light.type == LightType::kDisk || light.type == LightType::kRect) o["normal"] = vec3(light.normal, sp);
+    if (light.type == LightType::kRect) {
+      o["u"] = vec3(light.edge_u, sp);
+      o["v"] = vec3(light.edge_v, sp);
+    }
     o["color"] = vec3(light.color, sp);
     o["intensity"] = number(light.intensity, sp);
+    if (light.is_area()) {
+      o["samples"] = light.samples;
+      o["cast_shadows"] = light.cast_shadows;
+    }
     lights.push_back(json::value(std::move(o)));
   }
   root["scene_lights"] = std::move(lights);

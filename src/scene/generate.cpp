@@ -111,7 +111,7 @@ SceneDesc generate_sphere_field(std::uint32_t count, std::uint64_t seed) {
   // field's centre (the origin), so the field is about as bright at any size.
   const double height = 1.5 * extent + 4;
   const auto light = [](Vec3d position, Color color, double irradiance) {
-    return PointLight{position, color, irradiance * math::length_squared(position)};
+    return Light{position, color, irradiance * math::length_squared(position)};
   };
   scene.lights = {
       light({-extent, height, extent}, {1.0, 0.95, 0.9}, 2.0),

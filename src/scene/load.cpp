@@ -39,8 +39,8 @@ constexpr double kUnitTolerance = 1e-12;
 
 constexpr std::array<std::string_view, 4> kTopKeys = {"camera", "render", "scene_objects", "scene_lights"};
 constexpr std::array<std::string_view, 4> kCameraKeys = {"position", "look_at", "up", "fov"};
-constexpr std::array<std::string_view, 7> kRenderKeys = {"width",      "height", "samples", "max_depth",
-                                                         "background", "seed",   "frame"};
+constexpr std::array<std::string_view, 9> kRenderKeys = {"width", "height", "samples",      "max_depth",  "background",
+                                                         "seed",  "frame",  "error_target", "min_samples"};
 constexpr std::array<std::string_view, 7> kMaterialKeys = {"color",        "diffuse",      "specular", "shininess",
                                                            "reflectivity", "transparency", "ior"};
 constexpr std::array<std::string_view, 4> kSphereKeys = {"type", "loc", "radius", "material"};
@@ -51,7 +51,16 @@ constexpr std::array<std::string_view, 7> kMeshKeys = {"type",   "file",  "obj",
 // Keys checked when an object's type is missing or unknown, so typos are still reported.
 constexpr std::array<std::string_view, 13> kAnyObjectKeys = {
     "type", "loc", "radius", "size", "min", "max", "normal", "material", "file", "obj", "translate", "rotate", "scale"};
-constexpr std::array<std::string_view, 4> kLightKeys = {"type", "loc", "color", "intensity"};
+constexpr std::array<std::string_view, 4> kPointLightKeys = {"type", "loc", "color", "intensity"};
+constexpr std::array<std::string_view, 7> kSphereLightKeys = {"type",      "loc",     "radius",      "color",
+                                                              "intensity", "samples", "cast_shadows"};
+constexpr std::array<std::string_view, 8> kDiskLightKeys = {"type",  "loc",       "radius",  "normal",
+                                                            "color", "intensity", "samples", "cast_shadows"};
+constexpr std::array<std::string_view, 9> kRectLightKeys = {"type",  "loc",       "u",       "v",           "normal",
+                                                            "color", "intensity", "samples", "cast_shadows"};
+// Keys checked when a light's type is missing or unknown.
+constexpr std::array<std::string_view, 10> kAnyLightKeys = {"type", "loc",   "radius",    "normal",  "u",
+                                                            "v",    "color", "intensity", "samples", "cast_shadows"};
 
 // A JSON Pointer built only when an error needs it: validating a 10M-object scene must not
 // allocate a path string per field. A Path refers to its parent, so keep chains in one
@@ -468,6 +477,8 @@ class Validator {
     optional_field(*o, "background", at, render.background, color_reader());
     optional_field(*o, "seed", at, render.seed, integer_in(0, kMaxSeed));
     optional_field(*o, "frame", at, render.frame, integer_in(0, std::numeric_limits<std::uint32_t>::max()));
+    optional_field(*o, "error_target", at, render.error_target, number_in(0, kMaxErrorTarget));
+    optional_field(*o, "min_samples", at, render.min_samples, integer_in(1, kMaxSamples));
   }
 
   void read_material(const json::value& v, const Path& at, Material& m) {
@@ -715,20 +726,43 @@ class Validator {
     return true;
   }
 
-  std::optional<PointLight> read_light(const json::value& v, const Path& at) {
+  std::optional<Light> read_light(const json::value& v, const Path& at) {
     const json::object* o = object(v, at);
     if (o == nullptr) return std::nullopt;
     const std::size_t errors_before = error_count_;
-    check_keys(*o, at, kLightKeys);
+    Light light;
+    bool known_type = false;
     if (const json::value* t = required(*o, "type", at)) {
       const json::string* s = t->if_string();
       if (s == nullptr) {
-        error(at.key("type"), fmt::format("expected a string (point), got {}", json_kind_name(*t)));
-      } else if (*s != "point") {
-        error(at.key("type"), fmt::format("unknown light type \"{}\"; known types: point", std::string_view(*s)));
+        error(at.key("type"),
+              fmt::format("expected a string (point, sphere, disk or rect), got {}", json_kind_name(*t)));
+      } else if (auto type = light_type(*s)) {
+        light.type = *type;
+        known_type = true;
+      } else {
+        error(at.key("type"),
+              fmt::format("unknown light type \"{}\"; known types: point, sphere, disk, rect", std::string_view(*s)));
       }
     }
-    PointLight light;
+    if (!known_type) {
+      check_keys(*o, at, kAnyLightKeys);
+    } else {
+      switch (light.type) {
+        case LightType::kPoint:
+          check_keys(*o, at, kPointLightKeys);
+          break;
+        case LightType::kSphere:
+          check_keys(*o, at, kSphereLightKeys);
+          break;
+        case LightType::kDisk:
+          check_keys(*o, at, kDiskLightKeys);
+          break;
+        case LightType::kRect:
+          check_keys(*o, at, kRectLightKeys);
+          break;
+      }
+    }
     if (const json::value* p = required(*o, "loc", at)) {
       if (auto loc = vec3(*p, at.key("loc"))) light.position = *loc;
     }
@@ -737,8 +771,88 @@ class Validator {
       const Path intensity_at = at.key("intensity");
       if (auto d = number(*i, intensity_at); d && non_negative(*d, intensity_at)) light.intensity = *d;
     }
+    if (!known_type) return std::nullopt;
+    if (light.is_area()) {
+      optional_field(*o, "samples", at, light.samples, integer_in(1, kMaxLightSamples));
+      if (const json::value* c = o->if_contains("cast_shadows")) {
+        if (c->is_bool()) {
+          light.cast_shadows = c->get_bool();
+        } else {
+          error(at.key("cast_shadows"), fmt::format("expected true or false, got {}", json_kind_name(*c)));
+        }
+      }
+    }
+    if (light.type == LightType::kSphere || light.type == LightType::kDisk) {
+      if (const json::value* r = required(*o, "radius", at)) {
+        const Path radius_at = at.key("radius");
+        if (auto d = number(*r, radius_at); d && positive(*d, radius_at)) light.radius = *d;
+      }
+    }
+    if (light.type == LightType::kDisk) {
+      if (const json::value* n = required(*o, "normal", at)) {
+        const Path normal_at = at.key("normal");
+        if (auto got = vec3(*n, normal_at)) {
+          if (auto unit = unit_length(*got)) {
+            light.normal = *unit;
+          } else {
+            error(normal_at, "must not be zero length");
+          }
+        }
+      }
+    }
+    if (light.type == LightType::kRect) read_rect_light(*o, at, light);
     if (error_count_ != errors_before) return std::nullopt;
     return light;
+  }
+
+  static std::optional<LightType> light_type(std::string_view name) {
+    if (name == "point") return LightType::kPoint;
+    if (name == "sphere") return LightType::kSphere;
+    if (name == "disk") return LightType::kDisk;
+    if (name == "rect") return LightType::kRect;
+    return std::nullopt;
+  }
+
+  // A rect light's edges and emitting side: "u" and "v" are required; "normal" is optional (by
+  // default the side of cross(u, v)) and, when given, must be parallel to cross(u, v).
+  void read_rect_light(const json::object& o, const Path& at, Light& light) {
+    std::optional<Vec3d> u, v;
+    if (const json::value* j = required(o, "u", at)) u = vec3(*j, at.key("u"));
+    if (const json::value* j = required(o, "v", at)) v = vec3(*j, at.key("v"));
+    if (!u || !v) return;
+    const double u_scale = math::max_component(math::abs(*u)), v_scale = math::max_component(math::abs(*v));
+    if (u_scale == 0 || v_scale == 0) {
+      error(at.key(u_scale == 0 ? "u" : "v"), "must not be the zero vector");
+      return;
+    }
+    const Vec3d us = *u / u_scale, vs = *v / v_scale;
+    const Vec3d c = math::cross(us, vs);
+    // Parallel edges: the rectangle would have no area. Same tolerance as the camera's up.
+    if (math::length(c) < kParallelTolerance * math::length(us) * math::length(vs)) {
+      error(at.key("v"), "must not be parallel to \"u\": the rectangle would have no area");
+      return;
+    }
+    light.edge_u = *u;
+    light.edge_v = *v;
+    Vec3d normal = c / math::length(c);
+    if (const json::value* j = o.if_contains("normal")) {
+      const Path normal_at = at.key("normal");
+      const auto n = vec3(*j, normal_at);
+      if (!n) return;
+      const auto unit = unit_length(*n);
+      if (!unit) {
+        error(normal_at, "must not be zero length");
+        return;
+      }
+      const double cosine = math::dot(*unit, normal);
+      if (std::abs(cosine) < 1.0 - 1e-6) {
+        error(normal_at,
+              "must be perpendicular to both edges \"u\" and \"v\" (it only picks the side the light emits on)");
+        return;
+      }
+      if (cosine < 0) normal = -normal;
+    }
+    light.normal = normal;
   }
 
   std::string file_;
