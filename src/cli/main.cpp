@@ -15,6 +15,8 @@
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 
+#include "cli/bench_error.h"
+#include "cli/bench_error_args.h"
 #include "cli/client_verbs.h"
 #include "cli/isa_option.h"
 #include "cli/json_config.h"
@@ -113,6 +115,9 @@ int main(int argc, char** argv) {
                 "With --mesh-triangles: directory of the OBJ files, relative to the scene's (default: beside it)");
   g->add_option("-o,--output", generate.output, "Output scene file (JSON)")->required();
 
+  BenchErrorArgs bench_error;
+  CLI::App* sub_bench_error = add_bench_error_verb(app, bench_error, role.isa);
+
   // Client verbs: they talk to a collector.
   ClientArgs client;
   auto add_client_options = [&client](CLI::App* sub) {
@@ -172,7 +177,7 @@ int main(int argc, char** argv) {
     return code == 0 ? 0 : kExitUsage;
   }
   // The kernels, for the two commands that render: --isa, else $DTRACED_ISA, else the best.
-  if (r->parsed() || role.role == "worker") {
+  if (r->parsed() || sub_bench_error->parsed() || role.role == "worker") {
     std::string error;
     const std::optional<dtraced::accel::Isa> isa = choose_isa(role.isa, isa_env, error);
     if (!isa) {
@@ -194,6 +199,7 @@ int main(int argc, char** argv) {
     return kExitUsage;
   }
   if (r->parsed()) return run_render(render);
+  if (sub_bench_error->parsed()) return run_bench_error(bench_error, render.isa);
   if (v->parsed()) return run_validate(validate_files);
   if (c->parsed()) return run_compare(compare);
   if (g->parsed()) return run_generate(generate);
