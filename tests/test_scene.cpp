@@ -18,6 +18,7 @@
 
 namespace {
 
+using dtraced::math::Vec3d;
 using dtraced::scene::canonical_json;
 using dtraced::scene::format_errors;
 using dtraced::scene::generate_sphere_field;
@@ -429,6 +430,86 @@ TEST_CASE("the digest ignores layout and explicit defaults, and sees every seman
   CHECK(changed(R"("look_at": [0, 1, 0])", R"("look_at": [0, 1, 0], "fov": 46)") != digest);
   CHECK(changed(R"("scene_objects")", R"("render": {"samples": 2}, "scene_objects")") != digest);
   CHECK(changed(R"("scene_objects")", R"("render": {"frame": 1}, "scene_objects")") != digest);
+}
+
+TEST_CASE("area lights and adaptive settings load as documented and round-trip through the canonical form",
+          "[scene][lights]") {
+  const SceneDesc d = load_ok(R"({"camera": {}, "render": {"error_target": 0.02, "min_samples": 8},
+      "scene_objects": [], "scene_lights": [
+        {"type": "sphere", "loc": [1, 2, 3], "radius": 0.5, "intensity": 4, "samples": 3},
+        {"type": "disk", "loc": [0, 4, 0], "normal": [0, -2, 0], "radius": 1, "cast_shadows": false},
+        {"type": "rect", "loc": [0, 5, 0], "u": [2, 0, 0], "v": [0, 0, 1]},
+        {"type": "rect", "loc": [0, 5, 0], "u": [2, 0, 0], "v": [0, 0, 1], "normal": [0, -3, 0]},
+        {"type": "point", "loc": [5, 5, 5]}]})");
+  REQUIRE(d.lights.size() == 5);
+  CHECK(d.render.error_target == 0.02);
+  CHECK(d.render.min_samples == 8);
+  const dtraced::scene::Light& sphere = d.lights[0];
+  CHECK(sphere.type == dtraced::scene::LightType::kSphere);
+  CHECK(sphere.radius == 0.5);
+  CHECK(sphere.samples == 3);
+  CHECK(sphere.cast_shadows);
+  CHECK(d.lights[1].normal == Vec3d{0, -1, 0});
+  CHECK_FALSE(d.lights[1].cast_shadows);
+  // cross(u, v) = (0, -2, 0): the default side is -y; "normal" may pick the same side explicitly.
+  CHECK(d.lights[2].normal == Vec3d{0, -1, 0});
+  CHECK(d.lights[3].normal == Vec3d{0, -1, 0});
+  CHECK(d.lights[2].edge_u == Vec3d{2, 0, 0});
+  CHECK(d.lights[4].type == dtraced::scene::LightType::kPoint);
+
+  // The canonical form reloads to the same description, so its digest is stable.
+  const SceneDesc again = load_ok(canonical_json(d));
+  CHECK(again == d);
+  CHECK(scene_digest(again) == scene_digest(d));
+  // The other side of a rect, and a different error target, are different scenes.
+  const SceneDesc flipped = load_ok(R"({"camera": {}, "scene_objects": [], "scene_lights": [
+        {"type": "rect", "loc": [0, 5, 0], "u": [2, 0, 0], "v": [0, 0, 1], "normal": [0, 1, 0]}]})");
+  CHECK(flipped.lights[0].normal == Vec3d{0, 1, 0});
+  CHECK(load_ok(canonical_json(flipped)) == flipped);
+  SceneDesc other_target = d;
+  other_target.render.error_target = 0.03;
+  CHECK(scene_digest(other_target) != scene_digest(d));
+}
+
+TEST_CASE("broken area lights and adaptive settings name the field", "[scene][lights][errors]") {
+  const std::vector<BadCase> cases = {
+      {"unknown light type", with_light(R"({"type": "spot", "loc": [0, 0, 0]})"), "/scene_lights/0/type",
+       "known types: point, sphere, disk, rect"},
+      {"sphere light without a radius", with_light(R"({"type": "sphere", "loc": [0, 0, 0]})"), "/scene_lights/0/radius",
+       "required key is missing"},
+      {"sphere light of radius 0", with_light(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 0})"),
+       "/scene_lights/0/radius", "must be > 0"},
+      {"disk light without a normal", with_light(R"({"type": "disk", "loc": [0, 0, 0], "radius": 1})"),
+       "/scene_lights/0/normal", "required key is missing"},
+      {"disk light with a zero normal",
+       with_light(R"({"type": "disk", "loc": [0, 0, 0], "radius": 1, "normal": [0, 0, 0]})"), "/scene_lights/0/normal",
+       "zero length"},
+      {"rect light with parallel edges",
+       with_light(R"({"type": "rect", "loc": [0, 0, 0], "u": [1, 0, 0], "v": [-2, 0, 0]})"), "/scene_lights/0/v",
+       "must not be parallel"},
+      {"rect light with a zero edge",
+       with_light(R"({"type": "rect", "loc": [0, 0, 0], "u": [0, 0, 0], "v": [1, 0, 0]})"), "/scene_lights/0/u",
+       "zero vector"},
+      {"rect light normal in its plane",
+       with_light(R"({"type": "rect", "loc": [0, 0, 0], "u": [1, 0, 0], "v": [0, 0, 1], "normal": [1, 0, 0]})"),
+       "/scene_lights/0/normal", "perpendicular to both edges"},
+      {"too many light samples", with_light(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1, "samples": 257})"),
+       "/scene_lights/0/samples", "[1, 256]"},
+      {"cast_shadows not a boolean",
+       with_light(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1, "cast_shadows": 1})"),
+       "/scene_lights/0/cast_shadows", "expected true or false"},
+      {"a radius on a point light", with_light(R"({"type": "point", "loc": [0, 0, 0], "radius": 1})"),
+       "/scene_lights/0/radius", "unknown key"},
+      {"negative error target", with_render(R"({"error_target": -0.1})"), "/render/error_target", "must be in [0, 1]"},
+      {"min_samples of 0", with_render(R"({"min_samples": 0})"), "/render/min_samples", "[1, 65536]"},
+  };
+  for (const BadCase& c : cases) {
+    const LoadResult r = load_scene_string(c.json, kFile);
+    INFO("case: " << c.name << "\nerrors:\n" << format_errors(r.errors));
+    CHECK_FALSE(r.ok());
+    CHECK(r.errors.size() == 1);
+    CHECK(has_error(r, c.path, c.fragment));
+  }
 }
 
 TEST_CASE("the sphere field is deterministic and loadable", "[scene][generate]") {

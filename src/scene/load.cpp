@@ -579,15 +579,17 @@ class Validator {
       const json::value* max_v = required(o, "max", at);
       const Path min_at = at.key("min");
       const Path max_at = at.key("max");
-      const auto lo = min_v ? vec3(*min_v, min_at) : std::nullopt;
-      const auto hi = max_v ? vec3(*max_v, max_at) : std::nullopt;
-      if (!lo || !hi) return;
+      const std::optional<Vec3d> lo_read = min_v ? vec3(*min_v, min_at) : std::nullopt;
+      const std::optional<Vec3d> hi_read = max_v ? vec3(*max_v, max_at) : std::nullopt;
+      if (!lo_read || !hi_read) return;
+      // Plain copies: GCC 12 warns (falsely) that the optionals' payloads may be uninitialised.
+      const Vec3d lo = lo_read.value(), hi = hi_read.value();
       for (std::size_t i = 0; i < 3; ++i) {
-        if (!((*lo)[i] < (*hi)[i])) {
-          error(max_at.index(i), fmt::format("must be greater than min (got {} <= {})", (*hi)[i], (*lo)[i]));
+        if (!(lo[i] < hi[i])) {
+          error(max_at.index(i), fmt::format("must be greater than min (got {} <= {})", hi[i], lo[i]));
         }
       }
-      box = Box{*lo, *hi};
+      box = Box{lo, hi};
       return;
     }
     const json::value* loc_v = required(o, "loc", at);
