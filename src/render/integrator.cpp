@@ -5,7 +5,9 @@
 #include <bit>
 #include <cmath>
 #include <numbers>
+#include <utility>
 
+#include "math/rng.h"
 #include "render/shading.h"
 
 namespace dtraced::render {
@@ -54,6 +56,137 @@ struct MediumStack {
   }
 };
 
+// The scene features (SceneFeatures) as the bits of a template argument: Tracer<kF> models only
+// the features in kF. A feature that is off is one the scene does not use, so skipping its code
+// changes no bits: every such branch would have been false at run time.
+enum FeatureBit : unsigned {
+  kReflection = 1u << 0,
+  kRefraction = 1u << 1,
+  kSpecular = 1u << 2,
+  kShadows = 1u << 3,
+  kAreaLights = 1u << 4,
+  kPointLights = 1u << 5,
+};
+constexpr unsigned kFeatureCount = 6;
+constexpr unsigned kAllFeatures = (1u << kFeatureCount) - 1;
+
+constexpr unsigned feature_bits(const SceneFeatures& f) {
+  return (f.reflection ? kReflection : 0u) | (f.refraction ? kRefraction : 0u) | (f.specular ? kSpecular : 0u) |
+         (f.shadows ? kShadows : 0u) | (f.area_lights ? kAreaLights : 0u) | (f.point_lights ? kPointLights : 0u);
+}
+static_assert(feature_bits(SceneFeatures::all()) == kAllFeatures);
+
+// An orthonormal pair perpendicular to unit w (Duff et al. 2017: branch-free, continuous except
+// across w.z = 0).
+void tangent_frame(const Vec3f& w, Vec3f& t, Vec3f& b) {
+  const float sign = std::copysign(1.0f, w.z);
+  const float a = -1.0f / (sign + w.z);
+  const float c = w.x * w.y * a;
+  t = Vec3f{1.0f + sign * w.x * w.x * a, sign * c, -sign * w.x};
+  b = Vec3f{c, sign + w.y * w.y * a, -w.y};
+}
+
+// One sample of an area light seen from a shading point: the direction and distance to a point
+// on the emitting surface and the Monte Carlo weight cos_l / pdf (pdf in solid angle).
+struct AreaSample {
+  Vec3f l;              // unit direction towards the sampled point
+  Vec3f point;          // the sampled point on the light
+  float cos_l = 0.0f;   // dot(nf, l), > 0
+  float weight = 0.0f;  // cos_l / pdf_solid_angle, > 0
+};
+
+// Draws a point of light `a` seen from p (shading normal nf) from the uniforms (u1, u2). False
+// when the sample cannot contribute: p inside or on a sphere light, the point below p's horizon,
+// or p behind a one-sided disk or rect.
+bool sample_area_light(const AreaLightF& a, const Vec3f& p, const Vec3f& nf, float u1, float u2, AreaSample& out) {
+  constexpr float kTwoPi = 2.0f * std::numbers::pi_v<float>;
+  const float phi = kTwoPi * u2;
+  if (a.shape == AreaShape::kSphere) {
+    // Uniform over the cone of directions the sphere subtends: pdf 1 / (2 pi (1 - cos_max)).
+    const Vec3f to_c = a.center - p;
+    const float d2 = math::dot(to_c, to_c);
+    const float r2 = a.radius * a.radius;
+    if (!(d2 > r2)) return false;
+    const float d = std::sqrt(d2);
+    const Vec3f w = to_c / d;
+    const float sin2_max = r2 / d2;
+    // 1 - cos_max without the cancellation of 1 - sqrt(1 - s^2) for small lights.
+    const float one_minus_cos_max = sin2_max / (1.0f + std::sqrt(std::max(0.0f, 1.0f - sin2_max)));
+    const float one_minus_cos = u1 * one_minus_cos_max;
+    const float cos_t = 1.0f - one_minus_cos;
+    const float sin2_t = std::max(0.0f, one_minus_cos * (2.0f - one_minus_cos));
+    const float sin_t = std::sqrt(sin2_t);
+    Vec3f t, b;
+    tangent_frame(w, t, b);
+    out.l = math::normalize(t * (sin_t * std::cos(phi)) + b * (sin_t * std::sin(phi)) + w * cos_t);
+    out.cos_l = math::dot(nf, out.l);
+    if (!(out.cos_l > 0.0f)) return false;
+    // The near intersection of the sampled direction with the sphere.
+    const float dist = d * cos_t - std::sqrt(std::max(0.0f, r2 - d2 * sin2_t));
+    out.point = p + out.l * dist;
+    out.weight = out.cos_l * (kTwoPi * one_minus_cos_max);
+    return true;
+  }
+  // Disk and rect: uniform over the area (pdf 1 / A), turned into solid angle by dist^2 / cos.
+  Vec3f q;
+  if (a.shape == AreaShape::kDisk) {
+    const float r = a.radius * std::sqrt(u1);
+    q = a.center + a.edge_u * (r * std::cos(phi)) + a.edge_v * (r * std::sin(phi));
+  } else {
+    q = a.corner + a.edge_u * u1 + a.edge_v * u2;
+  }
+  const Vec3f to_q = q - p;
+  const float dist2 = math::dot(to_q, to_q);
+  if (!(dist2 > 0.0f)) return false;
+  const float dist = std::sqrt(dist2);
+  out.l = to_q / dist;
+  const float cos_light = -math::dot(out.l, a.normal);  // one-sided: emits on the normal's side
+  if (!(cos_light > 0.0f)) return false;
+  out.cos_l = math::dot(nf, out.l);
+  if (!(out.cos_l > 0.0f)) return false;
+  out.point = q;
+  out.weight = out.cos_l * a.area * cos_light / dist2;
+  return true;
+}
+
+// Where `ray` meets the emitting surface of area light `a` at t in (ray.t_min, ray.t_max): a
+// sphere from outside, a disk or rect from the normal's side. Lights are few and not in the BVH.
+bool hit_emitter(const AreaLightF& a, const math::Ray& ray, float& t) {
+  if (a.shape == AreaShape::kSphere) {
+    const Vec3f oc = ray.o - a.center;
+    const float c = math::dot(oc, oc) - a.radius * a.radius;
+    if (!(c > 0.0f)) return false;  // origin inside or on the sphere: its outside is not seen
+    const float b = math::dot(oc, ray.d);
+    if (!(b < 0.0f)) return false;  // moving away from the centre
+    // The squared distance of the centre from the ray's line, formed without the cancellation
+    // of b^2 - c for distant lights.
+    const Vec3f perp = oc - ray.d * b;
+    const float disc = a.radius * a.radius - math::dot(perp, perp);
+    if (!(disc >= 0.0f)) return false;
+    t = -b - std::sqrt(disc);
+  } else {
+    const float denom = math::dot(ray.d, a.normal);
+    if (!(denom < 0.0f)) return false;  // parallel, or reaching the back
+    t = math::dot(a.center - ray.o, a.normal) / denom;
+    if (!(t > ray.t_min && t < ray.t_max)) return false;
+    const Vec3f q = ray.o + ray.d * t;
+    if (a.shape == AreaShape::kDisk) {
+      const Vec3f rel = q - a.center;
+      if (!(math::dot(rel, rel) <= a.radius * a.radius)) return false;
+    } else {
+      // Coordinates of q in the (edge_u, edge_v) basis; a parallelogram in general.
+      const Vec3f rel = q - a.corner;
+      const float uu = math::dot(a.edge_u, a.edge_u), vv = math::dot(a.edge_v, a.edge_v);
+      const float uv = math::dot(a.edge_u, a.edge_v);
+      const float ru = math::dot(rel, a.edge_u), rv = math::dot(rel, a.edge_v);
+      const float det = uu * vv - uv * uv;
+      const float s = (ru * vv - rv * uv) / det, w = (rv * uu - ru * uv) / det;
+      if (!(s >= 0.0f && s <= 1.0f && w >= 0.0f && w <= 1.0f)) return false;
+    }
+  }
+  return t > ray.t_min && t < ray.t_max;
+}
+
 // A point light as seen from one hit point (see Tracer::light_setup).
 struct LightSample {
   Vec3f l;             // unit direction towards the light
@@ -69,17 +202,32 @@ struct FirstHit {
   const Vec3f* direct = nullptr;
 };
 
+template <unsigned kF>
 struct Tracer {
+  static constexpr bool kReflect = (kF & kReflection) != 0;
+  static constexpr bool kRefract = (kF & kRefraction) != 0;
+  static constexpr bool kSpec = (kF & kSpecular) != 0;
+  static constexpr bool kShadow = (kF & kShadows) != 0;
+  static constexpr bool kArea = (kF & kAreaLights) != 0;
+  static constexpr bool kPoint = (kF & kPointLights) != 0;
+
   const RenderScene& scene;
   const TraceLimits& limits;
   TraceStats& stats;
+  // The pixel sample whose random numbers area-light sampling draws, and the next dimension to
+  // draw: advanced by 2 * samples per area light at every hit that gathers direct light, in the
+  // order the path visits them, so a sample's radiance is a pure function of (scene, key).
+  math::SampleKey key{};
+  std::uint32_t dim = kFirstIntegratorDim;
 
   bool intersect(const math::Ray& ray, accel::Hit& hit) {
     ++stats.rays;
     return scene.geometry().intersect(ray, hit);
   }
 
-  // Fraction of a point light's intensity that reaches the shadow ray's end. Opaque surfaces
+  bool transparent_scene() const { return kRefract && scene.has_transparency(); }
+
+  // Fraction of a light's emission that reaches the shadow ray's end. Opaque surfaces
   // block. A transparent one passes transparency * (1 - F) at each crossing, the shadow ray going
   // straight on (the usual Whitted approximation: no caustics). The indices on both sides come
   // from the same media stack as camera paths use, so an index-matched interface (eta == 1)
@@ -87,7 +235,7 @@ struct Tracer {
   // the exit angle is not the refracted one, and evaluating it from the dense side would report
   // total internal reflection where, by reciprocity, the true path transmits 1 - F(entry).
   float transmittance(math::Ray ray, MediumStack media) {
-    if (!scene.has_transparency()) {
+    if (!transparent_scene()) {
       // Only opaque surfaces: any hit blocks, so the traversal may stop at the first one.
       ++stats.rays;
       return scene.geometry().occluded(ray) ? 0.0f : 1.0f;
@@ -156,46 +304,104 @@ struct Tracer {
     ls.l = to_light / dist;
     ls.cos_l = math::dot(nf, ls.l);
     if (!(ls.cos_l > 0.0f)) return false;
-    shadow = math::Ray{};
-    shadow.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, ls.l);
-    const Vec3f seg = light.position - shadow.o;
+    shadow = shadow_ray(hit, ls.l, light.position);
+    return true;
+  }
+
+  // A shadow ray from hit towards `target`, leaving along about `l`. It ends at the target:
+  // lights are not surfaces the traversal could find.
+  static math::Ray shadow_ray(const accel::Hit& hit, const Vec3f& l, const Vec3f& target) {
+    math::Ray shadow;
+    shadow.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, l);
+    const Vec3f seg = target - shadow.o;
     const float seg_len = math::length(seg);
     shadow.d = seg / seg_len;
-    shadow.t_max = seg_len;  // a point light is not a surface: nothing to stop short of
-    return true;
+    shadow.t_max = seg_len;
+    return shadow;
+  }
+
+  // Lambert plus normalised Blinn-Phong: the BRDF for light arriving from unit direction l.
+  static Vec3f brdf(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const Vec3f& l) {
+    Vec3f f = m.color * (m.diffuse * kInvPi);
+    if (kSpec && m.specular > 0.0f) {
+      const Vec3f h = math::normalize(l + wo);
+      const float cos_h = std::max(0.0f, math::dot(nf, h));
+      const float spec =
+          m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*std::pow(cos_h, m.shininess);
+      f += Vec3f{spec, spec, spec};
+    }
+    return f;
   }
 
   // Light reflected towards wo from one light whose shadow ray let `vis` (> 0) of it through.
   static Vec3f light_contribution(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const PointLightF& light,
                                   const LightSample& ls, float vis) {
     const float e = vis * ls.cos_l / ls.dist2;  // irradiance per unit intensity
-    Vec3f f = m.color * (m.diffuse * kInvPi);
-    if (m.specular > 0.0f) {
-      const Vec3f h = math::normalize(ls.l + wo);
-      const float cos_h = std::max(0.0f, math::dot(nf, h));
-      const float spec =
-          m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*std::pow(cos_h, m.shininess);
-      f += Vec3f{spec, spec, spec};
-    }
-    return math::mul(f, light.intensity) * e;
+    return math::mul(brdf(m, wo, nf, ls.l), light.intensity) * e;
   }
 
   // Whether a hit on material m gathers direct light at all.
   static bool wants_direct(const MaterialF& m) {
-    return m.local_weight > 0.0f && (m.diffuse > 0.0f || m.specular > 0.0f);
+    return m.local_weight > 0.0f && (m.diffuse > 0.0f || (kSpec && m.specular > 0.0f));
   }
 
-  Vec3f direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const MediumStack& media) {
+  // Direct light from the point lights, summed in scene order.
+  Vec3f point_direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf,
+                     const MediumStack& media) {
     Vec3f sum{0, 0, 0};
-    for (const PointLightF& light : scene.lights()) {
-      LightSample ls;
-      math::Ray shadow;
-      if (!light_setup(hit, nf, light, ls, shadow)) continue;
-      const float vis = transmittance(shadow, media);
-      if (vis <= 0.0f) continue;
-      sum += light_contribution(m, wo, nf, light, ls, vis);
+    if constexpr (kPoint) {
+      for (const PointLightF& light : scene.lights()) {
+        LightSample ls;
+        math::Ray shadow;
+        if (!light_setup(hit, nf, light, ls, shadow)) continue;
+        const float vis = transmittance(shadow, media);
+        if (vis <= 0.0f) continue;
+        sum += light_contribution(m, wo, nf, light, ls, vis);
+      }
     }
     return sum;
+  }
+
+  // Adds to `sum` the Monte Carlo estimate of each area light's direct light, in scene order,
+  // each the mean of its `samples` samples.
+  void add_area_direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf,
+                       const MediumStack& media, Vec3f& sum) {
+    if constexpr (kArea) {
+      for (const AreaLightF& a : scene.area_lights()) {
+        const std::uint32_t base = dim;
+        dim += 2 * a.samples;
+        Vec3f acc{0, 0, 0};
+        for (std::uint32_t s = 0; s < a.samples; ++s) {
+          const float u1 = math::sample_uniform(key, base + 2 * s);
+          const float u2 = math::sample_uniform(key, base + 2 * s + 1);
+          AreaSample as;
+          if (!sample_area_light(a, hit.p, nf, u1, u2, as)) continue;
+          float vis = 1.0f;
+          if constexpr (kShadow) {
+            if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point), media);
+          }
+          if (vis <= 0.0f) continue;
+          acc += math::mul(brdf(m, wo, nf, as.l), a.radiance) * (as.weight * vis);
+        }
+        sum += acc / float(a.samples);
+      }
+    }
+  }
+
+  // Radiance of the nearest area light whose emitting surface `ray` reaches before t_limit.
+  bool emitter_before(math::Ray ray, float t_limit, Vec3f& le) const {
+    bool found = false;
+    if constexpr (kArea) {
+      ray.t_max = t_limit;
+      for (const AreaLightF& a : scene.area_lights()) {
+        float t;
+        if (!hit_emitter(a, ray, t)) continue;
+        ray.t_max = t;  // nearer lights only from now on
+        le = a.radiance;
+        found = true;
+      }
+    }
+    return found;
   }
 
   math::Ray spawn(const accel::Hit& hit, const Vec3f& dir) {
@@ -206,39 +412,49 @@ struct Tracer {
   }
 
   // `first`, given only for camera rays of a packet, replaces the first intersection (and maybe
-  // the first direct-light sum) by what the packet traversal found; all else is unchanged, so the
-  // result has the same bits either way.
+  // the point-light direct sum) by what the packet traversal found; all else is unchanged, so
+  // the result has the same bits either way.
   Vec3f trace(math::Ray ray, std::uint32_t depth, float weight, MediumStack media, const FirstHit* first = nullptr) {
     for (int pass = 0; pass <= kMaxPassThroughs; ++pass) {
       accel::Hit hit;
       const Vec3f* known_direct = nullptr;
+      bool found;
       if (pass == 0 && first != nullptr) {
-        if (first->hit == nullptr) return limits.background;
-        hit = *first->hit;
+        found = first->hit != nullptr;
+        if (found) hit = *first->hit;
         known_direct = first->direct;
-      } else if (!intersect(ray, hit)) {
-        return limits.background;
+      } else {
+        found = intersect(ray, hit);
       }
+      if constexpr (kArea) {
+        Vec3f le;
+        if (emitter_before(ray, found ? hit.t : ray.t_max, le)) return le;
+      }
+      if (!found) return limits.background;
       const MaterialF& m = scene.material(hit.shape);
       const Vec3f wo = -ray.d;
       const bool front = math::dot(wo, hit.n) >= 0.0f;
       const Vec3f nf = front ? hit.n : -hit.n;
 
       // Relative index of refraction across this surface and the media beyond it.
+      const bool transparent = kRefract && m.transparency > 0.0f;
       MediumStack inside = media;
-      const float eta = m.transparency > 0.0f ? cross_interface(inside, hit.shape) : 1.0f;
+      const float eta = transparent ? cross_interface(inside, hit.shape) : 1.0f;
 
       Vec3f radiance{0, 0, 0};
       if (wants_direct(m)) {
-        radiance += (known_direct != nullptr ? *known_direct : direct(hit, m, wo, nf, media)) * m.local_weight;
+        // Point lights first (the packet path may have summed them already), then area lights.
+        Vec3f direct = known_direct != nullptr ? *known_direct : point_direct(hit, m, wo, nf, media);
+        add_area_direct(hit, m, wo, nf, media, direct);
+        radiance += direct * m.local_weight;
       }
       const bool deeper = depth < limits.max_depth;
-      if (m.reflectivity > 0.0f && deeper && weight * m.reflectivity >= kMinBranchWeight) {
+      if (kReflect && m.reflectivity > 0.0f && deeper && weight * m.reflectivity >= kMinBranchWeight) {
         const Vec3f r = math::normalize(reflect(ray.d, nf));
         radiance +=
             math::mul(m.color, trace(spawn(hit, r), depth + 1, weight * m.reflectivity, media)) * m.reflectivity;
       }
-      if (m.transparency <= 0.0f) return radiance;
+      if (!transparent) return radiance;
 
       if (eta == 1.0f) {
         // Index-matched: the surface does not bend or reflect light. Continue the very same ray
@@ -272,36 +488,40 @@ struct Tracer {
   }
 };
 
-}  // namespace
-
-Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& /*key*/,
-                     const TraceLimits& limits, TraceStats& stats) {
-  Tracer tracer{scene, limits, stats};
+template <unsigned kF>
+Vec3f trace_radiance_with(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& key,
+                          const TraceLimits& limits, TraceStats& stats) {
+  Tracer<kF> tracer{scene, limits, stats, key};
   return tracer.trace(ray, 0, 1.0f, MediumStack{});
 }
 
-void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* /*keys*/,
-                     std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
+template <unsigned kF>
+void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys,
+                          std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
+  using T = Tracer<kF>;
   constexpr int kN = accel::kPacketSize;
-  valid &= (1u << kN) - 1;
-  if (valid == 0) return;
-  Tracer tracer{scene, limits, stats};
+  T tracer{scene, limits, stats};
   const accel::Geometry& geometry = scene.geometry();
 
   accel::Hit hits[kN];
   stats.rays += std::popcount(valid);
   const std::uint32_t hit_mask = geometry.intersect8(rays, valid, hits) & valid;
 
-  // Shadow rays of the first hits as packets, one per light: occluded8 when the scene is opaque
-  // (a pure any-hit query); with transparent objects, intersect8 finds every lane's first
-  // crossing and Tracer::transmittance_walk continues from it one lane at a time (most shadow
-  // rays end there: they reach the light or meet an opaque surface).
+  // Shadow rays of the first hits towards the point lights as packets, one per light: occluded8
+  // when the scene is opaque (a pure any-hit query); with transparent objects, intersect8 finds
+  // every lane's first crossing and Tracer::transmittance_walk continues from it one lane at a
+  // time (most shadow rays end there: they reach the light or meet an opaque surface). Area
+  // lights are left to each lane's tracer, which adds them after this sum as the scalar path does.
   Vec3f direct[kN];
-  std::uint32_t direct_mask = 0;  // lanes whose direct[] is final
+  std::uint32_t direct_mask = 0;  // lanes whose point-light direct[] is final
   if (hit_mask != 0) {
     Vec3f wo[kN], nf[kN];
     for (int i = 0; i < kN; ++i) {
-      if (!(hit_mask >> i & 1u) || !Tracer::wants_direct(scene.material(hits[i].shape))) continue;
+      if (!(hit_mask >> i & 1u) || !T::wants_direct(scene.material(hits[i].shape))) continue;
+      // A camera ray that meets an area light before its hit shows the light: Tracer::trace
+      // returns there, casting no shadow ray, so none is cast for it here either.
+      Vec3f le;
+      if (tracer.emitter_before(rays[i], hits[i].t, le)) continue;
       // The same wo and nf as Tracer::trace computes for this hit.
       wo[i] = -rays[i].d;
       nf[i] = math::dot(wo[i], hits[i].n) >= 0.0f ? hits[i].n : -hits[i].n;
@@ -311,25 +531,27 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math
     LightSample ls[kN];
     math::Ray shadow[kN];
     accel::Hit hits_scratch[kN];
-    for (const PointLightF& light : scene.lights()) {
+    const std::size_t point_lights = T::kPoint ? scene.lights().size() : 0;
+    for (std::size_t li = 0; li < point_lights; ++li) {
+      const PointLightF& light = scene.lights()[li];
       std::uint32_t cast = 0;
       for (int i = 0; i < kN; ++i) {
-        if ((direct_mask >> i & 1u) && Tracer::light_setup(hits[i], nf[i], light, ls[i], shadow[i])) cast |= 1u << i;
+        if ((direct_mask >> i & 1u) && T::light_setup(hits[i], nf[i], light, ls[i], shadow[i])) cast |= 1u << i;
       }
       if (cast == 0) continue;
       stats.rays += std::popcount(cast);
-      // Lights are summed in scene order per lane, as Tracer::direct does; a blocked light
+      // Lights are summed in scene order per lane, as Tracer::point_direct does; a blocked light
       // (visibility 0) adds nothing.
-      if (!scene.has_transparency()) {
+      if (!tracer.transparent_scene()) {
         const std::uint32_t blocked = geometry.occluded8(shadow, cast);
         for (int i = 0; i < kN; ++i) {
           if ((cast & ~blocked) >> i & 1u) {
-            direct[i] += Tracer::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
+            direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
           }
         }
         continue;
       }
-      Tracer::KnownHit first[kN];
+      typename T::KnownHit first[kN];
       const std::uint32_t crossed = geometry.intersect8(shadow, cast, hits_scratch);
       for (int i = 0; i < kN; ++i) {
         if (!(cast >> i & 1u)) continue;
@@ -338,7 +560,7 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math
         // A camera ray's first hit is seen from outside every medium, as Tracer::trace has it.
         const float vis = tracer.transmittance_walk(shadow[i], MediumStack{}, &first[i]);
         if (vis <= 0.0f) continue;
-        direct[i] += Tracer::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
+        direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
       }
     }
   }
@@ -346,8 +568,54 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math
   for (int i = 0; i < kN; ++i) {
     if (!(valid >> i & 1u)) continue;
     const FirstHit first{(hit_mask >> i & 1u) ? &hits[i] : nullptr, (direct_mask >> i & 1u) ? &direct[i] : nullptr};
-    out[i] = tracer.trace(rays[i], 0, 1.0f, MediumStack{}, &first);
+    // Each lane's own random numbers, from the first dimension on, as trace_radiance has them.
+    T lane{scene, limits, stats, keys[i]};
+    out[i] = lane.trace(rays[i], 0, 1.0f, MediumStack{}, &first);
   }
+}
+
+// One instantiation per feature set, indexed by its bits (feature_bits).
+using RadianceFn = Vec3f (*)(const RenderScene&, const math::Ray&, const math::SampleKey&, const TraceLimits&,
+                             TraceStats&);
+using Radiance8Fn = void (*)(const RenderScene&, const math::Ray*, const math::SampleKey*, std::uint32_t,
+                             const TraceLimits&, TraceStats&, Vec3f*);
+
+// Whether some scene has feature set kF: point lights always cast shadows, and shadows need a
+// light. The 24 other sets of the 64 are never derived; their entries run the generic path
+// rather than cost compile time.
+constexpr bool derivable(unsigned kF) {
+  const bool point = (kF & kPointLights) != 0, area = (kF & kAreaLights) != 0, shadows = (kF & kShadows) != 0;
+  return (!point || shadows) && (!shadows || point || area);
+}
+
+template <std::size_t... I>
+constexpr std::array<RadianceFn, sizeof...(I)> radiance_table(std::index_sequence<I...>) {
+  return {&trace_radiance_with < derivable(I) ? unsigned(I) : kAllFeatures > ...};
+}
+template <std::size_t... I>
+constexpr std::array<Radiance8Fn, sizeof...(I)> radiance8_table(std::index_sequence<I...>) {
+  return {&trace_radiance8_with < derivable(I) ? unsigned(I) : kAllFeatures > ...};
+}
+constexpr auto kRadianceFns = radiance_table(std::make_index_sequence<kAllFeatures + 1>{});
+constexpr auto kRadiance8Fns = radiance8_table(std::make_index_sequence<kAllFeatures + 1>{});
+static_assert(derivable(kAllFeatures) && derivable(0));
+
+unsigned path_features(const RenderScene& scene, const TraceLimits& limits) {
+  return limits.specialise ? feature_bits(scene.features()) : kAllFeatures;
+}
+
+}  // namespace
+
+Vec3f trace_radiance(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& key,
+                     const TraceLimits& limits, TraceStats& stats) {
+  return kRadianceFns[path_features(scene, limits)](scene, ray, key, limits, stats);
+}
+
+void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys, std::uint32_t valid,
+                     const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
+  valid &= (1u << accel::kPacketSize) - 1;
+  if (valid == 0) return;
+  kRadiance8Fns[path_features(scene, limits)](scene, rays, keys, valid, limits, stats, out);
 }
 
 }  // namespace dtraced::render

@@ -1,13 +1,21 @@
 // dtraced::render Whitted integrator.
 //
-// Direct light from point lights with hard shadows, Lambert diffuse plus normalised Blinn-Phong
-// specular, mirror reflection, and dielectric refraction with exact Fresnel and total internal
-// reflection. Nested and touching transparent objects are handled with a small per-path stack
-// of the media the path is inside. Pure function of (scene, ray, settings): thread-safe.
+// Direct light from point lights with hard shadows and from sphere, disk and rect area lights
+// with soft shadows (Monte Carlo: `samples` shadow rays per light and shading point, uniform over
+// a sphere's cone of directions or a disk's or rect's area), Lambert diffuse plus normalised
+// Blinn-Phong specular, mirror reflection, and dielectric refraction with exact Fresnel and total
+// internal reflection. Nested and touching transparent objects are handled with a small per-path
+// stack of the media the path is inside. Camera, mirror and refracted rays that reach an area
+// light's emitting side before any surface return its radiance Le. Pure function of (scene, ray,
+// sample key, settings): thread-safe.
+//
+// Each call runs a path specialised to the scene's features (RenderScene::features: code for a
+// feature the scene lacks is compiled out), or with TraceLimits::specialise false the generic
+// path; both give the same bits.
 //
 // trace_radiance follows one camera ray; trace_radiance8 follows up to 8 together, tracing their
-// first hits (and, without transparency, the shadow rays there) as packets and everything after
-// per ray. Both give every ray the same bits and count the same rays.
+// first hits (and, without transparency, the point lights' shadow rays there) as packets and
+// everything after per ray. Both give every ray the same bits and count the same rays.
 #pragma once
 
 #include <cstdint>

@@ -64,7 +64,67 @@ void append_shapes(const scene::Object& o, std::vector<accel::Shape>& shapes) {
   }
 }
 
+// A unit vector perpendicular to unit n (any one: the disk is symmetric about its normal).
+Vec3d perpendicular(const Vec3d& n) {
+  const Vec3d a = std::abs(n.x) < 0.9 ? Vec3d{1, 0, 0} : Vec3d{0, 1, 0};
+  return math::normalize(math::cross(n, a));
+}
+
+AreaLightF to_area_light(const scene::Light& l) {
+  AreaLightF a;
+  a.center = to_f(l.position);
+  a.radiance = to_f(l.color * l.intensity);
+  a.samples = l.samples;
+  a.cast_shadows = l.cast_shadows;
+  switch (l.type) {
+    case scene::LightType::kSphere:
+      a.shape = AreaShape::kSphere;
+      a.radius = float(l.radius);
+      break;
+    case scene::LightType::kDisk: {
+      a.shape = AreaShape::kDisk;
+      a.radius = float(l.radius);
+      const Vec3d n = math::normalize(l.normal);
+      const Vec3d t = perpendicular(n);
+      a.normal = to_f(n);
+      a.edge_u = to_f(t);
+      a.edge_v = to_f(math::cross(n, t));
+      a.area = float(std::numbers::pi * l.radius * l.radius);
+      break;
+    }
+    case scene::LightType::kRect:
+      a.shape = AreaShape::kRect;
+      a.normal = to_f(math::normalize(l.normal));
+      a.edge_u = to_f(l.edge_u);
+      a.edge_v = to_f(l.edge_v);
+      a.corner = to_f(l.position - l.edge_u * 0.5 - l.edge_v * 0.5);
+      a.area = float(math::length(math::cross(l.edge_u, l.edge_v)));
+      break;
+    case scene::LightType::kPoint:
+      assert(false && "point lights are PointLightF");
+      break;
+  }
+  assert(a.samples >= 1 && a.samples <= scene::kMaxLightSamples);
+  return a;
+}
+
 }  // namespace
+
+std::string feature_names(const SceneFeatures& f) {
+  std::string out;
+  const auto add = [&out](bool on, const char* name) {
+    if (!on) return;
+    if (!out.empty()) out += ' ';
+    out += name;
+  };
+  add(f.reflection, "reflection");
+  add(f.refraction, "refraction");
+  add(f.specular, "specular");
+  add(f.shadows, "shadows");
+  add(f.area_lights, "area-lights");
+  add(f.point_lights, "point-lights");
+  return out.empty() ? "none" : out;
+}
 
 math::Ray CameraF::generate(double fx, double fy, std::uint32_t width, std::uint32_t height) const {
   const double aspect = double(width) / double(height);
@@ -95,10 +155,21 @@ RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
     rs.shape_object_.resize(shapes.size(), static_cast<std::uint32_t>(i));
     rs.materials_.push_back(to_material(o.material));
     rs.has_transparency_ = rs.has_transparency_ || o.material.transparency > 0.0;
+    rs.features_.reflection = rs.features_.reflection || o.material.reflectivity > 0.0;
+    rs.features_.specular = rs.features_.specular || o.material.specular > 0.0;
   }
+  rs.features_.refraction = rs.has_transparency_;
   rs.geometry_ = accel::Geometry::build(std::move(shapes), isa);
   for (const scene::Light& l : desc.lights) {
-    rs.lights_.push_back({to_f(l.position), to_f(l.color * l.intensity)});
+    if (l.is_area()) {
+      rs.area_lights_.push_back(to_area_light(l));
+      rs.features_.area_lights = true;
+      rs.features_.shadows = rs.features_.shadows || l.cast_shadows;
+    } else {
+      rs.lights_.push_back({to_f(l.position), to_f(l.color * l.intensity)});
+      rs.features_.point_lights = true;
+      rs.features_.shadows = true;
+    }
   }
   const scene::Camera& c = desc.camera;
   rs.camera_.position = c.position;

@@ -1,11 +1,13 @@
 // dtraced::render render-ready scene: float materials, lights, camera and the acceleration
-// structure, built once from a scene::SceneDesc.
+// structure, built once from a scene::SceneDesc, and the scene's feature set (what the integrator
+// needs to model; see SceneFeatures).
 //
 // Thread-safety: immutable after build(); shared read-only by every render thread.
 #pragma once
 
 #include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "accel/geometry.h"
@@ -34,6 +36,42 @@ struct PointLightF {
   Vec3f intensity;  // colour * intensity, W/sr per channel
 };
 
+enum class AreaShape : std::uint8_t { kSphere, kDisk, kRect };
+
+// An area light, ready to sample (scene::Light has the contract). Le = colour * intensity is the
+// radiance leaving every point of its emitting surface.
+struct AreaLightF {
+  AreaShape shape = AreaShape::kSphere;
+  Vec3f center;               // sphere, disk, rect: centre
+  float radius = 0.0f;        // sphere, disk
+  Vec3f normal;               // disk, rect: unit, on the emitting side
+  Vec3f corner;               // rect: center - edge_u / 2 - edge_v / 2
+  Vec3f edge_u, edge_v;       // rect: full edges; disk: unit tangents with cross(edge_u, edge_v) = normal
+  float area = 0.0f;          // disk, rect: of the emitting surface
+  Vec3f radiance;             // Le per channel, W/sr/m^2
+  std::uint32_t samples = 1;  // per shading point, [1, scene::kMaxLightSamples]
+  bool cast_shadows = true;
+};
+
+// What a scene uses, derived once at build: the integrator runs a path specialised to it (a
+// feature that is off costs nothing). Every field is a pure function of the description.
+struct SceneFeatures {
+  bool reflection = false;    // some material has reflectivity > 0
+  bool refraction = false;    // some material has transparency > 0
+  bool specular = false;      // some material has specular > 0
+  bool shadows = false;       // some light casts shadows (point lights always do)
+  bool area_lights = false;   // some sphere, disk or rect light
+  bool point_lights = false;  // some point light
+  bool operator==(const SceneFeatures&) const = default;
+
+  // Every feature on: what the generic integrator path models.
+  static constexpr SceneFeatures all() { return {true, true, true, true, true, true}; }
+};
+
+// The features that are on, in the order of SceneFeatures' fields, space-separated:
+// "reflection refraction specular shadows area-lights point-lights" for all(); "none" if none.
+std::string feature_names(const SceneFeatures& f);
+
 // Pinhole camera. Ray directions are formed in double and rounded once to float.
 struct CameraF {
   Vec3d position;
@@ -58,7 +96,11 @@ class RenderScene {
   std::uint32_t object(std::uint32_t shape) const { return shape_object_[shape]; }
   std::size_t object_count() const { return materials_.size(); }
   const MaterialF& object_material(std::uint32_t object) const { return materials_[object]; }
+  // Point lights, in scene order (area lights are not among them).
   const std::vector<PointLightF>& lights() const { return lights_; }
+  // Sphere, disk and rect lights, in scene order.
+  const std::vector<AreaLightF>& area_lights() const { return area_lights_; }
+  const SceneFeatures& features() const { return features_; }
   const CameraF& camera() const { return camera_; }
   bool has_transparency() const { return has_transparency_; }
 
@@ -67,6 +109,8 @@ class RenderScene {
   std::vector<MaterialF> materials_;         // one per scene object
   std::vector<std::uint32_t> shape_object_;  // shape id -> object index: 4 bytes per triangle
   std::vector<PointLightF> lights_;
+  std::vector<AreaLightF> area_lights_;
+  SceneFeatures features_;
   CameraF camera_;
   bool has_transparency_ = false;
 };
