@@ -142,6 +142,20 @@ check "a bad value in the config" 2 "$DTRACED" --role collector --config "$work/
 check "flags win over the config" 1 "$DTRACED" --role collector --config "$work/c3.json" --listen 127.0.0.1:0 --state-dir "$work/not-a-dir" --token-file "$work/token"
 check "client verb against no collector" 1 "$DTRACED" list --collector http://127.0.0.1:1
 check "client verb with a bad URL" 1 "$DTRACED" list --collector https://example
+# Adaptive sampling: the flags, the summary line, the spp map, and the same bits for any tiling.
+ADAPT=(--width 48 --height 32 -s 32 --error-target 0.05 --min-samples 4)
+check "adaptive render" 0 "$DTRACED" render "$SCENES/showcase.json" -o "$work/ad1.pfm" "${ADAPT[@]}" --spp-map "$work/spp.pfm" -t 2
+expect_text "the summary gives the mean spp" "$work/err" "a mean [0-9.]* of at most 32 spp"
+expect_text "the summary gives the share stopped early" "$work/err" "% of pixels stopped early"
+check "adaptive render, other tiling" 0 "$DTRACED" render "$SCENES/showcase.json" -o "$work/ad2.pfm" "${ADAPT[@]}" -t 1 --tile-size 5 --spp-map "$work/spp2.pfm" -q
+check "adaptive images match across tilings" 0 cmp "$work/ad1.pfm" "$work/ad2.pfm"
+check "spp maps match across tilings" 0 cmp "$work/spp.pfm" "$work/spp2.pfm"
+check "a 16-bit png spp map" 0 "$DTRACED" render "$SCENES/showcase.json" -o "$work/ad3.png" "${ADAPT[@]}" --spp-map "$work/spp.png" -q
+check "an error target above 1 is a usage error" 2 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --error-target 2
+check "min samples 0 is a usage error" 2 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --min-samples 0
+check "a bad spp map extension" 1 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --width 8 --height 8 --spp-map "$work/x.tiff"
+check "submit takes adaptive flags" 2 "$DTRACED" submit "$SCENES/showcase.json" --collector http://127.0.0.1:1 --error-target -1
+
 for verb in submit list status fetch cancel; do
   check "$verb --help" 0 "$DTRACED" "$verb" --help
 done

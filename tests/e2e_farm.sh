@@ -120,6 +120,25 @@ cmp -s "$work/ref.pfm" "$work/state1/output/one.pfm" && ok "the collector wrote 
   fail "output file differs"
 [ "$(metric dtraced_faulty_results_total)" = 0 ] && ok "no faulty duplicates" || fail "faulty duplicates counted"
 
+# ---- 1b. adaptive sampling on the farm: the same bits as dtraced render -------------------------
+# Each pixel stops from its own samples only, so tiling and workers cannot change the image; the
+# tiles carry their sample counts and the status reports their mean.
+ADAPTIVE=(--width 192 --height 108 -s 64 --error-target 0.05 --min-samples 8)
+"$DTRACED" render "$SCENE" -o "$work/ref_adaptive.pfm" "${ADAPTIVE[@]}" --tile-size 7 -q ||
+  die "adaptive reference render failed"
+id=$(client submit "$SCENE" -o adaptive.pfm "${ADAPTIVE[@]}" --tile-size 16) || die "adaptive submit failed"
+wait_done "$id"
+client fetch "$id" -o "$work/adaptive.pfm" || die "fetch failed"
+cmp -s "$work/ref_adaptive.pfm" "$work/adaptive.pfm" &&
+  ok "adaptive job (error target 0.05): farm image bitwise identical to dtraced render" ||
+  fail "adaptive job: farm image differs from dtraced render"
+mean=$(job_field "$id" mean_spp)
+awk -v m="$mean" 'BEGIN { exit !(m > 8 && m < 64) }' &&
+  ok "adaptive job: status reports a mean of $mean samples per pixel (between 8 and 64)" ||
+  fail "adaptive job: mean_spp is '${mean}'"
+client status "$id" | grep -q "/64 spp" && ok "dtraced status prints the mean and the cap" ||
+  fail "dtraced status does not print the adaptive mean"
+
 # ---- 2. a worker killed with SIGKILL mid-job ---------------------------------------------------
 id=$(client submit "$SCENE" -o two.pfm "${JOB_ARGS[@]}") || die "submit failed"
 kill -STOP "${WORKER_PIDS[1]}"  # one worker only, so the kill lands mid-job

@@ -122,7 +122,7 @@ std::vector<float> fake_pixels(std::uint64_t job, std::uint32_t tile, const dtra
 }
 
 std::string payload(std::uint64_t job, std::uint32_t tile, const dtraced::render::TileRect& rect, float salt = 0) {
-  return protocol::encode_tile_payload({job, tile, rect, fake_pixels(job, tile, rect, salt)});
+  return protocol::encode_tile_payload({job, tile, rect, fake_pixels(job, tile, rect, salt), {}});
 }
 
 struct Harness {
@@ -578,7 +578,7 @@ TEST_CASE("malformed tiles are refused with 400 and change nothing", "[collector
   SECTION("non-finite pixel") {
     std::vector<float> rgb = fake_pixels(job, l.tile, l.rect);
     rgb[5] = std::numeric_limits<float>::quiet_NaN();
-    refused(protocol::encode_tile_payload({job, l.tile, l.rect, rgb}), "/pixels", "non-finite", l.tile);
+    refused(protocol::encode_tile_payload({job, l.tile, l.rect, rgb, {}}), "/pixels", "non-finite", l.tile);
   }
   SECTION("body over the tile limit") {
     const Response res = h.put(job, l.tile, std::string(protocol::kMaxTilePayloadBytes + 1, 'x'));
@@ -1013,4 +1013,158 @@ TEST_CASE("over a real socket: listen, serve, and stop gracefully", "[collector]
   CHECK(code.get() == 0);
   // The job survived the stop.
   CHECK(stored_state(make_config(dir)).jobs.size() == 1);
+}
+
+// ---- adaptive sampling: per-pixel sample counts ----------------------------------------------------
+
+namespace {
+
+// Counts a worker of an adaptive job (samples 16, min_samples 4) could send: checkpoints 4 and 8,
+// or all 16.
+std::vector<std::uint32_t> fake_counts(std::uint32_t tile, const dtraced::render::TileRect& rect) {
+  std::vector<std::uint32_t> spp(std::size_t{rect.width} * rect.height);
+  for (std::size_t i = 0; i < spp.size(); ++i) spp[i] = std::uint32_t{4} << ((tile + i) % 3);
+  return spp;
+}
+
+std::string adaptive_payload(const protocol::Lease& l, std::vector<std::uint32_t> spp) {
+  return protocol::encode_tile_payload({l.job, l.tile, l.rect, fake_pixels(l.job, l.tile, l.rect), std::move(spp)});
+}
+
+constexpr std::string_view kAdaptive = R"(, "samples": 16, "error_target": 0.1, "min_samples": 4)";
+
+}  // namespace
+
+TEST_CASE("tile blobs: floats alone (as stored before counts existed) or floats then counts", "[collector][jobs]") {
+  const std::vector<float> rgb = {1, 2, 3, 4, 5, 6};
+  const std::vector<std::uint32_t> spp = {7, 65536};
+  const dtraced::store::Blob plain = coll::pixels_to_blob(rgb);
+  CHECK(plain.size() == 24);
+  auto t = coll::blob_to_tile(plain, 2);
+  REQUIRE(t);
+  CHECK(t->rgb == rgb);
+  CHECK(t->spp.empty());
+  const dtraced::store::Blob with = coll::pixels_to_blob(rgb, spp);
+  CHECK(with.size() == 32);
+  t = coll::blob_to_tile(with, 2);
+  REQUIRE(t);
+  CHECK(t->rgb == rgb);
+  CHECK(t->spp == spp);
+  for (const std::size_t bad : {0u, 23u, 28u, 33u}) {
+    CHECK_FALSE(coll::blob_to_tile(dtraced::store::Blob(bad), 2).has_value());
+  }
+}
+
+TEST_CASE("sample counts are checked against the job's settings", "[collector][jobs]") {
+  dtraced::scene::RenderSettings s;
+  s.samples = 100;
+  s.min_samples = 8;
+  const dtraced::render::TileRect rect{10, 20, 2, 1};
+  const std::vector<std::uint32_t> good = {8, 100};
+  CHECK(coll::check_sample_counts(s, rect, {}) == std::nullopt);
+  CHECK(coll::check_sample_counts(s, rect, good).value_or("").find("uniformly") != std::string::npos);
+  s.error_target = 0.05;
+  CHECK(coll::check_sample_counts(s, rect, {}).value_or("").find("no sample counts") != std::string::npos);
+  for (const std::uint32_t n : {8u, 16u, 32u, 64u, 100u}) {
+    const std::vector<std::uint32_t> counts = {n, 100};
+    CHECK(coll::check_sample_counts(s, rect, counts) == std::nullopt);
+  }
+  for (const std::uint32_t n : {0u, 1u, 4u, 24u, 128u, 101u}) {
+    INFO(n);
+    const std::vector<std::uint32_t> counts = {100, n};
+    const auto why = coll::check_sample_counts(s, rect, counts);
+    REQUIRE(why);
+    CHECK(why->find("pixel (11, 20)") != std::string::npos);
+  }
+}
+
+TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their mean survives restarts",
+          "[collector][service][adaptive]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  std::uint64_t job = 0, uniform = 0;
+  std::uint64_t sum = 0, pixels = 0;
+  {
+    Harness h(config);
+    REQUIRE_FALSE(h.collector.open());
+    job = h.submit(kAdaptive);
+    CHECK_FALSE(h.status(job).mean_spp.has_value());  // nothing stored yet
+    auto leases = h.lease_all();
+    REQUIRE(leases.size() == kTiles);
+    for (const auto& l : leases) {
+      CHECK(l.settings.error_target == 0.1);
+      CHECK(l.settings.min_samples == 4);
+      CHECK(l.settings.samples == 16);
+    }
+    const protocol::Lease& l = leases[0];
+    const auto refused = [&](std::string body, std::string_view fragment) {
+      const Response res = h.put(l.job, l.tile, std::move(body));
+      CHECK(res.result() == Status::bad_request);
+      const protocol::ErrorBody e = error_of(res);
+      CHECK(e.field == "/spp");
+      CHECK(e.error.find(fragment) != std::string::npos);
+    };
+    refused(payload(l.job, l.tile, l.rect), "no sample counts");
+    std::vector<std::uint32_t> bad = fake_counts(l.tile, l.rect);
+    bad[3] = 17;
+    refused(adaptive_payload(l, bad), "took 17 samples");
+    bad[3] = 0;
+    refused(adaptive_payload(l, bad), "took 0 samples");
+    CHECK(h.status(job).tiles_done == 0);
+
+    for (std::size_t i = 0; i < 5; ++i) {
+      const auto counts = fake_counts(leases[i].tile, leases[i].rect);
+      const Response res = h.put(leases[i].job, leases[i].tile, adaptive_payload(leases[i], counts));
+      REQUIRE(res.result() == Status::ok);
+      for (const std::uint32_t n : counts) sum += n;
+      pixels += counts.size();
+    }
+    const protocol::JobStatus s = h.status(job);
+    REQUIRE(s.mean_spp.has_value());
+    CHECK(*s.mean_spp == double(sum) / double(pixels));
+    CHECK(*s.mean_spp > 4.0);
+    CHECK(*s.mean_spp < 16.0);
+
+    // A uniform job takes no counts, and its mean is its samples once a tile is stored.
+    uniform = h.submit();
+    auto more = h.lease_all();
+    REQUIRE_FALSE(more.empty());
+    const Response res = h.put(more[0].job, more[0].tile, adaptive_payload(more[0], fake_counts(0, more[0].rect)));
+    CHECK(res.result() == Status::bad_request);
+    CHECK(error_of(res).error.find("uniformly") != std::string::npos);
+    CHECK_FALSE(h.status(uniform).mean_spp.has_value());
+    REQUIRE(h.put_ok(more[0]) == protocol::SubmitResult::kStored);
+    CHECK(h.status(uniform).mean_spp == 1.0);
+  }
+  {
+    // Restarted while rendering: the stored counts are read back with the pixels.
+    Harness h(config);
+    REQUIRE_FALSE(h.collector.open());
+    CHECK(h.status(job).mean_spp == double(sum) / double(pixels));
+    for (const auto& l : h.lease_all()) {
+      if (l.job != job) continue;
+      const auto counts = fake_counts(l.tile, l.rect);
+      REQUIRE(h.put(l.job, l.tile, adaptive_payload(l, counts)).result() == Status::ok);
+      for (const std::uint32_t n : counts) sum += n;
+      pixels += counts.size();
+    }
+    CHECK(h.status(job).state == protocol::JobState::kDone);
+    CHECK(h.status(job).mean_spp == double(sum) / double(pixels));
+  }
+  // The blobs are the floats followed by the counts.
+  {
+    auto opened = store::Store::open(config.state_dir, {.verify_integrity = false});
+    REQUIRE(opened.ok());
+    auto tile = opened.value().get_tile(static_cast<std::int64_t>(job), 0);
+    REQUIRE(tile.ok());
+    REQUIRE(tile.value());
+    CHECK(tile.value()->pixels.size() == 8 * 8 * 16);
+  }
+  // Restarted once done: the mean is read back from the store.
+  Harness h(config);
+  REQUIRE_FALSE(h.collector.open());
+  CHECK(pixels == 32 * 24);
+  CHECK(h.status(job).state == protocol::JobState::kDone);
+  CHECK(h.status(job).mean_spp == double(sum) / double(pixels));
+  CHECK(h.status(uniform).mean_spp == 1.0);
 }

@@ -492,8 +492,8 @@ TEST_CASE("a tile payload round trips bit for bit, special floats included", "[p
   REQUIRE(back.rgb.size() == p.rgb.size());
   CHECK(std::memcmp(back.rgb.data(), p.rgb.data(), p.rgb.size() * sizeof(float)) == 0);
 
-  // The largest tile is within the upload limit, exactly.
-  CHECK(protocol::tile_payload_size(protocol::kMaxTileSide, protocol::kMaxTileSide) == protocol::kMaxTilePayloadBytes);
+  // The largest tile is within the upload limit (which leaves room for sample counts).
+  CHECK(protocol::tile_payload_size(protocol::kMaxTileSide, protocol::kMaxTileSide) < protocol::kMaxTilePayloadBytes);
 }
 
 TEST_CASE("each kind of payload corruption is detected and named", "[protocol][tile]") {
@@ -535,7 +535,20 @@ TEST_CASE("each kind of payload corruption is detected and named", "[protocol][t
   SECTION("reserved word not zero") {
     std::string bad = good;
     bad[39] = 1;
-    CHECK(error_of(with_checksum(bad)) == E::kReservedNotZero);
+    CHECK(error_of(with_checksum(bad)) == E::kUnknownFlags);
+    bad = good;
+    bad[36] = 2;  // bit 1: not defined
+    CHECK(error_of(with_checksum(bad)) == E::kUnknownFlags);
+  }
+  SECTION("the counts flag without the counts, or counts without the flag, is the wrong size") {
+    std::string bad = good;
+    bad[36] = 1;
+    CHECK(error_of(with_checksum(bad)) == E::kWrongSize);
+    protocol::TilePayload p = test_tile(8, 8);
+    p.spp.assign(64, 5);
+    bad = protocol::encode_tile_payload(p);
+    bad[36] = 0;
+    CHECK(error_of(with_checksum(bad)) == E::kWrongSize);
   }
   SECTION("zero or oversized dimensions") {
     std::string bad = good;
@@ -545,5 +558,117 @@ TEST_CASE("each kind of payload corruption is detected and named", "[protocol][t
     bad[32] = 0x01;  // height 0x401 = 1025
     bad[33] = 0x04;
     CHECK(error_of(with_checksum(bad)) == E::kBadDimensions);
+  }
+}
+
+TEST_CASE("a tile payload carries per-pixel sample counts behind flag bit 0", "[protocol][tile][adaptive]") {
+  protocol::TilePayload p = test_tile(5, 3);
+  p.spp = {1, 2, 4, 8, 16, 32, 64, 65536, 0xffffffffu, 7, 7, 7, 9, 10, 11};
+  const std::string bytes = protocol::encode_tile_payload(p);
+  REQUIRE(bytes.size() == protocol::tile_payload_size(5, 3, /* sample_counts = */ true));
+  REQUIRE(bytes.size() == 40 + 5 * 3 * 16 + 32);
+  CHECK(bytes.substr(36, 4) == std::string("\x01\0\0\0", 4));  // flags
+  // The counts follow the floats, little-endian.
+  CHECK(bytes.substr(40 + 5 * 3 * 12, 8) == std::string("\x01\0\0\0\x02\0\0\0", 8));
+  auto d = protocol::decode_tile_payload(bytes);
+  REQUIRE(std::holds_alternative<protocol::TilePayload>(d));
+  CHECK(std::get<protocol::TilePayload>(d) == p);
+
+  // A payload without counts keeps the old layout (flags 0) and decodes with none.
+  p.spp.clear();
+  const std::string plain = protocol::encode_tile_payload(p);
+  CHECK(plain.size() == protocol::tile_payload_size(5, 3));
+  CHECK(plain.substr(36, 4) == std::string(4, '\0'));
+  auto back = protocol::decode_tile_payload(plain);
+  REQUIRE(std::holds_alternative<protocol::TilePayload>(back));
+  CHECK(std::get<protocol::TilePayload>(back).spp.empty());
+
+  // The largest payload with counts is the upload limit.
+  CHECK(protocol::tile_payload_size(protocol::kMaxTileSide, protocol::kMaxTileSide, true) ==
+        protocol::kMaxTilePayloadBytes);
+}
+
+TEST_CASE("adaptive settings travel in submissions, leases and stored settings", "[protocol][json][adaptive]") {
+  protocol::JobSubmit m;
+  m.scene = test_scene();
+  m.error_target = 0.025;
+  m.min_samples = 4;
+  const protocol::JobSubmit back = round_trip(m, protocol::decode_job_submit);
+  CHECK(back == m);
+  const auto s = protocol::effective_settings(back);
+  CHECK(s.error_target == 0.025);
+  CHECK(s.min_samples == 4u);
+
+  // Stored settings: the adaptive keys appear only when they differ from the defaults, so a
+  // uniform job's settings text is what it was before they existed, and old text still reads.
+  dtraced::scene::RenderSettings uniform;
+  const std::string text = protocol::encode_settings(uniform);
+  CHECK(text.find("error_target") == std::string::npos);
+  CHECK(text.find("min_samples") == std::string::npos);
+  dtraced::scene::RenderSettings adaptive = uniform;
+  adaptive.error_target = 0.1;
+  adaptive.min_samples = 32;
+  const auto decoded = protocol::decode_settings(protocol::encode_settings(adaptive));
+  REQUIRE(decoded.ok());
+  CHECK(decoded.value() == adaptive);
+  const auto old = protocol::decode_settings(kSettings);
+  REQUIRE(old.ok());
+  CHECK(old.value().error_target == 0.0);
+  CHECK(old.value().min_samples == dtraced::scene::RenderSettings{}.min_samples);
+
+  // A lease carries them to the worker.
+  protocol::Lease lease;
+  lease.job = 3;
+  lease.digest = kDigest;
+  lease.rect = {0, 0, 8, 8};
+  lease.settings = adaptive;
+  lease.settings.width = 8;
+  lease.settings.height = 8;
+  const protocol::LeaseReply reply = lease;
+  const protocol::LeaseReply lease_back = round_trip(reply, protocol::decode_lease_reply);
+  REQUIRE(std::holds_alternative<protocol::Lease>(lease_back));
+  CHECK(std::get<protocol::Lease>(lease_back).settings == lease.settings);
+
+  // The job status's mean spp: a number, null, or absent (an older collector).
+  protocol::JobStatus st = test_status();
+  st.mean_spp = 12.75;
+  CHECK(round_trip(st, protocol::decode_job_status) == st);
+  st.mean_spp.reset();
+  CHECK(protocol::encode(st).find("\"mean_spp\":null") != std::string::npos);
+  CHECK(round_trip(st, protocol::decode_job_status) == st);
+  std::string without = protocol::encode(st);
+  without.erase(without.find(",\"mean_spp\":null"), std::string(",\"mean_spp\":null").size());
+  const auto old_status = protocol::decode_job_status(without);
+  REQUIRE(old_status.ok());
+  CHECK_FALSE(old_status.value().mean_spp.has_value());
+}
+
+TEST_CASE("adaptive settings out of range are refused by name", "[protocol][json][errors][adaptive]") {
+  const std::vector<BadBody> cases = {
+      {"negative error target", submit, submit_body(kSceneJson, R"("error_target": -0.5)"), "/error_target",
+       "must be in [0, 1]"},
+      {"error target above 1", submit, submit_body(kSceneJson, R"("error_target": 2)"), "/error_target",
+       "must be in [0, 1]"},
+      {"error target as a string", submit, submit_body(kSceneJson, R"("error_target": "0.1")"), "/error_target",
+       "number"},
+      {"min samples 0", submit, submit_body(kSceneJson, R"("min_samples": 0)"), "/min_samples", "[1, 65536] (got 0)"},
+      {"min samples fractional", submit, submit_body(kSceneJson, R"("min_samples": 2.5)"), "/min_samples",
+       "must be an integer"},
+      {"lease error target out of range", lease_reply,
+       lease_body(kRect, R"({"width": 64, "height": 64, "samples": 1, "max_depth": 8, "background": [0, 0, 0],
+                             "seed": 0, "frame": 0, "error_target": 1.5})"),
+       "/lease/settings/error_target", "must be in [0, 1]"},
+      {"stored min samples too large", settings,
+       R"({"width": 64, "height": 64, "samples": 1, "max_depth": 8, "background": [0, 0, 0], "seed": 0, "frame": 0,
+           "min_samples": 65537})",
+       "/min_samples", "[1, 65536]"},
+      {"mean spp below 1", status, status_body("mean_spp", "0.5"), "/mean_spp", "must be in [1, 65536]"},
+  };
+  for (const BadBody& c : cases) {
+    INFO(c.name << ": " << c.body);
+    const std::vector<DecodeError> errors = c.decode(c.body);
+    REQUIRE_FALSE(errors.empty());
+    CHECK(errors.front().path == c.path);
+    CHECK_THAT(errors.front().message, Catch::Matchers::Contains(c.fragment));
   }
 }

@@ -159,8 +159,8 @@ struct FakeCounts {
 // on its own thread and the test reads it from the main thread.
 class FakeCollector {
  public:
-  FakeCollector()
-      : desc_(load_tiny_scene()),
+  explicit FakeCollector(dtraced::scene::SceneDesc desc = load_tiny_scene())
+      : desc_(std::move(desc)),
         canonical_(dtraced::scene::canonical_json(desc_)),
         digest_(dtraced::scene::scene_digest(desc_)),
         rects_(dtraced::render::split_into_tiles(desc_.render.width, desc_.render.height, kTileSize)) {
@@ -170,6 +170,7 @@ class FakeCollector {
     leased_.assign(rects_.size(), false);
     idle_since_lease_.assign(rects_.size(), 0);
     pixels_.resize(rects_.size());
+    spp_.resize(rects_.size());
   }
 
   Server::Handler handler() {
@@ -213,6 +214,11 @@ class FakeCollector {
   std::vector<std::vector<float>> pixels() const {
     std::lock_guard lock(mu_);
     return pixels_;
+  }
+
+  std::vector<std::vector<std::uint32_t>> spp() const {
+    std::lock_guard lock(mu_);
+    return spp_;
   }
 
   const std::vector<dtraced::render::TileRect>& rects() const { return rects_; }
@@ -339,6 +345,7 @@ class FakeCollector {
     }
     ++counts_.stored[t];
     pixels_[t] = std::move(payload.rgb);
+    spp_[t] = std::move(payload.spp);
     return json(Status::ok, dtraced::protocol::encode(dtraced::protocol::SubmitResult::kStored));
   }
 
@@ -353,6 +360,7 @@ class FakeCollector {
   std::vector<bool> leased_;
   std::vector<std::uint32_t> idle_since_lease_;
   std::vector<std::vector<float>> pixels_;
+  std::vector<std::vector<std::uint32_t>> spp_;  // per tile: the counts it carried (adaptive jobs)
 };
 
 // An http::Server on 127.0.0.1:port with its io_context on a thread of its own; destroying it
@@ -453,16 +461,19 @@ void check_stopped_cleanly(const WorkerStats& s) {
   CHECK(s.tiles_rendered == s.tiles_submitted + s.tiles_dropped + s.tiles_rejected + s.tiles_abandoned);
 }
 
-// Every tile stored once, with the pixels of a local render_tile of the same rectangle.
+// Every tile stored once, with the pixels (and, for an adaptive job, the sample counts) of a
+// local render_tile of the same rectangle.
 void check_pixels(const FakeCollector& fake) {
   const FakeCounts counts = fake.counts();
   const ScenePtr scene = build(fake.desc());
   const std::vector<std::vector<float>> pixels = fake.pixels();
+  const std::vector<std::vector<std::uint32_t>> spp = fake.spp();
   for (std::size_t t = 0; t < fake.rects().size(); ++t) {
     INFO("tile " << t);
     CHECK(counts.stored[t] == 1);
     const dtraced::render::Tile local = dtraced::render::render_tile(*scene, fake.desc().render, fake.rects()[t]);
     CHECK(same_bits(pixels[t], local.rgb));
+    CHECK(spp[t] == local.spp);
   }
   for (const std::string& problem : counts.problems) FAIL_CHECK(problem);
 }
@@ -897,4 +908,27 @@ TEST_CASE("SIGTERM stops a worker that waits for an absent collector", "[worker]
   const WorkerStats s = worker.stats();
   check_stopped_cleanly(s);
   CHECK(s.tiles_rendered == 0);
+}
+
+TEST_CASE("an adaptive job's tiles carry their per-pixel sample counts", "[worker][end_to_end][adaptive]") {
+  dtraced::scene::SceneDesc desc = load_tiny_scene();
+  desc.render.samples = 16;
+  desc.render.min_samples = 4;
+  desc.render.error_target = 0.05;
+  FakeCollector fake(desc);
+  const std::uint16_t port = unused_port();
+  RunningServer server(port, fake.handler());
+  RunningWorker worker(test_config(port));
+  REQUIRE(eventually([&] { return fake.all_stored(); }));
+  REQUIRE(worker.stop() == std::optional<bool>(true));
+  check_stopped_cleanly(worker.stats());
+  check_pixels(fake);  // counts equal to a local render's
+  // Some pixels stopped early (the background), some did not (the outline): counts are real.
+  std::set<std::uint32_t> seen;
+  for (const auto& tile : fake.spp()) {
+    REQUIRE(tile.size() == std::size_t{kTileSize} * kTileSize);
+    seen.insert(tile.begin(), tile.end());
+  }
+  CHECK(seen.contains(4));
+  CHECK(seen.contains(16));
 }

@@ -93,9 +93,15 @@ std::string format_seconds(double s) {
   return fmt::format("{}h{:02}m", int(s) / 3600, (int(s) % 3600) / 60);
 }
 
+// "64 spp", or with adaptive sampling the mean over the stored tiles and the cap: "21.3/64 spp".
+std::string samples_text(const protocol::JobStatus& s) {
+  if (s.mean_spp && *s.mean_spp != double(s.samples)) return fmt::format("{:.1f}/{} spp", *s.mean_spp, s.samples);
+  return fmt::format("{} spp", s.samples);
+}
+
 void print_status_line(const protocol::JobStatus& s) {
-  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>6} spp  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}\n", s.id,
-             protocol::to_string(s.state), s.priority, s.width, s.height, s.samples, s.tiles_done, s.tiles_total,
+  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}\n", s.id,
+             protocol::to_string(s.state), s.priority, s.width, s.height, samples_text(s), s.tiles_done, s.tiles_total,
              format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output);
 }
 
@@ -151,6 +157,8 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
   submit.max_depth = args.max_depth;
   submit.frame = args.frame;
   submit.seed = args.seed;
+  submit.error_target = args.error_target;
+  submit.min_samples = args.min_samples;
   std::string body = protocol::encode(submit);
   // Refused here with the reason, rather than by the collector as a bare 413.
   if (body.size() > protocol::kMaxJobSubmitBytes) {
@@ -184,7 +192,7 @@ int run_list(const ClientArgs& client, bool json) {
     fmt::print("{}\n", protocol::encode(*list));
     return kExitOk;
   }
-  fmt::print("{:>6}  {:<10} {:>4}  {:>11} {:>10}  {:>13} tiles  {:>8}  {:>12}  {}\n", "id", "state", "prio", "size",
+  fmt::print("{:>6}  {:<10} {:>4}  {:>11} {:>16}  {:>13} tiles  {:>8}  {:>12}  {}\n", "id", "state", "prio", "size",
              "samples", "done/total", "elapsed", "eta", "output");
   for (const auto& s : list->jobs) print_status_line(s);
   return kExitOk;

@@ -22,6 +22,8 @@ struct SubmitArgs {
   std::uint32_t tile_size = 32;
   std::optional<std::uint32_t> width, height, samples, max_depth, frame;
   std::optional<std::uint64_t> seed;
+  std::optional<double> error_target;        // adaptive sampling (JobSubmit::error_target)
+  std::optional<std::uint32_t> min_samples;  // JobSubmit::min_samples
 };
 int run_submit(const ClientArgs& client, const SubmitArgs& args);
 

@@ -86,6 +86,13 @@ int main(int argc, char** argv) {
           },
           "R,G,B"));
   r->add_option("--frame", render.frame, "Frame number (part of every sample's random key)");
+  r->add_option("--error-target", render.error_target,
+                "Adaptive sampling: stop a pixel once its relative standard error is at most this (0: off)")
+      ->check(CLI::Range(0.0, 1.0));
+  r->add_option("--min-samples", render.min_samples, "Adaptive sampling: samples before the first check")
+      ->check(CLI::Range(1u, 65536u));
+  r->add_option("--spp-map", render.spp_map,
+                "Also write the samples each pixel took: .pfm raw counts, .png/.ppm grey (white = --samples)");
   r->add_option("-t,--threads", render.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
   r->add_option("--tile-size", render.tile_size, "Tile side in pixels")->check(CLI::Range(1u, 4096u));
   r->add_option("--bit-depth", render.bit_depth, "PNG bit depth: 8 or 16")->check(CLI::IsMember({8, 16}));
@@ -144,6 +151,12 @@ int main(int argc, char** argv) {
   sub_submit->add_option("--seed", submit.seed, "Sampling seed")
       ->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
   sub_submit->add_option("--frame", submit.frame, "Frame number");
+  sub_submit
+      ->add_option("--error-target", submit.error_target,
+                   "Adaptive sampling: stop a pixel once its relative standard error is at most this (0: off)")
+      ->check(CLI::Range(0.0, 1.0));
+  sub_submit->add_option("--min-samples", submit.min_samples, "Adaptive sampling: samples before the first check")
+      ->check(CLI::Range(1u, 65536u));
 
   bool list_json = false;
   CLI::App* sub_list = app.add_subcommand("list", "List the collector's jobs");

@@ -49,6 +49,20 @@ class ProgressBar {
   int last_pct_ = -1;
 };
 
+// The samples each pixel took as an image: raw counts for PFM; for the 8/16-bit formats, which
+// sRGB-encode what they write, the linear value whose encoding is n / samples, so that the code
+// values grow in proportion to n. `spp` empty means every pixel took settings.samples.
+image::ImageRGBf spp_image(const scene::RenderSettings& s, const std::vector<std::uint32_t>& spp,
+                           image::ImageFormat format) {
+  image::ImageRGBf out(s.width, s.height);
+  for (std::size_t i = 0; i < std::size_t(s.width) * s.height; ++i) {
+    const std::uint32_t n = spp.empty() ? s.samples : spp[i];
+    const float v = format == image::ImageFormat::kPfm ? float(n) : image::srgb_to_linear(float(n) / float(s.samples));
+    for (int c = 0; c < 3; ++c) out.rgb[i * 3 + c] = v;
+  }
+  return out;
+}
+
 }  // namespace
 
 std::string_view version_string() { return DTRACED_VERSION; }
@@ -68,8 +82,14 @@ int run_render(const RenderArgs& args) {
   if (args.seed) s.seed = *args.seed;
   if (args.frame) s.frame = *args.frame;
   if (args.background.size() == 3) s.background = {args.background[0], args.background[1], args.background[2]};
+  if (args.error_target) s.error_target = *args.error_target;
+  if (args.min_samples) s.min_samples = *args.min_samples;
   if (!image::format_from_path(args.output)) {
     fmt::print(stderr, "{}: unsupported output format (use .png, .ppm or .pfm)\n", args.output);
+    return kExitFailed;
+  }
+  if (!args.spp_map.empty() && !image::format_from_path(args.spp_map)) {
+    fmt::print(stderr, "{}: unsupported --spp-map format (use .pfm, .png or .ppm)\n", args.spp_map);
     return kExitFailed;
   }
 
@@ -93,15 +113,33 @@ int run_render(const RenderArgs& args) {
     fmt::print(stderr, "{}\n", error);
     return kExitFailed;
   }
+  if (!args.spp_map.empty()) {
+    wopts.png_bit_depth = 16;
+    if (!image::write_image(args.spp_map, spp_image(s, result.spp, *image::format_from_path(args.spp_map)), wopts,
+                            error)) {
+      fmt::print(stderr, "{}\n", error);
+      return kExitFailed;
+    }
+  }
   if (!args.quiet) {
     const double mrays = double(result.stats.rays) / 1e6;
-    fmt::print(
-        stderr,
-        "rendered {}x{} at {} spp in {:.3f} s ({} threads, {}-px tiles, {} kernels; scene build {:.3f} s): {:.2f} "
-        "M rays, {:.2f} Mrays/s, {} NaN and {} Inf samples; wrote {}\n",
-        s.width, s.height, s.samples, result.seconds, result.threads, args.tile_size,
-        accel::isa_name(rs.geometry().isa()), build_s, mrays, result.seconds > 0 ? mrays / result.seconds : 0.0,
-        result.stats.nan_samples, result.stats.inf_samples, args.output);
+    std::string spp = fmt::format("{} spp", s.samples);
+    if (!result.spp.empty()) {
+      std::uint64_t total = 0, early = 0;
+      for (const std::uint32_t n : result.spp) {
+        total += n;
+        early += n < s.samples;
+      }
+      const double pixels = double(result.spp.size());
+      spp = fmt::format("a mean {:.2f} of at most {} spp (error target {}, {:.1f}% of pixels stopped early)",
+                        double(total) / pixels, s.samples, s.error_target, 100.0 * double(early) / pixels);
+    }
+    fmt::print(stderr,
+               "rendered {}x{} at {} in {:.3f} s ({} threads, {}-px tiles, {} kernels; scene build {:.3f} s): {:.2f} "
+               "M rays, {:.2f} Mrays/s, {} NaN and {} Inf samples; wrote {}\n",
+               s.width, s.height, spp, result.seconds, result.threads, args.tile_size,
+               accel::isa_name(rs.geometry().isa()), build_s, mrays, result.seconds > 0 ? mrays / result.seconds : 0.0,
+               result.stats.nan_samples, result.stats.inf_samples, args.output);
   }
   return kExitOk;
 }

@@ -31,17 +31,60 @@ render::TileRect tile_rect(const scene::RenderSettings& settings, std::uint32_t 
   return {x0, y0, std::min(tile_size, settings.width - x0), std::min(tile_size, settings.height - y0)};
 }
 
-store::Blob pixels_to_blob(std::span<const float> rgb) {
-  store::Blob blob(rgb.size_bytes());
+store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp) {
+  assert(spp.empty() || spp.size() * 3 == rgb.size());
+  store::Blob blob(rgb.size_bytes() + spp.size_bytes());
   if (!rgb.empty()) std::memcpy(blob.data(), rgb.data(), rgb.size_bytes());
+  if (!spp.empty()) std::memcpy(blob.data() + rgb.size_bytes(), spp.data(), spp.size_bytes());
   return blob;
 }
 
-std::optional<std::vector<float>> blob_to_pixels(const store::Blob& blob, std::size_t floats) {
-  if (blob.size() != floats * sizeof(float)) return std::nullopt;
-  std::vector<float> rgb(floats);
-  if (floats != 0) std::memcpy(rgb.data(), blob.data(), blob.size());
-  return rgb;
+std::optional<TileBlob> blob_to_tile(const store::Blob& blob, std::size_t pixels) {
+  const std::size_t rgb_bytes = pixels * 3 * sizeof(float);
+  const bool counts = blob.size() == rgb_bytes + pixels * sizeof(std::uint32_t);
+  if (blob.size() != rgb_bytes && !counts) return std::nullopt;
+  TileBlob t;
+  t.rgb.resize(pixels * 3);
+  if (pixels != 0) std::memcpy(t.rgb.data(), blob.data(), rgb_bytes);
+  if (counts) {
+    t.spp.resize(pixels);
+    if (pixels != 0) std::memcpy(t.spp.data(), blob.data() + rgb_bytes, pixels * sizeof(std::uint32_t));
+  }
+  return t;
+}
+
+std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const render::TileRect& rect,
+                                               std::span<const std::uint32_t> spp) {
+  const bool adaptive = settings.error_target > 0;
+  if (!adaptive) {
+    if (spp.empty()) return std::nullopt;
+    return std::string("the tile carries sample counts, but the job samples uniformly (no error target)");
+  }
+  if (spp.empty()) return std::string("the job samples adaptively, but the tile carries no sample counts");
+  assert(spp.size() == std::size_t{rect.width} * rect.height);
+  for (std::size_t i = 0; i < spp.size(); ++i) {
+    const std::uint32_t n = spp[i];
+    bool ok = n == settings.samples;
+    if (!ok && n >= settings.min_samples && n < settings.samples && n % settings.min_samples == 0) {
+      const std::uint32_t k = n / settings.min_samples;
+      ok = (k & (k - 1)) == 0;
+    }
+    if (!ok) {
+      return fmt::format("pixel ({}, {}) took {} samples; a pixel takes {} or stops at a checkpoint {} * 2^k below it",
+                         rect.x0 + i % rect.width, rect.y0 + i / rect.width, n, settings.samples, settings.min_samples);
+    }
+  }
+  return std::nullopt;
+}
+
+void count_samples(JobRecord& job, std::span<const std::uint32_t> spp) {
+  if (job.settings.error_target <= 0) return;
+  if (spp.empty()) {
+    job.spp_known = false;
+    return;
+  }
+  for (const std::uint32_t n : spp) job.spp_sum += n;
+  job.spp_pixels += spp.size();
 }
 
 void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb) {
@@ -88,6 +131,13 @@ protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, Time
   s.tiles_done = job.tiles_done;
   s.tiles_total = job.tiles_total;
   s.digest = job.digest;
+  if (job.tiles_done > 0) {
+    if (job.settings.error_target <= 0) {
+      s.mean_spp = static_cast<double>(job.settings.samples);
+    } else if (job.spp_known && job.spp_pixels > 0) {
+      s.mean_spp = static_cast<double>(job.spp_sum) / static_cast<double>(job.spp_pixels);
+    }
+  }
   const std::int64_t end = job.unfinished() ? now_unix : job.finished_unix;
   s.elapsed_s = static_cast<double>(std::max<std::int64_t>(0, end - job.created_unix));
   if (job.state == protocol::JobState::kDone) {

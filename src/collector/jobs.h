@@ -42,6 +42,13 @@ struct JobRecord {
   TileIndex tiles_total = 0;
   TileIndex tiles_done = 0;
 
+  // Samples per pixel summed over the stored tiles this record has seen (adaptive jobs; a uniform
+  // job's mean is settings.samples). spp_known turns false when some stored tile's counts could
+  // not be read (see restore): the mean is then reported as unknown rather than wrong.
+  std::uint64_t spp_sum = 0;
+  std::uint64_t spp_pixels = 0;
+  bool spp_known = true;
+
   // Unfinished jobs only (released once done or cancelled).
   std::shared_ptr<image::ImageRGBf> framebuffer;  // null until the first tile arrives
   std::shared_ptr<const std::string> scene_json;  // canonical scene text, served to workers
@@ -66,11 +73,28 @@ std::string default_output_name(JobId id);
 std::uint64_t tile_count(const scene::RenderSettings& settings, std::uint32_t tile_size);
 render::TileRect tile_rect(const scene::RenderSettings& settings, std::uint32_t tile_size, TileIndex index);
 
-// Tile pixels as the store keeps them: the float32 values' bytes in host order (the collector
-// only runs on little-endian hosts, asserted at compile time, so this is the wire's order too).
-store::Blob pixels_to_blob(std::span<const float> rgb);
-// nullopt when the blob does not hold exactly `floats` floats.
-std::optional<std::vector<float>> blob_to_pixels(const store::Blob& blob, std::size_t floats);
+// Tile pixels as the store keeps them (tiles.pixels): the float32 values' bytes in host order
+// (the collector only runs on little-endian hosts, asserted at compile time, so this is the
+// wire's order too), then, for an adaptive job, each pixel's u32 sample count. The blob's size
+// tells which: 12 bytes per pixel without counts (every tile stored before adaptive sampling
+// existed), 16 with them. No schema change was needed.
+store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp = {});
+
+struct TileBlob {
+  std::vector<float> rgb;          // pixels * 3
+  std::vector<std::uint32_t> spp;  // pixels, or empty for a blob without counts
+};
+// nullopt when the blob holds neither pixels * 12 nor pixels * 16 bytes.
+std::optional<TileBlob> blob_to_tile(const store::Blob& blob, std::size_t pixels);
+
+// Whether a submitted tile's sample counts fit the job: present exactly when it is adaptive
+// (settings.error_target > 0), one per pixel, each settings.samples or a checkpoint below it
+// (min_samples * 2^k). nullopt when they do, else the problem, naming the first bad pixel.
+std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const render::TileRect& rect,
+                                               std::span<const std::uint32_t> spp);
+
+// Adds a stored tile's counts to the job's running mean (a uniform job needs none: a no-op).
+void count_samples(JobRecord& job, std::span<const std::uint32_t> spp);
 
 // Copies a tile's rgb (rect.width * rect.height * 3 floats) into `image` at `rect`.
 void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb);

@@ -354,6 +354,7 @@ struct Collector::Impl {
   std::optional<std::string> bump_epoch();
   std::optional<std::string> restore(store::Store& s);
   std::optional<std::string> restore_active(store::Store& s, const store::StoredJob& row, JobRecord& rec);
+  std::optional<std::string> restore_sample_counts(store::Store& s, JobRecord& rec);
   std::optional<std::string> enqueue_one_shot(store::Store& s);
   std::optional<std::string> listen();
 
@@ -512,7 +513,32 @@ std::optional<std::string> Collector::Impl::restore(store::Store& s) {
       if (!count) return count.error();
       rec.tiles_done = static_cast<TileIndex>(std::min<std::uint64_t>(count.value(), rec.tiles_total));
     }
+    if (!rec.unfinished() && rec.settings.error_target > 0) {
+      if (auto error = restore_sample_counts(s, rec)) return error;
+    }
     jobs_.emplace(rec.id, std::move(rec));
+  }
+  return std::nullopt;
+}
+
+// A finished adaptive job's mean samples per pixel, read back from its stored tiles one at a time
+// (a done job's tiles are not otherwise read at start). A tile whose blob does not parse leaves
+// the mean unknown: the image itself is checked when it is served, not here.
+std::optional<std::string> Collector::Impl::restore_sample_counts(store::Store& s, JobRecord& rec) {
+  auto tiles = s.stored_tiles(static_cast<std::int64_t>(rec.id));
+  if (!tiles) return tiles.error();
+  for (const std::uint32_t index : tiles.value()) {
+    if (index >= rec.tiles_total) continue;
+    auto tile = s.get_tile(static_cast<std::int64_t>(rec.id), index);
+    if (!tile) return tile.error();
+    if (!tile.value()) continue;
+    const render::TileRect rect = tile_rect(rec.settings, rec.tile_size, index);
+    auto parsed = blob_to_tile(tile.value()->pixels, std::size_t{rect.width} * rect.height);
+    if (!parsed) {
+      rec.spp_known = false;
+      continue;
+    }
+    count_samples(rec, parsed->spp);
   }
   return std::nullopt;
 }
@@ -533,13 +559,16 @@ std::optional<std::string> Collector::Impl::restore_active(store::Store& s, cons
                          rec.tiles_total);
     }
     const render::TileRect rect = tile_rect(rec.settings, rec.tile_size, t.tile);
-    const std::size_t floats = std::size_t{rect.width} * rect.height * 3;
-    auto pixels = blob_to_pixels(t.pixels, floats);
-    if (!pixels) {
-      return fmt::format("{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {}", s.path(), rec.id,
-                         t.tile, t.pixels.size(), rect.width, rect.height, floats * sizeof(float));
+    const std::size_t pixels = std::size_t{rect.width} * rect.height;
+    auto stored_tile = blob_to_tile(t.pixels, pixels);
+    if (!stored_tile) {
+      return fmt::format(
+          "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample "
+          "counts)",
+          s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16);
     }
-    copy_tile(writable_framebuffer(rec), rect, *pixels);
+    copy_tile(writable_framebuffer(rec), rect, stored_tile->rgb);
+    count_samples(rec, stored_tile->spp);
     t.pixels = {};  // free as we go: the framebuffer holds them now
     stored.push_back(t.tile);
     rec.restored[t.tile] = true;
@@ -980,6 +1009,10 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
                     expected.x0, expected.y0),
         "/rect");
   }
+  if (auto why = check_sample_counts(job->settings, expected, p.spp)) {
+    ++counters_.tiles_refused;
+    co_return http::make_error(http::Status::bad_request, *why, "/spp");
+  }
   if (!job->restored.empty() && job->restored[p.tile]) ++counters_.restored_tile_submissions;
 
   if (job->unfinished() && queue_.tile_status(job->id, p.tile) == TileStatus::kStored) {
@@ -998,7 +1031,7 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
   store::TileWrite write;
   write.job = static_cast<std::int64_t>(job->id);
   write.tile = p.tile;
-  write.pixels = pixels_to_blob(p.rgb);
+  write.pixels = pixels_to_blob(p.rgb, p.spp);
   write.worker = fmt::format("epoch={} worker={}", epoch_, worker);
   write.stored_unix = now_unix();
   auto reply = co_await commit_tile(*writer_, std::move(write));
@@ -1043,6 +1076,7 @@ http::Response Collector::Impl::on_tile_stored(JobId id, const protocol::TilePay
     return submit_answer(protocol::SubmitResult::kAlreadyDone);
   }
   copy_tile(writable_framebuffer(*job), payload.rect, payload.rgb);
+  count_samples(*job, payload.spp);
   ++job->tiles_done;
   ++job->stored_this_run;
   ++counters_.tiles_stored;
@@ -1214,12 +1248,12 @@ Collector::Impl::Encoded Collector::Impl::encode_from_store(JobId id, scene::Ren
     for (const store::StoredTile& t : tiles.value()) {
       if (t.tile >= count) continue;
       const render::TileRect rect = tile_rect(settings, tile_size, t.tile);
-      auto pixels = blob_to_pixels(t.pixels, std::size_t{rect.width} * rect.height * 3);
-      if (!pixels) {
+      auto stored_tile = blob_to_tile(t.pixels, std::size_t{rect.width} * rect.height);
+      if (!stored_tile) {
         e.error = fmt::format("stored tile {} has the wrong size", t.tile);
         return e;
       }
-      copy_tile(image, rect, *pixels);
+      copy_tile(image, rect, stored_tile->rgb);
     }
   }
   e.bytes = image::encode_image(format, image, {}, e.error);

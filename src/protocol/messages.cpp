@@ -196,6 +196,18 @@ class Fields {
     }
   }
 
+  void number(std::string_view key, double& out, double lo, double hi, Need need = Need::kRequired) {
+    if (const json::value* v = get(key, need)) {
+      if (auto d = r_.number(*v, path(key), lo, hi)) out = *d;
+    }
+  }
+
+  void optional_number(std::string_view key, std::optional<double>& out, double lo, double hi) {
+    if (const json::value* v = get(key, Need::kOptional)) {
+      if (auto d = r_.number(*v, path(key), lo, hi)) out = *d;
+    }
+  }
+
   void string(std::string_view key, std::string& out, std::size_t max_bytes, Need need = Need::kRequired) {
     if (const json::value* v = get(key, need)) {
       if (auto s = r_.string(*v, path(key), max_bytes)) out = std::move(*s);
@@ -235,7 +247,8 @@ std::optional<scene::RenderSettings> read_settings(Reader& r, const json::value&
   const json::object* o = r.object(v, at);
   if (o == nullptr) return std::nullopt;
   const std::size_t before = r.error_count();
-  Fields f(r, *o, at, {"width", "height", "samples", "max_depth", "background", "seed", "frame"});
+  Fields f(r, *o, at,
+           {"width", "height", "samples", "max_depth", "background", "seed", "frame", "error_target", "min_samples"});
   scene::RenderSettings s;
   f.integer("width", s.width, 1, scene::kMaxImageSide);
   f.integer("height", s.height, 1, scene::kMaxImageSide);
@@ -256,6 +269,9 @@ std::optional<scene::RenderSettings> read_settings(Reader& r, const json::value&
   }
   f.integer("seed", s.seed, 0, scene::kMaxSeed);
   f.integer("frame", s.frame, 0, std::numeric_limits<std::uint32_t>::max());
+  // Optional, so that settings stored before adaptive sampling existed still read (as uniform).
+  f.number("error_target", s.error_target, 0, scene::kMaxErrorTarget, Need::kOptional);
+  f.integer("min_samples", s.min_samples, 1, scene::kMaxSamples, Need::kOptional);
   if (r.error_count() != before) return std::nullopt;
   return s;
 }
@@ -284,7 +300,7 @@ std::optional<JobStatus> read_job_status(Reader& r, const json::value& v, const 
   const std::size_t before = r.error_count();
   Fields f(r, *o, at,
            {"id", "state", "output", "priority", "width", "height", "samples", "tiles_done", "tiles_total", "elapsed_s",
-            "eta_s", "digest"});
+            "eta_s", "digest", "mean_spp"});
   JobStatus s;
   f.integer("id", s.id, 1, kMaxId);
   if (const json::value* state = f.get("state", Need::kRequired)) {
@@ -311,6 +327,9 @@ std::optional<JobStatus> read_job_status(Reader& r, const json::value& v, const 
     if (auto d = r.number(*e, f.path("eta_s"), 0, std::numeric_limits<double>::max())) s.eta_s = *d;
   }
   read_digest(r, f, s.digest);
+  if (const json::value* m = f.get("mean_spp", Need::kOptional); m != nullptr && !m->is_null()) {
+    if (auto d = r.number(*m, f.path("mean_spp"), 1, scene::kMaxSamples)) s.mean_spp = *d;
+  }
   if (r.error_count() != before) return std::nullopt;
   if (s.tiles_done > s.tiles_total) {
     r.error(f.path("tiles_done"), fmt::format("must be <= tiles_total (got {} > {})", s.tiles_done, s.tiles_total));
@@ -340,6 +359,12 @@ json::object settings_object(const scene::RenderSettings& s) {
   o["background"] = std::move(bg);
   o["seed"] = s.seed;
   o["frame"] = s.frame;
+  // Written only when they differ from the defaults, as in the canonical scene form: the settings
+  // of a uniform job keep the text (and the one-shot key) they had before adaptive sampling.
+  if (s.error_target > 0 || s.min_samples != scene::RenderSettings{}.min_samples) {
+    o["error_target"] = number(s.error_target);
+    o["min_samples"] = s.min_samples;
+  }
   return o;
 }
 
@@ -357,6 +382,7 @@ json::object job_status_object(const JobStatus& s) {
   o["elapsed_s"] = number(s.elapsed_s);
   o["eta_s"] = s.eta_s ? number(*s.eta_s) : json::value(nullptr);
   o["digest"] = s.digest;
+  o["mean_spp"] = s.mean_spp ? number(*s.mean_spp) : json::value(nullptr);
   return o;
 }
 
@@ -409,6 +435,8 @@ scene::RenderSettings effective_settings(const JobSubmit& submit) {
   if (submit.max_depth) s.max_depth = *submit.max_depth;
   if (submit.seed) s.seed = *submit.seed;
   if (submit.frame) s.frame = *submit.frame;
+  if (submit.error_target) s.error_target = *submit.error_target;
+  if (submit.min_samples) s.min_samples = *submit.min_samples;
   return s;
 }
 
@@ -427,6 +455,8 @@ std::string encode(const JobSubmit& m) {
   if (m.max_depth) o["max_depth"] = *m.max_depth;
   if (m.seed) o["seed"] = *m.seed;
   if (m.frame) o["frame"] = *m.frame;
+  if (m.error_target) o["error_target"] = number(*m.error_target);
+  if (m.min_samples) o["min_samples"] = *m.min_samples;
   return json::serialize(o);
 }
 
@@ -435,7 +465,8 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
   const Body body = parse_object(r, text, kMaxJobSubmitBytes, kMaxJobSubmitDepth);
   if (body.object == nullptr) return r.take_errors();
   Fields f(r, *body.object, "",
-           {"scene", "output", "priority", "tile_size", "width", "height", "samples", "max_depth", "seed", "frame"});
+           {"scene", "output", "priority", "tile_size", "width", "height", "samples", "max_depth", "seed", "frame",
+            "error_target", "min_samples"});
   JobSubmit m;
   if (const json::value* s = f.get("scene", Need::kRequired)) {
     if (s->is_object()) {
@@ -464,6 +495,8 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
   f.optional_integer("max_depth", m.max_depth, 0, scene::kMaxDepth);
   f.optional_integer("seed", m.seed, 0, scene::kMaxSeed);
   f.optional_integer("frame", m.frame, 0, std::numeric_limits<std::uint32_t>::max());
+  f.optional_number("error_target", m.error_target, 0, scene::kMaxErrorTarget);
+  f.optional_integer("min_samples", m.min_samples, 1, scene::kMaxSamples);
   if (r.failed()) return r.take_errors();
 
   const scene::RenderSettings s = effective_settings(m);

@@ -133,6 +133,8 @@ struct JobSubmit {
   // Overrides of the scene's render block; limits as in scene files.
   std::optional<std::uint32_t> width, height, samples, max_depth, frame;
   std::optional<std::uint64_t> seed;
+  std::optional<double> error_target;        // [0, scene::kMaxErrorTarget]; 0 turns adaptive sampling off
+  std::optional<std::uint32_t> min_samples;  // [1, scene::kMaxSamples]
   bool operator==(const JobSubmit&) const = default;
 };
 
@@ -172,6 +174,10 @@ struct JobStatus {
   double elapsed_s = 0;                              // finite, >= 0
   std::optional<double> eta_s;                       // finite, >= 0; null on the wire when unknown
   std::string digest;                                // is_digest
+  // Mean samples per pixel over the tiles stored so far, in [1, samples]; null on the wire when
+  // no tile is stored yet or the collector cannot tell (an adaptive job finished before its last
+  // restart). Optional when decoding, so that an older collector's answer still reads.
+  std::optional<double> mean_spp;
   bool operator==(const JobStatus&) const = default;
 };
 std::string encode(const JobStatus& m);
@@ -242,7 +248,8 @@ Decoded<ErrorBody> decode_error_body(std::string_view body);
 // ---- a job's effective settings, as the store keeps them (jobs.settings_json) --------------
 
 // {"width", "height", "samples", "max_depth", "background": [r, g, b], "seed", "frame"}, every key
-// required; the same object a Lease carries as "settings".
+// required, plus "error_target" and "min_samples", written when either differs from its default
+// and optional when read (absent: uniform sampling); the same object a Lease carries as "settings".
 std::string encode_settings(const scene::RenderSettings& settings);
 Decoded<scene::RenderSettings> decode_settings(std::string_view body);
 

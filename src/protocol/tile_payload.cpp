@@ -39,17 +39,19 @@ TilePayloadFailure failure(TilePayloadError code, std::string message) { return 
 
 }  // namespace
 
-std::size_t tile_payload_size(std::uint32_t width, std::uint32_t height) {
-  return kTileHeaderBytes + std::size_t{width} * height * 12 + kTileChecksumBytes;
+std::size_t tile_payload_size(std::uint32_t width, std::uint32_t height, bool sample_counts) {
+  return kTileHeaderBytes + std::size_t{width} * height * (sample_counts ? 16 : 12) + kTileChecksumBytes;
 }
 
 std::string encode_tile_payload(const TilePayload& p) {
   assert(p.rect.width >= 1 && p.rect.width <= kMaxTileSide);
   assert(p.rect.height >= 1 && p.rect.height <= kMaxTileSide);
   assert(p.rgb.size() == std::size_t{p.rect.width} * p.rect.height * 3);
+  assert(p.spp.empty() || p.spp.size() == std::size_t{p.rect.width} * p.rect.height);
+  const bool counts = !p.spp.empty();
 
   std::string out;
-  out.reserve(tile_payload_size(p.rect.width, p.rect.height));
+  out.reserve(tile_payload_size(p.rect.width, p.rect.height, counts));
   out += kTileMagic;
   put_le<std::uint64_t>(out, p.job);
   put_le<std::uint32_t>(out, p.tile);
@@ -57,15 +59,17 @@ std::string encode_tile_payload(const TilePayload& p) {
   put_le<std::uint32_t>(out, p.rect.y0);
   put_le<std::uint32_t>(out, p.rect.width);
   put_le<std::uint32_t>(out, p.rect.height);
-  put_le<std::uint32_t>(out, 0);  // reserved
+  put_le<std::uint32_t>(out, counts ? kTileFlagSampleCounts : 0);
   if constexpr (std::endian::native == std::endian::little) {
     out.append(reinterpret_cast<const char*>(p.rgb.data()), p.rgb.size() * sizeof(float));
+    out.append(reinterpret_cast<const char*>(p.spp.data()), p.spp.size() * sizeof(std::uint32_t));
   } else {
     for (const float f : p.rgb) put_le<std::uint32_t>(out, std::bit_cast<std::uint32_t>(f));
+    for (const std::uint32_t n : p.spp) put_le<std::uint32_t>(out, n);
   }
   const util::Sha256Digest sum = util::sha256_bytes(out);
   out.append(reinterpret_cast<const char*>(sum.data()), sum.size());
-  assert(out.size() == tile_payload_size(p.rect.width, p.rect.height));
+  assert(out.size() == tile_payload_size(p.rect.width, p.rect.height, counts));
   return out;
 }
 
@@ -86,17 +90,21 @@ std::variant<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_vi
   p.rect.y0 = get_le<std::uint32_t>(bytes, 24);
   p.rect.width = get_le<std::uint32_t>(bytes, 28);
   p.rect.height = get_le<std::uint32_t>(bytes, 32);
-  if (const auto reserved = get_le<std::uint32_t>(bytes, 36); reserved != 0) {
-    return failure(TilePayloadError::kReservedNotZero, fmt::format("reserved header word is {}, not 0", reserved));
+  const auto flags = get_le<std::uint32_t>(bytes, 36);
+  if ((flags & ~kTileKnownFlags) != 0) {
+    return failure(TilePayloadError::kUnknownFlags,
+                   fmt::format("flags word is {:#x}; only bit 0 (sample counts) may be set", flags));
   }
+  const bool counts = (flags & kTileFlagSampleCounts) != 0;
   if (p.rect.width < 1 || p.rect.width > kMaxTileSide || p.rect.height < 1 || p.rect.height > kMaxTileSide) {
     return failure(TilePayloadError::kBadDimensions, fmt::format("tile is {}x{}; each side must be in [1, {}]",
                                                                  p.rect.width, p.rect.height, kMaxTileSide));
   }
-  const std::size_t expected = tile_payload_size(p.rect.width, p.rect.height);
+  const std::size_t expected = tile_payload_size(p.rect.width, p.rect.height, counts);
   if (bytes.size() != expected) {
-    return failure(TilePayloadError::kWrongSize, fmt::format("payload is {} bytes; a {}x{} tile needs exactly {}",
-                                                             bytes.size(), p.rect.width, p.rect.height, expected));
+    return failure(TilePayloadError::kWrongSize,
+                   fmt::format("payload is {} bytes; a {}x{} tile {} needs exactly {}", bytes.size(), p.rect.width,
+                               p.rect.height, counts ? "with sample counts" : "without sample counts", expected));
   }
   const std::string_view body = bytes.substr(0, expected - kTileChecksumBytes);
   const util::Sha256Digest sum = util::sha256_bytes(body);
@@ -104,12 +112,16 @@ std::variant<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_vi
     return failure(TilePayloadError::kBadChecksum, "payload checksum does not match its contents (SHA-256)");
   }
   p.rgb.resize(std::size_t{p.rect.width} * p.rect.height * 3);
-  const std::string_view pixels = body.substr(kTileHeaderBytes);
+  if (counts) p.spp.resize(std::size_t{p.rect.width} * p.rect.height);
+  const std::string_view pixels = body.substr(kTileHeaderBytes, p.rgb.size() * sizeof(float));
+  const std::string_view spp = body.substr(kTileHeaderBytes + pixels.size());
   if constexpr (std::endian::native == std::endian::little) {
     std::memcpy(p.rgb.data(), pixels.data(), pixels.size());
+    if (counts) std::memcpy(p.spp.data(), spp.data(), spp.size());
   } else {
     for (std::size_t i = 0; i < p.rgb.size(); ++i)
       p.rgb[i] = std::bit_cast<float>(get_le<std::uint32_t>(pixels, 4 * i));
+    for (std::size_t i = 0; i < p.spp.size(); ++i) p.spp[i] = get_le<std::uint32_t>(spp, 4 * i);
   }
   return p;
 }

@@ -19,7 +19,11 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;
 
-  const TileOptions tile_options{.packets = options.packets, .specialise = options.specialise};
+  const bool adaptive = settings.error_target > 0;
+  if (adaptive) result.spp.assign(std::size_t(settings.width) * settings.height, 0);
+  if (options.want_variance) result.variance = image::ImageRGBf(settings.width, settings.height);
+  const TileOptions tile_options{
+      .packets = options.packets, .specialise = options.specialise, .want_variance = options.want_variance};
   std::atomic<std::size_t> next{0};
   std::mutex mu;
   std::condition_variable cv;
@@ -34,6 +38,15 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
       for (std::uint32_t row = 0; row < t.rect.height; ++row) {
         const float* src = &t.rgb[std::size_t(row) * t.rect.width * 3];
         std::copy(src, src + std::size_t(t.rect.width) * 3, result.image.pixel(t.rect.x0, t.rect.y0 + row));
+        if (adaptive) {
+          const std::uint32_t* counts = &t.spp[std::size_t(row) * t.rect.width];
+          std::copy(counts, counts + t.rect.width,
+                    &result.spp[std::size_t(t.rect.y0 + row) * settings.width + t.rect.x0]);
+        }
+        if (options.want_variance) {
+          const float* var = &t.variance[std::size_t(row) * t.rect.width * 3];
+          std::copy(var, var + std::size_t(t.rect.width) * 3, result.variance.pixel(t.rect.x0, t.rect.y0 + row));
+        }
       }
       local.add(t.stats);
       std::lock_guard lock(mu);

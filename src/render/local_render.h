@@ -20,6 +20,7 @@ struct LocalOptions {
   std::uint32_t tile_size = 32;  // pixels per tile side, >= 1
   bool packets = true;           // TileOptions::packets: same image either way
   bool specialise = true;        // TileOptions::specialise: same image either way
+  bool want_variance = false;    // fill LocalResult::variance (TileOptions::want_variance)
   // Called now and then, and once at the end, with (tiles done, tiles total).
   std::function<void(std::size_t, std::size_t)> progress;
 };
@@ -28,6 +29,9 @@ struct LocalResult {
   image::ImageRGBf image;
   // Samples each pixel took (width * height, row-major) with adaptive sampling; empty otherwise.
   std::vector<std::uint32_t> spp;
+  // With LocalOptions::want_variance: each pixel's estimated variance of its mean (s^2 / n per
+  // channel); an empty image otherwise.
+  image::ImageRGBf variance;
   TraceStats stats;
   double seconds = 0.0;  // wall time of rendering (scene build excluded)
   std::uint32_t threads = 0;

@@ -4,6 +4,14 @@
 // from a counter-based hash of (seed, frame, x, y, sample index) and each pixel sums its samples
 // in sample order, so a pixel has the same bits whichever tile, thread or host renders it, and
 // whether its camera rays were traced one by one or in packets.
+//
+// Adaptive sampling (settings.error_target > 0): a pixel may stop at the checkpoints
+// n = min_samples, 2 min_samples, 4 min_samples, ... below settings.samples, once its estimated
+// relative standard error sqrt(max_c (s_c^2 / n) / (mean_c^2 + 0.01)) (s^2 the unbiased sample
+// variance of its own samples) is at most error_target; otherwise it takes all settings.samples.
+// The decision reads nothing but that pixel's samples, so the image stays the same bits under
+// any tiling, thread count, packet mode, ISA or farm layout. A checkpoint of n = 1 never stops
+// a pixel (one sample has no variance estimate); a sample dropped as NaN/Inf counts as a zero.
 // Thread-safe: any number of tiles may render at once over one shared RenderScene.
 #pragma once
 
@@ -28,6 +36,9 @@ struct Tile {
   // Samples each pixel took, width * height, row-major: filled only with adaptive sampling
   // (settings.error_target > 0); empty otherwise, when every pixel took settings.samples.
   std::vector<std::uint32_t> spp;
+  // TileOptions::want_variance only: each pixel's estimated variance of its mean, s^2 / n per
+  // channel (width * height * 3, like rgb); 0 for a pixel of one sample.
+  std::vector<float> variance;
   TraceStats stats;
 };
 
@@ -38,6 +49,8 @@ struct TileOptions {
   bool packets = true;
   // TraceLimits::specialise: false runs the generic integrator path (same bits).
   bool specialise = true;
+  // Fill Tile::variance (for error reports); the image is the same bits either way.
+  bool want_variance = false;
 };
 
 // Renders the pixels of `rect`, which must lie inside the settings' image.

@@ -11,6 +11,7 @@
 //        state IN ('queued','rendering','done','cancelled'), created_unix, finished_unix,
 //        client_key TEXT UNIQUE NULL)
 //   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
+//   (what a pixels blob holds is the collector's business: collector/jobs.h, pixels_to_blob)
 //
 // Durability: journal_mode=WAL with synchronous=FULL, so a transaction whose COMMIT returned
 // survives a process kill and (given honest disks) a power loss. foreign_keys=ON.

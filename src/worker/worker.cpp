@@ -805,7 +805,10 @@ net::awaitable<void> Worker::Impl::render_and_hand_off(Work work) {
   // The pool reads the lease and the scene while this coroutine waits: both outlive the wait.
   auto render = [&lease, &scene = *work.scene] {
     render::Tile tile = render::render_tile(scene, lease.settings, lease.rect);
-    return protocol::encode_tile_payload(protocol::TilePayload{lease.job, lease.tile, lease.rect, std::move(tile.rgb)});
+    // With adaptive sampling the counts travel too (flag bit 0): the collector checks them and
+    // keeps them with the pixels.
+    return protocol::encode_tile_payload(
+        protocol::TilePayload{lease.job, lease.tile, lease.rect, std::move(tile.rgb), std::move(tile.spp)});
   };
   std::string payload = co_await on_pool(pool, render);
   count(tiles_rendered);
