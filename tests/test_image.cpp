@@ -522,6 +522,23 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
     CHECK(d->max_abs == 0.5);
     CHECK(d->mse == Approx(0.25 / 4.0));
   }
+  SECTION("relative MSE is relative to the second image, with epsilon 0.01") {
+    ImageRGBf render(2, 1), reference(2, 1);
+    for (int c = 0; c < 3; ++c) {
+      reference.pixel(0, 0)[c] = 1.0f;  // bright: an error of 0.5 weighs 0.25 / 1.01
+      render.pixel(0, 0)[c] = 1.5f;
+      render.pixel(1, 0)[c] = 0.5f;  // black reference: the same error weighs 0.25 / 0.01
+    }
+    const auto d = compare_images(render, reference, error);
+    REQUIRE(d);
+    CHECK(dtraced::image::kRelMseEpsilon == 0.01);
+    CHECK(d->rel_mse == Approx((0.25 / 1.01 + 0.25 / 0.01) / 2.0).epsilon(1e-6));
+    CHECK(d->mse == Approx(0.25));
+    const auto swapped = compare_images(reference, render, error);
+    REQUIRE(swapped);
+    CHECK(swapped->rel_mse == Approx((0.25 / (2.25 + 0.01) + 0.25 / 0.26) / 2.0).epsilon(1e-6));
+    CHECK(compare_images(reference, reference, error)->rel_mse == 0.0);
+  }
   SECTION("size mismatch is an error") {
     CHECK_FALSE(compare_images(ImageRGBf(2, 3), ImageRGBf(3, 2), error));
     CHECK(contains(error, "2x3"));

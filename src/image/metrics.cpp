@@ -28,7 +28,7 @@ std::optional<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b, 
 
   ImageDiff diff;
   // Sums in double: a 16384^2 image has 8e8 terms, far beyond what float accumulates faithfully.
-  double sum_sq = 0.0, sum_sq_display = 0.0;
+  double sum_sq = 0.0, sum_sq_display = 0.0, sum_rel = 0.0;
   std::uint64_t counted = 0;
   for (std::size_t i = 0; i < a.rgb.size(); ++i) {
     const float va = a.rgb[i], vb = b.rgb[i];
@@ -38,6 +38,7 @@ std::optional<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b, 
     }
     const double d = static_cast<double>(va) - static_cast<double>(vb);
     sum_sq += d * d;
+    sum_rel += d * d / (static_cast<double>(vb) * static_cast<double>(vb) + kRelMseEpsilon);
     diff.max_abs = std::max(diff.max_abs, std::abs(d));
     const double dd = displayed(va) - displayed(vb);
     sum_sq_display += dd * dd;
@@ -45,6 +46,7 @@ std::optional<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b, 
   }
   if (counted > 0) {
     diff.mse = sum_sq / static_cast<double>(counted);
+    diff.rel_mse = sum_rel / static_cast<double>(counted);
     const double mse_display = sum_sq_display / static_cast<double>(counted);
     diff.psnr_db = mse_display > 0.0 ? 10.0 * std::log10(1.0 / mse_display) : std::numeric_limits<double>::infinity();
   } else {

@@ -4,6 +4,10 @@
 // Two spaces on purpose:
 //   - mse, rmse and max_abs are scene-referred: computed on the linear float values as stored,
 //     over every channel of every pixel, unclamped.
+//   - rel_mse is scene-referred and relative to b, the reference: the mean of
+//     (a - b)^2 / (b^2 + kRelMseEpsilon) over every channel of every pixel, the relative MSE of
+//     rendering research (Rousselle et al.; pbrt's error reports), where epsilon keeps black
+//     pixels from dominating.
 //   - psnr_db is display-referred: each value is taken through the sRGB curve and clamped to
 //     [0, 1] first, i.e. it measures the picture a viewer would see from an 8/16-bit file, where
 //     differences in the darks weigh more and differences above white vanish. PSNR is
@@ -25,14 +29,18 @@
 
 namespace dtraced::image {
 
+inline constexpr double kRelMseEpsilon = 0.01;
+
 struct ImageDiff {
   double mse = 0.0;             // mean squared difference of linear values
   double rmse = 0.0;            // sqrt(mse)
+  double rel_mse = 0.0;         // mean (a - b)^2 / (b^2 + kRelMseEpsilon): b is the reference
   double psnr_db = 0.0;         // display-referred (sRGB, clamped), +inf when identical on display
   double max_abs = 0.0;         // largest absolute difference of linear values
   std::uint64_t nonfinite = 0;  // channel values where a or b is NaN or infinite (excluded above)
 };
 
+// `b` is the reference for rel_mse; every other figure is symmetric.
 // Fails (nullopt, `error` set) when the sizes differ or an image is inconsistent. Two empty
 // images compare as identical.
 std::optional<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b, std::string& error);
