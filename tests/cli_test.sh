@@ -66,6 +66,10 @@ expect_text "missing file is named" "$work/err" "missing.json"
 
 check "render png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.png" --width 64 --height 48 -s 2 -t 1
 expect_text "summary line" "$work/err" "Mrays/s"
+check "render the diffuse scene" 0 "$DTRACED" render "$SCENES/diffuse.json" -o "$work/d.png" --width 32 --height 24
+expect_text "render prints the scene's features" "$work/err" "scene features: shadows point-lights (the tracer"
+check "render the soft-shadow scene" 0 "$DTRACED" render "$SCENES/soft_shadows.json" -o "$work/s.png" --width 32 --height 24 -s 2
+expect_text "area lights are a feature" "$work/err" "scene features: .*area-lights"
 check "render pfm, other tiling" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.pfm" --width 64 --height 48 -s 2 -t 2 --tile-size 7
 check "render pfm, one thread" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/b.pfm" --width 64 --height 48 -s 2 -t 1 --tile-size 64
 check "compare identical" 0 "$DTRACED" compare "$work/a.pfm" "$work/b.pfm" --max-rmse 0

@@ -140,6 +140,8 @@ int run_render(const RenderArgs& args) {
                s.width, s.height, spp, result.seconds, result.threads, args.tile_size,
                accel::isa_name(rs.geometry().isa()), build_s, mrays, result.seconds > 0 ? mrays / result.seconds : 0.0,
                result.stats.nan_samples, result.stats.inf_samples, args.output);
+    fmt::print(stderr, "scene features: {} (the tracer is specialised to them)\n",
+               render::feature_names(rs.features()));
   }
   return kExitOk;
 }
