@@ -12,6 +12,7 @@
 #include "render/render_scene.h"
 #include "render/tile.h"
 #include "scene/load.h"
+#include "scene_builders.h"
 
 using namespace dtraced;
 using math::Vec3d;
@@ -19,11 +20,7 @@ using math::Vec3d;
 namespace {
 
 scene::SceneDesc load_showcase(std::uint32_t width, std::uint32_t height) {
-  scene::LoadResult r = scene::load_scene_file(std::string(DTRACED_SOURCE_DIR) + "/scenes/showcase.json");
-  REQUIRE(r.ok());
-  scene::SceneDesc d = *r.scene;
-  d.render.width = width;
-  d.render.height = height;
+  scene::SceneDesc d = testing::bundled_scene("showcase", width, height);
   d.render.samples = 64;
   d.render.min_samples = 8;
   d.render.error_target = 0.05;

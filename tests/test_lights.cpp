@@ -15,10 +15,14 @@
 #include "render/render_scene.h"
 #include "render/tile.h"
 #include "scene/load.h"
+#include "scene_builders.h"
 
 using namespace dtraced;
 using math::Vec3d;
 using math::Vec3f;
+using testing::box;
+using testing::plane;
+using testing::sphere;
 
 namespace {
 
@@ -29,30 +33,6 @@ scene::Material white() {
   m.color = {1, 1, 1};
   m.diffuse = 1.0;
   return m;
-}
-
-scene::Object plane(Vec3d p, Vec3d n, scene::Material m) {
-  scene::Object o;
-  o.type = scene::ObjectType::kPlane;
-  o.plane = {p, n};
-  o.material = m;
-  return o;
-}
-
-scene::Object sphere(Vec3d c, double r, scene::Material m) {
-  scene::Object o;
-  o.type = scene::ObjectType::kSphere;
-  o.sphere = {c, r};
-  o.material = m;
-  return o;
-}
-
-scene::Object box(Vec3d lo, Vec3d hi, scene::Material m) {
-  scene::Object o;
-  o.type = scene::ObjectType::kBox;
-  o.box = {lo, hi};
-  o.material = m;
-  return o;
 }
 
 scene::Light sphere_light(Vec3d c, double r, double le) {

@@ -12,18 +12,14 @@
 #include "render/reference.h"
 #include "render/render_scene.h"
 #include "scene/load.h"
+#include "scene_builders.h"
 
 using namespace dtraced;
 
 namespace {
 
 scene::SceneDesc lit_plane(std::uint32_t width, std::uint32_t height) {
-  scene::LoadResult r = scene::load_scene_file(std::string(DTRACED_SOURCE_DIR) + "/scenes/lit_plane.json");
-  REQUIRE(r.ok());
-  scene::SceneDesc d = *r.scene;
-  d.render.width = width;
-  d.render.height = height;
-  return d;
+  return testing::bundled_scene("lit_plane", width, height);
 }
 
 double rel_mse_at(const scene::SceneDesc& desc, const render::RenderScene& rs, const image::ImageRGBf& ref,

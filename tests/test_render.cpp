@@ -14,10 +14,14 @@
 #include "render/tile.h"
 #include "scene/generate.h"
 #include "scene/load.h"
+#include "scene_builders.h"
 
 using namespace dtraced;
 using math::Vec3d;
 using math::Vec3f;
+using testing::box;
+using testing::plane;
+using testing::sphere;
 
 namespace {
 
@@ -26,30 +30,6 @@ scene::Material diffuse_material(Vec3d color) {
   m.color = color;
   m.diffuse = 1.0;
   return m;
-}
-
-scene::Object sphere(Vec3d c, double r, scene::Material m) {
-  scene::Object o;
-  o.type = scene::ObjectType::kSphere;
-  o.sphere = {c, r};
-  o.material = m;
-  return o;
-}
-
-scene::Object plane(Vec3d p, Vec3d n, scene::Material m) {
-  scene::Object o;
-  o.type = scene::ObjectType::kPlane;
-  o.plane = {p, n};
-  o.material = m;
-  return o;
-}
-
-scene::Object box(Vec3d lo, Vec3d hi, scene::Material m) {
-  scene::Object o;
-  o.type = scene::ObjectType::kBox;
-  o.box = {lo, hi};
-  o.material = m;
-  return o;
 }
 
 Vec3f pixel(const render::Tile& t, std::uint32_t x, std::uint32_t y) {
