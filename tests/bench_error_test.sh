@@ -69,5 +69,9 @@ check "and names the plot" grep -q "d.gif" "$T/e2"
 check "--min-samples at the cap exits 1" test $? -eq 1
 check "and says why" grep -q "min-samples" "$T/e3"
 
+"$DTRACED" bench error "$SCENES/soft_shadows.json" --max-spp 16 --reference-spp 16 --no-plot >/dev/null 2>"$T/e4"
+check "a reference no better than the rows exits 1" test $? -eq 1
+check "and says why" grep -q "reference-spp 16 must be above --max-spp 16" "$T/e4"
+
 echo "$failures failure(s)"
 test "$failures" -eq 0

@@ -328,6 +328,11 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
                args.min_samples, args.max_spp);
     return kExitFailed;
   }
+  if (args.reference_spp && *args.reference_spp <= args.max_spp) {
+    fmt::print(stderr, "--reference-spp {} must be above --max-spp {}: the reference needs more samples than any row\n",
+               *args.reference_spp, args.max_spp);
+    return kExitFailed;
+  }
   const std::string stem = std::filesystem::path(args.scene).stem().string();
   const std::string csv_path = args.csv.empty() ? stem + "-error.csv" : args.csv;
   const std::string plot_path = args.plot.empty() ? stem + "-error.svg" : args.plot;
