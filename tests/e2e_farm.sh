@@ -164,8 +164,11 @@ port3=$PORT
 id=$(client submit "$SCENE" -o three.pfm "${LONG_ARGS[@]}") || die "submit failed"
 total=$(job_field "$id" tiles_total)
 start_worker w3 "$URL"
-for frac in 10 50 90; do
+for frac in 10 50 80; do
   wait_tiles "$id" $((total * frac / 100))
+  # Freeze the worker the moment the mark is seen: however fast this machine renders, the job
+  # cannot finish between this check and the kill (it is resumed after the restart).
+  kill -STOP "${WORKER_PIDS[0]}"
   acked=$(job_field "$id" tiles_done)
   [ "$acked" -lt "$total" ] || die "the job finished before the kill at ${frac}%; make it longer"
   leased_again=$(metric dtraced_restored_tile_leases_total)
@@ -179,6 +182,7 @@ for frac in 10 50 90; do
   [ -n "$restored" ] && [ "$restored" -ge "$acked" ] &&
     ok "kill at ${frac}%: all $acked acknowledged tiles survived ($restored restored)" ||
     fail "kill at ${frac}%: $acked tiles were acknowledged but only ${restored:-?} restored"
+  kill -CONT "${WORKER_PIDS[0]}"
 done
 wait_done "$id"
 client fetch "$id" -o "$work/three.pfm" || die "fetch failed"
@@ -248,10 +252,12 @@ id6=$(client list --json | sed -n 's/.*"id":\([0-9]*\).*/\1/p' | head -n1)
 [ -n "$id6" ] || die "the one-shot job is not listed"
 total6=$(job_field "$id6" tiles_total)
 wait_tiles "$id6" $((total6 / 3))
+kill -STOP "${WORKER_PIDS[0]}"  # frozen until the restart: the job cannot finish before the kill
 [ "$(job_field "$id6" tiles_done)" -lt "$total6" ] || die "the one-shot job finished before the kill; make it longer"
 kill -9 "$COLLECTOR_PID"
 wait "$COLLECTOR_PID" 2>/dev/null
 start_collector c6b "$work/state6" "127.0.0.1:$port6" "${ONESHOT[@]}"
+kill -CONT "${WORKER_PIDS[0]}"
 [ "$(client list --json | grep -o '"id":' | wc -l)" = 1 ] && ok "one-shot restart resumes the job instead of enqueuing a copy" ||
   fail "one-shot restart enqueued another job"
 t=0
