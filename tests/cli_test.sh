@@ -126,6 +126,8 @@ echo tok >"$work/token"
 echo '{"role": "worker", "isa": "sse9"}' >"$work/w1.json"
 check "a bad isa in a worker config" 2 "$DTRACED" --config "$work/w1.json" --collector http://127.0.0.1:1 --token-file "$work/token"
 expect_text "the worker config's isa is checked" "$work/err" "sse9"
+check "one-shot adaptive flags need --scene" 2 "$DTRACED" --role collector --error-target 0.05 --state-dir "$work/s" --token-file "$work/token"
+expect_text "and say so" "$work/err" "--error-target, --min-samples"
 check "--isa is not a collector option" 2 "$DTRACED" --role collector --isa scalar --state-dir "$work/s" --token-file "$work/token"
 
 # Role configuration: JSON files, flags winning over them, unknown keys and misplaced flags.

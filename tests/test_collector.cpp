@@ -978,6 +978,38 @@ TEST_CASE("the one-shot job is enqueued once and resumed after a restart", "[col
   }
 }
 
+TEST_CASE("a one-shot job takes adaptive sampling's settings, checked like a submission",
+          "[collector][service][one-shot][adaptive]") {
+  TempDir dir;
+  const std::string scene_path = (dir.path() / "scene.json").string();
+  {
+    std::ofstream out(scene_path);
+    out << kScene;
+  }
+  coll::CollectorConfig config = make_config(dir);
+  config.one_shot = one_shot(scene_path, "shot.png");
+  config.one_shot->samples = 16;
+  config.one_shot->error_target = 0.1;
+  config.one_shot->min_samples = 4;
+  {
+    Harness h(config);
+    REQUIRE_FALSE(h.collector.open());
+    const protocol::Lease l = *h.lease();
+    CHECK(l.settings.samples == 16);
+    CHECK(l.settings.error_target == 0.1);
+    CHECK(l.settings.min_samples == 4);
+  }
+  // Out of range: start-up stops and names the field.
+  TempDir dir2;
+  config = make_config(dir2);
+  config.one_shot = one_shot(scene_path, "shot.png");
+  config.one_shot->error_target = 2.0;
+  coll::Collector c(config);
+  const auto error = c.open();
+  REQUIRE(error);
+  CHECK_THAT(*error, Catch::Matchers::Contains("error_target"));
+}
+
 TEST_CASE("a one-shot job with a bad scene stops start-up", "[collector][service][one-shot]") {
   TempDir dir;
   coll::CollectorConfig config = make_config(dir);

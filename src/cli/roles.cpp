@@ -89,11 +89,16 @@ int run_collector_role(const RoleArgs& a) {
     job.width = a.width;
     job.height = a.height;
     job.samples = a.samples;
+    job.error_target = a.error_target;
+    job.min_samples = a.min_samples;
     if (a.tile_size) job.tile_size = *a.tile_size;
     c.one_shot = job;
     c.exit_when_done = a.exit_when_done;
-  } else if (!a.output.empty() || a.width || a.height || a.samples || a.tile_size || a.exit_when_done) {
-    fmt::print(stderr, "--output, --width, --height, --samples, --tile-size and --exit-when-done need --scene\n");
+  } else if (!a.output.empty() || a.width || a.height || a.samples || a.tile_size || a.error_target || a.min_samples ||
+             a.exit_when_done) {
+    fmt::print(stderr,
+               "--output, --width, --height, --samples, --error-target, --min-samples, --tile-size and "
+               "--exit-when-done need --scene\n");
     return kExitUsage;
   }
   if (auto why = collector::check_collector_config(c)) {
@@ -181,6 +186,12 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   app.add_option("--width", a.width, "One-shot: image width")->check(CLI::Range(1u, 16384u))->group(kCollectorGroup);
   app.add_option("--height", a.height, "One-shot: image height")->check(CLI::Range(1u, 16384u))->group(kCollectorGroup);
   app.add_option("-s,--samples", a.samples, "One-shot: samples per pixel")
+      ->check(CLI::Range(1u, 65536u))
+      ->group(kCollectorGroup);
+  app.add_option("--error-target", a.error_target, "One-shot: adaptive sampling's error target (0: off)")
+      ->check(CLI::Range(0.0, 1.0))
+      ->group(kCollectorGroup);
+  app.add_option("--min-samples", a.min_samples, "One-shot: adaptive sampling's first checkpoint")
       ->check(CLI::Range(1u, 65536u))
       ->group(kCollectorGroup);
   app.add_option("--tile-size", a.tile_size, "One-shot: tile side in pixels")

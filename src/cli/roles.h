@@ -28,7 +28,8 @@ struct RoleArgs {
   std::optional<double> reoffer_factor;
   std::string scene;   // one-shot job
   std::string output;  // one-shot job's image path
-  std::optional<std::uint32_t> width, height, samples, tile_size;
+  std::optional<std::uint32_t> width, height, samples, tile_size, min_samples;
+  std::optional<double> error_target;
   bool exit_when_done = false;
   // worker
   std::string collector;

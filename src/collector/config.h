@@ -37,6 +37,8 @@ struct OneShotJob {
   // path given on the command line into output_dir and this name.
   std::string output;
   std::optional<std::uint32_t> width, height, samples;  // overrides of the scene's render block
+  std::optional<double> error_target;                   // adaptive sampling, as in a job submission
+  std::optional<std::uint32_t> min_samples;
   std::uint32_t tile_size = protocol::kDefaultTileSize;
   std::int32_t priority = 0;
 };

@@ -599,9 +599,14 @@ std::optional<std::string> Collector::Impl::enqueue_one_shot(store::Store& s) {
   submit.width = one.width;
   submit.height = one.height;
   submit.samples = one.samples;
+  submit.error_target = one.error_target;
+  submit.min_samples = one.min_samples;
   // Through the wire format, so a one-shot job meets exactly the checks of a submitted one.
   PreparedJob p = prepare_job(protocol::encode(submit));
-  if (!p.errors.empty()) return "one-shot job: " + protocol::error_body(p.errors).error;
+  if (!p.errors.empty()) {
+    const protocol::ErrorBody e = protocol::error_body(p.errors);
+    return e.field.empty() ? "one-shot job: " + e.error : "one-shot job: " + e.field + ": " + e.error;
+  }
 
   const std::string key = one_shot_client_key(p.digest, p.settings, p.submit.tile_size, p.submit.output);
   auto found = s.find_job_by_key(key);
