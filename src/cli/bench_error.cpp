@@ -366,6 +366,15 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   fmt::print("features: {}\nreference: {}\n", render::feature_names(rs.features()), ref->how);
   if (ref->noise > 0) fmt::print("reference noise: adds about {:.3g} to every relMSE below\n", ref->noise);
 
+  // One untimed render first: the first rows would otherwise also pay for cold caches, page
+  // faults and thread start-up.
+  {
+    scene::RenderSettings warm = desc.render;
+    warm.samples = 1;
+    warm.error_target = 0.0;
+    (void)render::render_local(rs, warm, opts);
+  }
+
   std::vector<Row> rows;
   const auto measure = [&](const char* kind, double target, scene::RenderSettings s) -> bool {
     const std::optional<Timed> t = timed_render(rs, s, opts, args.repeats, error);
