@@ -4,6 +4,7 @@
 #include <cstring>
 #include <numeric>
 #include <set>
+#include <string>
 
 #include <catch2/catch.hpp>
 
@@ -19,12 +20,16 @@ using math::Vec3d;
 
 namespace {
 
-scene::SceneDesc load_showcase(std::uint32_t width, std::uint32_t height) {
-  scene::SceneDesc d = testing::bundled_scene("showcase", width, height);
+scene::SceneDesc load_adaptive(const std::string& name, std::uint32_t width, std::uint32_t height) {
+  scene::SceneDesc d = testing::bundled_scene(name, width, height);
   d.render.samples = 64;
   d.render.min_samples = 8;
   d.render.error_target = 0.05;
   return d;
+}
+
+scene::SceneDesc load_showcase(std::uint32_t width, std::uint32_t height) {
+  return load_adaptive("showcase", width, height);
 }
 
 // One diffuse sphere in the middle of a flat background, lit by one point light: the background
@@ -79,7 +84,11 @@ double mean_spp(const std::vector<std::uint32_t>& spp) {
 }  // namespace
 
 TEST_CASE("Adaptive images are the same bits for any tiling, thread count, packet mode and isa", "[adaptive]") {
-  const scene::SceneDesc d = load_showcase(48, 32);
+  // The showcase (point lights: no random numbers but the film's) and the soft-shadow scene
+  // (area lights: each lane of a packet draws its own light samples while lanes drop out).
+  const std::string name = GENERATE(as<std::string>{}, "showcase", "soft_shadows");
+  INFO("scene " << name);
+  const scene::SceneDesc d = load_adaptive(name, 48, 32);
   const render::RenderScene reference_scene = render::RenderScene::build(d, accel::Isa::kScalar);
   const render::LocalResult reference =
       render_with(reference_scene, d.render, std::max(d.render.width, d.render.height), 1, /* packets = */ false);
@@ -184,14 +193,77 @@ TEST_CASE("Error target 0 renders the same bits as before, with no spp map", "[a
   CHECK(std::memcmp(plain.rgb.data(), same.rgb.data(), plain.rgb.size() * sizeof(float)) == 0);
   CHECK(same.spp.empty());
   CHECK(same.variance.size() == plain.rgb.size());
-  // An error target so loose that every pixel stops at its first checkpoint of 8 = samples: no
-  // checkpoint lies below samples, so the image is the uniform one and every count is 8.
-  scene::RenderSettings loose = d.render;
-  loose.error_target = 1.0;
-  loose.min_samples = 8;
-  const render::Tile all = render::render_tile(rs, loose, {0, 0, 24, 16});
+  // With min_samples = samples there is no checkpoint below samples: the image is the uniform
+  // one and every count is 8.
+  scene::RenderSettings none = d.render;
+  none.error_target = 0.05;
+  none.min_samples = 8;
+  const render::Tile all = render::render_tile(rs, none, {0, 0, 24, 16});
   CHECK(std::memcmp(plain.rgb.data(), all.rgb.data(), plain.rgb.size() * sizeof(float)) == 0);
   CHECK(std::all_of(all.spp.begin(), all.spp.end(), [](std::uint32_t n) { return n == 8; }));
+  // A target so loose that every pixel stops at the first checkpoint, 8 of at most 64: the image
+  // is the uniform 8-sample one (the same sample indices 0..7, jittered in both).
+  scene::RenderSettings loose = d.render;
+  loose.samples = 64;
+  loose.error_target = 1.0;
+  loose.min_samples = 8;
+  const render::Tile early = render::render_tile(rs, loose, {0, 0, 24, 16});
+  CHECK(std::all_of(early.spp.begin(), early.spp.end(), [](std::uint32_t n) { return n == 8; }));
+  CHECK(std::memcmp(plain.rgb.data(), early.rgb.data(), plain.rgb.size() * sizeof(float)) == 0);
+}
+
+TEST_CASE("At the first checkpoint a pixel stops only if it and its 8 neighbours pass", "[adaptive]") {
+  // Each pixel's own verdict at min_samples, from a uniform render of min_samples samples (the
+  // same samples): err = sqrt(max_c (s^2/n) / (mean^2 + 0.01)) <= target. The test recomputes it
+  // from the stored floats, so a pixel whose err lies within 1e-3 of the target is left
+  // undecided, and so is every pixel next to one.
+  const scene::SceneDesc d = sphere_on_background();
+  const std::uint32_t w = d.render.width, h = d.render.height;
+  const render::RenderScene rs = render::RenderScene::build(d);
+  scene::RenderSettings uniform = d.render;
+  uniform.error_target = 0.0;
+  uniform.samples = d.render.min_samples;
+  const render::LocalResult first = render_with(rs, uniform, 8, 2, true);
+  enum Verdict { kFail, kPass, kUnsure };
+  std::vector<Verdict> own(std::size_t(w) * h);
+  for (std::uint32_t y = 0; y < h; ++y) {
+    for (std::uint32_t x = 0; x < w; ++x) {
+      double worst = 0.0;
+      for (int c = 0; c < 3; ++c) {
+        const double mean = first.image.pixel(x, y)[c];
+        worst = std::max(worst, double(first.variance.pixel(x, y)[c]) / (mean * mean + 0.01));
+      }
+      const double err = std::sqrt(worst);
+      own[std::size_t(y) * w + x] = std::abs(err - d.render.error_target) < 1e-3 ? kUnsure
+                                    : err <= d.render.error_target               ? kPass
+                                                                                 : kFail;
+    }
+  }
+  // Tiles of 5 put tile borders everywhere: neighbours come from the one-pixel border as often
+  // as from the tile itself.
+  const render::LocalResult r = render_with(rs, d.render, 5, 2, true);
+  std::size_t checked = 0, held_by_neighbour = 0;
+  for (std::uint32_t y = 0; y < h; ++y) {
+    for (std::uint32_t x = 0; x < w; ++x) {
+      bool all_pass = true, unsure = false;
+      for (std::uint32_t ny = y > 0 ? y - 1 : 0; ny <= std::min(y + 1, h - 1); ++ny) {
+        for (std::uint32_t nx = x > 0 ? x - 1 : 0; nx <= std::min(x + 1, w - 1); ++nx) {
+          all_pass = all_pass && own[std::size_t(ny) * w + nx] == kPass;
+          unsure = unsure || own[std::size_t(ny) * w + nx] == kUnsure;
+        }
+      }
+      if (unsure) continue;
+      ++checked;
+      INFO("pixel " << x << ", " << y);
+      const std::uint32_t n = r.spp[std::size_t(y) * w + x];
+      CHECK((n == d.render.min_samples) == all_pass);
+      // A pixel whose own samples agreed exactly but which a neighbour kept going.
+      held_by_neighbour += n > d.render.min_samples && first.variance.pixel(x, y)[0] == 0.0f &&
+                           first.variance.pixel(x, y)[1] == 0.0f && first.variance.pixel(x, y)[2] == 0.0f;
+    }
+  }
+  CHECK(checked > std::size_t(w) * h / 2);
+  CHECK(held_by_neighbour > 0);
 }
 
 TEST_CASE("An early-stopped pixel is the mean of its first n samples", "[adaptive]") {

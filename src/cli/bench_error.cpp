@@ -387,7 +387,7 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
       for (const std::uint32_t n : t->result.spp) total += n;
       row.spp = total / double(t->result.spp.size());
     }
-    row.mrays = t->seconds > 0 ? double(t->result.stats.rays) / t->seconds / 1e6 : 0.0;
+    row.mrays = t->seconds > 0 ? double(t->result.stats.all_rays()) / t->seconds / 1e6 : 0.0;
     rows.push_back(row);
     return true;
   };

@@ -122,7 +122,7 @@ int run_render(const RenderArgs& args) {
     }
   }
   if (!args.quiet) {
-    const double mrays = double(result.stats.rays) / 1e6;
+    const double mrays = double(result.stats.all_rays()) / 1e6;
     std::string spp = fmt::format("{} spp", s.samples);
     if (!result.spp.empty()) {
       std::uint64_t total = 0, early = 0;

@@ -30,10 +30,15 @@ struct TraceStats {
   std::uint64_t rays = 0;         // every ray cast: camera, secondary, shadow segments
   std::uint64_t nan_samples = 0;  // samples whose radiance had a NaN (zeroed at the film)
   std::uint64_t inf_samples = 0;  // samples whose radiance had an Inf (zeroed at the film)
+  // Rays cast for the one-pixel border around a tile that adaptive sampling's first checkpoint
+  // reads (render/tile.h); not in `rays`, which stays the same whatever the tiling.
+  std::uint64_t border_rays = 0;
+  std::uint64_t all_rays() const { return rays + border_rays; }
   void add(const TraceStats& o) {
     rays += o.rays;
     nan_samples += o.nan_samples;
     inf_samples += o.inf_samples;
+    border_rays += o.border_rays;
   }
 };
 

@@ -89,6 +89,19 @@ struct TileContext {
   bool adaptive = false;
   bool want_variance = false;
   bool squares() const { return adaptive || want_variance; }
+  // Samples of the first phase: every pixel takes them before any may stop. With adaptive
+  // sampling, min_samples when that is a checkpoint (decided by the neighbourhood rule, see
+  // render_tile); otherwise settings.samples, and there is one phase only.
+  std::uint32_t first = 0;
+  // Whether a pixel may stop at checkpoint n from its own samples (the checkpoints after the first).
+  bool own_checkpoint(std::uint32_t n) const { return adaptive && n > first && is_checkpoint(settings, n); }
+};
+
+// The state of every pixel of a tile between the two phases, row-major.
+struct TileSums {
+  std::vector<PixelSums> sums;
+  std::vector<std::uint32_t> taken;  // samples taken so far
+  std::vector<std::uint8_t> done;    // stopped: takes no more samples
 };
 
 // Writes pixel i of the tile (row-major index) from its sums after n samples.
@@ -100,22 +113,27 @@ void store(const TileContext& ctx, const PixelSums& p, std::uint32_t n, std::siz
   }
 }
 
-void render_pixels(const TileContext& ctx, Tile& tile) {
+// Takes each pixel that is not done from its current count up to `until` samples, one pixel at a
+// time; a pixel stops early at a checkpoint after ctx.first once its own estimate converges.
+void render_pixels(const TileContext& ctx, TileSums& st, std::uint32_t until, Tile& tile) {
   const TileRect& rect = tile.rect;
-  const scene::RenderSettings& settings = ctx.settings;
   for (std::uint32_t ty = 0; ty < rect.height; ++ty) {
     for (std::uint32_t tx = 0; tx < rect.width; ++tx) {
+      const std::size_t i = std::size_t(ty) * rect.width + tx;
+      if (st.done[i]) continue;
       const std::uint32_t x = rect.x0 + tx, y = rect.y0 + ty;
-      PixelSums p;
-      std::uint32_t n = 0;
-      while (n < settings.samples) {
-        accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, settings, x, y, n), sample_key(settings, x, y, n),
-                                  ctx.limits, tile.stats),
+      PixelSums& p = st.sums[i];
+      std::uint32_t& n = st.taken[i];
+      while (n < until) {
+        accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, ctx.settings, x, y, n),
+                                  sample_key(ctx.settings, x, y, n), ctx.limits, tile.stats),
                    p, ctx.squares(), tile.stats);
         ++n;
-        if (ctx.adaptive && is_checkpoint(settings, n) && converged(settings, p, n)) break;
+        if (ctx.own_checkpoint(n) && converged(ctx.settings, p, n)) {
+          st.done[i] = 1;
+          break;
+        }
       }
-      store(ctx, p, n, std::size_t(ty) * rect.width + tx, tile);
     }
   }
 }
@@ -125,26 +143,34 @@ void render_pixels(const TileContext& ctx, Tile& tile) {
 constexpr std::uint32_t kBlockW = 4, kBlockH = 2;
 static_assert(kBlockW * kBlockH == accel::kPacketSize);
 
-void render_packets(const TileContext& ctx, Tile& tile) {
+// render_pixels in packets: the same bits, the camera rays of a 4x2 block traced together.
+void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, Tile& tile) {
   const TileRect& rect = tile.rect;
   const scene::RenderSettings& settings = ctx.settings;
   for (std::uint32_t by = 0; by < rect.height; by += kBlockH) {
     for (std::uint32_t bx = 0; bx < rect.width; bx += kBlockW) {
-      // Lanes outside the tile (a partial block at its right or bottom edge) stay invalid.
-      std::uint32_t valid = 0;
+      // Lanes outside the tile (a partial block at its right or bottom edge) and pixels already
+      // done stay inactive. Every active pixel of a block has taken the same number of samples
+      // (both phases start all of them together), so one sample index serves the packet.
+      std::uint32_t active = 0;
+      std::size_t index[kBlockW * kBlockH] = {};
+      std::uint32_t start = until;
       for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
-        if (bx + i % kBlockW < rect.width && by + i / kBlockW < rect.height) valid |= 1u << i;
+        const std::uint32_t tx = bx + i % kBlockW, ty = by + i / kBlockW;
+        if (tx >= rect.width || ty >= rect.height) continue;
+        index[i] = std::size_t(ty) * rect.width + tx;
+        if (st.done[index[i]] || st.taken[index[i]] >= until) continue;
+        active |= 1u << i;
+        assert(start == until || start == st.taken[index[i]]);
+        start = st.taken[index[i]];
       }
       // Each pixel still sums its own samples in sample order, in double, and decides when to
       // stop from its own samples only: the same bits as render_pixels, only interleaved with its
       // neighbours'. A converged lane leaves `active`; the packet goes on with the others.
-      PixelSums sums[kBlockW * kBlockH];
-      std::uint32_t taken[kBlockW * kBlockH] = {};
       math::Ray rays[kBlockW * kBlockH];
       math::SampleKey keys[kBlockW * kBlockH];
       Vec3f radiance[kBlockW * kBlockH];
-      std::uint32_t active = valid;
-      for (std::uint32_t s = 0; s < settings.samples && active != 0; ++s) {
+      for (std::uint32_t s = start; s < until && active != 0; ++s) {
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (active >> i & 1u) {
             const std::uint32_t x = rect.x0 + bx + i % kBlockW, y = rect.y0 + by + i / kBlockW;
@@ -153,19 +179,81 @@ void render_packets(const TileContext& ctx, Tile& tile) {
           }
         }
         trace_radiance8(ctx.scene, rays, keys, active, ctx.limits, tile.stats, radiance);
-        const bool checkpoint = ctx.adaptive && is_checkpoint(settings, s + 1);
+        const bool checkpoint = ctx.own_checkpoint(s + 1);
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (!(active >> i & 1u)) continue;
-          accumulate(radiance[i], sums[i], ctx.squares(), tile.stats);
-          taken[i] = s + 1;
-          if (checkpoint && converged(settings, sums[i], s + 1)) active &= ~(1u << i);
+          accumulate(radiance[i], st.sums[index[i]], ctx.squares(), tile.stats);
+          st.taken[index[i]] = s + 1;
+          if (checkpoint && converged(settings, st.sums[index[i]], s + 1)) {
+            st.done[index[i]] = 1;
+            active &= ~(1u << i);
+          }
         }
       }
-      for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
-        if (!(valid >> i & 1u)) continue;
-        const std::uint32_t tx = bx + i % kBlockW, ty = by + i / kBlockW;
-        store(ctx, sums[i], taken[i], std::size_t(ty) * rect.width + tx, tile);
+    }
+  }
+}
+
+void render_phase(const TileContext& ctx, bool packets, TileSums& st, std::uint32_t until, Tile& tile) {
+  if (packets) {
+    render_packets(ctx, st, until, tile);
+  } else {
+    render_pixels(ctx, st, until, tile);
+  }
+}
+
+// The first checkpoint's neighbourhood rule. A pixel's own samples cannot see an edge that none
+// of them crossed: a pixel that an outline clips by a sliver has a fair chance that its first
+// min_samples samples all land on one side, agree exactly, and estimate a variance of zero. Its
+// neighbours across the outline do see it. So at the first checkpoint a pixel stops only when it
+// and each of its 8 neighbours inside the image pass the test on their own first min_samples
+// samples. The samples of a pixel are a pure function of (seed, frame, pixel, sample index), so
+// a neighbour outside the tile (the one-pixel border) is rendered here for its first min_samples
+// samples alone, with the same bits as its own tile gives it, and the decision does not depend on
+// the tiling. Later checkpoints read the pixel's own samples only.
+void first_checkpoint(const TileContext& ctx, TileSums& st, Tile& tile) {
+  if (ctx.first < 2) return;  // one sample has no variance estimate: no pixel stops at n = 1
+  const TileRect& rect = tile.rect;
+  const scene::RenderSettings& settings = ctx.settings;
+  // Verdicts over the tile grown by one pixel on each side, clipped to the image.
+  const std::uint32_t gx0 = rect.x0 > 0 ? rect.x0 - 1 : 0, gy0 = rect.y0 > 0 ? rect.y0 - 1 : 0;
+  const std::uint32_t gx1 = std::min(rect.x0 + rect.width + 1, settings.width);
+  const std::uint32_t gy1 = std::min(rect.y0 + rect.height + 1, settings.height);
+  const std::uint32_t gw = gx1 - gx0;
+  std::vector<std::uint8_t> passes(std::size_t(gw) * (gy1 - gy0), 0);
+  TraceStats border;
+  for (std::uint32_t y = gy0; y < gy1; ++y) {
+    for (std::uint32_t x = gx0; x < gx1; ++x) {
+      const bool inside = x >= rect.x0 && x < rect.x0 + rect.width && y >= rect.y0 && y < rect.y0 + rect.height;
+      bool pass = false;
+      if (inside) {
+        const std::size_t i = std::size_t(y - rect.y0) * rect.width + (x - rect.x0);
+        pass = converged(settings, st.sums[i], st.taken[i]);
+      } else {
+        PixelSums p;
+        for (std::uint32_t n = 0; n < ctx.first; ++n) {
+          accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, settings, x, y, n), sample_key(settings, x, y, n),
+                                    ctx.limits, border),
+                     p, true, border);
+        }
+        pass = converged(settings, p, ctx.first);
       }
+      passes[std::size_t(y - gy0) * gw + (x - gx0)] = pass;
+    }
+  }
+  // Border rays are extra work, not part of the image: their NaN/Inf samples belong to the
+  // pixel's own tile, which counts them.
+  tile.stats.border_rays += border.rays;
+  for (std::uint32_t ty = 0; ty < rect.height; ++ty) {
+    for (std::uint32_t tx = 0; tx < rect.width; ++tx) {
+      const std::uint32_t x = rect.x0 + tx, y = rect.y0 + ty;
+      bool all = true;
+      for (std::uint32_t ny = (y > gy0 ? y - 1 : y); all && ny <= std::min(y + 1, gy1 - 1); ++ny) {
+        for (std::uint32_t nx = (x > gx0 ? x - 1 : x); all && nx <= std::min(x + 1, gx1 - 1); ++nx) {
+          all = passes[std::size_t(ny - gy0) * gw + (nx - gx0)] != 0;
+        }
+      }
+      st.done[std::size_t(ty) * rect.width + tx] = all;
     }
   }
 }
@@ -180,16 +268,22 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   tile.rect = rect;
   const std::size_t pixels = std::size_t(rect.width) * rect.height;
   tile.rgb.assign(pixels * 3, 0.0f);
-  const TileContext ctx{scene, settings,
-                        TraceLimits{Vec3f(settings.background), settings.max_depth, options.specialise},
-                        settings.error_target > 0, options.want_variance};
+  const bool adaptive = settings.error_target > 0;
+  TileContext ctx{scene, settings, TraceLimits{Vec3f(settings.background), settings.max_depth, options.specialise},
+                  adaptive, options.want_variance};
+  ctx.first = adaptive && is_checkpoint(settings, settings.min_samples) ? settings.min_samples : settings.samples;
   if (ctx.adaptive) tile.spp.assign(pixels, 0);
   if (ctx.want_variance) tile.variance.assign(pixels * 3, 0.0f);
-  if (options.packets) {
-    render_packets(ctx, tile);
-  } else {
-    render_pixels(ctx, tile);
+  TileSums st;
+  st.sums.resize(pixels);
+  st.taken.assign(pixels, 0);
+  st.done.assign(pixels, 0);
+  render_phase(ctx, options.packets, st, ctx.first, tile);
+  if (ctx.first < settings.samples) {
+    first_checkpoint(ctx, st, tile);
+    render_phase(ctx, options.packets, st, settings.samples, tile);
   }
+  for (std::size_t i = 0; i < pixels; ++i) store(ctx, st.sums[i], st.taken[i], i, tile);
   return tile;
 }
 

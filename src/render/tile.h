@@ -9,9 +9,14 @@
 // n = min_samples, 2 min_samples, 4 min_samples, ... below settings.samples, once its estimated
 // relative standard error sqrt(max_c (s_c^2 / n) / (mean_c^2 + 0.01)) (s^2 the unbiased sample
 // variance of its own samples) is at most error_target; otherwise it takes all settings.samples.
-// The decision reads nothing but that pixel's samples, so the image stays the same bits under
-// any tiling, thread count, packet mode, ISA or farm layout. A checkpoint of n = 1 never stops
-// a pixel (one sample has no variance estimate); a sample dropped as NaN/Inf counts as a zero.
+// At the first checkpoint (n = min_samples) a pixel stops only if its 8 neighbours in the image
+// pass the same test on their own first min_samples samples too: one pixel's samples can all
+// miss an edge that clips it, its neighbours' do not. The tile renders its one-pixel border for
+// that (TraceStats::border_rays). Later checkpoints read the pixel's own samples only. Every
+// decision reads samples that are a pure function of (seed, frame, pixel, sample index), so the
+// image stays the same bits under any tiling, thread count, packet mode, ISA or farm layout. A
+// checkpoint of n = 1 never stops a pixel (one sample has no variance estimate); a sample
+// dropped as NaN/Inf counts as a zero. Memory: 48 bytes of running sums per pixel of the tile.
 // Thread-safe: any number of tiles may render at once over one shared RenderScene.
 #pragma once
 
