@@ -3,6 +3,7 @@
 // The closed-form cases look, through a 1x1 image with a very narrow field of view, at the origin
 // of a white Lambertian plane (diffuse 1, colour 1) facing +y, so the pixel is L = E / pi for the
 // irradiance E there. The camera stands off the light's axis, so its ray never meets the light.
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <numbers>
@@ -397,6 +398,34 @@ TEST_CASE("Occluders cast soft shadows; cast_shadows false lets the light throug
     REQUIRE(v > 0.35 * open_value);
     REQUIRE(v < 0.65 * open_value);
   }
+}
+
+TEST_CASE("A light mounted flush on a ceiling is not shadowed by the ceiling", "[lights][shadows]") {
+  // A floor lit by a rect and a disk light that lie in the plane of a ceiling facing down. The
+  // ceiling's hit is at the light's distance up to float error: a shadow ray that ran all the way
+  // to the light would find it at random. With the ceiling or without it, every floor pixel must
+  // be the same bits (the camera sees only the floor; the same samples either way).
+  scene::SceneDesc open;
+  open.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, white()));
+  scene::Light rect = rect_light_down({-0.8, 3, 0}, 1.0, 1.4, 5);
+  rect.samples = 4;
+  open.lights.push_back(rect);
+  scene::Light disk = disk_light({0.9, 3, 0.3}, 0.5, {0, -1, 0}, 5);
+  disk.samples = 4;
+  open.lights.push_back(disk);
+  open.camera = {{0, 2, 3}, {0, 0, 0}, {0, 1, 0}, 40};
+  open.render.width = 40;
+  open.render.height = 30;
+  open.render.samples = 4;
+  scene::SceneDesc ceiling = open;
+  ceiling.objects.push_back(plane({0, 3, 0}, {0, -1, 0}, white()));
+  const render::Tile want = render_all(render::RenderScene::build(open), open.render);
+  const render::Tile got = render_all(render::RenderScene::build(ceiling), ceiling.render);
+  REQUIRE(want.rgb.size() == got.rgb.size());
+  std::size_t darker = 0;
+  for (std::size_t i = 0; i < want.rgb.size(); ++i) darker += got.rgb[i] != want.rgb[i];
+  REQUIRE(std::all_of(want.rgb.begin(), want.rgb.end(), [](float v) { return v > 0.0f; }));
+  CHECK(darker == 0);
 }
 
 TEST_CASE("Area lights render the same bits per pixel and in packets, specialised or not, on every isa",

@@ -308,15 +308,19 @@ struct Tracer {
     return true;
   }
 
-  // A shadow ray from hit towards `target`, leaving along about `l`. It ends at the target:
-  // lights are not surfaces the traversal could find.
-  static math::Ray shadow_ray(const accel::Hit& hit, const Vec3f& l, const Vec3f& target) {
+  // A shadow ray from hit towards `target`, leaving along about `l`, ending at `end` times the
+  // distance to the target: lights are not surfaces the traversal could find. A point light ends
+  // at 1. An area light's sample ends at kAreaShadowEnd short of it, because area lights are
+  // usually mounted on a surface (a rect on a ceiling), and that surface's hit, computed in float
+  // at about the same distance, would otherwise shadow the light at random.
+  static constexpr float kAreaShadowEnd = 1.0f - 1e-4f;
+  static math::Ray shadow_ray(const accel::Hit& hit, const Vec3f& l, const Vec3f& target, float end = 1.0f) {
     math::Ray shadow;
     shadow.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, l);
     const Vec3f seg = target - shadow.o;
     const float seg_len = math::length(seg);
     shadow.d = seg / seg_len;
-    shadow.t_max = seg_len;
+    shadow.t_max = seg_len * end;
     return shadow;
   }
 
@@ -378,7 +382,7 @@ struct Tracer {
           if (!sample_area_light(a, hit.p, nf, u1, u2, as)) continue;
           float vis = 1.0f;
           if constexpr (kShadow) {
-            if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point), media);
+            if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point, kAreaShadowEnd), media);
           }
           if (vis <= 0.0f) continue;
           acc += math::mul(brdf(m, wo, nf, as.l), a.radiance) * (as.weight * vis);
