@@ -6,6 +6,7 @@
 // had acknowledged tiles), where stored tiles are never leased again; a corrupt database; the
 // one-shot job; and one smoke test over a real socket with a graceful stop.
 #include <signal.h>
+#include <sqlite3.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -1193,10 +1194,29 @@ TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their me
     CHECK(tile.value()->pixels.size() == 8 * 8 * 16);
   }
   // Restarted once done: the mean is read back from the store.
+  {
+    Harness h(config);
+    REQUIRE_FALSE(h.collector.open());
+    CHECK(pixels == 32 * 24);
+    CHECK(h.status(job).state == protocol::JobState::kDone);
+    CHECK(h.status(job).mean_spp == double(sum) / double(pixels));
+    CHECK(h.status(uniform).mean_spp == 1.0);
+  }
+  // A finished job's stored tile damaged behind the collector's back (cut short): start-up still
+  // succeeds, the job stays done and its mean is unknown rather than wrong.
+  {
+    sqlite3* db = nullptr;
+    const std::string path = (fs::path(config.state_dir) / store::kDatabaseFileName).string();
+    REQUIRE(sqlite3_open(path.c_str(), &db) == SQLITE_OK);
+    const std::string sql =
+        fmt::format("UPDATE tiles SET pixels = substr(pixels, 1, 100) WHERE job = {} AND tile = 1", job);
+    CHECK(sqlite3_exec(db, sql.c_str(), nullptr, nullptr, nullptr) == SQLITE_OK);
+    CHECK(sqlite3_changes(db) == 1);
+    sqlite3_close(db);
+  }
   Harness h(config);
   REQUIRE_FALSE(h.collector.open());
-  CHECK(pixels == 32 * 24);
   CHECK(h.status(job).state == protocol::JobState::kDone);
-  CHECK(h.status(job).mean_spp == double(sum) / double(pixels));
+  CHECK_FALSE(h.status(job).mean_spp.has_value());
   CHECK(h.status(uniform).mean_spp == 1.0);
 }

@@ -514,7 +514,12 @@ std::optional<std::string> Collector::Impl::restore(store::Store& s) {
       rec.tiles_done = static_cast<TileIndex>(std::min<std::uint64_t>(count.value(), rec.tiles_total));
     }
     if (!rec.unfinished() && rec.settings.error_target > 0) {
-      if (auto error = restore_sample_counts(s, rec)) return error;
+      // Only for the status's mean spp: a tile that cannot be read leaves the mean unknown and
+      // does not stop start-up (the image is checked when it is served).
+      if (auto error = restore_sample_counts(s, rec)) {
+        util::log_warn("{}: job {}: mean spp unknown: {}", s.path(), rec.id, *error);
+        rec.spp_known = false;
+      }
     }
     jobs_.emplace(rec.id, std::move(rec));
   }
