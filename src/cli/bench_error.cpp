@@ -189,11 +189,12 @@ double convergence_slope(const std::vector<Row>& rows, double noise) {
 }
 
 // Seconds uniform sampling needs to reach `rel_mse`, interpolated linearly in log-log between the
-// two uniform rows that bracket it; nullopt outside their range.
+// two uniform rows that bracket it; nullopt outside their range. From 2 spp up, like the slope:
+// the 1-spp row shoots through pixel centres, another estimator than the jittered rows.
 std::optional<double> uniform_seconds_at(const std::vector<Row>& rows, double rel_mse) {
   const Row* prev = nullptr;
   for (const Row& r : rows) {
-    if (r.kind != "uniform") continue;
+    if (r.kind != "uniform" || r.spp < 2.0) continue;
     if (prev && prev->diff.rel_mse >= rel_mse && r.diff.rel_mse <= rel_mse && prev->diff.rel_mse > r.diff.rel_mse &&
         rel_mse > 0) {
       const double f = (std::log(rel_mse) - std::log(prev->diff.rel_mse)) /
