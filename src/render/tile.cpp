@@ -97,11 +97,13 @@ struct TileContext {
   bool own_checkpoint(std::uint32_t n) const { return adaptive && n > first && is_checkpoint(settings, n); }
 };
 
-// The state of every pixel of a tile between the two phases, row-major.
+// The state of every pixel of a tile between the two phases, row-major. Kept only when there are
+// two phases (48 bytes of sums a pixel); with one, each pixel is stored as soon as it is done.
 struct TileSums {
   std::vector<PixelSums> sums;
   std::vector<std::uint32_t> taken;  // samples taken so far
   std::vector<std::uint8_t> done;    // stopped: takes no more samples
+  bool kept() const { return !sums.empty(); }
 };
 
 // Writes pixel i of the tile (row-major index) from its sums after n samples.
@@ -120,20 +122,23 @@ void render_pixels(const TileContext& ctx, TileSums& st, std::uint32_t until, Ti
   for (std::uint32_t ty = 0; ty < rect.height; ++ty) {
     for (std::uint32_t tx = 0; tx < rect.width; ++tx) {
       const std::size_t i = std::size_t(ty) * rect.width + tx;
-      if (st.done[i]) continue;
+      if (st.kept() && st.done[i]) continue;
       const std::uint32_t x = rect.x0 + tx, y = rect.y0 + ty;
-      PixelSums& p = st.sums[i];
-      std::uint32_t& n = st.taken[i];
+      PixelSums local;
+      std::uint32_t local_n = 0;
+      PixelSums& p = st.kept() ? st.sums[i] : local;
+      std::uint32_t& n = st.kept() ? st.taken[i] : local_n;
       while (n < until) {
         accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, ctx.settings, x, y, n),
                                   sample_key(ctx.settings, x, y, n), ctx.limits, tile.stats),
                    p, ctx.squares(), tile.stats);
         ++n;
         if (ctx.own_checkpoint(n) && converged(ctx.settings, p, n)) {
-          st.done[i] = 1;
+          if (st.kept()) st.done[i] = 1;
           break;
         }
       }
+      if (!st.kept()) store(ctx, p, n, i, tile);
     }
   }
 }
@@ -152,17 +157,24 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
       // Lanes outside the tile (a partial block at its right or bottom edge) and pixels already
       // done stay inactive. Every active pixel of a block has taken the same number of samples
       // (both phases start all of them together), so one sample index serves the packet.
-      std::uint32_t active = 0;
+      std::uint32_t active = 0, valid = 0;
       std::size_t index[kBlockW * kBlockH] = {};
+      PixelSums local_sums[kBlockW * kBlockH];
+      std::uint32_t local_taken[kBlockW * kBlockH] = {};
+      PixelSums* sums[kBlockW * kBlockH];
+      std::uint32_t* taken[kBlockW * kBlockH];
       std::uint32_t start = until;
       for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
         const std::uint32_t tx = bx + i % kBlockW, ty = by + i / kBlockW;
         if (tx >= rect.width || ty >= rect.height) continue;
+        valid |= 1u << i;
         index[i] = std::size_t(ty) * rect.width + tx;
-        if (st.done[index[i]] || st.taken[index[i]] >= until) continue;
+        sums[i] = st.kept() ? &st.sums[index[i]] : &local_sums[i];
+        taken[i] = st.kept() ? &st.taken[index[i]] : &local_taken[i];
+        if ((st.kept() && st.done[index[i]]) || *taken[i] >= until) continue;
         active |= 1u << i;
-        assert(start == until || start == st.taken[index[i]]);
-        start = st.taken[index[i]];
+        assert(start == until || start == *taken[i]);
+        start = *taken[i];
       }
       // Each pixel still sums its own samples in sample order, in double, and decides when to
       // stop from its own samples only: the same bits as render_pixels, only interleaved with its
@@ -182,12 +194,17 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
         const bool checkpoint = ctx.own_checkpoint(s + 1);
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (!(active >> i & 1u)) continue;
-          accumulate(radiance[i], st.sums[index[i]], ctx.squares(), tile.stats);
-          st.taken[index[i]] = s + 1;
-          if (checkpoint && converged(settings, st.sums[index[i]], s + 1)) {
-            st.done[index[i]] = 1;
+          accumulate(radiance[i], *sums[i], ctx.squares(), tile.stats);
+          *taken[i] = s + 1;
+          if (checkpoint && converged(settings, *sums[i], s + 1)) {
+            if (st.kept()) st.done[index[i]] = 1;
             active &= ~(1u << i);
           }
+        }
+      }
+      if (!st.kept()) {
+        for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
+          if (valid >> i & 1u) store(ctx, *sums[i], *taken[i], index[i], tile);
         }
       }
     }
@@ -275,14 +292,16 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   if (ctx.adaptive) tile.spp.assign(pixels, 0);
   if (ctx.want_variance) tile.variance.assign(pixels * 3, 0.0f);
   TileSums st;
+  if (ctx.first == settings.samples) {
+    render_phase(ctx, options.packets, st, settings.samples, tile);  // one phase: stored as it goes
+    return tile;
+  }
   st.sums.resize(pixels);
   st.taken.assign(pixels, 0);
   st.done.assign(pixels, 0);
   render_phase(ctx, options.packets, st, ctx.first, tile);
-  if (ctx.first < settings.samples) {
-    first_checkpoint(ctx, st, tile);
-    render_phase(ctx, options.packets, st, settings.samples, tile);
-  }
+  first_checkpoint(ctx, st, tile);
+  render_phase(ctx, options.packets, st, settings.samples, tile);
   for (std::size_t i = 0; i < pixels; ++i) store(ctx, st.sums[i], st.taken[i], i, tile);
   return tile;
 }

@@ -16,7 +16,8 @@
 // decision reads samples that are a pure function of (seed, frame, pixel, sample index), so the
 // image stays the same bits under any tiling, thread count, packet mode, ISA or farm layout. A
 // checkpoint of n = 1 never stops a pixel (one sample has no variance estimate); a sample
-// dropped as NaN/Inf counts as a zero. Memory: 48 bytes of running sums per pixel of the tile.
+// dropped as NaN/Inf counts as a zero. Memory: an adaptive render keeps 53 bytes of running
+// state per pixel of the tile between its phases; a uniform one keeps a block's only.
 // Thread-safe: any number of tiles may render at once over one shared RenderScene.
 #pragma once
 
