@@ -27,7 +27,7 @@
 namespace dtraced::render {
 
 struct TraceStats {
-  std::uint64_t rays = 0;         // every ray cast: camera, secondary, shadow segments
+  std::uint64_t rays = 0;         // every ray cast for the pixels: camera, secondary, shadow segments
   std::uint64_t nan_samples = 0;  // samples whose radiance had a NaN (zeroed at the film)
   std::uint64_t inf_samples = 0;  // samples whose radiance had an Inf (zeroed at the film)
   // Rays cast for the one-pixel border around a tile that adaptive sampling's first checkpoint

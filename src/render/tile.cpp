@@ -91,7 +91,7 @@ struct TileContext {
   bool squares() const { return adaptive || want_variance; }
   // Samples of the first phase: every pixel takes them before any may stop. With adaptive
   // sampling, min_samples when that is a checkpoint (decided by the neighbourhood rule, see
-  // render_tile); otherwise settings.samples, and there is one phase only.
+  // first_checkpoint); otherwise settings.samples, and there is one phase only.
   std::uint32_t first = 0;
   // Whether a pixel may stop at checkpoint n from its own samples (the checkpoints after the first).
   bool own_checkpoint(std::uint32_t n) const { return adaptive && n > first && is_checkpoint(settings, n); }
