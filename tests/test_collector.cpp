@@ -1193,7 +1193,8 @@ TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their me
     REQUIRE(tile.value());
     CHECK(tile.value()->pixels.size() == 8 * 8 * 16);
   }
-  // Restarted once done: the mean is read back from the store.
+  // Restarted once done: the mean is read back from the store after start-up (on the pool; the
+  // first request runs the loop until that is done).
   {
     Harness h(config);
     REQUIRE_FALSE(h.collector.open());

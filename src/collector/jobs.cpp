@@ -134,7 +134,7 @@ protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, Time
   if (job.tiles_done > 0) {
     if (job.settings.error_target <= 0) {
       s.mean_spp = static_cast<double>(job.settings.samples);
-    } else if (job.spp_known && job.spp_pixels > 0) {
+    } else if (job.spp_known && !job.spp_pending && job.spp_pixels > 0) {
       s.mean_spp = static_cast<double>(job.spp_sum) / static_cast<double>(job.spp_pixels);
     }
   }

@@ -48,6 +48,7 @@ struct JobRecord {
   std::uint64_t spp_sum = 0;
   std::uint64_t spp_pixels = 0;
   bool spp_known = true;
+  bool spp_pending = false;  // a finished job's counts are still being read after start-up
 
   // Unfinished jobs only (released once done or cancelled).
   std::shared_ptr<image::ImageRGBf> framebuffer;  // null until the first tile arrives

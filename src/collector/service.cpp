@@ -354,7 +354,14 @@ struct Collector::Impl {
   std::optional<std::string> bump_epoch();
   std::optional<std::string> restore(store::Store& s);
   std::optional<std::string> restore_active(store::Store& s, const store::StoredJob& row, JobRecord& rec);
-  std::optional<std::string> restore_sample_counts(store::Store& s, JobRecord& rec);
+  struct SampleCounts {
+    std::uint64_t sum = 0, pixels = 0;
+    bool all_read = true;  // false: some stored tile's counts did not parse
+    std::string error;     // a store failure
+  };
+  SampleCounts read_sample_counts(JobId id, scene::RenderSettings settings, std::uint32_t tile_size,
+                                  TileIndex tiles_total);
+  net::awaitable<void> restore_sample_counts(JobId id);
   std::optional<std::string> enqueue_one_shot(store::Store& s);
   std::optional<std::string> listen();
 
@@ -431,6 +438,7 @@ struct Collector::Impl {
   // Canonical scene text by digest, shared by the unfinished jobs that use it.
   std::map<std::string, std::weak_ptr<const std::string>, std::less<>> scenes_;
   std::vector<JobId> to_finish_;  // found complete at start-up
+  std::vector<JobId> to_count_;   // finished adaptive jobs whose mean spp is read after start-up
   CollectorCounters counters_;
   std::int64_t epoch_ = 0;
   std::uint64_t restored_tiles_ = 0;
@@ -443,6 +451,7 @@ struct Collector::Impl {
   // The read-only connection, used by pool threads one at a time.
   std::mutex read_mu_;
   std::optional<store::Store> read_store_;  // guarded by read_mu_; opened on first use
+  bool reads_closed_ = false;               // guarded by read_mu_: stopping, never reopen
 };
 
 // ---- start-up ---------------------------------------------------------------------------------
@@ -471,6 +480,12 @@ std::optional<std::string> Collector::Impl::open() {
   opened_ = true;
   for (const JobId id : to_finish_) start_finish(id);
   to_finish_.clear();
+  for (const JobId id : to_count_) {
+    net::co_spawn(*ioc_, restore_sample_counts(id), [id](std::exception_ptr error) {
+      if (error) log_exception(fmt::format("reading the sample counts of job {}", id), error);
+    });
+  }
+  to_count_.clear();
   util::log_info("collector: start {} on {}; {} unfinished job(s), {} tile(s) already stored", epoch_,
                  config_.state_dir, unfinished_jobs(), restored_tiles_);
   return std::nullopt;
@@ -514,38 +529,81 @@ std::optional<std::string> Collector::Impl::restore(store::Store& s) {
       rec.tiles_done = static_cast<TileIndex>(std::min<std::uint64_t>(count.value(), rec.tiles_total));
     }
     if (!rec.unfinished() && rec.settings.error_target > 0) {
-      // Only for the status's mean spp: a tile that cannot be read leaves the mean unknown and
-      // does not stop start-up (the image is checked when it is served).
-      if (auto error = restore_sample_counts(s, rec)) {
-        util::log_warn("{}: job {}: mean spp unknown: {}", s.path(), rec.id, *error);
-        rec.spp_known = false;
-      }
+      // Its mean spp needs every stored tile read: done after start-up, off the loop, so that
+      // start-up time does not grow with the job history (see restore_sample_counts).
+      rec.spp_pending = true;
+      to_count_.push_back(rec.id);
     }
     jobs_.emplace(rec.id, std::move(rec));
   }
   return std::nullopt;
 }
 
-// A finished adaptive job's mean samples per pixel, read back from its stored tiles one at a time
-// (a done job's tiles are not otherwise read at start). A tile whose blob does not parse leaves
-// the mean unknown: the image itself is checked when it is served, not here.
-std::optional<std::string> Collector::Impl::restore_sample_counts(store::Store& s, JobRecord& rec) {
-  auto tiles = s.stored_tiles(static_cast<std::int64_t>(rec.id));
-  if (!tiles) return tiles.error();
-  for (const std::uint32_t index : tiles.value()) {
-    if (index >= rec.tiles_total) continue;
-    auto tile = s.get_tile(static_cast<std::int64_t>(rec.id), index);
-    if (!tile) return tile.error();
-    if (!tile.value()) continue;
-    const render::TileRect rect = tile_rect(rec.settings, rec.tile_size, index);
-    auto parsed = blob_to_tile(tile.value()->pixels, std::size_t{rect.width} * rect.height);
-    if (!parsed) {
-      rec.spp_known = false;
+// A finished adaptive job's sample counts, read back from its stored tiles one at a time on the
+// read connection (a done job's tiles are not otherwise read at start). Runs on the pool; takes
+// the read connection one tile at a time, so image and scene reads go on in between.
+Collector::Impl::SampleCounts Collector::Impl::read_sample_counts(JobId id, scene::RenderSettings settings,
+                                                                  std::uint32_t tile_size, TileIndex tiles_total) {
+  SampleCounts c;
+  std::vector<std::uint32_t> indices;
+  {
+    std::lock_guard lock(read_mu_);
+    store::Store* s = read_store_locked(c.error);
+    if (s == nullptr) return c;
+    auto tiles = s->stored_tiles(static_cast<std::int64_t>(id));
+    if (!tiles) {
+      c.error = tiles.error();
+      return c;
+    }
+    indices = std::move(tiles.value());
+  }
+  for (const std::uint32_t index : indices) {
+    if (index >= tiles_total) continue;
+    std::optional<store::StoredTile> stored;
+    {
+      std::lock_guard lock(read_mu_);
+      store::Store* s = read_store_locked(c.error);
+      if (s == nullptr) return c;
+      auto tile = s->get_tile(static_cast<std::int64_t>(id), index);
+      if (!tile) {
+        c.error = tile.error();
+        return c;
+      }
+      stored = std::move(tile.value());
+    }
+    if (!stored) continue;
+    const render::TileRect rect = tile_rect(settings, tile_size, index);
+    auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
+    if (!parsed || parsed->spp.empty()) {
+      c.all_read = false;  // the image itself is checked when it is served
       continue;
     }
-    count_samples(rec, parsed->spp);
+    for (const std::uint32_t n : parsed->spp) c.sum += n;
+    c.pixels += parsed->spp.size();
   }
-  return std::nullopt;
+  return c;
+}
+
+// Fills in a finished adaptive job's mean spp after start-up; until then its status reports the
+// mean as unknown. A tile that cannot be read leaves it unknown for good (logged).
+net::awaitable<void> Collector::Impl::restore_sample_counts(JobId id) {
+  const JobRecord* job = find_job(id);
+  if (job == nullptr || stopping_) co_return;
+  auto read = [this, id, settings = job->settings, tile_size = job->tile_size, total = job->tiles_total] {
+    return read_sample_counts(id, settings, tile_size, total);
+  };
+  const SampleCounts c = co_await on_pool(pool_, std::move(read));
+  JobRecord* rec = find_job(id);
+  if (rec == nullptr) co_return;
+  rec->spp_pending = false;
+  if (!c.error.empty() || !c.all_read) {
+    util::log_warn("collector: job {}: mean spp unknown: {}", id,
+                   c.error.empty() ? "a stored tile's sample counts do not parse" : c.error);
+    rec->spp_known = false;
+    co_return;
+  }
+  rec->spp_sum += c.sum;
+  rec->spp_pixels += c.pixels;
 }
 
 std::optional<std::string> Collector::Impl::restore_active(store::Store& s, const store::StoredJob& row,
@@ -1228,6 +1286,10 @@ std::uint64_t Collector::Impl::unfinished_pixels() const {
 // ---- reads on the pool --------------------------------------------------------------------------
 
 store::Store* Collector::Impl::read_store_locked(std::string& error) {
+  if (reads_closed_) {
+    error = "the collector is stopping";
+    return nullptr;
+  }
   if (!read_store_) {
     store::OpenOptions options;
     options.verify_integrity = false;  // verified at start-up by the first connection
@@ -1326,6 +1388,7 @@ net::awaitable<void> Collector::Impl::stop_sequence() {
   auto close_reads = [this] {
     std::lock_guard lock(read_mu_);
     read_store_.reset();
+    reads_closed_ = true;
     return true;
   };
   co_await on_pool(pool_, std::move(close_reads));
