@@ -78,13 +78,7 @@ std::optional<std::string> check_sample_counts(const scene::RenderSettings& sett
 }
 
 void count_samples(JobRecord& job, std::span<const std::uint32_t> spp) {
-  if (job.settings.error_target <= 0) return;
-  if (spp.empty()) {
-    job.spp_known = false;
-    return;
-  }
-  for (const std::uint32_t n : spp) job.spp_sum += n;
-  job.spp_pixels += spp.size();
+  if (job.settings.error_target > 0) job.spp.add(spp);
 }
 
 void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb) {
@@ -134,8 +128,8 @@ protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, Time
   if (job.tiles_done > 0) {
     if (job.settings.error_target <= 0) {
       s.mean_spp = static_cast<double>(job.settings.samples);
-    } else if (job.spp_known && !job.spp_pending && job.spp_pixels > 0) {
-      s.mean_spp = static_cast<double>(job.spp_sum) / static_cast<double>(job.spp_pixels);
+    } else if (job.spp.known && !job.spp_pending && job.spp.pixels > 0) {
+      s.mean_spp = static_cast<double>(job.spp.sum) / static_cast<double>(job.spp.pixels);
     }
   }
   const std::int64_t end = job.unfinished() ? now_unix : job.finished_unix;

@@ -29,6 +29,27 @@
 
 namespace dtraced::collector {
 
+// Sample counts summed over tiles. `known` turns false once a tile came without readable counts:
+// the mean is then reported as unknown rather than wrong.
+struct SampleTally {
+  std::uint64_t sum = 0;
+  std::uint64_t pixels = 0;
+  bool known = true;
+  void add(std::span<const std::uint32_t> spp) {
+    if (spp.empty()) {
+      known = false;
+      return;
+    }
+    for (const std::uint32_t n : spp) sum += n;
+    pixels += spp.size();
+  }
+  void add(const SampleTally& o) {
+    sum += o.sum;
+    pixels += o.pixels;
+    known = known && o.known;
+  }
+};
+
 struct JobRecord {
   JobId id = 0;
   std::string digest;
@@ -42,12 +63,9 @@ struct JobRecord {
   TileIndex tiles_total = 0;
   TileIndex tiles_done = 0;
 
-  // Samples per pixel summed over the stored tiles this record has seen (adaptive jobs; a uniform
-  // job's mean is settings.samples). spp_known turns false when some stored tile's counts could
-  // not be read (see restore): the mean is then reported as unknown rather than wrong.
-  std::uint64_t spp_sum = 0;
-  std::uint64_t spp_pixels = 0;
-  bool spp_known = true;
+  // Samples per pixel over the stored tiles this record has seen (adaptive jobs; a uniform job's
+  // mean is settings.samples).
+  SampleTally spp;
   bool spp_pending = false;  // a finished job's counts are still being read after start-up
 
   // Unfinished jobs only (released once done or cancelled).

@@ -355,9 +355,8 @@ struct Collector::Impl {
   std::optional<std::string> restore(store::Store& s);
   std::optional<std::string> restore_active(store::Store& s, const store::StoredJob& row, JobRecord& rec);
   struct SampleCounts {
-    std::uint64_t sum = 0, pixels = 0;
-    bool all_read = true;  // false: some stored tile's counts did not parse
-    std::string error;     // a store failure
+    SampleTally tally;
+    std::string error;  // a store failure
   };
   SampleCounts read_sample_counts(JobId id, scene::RenderSettings settings, std::uint32_t tile_size,
                                   TileIndex tiles_total);
@@ -574,12 +573,11 @@ Collector::Impl::SampleCounts Collector::Impl::read_sample_counts(JobId id, scen
     if (!stored) continue;
     const render::TileRect rect = tile_rect(settings, tile_size, index);
     auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
-    if (!parsed || parsed->spp.empty()) {
-      c.all_read = false;  // the image itself is checked when it is served
+    if (!parsed) {
+      c.tally.known = false;  // the image itself is checked when it is served
       continue;
     }
-    for (const std::uint32_t n : parsed->spp) c.sum += n;
-    c.pixels += parsed->spp.size();
+    c.tally.add(parsed->spp);
   }
   return c;
 }
@@ -596,14 +594,12 @@ net::awaitable<void> Collector::Impl::restore_sample_counts(JobId id) {
   JobRecord* rec = find_job(id);
   if (rec == nullptr) co_return;
   rec->spp_pending = false;
-  if (!c.error.empty() || !c.all_read) {
+  rec->spp.add(c.tally);
+  if (!c.error.empty()) rec->spp.known = false;
+  if (!rec->spp.known) {
     util::log_warn("collector: job {}: mean spp unknown: {}", id,
                    c.error.empty() ? "a stored tile's sample counts do not parse" : c.error);
-    rec->spp_known = false;
-    co_return;
   }
-  rec->spp_sum += c.sum;
-  rec->spp_pixels += c.pixels;
 }
 
 std::optional<std::string> Collector::Impl::restore_active(store::Store& s, const store::StoredJob& row,
