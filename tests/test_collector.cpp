@@ -115,14 +115,14 @@ std::string submit_body(std::string_view extra = "", std::string_view scene = kS
 }
 
 // Deterministic stand-in pixels: the collector cannot tell them from rendered ones.
-std::vector<float> fake_pixels(std::uint64_t job, std::uint32_t tile, const dtraced::render::TileRect& rect,
+std::vector<float> fake_pixels(std::uint64_t job, std::uint32_t tile, const dtraced::scene::TileRect& rect,
                                float salt = 0) {
   std::vector<float> rgb(std::size_t{rect.width} * rect.height * 3);
   for (std::size_t i = 0; i < rgb.size(); ++i) rgb[i] = static_cast<float>(job) + tile * 0.01f + i * 1e-5f + salt;
   return rgb;
 }
 
-std::string payload(std::uint64_t job, std::uint32_t tile, const dtraced::render::TileRect& rect, float salt = 0) {
+std::string payload(std::uint64_t job, std::uint32_t tile, const dtraced::scene::TileRect& rect, float salt = 0) {
   return protocol::encode_tile_payload({job, tile, rect, fake_pixels(job, tile, rect, salt), {}});
 }
 
@@ -213,7 +213,7 @@ StoredState stored_state(const coll::CollectorConfig& config) {
 dtraced::image::ImageRGBf expected_image(std::uint64_t job, std::uint32_t w, std::uint32_t h, std::uint32_t ts,
                                          const std::set<std::uint32_t>& tiles) {
   dtraced::image::ImageRGBf img(w, h);
-  const auto rects = dtraced::render::split_into_tiles(w, h, ts);
+  const auto rects = dtraced::scene::TileGrid(w, h, ts).all();
   for (std::uint32_t t : tiles) coll::copy_tile(img, rects[t], fake_pixels(job, t, rects[t]));
   return img;
 }
@@ -310,22 +310,6 @@ TEST_CASE("the token check accepts exactly the bearer token", "[collector][route
   CHECK_FALSE(check.accepts(with(fmt::format("Bearer {}", kToken.substr(1)))));
 }
 
-TEST_CASE("tile_rect agrees with split_into_tiles", "[collector][jobs]") {
-  for (const auto& [w, h, ts] : {std::tuple{32u, 24u, 8u},
-                                 {33u, 25u, 8u},
-                                 {1u, 1u, 8u},
-                                 {640u, 480u, 32u},
-                                 {100u, 7u, 64u},
-                                 {1000u, 999u, 1024u}}) {
-    dtraced::scene::RenderSettings s;
-    s.width = w;
-    s.height = h;
-    const auto rects = dtraced::render::split_into_tiles(w, h, ts);
-    REQUIRE(coll::tile_count(s, ts) == rects.size());
-    for (std::uint32_t i = 0; i < rects.size(); ++i) CHECK(coll::tile_rect(s, ts, i) == rects[i]);
-  }
-}
-
 TEST_CASE("collector configuration is validated", "[collector][config]") {
   TempDir dir;
   coll::CollectorConfig c = make_config(dir);
@@ -383,7 +367,7 @@ TEST_CASE("submit, lease every tile, store them, and the image is written", "[co
   std::vector<protocol::Lease> leases = h.lease_all();
   REQUIRE(leases.size() == kTiles);
   std::set<std::uint32_t> seen;
-  const auto rects = dtraced::render::split_into_tiles(32, 24, 8);
+  const auto rects = dtraced::scene::TileGrid(32, 24, 8).all();
   for (const auto& l : leases) {
     CHECK(l.job == job);
     CHECK(l.digest == s.digest);
@@ -560,12 +544,12 @@ TEST_CASE("malformed tiles are refused with 400 and change nothing", "[collector
     refused(bad, "", "payload", l.tile);
   }
   SECTION("not the job's rectangle") {
-    dtraced::render::TileRect r = l.rect;
+    dtraced::scene::TileRect r = l.rect;
     r.x0 = r.x0 == 0 ? 8 : 0;
     refused(payload(job, l.tile, r), "/rect", "rectangle", l.tile);
   }
   SECTION("smaller rectangle at the right place") {
-    dtraced::render::TileRect r = l.rect;
+    dtraced::scene::TileRect r = l.rect;
     r.width = 4;
     refused(payload(job, l.tile, r), "/rect", "rectangle", l.tile);
   }
@@ -596,7 +580,7 @@ TEST_CASE("unknown jobs: 410 for tiles, 404 for status, image and cancel", "[col
   TempDir dir;
   Harness h(dir);
   REQUIRE_FALSE(h.collector.open());
-  const dtraced::render::TileRect rect{0, 0, 8, 8};
+  const dtraced::scene::TileRect rect{0, 0, 8, 8};
   const Response gone = h.put(42, 0, payload(42, 0, rect));
   CHECK(gone.result() == Status::gone);
   CHECK(protocol::decode_submit_result(gone.body()).value() == protocol::SubmitResult::kJobGone);
@@ -762,7 +746,7 @@ TEST_CASE("a restart resumes the job with its stored tiles, which are never leas
   CHECK(leases.size() == kTiles - 5);
   for (const auto& l : leases) CHECK_FALSE(first.contains(l.tile));
   // A worker whose acknowledgement was lost retries a stored tile: already done, counted.
-  const auto rects = dtraced::render::split_into_tiles(32, 24, 8);
+  const auto rects = dtraced::scene::TileGrid(32, 24, 8).all();
   const std::uint32_t restored = *first.begin();
   CHECK(h.put(job, restored, payload(job, restored, rects[restored])).result() == Status::ok);
   for (const auto& l : leases) REQUIRE(h.put_ok(l) == protocol::SubmitResult::kStored);
@@ -1054,7 +1038,7 @@ namespace {
 
 // Counts a worker of an adaptive job (samples 16, min_samples 4) could send: checkpoints 4 and 8,
 // or all 16.
-std::vector<std::uint32_t> fake_counts(std::uint32_t tile, const dtraced::render::TileRect& rect) {
+std::vector<std::uint32_t> fake_counts(std::uint32_t tile, const dtraced::scene::TileRect& rect) {
   std::vector<std::uint32_t> spp(std::size_t{rect.width} * rect.height);
   for (std::size_t i = 0; i < spp.size(); ++i) spp[i] = std::uint32_t{4} << ((tile + i) % 3);
   return spp;
@@ -1092,7 +1076,7 @@ TEST_CASE("sample counts are checked against the job's settings", "[collector][j
   dtraced::scene::RenderSettings s;
   s.samples = 100;
   s.min_samples = 8;
-  const dtraced::render::TileRect rect{10, 20, 2, 1};
+  const dtraced::scene::TileRect rect{10, 20, 2, 1};
   const std::vector<std::uint32_t> good = {8, 100};
   CHECK(coll::check_sample_counts(s, rect, {}) == std::nullopt);
   CHECK(coll::check_sample_counts(s, rect, good).value_or("").find("uniformly") != std::string::npos);

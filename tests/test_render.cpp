@@ -207,17 +207,6 @@ TEST_CASE("A mirror reflects a known colour exactly", "[render][closed-form]") {
     for (std::uint32_t x = 0; x < 8; ++x) REQUIRE(pixel(tile, x, y) == want);
 }
 
-TEST_CASE("Tiles cover every pixel exactly once", "[render][tiles]") {
-  for (std::uint32_t ts : {1u, 7u, 16u, 64u, 1000u}) {
-    const auto tiles = render::split_into_tiles(37, 23, ts);
-    std::vector<int> hits(37 * 23, 0);
-    for (const auto& t : tiles)
-      for (std::uint32_t y = t.y0; y < t.y0 + t.height; ++y)
-        for (std::uint32_t x = t.x0; x < t.x0 + t.width; ++x) ++hits[y * 37 + x];
-    for (int h : hits) REQUIRE(h == 1);
-  }
-}
-
 TEST_CASE("Images are bitwise identical for any tile size and thread count", "[render][determinism]") {
   for (const char* name : {"showcase.json", "snowman.json", "room.json"}) {
     INFO(name);

@@ -163,7 +163,7 @@ class FakeCollector {
       : desc_(std::move(desc)),
         canonical_(dtraced::scene::canonical_json(desc_)),
         digest_(dtraced::scene::scene_digest(desc_)),
-        rects_(dtraced::render::split_into_tiles(desc_.render.width, desc_.render.height, kTileSize)) {
+        rects_(dtraced::scene::TileGrid(desc_.render.width, desc_.render.height, kTileSize).all()) {
     REQUIRE(rects_.size() == 4);
     counts_.submit_requests.assign(rects_.size(), 0);
     counts_.stored.assign(rects_.size(), 0);
@@ -221,7 +221,7 @@ class FakeCollector {
     return spp_;
   }
 
-  const std::vector<dtraced::render::TileRect>& rects() const { return rects_; }
+  const std::vector<dtraced::scene::TileRect>& rects() const { return rects_; }
   const dtraced::scene::SceneDesc& desc() const { return desc_; }
 
  private:
@@ -352,7 +352,7 @@ class FakeCollector {
   const dtraced::scene::SceneDesc desc_;
   const std::string canonical_;
   const std::string digest_;
-  const std::vector<dtraced::render::TileRect> rects_;
+  const std::vector<dtraced::scene::TileRect> rects_;
 
   mutable std::mutex mu_;
   FakeRules rules_;
@@ -598,7 +598,7 @@ TEST_CASE("prepare_scene builds a scene whose body matches its digest and refuse
         dtraced::worker::prepare_scene(canonical, digest, dtraced::accel::best_isa());
     REQUIRE(prepared.scene != nullptr);
     CHECK(prepared.error.empty());
-    const dtraced::render::TileRect rect{16, 0, 16, 16};
+    const dtraced::scene::TileRect rect{16, 0, 16, 16};
     CHECK(same_bits(dtraced::render::render_tile(*prepared.scene, desc.render, rect).rgb,
                     dtraced::render::render_tile(*build(desc), desc.render, rect).rgb));
   }

@@ -16,21 +16,6 @@ static_assert(std::endian::native == std::endian::little,
 
 std::string default_output_name(JobId id) { return fmt::format("job-{}.png", id); }
 
-std::uint64_t tile_count(const scene::RenderSettings& settings, std::uint32_t tile_size) {
-  assert(tile_size > 0);
-  const std::uint64_t columns = (std::uint64_t{settings.width} + tile_size - 1) / tile_size;
-  const std::uint64_t rows = (std::uint64_t{settings.height} + tile_size - 1) / tile_size;
-  return columns * rows;
-}
-
-render::TileRect tile_rect(const scene::RenderSettings& settings, std::uint32_t tile_size, TileIndex index) {
-  assert(index < tile_count(settings, tile_size));
-  const std::uint32_t columns = static_cast<std::uint32_t>((std::uint64_t{settings.width} + tile_size - 1) / tile_size);
-  const std::uint32_t x0 = (index % columns) * tile_size;
-  const std::uint32_t y0 = (index / columns) * tile_size;
-  return {x0, y0, std::min(tile_size, settings.width - x0), std::min(tile_size, settings.height - y0)};
-}
-
 store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp) {
   assert(spp.empty() || spp.size() * 3 == rgb.size());
   store::Blob blob(rgb.size_bytes() + spp.size_bytes());
@@ -53,7 +38,7 @@ std::optional<TileBlob> blob_to_tile(const store::Blob& blob, std::size_t pixels
   return t;
 }
 
-std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const render::TileRect& rect,
+std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const scene::TileRect& rect,
                                                std::span<const std::uint32_t> spp) {
   const bool adaptive = settings.error_target > 0;
   if (!adaptive) {
@@ -64,12 +49,7 @@ std::optional<std::string> check_sample_counts(const scene::RenderSettings& sett
   assert(spp.size() == std::size_t{rect.width} * rect.height);
   for (std::size_t i = 0; i < spp.size(); ++i) {
     const std::uint32_t n = spp[i];
-    bool ok = n == settings.samples;
-    if (!ok && n >= settings.min_samples && n < settings.samples && n % settings.min_samples == 0) {
-      const std::uint32_t k = n / settings.min_samples;
-      ok = (k & (k - 1)) == 0;
-    }
-    if (!ok) {
+    if (!scene::is_valid_sample_count(settings, n)) {
       return fmt::format("pixel ({}, {}) took {} samples; a pixel takes {} or stops at a checkpoint {} * 2^k below it",
                          rect.x0 + i % rect.width, rect.y0 + i / rect.width, n, settings.samples, settings.min_samples);
     }
@@ -81,7 +61,7 @@ void count_samples(JobRecord& job, std::span<const std::uint32_t> spp) {
   if (job.settings.error_target > 0) job.spp.add(spp);
 }
 
-void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb) {
+void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb) {
   assert(rect.x0 + rect.width <= image.width && rect.y0 + rect.height <= image.height);
   assert(rgb.size() == std::size_t{rect.width} * rect.height * 3);
   const std::size_t row_floats = std::size_t{rect.width} * 3;
@@ -90,7 +70,7 @@ void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<
   }
 }
 
-bool tile_matches(const image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb) {
+bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb) {
   assert(rect.x0 + rect.width <= image.width && rect.y0 + rect.height <= image.height);
   if (rgb.size() != std::size_t{rect.width} * rect.height * 3) return false;
   const std::size_t row_floats = std::size_t{rect.width} * 3;

@@ -23,8 +23,8 @@
 #include "collector/queue.h"
 #include "image/image.h"
 #include "protocol/messages.h"
-#include "render/tile.h"
 #include "scene/description.h"
+#include "scene/tiling.h"
 #include "store/store.h"
 
 namespace dtraced::collector {
@@ -86,12 +86,6 @@ struct JobRecord {
 // "job-<id>.png".
 std::string default_output_name(JobId id);
 
-// The number of tiles of the settings' image, and tile `index`'s rectangle, exactly as
-// render::split_into_tiles(width, height, tile_size) lists them (row-major), without the list.
-// tile_size > 0; index < tile_count.
-std::uint64_t tile_count(const scene::RenderSettings& settings, std::uint32_t tile_size);
-render::TileRect tile_rect(const scene::RenderSettings& settings, std::uint32_t tile_size, TileIndex index);
-
 // Tile pixels as the store keeps them (tiles.pixels): the float32 values' bytes in host order
 // (the collector only runs on little-endian hosts, asserted at compile time, so this is the
 // wire's order too), then, for an adaptive job, each pixel's u32 sample count. The blob's size
@@ -107,18 +101,18 @@ struct TileBlob {
 std::optional<TileBlob> blob_to_tile(const store::Blob& blob, std::size_t pixels);
 
 // Whether a submitted tile's sample counts fit the job: present exactly when it is adaptive
-// (settings.error_target > 0), one per pixel, each settings.samples or a checkpoint below it
-// (min_samples * 2^k). nullopt when they do, else the problem, naming the first bad pixel.
-std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const render::TileRect& rect,
+// (settings.error_target > 0), one per pixel, each scene::is_valid_sample_count. nullopt when they
+// do, else the problem, naming the first bad pixel.
+std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const scene::TileRect& rect,
                                                std::span<const std::uint32_t> spp);
 
 // Adds a stored tile's counts to the job's running mean (a uniform job needs none: a no-op).
 void count_samples(JobRecord& job, std::span<const std::uint32_t> spp);
 
 // Copies a tile's rgb (rect.width * rect.height * 3 floats) into `image` at `rect`.
-void copy_tile(image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb);
+void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
 // Whether `image` holds exactly these bits at `rect`.
-bool tile_matches(const image::ImageRGBf& image, const render::TileRect& rect, std::span<const float> rgb);
+bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
 
 // The job's framebuffer, allocated (black) if missing and cloned if a reader shares it. Call on
 // the event loop only.

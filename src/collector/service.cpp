@@ -302,7 +302,7 @@ std::variant<JobRecord, std::string> record_from_row(const store::StoredJob& row
   if (row.tile_size < protocol::kMinTileSize || row.tile_size > protocol::kMaxTileSize) {
     return fmt::format("job {}: tile size {} is out of range", row.id, row.tile_size);
   }
-  const std::uint64_t tiles = tile_count(settings.value(), row.tile_size);
+  const std::uint64_t tiles = scene::TileGrid(settings.value(), row.tile_size).count();
   if (tiles == 0 || tiles > protocol::kMaxTilesPerJob) {
     return fmt::format("job {}: {} tiles, outside [1, {}]", row.id, tiles, protocol::kMaxTilesPerJob);
   }
@@ -571,7 +571,7 @@ Collector::Impl::SampleCounts Collector::Impl::read_sample_counts(JobId id, scen
       stored = std::move(tile.value());
     }
     if (!stored) continue;
-    const render::TileRect rect = tile_rect(settings, tile_size, index);
+    const scene::TileRect rect = scene::TileGrid(settings, tile_size).rect(index);
     auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
     if (!parsed) {
       c.tally.known = false;  // the image itself is checked when it is served
@@ -617,7 +617,7 @@ std::optional<std::string> Collector::Impl::restore_active(store::Store& s, cons
       return fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
                          rec.tiles_total);
     }
-    const render::TileRect rect = tile_rect(rec.settings, rec.tile_size, t.tile);
+    const scene::TileRect rect = scene::TileGrid(rec.settings, rec.tile_size).rect(t.tile);
     const std::size_t pixels = std::size_t{rect.width} * rect.height;
     auto stored_tile = blob_to_tile(t.pixels, pixels);
     if (!stored_tile) {
@@ -1005,7 +1005,7 @@ http::Response Collector::Impl::lease(std::string_view body) {
   lease.job = job->id;
   lease.digest = job->digest;
   lease.tile = tile;
-  lease.rect = tile_rect(job->settings, job->tile_size, tile);
+  lease.rect = scene::TileGrid(job->settings, job->tile_size).rect(tile);
   lease.settings = job->settings;
   return json_text(http::Status::ok, protocol::encode(protocol::LeaseReply{std::move(lease)}));
 }
@@ -1063,7 +1063,7 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
         http::Status::bad_request,
         fmt::format("job {} has {} tiles; there is no tile {}", job->id, job->tiles_total, p.tile), "/tile");
   }
-  const render::TileRect expected = tile_rect(job->settings, job->tile_size, p.tile);
+  const scene::TileRect expected = scene::TileGrid(job->settings, job->tile_size).rect(p.tile);
   if (p.rect != expected) {
     ++counters_.tiles_refused;
     co_return http::make_error(
@@ -1312,10 +1312,10 @@ Collector::Impl::Encoded Collector::Impl::encode_from_store(JobId id, scene::Ren
       e.error = tiles.error();
       return e;
     }
-    const std::uint64_t count = tile_count(settings, tile_size);
+    const std::uint64_t count = scene::TileGrid(settings, tile_size).count();
     for (const store::StoredTile& t : tiles.value()) {
       if (t.tile >= count) continue;
-      const render::TileRect rect = tile_rect(settings, tile_size, t.tile);
+      const scene::TileRect rect = scene::TileGrid(settings, tile_size).rect(t.tile);
       auto stored_tile = blob_to_tile(t.pixels, std::size_t{rect.width} * rect.height);
       if (!stored_tile) {
         e.error = fmt::format("stored tile {} has the wrong size", t.tile);

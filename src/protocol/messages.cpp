@@ -500,8 +500,7 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
   if (r.failed()) return r.take_errors();
 
   const scene::RenderSettings s = effective_settings(m);
-  const std::uint64_t tiles =
-      std::uint64_t{(s.width + m.tile_size - 1) / m.tile_size} * ((s.height + m.tile_size - 1) / m.tile_size);
+  const std::uint64_t tiles = scene::TileGrid(s, m.tile_size).count();
   if (tiles > kMaxTilesPerJob) {
     r.error("/tile_size", fmt::format("a {}x{} image in tiles of {} is {} tiles, more than the limit of {}", s.width,
                                       s.height, m.tile_size, tiles, kMaxTilesPerJob));

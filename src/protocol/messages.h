@@ -25,9 +25,9 @@
 #include <variant>
 #include <vector>
 
-#include "render/tile.h"
 #include "scene/description.h"
 #include "scene/load.h"
+#include "scene/tiling.h"
 
 namespace dtraced::protocol {
 
@@ -200,12 +200,12 @@ struct LeaseRequest {
 std::string encode(const LeaseRequest& m);
 Decoded<LeaseRequest> decode_lease_request(std::string_view body);
 
-// One tile to render: render::render_tile(scene(digest), settings, rect).
+// One tile to render: the pixels of `rect` of scene(digest) under `settings`.
 struct Lease {
   std::uint64_t job = 0;   // [1, kMaxId]
   std::string digest;      // is_digest
   std::uint32_t tile = 0;  // < kMaxTilesPerJob
-  render::TileRect rect;   // 1..kMaxTileSize on each side, inside the settings' image
+  scene::TileRect rect;    // 1..kMaxTileSize on each side, inside the settings' image
   scene::RenderSettings settings;
   bool operator==(const Lease&) const = default;
 };

@@ -12,8 +12,8 @@
 //   28      4            u32 width    [1, kMaxTileSide]
 //   32      4            u32 height   [1, kMaxTileSide]
 //   36      4            u32 flags: bit 0 set = per-pixel sample counts follow; other bits 0
-//   40      w * h * 12   float32 linear RGB, row-major, top row first (render::Tile::rgb)
-//   (flag)  w * h * 4    u32 samples each pixel took, row-major (render::Tile::spp); present
+//   40      w * h * 12   float32 linear RGB, row-major, top row first (the renderer's output)
+//   (flag)  w * h * 4    u32 samples each pixel took, row-major (adaptive renders); present
 //                        exactly when flags bit 0 is set (adaptive sampling)
 //   end-32  32           SHA-256 of every byte before it
 //
@@ -34,7 +34,7 @@
 #include <variant>
 #include <vector>
 
-#include "render/tile.h"
+#include "scene/tiling.h"
 
 namespace dtraced::protocol {
 
@@ -51,7 +51,7 @@ inline constexpr std::size_t kMaxTilePayloadBytes =
 struct TilePayload {
   std::uint64_t job = 0;
   std::uint32_t tile = 0;
-  render::TileRect rect;
+  scene::TileRect rect;
   std::vector<float> rgb;  // rect.width * rect.height * 3 floats
   // Empty (flags 0), or rect.width * rect.height counts (flags bit 0). The format carries any u32;
   // whether the counts fit the job is the collector's check.

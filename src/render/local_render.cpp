@@ -13,8 +13,7 @@ namespace dtraced::render {
 LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& settings, const LocalOptions& options) {
   LocalResult result;
   result.image = image::ImageRGBf(settings.width, settings.height);
-  const std::vector<TileRect> tiles =
-      split_into_tiles(settings.width, settings.height, std::max(1u, options.tile_size));
+  const std::vector<TileRect> tiles = scene::TileGrid(settings, std::max(1u, options.tile_size)).all();
   std::uint32_t threads = options.threads ? options.threads : std::max(1u, std::thread::hardware_concurrency());
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;

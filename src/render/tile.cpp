@@ -62,13 +62,6 @@ double sample_variance(const PixelSums& p, int c, std::uint32_t n) {
   return std::max(0.0, (p.squares[c] - p.sum[c] * mean) / double(n - 1));
 }
 
-// Where a pixel may stop: n = min_samples * 2^k below settings.samples.
-bool is_checkpoint(const scene::RenderSettings& settings, std::uint32_t n) {
-  if (n < settings.min_samples || n >= settings.samples || n % settings.min_samples != 0) return false;
-  const std::uint32_t k = n / settings.min_samples;
-  return (k & (k - 1)) == 0;
-}
-
 // Whether a pixel's estimated relative standard error after n samples is within the target:
 // sqrt(max_c (s_c^2 / n) / (mean_c^2 + 0.01)) <= error_target. The 0.01 is relMSE's epsilon, so
 // dark pixels are judged by absolute rather than relative error. Needs n >= 2 to estimate.
@@ -94,7 +87,7 @@ struct TileContext {
   // first_checkpoint); otherwise settings.samples, and there is one phase only.
   std::uint32_t first = 0;
   // Whether a pixel may stop at checkpoint n from its own samples (the checkpoints after the first).
-  bool own_checkpoint(std::uint32_t n) const { return adaptive && n > first && is_checkpoint(settings, n); }
+  bool own_checkpoint(std::uint32_t n) const { return adaptive && n > first && scene::is_checkpoint(settings, n); }
 };
 
 // The state of every pixel of a tile between the two phases, row-major. Kept only when there are
@@ -288,7 +281,8 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   const bool adaptive = settings.error_target > 0;
   TileContext ctx{scene, settings, TraceLimits{Vec3f(settings.background), settings.max_depth, options.specialise},
                   adaptive, options.want_variance};
-  ctx.first = adaptive && is_checkpoint(settings, settings.min_samples) ? settings.min_samples : settings.samples;
+  ctx.first =
+      adaptive && scene::is_checkpoint(settings, settings.min_samples) ? settings.min_samples : settings.samples;
   if (ctx.adaptive) tile.spp.assign(pixels, 0);
   if (ctx.want_variance) tile.variance.assign(pixels * 3, 0.0f);
   TileSums st;
@@ -304,17 +298,6 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   render_phase(ctx, options.packets, st, settings.samples, tile);
   for (std::size_t i = 0; i < pixels; ++i) store(ctx, st.sums[i], st.taken[i], i, tile);
   return tile;
-}
-
-std::vector<TileRect> split_into_tiles(std::uint32_t width, std::uint32_t height, std::uint32_t tile_size) {
-  assert(tile_size > 0);
-  std::vector<TileRect> tiles;
-  for (std::uint32_t y = 0; y < height; y += tile_size) {
-    for (std::uint32_t x = 0; x < width; x += tile_size) {
-      tiles.push_back({x, y, std::min(tile_size, width - x), std::min(tile_size, height - y)});
-    }
-  }
-  return tiles;
 }
 
 }  // namespace dtraced::render

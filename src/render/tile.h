@@ -27,14 +27,11 @@
 #include "render/integrator.h"
 #include "render/render_scene.h"
 #include "scene/description.h"
+#include "scene/tiling.h"
 
 namespace dtraced::render {
 
-struct TileRect {
-  std::uint32_t x0 = 0, y0 = 0;
-  std::uint32_t width = 0, height = 0;
-  bool operator==(const TileRect&) const = default;
-};
+using scene::TileRect;
 
 struct Tile {
   TileRect rect;
@@ -62,9 +59,5 @@ struct TileOptions {
 // Renders the pixels of `rect`, which must lie inside the settings' image.
 Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings, const TileRect& rect,
                  const TileOptions& options = {});
-
-// The tiles of a width x height image in row-major order, each tile_size square except at the
-// right and bottom edges.
-std::vector<TileRect> split_into_tiles(std::uint32_t width, std::uint32_t height, std::uint32_t tile_size);
 
 }  // namespace dtraced::render
