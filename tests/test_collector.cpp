@@ -258,6 +258,7 @@ TEST_CASE("routes map method and target to an endpoint", "[collector][routes]") 
   CHECK(kind(Verb::get, "/v1/jobs/7") == Route{RouteKind::kJobStatus, 7, 0, "", dtraced::image::ImageFormat::kPng});
   CHECK(kind(Verb::get, "/v1/jobs/7/image").image_format == dtraced::image::ImageFormat::kPng);
   CHECK(kind(Verb::get, "/v1/jobs/7/image?format=pfm").image_format == dtraced::image::ImageFormat::kPfm);
+  CHECK(kind(Verb::get, "/v1/jobs/7/image?format=ppm").image_format == dtraced::image::ImageFormat::kPpm);
   CHECK(kind(Verb::post, "/v1/jobs/9007199254740991/cancel").job == 9007199254740991ull);
   const Route tile = kind(Verb::put, "/v1/jobs/3/tiles/0");
   CHECK((tile.kind == RouteKind::kPutTile && tile.job == 3 && tile.tile == 0));

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include <catch2/catch.hpp>
+#include <fmt/format.h>
 
 #include "image/image.h"
 #include "image/image_io.h"
@@ -371,12 +372,12 @@ TEST_CASE("Unknown extensions are errors naming the path and the choices", "[ima
   std::string error;
   CHECK_FALSE(dtraced::image::write_image(path, ImageRGBf(2, 2), {}, error));
   CHECK(contains(error, path));
-  CHECK(contains(error, ".png, .ppm, .pfm"));
+  CHECK(contains(error, ".png, .ppm or .pfm"));
   CHECK_FALSE(fs::exists(path));
   error.clear();
   CHECK_FALSE(dtraced::image::read_image(path, error));
   CHECK(contains(error, path));
-  CHECK(contains(error, ".png, .ppm, .pfm"));
+  CHECK(contains(error, ".png, .ppm or .pfm"));
 }
 
 TEST_CASE("Malformed files give errors naming the file and the problem", "[image][errors]") {
@@ -544,4 +545,27 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
     CHECK(contains(error, "2x3"));
     CHECK(contains(error, "3x2"));
   }
+}
+
+TEST_CASE("One table names every image format", "[image][formats]") {
+  using dtraced::image::ImageFormat;
+  std::size_t n = 0;
+  for (const auto& f : dtraced::image::image_formats()) {
+    ++n;
+    INFO(f.name);
+    CHECK(&dtraced::image::format_info(f.format) == &f);
+    CHECK(dtraced::image::format_from_name(f.name) == f.format);
+    CHECK(dtraced::image::format_from_path(fmt::format("dir/x{}", f.extension)) == f.format);
+    CHECK(f.extension.substr(1) == f.name);
+    CHECK(f.extension.front() == '.');
+    CHECK_FALSE(f.content_type.empty());
+  }
+  CHECK(n == 3);
+  CHECK(dtraced::image::format_info(ImageFormat::kPfm).content_type == "image/x-portable-floatmap");
+  CHECK(dtraced::image::format_info(ImageFormat::kPng).content_type == "image/png");
+  CHECK_FALSE(dtraced::image::format_from_name("PNG"));
+  CHECK_FALSE(dtraced::image::format_from_name("jpg"));
+  CHECK_FALSE(dtraced::image::format_from_name(""));
+  CHECK(dtraced::image::extension_list() == ".png, .ppm or .pfm");
+  CHECK(dtraced::image::name_list() == "png, ppm or pfm");
 }

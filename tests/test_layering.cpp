@@ -31,7 +31,7 @@ const std::map<std::string, std::set<std::string>>& allowed() {
       {"math", {"util"}},
       {"jsonio", {"util"}},
       {"image", {"math", "util"}},
-      {"scene", {"jsonio", "math", "util"}},
+      {"scene", {"jsonio", "image", "math", "util"}},  // image: kMaxImageSide, the one image bound
       {"accel", {"math", "util"}},
       {"render", {"scene", "accel", "image", "math", "util"}},
       {"protocol", {"scene", "jsonio", "image", "math", "util"}},

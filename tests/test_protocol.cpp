@@ -124,7 +124,7 @@ TEST_CASE("a minimal submission takes the defaults", "[protocol][json]") {
   CHECK(d.value().scene == test_scene());
   CHECK(d.value().output.empty());
   CHECK(d.value().priority == 0);
-  CHECK(d.value().tile_size == protocol::kDefaultTileSize);
+  CHECK(d.value().tile_size == dtraced::scene::kDefaultTileSize);
   CHECK_FALSE(d.value().width.has_value());
   CHECK(protocol::effective_settings(d.value()) == test_scene().render);
   // Written without the optional keys it did not have, and read back the same.
@@ -285,7 +285,7 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
        "[-1000, 1000] (got 1001)"},
       {"priority beyond int64", submit, submit_body(kSceneJson, R"("priority": 18446744073709551615)"), "/priority",
        "[-1000, 1000]"},
-      {"tile size too small", submit, submit_body(kSceneJson, R"("tile_size": 4)"), "/tile_size", "[8, 1024] (got 4)"},
+      {"tile size too small", submit, submit_body(kSceneJson, R"("tile_size": 0)"), "/tile_size", "[1, 1024] (got 0)"},
       {"tile size fractional", submit, submit_body(kSceneJson, R"("tile_size": 32.5)"), "/tile_size",
        "must be an integer (got 32.5)"},
       {"width overflows a double", submit, submit_body(kSceneJson, R"("width": 1e999)"), "/width",
@@ -493,7 +493,8 @@ TEST_CASE("a tile payload round trips bit for bit, special floats included", "[p
   CHECK(std::memcmp(back.rgb.data(), p.rgb.data(), p.rgb.size() * sizeof(float)) == 0);
 
   // The largest tile is within the upload limit (which leaves room for sample counts).
-  CHECK(protocol::tile_payload_size(protocol::kMaxTileSide, protocol::kMaxTileSide) < protocol::kMaxTilePayloadBytes);
+  CHECK(protocol::tile_payload_size(dtraced::scene::kMaxTileSize, dtraced::scene::kMaxTileSize) <
+        protocol::kMaxTilePayloadBytes);
 }
 
 TEST_CASE("each kind of payload corruption is detected and named", "[protocol][tile]") {
@@ -584,7 +585,7 @@ TEST_CASE("a tile payload carries per-pixel sample counts behind flag bit 0", "[
   CHECK(std::get<protocol::TilePayload>(back).spp.empty());
 
   // The largest payload with counts is the upload limit.
-  CHECK(protocol::tile_payload_size(protocol::kMaxTileSide, protocol::kMaxTileSide, true) ==
+  CHECK(protocol::tile_payload_size(dtraced::scene::kMaxTileSize, dtraced::scene::kMaxTileSize, true) ==
         protocol::kMaxTilePayloadBytes);
 }
 

@@ -233,25 +233,16 @@ int run_status(const ClientArgs& client, const StatusArgs& args) {
 int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output) {
   const auto format = image::format_from_path(output);
   if (!format) {
-    fmt::print(stderr, "{}: unsupported output format (use .png, .ppm or .pfm)\n", output);
+    fmt::print(stderr, "{}: unsupported output format (use {})\n", output, image::extension_list());
     return kExitFailed;
   }
-  // The collector serves PNG and PFM; a PPM is converted here from the exact PFM.
-  const bool png = *format == image::ImageFormat::kPng;
   Session session;
   if (!session.init(client)) return kExitFailed;
-  auto resp = session.call(http::Verb::get, fmt::format("/v1/jobs/{}/image?format={}", id, png ? "png" : "pfm"), {},
-                           kMaxImageResponse);
+  auto resp =
+      session.call(http::Verb::get, fmt::format("/v1/jobs/{}/image?format={}", id, image::format_info(*format).name),
+                   {}, kMaxImageResponse);
   if (!resp) return kExitFailed;
   std::string error;
-  if (*format == image::ImageFormat::kPpm) {
-    auto img = image::decode_image(image::ImageFormat::kPfm, resp->body(), "collector image", error);
-    if (!img || !image::write_image(output, *img, {}, error)) {
-      fmt::print(stderr, "{}\n", error);
-      return kExitFailed;
-    }
-    return kExitOk;
-  }
   if (!util::write_file_atomic(output, resp->body(), error)) {
     fmt::print(stderr, "{}\n", error);
     return kExitFailed;

@@ -85,11 +85,11 @@ int run_render(const RenderArgs& args) {
   if (args.error_target) s.error_target = *args.error_target;
   if (args.min_samples) s.min_samples = *args.min_samples;
   if (!image::format_from_path(args.output)) {
-    fmt::print(stderr, "{}: unsupported output format (use .png, .ppm or .pfm)\n", args.output);
+    fmt::print(stderr, "{}: unsupported output format (use {})\n", args.output, image::extension_list());
     return kExitFailed;
   }
   if (!args.spp_map.empty() && !image::format_from_path(args.spp_map)) {
-    fmt::print(stderr, "{}: unsupported --spp-map format (use .pfm, .png or .ppm)\n", args.spp_map);
+    fmt::print(stderr, "{}: unsupported --spp-map format (use {})\n", args.spp_map, image::extension_list());
     return kExitFailed;
   }
 

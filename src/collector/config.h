@@ -39,7 +39,7 @@ struct OneShotJob {
   std::optional<std::uint32_t> width, height, samples;  // overrides of the scene's render block
   std::optional<double> error_target;                   // adaptive sampling, as in a job submission
   std::optional<std::uint32_t> min_samples;
-  std::uint32_t tile_size = protocol::kDefaultTileSize;
+  std::uint32_t tile_size = scene::kDefaultTileSize;
   std::int32_t priority = 0;
 };
 

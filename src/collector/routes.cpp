@@ -55,7 +55,7 @@ std::optional<std::vector<std::string_view>> split_path(std::string_view path) {
   return segments;
 }
 
-// Only the image route takes a query: format=png|pfm, once.
+// Only the image route takes a query: format=NAME (image::format_from_name), once.
 std::variant<image::ImageFormat, RouteError> parse_image_query(std::string_view query) {
   image::ImageFormat format = image::ImageFormat::kPng;
   bool seen = false;
@@ -73,13 +73,11 @@ std::variant<image::ImageFormat, RouteError> parse_image_query(std::string_view 
     }
     if (seen) return RouteError{http::Status::bad_request, "format given twice", "/format", ""};
     seen = true;
-    if (value == "png") {
-      format = image::ImageFormat::kPng;
-    } else if (value == "pfm") {
-      format = image::ImageFormat::kPfm;
-    } else {
-      return RouteError{http::Status::bad_request, "format must be png or pfm", "/format", ""};
+    const std::optional<image::ImageFormat> named = image::format_from_name(value);
+    if (!named) {
+      return RouteError{http::Status::bad_request, fmt::format("format must be {}", image::name_list()), "/format", ""};
     }
+    format = *named;
   }
   return format;
 }

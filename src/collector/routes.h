@@ -7,7 +7,7 @@
 //   GET  /healthz                      no token
 //   GET  /metrics
 //   POST /v1/jobs                      GET /v1/jobs
-//   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|pfm]
+//   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|ppm|pfm]
 //   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
 //   POST /v1/lease                     GET /v1/scenes/{digest}
 //
@@ -56,7 +56,7 @@ struct Route {
   JobId job = 0;                                               // kJobStatus, kJobImage, kCancelJob, kPutTile
   TileIndex tile = 0;                                          // kPutTile
   std::string digest;                                          // kScene
-  image::ImageFormat image_format = image::ImageFormat::kPng;  // kJobImage: kPng or kPfm
+  image::ImageFormat image_format = image::ImageFormat::kPng;  // kJobImage
   bool operator==(const Route&) const = default;
 };
 

@@ -61,8 +61,6 @@ constexpr std::size_t kInlinePayloadBytes = 256 << 10;
 constexpr std::chrono::seconds kFinishRetryDelay{5};
 // Retry-After, in seconds, on the 503s of a busy or failing store.
 constexpr std::string_view kBusyRetryAfterSeconds = "1";
-constexpr std::string_view kPngContentType = "image/png";
-constexpr std::string_view kPfmContentType = "image/x-portable-floatmap";
 // The epoch file holds one decimal number.
 constexpr std::uint64_t kMaxEpochFileBytes = 64;
 
@@ -299,7 +297,7 @@ std::variant<JobRecord, std::string> record_from_row(const store::StoredJob& row
   if (!settings) return fmt::format("job {}: stored settings are unreadable: {}", row.id, settings.error().to_string());
   const auto state = protocol::job_state_from_string(row.state);
   if (!state) return fmt::format("job {}: unknown state '{}'", row.id, row.state);
-  if (row.tile_size < protocol::kMinTileSize || row.tile_size > protocol::kMaxTileSize) {
+  if (row.tile_size < scene::kMinTileSize || row.tile_size > scene::kMaxTileSize) {
     return fmt::format("job {}: tile size {} is out of range", row.id, row.tile_size);
   }
   const std::uint64_t tiles = scene::TileGrid(settings.value(), row.tile_size).count();
@@ -938,7 +936,7 @@ net::awaitable<http::Response> Collector::Impl::job_image(JobId id, image::Image
     co_return http::make_error(http::Status::internal_server_error, "cannot produce the image: " + encoded.error);
   }
   co_return http::make_binary_response(http::Status::ok, std::move(*encoded.bytes),
-                                       format == image::ImageFormat::kPfm ? kPfmContentType : kPngContentType);
+                                       image::format_info(format).content_type);
 }
 
 net::awaitable<http::Response> Collector::Impl::cancel_job(JobId id) {

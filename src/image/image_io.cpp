@@ -3,7 +3,9 @@
 #include <png.h>
 
 #include <algorithm>
+#include <array>
 #include <bit>
+#include <cassert>
 #include <charconv>
 #include <cmath>
 #include <csetjmp>
@@ -567,34 +569,58 @@ std::optional<ImageRGBf> decode_png(std::string_view bytes, std::string& problem
   return img;
 }
 
-std::string_view format_name(ImageFormat format) {
-  switch (format) {
-    case ImageFormat::kPng:
-      return "PNG";
-    case ImageFormat::kPpm:
-      return "PPM";
-    case ImageFormat::kPfm:
-      return "PFM";
-  }
-  return "?";
-}
+std::string_view format_name(ImageFormat format) { return format_info(format).label; }
 
-constexpr std::string_view kSupportedExtensions = ".png, .ppm, .pfm";
+constexpr std::array<FormatInfo, 3> kFormats = {{
+    {ImageFormat::kPng, "png", ".png", "image/png", "PNG"},
+    {ImageFormat::kPpm, "ppm", ".ppm", "image/x-portable-pixmap", "PPM"},
+    {ImageFormat::kPfm, "pfm", ".pfm", "image/x-portable-floatmap", "PFM"},
+}};
+
+// "a, b or c" from the formats' `field`.
+std::string list_of(std::string_view FormatInfo::*field) {
+  std::string out;
+  for (std::size_t i = 0; i < kFormats.size(); ++i) {
+    if (i > 0) out += i + 1 == kFormats.size() ? " or " : ", ";
+    out += kFormats[i].*field;
+  }
+  return out;
+}
 
 }  // namespace
 
 float linear_to_srgb(float linear) { return static_cast<float>(srgb_encode(linear)); }
 float srgb_to_linear(float encoded) { return static_cast<float>(srgb_decode(encoded)); }
 
+std::span<const FormatInfo> image_formats() { return kFormats; }
+
+const FormatInfo& format_info(ImageFormat format) {
+  for (const FormatInfo& f : kFormats) {
+    if (f.format == format) return f;
+  }
+  assert(false && "every ImageFormat has a row in kFormats");
+  return kFormats[0];
+}
+
 std::optional<ImageFormat> format_from_path(const std::string& path) {
   std::string ext = std::filesystem::path(path).extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(),
                  [](unsigned char c) { return static_cast<char>(c >= 'A' && c <= 'Z' ? c - 'A' + 'a' : c); });
-  if (ext == ".png") return ImageFormat::kPng;
-  if (ext == ".ppm") return ImageFormat::kPpm;
-  if (ext == ".pfm") return ImageFormat::kPfm;
+  for (const FormatInfo& f : kFormats) {
+    if (ext == f.extension) return f.format;
+  }
   return std::nullopt;
 }
+
+std::optional<ImageFormat> format_from_name(std::string_view name) {
+  for (const FormatInfo& f : kFormats) {
+    if (name == f.name) return f.format;
+  }
+  return std::nullopt;
+}
+
+std::string extension_list() { return list_of(&FormatInfo::extension); }
+std::string name_list() { return list_of(&FormatInfo::name); }
 
 std::optional<std::string> encode_image(ImageFormat format, const ImageRGBf& img, const WriteOptions& opts,
                                         std::string& error) {
@@ -642,7 +668,7 @@ std::optional<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes
 bool write_image(const std::string& path, const ImageRGBf& img, const WriteOptions& opts, std::string& error) {
   const auto format = format_from_path(path);
   if (!format) {
-    error = fmt::format("{}: unknown image format (supported extensions: {})", path, kSupportedExtensions);
+    error = fmt::format("{}: unknown image format (supported extensions: {})", path, extension_list());
     return false;
   }
   std::string encode_error;
@@ -657,7 +683,7 @@ bool write_image(const std::string& path, const ImageRGBf& img, const WriteOptio
 std::optional<ImageRGBf> read_image(const std::string& path, std::string& error) {
   const auto format = format_from_path(path);
   if (!format) {
-    error = fmt::format("{}: unknown image format (supported extensions: {})", path, kSupportedExtensions);
+    error = fmt::format("{}: unknown image format (supported extensions: {})", path, extension_list());
     return std::nullopt;
   }
   const auto bytes = util::read_file_limited(path, kMaxImageFileBytes, error);

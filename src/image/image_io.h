@@ -29,6 +29,7 @@
 
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 
@@ -38,9 +39,28 @@ namespace dtraced::image {
 
 enum class ImageFormat { kPng, kPpm, kPfm };
 
+// Everything the program says about an image format, in one table: every reader, writer,
+// HTTP content type, `?format=` value, file-name check and message takes it from here.
+struct FormatInfo {
+  ImageFormat format;
+  std::string_view name;          // "png": the value of `?format=`, lower case
+  std::string_view extension;     // ".png"
+  std::string_view content_type;  // "image/png"
+  std::string_view label;         // "PNG", for messages
+};
+
+// Every format, in the order messages list them (PNG, PPM, PFM).
+std::span<const FormatInfo> image_formats();
+const FormatInfo& format_info(ImageFormat format);
+
 // The format named by the path's extension (.png, .ppm, .pfm, any letter case); nullopt for
 // anything else, including no extension.
 std::optional<ImageFormat> format_from_path(const std::string& path);
+// The format of a `?format=` value ("png", "ppm", "pfm": exactly, lower case).
+std::optional<ImageFormat> format_from_name(std::string_view name);
+// ".png, .ppm or .pfm" and "png, ppm or pfm", for messages and help texts.
+std::string extension_list();
+std::string name_list();
 
 struct WriteOptions {
   int png_bit_depth = 8;  // 8 or 16; PPM is always 8-bit and PFM always float, whatever this says

@@ -14,6 +14,7 @@
 #include <boost/json/value.hpp>
 #include <fmt/format.h>
 
+#include "image/image_io.h"
 #include "scene/digest.h"
 #include "scene/json_reader.h"
 
@@ -414,10 +415,10 @@ std::optional<std::string> check_output_name(std::string_view name) {
     const auto u = static_cast<unsigned char>(c);
     if (u < 0x20 || u == 0x7f) return "must not contain control characters";
   }
-  for (const std::string_view ext : {".png", ".ppm", ".pfm"}) {
-    if (name.size() > ext.size() && name.ends_with(ext)) return std::nullopt;
+  for (const image::FormatInfo& f : image::image_formats()) {
+    if (name.size() > f.extension.size() && name.ends_with(f.extension)) return std::nullopt;
   }
-  return "must end in .png, .ppm or .pfm";
+  return fmt::format("must end in {}", image::extension_list());
 }
 
 bool is_digest(std::string_view text) {
@@ -488,7 +489,7 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
   }
   read_output(r, f, m.output, Need::kOptional);
   f.integer("priority", m.priority, kMinPriority, kMaxPriority, Need::kOptional);
-  f.integer("tile_size", m.tile_size, kMinTileSize, kMaxTileSize, Need::kOptional);
+  f.integer("tile_size", m.tile_size, scene::kMinTileSize, scene::kMaxTileSize, Need::kOptional);
   f.optional_integer("width", m.width, 1, scene::kMaxImageSide);
   f.optional_integer("height", m.height, 1, scene::kMaxImageSide);
   f.optional_integer("samples", m.samples, 1, scene::kMaxSamples);
@@ -672,8 +673,8 @@ Decoded<LeaseReply> decode_lease_reply(std::string_view text) {
   l.integer("tile", lease.tile, 0, kMaxTilesPerJob - 1);
   l.integer("x", lease.rect.x0, 0, scene::kMaxImageSide - 1);
   l.integer("y", lease.rect.y0, 0, scene::kMaxImageSide - 1);
-  l.integer("width", lease.rect.width, 1, kMaxTileSize);
-  l.integer("height", lease.rect.height, 1, kMaxTileSize);
+  l.integer("width", lease.rect.width, 1, scene::kMaxTileSize);
+  l.integer("height", lease.rect.height, 1, scene::kMaxTileSize);
   if (const json::value* s = l.get("settings", Need::kRequired)) {
     if (auto settings = read_settings(r, *s, "/lease/settings")) lease.settings = *settings;
   }

@@ -50,9 +50,6 @@ inline constexpr std::size_t kMaxDecodeErrors = 100;
 inline constexpr std::uint64_t kMaxId = (1ull << 53) - 1;  // job ids, as JSON numbers
 inline constexpr std::int32_t kMinPriority = -1000;
 inline constexpr std::int32_t kMaxPriority = 1000;
-inline constexpr std::uint32_t kMinTileSize = 8;
-inline constexpr std::uint32_t kMaxTileSize = 1024;
-inline constexpr std::uint32_t kDefaultTileSize = 32;
 // A job's tile count is capped so that the collector's per-job queue state stays small: a
 // 16384 x 16384 image at the default tile size is exactly this many tiles.
 inline constexpr std::uint32_t kMaxTilesPerJob = 1u << 18;
@@ -114,8 +111,8 @@ class Decoded {
 // ---- validation shared with the command line ----------------------------------------------
 
 // nullopt when `name` is acceptable as a job's output: a plain file name (no '/', '\\', "..",
-// control characters, no leading '.'), at most kMaxOutputNameBytes, ending in .png, .ppm or .pfm
-// (lower case). Otherwise the reason, phrased to follow "output name ".
+// control characters, no leading '.'), at most kMaxOutputNameBytes, ending in the extension of
+// one of image::image_formats() (lower case). Otherwise the reason, phrased to follow "output name ".
 std::optional<std::string> check_output_name(std::string_view name);
 
 // True for kDigestHexChars lower-case hex digits.
@@ -129,7 +126,7 @@ struct JobSubmit {
   // then absent on the wire; an explicit "" is an error).
   std::string output;
   std::int32_t priority = 0;
-  std::uint32_t tile_size = kDefaultTileSize;
+  std::uint32_t tile_size = scene::kDefaultTileSize;
   // Overrides of the scene's render block; limits as in scene files.
   std::optional<std::uint32_t> width, height, samples, max_depth, frame;
   std::optional<std::uint64_t> seed;
@@ -205,7 +202,7 @@ struct Lease {
   std::uint64_t job = 0;   // [1, kMaxId]
   std::string digest;      // is_digest
   std::uint32_t tile = 0;  // < kMaxTilesPerJob
-  scene::TileRect rect;    // 1..kMaxTileSize on each side, inside the settings' image
+  scene::TileRect rect;    // 1..scene::kMaxTileSize on each side, inside the settings' image
   scene::RenderSettings settings;
   bool operator==(const Lease&) const = default;
 };

@@ -17,7 +17,6 @@ namespace {
 static_assert(kTileMagic.size() == 8);
 static_assert(kTileHeaderBytes == 8 + 8 + 6 * 4);
 static_assert(kTileChecksumBytes == util::kSha256Bytes);
-static_assert(kMaxTileSide == kMaxTileSize);
 static_assert(sizeof(float) == 4 && std::numeric_limits<float>::is_iec559);
 
 // Byte-by-byte little-endian access: independent of the host's byte order and alignment.
@@ -44,8 +43,8 @@ std::size_t tile_payload_size(std::uint32_t width, std::uint32_t height, bool sa
 }
 
 std::string encode_tile_payload(const TilePayload& p) {
-  assert(p.rect.width >= 1 && p.rect.width <= kMaxTileSide);
-  assert(p.rect.height >= 1 && p.rect.height <= kMaxTileSide);
+  assert(p.rect.width >= 1 && p.rect.width <= scene::kMaxTileSize);
+  assert(p.rect.height >= 1 && p.rect.height <= scene::kMaxTileSize);
   assert(p.rgb.size() == std::size_t{p.rect.width} * p.rect.height * 3);
   assert(p.spp.empty() || p.spp.size() == std::size_t{p.rect.width} * p.rect.height);
   const bool counts = !p.spp.empty();
@@ -96,9 +95,10 @@ std::variant<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_vi
                    fmt::format("flags word is {:#x}; only bit 0 (sample counts) may be set", flags));
   }
   const bool counts = (flags & kTileFlagSampleCounts) != 0;
-  if (p.rect.width < 1 || p.rect.width > kMaxTileSide || p.rect.height < 1 || p.rect.height > kMaxTileSide) {
+  if (p.rect.width < 1 || p.rect.width > scene::kMaxTileSize || p.rect.height < 1 ||
+      p.rect.height > scene::kMaxTileSize) {
     return failure(TilePayloadError::kBadDimensions, fmt::format("tile is {}x{}; each side must be in [1, {}]",
-                                                                 p.rect.width, p.rect.height, kMaxTileSide));
+                                                                 p.rect.width, p.rect.height, scene::kMaxTileSize));
   }
   const std::size_t expected = tile_payload_size(p.rect.width, p.rect.height, counts);
   if (bytes.size() != expected) {

@@ -9,8 +9,8 @@
 //   16      4            u32 tile
 //   20      4            u32 x        (the tile rectangle in image pixels)
 //   24      4            u32 y
-//   28      4            u32 width    [1, kMaxTileSide]
-//   32      4            u32 height   [1, kMaxTileSide]
+//   28      4            u32 width    [1, scene::kMaxTileSize]
+//   32      4            u32 height   [1, scene::kMaxTileSize]
 //   36      4            u32 flags: bit 0 set = per-pixel sample counts follow; other bits 0
 //   40      w * h * 12   float32 linear RGB, row-major, top row first (the renderer's output)
 //   (flag)  w * h * 4    u32 samples each pixel took, row-major (adaptive renders); present
@@ -41,12 +41,11 @@ namespace dtraced::protocol {
 inline constexpr std::string_view kTileMagic = "DTTILE01";
 inline constexpr std::size_t kTileHeaderBytes = 40;
 inline constexpr std::size_t kTileChecksumBytes = 32;
-inline constexpr std::uint32_t kMaxTileSide = 1024;  // = kMaxTileSize in messages.h
 inline constexpr std::uint32_t kTileFlagSampleCounts = 1u << 0;
 inline constexpr std::uint32_t kTileKnownFlags = kTileFlagSampleCounts;
 // The largest valid payload (the largest tile, with counts): the HTTP body limit for tile uploads.
 inline constexpr std::size_t kMaxTilePayloadBytes =
-    kTileHeaderBytes + std::size_t{kMaxTileSide} * kMaxTileSide * 16 + kTileChecksumBytes;
+    kTileHeaderBytes + std::size_t{scene::kMaxTileSize} * scene::kMaxTileSize * 16 + kTileChecksumBytes;
 
 struct TilePayload {
   std::uint64_t job = 0;
@@ -62,7 +61,7 @@ struct TilePayload {
 // The exact size of a payload carrying a width x height tile, with or without sample counts.
 std::size_t tile_payload_size(std::uint32_t width, std::uint32_t height, bool sample_counts = false);
 
-// Requires 1 <= rect.width, rect.height <= kMaxTileSide, rgb.size() == width * height * 3 and
+// Requires 1 <= rect.width, rect.height <= scene::kMaxTileSize, rgb.size() == width * height * 3 and
 // spp.size() either 0 or width * height (asserted: a caller holding the render output meets it by construction).
 std::string encode_tile_payload(const TilePayload& payload);
 
@@ -71,7 +70,7 @@ enum class TilePayloadError {
   kTruncated,      // shorter than a header plus a checksum
   kBadMagic,       // the first 8 bytes are not "DTTILE01"
   kUnknownFlags,   // the flags word has a bit other than kTileKnownFlags set
-  kBadDimensions,  // width or height is 0 or above kMaxTileSide
+  kBadDimensions,  // width or height is 0 or above scene::kMaxTileSize
   kWrongSize,      // the size is not header + width * height * (12, or 16 with counts) + checksum
   kBadChecksum,    // the trailing SHA-256 does not match
 };

@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "image/image.h"
 #include "math/vec.h"
 
 namespace dtraced::scene {
@@ -157,10 +158,13 @@ struct RenderSettings {
   bool operator==(const RenderSettings&) const = default;
 };
 
-inline constexpr std::uint32_t kMaxImageSide = 16384;
+// The limits of render settings, wherever they come from (a scene file, a flag, a request
+// body, a config file): every reader checks against these, and only these.
+inline constexpr std::uint32_t kMaxImageSide = image::kMaxImageSide;
 inline constexpr std::uint32_t kMaxSamples = 65536;
 inline constexpr std::uint32_t kMaxDepth = 64;
 inline constexpr double kMaxErrorTarget = 1.0;
+inline constexpr std::uint64_t kMaxSeed = (1ull << 53) - 1;  // seeds survive a trip through a JS double
 
 struct SceneDesc {
   std::vector<Object> objects;

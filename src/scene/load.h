@@ -35,7 +35,6 @@ inline constexpr std::uint64_t kMaxSceneBytes = 256ull << 20;  // 256 MiB
 inline constexpr std::size_t kMaxJsonDepth = 64;               // nesting levels
 inline constexpr std::size_t kMaxObjects = 10'000'000;
 inline constexpr std::size_t kMaxLights = 10'000;
-inline constexpr std::uint64_t kMaxSeed = (1ull << 53) - 1;  // seeds survive a trip through a JS double
 inline constexpr std::size_t kMaxReportedErrors = 1000;      // a broken 10M-object file stays readable
 inline constexpr std::uint64_t kMaxObjBytes = 512ull << 20;  // one OBJ file, 512 MiB
 // Triangles of all the meshes of one scene: 20M triangles are about 720 MB of float vertices in

@@ -20,6 +20,12 @@
 
 namespace dtraced::scene {
 
+// Tile sides a user may ask for (a local render, a job, a one-shot collector). The tile count of
+// a farm job is bounded separately (protocol::kMaxTilesPerJob).
+inline constexpr std::uint32_t kMinTileSize = 1;
+inline constexpr std::uint32_t kMaxTileSize = 1024;
+inline constexpr std::uint32_t kDefaultTileSize = 32;
+
 struct TileRect {
   std::uint32_t x0 = 0, y0 = 0;
   std::uint32_t width = 0, height = 0;

@@ -1,0 +1,52 @@
+// dtraced::scene overrides: what a user may set over a scene's `render` block, in one type.
+//
+// Owns: Overrides, the one set of render-setting overrides that every entry point takes (the
+// render verb's flags, a job submission's body, a one-shot collector's flags and config file,
+// bench error), and its one apply. Each field is unset unless the user gave it; apply() changes
+// exactly the settings that are set. The limits every reader checks a field against are those of
+// RenderSettings (description.h) and of tile sizes (tiling.h), so a value valid in one place is
+// valid in all.
+//
+// The CLI flags for these fields come from one helper (cli/overrides_flags.h), the JSON keys from
+// one codec (protocol/messages.h): an override added here is added there once, and works
+// everywhere.
+//
+// Plain values, pure functions: thread-safe.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+
+#include "scene/description.h"
+
+namespace dtraced::scene {
+
+// PNG bit depths a user may ask for. PPM is always 8-bit and PFM always float.
+inline constexpr std::uint32_t kDefaultPngBitDepth = 8;
+inline bool is_png_bit_depth(std::uint32_t bits) { return bits == 8 || bits == 16; }
+
+struct Overrides {
+  // What the image shows: fields of RenderSettings.
+  std::optional<std::uint32_t> width, height;  // [1, kMaxImageSide]
+  std::optional<std::uint32_t> samples;        // [1, kMaxSamples]
+  std::optional<std::uint32_t> max_depth;      // [0, kMaxDepth]
+  std::optional<std::uint64_t> seed;           // [0, kMaxSeed]
+  std::optional<std::uint32_t> frame;          // any u32
+  std::optional<Color> background;             // each channel finite, >= 0, within the float range
+  std::optional<double> error_target;          // [0, kMaxErrorTarget]; 0 turns adaptive sampling off
+  std::optional<std::uint32_t> min_samples;    // [1, kMaxSamples]
+  // How it is cut and written; the pixels are the same bits whatever these say.
+  std::optional<std::uint32_t> tile_size;      // [kMinTileSize, kMaxTileSize]
+  std::optional<std::uint32_t> png_bit_depth;  // is_png_bit_depth
+
+  bool operator==(const Overrides&) const = default;
+};
+
+// `settings` with every set field of `overrides` applied.
+RenderSettings apply(const Overrides& overrides, RenderSettings settings);
+
+// tile_size, or kDefaultTileSize; png_bit_depth, or kDefaultPngBitDepth.
+std::uint32_t tile_size_or_default(const Overrides& overrides);
+std::uint32_t png_bit_depth_or_default(const Overrides& overrides);
+
+}  // namespace dtraced::scene
