@@ -126,8 +126,8 @@ echo tok >"$work/token"
 echo '{"role": "worker", "isa": "sse9"}' >"$work/w1.json"
 check "a bad isa in a worker config" 2 "$DTRACED" --config "$work/w1.json" --collector http://127.0.0.1:1 --token-file "$work/token"
 expect_text "the worker config's isa is checked" "$work/err" "sse9"
-check "one-shot adaptive flags need --scene" 2 "$DTRACED" --role collector --error-target 0.05 --state-dir "$work/s" --token-file "$work/token"
-expect_text "and say so" "$work/err" "--error-target, --min-samples"
+check "one-shot adaptive flags need --scene" 2 "$DTRACED" --role collector --error-target 0.05 --min-samples 4 --state-dir "$work/s" --token-file "$work/token"
+expect_text "and say so" "$work/err" "--error-target, --min-samples are a one-shot job's: they need --scene"
 check "--isa is not a collector option" 2 "$DTRACED" --role collector --isa scalar --state-dir "$work/s" --token-file "$work/token"
 
 # Role configuration: JSON files, flags winning over them, unknown keys and misplaced flags.
@@ -165,6 +165,25 @@ check "submit takes adaptive flags" 2 "$DTRACED" submit "$SCENES/showcase.json" 
 for verb in submit list status fetch cancel; do
   check "$verb --help" 0 "$DTRACED" "$verb" --help
 done
+
+# One override type: every override is a flag of render, submit and the one-shot collector, and
+# bench error takes those that are not its own rows (samples, error target, min samples).
+"$DTRACED" render --help >"$work/help-render" 2>&1
+"$DTRACED" submit --help >"$work/help-submit" 2>&1
+"$DTRACED" --help >"$work/help-top" 2>&1
+"$DTRACED" bench error --help >"$work/help-bench" 2>&1
+for flag in --width --height --samples --max-depth --seed --frame --background --error-target --min-samples --tile-size --bit-depth; do
+  for where in render submit top; do
+    expect_text "$flag is an override flag of $where" "$work/help-$where" "$flag"
+  done
+done
+for flag in --width --height --max-depth --seed --frame --background --tile-size; do
+  expect_text "$flag is an override flag of bench error" "$work/help-bench" "$flag"
+done
+check "one tile-size range: 1 is a tile side" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/t1.pfm" --width 4 --height 3 --tile-size 1 -q
+check "one tile-size range: 2048 is not" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.pfm" --tile-size 2048
+check "submit checks the background" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --background 1,-1,0
+check "submit checks the bit depth" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --bit-depth 12
 
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]

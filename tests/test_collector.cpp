@@ -337,6 +337,43 @@ TEST_CASE("collector configuration is validated", "[collector][config]") {
 
 // ---- the service, through its handler --------------------------------------------------------------
 
+TEST_CASE("a job's PNG bit depth and background overrides reach its image and survive a restart",
+          "[collector][service]") {
+  TempDir dir;
+  // The PNG's bit depth is byte 24 of the file (the IHDR chunk's first data bytes are width and
+  // height, 4 bytes each, after the 8-byte signature and the chunk's length and type).
+  const auto png_bit_depth = [](const std::string& png) { return static_cast<int>(png.at(24)); };
+  std::uint64_t job = 0;
+  {
+    Harness h(dir);
+    REQUIRE_FALSE(h.collector.open());
+    job = h.submit(R"(, "png_bit_depth": 16, "background": [0.5, 0.25, 1])");
+    for (const auto& l : h.lease_all()) {
+      CHECK(l.settings.background == dtraced::scene::Color{0.5, 0.25, 1});
+      h.put_ok(l);
+    }
+    REQUIRE(h.status(job).state == protocol::JobState::kDone);
+    std::string error;
+    const auto written = dtraced::util::read_file_limited((dir.path() / "out" / "job-1.png").string(), 1 << 20, error);
+    REQUIRE(written);
+    CHECK(png_bit_depth(*written) == 16);
+  }
+  // After a restart the job's bit depth comes back from the store: the image is served at 16 bits.
+  Harness again(dir);
+  REQUIRE_FALSE(again.collector.open());
+  const Response png = again.call(Verb::get, fmt::format("/v1/jobs/{}/image?format=png", job));
+  REQUIRE(png.result() == Status::ok);
+  CHECK(png_bit_depth(png.body()) == 16);
+  // An 8-bit job's stored settings do not name a bit depth (its one-shot key is unchanged).
+  const std::uint64_t plain = again.submit();
+  const StoredState stored = stored_state(again.config);
+  for (const auto& row : stored.jobs) {
+    INFO(row.settings_json);
+    CHECK((row.settings_json.find("png_bit_depth") != std::string::npos) == (row.id == std::int64_t(job)));
+  }
+  CHECK(plain == job + 1);
+}
+
 TEST_CASE("submit, lease every tile, store them, and the image is written", "[collector][service]") {
   TempDir dir;
   Harness h(dir);
@@ -913,9 +950,9 @@ TEST_CASE("the one-shot job is enqueued once and resumed after a restart", "[col
   }
   coll::CollectorConfig config = make_config(dir);
   config.one_shot = one_shot(scene_path, "shot.png");
-  config.one_shot->width = 16;
-  config.one_shot->samples = 2;
-  config.one_shot->tile_size = 8;
+  config.one_shot->overrides.width = 16;
+  config.one_shot->overrides.samples = 2;
+  config.one_shot->overrides.tile_size = 8;
   config.exit_when_done = true;
 
   std::set<std::uint32_t> first;
@@ -974,9 +1011,9 @@ TEST_CASE("a one-shot job takes adaptive sampling's settings, checked like a sub
   }
   coll::CollectorConfig config = make_config(dir);
   config.one_shot = one_shot(scene_path, "shot.png");
-  config.one_shot->samples = 16;
-  config.one_shot->error_target = 0.1;
-  config.one_shot->min_samples = 4;
+  config.one_shot->overrides.samples = 16;
+  config.one_shot->overrides.error_target = 0.1;
+  config.one_shot->overrides.min_samples = 4;
   {
     Harness h(config);
     REQUIRE_FALSE(h.collector.open());
@@ -989,7 +1026,7 @@ TEST_CASE("a one-shot job takes adaptive sampling's settings, checked like a sub
   TempDir dir2;
   config = make_config(dir2);
   config.one_shot = one_shot(scene_path, "shot.png");
-  config.one_shot->error_target = 2.0;
+  config.one_shot->overrides.error_target = 2.0;
   coll::Collector c(config);
   const auto error = c.open();
   REQUIRE(error);

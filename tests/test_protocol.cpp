@@ -100,22 +100,59 @@ TEST_CASE("a job submission round trips, scene and overrides included", "[protoc
   m.scene = test_scene();
   m.output = "out.pfm";
   m.priority = -1000;
-  m.tile_size = 16;
-  m.width = 1;
-  m.height = 16384;
-  m.samples = 65536;
-  m.max_depth = 0;
-  m.seed = dtraced::scene::kMaxSeed;
-  m.frame = std::numeric_limits<std::uint32_t>::max();
+  m.overrides.tile_size = 16;
+  m.overrides.width = 1;
+  m.overrides.height = 16384;
+  m.overrides.samples = 65536;
+  m.overrides.max_depth = 0;
+  m.overrides.seed = dtraced::scene::kMaxSeed;
+  m.overrides.frame = std::numeric_limits<std::uint32_t>::max();
+  m.overrides.background = dtraced::scene::Color{0.1, 0.30000000000000004, 3e38};
+  m.overrides.png_bit_depth = 16;
   const protocol::JobSubmit back = round_trip(m, protocol::decode_job_submit);
   CHECK(back == m);
   CHECK(same_bits(back.scene.objects[3].sphere.center.x, 0.30000000000000004));
+  CHECK(same_bits(back.overrides.background->y, 0.30000000000000004));
 
   const auto s = protocol::effective_settings(back);
   CHECK(s.width == 1);
   CHECK(s.height == 16384);
   CHECK(s.seed == dtraced::scene::kMaxSeed);
-  CHECK(s.background == m.scene.render.background);  // not overridable: from the scene
+  CHECK(s.background == *m.overrides.background);
+  CHECK(s.max_depth == 0);
+}
+
+TEST_CASE("every override of scene::Overrides has a key of its own in a submission", "[protocol][json]") {
+  // One override at a time, so a key that another one's value happens to hide cannot pass.
+  const std::vector<std::pair<std::string, std::function<void(dtraced::scene::Overrides&)>>> each = {
+      {"width", [](auto& o) { o.width = 7; }},
+      {"height", [](auto& o) { o.height = 9; }},
+      {"samples", [](auto& o) { o.samples = 5; }},
+      {"max_depth", [](auto& o) { o.max_depth = 3; }},
+      {"seed", [](auto& o) { o.seed = 99; }},
+      {"frame", [](auto& o) { o.frame = 12; }},
+      {"background",
+       [](auto& o) {
+         o.background = dtraced::scene::Color{1, 2, 3};
+       }},
+      {"error_target", [](auto& o) { o.error_target = 0.5; }},
+      {"min_samples", [](auto& o) { o.min_samples = 2; }},
+      {"tile_size", [](auto& o) { o.tile_size = 1; }},
+      {"png_bit_depth", [](auto& o) { o.png_bit_depth = 16; }},
+  };
+  for (const auto& [key, set] : each) {
+    INFO(key);
+    protocol::JobSubmit m;
+    m.scene = test_scene();
+    set(m.overrides);
+    const std::string body = protocol::encode(m);
+    CHECK(body.find("\"" + key + "\"") != std::string::npos);
+    CHECK(round_trip(m, protocol::decode_job_submit) == m);
+  }
+  CHECK(protocol::decode_job_submit(submit_body(kSceneJson, R"("png_bit_depth": 12)")).error().path ==
+        "/png_bit_depth");
+  CHECK(protocol::decode_job_submit(submit_body(kSceneJson, R"("background": [1, -1, 0])")).error().path ==
+        "/background/1");
 }
 
 TEST_CASE("a minimal submission takes the defaults", "[protocol][json]") {
@@ -124,8 +161,8 @@ TEST_CASE("a minimal submission takes the defaults", "[protocol][json]") {
   CHECK(d.value().scene == test_scene());
   CHECK(d.value().output.empty());
   CHECK(d.value().priority == 0);
-  CHECK(d.value().tile_size == dtraced::scene::kDefaultTileSize);
-  CHECK_FALSE(d.value().width.has_value());
+  CHECK(d.value().overrides == dtraced::scene::Overrides{});
+  CHECK(dtraced::scene::tile_size_or_default(d.value().overrides) == dtraced::scene::kDefaultTileSize);
   CHECK(protocol::effective_settings(d.value()) == test_scene().render);
   // Written without the optional keys it did not have, and read back the same.
   CHECK(round_trip(d.value(), protocol::decode_job_submit) == d.value());
@@ -134,8 +171,8 @@ TEST_CASE("a minimal submission takes the defaults", "[protocol][json]") {
 TEST_CASE("integral doubles are accepted where integers are expected", "[protocol][json]") {
   const auto d = protocol::decode_job_submit(submit_body(kSceneJson, R"("tile_size": 64.0, "width": 1e3)"));
   REQUIRE(d.ok());
-  CHECK(d.value().tile_size == 64);
-  CHECK(d.value().width == 1000u);
+  CHECK(d.value().overrides.tile_size == 64u);
+  CHECK(d.value().overrides.width == 1000u);
 }
 
 TEST_CASE("job created, status and list round trip", "[protocol][json]") {
@@ -209,14 +246,19 @@ TEST_CASE("settings round trip as the store keeps them", "[protocol][json]") {
   s.background = {0.7, 0, 123.456e-20};
   s.seed = 123456789;
   s.frame = 4;
-  const std::string text = protocol::encode_settings(s);
+  const std::string text = protocol::encode_settings({s});
   const auto back = protocol::decode_settings(text);
   REQUIRE(back.ok());
-  CHECK(back.value() == s);
-  CHECK(same_bits(back.value().background.z, s.background.z));
-  // Integral values are written as integers.
+  CHECK(back.value() == protocol::JobSettings{s});
+  CHECK(same_bits(back.value().render.background.z, s.background.z));
+  // Integral values are written as integers; an 8-bit job does not name its bit depth.
   CHECK(text.find("\"width\":16384") != std::string::npos);
   CHECK(text.find("[7E-1,0,") != std::string::npos);
+  CHECK(text.find("png_bit_depth") == std::string::npos);
+
+  const protocol::JobSettings deep{s, 16};
+  CHECK(protocol::decode_settings(protocol::encode_settings(deep)).value() == deep);
+  CHECK(protocol::decode_settings(R"({"width":1})").error().path == "/height");
 }
 
 // ---- malformed bodies ----------------------------------------------------------------------
@@ -592,8 +634,8 @@ TEST_CASE("a tile payload carries per-pixel sample counts behind flag bit 0", "[
 TEST_CASE("adaptive settings travel in submissions, leases and stored settings", "[protocol][json][adaptive]") {
   protocol::JobSubmit m;
   m.scene = test_scene();
-  m.error_target = 0.025;
-  m.min_samples = 4;
+  m.overrides.error_target = 0.025;
+  m.overrides.min_samples = 4;
   const protocol::JobSubmit back = round_trip(m, protocol::decode_job_submit);
   CHECK(back == m);
   const auto s = protocol::effective_settings(back);
@@ -603,19 +645,20 @@ TEST_CASE("adaptive settings travel in submissions, leases and stored settings",
   // Stored settings: the adaptive keys appear only when they differ from the defaults, so a
   // uniform job's settings text is what it was before they existed, and old text still reads.
   dtraced::scene::RenderSettings uniform;
-  const std::string text = protocol::encode_settings(uniform);
+  const std::string text = protocol::encode_settings({uniform});
   CHECK(text.find("error_target") == std::string::npos);
   CHECK(text.find("min_samples") == std::string::npos);
   dtraced::scene::RenderSettings adaptive = uniform;
   adaptive.error_target = 0.1;
   adaptive.min_samples = 32;
-  const auto decoded = protocol::decode_settings(protocol::encode_settings(adaptive));
+  const auto decoded = protocol::decode_settings(protocol::encode_settings({adaptive}));
   REQUIRE(decoded.ok());
-  CHECK(decoded.value() == adaptive);
+  CHECK(decoded.value().render == adaptive);
   const auto old = protocol::decode_settings(kSettings);
   REQUIRE(old.ok());
-  CHECK(old.value().error_target == 0.0);
-  CHECK(old.value().min_samples == dtraced::scene::RenderSettings{}.min_samples);
+  CHECK(old.value().render.error_target == 0.0);
+  CHECK(old.value().render.min_samples == dtraced::scene::RenderSettings{}.min_samples);
+  CHECK(old.value().png_bit_depth == 8u);
 
   // A lease carries them to the worker.
   protocol::Lease lease;

@@ -15,6 +15,7 @@
 #include <fmt/format.h>
 
 #include "cli/bench_error_args.h"
+#include "cli/overrides_flags.h"
 #include "cli/roles.h"
 #include "image/image_io.h"
 #include "image/metrics.h"
@@ -36,6 +37,9 @@ constexpr int kExitFailed = 1;
 // fraction): its sample keys are disjoint from every row's, so its noise is independent of theirs.
 constexpr std::uint64_t kReferenceSeedOffset = 0x9E3779B97F4A7C15ull;
 constexpr std::uint32_t kReferenceFactor = 16;  // default reference spp = 16 * max spp
+// The largest --max-spp: a quarter of the sample limit, so the reference (16 x, capped at the
+// limit) still has at least 4 times the samples of the last row.
+constexpr std::uint32_t kMaxRowSamples = scene::kMaxSamples / 4;
 constexpr std::size_t kMaxTargets = 16;
 constexpr std::uint32_t kMaxRepeats = 99;
 
@@ -287,18 +291,16 @@ CLI::App* add_bench_error_verb(CLI::App& app, BenchErrorArgs& args, std::optiona
       "error", "Speed against error: uniform and adaptive renders of one scene measured against a reference");
   e->add_option("scene", args.scene, "Scene file (JSON)")->required();
   e->add_option("--max-spp", args.max_spp, "Uniform rows at 1, 2, 4, ... samples per pixel up to this")
-      ->check(CLI::Range(1u, 16384u));
+      ->check(CLI::Range(1u, kMaxRowSamples));
   e->add_option("--targets", args.targets, "Adaptive rows: error targets (relative standard error), at --max-spp")
       ->check(CLI::Range(1e-6, 1.0))
       ->expected(1, int(kMaxTargets));
   e->add_flag("--no-adaptive", args.no_adaptive, "Uniform rows only");
   e->add_option("--min-samples", args.min_samples, "Adaptive rows: the first checkpoint")
-      ->check(CLI::Range(1u, 65536u));
-  e->add_option("--width", args.width, "Image width (default: the scene's)")->check(CLI::Range(1u, 16384u));
-  e->add_option("--height", args.height, "Image height (default: the scene's)")->check(CLI::Range(1u, 16384u));
+      ->check(CLI::Range(1u, scene::kMaxSamples));
   e->add_option("--reference-spp", args.reference_spp,
                 "Samples of the reference render when there is no closed form (default 16 x --max-spp)")
-      ->check(CLI::Range(1u, 65536u));
+      ->check(CLI::Range(1u, scene::kMaxSamples));
   e->add_option("--cache-dir", args.cache_dir, "Where reference renders are cached (default: beside the scene)");
   e->add_option("--csv", args.csv, "CSV output (default: <scene name>-error.csv)");
   e->add_option("--plot", args.plot,
@@ -307,9 +309,12 @@ CLI::App* add_bench_error_verb(CLI::App& app, BenchErrorArgs& args, std::optiona
   e->add_option("--repeats", args.repeats, "Renders per row; the median time is reported")
       ->check(CLI::Range(1u, kMaxRepeats));
   e->add_option("--spec-spp", args.spec_spp, "Samples of the specialised-against-generic comparison")
-      ->check(CLI::Range(1u, 65536u));
+      ->check(CLI::Range(1u, scene::kMaxSamples));
   e->add_option("-t,--threads", args.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
-  e->add_option("--tile-size", args.tile_size, "Tile side in pixels")->check(CLI::Range(1u, 4096u));
+  OverrideFlagOptions overrides;
+  overrides.fields =
+      kAllOverrides & ~(kOverrideSamples | kOverrideErrorTarget | kOverrideMinSamples | kOverridePngBitDepth);
+  add_override_flags(*e, args.overrides, overrides);
   e->add_option("--isa", isa_flag, kIsaHelp);
   return e;
 }
@@ -321,8 +326,7 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
     return kExitFailed;
   }
   scene::SceneDesc desc = *loaded.scene;
-  if (args.width) desc.render.width = *args.width;
-  if (args.height) desc.render.height = *args.height;
+  desc.render = scene::apply(args.overrides, desc.render);
   const std::vector<double> targets = args.no_adaptive ? std::vector<double>{} : args.targets;
   if (args.min_samples >= args.max_spp && !targets.empty()) {
     fmt::print(stderr, "--min-samples {} must be below --max-spp {} for adaptive rows to stop early\n",
@@ -351,7 +355,7 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   const double build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
   render::LocalOptions opts;
   opts.threads = args.threads;
-  opts.tile_size = args.tile_size;
+  opts.tile_size = scene::tile_size_or_default(args.overrides);
 
   std::string error;
   const std::optional<Reference> ref = make_reference(desc, rs, args, opts, error);

@@ -150,15 +150,7 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
   submit.scene = std::move(*loaded.scene);
   submit.output = args.output;
   submit.priority = args.priority;
-  submit.tile_size = args.tile_size;
-  submit.width = args.width;
-  submit.height = args.height;
-  submit.samples = args.samples;
-  submit.max_depth = args.max_depth;
-  submit.frame = args.frame;
-  submit.seed = args.seed;
-  submit.error_target = args.error_target;
-  submit.min_samples = args.min_samples;
+  submit.overrides = args.overrides;
   std::string body = protocol::encode(submit);
   // Refused here with the reason, rather than by the collector as a bare 413.
   if (body.size() > protocol::kMaxJobSubmitBytes) {

@@ -7,6 +7,8 @@
 #include <optional>
 #include <string>
 
+#include "scene/overrides.h"
+
 namespace dtraced::cli {
 
 struct ClientArgs {
@@ -19,11 +21,7 @@ struct SubmitArgs {
   std::string scene;
   std::string output;  // empty: the collector picks job-<id>.png
   std::int32_t priority = 0;
-  std::uint32_t tile_size = 32;
-  std::optional<std::uint32_t> width, height, samples, max_depth, frame;
-  std::optional<std::uint64_t> seed;
-  std::optional<double> error_target;        // adaptive sampling (JobSubmit::error_target)
-  std::optional<std::uint32_t> min_samples;  // JobSubmit::min_samples
+  scene::Overrides overrides;  // of the scene's render block, plus tile size and PNG bit depth
 };
 int run_submit(const ClientArgs& client, const SubmitArgs& args);
 

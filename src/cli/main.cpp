@@ -20,8 +20,11 @@
 #include "cli/client_verbs.h"
 #include "cli/isa_option.h"
 #include "cli/json_config.h"
+#include "cli/overrides_flags.h"
 #include "cli/roles.h"
 #include "cli/verbs.h"
+#include "image/image_io.h"
+#include "protocol/messages.h"
 
 namespace {
 
@@ -66,36 +69,12 @@ int main(int argc, char** argv) {
   RenderArgs render;
   CLI::App* r = app.add_subcommand("render", "Render a scene on this machine to an image file");
   r->add_option("scene", render.scene, "Scene file (JSON)")->required();
-  r->add_option("-o,--output", render.output, "Output image: .png, .ppm or .pfm (by extension)")->required();
-  r->add_option("--width", render.width, "Image width in pixels")->check(CLI::Range(1u, 16384u));
-  r->add_option("--height", render.height, "Image height in pixels")->check(CLI::Range(1u, 16384u));
-  r->add_option("-s,--samples", render.samples, "Samples per pixel")->check(CLI::Range(1u, 65536u));
-  r->add_option("--max-depth", render.max_depth, "Maximum reflection/refraction depth")->check(CLI::Range(0u, 64u));
-  r->add_option("--seed", render.seed, "Sampling seed")
-      ->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
-  r->add_option("--background", render.background, "Background colour, linear RGB: R,G,B")
-      ->delimiter(',')
-      ->expected(3)
-      ->check(CLI::Validator(
-          [](std::string& v) -> std::string {
-            double x = 0;
-            if (!CLI::detail::lexical_cast(v, x) || !(x >= 0.0 && x <= 3.4e38)) {
-              return "each channel must be a finite number >= 0, got " + v;
-            }
-            return {};
-          },
-          "R,G,B"));
-  r->add_option("--frame", render.frame, "Frame number (part of every sample's random key)");
-  r->add_option("--error-target", render.error_target,
-                "Adaptive sampling: stop a pixel once its relative standard error is at most this (0: off)")
-      ->check(CLI::Range(0.0, 1.0));
-  r->add_option("--min-samples", render.min_samples, "Adaptive sampling: samples before the first check")
-      ->check(CLI::Range(1u, 65536u));
+  r->add_option("-o,--output", render.output, "Output image: " + dtraced::image::extension_list() + " (by extension)")
+      ->required();
+  add_override_flags(*r, render.overrides);
   r->add_option("--spp-map", render.spp_map,
                 "Also write the samples each pixel took: .pfm raw counts, .png/.ppm grey (white = --samples)");
   r->add_option("-t,--threads", render.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
-  r->add_option("--tile-size", render.tile_size, "Tile side in pixels")->check(CLI::Range(1u, 4096u));
-  r->add_option("--bit-depth", render.bit_depth, "PNG bit depth: 8 or 16")->check(CLI::IsMember({8, 16}));
   r->add_flag("-q,--quiet", render.quiet, "No progress bar and no summary line");
   r->add_option("--isa", role.isa, kIsaHelp);
 
@@ -105,7 +84,7 @@ int main(int argc, char** argv) {
 
   CompareArgs compare;
   CLI::App* c = app.add_subcommand("compare", "Compare two images: RMSE, PSNR and largest absolute difference");
-  c->add_option("a", compare.a, "First image (.png, .ppm, .pfm)")->required();
+  c->add_option("a", compare.a, "First image (" + dtraced::image::extension_list() + ")")->required();
   c->add_option("b", compare.b, "Second image")->required();
   c->add_option("--max-rmse", compare.max_rmse, "Exit 1 when the RMSE is above this");
 
@@ -141,22 +120,11 @@ int main(int argc, char** argv) {
   CLI::App* sub_submit = app.add_subcommand("submit", "Submit a render job to a collector; prints the job id");
   add_client_options(sub_submit);
   sub_submit->add_option("scene", submit.scene, "Scene file (JSON)")->required();
-  sub_submit->add_option("-o,--output", submit.output, "Output file name on the collector (.png, .ppm or .pfm)");
-  sub_submit->add_option("--priority", submit.priority, "Higher runs first")->check(CLI::Range(-1000, 1000));
-  sub_submit->add_option("--tile-size", submit.tile_size, "Tile side in pixels")->check(CLI::Range(8u, 1024u));
-  sub_submit->add_option("--width", submit.width, "Image width")->check(CLI::Range(1u, 16384u));
-  sub_submit->add_option("--height", submit.height, "Image height")->check(CLI::Range(1u, 16384u));
-  sub_submit->add_option("-s,--samples", submit.samples, "Samples per pixel")->check(CLI::Range(1u, 65536u));
-  sub_submit->add_option("--max-depth", submit.max_depth, "Maximum depth")->check(CLI::Range(0u, 64u));
-  sub_submit->add_option("--seed", submit.seed, "Sampling seed")
-      ->check(CLI::Range(std::uint64_t{0}, (std::uint64_t{1} << 53) - 1));
-  sub_submit->add_option("--frame", submit.frame, "Frame number");
-  sub_submit
-      ->add_option("--error-target", submit.error_target,
-                   "Adaptive sampling: stop a pixel once its relative standard error is at most this (0: off)")
-      ->check(CLI::Range(0.0, 1.0));
-  sub_submit->add_option("--min-samples", submit.min_samples, "Adaptive sampling: samples before the first check")
-      ->check(CLI::Range(1u, 65536u));
+  sub_submit->add_option("-o,--output", submit.output,
+                         "Output file name on the collector (" + dtraced::image::extension_list() + ")");
+  sub_submit->add_option("--priority", submit.priority, "Higher runs first")
+      ->check(CLI::Range(dtraced::protocol::kMinPriority, dtraced::protocol::kMaxPriority));
+  add_override_flags(*sub_submit, submit.overrides);
 
   bool list_json = false;
   CLI::App* sub_list = app.add_subcommand("list", "List the collector's jobs");
@@ -176,7 +144,7 @@ int main(int argc, char** argv) {
   CLI::App* sub_fetch = app.add_subcommand("fetch", "Fetch a job's image (partial while it renders)");
   add_client_options(sub_fetch);
   sub_fetch->add_option("id", fetch_id, "Job id")->required();
-  sub_fetch->add_option("-o,--output", fetch_out, "Image file (.png, .ppm or .pfm)")->required();
+  sub_fetch->add_option("-o,--output", fetch_out, "Image file (" + dtraced::image::extension_list() + ")")->required();
 
   std::uint64_t cancel_id = 0;
   CLI::App* sub_cancel = app.add_subcommand("cancel", "Cancel a job");

@@ -2,12 +2,17 @@
 
 #include <charconv>
 #include <filesystem>
+#include <string>
+#include <vector>
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include "cli/client_verbs.h"
+#include "cli/overrides_flags.h"
 #include "collector/config.h"
 #include "collector/service.h"
+#include "image/image_io.h"
 #include "worker/config.h"
 #include "worker/worker.h"
 
@@ -86,19 +91,15 @@ int run_collector_role(const RoleArgs& a) {
     } else if (a.output_dir.empty()) {
       c.output_dir = ".";
     }
-    job.width = a.width;
-    job.height = a.height;
-    job.samples = a.samples;
-    job.error_target = a.error_target;
-    job.min_samples = a.min_samples;
-    if (a.tile_size) job.tile_size = *a.tile_size;
+    job.overrides = a.overrides;
     c.one_shot = job;
     c.exit_when_done = a.exit_when_done;
-  } else if (!a.output.empty() || a.width || a.height || a.samples || a.tile_size || a.error_target || a.min_samples ||
-             a.exit_when_done) {
-    fmt::print(stderr,
-               "--output, --width, --height, --samples, --error-target, --min-samples, --tile-size and "
-               "--exit-when-done need --scene\n");
+  } else if (!a.output.empty() || a.overrides != scene::Overrides{} || a.exit_when_done) {
+    std::vector<std::string> given = given_override_flags(a.overrides);
+    if (!a.output.empty()) given.insert(given.begin(), "--output");
+    if (a.exit_when_done) given.emplace_back("--exit-when-done");
+    fmt::print(stderr, "{} {} a one-shot job's: {} --scene\n", fmt::join(given, ", "), given.size() == 1 ? "is" : "are",
+               given.size() == 1 ? "it needs" : "they need");
     return kExitUsage;
   }
   if (auto why = collector::check_collector_config(c)) {
@@ -182,21 +183,12 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
       ->group(kCollectorGroup);
   app.add_option("--scene", a.scene, "One-shot: enqueue this scene at start (resumed after a restart)")
       ->group(kCollectorGroup);
-  app.add_option("-o,--output", a.output, "One-shot: the image to write (.png, .ppm or .pfm)")->group(kCollectorGroup);
-  app.add_option("--width", a.width, "One-shot: image width")->check(CLI::Range(1u, 16384u))->group(kCollectorGroup);
-  app.add_option("--height", a.height, "One-shot: image height")->check(CLI::Range(1u, 16384u))->group(kCollectorGroup);
-  app.add_option("-s,--samples", a.samples, "One-shot: samples per pixel")
-      ->check(CLI::Range(1u, 65536u))
+  app.add_option("-o,--output", a.output, "One-shot: the image to write (" + image::extension_list() + ")")
       ->group(kCollectorGroup);
-  app.add_option("--error-target", a.error_target, "One-shot: adaptive sampling's error target (0: off)")
-      ->check(CLI::Range(0.0, 1.0))
-      ->group(kCollectorGroup);
-  app.add_option("--min-samples", a.min_samples, "One-shot: adaptive sampling's first checkpoint")
-      ->check(CLI::Range(1u, 65536u))
-      ->group(kCollectorGroup);
-  app.add_option("--tile-size", a.tile_size, "One-shot: tile side in pixels")
-      ->check(CLI::Range(8u, 1024u))
-      ->group(kCollectorGroup);
+  OverrideFlagOptions one_shot;
+  one_shot.group = kCollectorGroup;
+  one_shot.help_prefix = "One-shot: ";
+  add_override_flags(app, a.overrides, one_shot);
   app.add_flag("--exit-when-done", a.exit_when_done, "One-shot: exit 0 once the image is written")
       ->group(kCollectorGroup);
 

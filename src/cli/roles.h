@@ -12,6 +12,7 @@
 #include <CLI/CLI.hpp>
 
 #include "accel/isa.h"
+#include "scene/overrides.h"
 
 namespace dtraced::cli {
 
@@ -26,10 +27,9 @@ struct RoleArgs {
       shutdown_grace_ms, cpu_threads;
   std::optional<std::uint64_t> max_body_bytes;
   std::optional<double> reoffer_factor;
-  std::string scene;   // one-shot job
-  std::string output;  // one-shot job's image path
-  std::optional<std::uint32_t> width, height, samples, tile_size, min_samples;
-  std::optional<double> error_target;
+  std::string scene;           // one-shot job
+  std::string output;          // one-shot job's image path
+  scene::Overrides overrides;  // one-shot job's overrides (the flags of cli/overrides_flags.h)
   bool exit_when_done = false;
   // worker
   std::string collector;

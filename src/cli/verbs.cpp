@@ -74,16 +74,9 @@ int run_render(const RenderArgs& args) {
     return kExitFailed;
   }
   scene::SceneDesc& desc = *loaded.scene;
-  scene::RenderSettings& s = desc.render;
-  if (args.width) s.width = *args.width;
-  if (args.height) s.height = *args.height;
-  if (args.samples) s.samples = *args.samples;
-  if (args.max_depth) s.max_depth = *args.max_depth;
-  if (args.seed) s.seed = *args.seed;
-  if (args.frame) s.frame = *args.frame;
-  if (args.background.size() == 3) s.background = {args.background[0], args.background[1], args.background[2]};
-  if (args.error_target) s.error_target = *args.error_target;
-  if (args.min_samples) s.min_samples = *args.min_samples;
+  desc.render = scene::apply(args.overrides, desc.render);
+  const scene::RenderSettings& s = desc.render;
+  const std::uint32_t tile_size = scene::tile_size_or_default(args.overrides);
   if (!image::format_from_path(args.output)) {
     fmt::print(stderr, "{}: unsupported output format (use {})\n", args.output, image::extension_list());
     return kExitFailed;
@@ -99,7 +92,7 @@ int run_render(const RenderArgs& args) {
 
   render::LocalOptions opts;
   opts.threads = args.threads;
-  opts.tile_size = args.tile_size;
+  opts.tile_size = tile_size;
   ProgressBar bar;
   if (!args.quiet && ::isatty(STDERR_FILENO)) {
     opts.progress = [&bar](std::size_t done, std::size_t total) { bar.draw(done, total); };
@@ -108,7 +101,7 @@ int run_render(const RenderArgs& args) {
 
   std::string error;
   image::WriteOptions wopts;
-  wopts.png_bit_depth = args.bit_depth;
+  wopts.png_bit_depth = static_cast<int>(scene::png_bit_depth_or_default(args.overrides));
   if (!image::write_image(args.output, result.image, wopts, error)) {
     fmt::print(stderr, "{}\n", error);
     return kExitFailed;
@@ -137,9 +130,9 @@ int run_render(const RenderArgs& args) {
     fmt::print(stderr,
                "rendered {}x{} at {} in {:.3f} s ({} threads, {}-px tiles, {} kernels; scene build {:.3f} s): {:.2f} "
                "M rays, {:.2f} Mrays/s, {} NaN and {} Inf samples; wrote {}\n",
-               s.width, s.height, spp, result.seconds, result.threads, args.tile_size,
-               accel::isa_name(rs.geometry().isa()), build_s, mrays, result.seconds > 0 ? mrays / result.seconds : 0.0,
-               result.stats.nan_samples, result.stats.inf_samples, args.output);
+               s.width, s.height, spp, result.seconds, result.threads, tile_size, accel::isa_name(rs.geometry().isa()),
+               build_s, mrays, result.seconds > 0 ? mrays / result.seconds : 0.0, result.stats.nan_samples,
+               result.stats.inf_samples, args.output);
     fmt::print(stderr, "scene features: {} (the tracer is specialised to them)\n",
                render::feature_names(rs.features()));
   }

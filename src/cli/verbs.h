@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "accel/isa.h"
+#include "scene/overrides.h"
 
 namespace dtraced::cli {
 
@@ -17,18 +18,12 @@ std::string_view version_string();
 struct RenderArgs {
   std::string scene;
   std::string output;
-  std::optional<std::uint32_t> width, height, samples, max_depth, frame;
-  std::optional<std::uint64_t> seed;
-  std::vector<double> background;            // empty, or exactly 3 channels
-  std::optional<double> error_target;        // adaptive sampling: RenderSettings::error_target
-  std::optional<std::uint32_t> min_samples;  // RenderSettings::min_samples
+  scene::Overrides overrides;  // of the scene's render block, plus tile size and PNG bit depth
   // Where to write the samples each pixel took: .pfm holds the raw counts (R = G = B = n);
   // .png and .ppm a grey picture whose code values are proportional to n / samples (white: all
   // samples). Empty: none.
   std::string spp_map;
   std::uint32_t threads = 0;
-  std::uint32_t tile_size = 32;
-  int bit_depth = 8;
   bool quiet = false;
   accel::Isa isa = accel::Isa::kScalar;  // resolved by main (cli/isa_option.h)
 };

@@ -57,13 +57,10 @@ std::optional<std::string> check_collector_config(const CollectorConfig& c) {
     const OneShotJob& j = *c.one_shot;
     if (j.scene_path.empty()) return "scene: must name a scene file";
     if (auto why = protocol::check_output_name(j.output)) return "output: output name " + *why;
-    if (j.tile_size < scene::kMinTileSize || j.tile_size > scene::kMaxTileSize) {
-      return fmt::format("tile_size: must be in [{}, {}]", scene::kMinTileSize, scene::kMaxTileSize);
-    }
     if (j.priority < protocol::kMinPriority || j.priority > protocol::kMaxPriority) {
       return fmt::format("priority: must be in [{}, {}]", protocol::kMinPriority, protocol::kMaxPriority);
     }
-    // Width, height and samples are checked with the scene, by the job decoder, at start.
+    // The overrides are checked with the scene, by the job decoder, at start.
   } else if (c.exit_when_done) {
     return "exit_when_done: needs a one-shot job (a scene and an output)";
   }

@@ -36,10 +36,9 @@ struct OneShotJob {
   // A plain file name written under output_dir (protocol::check_output_name); the CLI splits a
   // path given on the command line into output_dir and this name.
   std::string output;
-  std::optional<std::uint32_t> width, height, samples;  // overrides of the scene's render block
-  std::optional<double> error_target;                   // adaptive sampling, as in a job submission
-  std::optional<std::uint32_t> min_samples;
-  std::uint32_t tile_size = scene::kDefaultTileSize;
+  // Of the scene's render block, the tile size and the PNG bit depth, as in a job submission
+  // (checked with the scene, by the job decoder, at start).
+  scene::Overrides overrides;
   std::int32_t priority = 0;
 };
 

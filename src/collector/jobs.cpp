@@ -126,7 +126,7 @@ protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, Time
   return s;
 }
 
-std::string one_shot_client_key(std::string_view digest, const scene::RenderSettings& settings, std::uint32_t tile_size,
+std::string one_shot_client_key(std::string_view digest, const protocol::JobSettings& settings, std::uint32_t tile_size,
                                 std::string_view output) {
   // Newlines separate the parts: none of them can contain one (hex, JSON without whitespace, a
   // number, a checked file name).

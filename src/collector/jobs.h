@@ -57,6 +57,7 @@ struct JobRecord {
   std::string output;  // the effective file name (default_output_name when none was given)
   std::int32_t priority = 0;
   std::uint32_t tile_size = 0;
+  std::uint32_t png_bit_depth = scene::kDefaultPngBitDepth;  // of a .png output
   protocol::JobState state = protocol::JobState::kQueued;
   std::int64_t created_unix = 0;
   std::int64_t finished_unix = 0;
@@ -122,8 +123,9 @@ image::ImageRGBf& writable_framebuffer(JobRecord& job);
 protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, TimePoint now);
 
 // The key a one-shot collector stores with its job, so that a restart with the same arguments
-// finds it: SHA-256 over the scene digest, the effective settings, the tile size and the output.
-std::string one_shot_client_key(std::string_view digest, const scene::RenderSettings& settings, std::uint32_t tile_size,
+// finds it: SHA-256 over the scene digest, the effective settings (protocol::encode_settings, so
+// an 8-bit job keeps the key it had before bit depths could be set), the tile size and the output.
+std::string one_shot_client_key(std::string_view digest, const protocol::JobSettings& settings, std::uint32_t tile_size,
                                 std::string_view output);
 
 }  // namespace dtraced::collector

@@ -257,6 +257,8 @@ struct PreparedJob {
   std::vector<protocol::DecodeError> errors;  // non-empty: the body was refused
   protocol::JobSubmit submit;                 // its scene is emptied once turned into text
   scene::RenderSettings settings;
+  std::uint32_t tile_size = 0;
+  std::uint32_t png_bit_depth = 0;
   std::string scene_json;  // canonical
   std::string digest;
 };
@@ -270,6 +272,8 @@ PreparedJob prepare_job(std::string_view body) {
   }
   p.submit = std::move(decoded).value();
   p.settings = protocol::effective_settings(p.submit);
+  p.tile_size = scene::tile_size_or_default(p.submit.overrides);
+  p.png_bit_depth = scene::png_bit_depth_or_default(p.submit.overrides);
   p.scene_json = scene::canonical_json(p.submit.scene);
   p.digest = util::sha256_hex(p.scene_json);  // = scene::scene_digest, without a second serialisation
   p.submit.scene = {};
@@ -300,7 +304,7 @@ std::variant<JobRecord, std::string> record_from_row(const store::StoredJob& row
   if (row.tile_size < scene::kMinTileSize || row.tile_size > scene::kMaxTileSize) {
     return fmt::format("job {}: tile size {} is out of range", row.id, row.tile_size);
   }
-  const std::uint64_t tiles = scene::TileGrid(settings.value(), row.tile_size).count();
+  const std::uint64_t tiles = scene::TileGrid(settings.value().render, row.tile_size).count();
   if (tiles == 0 || tiles > protocol::kMaxTilesPerJob) {
     return fmt::format("job {}: {} tiles, outside [1, {}]", row.id, tiles, protocol::kMaxTilesPerJob);
   }
@@ -310,7 +314,8 @@ std::variant<JobRecord, std::string> record_from_row(const store::StoredJob& row
   JobRecord rec;
   rec.id = static_cast<JobId>(row.id);
   rec.digest = row.digest;
-  rec.settings = settings.value();
+  rec.settings = settings.value().render;
+  rec.png_bit_depth = settings.value().png_bit_depth;
   rec.output = row.output.empty() ? default_output_name(rec.id) : row.output;
   rec.priority = row.priority;
   rec.tile_size = row.tile_size;
@@ -401,7 +406,7 @@ struct Collector::Impl {
     std::string error;
   };
   Encoded encode_from_store(JobId id, scene::RenderSettings settings, std::uint32_t tile_size,
-                            image::ImageFormat format);
+                            image::WriteOptions options, image::ImageFormat format);
   struct FetchedScene {
     std::optional<std::string> json;
     std::string error;  // a store failure (not "missing")
@@ -652,12 +657,7 @@ std::optional<std::string> Collector::Impl::enqueue_one_shot(store::Store& s) {
   submit.scene = std::move(*loaded.scene);
   submit.output = one.output;
   submit.priority = one.priority;
-  submit.tile_size = one.tile_size;
-  submit.width = one.width;
-  submit.height = one.height;
-  submit.samples = one.samples;
-  submit.error_target = one.error_target;
-  submit.min_samples = one.min_samples;
+  submit.overrides = one.overrides;
   // Through the wire format, so a one-shot job meets exactly the checks of a submitted one.
   PreparedJob p = prepare_job(protocol::encode(submit));
   if (!p.errors.empty()) {
@@ -665,7 +665,7 @@ std::optional<std::string> Collector::Impl::enqueue_one_shot(store::Store& s) {
     return e.field.empty() ? "one-shot job: " + e.error : "one-shot job: " + e.field + ": " + e.error;
   }
 
-  const std::string key = one_shot_client_key(p.digest, p.settings, p.submit.tile_size, p.submit.output);
+  const std::string key = one_shot_client_key(p.digest, {p.settings, p.png_bit_depth}, p.tile_size, p.submit.output);
   auto found = s.find_job_by_key(key);
   if (!found) return found.error();
   if (found.value()) {
@@ -699,10 +699,10 @@ std::optional<std::string> Collector::Impl::enqueue_one_shot(store::Store& s) {
 
   store::StoredJob row;
   row.digest = p.digest;
-  row.settings_json = protocol::encode_settings(p.settings);
+  row.settings_json = protocol::encode_settings({p.settings, p.png_bit_depth});
   row.output = p.submit.output;
   row.priority = p.submit.priority;
-  row.tile_size = p.submit.tile_size;
+  row.tile_size = p.tile_size;
   row.state = std::string(store::kJobQueued);
   row.created_unix = now_unix();
   row.client_key = key;
@@ -845,10 +845,10 @@ net::awaitable<http::Response> Collector::Impl::submit_job(http::Request req) {
 
   store::StoredJob row;
   row.digest = p.digest;
-  row.settings_json = protocol::encode_settings(p.settings);
+  row.settings_json = protocol::encode_settings({p.settings, p.png_bit_depth});
   row.output = p.submit.output;  // "" stands for job-<id>.png
   row.priority = p.submit.priority;
-  row.tile_size = p.submit.tile_size;
+  row.tile_size = p.tile_size;
   row.state = std::string(store::kJobQueued);
   row.created_unix = now_unix();
   std::shared_ptr<const std::string> scene_json = intern_scene(p.digest, std::move(p.scene_json));
@@ -908,26 +908,28 @@ http::Response Collector::Impl::job_status_response(JobId id) const {
 net::awaitable<http::Response> Collector::Impl::job_image(JobId id, image::ImageFormat format) {
   const JobRecord* job = find_job(id);
   if (job == nullptr) co_return job_not_found(id);
+  // PNG at the job's bit depth, as its output file is written.
+  const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth)};
   Encoded encoded;
   if (job->unfinished()) {
     // The framebuffer as it is now. The snapshot is held (and released) here, on the loop; the
     // pool only reads through a plain pointer, so copy-on-write stays exact.
     std::shared_ptr<const image::ImageRGBf> snapshot = job->framebuffer;
     const std::uint32_t w = job->settings.width, h = job->settings.height;
-    auto encode = [image = snapshot.get(), w, h, format] {
+    auto encode = [image = snapshot.get(), w, h, format, options] {
       Encoded e;
       if (image != nullptr) {
-        e.bytes = image::encode_image(format, *image, {}, e.error);
+        e.bytes = image::encode_image(format, *image, options, e.error);
       } else {
-        e.bytes = image::encode_image(format, image::ImageRGBf(w, h), {}, e.error);  // nothing stored yet
+        e.bytes = image::encode_image(format, image::ImageRGBf(w, h), options, e.error);  // nothing stored yet
       }
       return e;
     };
     encoded = co_await on_pool(pool_, std::move(encode));
   } else {
     // Done or cancelled: the pixels live in the store only.
-    auto assemble = [this, id, settings = job->settings, tile_size = job->tile_size, format] {
-      return encode_from_store(id, settings, tile_size, format);
+    auto assemble = [this, id, settings = job->settings, tile_size = job->tile_size, options, format] {
+      return encode_from_store(id, settings, tile_size, options, format);
     };
     encoded = co_await on_pool(pool_, std::move(assemble));
   }
@@ -1195,9 +1197,9 @@ net::awaitable<void> Collector::Impl::finish_job(JobId id) {
     bool ok = false;
     std::string error;
   };
-  auto write = [img = image.get(), path] {
+  auto write = [img = image.get(), path, bits = job->png_bit_depth] {
     Written w;
-    w.ok = image::write_image(path, *img, {}, w.error);
+    w.ok = image::write_image(path, *img, {.png_bit_depth = static_cast<int>(bits)}, w.error);
     return w;
   };
   const Written written = co_await on_pool(pool_, std::move(write));
@@ -1298,7 +1300,8 @@ store::Store* Collector::Impl::read_store_locked(std::string& error) {
 }
 
 Collector::Impl::Encoded Collector::Impl::encode_from_store(JobId id, scene::RenderSettings settings,
-                                                            std::uint32_t tile_size, image::ImageFormat format) {
+                                                            std::uint32_t tile_size, image::WriteOptions options,
+                                                            image::ImageFormat format) {
   Encoded e;
   image::ImageRGBf image(settings.width, settings.height);
   {
@@ -1322,7 +1325,7 @@ Collector::Impl::Encoded Collector::Impl::encode_from_store(JobId id, scene::Ren
       copy_tile(image, rect, stored_tile->rgb);
     }
   }
-  e.bytes = image::encode_image(format, image, {}, e.error);
+  e.bytes = image::encode_image(format, image, options, e.error);
   return e;
 }
 

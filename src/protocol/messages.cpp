@@ -244,35 +244,67 @@ void read_output(Reader& r, Fields& f, std::string& out, Need need) {
   }
 }
 
-std::optional<scene::RenderSettings> read_settings(Reader& r, const json::value& v, const std::string& at) {
+// The object's optional "png_bit_depth": 8 or 16.
+void read_bit_depth(Reader& r, Fields& f, std::uint32_t& out) {
+  std::uint32_t bits = out;
+  const std::size_t before = r.error_count();
+  f.integer("png_bit_depth", bits, 1, 64, Need::kOptional);
+  if (r.error_count() != before) return;
+  if (!scene::is_png_bit_depth(bits)) {
+    r.error(f.path("png_bit_depth"), fmt::format("must be 8 or 16 (got {})", bits));
+    return;
+  }
+  out = bits;
+}
+
+// A background colour, [r, g, b]: the scene loader's colour rule (non-negative, within the float
+// range).
+std::optional<scene::Color> read_background(Reader& r, const json::value& bg, const std::string& at) {
+  const json::array* a = bg.if_array();
+  if (a == nullptr || a->size() != 3) {
+    r.error(at, a == nullptr ? fmt::format("expected an array of 3 numbers, got {}", json_kind_name(bg))
+                             : fmt::format("expected an array of 3 numbers, got {} elements", a->size()));
+    return std::nullopt;
+  }
+  scene::Color c;
+  bool ok = true;
+  for (std::size_t i = 0; i < 3; ++i) {
+    if (auto channel = r.number((*a)[i], child(at, i), 0, FLT_MAX)) {
+      c[i] = *channel;
+    } else {
+      ok = false;
+    }
+  }
+  return ok ? std::optional<scene::Color>(c) : std::nullopt;
+}
+
+// The settings object of a Lease, or with `png_bit_depth` set, of a stored job (which may carry
+// "png_bit_depth" too).
+std::optional<scene::RenderSettings> read_settings(Reader& r, const json::value& v, const std::string& at,
+                                                   std::uint32_t* png_bit_depth = nullptr) {
   const json::object* o = r.object(v, at);
   if (o == nullptr) return std::nullopt;
   const std::size_t before = r.error_count();
-  Fields f(r, *o, at,
-           {"width", "height", "samples", "max_depth", "background", "seed", "frame", "error_target", "min_samples"});
+  std::initializer_list<std::string_view> lease_keys = {"width", "height", "samples",      "max_depth",  "background",
+                                                        "seed",  "frame",  "error_target", "min_samples"};
+  std::initializer_list<std::string_view> stored_keys = {"width",       "height",       "samples", "max_depth",
+                                                         "background",  "seed",         "frame",   "error_target",
+                                                         "min_samples", "png_bit_depth"};
+  Fields f(r, *o, at, png_bit_depth != nullptr ? stored_keys : lease_keys);
   scene::RenderSettings s;
   f.integer("width", s.width, 1, scene::kMaxImageSide);
   f.integer("height", s.height, 1, scene::kMaxImageSide);
   f.integer("samples", s.samples, 1, scene::kMaxSamples);
   f.integer("max_depth", s.max_depth, 0, scene::kMaxDepth);
   if (const json::value* bg = f.get("background", Need::kRequired)) {
-    const std::string bg_at = f.path("background");
-    const json::array* a = bg->if_array();
-    if (a == nullptr || a->size() != 3) {
-      r.error(bg_at, a == nullptr ? fmt::format("expected an array of 3 numbers, got {}", json_kind_name(*bg))
-                                  : fmt::format("expected an array of 3 numbers, got {} elements", a->size()));
-    } else {
-      for (std::size_t i = 0; i < 3; ++i) {
-        // The scene loader's colour rule: non-negative, and within the float range.
-        if (auto c = r.number((*a)[i], child(bg_at, i), 0, FLT_MAX)) s.background[i] = *c;
-      }
-    }
+    if (auto c = read_background(r, *bg, f.path("background"))) s.background = *c;
   }
   f.integer("seed", s.seed, 0, scene::kMaxSeed);
   f.integer("frame", s.frame, 0, std::numeric_limits<std::uint32_t>::max());
   // Optional, so that settings stored before adaptive sampling existed still read (as uniform).
   f.number("error_target", s.error_target, 0, scene::kMaxErrorTarget, Need::kOptional);
   f.integer("min_samples", s.min_samples, 1, scene::kMaxSamples, Need::kOptional);
+  if (png_bit_depth != nullptr) read_bit_depth(r, f, *png_bit_depth);
   if (r.error_count() != before) return std::nullopt;
   return s;
 }
@@ -429,16 +461,7 @@ bool is_digest(std::string_view text) {
 // ---- JobSubmit -----------------------------------------------------------------------------
 
 scene::RenderSettings effective_settings(const JobSubmit& submit) {
-  scene::RenderSettings s = submit.scene.render;
-  if (submit.width) s.width = *submit.width;
-  if (submit.height) s.height = *submit.height;
-  if (submit.samples) s.samples = *submit.samples;
-  if (submit.max_depth) s.max_depth = *submit.max_depth;
-  if (submit.seed) s.seed = *submit.seed;
-  if (submit.frame) s.frame = *submit.frame;
-  if (submit.error_target) s.error_target = *submit.error_target;
-  if (submit.min_samples) s.min_samples = *submit.min_samples;
-  return s;
+  return scene::apply(submit.overrides, submit.scene.render);
 }
 
 std::string encode(const JobSubmit& m) {
@@ -449,17 +472,70 @@ std::string encode(const JobSubmit& m) {
   o["scene"] = std::move(doc.value);
   if (!m.output.empty()) o["output"] = m.output;
   o["priority"] = m.priority;
-  o["tile_size"] = m.tile_size;
-  if (m.width) o["width"] = *m.width;
-  if (m.height) o["height"] = *m.height;
-  if (m.samples) o["samples"] = *m.samples;
-  if (m.max_depth) o["max_depth"] = *m.max_depth;
-  if (m.seed) o["seed"] = *m.seed;
-  if (m.frame) o["frame"] = *m.frame;
-  if (m.error_target) o["error_target"] = number(*m.error_target);
-  if (m.min_samples) o["min_samples"] = *m.min_samples;
+  const scene::Overrides& v = m.overrides;
+  if (v.tile_size) o["tile_size"] = *v.tile_size;
+  if (v.width) o["width"] = *v.width;
+  if (v.height) o["height"] = *v.height;
+  if (v.samples) o["samples"] = *v.samples;
+  if (v.max_depth) o["max_depth"] = *v.max_depth;
+  if (v.seed) o["seed"] = *v.seed;
+  if (v.frame) o["frame"] = *v.frame;
+  if (v.background) {
+    json::array bg;
+    for (std::size_t i = 0; i < 3; ++i) bg.push_back(number((*v.background)[i]));
+    o["background"] = std::move(bg);
+  }
+  if (v.error_target) o["error_target"] = number(*v.error_target);
+  if (v.min_samples) o["min_samples"] = *v.min_samples;
+  if (v.png_bit_depth) o["png_bit_depth"] = *v.png_bit_depth;
   return json::serialize(o);
 }
+
+namespace {
+
+// The scene of a submission: loaded from the embedded object, with paths under "/scene".
+void read_submitted_scene(Reader& r, const json::value& s, scene::SceneDesc& out) {
+  if (!s.is_object()) {
+    r.error("/scene", fmt::format("expected an object (a scene), got {}", json_kind_name(s)));
+    return;
+  }
+  // The loader reads text, so the embedded object goes back to text: exact, because the reader
+  // converted its numbers with correct rounding and Boost writes the shortest digits that read
+  // back to the same double. The body's size limit already bounds it.
+  scene::LoadOptions options;
+  options.max_bytes = std::numeric_limits<std::uint64_t>::max();
+  options.max_errors = kMaxDecodeErrors;
+  // A submission carries its meshes inline: a "file" would make the collector read a file of its
+  // own host into the scene, and from there serve it to any worker.
+  options.allow_mesh_files = false;
+  scene::LoadResult loaded = scene::load_scene_string(json::serialize(s), "", options);
+  for (scene::SceneError& e : loaded.errors) r.error("/scene" + e.path, std::move(e.message));
+  if (loaded.ok()) out = std::move(*loaded.scene);
+}
+
+// The submission's overrides: each an optional top-level key, with the limits of scene files.
+void read_overrides(Reader& r, Fields& f, scene::Overrides& o) {
+  f.optional_integer("tile_size", o.tile_size, scene::kMinTileSize, scene::kMaxTileSize);
+  f.optional_integer("width", o.width, 1, scene::kMaxImageSide);
+  f.optional_integer("height", o.height, 1, scene::kMaxImageSide);
+  f.optional_integer("samples", o.samples, 1, scene::kMaxSamples);
+  f.optional_integer("max_depth", o.max_depth, 0, scene::kMaxDepth);
+  f.optional_integer("seed", o.seed, 0, scene::kMaxSeed);
+  f.optional_integer("frame", o.frame, 0, std::numeric_limits<std::uint32_t>::max());
+  if (const json::value* bg = f.get("background", Need::kOptional)) {
+    o.background = read_background(r, *bg, f.path("background"));
+  }
+  f.optional_number("error_target", o.error_target, 0, scene::kMaxErrorTarget);
+  f.optional_integer("min_samples", o.min_samples, 1, scene::kMaxSamples);
+  if (f.get("png_bit_depth", Need::kOptional) != nullptr) {
+    std::uint32_t bits = scene::kDefaultPngBitDepth;
+    const std::size_t before = r.error_count();
+    read_bit_depth(r, f, bits);
+    if (r.error_count() == before) o.png_bit_depth = bits;
+  }
+}
+
+}  // namespace
 
 Decoded<JobSubmit> decode_job_submit(std::string_view text) {
   Reader r;
@@ -467,44 +543,20 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
   if (body.object == nullptr) return r.take_errors();
   Fields f(r, *body.object, "",
            {"scene", "output", "priority", "tile_size", "width", "height", "samples", "max_depth", "seed", "frame",
-            "error_target", "min_samples"});
+            "background", "error_target", "min_samples", "png_bit_depth"});
   JobSubmit m;
-  if (const json::value* s = f.get("scene", Need::kRequired)) {
-    if (s->is_object()) {
-      // The loader reads text, so the embedded object goes back to text: exact, because the
-      // reader converted its numbers with correct rounding and Boost writes the shortest digits
-      // that read back to the same double. The body's size limit already bounds it.
-      scene::LoadOptions options;
-      options.max_bytes = std::numeric_limits<std::uint64_t>::max();
-      options.max_errors = kMaxDecodeErrors;
-      // A submission carries its meshes inline: a "file" would make the collector read a file of
-      // its own host into the scene, and from there serve it to any worker.
-      options.allow_mesh_files = false;
-      scene::LoadResult loaded = scene::load_scene_string(json::serialize(*s), "", options);
-      for (scene::SceneError& e : loaded.errors) r.error("/scene" + e.path, std::move(e.message));
-      if (loaded.ok()) m.scene = std::move(*loaded.scene);
-    } else {
-      r.error("/scene", fmt::format("expected an object (a scene), got {}", json_kind_name(*s)));
-    }
-  }
+  if (const json::value* s = f.get("scene", Need::kRequired)) read_submitted_scene(r, *s, m.scene);
   read_output(r, f, m.output, Need::kOptional);
   f.integer("priority", m.priority, kMinPriority, kMaxPriority, Need::kOptional);
-  f.integer("tile_size", m.tile_size, scene::kMinTileSize, scene::kMaxTileSize, Need::kOptional);
-  f.optional_integer("width", m.width, 1, scene::kMaxImageSide);
-  f.optional_integer("height", m.height, 1, scene::kMaxImageSide);
-  f.optional_integer("samples", m.samples, 1, scene::kMaxSamples);
-  f.optional_integer("max_depth", m.max_depth, 0, scene::kMaxDepth);
-  f.optional_integer("seed", m.seed, 0, scene::kMaxSeed);
-  f.optional_integer("frame", m.frame, 0, std::numeric_limits<std::uint32_t>::max());
-  f.optional_number("error_target", m.error_target, 0, scene::kMaxErrorTarget);
-  f.optional_integer("min_samples", m.min_samples, 1, scene::kMaxSamples);
+  read_overrides(r, f, m.overrides);
   if (r.failed()) return r.take_errors();
 
   const scene::RenderSettings s = effective_settings(m);
-  const std::uint64_t tiles = scene::TileGrid(s, m.tile_size).count();
+  const std::uint32_t tile_size = scene::tile_size_or_default(m.overrides);
+  const std::uint64_t tiles = scene::TileGrid(s, tile_size).count();
   if (tiles > kMaxTilesPerJob) {
     r.error("/tile_size", fmt::format("a {}x{} image in tiles of {} is {} tiles, more than the limit of {}", s.width,
-                                      s.height, m.tile_size, tiles, kMaxTilesPerJob));
+                                      s.height, tile_size, tiles, kMaxTilesPerJob));
   }
   return finish(r, std::move(m));
 }
@@ -766,17 +818,21 @@ Decoded<ErrorBody> decode_error_body(std::string_view text) {
 
 // ---- settings ------------------------------------------------------------------------------
 
-std::string encode_settings(const scene::RenderSettings& settings) {
-  return json::serialize(settings_object(settings));
+std::string encode_settings(const JobSettings& settings) {
+  json::object o = settings_object(settings.render);
+  if (settings.png_bit_depth != scene::kDefaultPngBitDepth) o["png_bit_depth"] = settings.png_bit_depth;
+  return json::serialize(o);
 }
 
-Decoded<scene::RenderSettings> decode_settings(std::string_view text) {
+Decoded<JobSettings> decode_settings(std::string_view text) {
   Reader r;
   std::optional<json::value> v = r.parse(text, kMaxMessageBytes, kMaxMessageDepth);
   if (!v) return r.take_errors();
-  std::optional<scene::RenderSettings> s = read_settings(r, *v, "");
+  JobSettings settings;
+  std::optional<scene::RenderSettings> s = read_settings(r, *v, "", &settings.png_bit_depth);
   if (!s) return r.take_errors();
-  return finish(r, *s);
+  settings.render = *s;
+  return finish(r, settings);
 }
 
 }  // namespace dtraced::protocol

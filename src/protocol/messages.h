@@ -27,6 +27,7 @@
 
 #include "scene/description.h"
 #include "scene/load.h"
+#include "scene/overrides.h"
 #include "scene/tiling.h"
 
 namespace dtraced::protocol {
@@ -126,12 +127,10 @@ struct JobSubmit {
   // then absent on the wire; an explicit "" is an error).
   std::string output;
   std::int32_t priority = 0;
-  std::uint32_t tile_size = scene::kDefaultTileSize;
-  // Overrides of the scene's render block; limits as in scene files.
-  std::optional<std::uint32_t> width, height, samples, max_depth, frame;
-  std::optional<std::uint64_t> seed;
-  std::optional<double> error_target;        // [0, scene::kMaxErrorTarget]; 0 turns adaptive sampling off
-  std::optional<std::uint32_t> min_samples;  // [1, scene::kMaxSamples]
+  // Overrides of the scene's render block, the tile size (scene::kDefaultTileSize when unset) and
+  // the PNG bit depth of the output; each a top-level key of its own, absent when unset, checked
+  // against the limits of scene files.
+  scene::Overrides overrides;
   bool operator==(const JobSubmit&) const = default;
 };
 
@@ -244,10 +243,19 @@ Decoded<ErrorBody> decode_error_body(std::string_view body);
 
 // ---- a job's effective settings, as the store keeps them (jobs.settings_json) --------------
 
+struct JobSettings {
+  scene::RenderSettings render;
+  std::uint32_t png_bit_depth = scene::kDefaultPngBitDepth;  // of a .png output
+  bool operator==(const JobSettings&) const = default;
+};
+
 // {"width", "height", "samples", "max_depth", "background": [r, g, b], "seed", "frame"}, every key
 // required, plus "error_target" and "min_samples", written when either differs from its default
-// and optional when read (absent: uniform sampling); the same object a Lease carries as "settings".
-std::string encode_settings(const scene::RenderSettings& settings);
-Decoded<scene::RenderSettings> decode_settings(std::string_view body);
+// and optional when read (absent: uniform sampling): the same object a Lease carries as
+// "settings". Then "png_bit_depth", written when it is not 8 and optional when read. A job stored
+// before a field existed reads as it always did, and an 8-bit uniform job keeps its text (and so
+// its one-shot key).
+std::string encode_settings(const JobSettings& settings);
+Decoded<JobSettings> decode_settings(std::string_view body);
 
 }  // namespace dtraced::protocol
