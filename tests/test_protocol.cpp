@@ -24,7 +24,7 @@ namespace {
 
 namespace protocol = dtraced::protocol;
 using protocol::Decoded;
-using protocol::DecodeError;
+using DecodeError = dtraced::util::Error;
 
 const std::string kDigest(64, 'a');
 
@@ -84,7 +84,7 @@ T round_trip(const T& m, Decoded<T> (*decode)(std::string_view)) {
   const std::string text = protocol::encode(m);
   Decoded<T> d = decode(text);
   INFO(text);
-  if (!d.ok()) INFO(d.error().to_string());
+  if (!d.ok()) INFO(dtraced::util::to_string(d.error()));
   REQUIRE(d.ok());
   return std::move(d).value();
 }
@@ -149,9 +149,9 @@ TEST_CASE("every override of scene::Overrides has a key of its own in a submissi
     CHECK(body.find("\"" + key + "\"") != std::string::npos);
     CHECK(round_trip(m, protocol::decode_job_submit) == m);
   }
-  CHECK(protocol::decode_job_submit(submit_body(kSceneJson, R"("png_bit_depth": 12)")).error().path ==
+  CHECK(protocol::decode_job_submit(submit_body(kSceneJson, R"("png_bit_depth": 12)")).error().front().path ==
         "/png_bit_depth");
-  CHECK(protocol::decode_job_submit(submit_body(kSceneJson, R"("background": [1, -1, 0])")).error().path ==
+  CHECK(protocol::decode_job_submit(submit_body(kSceneJson, R"("background": [1, -1, 0])")).error().front().path ==
         "/background/1");
 }
 
@@ -258,7 +258,7 @@ TEST_CASE("settings round trip as the store keeps them", "[protocol][json]") {
 
   const protocol::JobSettings deep{s, 16};
   CHECK(protocol::decode_settings(protocol::encode_settings(deep)).value() == deep);
-  CHECK(protocol::decode_settings(R"({"width":1})").error().path == "/height");
+  CHECK(protocol::decode_settings(R"({"width":1})").error().front().path == "/height");
 }
 
 // ---- malformed bodies ----------------------------------------------------------------------
@@ -277,7 +277,7 @@ template <typename T>
 std::function<std::vector<DecodeError>(std::string_view)> errors_of(Decoded<T> (*decode)(std::string_view)) {
   return [decode](std::string_view body) {
     Decoded<T> d = decode(body);
-    return d.ok() ? std::vector<DecodeError>{} : d.errors();
+    return d.ok() ? std::vector<DecodeError>{} : d.error();
   };
 }
 
@@ -452,13 +452,13 @@ TEST_CASE("every problem of a body is reported, and the error body summarises th
   const auto d = protocol::decode_job_submit(
       submit_body(scene_with_radius("-1"), R"("priority": 5000, "tile_size": "big", "output": "a/b.png")"));
   REQUIRE_FALSE(d.ok());
-  CHECK(d.errors().size() == 4);
-  const protocol::ErrorBody body = protocol::error_body(d.errors());
+  CHECK(d.error().size() == 4);
+  const protocol::ErrorBody body = protocol::error_body(d.error());
   CHECK(body.field == "/scene/scene_objects/3/radius");
   CHECK(body.error.starts_with("must be > 0 (got -1) (3 more: /output: output name"));
   CHECK(body.error.find("/tile_size: expected an integer, got a string") != std::string::npos);
 
-  const protocol::ErrorBody one = protocol::error_body({{"/x", "bad"}});
+  const protocol::ErrorBody one = protocol::error_body({{"bad", "/x"}});
   CHECK(one == protocol::ErrorBody{"bad", "/x"});
 }
 

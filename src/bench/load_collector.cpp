@@ -198,7 +198,7 @@ net::awaitable<std::optional<std::string>> check_job(const Run& run) {
   if (!r.ok()) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, r.message);
   if (r.response.result() != http::Status::ok) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, quote(r.response));
   auto status = protocol::decode_job_status(r.response.body());
-  if (!status) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, status.error().to_string());
+  if (!status) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, status.error().front().to_string());
   const protocol::JobStatus& s = status.value();
   if (s.state != protocol::JobState::kQueued && s.state != protocol::JobState::kRendering) {
     co_return fmt::format("job {} is {}; the load needs an unfinished job", run.job, protocol::to_string(s.state));

@@ -322,7 +322,7 @@ CLI::App* add_bench_error_verb(CLI::App& app, BenchErrorArgs& args, std::optiona
 int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   scene::LoadResult loaded = scene::load_scene_file(args.scene);
   if (!loaded.ok()) {
-    for (const scene::SceneError& e : loaded.errors) fmt::print(stderr, "{}\n", e.to_string());
+    for (const util::Error& e : loaded.errors) fmt::print(stderr, "{}\n", e.to_string());
     return kExitFailed;
   }
   scene::SceneDesc desc = *loaded.scene;

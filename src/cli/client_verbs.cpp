@@ -83,7 +83,7 @@ class Session {
 template <typename T>
 std::optional<T> decode_or_report(const protocol::Decoded<T>& d, std::string_view what) {
   if (d.ok()) return d.value();
-  fmt::print(stderr, "unexpected answer to {}: {}\n", what, d.error().to_string());
+  fmt::print(stderr, "unexpected answer to {}: {}\n", what, d.error().front().to_string());
   return std::nullopt;
 }
 

@@ -27,7 +27,7 @@ constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
 
 void print_errors(const scene::LoadResult& r) {
-  for (const scene::SceneError& e : r.errors) fmt::print(stderr, "{}\n", e.to_string());
+  for (const util::Error& e : r.errors) fmt::print(stderr, "{}\n", e.to_string());
 }
 
 // A one-line progress bar on stderr, redrawn in place; only used when stderr is a terminal.
@@ -144,7 +144,7 @@ int run_validate(const std::vector<std::string>& files) {
   for (const std::string& f : files) {
     const scene::LoadResult r = scene::load_scene_file(f);
     if (r.ok()) {
-      for (const scene::SceneError& w : r.warnings) fmt::print(stderr, "warning: {}\n", w.to_string());
+      for (const util::Error& w : r.warnings) fmt::print(stderr, "warning: {}\n", w.to_string());
       // Meshes add their triangle counts; degenerate (zero-area) triangles are legal but never
       // seen, so a count is worth a look.
       std::size_t meshes = 0, triangles = 0, degenerate = 0;

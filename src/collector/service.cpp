@@ -198,7 +198,7 @@ http::Response busy(std::string_view message) {
   return res;
 }
 
-http::Response decode_failure(const std::vector<protocol::DecodeError>& errors) {
+http::Response decode_failure(const util::Errors& errors) {
   const protocol::ErrorBody body = protocol::error_body(errors);
   return http::make_error(http::Status::bad_request, body.error, body.field);
 }
@@ -254,8 +254,8 @@ CheckedTile check_tile_payload(std::string_view body) {
 
 // A submission decoded, with what the loop needs: done on the pool (a scene may be 64 MiB).
 struct PreparedJob {
-  std::vector<protocol::DecodeError> errors;  // non-empty: the body was refused
-  protocol::JobSubmit submit;                 // its scene is emptied once turned into text
+  util::Errors errors;         // non-empty: the body was refused
+  protocol::JobSubmit submit;  // its scene is emptied once turned into text
   scene::RenderSettings settings;
   std::uint32_t tile_size = 0;
   std::uint32_t png_bit_depth = 0;
@@ -267,7 +267,7 @@ PreparedJob prepare_job(std::string_view body) {
   PreparedJob p;
   auto decoded = protocol::decode_job_submit(body);
   if (!decoded) {
-    p.errors = decoded.errors();
+    p.errors = std::move(decoded).error();
     return p;
   }
   p.submit = std::move(decoded).value();
@@ -298,7 +298,8 @@ store::Result<std::int64_t> insert_scene_and_job(store::Store& s, const store::S
 // A job record from its stored row; the error names the job and the problem.
 std::variant<JobRecord, std::string> record_from_row(const store::StoredJob& row) {
   auto settings = protocol::decode_settings(row.settings_json);
-  if (!settings) return fmt::format("job {}: stored settings are unreadable: {}", row.id, settings.error().to_string());
+  if (!settings)
+    return fmt::format("job {}: stored settings are unreadable: {}", row.id, util::to_string(settings.error()));
   const auto state = protocol::job_state_from_string(row.state);
   if (!state) return fmt::format("job {}: unknown state '{}'", row.id, row.state);
   if (row.tile_size < scene::kMinTileSize || row.tile_size > scene::kMaxTileSize) {
@@ -978,7 +979,7 @@ net::awaitable<http::Response> Collector::Impl::cancel_job(JobId id) {
 
 http::Response Collector::Impl::lease(std::string_view body) {
   auto request = protocol::decode_lease_request(body);
-  if (!request) return decode_failure(request.errors());
+  if (!request) return decode_failure(request.error());
   const TimePoint now = Clock::now();
   const LeaseResult result = queue_.lease(now);
   JobRecord* job = result.grant ? find_job(result.grant->job) : nullptr;

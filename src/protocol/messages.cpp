@@ -45,7 +45,7 @@ class Reader {
  public:
   void error(std::string path, std::string message) {
     if (errors_.size() < kMaxDecodeErrors) {
-      errors_.push_back({std::move(path), std::move(message)});
+      errors_.push_back({std::move(message), std::move(path)});
     } else {
       ++dropped_;
     }
@@ -54,7 +54,7 @@ class Reader {
   // Errors so far: a reader of one part compares counts to learn whether that part was clean.
   std::size_t error_count() const { return errors_.size() + dropped_; }
 
-  std::vector<DecodeError> take_errors() {
+  util::Errors take_errors() {
     if (dropped_ > 0) error("", fmt::format("{} more problems not shown", dropped_));
     dropped_ = 0;
     return std::move(errors_);
@@ -154,7 +154,7 @@ class Reader {
   }
 
  private:
-  std::vector<DecodeError> errors_;
+  util::Errors errors_;
   std::size_t dropped_ = 0;
 };
 
@@ -431,8 +431,6 @@ void truncate_utf8(std::string& text, std::size_t max_bytes) {
 
 // ---- shared validation ---------------------------------------------------------------------
 
-std::string DecodeError::to_string() const { return path.empty() ? message : path + ": " + message; }
-
 std::optional<std::string> check_output_name(std::string_view name) {
   if (name.empty()) return "must not be empty";
   if (name.size() > kMaxOutputNameBytes) {
@@ -509,7 +507,7 @@ void read_submitted_scene(Reader& r, const json::value& s, scene::SceneDesc& out
   // own host into the scene, and from there serve it to any worker.
   options.allow_mesh_files = false;
   scene::LoadResult loaded = scene::load_scene_string(json::serialize(s), "", options);
-  for (scene::SceneError& e : loaded.errors) r.error("/scene" + e.path, std::move(e.message));
+  for (util::Error& e : loaded.errors) r.error("/scene" + e.path, std::move(e.message));
   if (loaded.ok()) out = std::move(*loaded.scene);
 }
 
@@ -779,7 +777,7 @@ Decoded<SubmitResult> decode_submit_result(std::string_view text) {
 
 // ---- ErrorBody -----------------------------------------------------------------------------
 
-ErrorBody error_body(const std::vector<DecodeError>& errors) {
+ErrorBody error_body(const util::Errors& errors) {
   assert(!errors.empty());
   ErrorBody body{errors.front().message, errors.front().path};
   if (errors.size() > 1) {

@@ -29,6 +29,7 @@
 #include "scene/load.h"
 #include "scene/overrides.h"
 #include "scene/tiling.h"
+#include "util/result.h"
 
 namespace dtraced::protocol {
 
@@ -65,49 +66,10 @@ inline constexpr std::string_view kWorkerHeader = "X-Dtraced-Worker";
 
 // ---- results -------------------------------------------------------------------------------
 
-struct DecodeError {
-  std::string path;  // JSON Pointer into the body; "" for the body as a whole
-  std::string message;
-
-  // "/scene/camera/fov: must be in ..." or just the message when path is empty.
-  std::string to_string() const;
-  bool operator==(const DecodeError&) const = default;
-};
-
-// Either a decoded message or at least one error, the first being the most useful one.
+// Either a decoded message or every error found (util::Error{message, path}, the path a JSON
+// Pointer into the body, "" for the body as a whole), the first being the most useful one.
 template <typename T>
-class Decoded {
- public:
-  // Implicit, so that a decoder can `return value;` or `return errors;`.
-  Decoded(T value) : v_(std::move(value)) {}
-  Decoded(std::vector<DecodeError> errors) : v_(std::move(errors)) { assert(!std::get<1>(v_).empty()); }
-
-  bool ok() const { return v_.index() == 0; }
-  explicit operator bool() const { return ok(); }
-
-  const T& value() const& {
-    assert(ok());
-    return std::get<0>(v_);
-  }
-  T& value() & {
-    assert(ok());
-    return std::get<0>(v_);
-  }
-  T&& value() && {
-    assert(ok());
-    return std::get<0>(std::move(v_));
-  }
-
-  // Valid only when !ok().
-  const std::vector<DecodeError>& errors() const {
-    assert(!ok());
-    return std::get<1>(v_);
-  }
-  const DecodeError& error() const { return errors().front(); }
-
- private:
-  std::variant<T, std::vector<DecodeError>> v_;
-};
+using Decoded = util::Result<T, util::Errors>;
 
 // ---- validation shared with the command line ----------------------------------------------
 
@@ -235,7 +197,7 @@ struct ErrorBody {
 };
 
 // The first error, with a count of the others appended to its message.
-ErrorBody error_body(const std::vector<DecodeError>& errors);
+ErrorBody error_body(const util::Errors& errors);
 
 // "field" may be absent when decoding (it is then ""); it is always written.
 std::string encode(const ErrorBody& m);

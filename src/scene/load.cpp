@@ -197,15 +197,15 @@ class Validator {
 
   void error(std::string path, std::string message) {
     ++error_count_;
-    if (errors_.size() < max_errors_) errors_.push_back({file_, std::move(path), std::move(message)});
+    if (errors_.size() < max_errors_) errors_.push_back({std::move(message), std::move(path), file_});
   }
   void error(const Path& at, std::string message) { error(at.str(), std::move(message)); }
-  void warning(const Path& at, std::string message) { warnings_.push_back({file_, at.str(), std::move(message)}); }
+  void warning(const Path& at, std::string message) { warnings_.push_back({std::move(message), at.str(), file_}); }
 
   LoadResult finish(std::optional<SceneDesc> scene) {
     LoadResult result;
     if (error_count_ > errors_.size()) {
-      errors_.push_back({file_, "", fmt::format("{} more errors not shown", error_count_ - errors_.size())});
+      errors_.push_back({fmt::format("{} more errors not shown", error_count_ - errors_.size()), "", file_});
     }
     if (error_count_ == 0) result.scene = std::move(scene);
     result.errors = std::move(errors_);
@@ -862,26 +862,15 @@ class Validator {
   const LoadOptions& options_;
   std::size_t triangles_ = 0;  // of the meshes read so far, against options_.max_triangles
   std::size_t error_count_ = 0;
-  std::vector<SceneError> errors_;
-  std::vector<SceneError> warnings_;
+  util::Errors errors_;
+  util::Errors warnings_;
 };
 
 }  // namespace
 
-std::string SceneError::to_string() const {
-  std::string out = file;
-  if (!out.empty()) out += ": ";
-  if (!path.empty()) {
-    out += path;
-    out += ": ";
-  }
-  out += message;
-  return out;
-}
-
-std::string format_errors(const std::vector<SceneError>& errors) {
+std::string format_errors(const util::Errors& errors) {
   std::string out;
-  for (const SceneError& e : errors) {
+  for (const util::Error& e : errors) {
     out += e.to_string();
     out += '\n';
   }
@@ -909,11 +898,11 @@ LoadResult load_scene_file(const std::string& path, const LoadOptions& options) 
   std::string read_error;
   const std::optional<std::string> text = util::read_file_limited(path, options.max_bytes, read_error);
   if (!text) {
-    // read_file_limited prefixes its message with the path, which SceneError carries already.
+    // read_file_limited prefixes its message with the path, which the Error carries already.
     const std::string prefix = path + ": ";
     if (read_error.starts_with(prefix)) read_error.erase(0, prefix.size());
     LoadResult result;
-    result.errors.push_back({path, "", std::move(read_error)});
+    result.errors.push_back({std::move(read_error), "", path});
     return result;
   }
   // Mesh files are named relative to the scene file, wherever the process runs from.

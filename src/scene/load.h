@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "scene/description.h"
+#include "util/result.h"
 
 namespace dtraced::scene {
 
@@ -41,17 +42,9 @@ inline constexpr std::uint64_t kMaxObjBytes = 512ull << 20;  // one OBJ file, 51
 // the description, and as many again once built for rendering.
 inline constexpr std::size_t kMaxTriangles = 20'000'000;
 
-// One problem, located. `path` is a JSON Pointer into the file ("/scene_objects/3/radius"),
-// empty for problems with the file as a whole.
-struct SceneError {
-  std::string file;
-  std::string path;
-  std::string message;
-
-  // "FILE: /scene_objects/3/radius: must be > 0 (got -1)"; "FILE: message" when path is empty.
-  std::string to_string() const;
-  bool operator==(const SceneError&) const = default;
-};
+// Problems are util::Error{message, path, file}: `path` a JSON Pointer into the file
+// ("/scene_objects/3/radius"), empty for problems with the file as a whole; to_string() gives
+// "FILE: /scene_objects/3/radius: must be > 0 (got -1)".
 
 struct LoadOptions {
   std::uint64_t max_bytes = kMaxSceneBytes;
@@ -69,9 +62,9 @@ struct LoadOptions {
 
 struct LoadResult {
   std::optional<SceneDesc> scene;  // set exactly when errors is empty
-  std::vector<SceneError> errors;
+  util::Errors errors;
   // Legal but probably unintended (no lights, no objects). Never stop a load.
-  std::vector<SceneError> warnings;
+  util::Errors warnings;
 
   bool ok() const { return scene.has_value() && errors.empty(); }
 };
@@ -84,7 +77,7 @@ LoadResult load_scene_file(const std::string& path, const LoadOptions& options =
 // mesh files are found through options.base_dir.
 LoadResult load_scene_string(std::string_view json, const std::string& file_name, const LoadOptions& options = {});
 
-// One error per line, each formatted by SceneError::to_string; for stderr and HTTP bodies.
-std::string format_errors(const std::vector<SceneError>& errors);
+// One error per line, each Error::to_string and a newline; for stderr.
+std::string format_errors(const util::Errors& errors);
 
 }  // namespace dtraced::scene

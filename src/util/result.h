@@ -21,6 +21,11 @@
 namespace dtraced::util {
 
 struct Error {
+  Error() = default;
+  // Not explicit: `errors.push_back({message, path})` and `return Error{message}` read well.
+  Error(std::string message_, std::string path_ = {}, std::string file_ = {})  // NOLINT(google-explicit-constructor)
+      : message(std::move(message_)), path(std::move(path_)), file(std::move(file_)) {}
+
   std::string message;
   // JSON Pointer of the offending value ("/scene_objects/3/radius"), or an option name
   // ("--tile-size", "state_dir"); "" when no single value is at fault.

@@ -427,7 +427,7 @@ SubmitAnswer classify_submit(const http::ClientResult& result) {
     const auto decoded = protocol::decode_submit_result(response.body());
     if (!decoded) {
       // Probably stored, but it cannot be known: sending it again is harmless (already done).
-      return {SubmitVerdict::kRetry, fmt::format("malformed answer: {}", decoded.error().to_string())};
+      return {SubmitVerdict::kRetry, fmt::format("malformed answer: {}", decoded.error().front().to_string())};
     }
     if (decoded.value() == protocol::SubmitResult::kJobGone) return {SubmitVerdict::kJobGone, "job gone"};
     return {SubmitVerdict::kAcknowledged, std::string(protocol::to_string(decoded.value()))};
@@ -726,7 +726,7 @@ net::awaitable<LeaseAnswer> Worker::Impl::request_lease() {
   }
   auto reply = protocol::decode_lease_reply(result.response.body());
   if (!reply) {
-    answer.error = fmt::format("malformed lease reply: {}", reply.error().to_string());
+    answer.error = fmt::format("malformed lease reply: {}", reply.error().front().to_string());
     co_return answer;
   }
   if (auto* lease = std::get_if<protocol::Lease>(&reply.value())) {
