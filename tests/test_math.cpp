@@ -107,7 +107,7 @@ TEST_CASE("float_util: gamma bounds n roundings", "[math][float]") {
   }
 }
 
-TEST_CASE("rng: deterministic, key-sensitive, in [0, 1)", "[math][rng]") {
+TEST_CASE("rng: deterministic, key-sensitive, in the unit interval below 1", "[math][rng]") {
   const SampleKey k{42, 1, 10, 20, 3};
   CHECK(sample_hash(k, 0) == sample_hash(k, 0));
   CHECK(sample_uniform(k, 5) == sample_uniform(SampleKey{42, 1, 10, 20, 3}, 5));
