@@ -17,11 +17,9 @@
 #include <stdexcept>
 #include <string>
 #include <string_view>
-#include <type_traits>
 #include <utility>
 #include <variant>
 
-#include <boost/asio/as_tuple.hpp>
 #include <boost/asio/co_spawn.hpp>
 #include <boost/asio/experimental/awaitable_operators.hpp>
 #include <boost/asio/io_context.hpp>
@@ -30,10 +28,10 @@
 #include <boost/asio/steady_timer.hpp>
 #include <boost/asio/this_coro.hpp>
 #include <boost/asio/thread_pool.hpp>
-#include <boost/asio/use_awaitable.hpp>
 #include <boost/beast/http/field.hpp>
 #include <fmt/format.h>
 
+#include "async/async.h"
 #include "http/client.h"
 #include "http/types.h"
 #include "protocol/messages.h"
@@ -48,13 +46,16 @@
 namespace dtraced::worker {
 namespace {
 
-namespace net = boost::asio;
+namespace net = async::net;
 namespace bhttp = boost::beast::http;
 using namespace net::experimental::awaitable_operators;
+using async::Awaitable;
+using async::Event;
+using async::Executor;
+using async::kAwaitTuple;
+using async::Signal;
 using Clock = std::chrono::steady_clock;
 using TimePoint = Clock::time_point;
-
-constexpr auto kAwaitTuple = net::as_tuple(net::use_awaitable);
 
 // A failing collector is logged on the first failure of a run of failures and then every
 // kLogEveryNthFailure-th: an outage of an hour leaves a few dozen lines, not one per attempt.
@@ -63,17 +64,6 @@ constexpr std::uint32_t kLogEveryNthFailure = 10;
 constexpr std::size_t kMaxGoneJobs = 1024;
 // Bytes of an unexpected answer's body quoted in a log line.
 constexpr std::size_t kMaxQuotedBodyBytes = 200;
-
-void log_exception(std::string_view what, const std::exception_ptr& error) {
-  if (!error) return;
-  try {
-    std::rethrow_exception(error);
-  } catch (const std::exception& e) {
-    util::log_error("{} failed: {}", what, e.what());
-  } catch (...) {
-    util::log_error("{} failed with an unknown exception", what);
-  }
-}
 
 bool should_log_failure(std::uint32_t failures_in_a_row) {
   return failures_in_a_row == 1 || (failures_in_a_row > 0 && failures_in_a_row % kLogEveryNthFailure == 0);
@@ -95,65 +85,6 @@ std::string describe_answer(const http::Response& response) {
   }
   if (excerpt.empty()) return fmt::format("HTTP {}", status);
   return fmt::format("HTTP {}: {}", status, excerpt);
-}
-
-// Wakes every coroutine waiting on it: a condition variable for one thread (the idiom of Asio's
-// chat_server example: a timer that never expires, cancelled to notify). Waiters re-check their
-// condition after waking.
-class Signal {
- public:
-  explicit Signal(const net::any_io_executor& executor) : timer_(executor, TimePoint::max()) {}
-
-  void notify_all() { timer_.cancel(); }
-
-  // Returns after the next notify_all(), or when the awaiting coroutine is cancelled.
-  net::awaitable<void> wait() { co_await timer_.async_wait(kAwaitTuple); }
-
- private:
-  net::steady_timer timer_;
-};
-
-// A flag that, once set, stays set; setting it wakes its waiters.
-class Event {
- public:
-  explicit Event(const net::any_io_executor& executor) : signal_(executor) {}
-
-  void set() {
-    if (set_) return;
-    set_ = true;
-    signal_.notify_all();
-  }
-  bool is_set() const { return set_; }
-
-  // Returns once set, or when the awaiting coroutine is cancelled.
-  net::awaitable<void> wait() {
-    if (!set_) co_await signal_.wait();
-  }
-
- private:
-  Signal signal_;
-  bool set_ = false;
-};
-
-// Sleeps until `deadline`, or less if `wake` is set first.
-net::awaitable<void> sleep_until(TimePoint deadline, Event& wake) {
-  net::steady_timer timer(co_await net::this_coro::executor, deadline);
-  co_await (timer.async_wait(kAwaitTuple) || wake.wait());
-}
-
-// Runs f() on `pool` and resumes the awaiting coroutine on its own executor with the result (or
-// the exception). Rendering and scene building go through here: never on the event loop.
-//
-// `f` is taken by reference and must be a named local of the caller: GCC 12 destroys twice a
-// temporary (a closure with captures, say) passed by value to the call that a co_await awaits
-// (seen with g++ 12.2: `co_await g(S{})` and `co_await co_spawn(ex, [s = S{}] {...}, token)`
-// both run ~S twice), so no closure crosses a co_await here as a temporary.
-template <typename F>
-net::awaitable<std::invoke_result_t<F&>> on_pool(net::thread_pool& pool, F& f) {
-  using R = std::invoke_result_t<F&>;
-  const auto executor = pool.get_executor();
-  auto run = [&f]() -> net::awaitable<R> { co_return f(); };
-  co_return co_await net::co_spawn(executor, std::move(run), net::use_awaitable);
 }
 
 // When requests of one kind (leases, or submissions) may go out. After a failure the next
@@ -190,11 +121,11 @@ class RetryGate {
     bool probe_;
   };
 
-  RetryGate(const net::any_io_executor& executor, Backoff backoff, std::mt19937_64& rng)
+  RetryGate(const Executor& executor, Backoff backoff, std::mt19937_64& rng)
       : backoff_(backoff), rng_(rng), changed_(executor) {}
 
   // Waits until a request may go out; nullopt once `stop` is set.
-  net::awaitable<std::optional<Attempt>> enter(Event& stop) {
+  Awaitable<std::optional<Attempt>> enter(Event& stop) {
     const Ticket ticket(*this);
     for (;;) {
       if (stop.is_set()) co_return std::nullopt;
@@ -319,7 +250,7 @@ class InHand {
     InHand* owner_ = nullptr;
   };
 
-  InHand(const net::any_io_executor& executor, std::uint64_t limit) : limit_(limit), changed_(executor) {}
+  InHand(const Executor& executor, std::uint64_t limit) : limit_(limit), changed_(executor) {}
 
   bool full() const { return count_.load(std::memory_order_relaxed) >= limit_; }
   std::uint64_t count() const { return count_.load(std::memory_order_relaxed); }
@@ -392,7 +323,7 @@ struct SceneOutcome {
 
 // A fetch of one scene that other slots needing the same scene wait for.
 struct PendingScene {
-  explicit PendingScene(const net::any_io_executor& executor) : done(executor) {}
+  explicit PendingScene(const Executor& executor) : done(executor) {}
   Signal done;
   bool finished = false;
   SceneOutcome outcome;
@@ -484,16 +415,16 @@ struct Worker::Impl {
 
   // ---- the pipeline ----
 
-  net::awaitable<void> main_loop(RunOptions options);
-  net::awaitable<void> slot();
-  net::awaitable<std::optional<Work>> acquire();
-  net::awaitable<LeaseAnswer> request_lease();
-  net::awaitable<SceneOutcome> ensure_scene(std::string digest);
-  net::awaitable<SceneOutcome> fetch_scene(std::string digest);
-  net::awaitable<void> render_and_hand_off(Work work);
-  net::awaitable<void> submit(HeldTile tile);
-  net::awaitable<void> watch_signals();
-  net::awaitable<void> drain();
+  Awaitable<> main_loop(RunOptions options);
+  Awaitable<> slot();
+  Awaitable<std::optional<Work>> acquire();
+  Awaitable<LeaseAnswer> request_lease();
+  Awaitable<SceneOutcome> ensure_scene(std::string digest);
+  Awaitable<SceneOutcome> fetch_scene(std::string digest);
+  Awaitable<> render_and_hand_off(Work work);
+  Awaitable<> submit(HeldTile tile);
+  Awaitable<> watch_signals();
+  Awaitable<> drain();
 
   void begin_stop();
   bool drained() const {
@@ -549,10 +480,10 @@ struct Worker::Impl {
   std::atomic<std::uint64_t> tiles_held{0};
 };
 
-net::awaitable<void> Worker::Impl::main_loop(RunOptions options) {
+Awaitable<> Worker::Impl::main_loop(RunOptions options) {
   if (options.stop_on_signals) {
     signals.emplace(io, SIGTERM, SIGINT);
-    net::co_spawn(io, watch_signals(), [](std::exception_ptr e) { log_exception("the signal watcher", e); });
+    net::co_spawn(io, watch_signals(), async::log_failure("the signal watcher"));
   }
   started = true;
   if (notify_systemd) util::sd_notify_state("READY=1");
@@ -569,7 +500,7 @@ net::awaitable<void> Worker::Impl::main_loop(RunOptions options) {
     ++slots_live;
     net::co_spawn(io, slot(), [this](std::exception_ptr e) {
       if (e) {
-        log_exception("a render slot", e);
+        async::log_exception("a render slot", e);
         failed = true;
         begin_stop();
       }
@@ -579,7 +510,7 @@ net::awaitable<void> Worker::Impl::main_loop(RunOptions options) {
   }
 
   while (!stop.is_set()) co_await stop.wait();
-  co_await (drain() || sleep_until(stop_requested_at + config.grace, abandon));
+  co_await (drain() || async::sleep_until(util::real_clock(), stop_requested_at + config.grace, &abandon));
   if (!drained()) {
     if (!abandon.is_set()) {
       util::log_warn("the grace period of {} s is over: abandoning {} unacknowledged tiles ({} tiles in hand)",
@@ -599,7 +530,7 @@ net::awaitable<void> Worker::Impl::main_loop(RunOptions options) {
       read(tiles_rejected), read(tiles_abandoned), read(leases_dropped), read(lease_failures));
 }
 
-net::awaitable<void> Worker::Impl::drain() {
+Awaitable<> Worker::Impl::drain() {
   while (!drained()) co_await in_hand.changed().wait();
 }
 
@@ -613,7 +544,7 @@ void Worker::Impl::begin_stop() {
                  in_hand.count(), read(tiles_held), config.grace.count());
 }
 
-net::awaitable<void> Worker::Impl::watch_signals() {
+Awaitable<> Worker::Impl::watch_signals() {
   for (;;) {
     auto [ec, number] = co_await signals->async_wait(kAwaitTuple);
     if (ec) co_return;
@@ -629,7 +560,7 @@ net::awaitable<void> Worker::Impl::watch_signals() {
 }
 
 // One render thread's pipeline: while tile N renders on the pool, lease N + 1.
-net::awaitable<void> Worker::Impl::slot() {
+Awaitable<> Worker::Impl::slot() {
   std::optional<Work> next = co_await acquire();
   while (next && !stop.is_set()) {
     Work current = std::move(*next);
@@ -645,7 +576,7 @@ net::awaitable<void> Worker::Impl::slot() {
   if (next) count(leases_dropped);
 }
 
-net::awaitable<std::optional<Work>> Worker::Impl::acquire() {
+Awaitable<std::optional<Work>> Worker::Impl::acquire() {
   for (;;) {
     while (in_hand.full() && !stop.is_set()) co_await (in_hand.changed().wait() || stop.wait());
     std::optional<RetryGate::Attempt> attempt = co_await lease_gate.enter(stop);
@@ -699,7 +630,7 @@ void Worker::Impl::note_lease_success(RetryGate::Attempt& attempt) {
   }
 }
 
-net::awaitable<LeaseAnswer> Worker::Impl::request_lease() {
+Awaitable<LeaseAnswer> Worker::Impl::request_lease() {
   LeaseAnswer answer;
   http::Request request = authorized(http::make_request(
       http::Verb::post, "/v1/lease", protocol::encode(protocol::LeaseRequest{config.name, config.threads}),
@@ -738,7 +669,7 @@ net::awaitable<LeaseAnswer> Worker::Impl::request_lease() {
 }
 
 // The scene named `digest`, from the cache, or fetched once however many slots need it at once.
-net::awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
+Awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
   if (ScenePtr cached = scenes.find(digest)) co_return SceneOutcome{std::move(cached), /*stopped=*/false, {}};
   if (const auto it = fetching.find(digest); it != fetching.end()) {
     const std::shared_ptr<PendingScene> pending = it->second;
@@ -766,7 +697,7 @@ net::awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
   co_return outcome;
 }
 
-net::awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
+Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
   SceneOutcome outcome;
   http::Request request = authorized(http::make_request(http::Verb::get, fmt::format("/v1/scenes/{}", digest)));
   auto raced = co_await (http::request(url, std::move(request), config.timeouts, scene::kMaxSceneBytes) || stop.wait());
@@ -787,7 +718,7 @@ net::awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
   auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa] {
     return prepare_scene(body, digest, isa);
   };
-  PreparedScene prepared = co_await on_pool(pool, prepare);
+  PreparedScene prepared = co_await async::on_pool(pool, std::move(prepare));
   if (!prepared.scene) {
     count(scenes_rejected);
     util::log_error("refusing scene {}: {}", digest, prepared.error);
@@ -800,7 +731,7 @@ net::awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
   co_return outcome;
 }
 
-net::awaitable<void> Worker::Impl::render_and_hand_off(Work work) {
+Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
   const protocol::Lease& lease = work.lease;
   // The pool reads the lease and the scene while this coroutine waits: both outlive the wait.
   auto render = [&lease, &scene = *work.scene] {
@@ -810,7 +741,7 @@ net::awaitable<void> Worker::Impl::render_and_hand_off(Work work) {
     return protocol::encode_tile_payload(
         protocol::TilePayload{lease.job, lease.tile, lease.rect, std::move(tile.rgb), std::move(tile.spp)});
   };
-  std::string payload = co_await on_pool(pool, render);
+  std::string payload = co_await async::on_pool(pool, std::move(render));
   count(tiles_rendered);
   if (abandon.is_set()) {
     count(tiles_abandoned);
@@ -823,7 +754,7 @@ net::awaitable<void> Worker::Impl::render_and_hand_off(Work work) {
   count(tiles_held);
   net::co_spawn(io, submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation)}),
                 [this](std::exception_ptr e) {
-                  log_exception("submitting a tile", e);
+                  async::log_exception("submitting a tile", e);
                   tiles_held.fetch_sub(1, std::memory_order_relaxed);
                   in_hand.changed().notify_all();
                 });
@@ -831,7 +762,7 @@ net::awaitable<void> Worker::Impl::render_and_hand_off(Work work) {
 
 // Keeps one rendered tile until the collector acknowledges it, its job is gone, or the grace
 // period after a stop is over.
-net::awaitable<void> Worker::Impl::submit(HeldTile tile) {
+Awaitable<> Worker::Impl::submit(HeldTile tile) {
   const std::string target = fmt::format("/v1/jobs/{}/tiles/{}", tile.job, tile.tile);
   for (;;) {
     if (gone.contains(tile.job)) {
@@ -910,7 +841,7 @@ bool Worker::run(const RunOptions& options) {
   s.notify_systemd = options.notify_systemd;
   net::co_spawn(s.io, s.main_loop(options), [&s](std::exception_ptr e) {
     if (!e) return;
-    log_exception("the worker", e);
+    async::log_exception("the worker", e);
     s.failed = true;
     // Wind everything down: nothing is left to wait for it.
     s.begin_stop();
