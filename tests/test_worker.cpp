@@ -418,19 +418,19 @@ WorkerConfig test_config(std::uint16_t port) {
 // A Worker running on a thread of its own.
 class RunningWorker {
  public:
-  explicit RunningWorker(const WorkerConfig& config, RunOptions options = {}) : worker_(config) {
-    std::packaged_task<bool()> task([this, options] { return worker_.run(options); });
+  explicit RunningWorker(const WorkerConfig& config, RunOptions options = {}) : worker_(create(config)) {
+    std::packaged_task<bool()> task([this, options] { return worker_->run(options); });
     result_ = task.get_future();
     thread_ = std::thread(std::move(task));
   }
 
   ~RunningWorker() {
-    worker_.request_stop();
+    worker_->request_stop();
     if (thread_.joinable()) thread_.join();
   }
 
-  WorkerStats stats() const { return worker_.stats(); }
-  void request_stop() { worker_.request_stop(); }
+  WorkerStats stats() const { return worker_->stats(); }
+  void request_stop() { worker_->request_stop(); }
 
   // Waits (at most kBound) for run() to return; its result, or nullopt if it did not return.
   std::optional<bool> wait() {
@@ -446,7 +446,13 @@ class RunningWorker {
   }
 
  private:
-  Worker worker_;
+  static std::unique_ptr<Worker> create(const WorkerConfig& config) {
+    auto created = Worker::create(config);
+    REQUIRE(created.ok());
+    return std::move(created).value();
+  }
+
+  std::unique_ptr<Worker> worker_;
   std::future<bool> result_;
   std::thread thread_;
 };
@@ -639,13 +645,13 @@ TEST_CASE("prepare_scene builds a scene whose body matches its digest and refuse
 // ---- configuration -------------------------------------------------------------------------------
 
 TEST_CASE("worker configuration is validated field by field", "[worker][config]") {
-  const auto mentions = [](const std::vector<std::string>& errors, std::string_view field) {
-    for (const std::string& e : errors) {
-      if (e.starts_with(std::string(field) + ":")) return true;
+  const auto mentions = [](const dtraced::util::Errors& errors, std::string_view field) {
+    for (const dtraced::util::Error& e : errors) {
+      if (e.path == field && !e.message.empty() && e.to_string().starts_with(std::string(field) + ": ")) return true;
     }
     return false;
   };
-  const std::vector<std::string> defaults = dtraced::worker::validate(WorkerConfig{});
+  const dtraced::util::Errors defaults = dtraced::worker::validate(WorkerConfig{});
   CHECK(mentions(defaults, "collector_url"));
   CHECK(mentions(defaults, "token"));
   CHECK(defaults.size() == 2);
@@ -679,15 +685,21 @@ TEST_CASE("worker configuration is validated field by field", "[worker][config]"
   for (const Case& c : cases) {
     WorkerConfig config = good;
     c.change(config);
-    const std::vector<std::string> errors = dtraced::worker::validate(config);
+    const dtraced::util::Errors errors = dtraced::worker::validate(config);
     INFO(c.field);
     CHECK(errors.size() == 1);
     CHECK(mentions(errors, c.field));
   }
 
+  // Worker::create refuses what validate() refuses, with the same errors, and builds nothing.
   WorkerConfig bad = good;
   bad.scene_cache = 0;
-  CHECK_THROWS_AS(Worker(bad), std::invalid_argument);
+  bad.token.clear();
+  const auto refused = Worker::create(bad);
+  REQUIRE_FALSE(refused.ok());
+  CHECK(refused.error() == dtraced::worker::validate(bad));
+  CHECK(refused.error().size() == 2);
+  CHECK(Worker::create(good).ok());
 }
 
 TEST_CASE("worker defaults are resolved from the host", "[worker][config]") {

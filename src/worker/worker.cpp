@@ -14,7 +14,6 @@
 #include <optional>
 #include <random>
 #include <set>
-#include <stdexcept>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -382,17 +381,12 @@ std::uint64_t seed_from(std::uint64_t configured) {
   return (std::uint64_t{device()} << 32) ^ device();
 }
 
+// `text` has passed validate(): it parses.
 http::Url parse_url(const std::string& text) {
   std::string error;
   std::optional<http::Url> url = http::parse_base_url(text, error);
-  if (!url) throw std::invalid_argument(fmt::format("collector_url: {}", error));
+  assert(url);
   return *url;
-}
-
-std::string join_problems(const std::vector<std::string>& problems) {
-  std::string joined;
-  for (const std::string& problem : problems) joined += (joined.empty() ? "" : "; ") + problem;
-  return joined;
 }
 
 }  // namespace
@@ -826,11 +820,13 @@ Awaitable<> Worker::Impl::submit(HeldTile tile) {
 
 // ---- Worker ----------------------------------------------------------------------------------
 
-Worker::Worker(const WorkerConfig& config) {
-  const std::vector<std::string> problems = validate(config);
-  if (!problems.empty()) throw std::invalid_argument(join_problems(problems));
-  impl_ = std::make_unique<Impl>(resolve_defaults(config));
+util::Result<std::unique_ptr<Worker>, util::Errors> Worker::create(const WorkerConfig& config) {
+  util::Errors problems = validate(config);
+  if (!problems.empty()) return problems;
+  return std::unique_ptr<Worker>(new Worker(std::make_unique<Impl>(resolve_defaults(config))));
 }
+
+Worker::Worker(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 
 Worker::~Worker() = default;
 
@@ -885,14 +881,14 @@ WorkerStats Worker::stats() const {
 const WorkerConfig& Worker::config() const { return impl_->config; }
 
 int run_worker(const WorkerConfig& config) {
-  const std::vector<std::string> problems = validate(config);
-  if (!problems.empty()) {
-    for (const std::string& problem : problems) util::log_error("worker configuration: {}", problem);
-    return 2;
-  }
   try {
-    Worker worker(config);
-    return worker.run({.stop_on_signals = true, .notify_systemd = true}) ? 0 : 1;
+    auto worker = Worker::create(config);
+    if (!worker) {
+      for (const util::Error& problem : worker.error())
+        util::log_error("worker configuration: {}", problem.to_string());
+      return 2;
+    }
+    return worker.value()->run({.stop_on_signals = true, .notify_systemd = true}) ? 0 : 1;
   } catch (const std::exception& e) {
     util::log_error("worker: {}", e.what());
     return 1;

@@ -33,6 +33,7 @@
 #include <cstdint>
 #include <memory>
 
+#include "util/result.h"
 #include "worker/config.h"
 
 namespace dtraced::worker {
@@ -63,9 +64,9 @@ struct RunOptions {
 
 class Worker {
  public:
-  // Throws std::invalid_argument (listing every problem) unless validate(config) is empty.
-  // Host-dependent defaults are resolved here (see config()).
-  explicit Worker(const WorkerConfig& config);
+  // A worker for `config`, or every problem validate() finds in it (each Error's path names the
+  // option). Host-dependent defaults are resolved here (see config()).
+  static util::Result<std::unique_ptr<Worker>, util::Errors> create(const WorkerConfig& config);
   ~Worker();
   Worker(const Worker&) = delete;
   Worker& operator=(const Worker&) = delete;
@@ -86,6 +87,8 @@ class Worker {
 
  private:
   struct Impl;
+  explicit Worker(std::unique_ptr<Impl> impl);
+
   std::unique_ptr<Impl> impl_;
 };
 
