@@ -24,8 +24,6 @@
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/post.hpp>
 #include <boost/asio/signal_set.hpp>
-#include <boost/asio/steady_timer.hpp>
-#include <boost/asio/this_coro.hpp>
 #include <boost/asio/thread_pool.hpp>
 #include <boost/beast/http/field.hpp>
 #include <fmt/format.h>
@@ -53,8 +51,7 @@ using async::Event;
 using async::Executor;
 using async::kAwaitTuple;
 using async::Signal;
-using Clock = std::chrono::steady_clock;
-using TimePoint = Clock::time_point;
+using util::TimePoint;
 
 // A failing collector is logged on the first failure of a run of failures and then every
 // kLogEveryNthFailure-th: an outage of an hour leaves a few dozen lines, not one per attempt.
@@ -120,8 +117,8 @@ class RetryGate {
     bool probe_;
   };
 
-  RetryGate(const Executor& executor, Backoff backoff, std::mt19937_64& rng)
-      : backoff_(backoff), rng_(rng), changed_(executor) {}
+  RetryGate(const Executor& executor, const util::Clock& clock, Backoff backoff, std::mt19937_64& rng)
+      : clock_(clock), backoff_(backoff), rng_(rng), changed_(executor) {}
 
   // Waits until a request may go out; nullopt once `stop` is set.
   Awaitable<std::optional<Attempt>> enter(Event& stop) {
@@ -129,9 +126,8 @@ class RetryGate {
     for (;;) {
       if (stop.is_set()) co_return std::nullopt;
       const TimePoint not_before = std::max(backoff_until_, idle_until_);
-      if (Clock::now() < not_before) {
-        net::steady_timer timer(co_await net::this_coro::executor, not_before);
-        co_await (timer.async_wait(kAwaitTuple) || changed_.wait() || stop.wait());
+      if (clock_.now() < not_before) {
+        co_await (async::sleep_until(clock_, not_before, &stop) || changed_.wait());
         continue;
       }
       const bool probe = failures_ > 0 || idle_;
@@ -164,7 +160,7 @@ class RetryGate {
     if (attempt.round_ != round_) return 0;
     if (failures_ < std::numeric_limits<std::uint32_t>::max()) ++failures_;
     ++round_;
-    backoff_until_ = Clock::now() + backoff_.delay(failures_ - 1, rng_);
+    backoff_until_ = clock_.now() + backoff_.delay(failures_ - 1, rng_);
     changed_.notify_all();
     return failures_;
   }
@@ -172,7 +168,7 @@ class RetryGate {
   // The collector has no work: ask again (one request at a time) no sooner than `delay` from now.
   void idle_for(std::chrono::milliseconds delay) {
     idle_ = true;
-    idle_until_ = std::max(idle_until_, Clock::now() + delay);
+    idle_until_ = std::max(idle_until_, clock_.now() + delay);
   }
 
   // The collector has work again: every request may go out at once.
@@ -206,6 +202,7 @@ class RetryGate {
     const std::uint64_t number;
   };
 
+  const util::Clock& clock_;
   Backoff backoff_;
   std::mt19937_64& rng_;
   Signal changed_;  // failures, idleness or the probe changed
@@ -394,15 +391,16 @@ http::Url parse_url(const std::string& text) {
 // Everything here lives on the event loop (io), except the counters read by stats() and the
 // render pool's work, which sees only copies and the immutable scenes.
 struct Worker::Impl {
-  explicit Impl(WorkerConfig resolved)
+  Impl(WorkerConfig resolved, const util::Clock& clock)
       : config(std::move(resolved)),
+        clock(clock),
         url(parse_url(config.collector_url)),
         authorization("Bearer " + config.token),
         pool(config.threads),
         rng(seed_from(config.jitter_seed)),
         scenes(config.scene_cache),
-        lease_gate(io.get_executor(), Backoff(config.backoff_initial, config.backoff_max), rng),
-        submit_gate(io.get_executor(), Backoff(config.backoff_initial, config.backoff_max), rng),
+        lease_gate(io.get_executor(), clock, Backoff(config.backoff_initial, config.backoff_max), rng),
+        submit_gate(io.get_executor(), clock, Backoff(config.backoff_initial, config.backoff_max), rng),
         stop(io.get_executor()),
         abandon(io.get_executor()),
         in_hand(io.get_executor(), config.max_unacknowledged) {}
@@ -438,6 +436,7 @@ struct Worker::Impl {
   // ---- state (declaration order is construction order) ----
 
   const WorkerConfig config;
+  const util::Clock& clock;  // every time the worker reads and every sleep
   const http::Url url;
   const std::string authorization;
 
@@ -504,7 +503,7 @@ Awaitable<> Worker::Impl::main_loop(RunOptions options) {
   }
 
   while (!stop.is_set()) co_await stop.wait();
-  co_await (drain() || async::sleep_until(util::real_clock(), stop_requested_at + config.grace, &abandon));
+  co_await (drain() || async::sleep_until(clock, stop_requested_at + config.grace, &abandon));
   if (!drained()) {
     if (!abandon.is_set()) {
       util::log_warn("the grace period of {} s is over: abandoning {} unacknowledged tiles ({} tiles in hand)",
@@ -530,7 +529,7 @@ Awaitable<> Worker::Impl::drain() {
 
 void Worker::Impl::begin_stop() {
   if (stop.is_set()) return;
-  stop_requested_at = Clock::now();
+  stop_requested_at = clock.now();
   stopping = true;
   stop.set();
   if (notify_systemd) util::sd_notify_state("STOPPING=1");
@@ -820,10 +819,11 @@ Awaitable<> Worker::Impl::submit(HeldTile tile) {
 
 // ---- Worker ----------------------------------------------------------------------------------
 
-util::Result<std::unique_ptr<Worker>, util::Errors> Worker::create(const WorkerConfig& config) {
+util::Result<std::unique_ptr<Worker>, util::Errors> Worker::create(const WorkerConfig& config,
+                                                                   const util::Clock& clock) {
   util::Errors problems = validate(config);
   if (!problems.empty()) return problems;
-  return std::unique_ptr<Worker>(new Worker(std::make_unique<Impl>(resolve_defaults(config))));
+  return std::unique_ptr<Worker>(new Worker(std::make_unique<Impl>(resolve_defaults(config), clock)));
 }
 
 Worker::Worker(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
