@@ -135,7 +135,7 @@ int run_worker_role(const RoleArgs& a) {
   if (a.max_unacknowledged) w.max_unacknowledged = *a.max_unacknowledged;
   const auto problems = worker::validate(w);
   if (!problems.empty()) {
-    for (const auto& p : problems) fmt::print(stderr, "{}\n", p);
+    for (const auto& p : problems) fmt::print(stderr, "{}\n", p.to_string());
     return kExitUsage;
   }
   return worker::run_worker(w);

@@ -5,8 +5,10 @@
 
 #include <algorithm>
 #include <array>
+#include <string>
 #include <thread>
 #include <utility>
+#include <vector>
 
 #include <fmt/format.h>
 #include <fmt/ranges.h>
@@ -19,12 +21,17 @@ namespace {
 bool is_printable(char c) { return c >= 0x20 && c <= 0x7e; }
 bool is_visible(char c) { return c > 0x20 && c <= 0x7e; }
 
+// A problem with the option `field` (util::Error::path), so that it reads "field: message".
+void add_problem(util::Errors& errors, std::string_view field, std::string message) {
+  errors.push_back(util::Error{std::move(message), std::string(field), /*file=*/""});
+}
+
 template <typename Duration>
-void check_range(std::vector<std::string>& errors, std::string_view field, Duration value, Duration min, Duration max,
+void check_range(util::Errors& errors, std::string_view field, Duration value, Duration min, Duration max,
                  std::string_view unit) {
   if (value < min || value > max) {
-    errors.push_back(
-        fmt::format("{}: must be in [{}, {}] {} (got {})", field, min.count(), max.count(), unit, value.count()));
+    add_problem(errors, field,
+                fmt::format("must be in [{}, {}] {} (got {})", min.count(), max.count(), unit, value.count()));
   }
 }
 
@@ -43,44 +50,45 @@ std::string default_worker_name() {
   return name + pid;
 }
 
-std::vector<std::string> validate(const WorkerConfig& config) {
-  std::vector<std::string> errors;
+util::Errors validate(const WorkerConfig& config) {
+  util::Errors errors;
 
   std::string url_error;
   if (config.collector_url.empty()) {
-    errors.push_back("collector_url: required (http://host[:port])");
+    add_problem(errors, "collector_url", "required (http://host[:port])");
   } else if (!http::parse_base_url(config.collector_url, url_error)) {
-    errors.push_back(fmt::format("collector_url: {}", url_error));
+    add_problem(errors, "collector_url", url_error);
   }
 
   if (config.token.empty()) {
-    errors.push_back("token: required (the collector's bearer token)");
+    add_problem(errors, "token", "required (the collector's bearer token)");
   } else if (config.token.size() > kMaxTokenBytes) {
-    errors.push_back(fmt::format("token: longer than {} bytes", kMaxTokenBytes));
+    add_problem(errors, "token", fmt::format("longer than {} bytes", kMaxTokenBytes));
   } else if (!std::all_of(config.token.begin(), config.token.end(), is_visible)) {
-    errors.push_back("token: must be visible ASCII characters without spaces or line breaks");
+    add_problem(errors, "token", "must be visible ASCII characters without spaces or line breaks");
   }
 
   if (config.name.size() > protocol::kMaxWorkerNameBytes) {
-    errors.push_back(fmt::format("name: longer than {} bytes", protocol::kMaxWorkerNameBytes));
+    add_problem(errors, "name", fmt::format("longer than {} bytes", protocol::kMaxWorkerNameBytes));
   } else if (!std::all_of(config.name.begin(), config.name.end(), is_printable)) {
-    errors.push_back("name: must be printable ASCII characters");
+    add_problem(errors, "name", "must be printable ASCII characters");
   }
 
   if (config.threads > protocol::kMaxWorkerThreads) {
-    errors.push_back(
-        fmt::format("threads: at most {} (0 means every core; got {})", protocol::kMaxWorkerThreads, config.threads));
+    add_problem(errors, "threads",
+                fmt::format("at most {} (0 means every core; got {})", protocol::kMaxWorkerThreads, config.threads));
   }
   if (config.scene_cache < 1 || config.scene_cache > kMaxSceneCache) {
-    errors.push_back(
-        fmt::format("scene_cache: must be in [1, {}] scenes (got {})", kMaxSceneCache, config.scene_cache));
+    add_problem(errors, "scene_cache",
+                fmt::format("must be in [1, {}] scenes (got {})", kMaxSceneCache, config.scene_cache));
   }
   if (const auto supported = accel::supported_isas();
       std::find(supported.begin(), supported.end(), config.isa) == supported.end()) {
     std::vector<std::string_view> names;
     for (const accel::Isa i : supported) names.push_back(accel::isa_name(i));
-    errors.push_back(fmt::format("isa: {} is not supported by this CPU (supported: {})", accel::isa_name(config.isa),
-                                 fmt::join(names, ", ")));
+    add_problem(errors, "isa",
+                fmt::format("{} is not supported by this CPU (supported: {})", accel::isa_name(config.isa),
+                            fmt::join(names, ", ")));
   }
   check_range(errors, "grace", config.grace, std::chrono::seconds{0}, kMaxGrace, "s");
 
@@ -93,8 +101,9 @@ std::vector<std::string> validate(const WorkerConfig& config) {
               "ms");
 
   if (config.max_unacknowledged > kMaxUnacknowledged) {
-    errors.push_back(fmt::format("max_unacknowledged: at most {} tiles (0 means {} per thread; got {})",
-                                 kMaxUnacknowledged, kInHandPerThread, config.max_unacknowledged));
+    add_problem(errors, "max_unacknowledged",
+                fmt::format("at most {} tiles (0 means {} per thread; got {})", kMaxUnacknowledged, kInHandPerThread,
+                            config.max_unacknowledged));
   }
   return errors;
 }

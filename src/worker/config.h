@@ -1,8 +1,8 @@
 // dtraced::worker configuration: what a worker daemon is told, its defaults and its limits.
 //
-// Owns: the worker's options as plain values, their validation (every problem named by its field,
-// as "field: problem") and the defaults that depend on the host (name, thread count). The command
-// line fills a WorkerConfig from flags and a JSON file; the Worker takes a validated one.
+// Owns: the worker's options as plain values, their validation (every problem named by its field:
+// util::Error::path is the option's name in WorkerConfig) and the defaults that depend on the host (name, thread
+// count). The command line fills a WorkerConfig from flags and a JSON file; the Worker takes a validated one.
 //
 // Stateless functions over values: thread-safe.
 #pragma once
@@ -11,10 +11,10 @@
 #include <cstddef>
 #include <cstdint>
 #include <string>
-#include <vector>
 
 #include "accel/isa.h"
 #include "http/client.h"
+#include "util/result.h"
 
 namespace dtraced::worker {
 
@@ -62,9 +62,10 @@ struct WorkerConfig {
 // "hostname-pid", reduced to printable ASCII and to the protocol's name length.
 std::string default_worker_name();
 
-// Every problem with `config`, each "field: problem" (fields named as in WorkerConfig, e.g.
-// "collector_url", "timeouts.connect"); empty when it is valid.
-std::vector<std::string> validate(const WorkerConfig& config);
+// Every problem with `config`, each an Error whose path is the field named as in WorkerConfig (e.g.
+// "collector_url", "timeouts.connect"), so that to_string() reads "field: problem"; empty when it
+// is valid.
+util::Errors validate(const WorkerConfig& config);
 
 // `config` with its host-dependent defaults filled in: name, threads, max_unacknowledged.
 // Requires validate(config) to be empty.

@@ -25,6 +25,12 @@
 //    everything rendered is submitted within the grace period, after which what is left is
 //    abandoned and logged. A second signal abandons at once. Counters are logged at exit.
 //
+// Time: the worker reads time only through the util::Clock it is given, and sleeps only through
+// async::sleep_until on it: backoff delays, "retry after" waits, the grace period after a stop.
+// Tests give it a util::ManualClock and decide when a backoff or a grace period is over. The
+// socket deadlines inside http::Client (connect, write, read timeouts) stay in real time: they
+// bound what the kernel does with a connection, not a decision of the worker.
+//
 // Threading: run() turns the calling thread into the worker's event loop (all networking, all
 // state) and starts `threads` render threads that only render tiles and build scenes. The worker
 // shares nothing with other workers in the process: no global state.
@@ -33,6 +39,8 @@
 #include <cstdint>
 #include <memory>
 
+#include "util/clock.h"
+#include "util/result.h"
 #include "worker/config.h"
 
 namespace dtraced::worker {
@@ -63,9 +71,11 @@ struct RunOptions {
 
 class Worker {
  public:
-  // Throws std::invalid_argument (listing every problem) unless validate(config) is empty.
-  // Host-dependent defaults are resolved here (see config()).
-  explicit Worker(const WorkerConfig& config);
+  // A worker for `config`, or every problem validate() finds in it (each Error's path names the
+  // option). Host-dependent defaults are resolved here (see config()). `clock` (which must outlive
+  // the worker) is all the time the worker reads and sleeps on; see "Time" above.
+  static util::Result<std::unique_ptr<Worker>, util::Errors> create(const WorkerConfig& config,
+                                                                    const util::Clock& clock = util::real_clock());
   ~Worker();
   Worker(const Worker&) = delete;
   Worker& operator=(const Worker&) = delete;
@@ -86,6 +96,8 @@ class Worker {
 
  private:
   struct Impl;
+  explicit Worker(std::unique_ptr<Impl> impl);
+
   std::unique_ptr<Impl> impl_;
 };
 

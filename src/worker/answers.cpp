@@ -1,0 +1,84 @@
+#include "worker/answers.h"
+
+#include <utility>
+#include <variant>
+
+#include <fmt/format.h>
+
+namespace dtraced::worker {
+
+bool should_log_failure(std::uint32_t failures_in_a_row) {
+  return failures_in_a_row == 1 || (failures_in_a_row > 0 && failures_in_a_row % kLogEveryNthFailure == 0);
+}
+
+std::string describe_answer(const http::Response& response) {
+  const unsigned status = response.result_int();
+  const auto error = protocol::decode_error_body(response.body());
+  if (error) {
+    const protocol::ErrorBody& body = error.value();
+    if (body.field.empty()) return fmt::format("HTTP {}: {}", status, body.error);
+    return fmt::format("HTTP {}: {} (at {})", status, body.error, body.field);
+  }
+  std::string excerpt = response.body().substr(0, kMaxQuotedBodyBytes);
+  for (char& c : excerpt) {
+    if (c < 0x20 || c > 0x7e) c = '?';
+  }
+  if (excerpt.empty()) return fmt::format("HTTP {}", status);
+  return fmt::format("HTTP {}: {}", status, excerpt);
+}
+
+LeaseAnswer classify_lease(const http::ClientResult& result) {
+  LeaseAnswer answer;
+  if (!result.ok()) {
+    answer.error = result.message;
+    return answer;
+  }
+  if (result.response.result() == http::Status::unauthorized) {
+    answer.error = "token rejected (HTTP 401)";
+    answer.token_rejected = true;
+    return answer;
+  }
+  if (result.response.result() != http::Status::ok) {
+    answer.error = describe_answer(result.response);
+    return answer;
+  }
+  auto reply = protocol::decode_lease_reply(result.response.body());
+  if (!reply) {
+    answer.error = fmt::format("malformed lease reply: {}", reply.error().front().to_string());
+    return answer;
+  }
+  if (auto* lease = std::get_if<protocol::Lease>(&reply.value())) {
+    answer.lease = std::move(*lease);
+  } else {
+    answer.retry_after = std::chrono::milliseconds{std::get<protocol::RetryAfter>(reply.value()).ms};
+  }
+  return answer;
+}
+
+SubmitAnswer classify_submit(const http::ClientResult& result) {
+  if (!result.ok()) return {SubmitVerdict::kRetry, result.message};
+  const http::Response& response = result.response;
+  const unsigned status = response.result_int();
+  if (response.result() == http::Status::ok) {
+    const auto decoded = protocol::decode_submit_result(response.body());
+    if (!decoded) {
+      // Probably stored, but it cannot be known: sending it again is harmless (already done).
+      return {SubmitVerdict::kRetry, fmt::format("malformed answer: {}", decoded.error().front().to_string())};
+    }
+    if (decoded.value() == protocol::SubmitResult::kJobGone) return {SubmitVerdict::kJobGone, "job gone"};
+    return {SubmitVerdict::kAcknowledged, std::string(protocol::to_string(decoded.value()))};
+  }
+  if (response.result() == http::Status::gone) return {SubmitVerdict::kJobGone, describe_answer(response)};
+  if (response.result() == http::Status::unauthorized) {
+    return {SubmitVerdict::kRetry, "token rejected (HTTP 401)", /*token_rejected=*/true};
+  }
+  // Timeouts and rate limits are the collector's state, not the tile's.
+  if (response.result() == http::Status::request_timeout || response.result() == http::Status::too_many_requests ||
+      status >= 500) {
+    return {SubmitVerdict::kRetry, describe_answer(response)};
+  }
+  if (status >= 400) return {SubmitVerdict::kRejected, describe_answer(response)};
+  return {SubmitVerdict::kRetry, fmt::format("unexpected answer: {}", describe_answer(response))};
+}
+
+}  // namespace dtraced::worker

@@ -1,0 +1,99 @@
+// The worker's life: start the render slots, wait for a stop (request_stop, or a signal), then
+// give what is in hand the grace period, on the worker's clock, to be acknowledged.
+
+#include <signal.h>
+
+#include <cstdint>
+#include <exception>
+
+#include <boost/asio/co_spawn.hpp>
+#include <boost/asio/experimental/awaitable_operators.hpp>
+
+#include "util/log.h"
+#include "util/sd_notify.h"
+#include "worker/worker_impl.h"
+
+namespace dtraced::worker {
+
+using namespace async::net::experimental::awaitable_operators;
+
+async::Awaitable<> Worker::Impl::main_loop(RunOptions options) {
+  if (options.stop_on_signals) {
+    signals.emplace(io, SIGTERM, SIGINT);
+    async::net::co_spawn(io, watch_signals(), async::log_failure("the signal watcher"));
+  }
+  started = true;
+  if (notify_systemd) util::sd_notify_state("READY=1");
+  util::log_info(
+      "worker {} started: collector {}, {} render threads ({} kernels), up to {} tiles in hand, {} scenes cached",
+      config.name, url.to_string(), config.threads, accel::isa_name(config.isa), config.max_unacknowledged,
+      config.scene_cache);
+  if (config.max_unacknowledged < 2 * std::uint64_t{config.threads}) {
+    util::log_warn("max_unacknowledged {} is below 2 x {} threads: some threads will wait for the network",
+                   config.max_unacknowledged, config.threads);
+  }
+
+  for (std::uint32_t i = 0; i < config.threads; ++i) {
+    ++slots_live;
+    async::net::co_spawn(io, slot(), [this](std::exception_ptr e) {
+      if (e) {
+        async::log_exception("a render slot", e);
+        failed = true;
+        begin_stop();
+      }
+      --slots_live;
+      in_hand.changed().notify_all();
+    });
+  }
+
+  while (!stop.is_set()) co_await stop.wait();
+  co_await (drain() || async::sleep_until(clock, stop_requested_at + config.grace, &abandon));
+  if (!drained()) {
+    if (!abandon.is_set()) {
+      util::log_warn("the grace period of {} s is over: abandoning {} unacknowledged tiles ({} tiles in hand)",
+                     config.grace.count(), tiles_held.get(), in_hand.count());
+      abandon.set();
+    }
+    co_await drain();
+  }
+  if (signals) {
+    boost::system::error_code ignored;
+    signals->cancel(ignored);
+  }
+  util::log_info(
+      "worker {} stopped: {} tiles rendered, {} submitted, {} retries; {} dropped (job gone), {} rejected, "
+      "{} abandoned; {} leases dropped, {} lease failures",
+      config.name, tiles_rendered.get(), tiles_submitted.get(), submit_retries.get(), tiles_dropped.get(),
+      tiles_rejected.get(), tiles_abandoned.get(), leases_dropped.get(), lease_failures.get());
+}
+
+async::Awaitable<> Worker::Impl::drain() {
+  while (!drained()) co_await in_hand.changed().wait();
+}
+
+void Worker::Impl::begin_stop() {
+  if (stop.is_set()) return;
+  stop_requested_at = clock.now();
+  stopping = true;
+  stop.set();
+  if (notify_systemd) util::sd_notify_state("STOPPING=1");
+  util::log_info("stopping: no more leases; {} tiles in hand ({} awaiting acknowledgement), {} s to submit them",
+                 in_hand.count(), tiles_held.get(), config.grace.count());
+}
+
+async::Awaitable<> Worker::Impl::watch_signals() {
+  for (;;) {
+    auto [ec, number] = co_await signals->async_wait(async::kAwaitTuple);
+    if (ec) co_return;
+    const char* name = number == SIGTERM ? "SIGTERM" : "SIGINT";
+    if (!stop.is_set()) {
+      util::log_info("{} received", name);
+      begin_stop();
+    } else if (!abandon.is_set()) {
+      util::log_warn("{} received again: abandoning {} unacknowledged tiles now", name, tiles_held.get());
+      abandon.set();
+    }
+  }
+}
+
+}  // namespace dtraced::worker

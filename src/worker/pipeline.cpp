@@ -1,0 +1,200 @@
+// A render slot's pipeline: lease a tile, make sure its scene is built (by digest, fetched once
+// however many slots need it), render it on the pool, and hand the pixels to submission.
+
+#include <exception>
+#include <memory>
+#include <optional>
+#include <string>
+#include <utility>
+#include <variant>
+
+#include <boost/asio/co_spawn.hpp>
+#include <boost/asio/experimental/awaitable_operators.hpp>
+#include <fmt/format.h>
+
+#include "protocol/tile_payload.h"
+#include "render/tile.h"
+#include "scene/load.h"
+#include "util/log.h"
+#include "worker/backoff.h"
+#include "worker/worker_impl.h"
+
+namespace dtraced::worker {
+
+using namespace async::net::experimental::awaitable_operators;
+
+// One render thread's pipeline: while tile N renders on the pool, lease N + 1.
+async::Awaitable<> Worker::Impl::slot() {
+  std::optional<Work> next = co_await acquire();
+  while (next && !stop.is_set()) {
+    Work current = std::move(*next);
+    next.reset();
+    if (gone.contains(current.lease.job)) {
+      leases_dropped.add();
+      next = co_await acquire();
+      continue;
+    }
+    next = co_await (render_and_hand_off(std::move(current)) && acquire());
+  }
+  // A lease held but not started is simply dropped: the collector offers it again.
+  if (next) leases_dropped.add();
+}
+
+async::Awaitable<std::optional<Work>> Worker::Impl::acquire() {
+  for (;;) {
+    while (in_hand.full() && !stop.is_set()) co_await (in_hand.changed().wait() || stop.wait());
+    std::optional<RetryGate::Attempt> attempt = co_await lease_gate.enter(stop);
+    if (!attempt) co_return std::nullopt;
+    if (in_hand.full()) continue;  // others filled it while this one waited at the gate
+
+    InHand::Reservation reservation = in_hand.reserve();
+    std::optional<LeaseAnswer> answered = co_await request_lease();
+    if (!answered) co_return std::nullopt;
+    LeaseAnswer& answer = *answered;
+    if (!answer.error.empty()) {
+      note_lease_failure(*attempt, answer.error, answer.token_rejected);
+      continue;
+    }
+    if (answer.retry_after) {
+      note_lease_success(*attempt);
+      lease_gate.idle_for(jittered_retry_after(*answer.retry_after, rng));
+      continue;
+    }
+    lease_gate.busy();
+    protocol::Lease lease = std::move(*answer.lease);
+    // The collector is the authority: a job it leases out is not gone (any more).
+    gone.remove(lease.job);
+    SceneOutcome scene = co_await ensure_scene(lease.digest);
+    if (!scene.scene) {
+      leases_dropped.add();
+      if (scene.stopped) co_return std::nullopt;
+      note_lease_failure(*attempt, scene.error, /*token_rejected=*/false);
+      continue;
+    }
+    note_lease_success(*attempt);
+    co_return Work{std::move(lease), std::move(scene.scene), std::move(reservation)};
+  }
+}
+
+void Worker::Impl::note_lease_failure(RetryGate::Attempt& attempt, const std::string& message, bool token_rejected) {
+  lease_failures.add();
+  const std::uint32_t in_a_row = lease_gate.failed(attempt);
+  if (!should_log_failure(in_a_row)) return;
+  if (token_rejected) {
+    util::log_error("token rejected by the collector {} ({} failed attempts in a row); retrying with backoff",
+                    url.to_string(), in_a_row);
+  } else {
+    util::log_warn("no lease from {} ({} failed attempts in a row): {}; retrying with backoff", url.to_string(),
+                   in_a_row, message);
+  }
+}
+
+void Worker::Impl::note_lease_success(RetryGate::Attempt& attempt) {
+  if (const std::uint32_t ended = lease_gate.succeeded(attempt); ended > 0) {
+    util::log_info("the collector {} answers leases again after {} failures", url.to_string(), ended);
+  }
+}
+
+async::Awaitable<std::optional<LeaseAnswer>> Worker::Impl::request_lease() {
+  http::Request request = authorized(http::make_request(
+      http::Verb::post, "/v1/lease", protocol::encode(protocol::LeaseRequest{config.name, config.threads}),
+      http::kJsonContentType));
+  auto raced =
+      co_await (http::request(url, std::move(request), config.timeouts, protocol::kMaxMessageBytes) || stop.wait());
+  if (raced.index() == 1 || stop.is_set()) co_return std::nullopt;
+  co_return classify_lease(std::get<0>(raced));
+}
+
+// The scene named `digest`, from the cache, or fetched once however many slots need it at once.
+async::Awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
+  if (ScenePtr cached = scenes.find(digest)) co_return SceneOutcome{std::move(cached), /*stopped=*/false, {}};
+  if (const auto it = fetching.find(digest); it != fetching.end()) {
+    const std::shared_ptr<PendingScene> pending = it->second;
+    while (!pending->finished && !stop.is_set()) co_await (pending->done.wait() || stop.wait());
+    if (!pending->finished) co_return SceneOutcome{nullptr, /*stopped=*/true, {}};
+    co_return pending->outcome;
+  }
+
+  const auto pending = std::make_shared<PendingScene>(io.get_executor());
+  fetching.emplace(digest, pending);
+  SceneOutcome outcome;
+  std::exception_ptr error;
+  try {
+    outcome = co_await fetch_scene(digest);
+  } catch (...) {
+    error = std::current_exception();
+    outcome.error = "fetching the scene failed with an internal error";
+  }
+  if (outcome.scene) scenes.insert(digest, outcome.scene);
+  pending->outcome = outcome;
+  pending->finished = true;
+  pending->done.notify_all();
+  fetching.erase(digest);
+  if (error) std::rethrow_exception(error);
+  co_return outcome;
+}
+
+async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
+  SceneOutcome outcome;
+  http::Request request = authorized(http::make_request(http::Verb::get, fmt::format("/v1/scenes/{}", digest)));
+  auto raced = co_await (http::request(url, std::move(request), config.timeouts, scene::kMaxSceneBytes) || stop.wait());
+  if (raced.index() == 1 || stop.is_set()) {
+    outcome.stopped = true;
+    co_return outcome;
+  }
+  http::ClientResult& result = std::get<0>(raced);
+  if (!result.ok()) {
+    outcome.error = fmt::format("fetching scene {}: {}", digest, result.message);
+    co_return outcome;
+  }
+  if (result.response.result() != http::Status::ok) {
+    outcome.error = fmt::format("fetching scene {}: {}", digest, describe_answer(result.response));
+    co_return outcome;
+  }
+  const std::size_t bytes = result.response.body().size();
+  auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa] {
+    return prepare_scene(body, digest, isa);
+  };
+  PreparedScene prepared = co_await async::on_pool(pool, std::move(prepare));
+  if (!prepared.scene) {
+    scenes_rejected.add();
+    util::log_error("refusing scene {}: {}", digest, prepared.error);
+    outcome.error = std::move(prepared.error);
+    co_return outcome;
+  }
+  scenes_fetched.add();
+  util::log_info("scene {} fetched ({} bytes), verified and built", digest, bytes);
+  outcome.scene = std::move(prepared.scene);
+  co_return outcome;
+}
+
+async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
+  const protocol::Lease& lease = work.lease;
+  // The pool reads the lease and the scene while this coroutine waits: both outlive the wait.
+  auto render = [&lease, &scene = *work.scene] {
+    render::Tile tile = render::render_tile(scene, lease.settings, lease.rect);
+    // With adaptive sampling the counts travel too (flag bit 0): the collector checks them and
+    // keeps them with the pixels.
+    return protocol::encode_tile_payload(
+        protocol::TilePayload{lease.job, lease.tile, lease.rect, std::move(tile.rgb), std::move(tile.spp)});
+  };
+  std::string payload = co_await async::on_pool(pool, std::move(render));
+  tiles_rendered.add();
+  if (abandon.is_set()) {
+    tiles_abandoned.add();
+    co_return;
+  }
+  if (gone.contains(lease.job)) {
+    tiles_dropped.add();
+    co_return;
+  }
+  tiles_held.add();
+  async::net::co_spawn(io, submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation)}),
+                       [this](std::exception_ptr e) {
+                         async::log_exception("submitting a tile", e);
+                         tiles_held.remove();
+                         in_hand.changed().notify_all();
+                       });
+}
+
+}  // namespace dtraced::worker

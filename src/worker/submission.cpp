@@ -1,0 +1,81 @@
+// Submission: a rendered tile is kept and sent through the submit gate until the collector
+// acknowledges it, its job is gone, or the grace period after a stop is over.
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include <boost/asio/experimental/awaitable_operators.hpp>
+#include <fmt/format.h>
+
+#include "util/log.h"
+#include "worker/worker_impl.h"
+
+namespace dtraced::worker {
+
+using namespace async::net::experimental::awaitable_operators;
+
+// Keeps one rendered tile until the collector acknowledges it, its job is gone, or the grace
+// period after a stop is over.
+async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
+  const std::string target = fmt::format("/v1/jobs/{}/tiles/{}", tile.job, tile.tile);
+  for (;;) {
+    if (gone.contains(tile.job)) {
+      tiles_dropped.add();
+      co_return;
+    }
+    std::optional<RetryGate::Attempt> attempt = co_await submit_gate.enter(abandon);
+    if (!attempt) {
+      tiles_abandoned.add();
+      co_return;
+    }
+    if (gone.contains(tile.job)) {
+      tiles_dropped.add();
+      co_return;
+    }
+    http::Request request =
+        authorized(http::make_request(http::Verb::put, target, tile.payload, http::kBinaryContentType));
+    request.set(protocol::kWorkerHeader, config.name);
+    auto raced = co_await (http::request(url, std::move(request), config.timeouts, protocol::kMaxMessageBytes) ||
+                           abandon.wait());
+    if (raced.index() == 1 || abandon.is_set()) {
+      tiles_abandoned.add();
+      co_return;
+    }
+    const SubmitAnswer answer = classify_submit(std::get<0>(raced));
+    if (answer.verdict != SubmitVerdict::kRetry) {
+      if (const std::uint32_t ended = submit_gate.succeeded(*attempt); ended > 0) {
+        util::log_info("the collector {} takes tiles again after {} failures", url.to_string(), ended);
+      }
+    }
+    switch (answer.verdict) {
+      case SubmitVerdict::kAcknowledged:
+        tiles_submitted.add();
+        co_return;
+      case SubmitVerdict::kJobGone:
+        if (!gone.contains(tile.job)) {
+          util::log_info("job {} is gone ({}): dropping its tiles and leases", tile.job, answer.message);
+          gone.add(tile.job);
+        }
+        tiles_dropped.add();
+        co_return;
+      case SubmitVerdict::kRejected:
+        tiles_rejected.add();
+        util::log_error(
+            "the collector refused tile {} of job {} ({}): dropping it; sending it again cannot help, so this is a "
+            "bug in the worker or the collector",
+            tile.tile, tile.job, answer.message);
+        co_return;
+      case SubmitVerdict::kRetry:
+        break;
+    }
+    submit_retries.add();
+    const std::uint32_t in_a_row = submit_gate.failed(*attempt);
+    if (should_log_failure(in_a_row)) {
+      util::log_warn("{} submitting to {} ({} failed attempts in a row); keeping {} tiles and retrying with backoff",
+                     answer.token_rejected ? "token rejected" : answer.message, url.to_string(), in_a_row,
+                     tiles_held.get());
+    }
+  }
+}
+
+}  // namespace dtraced::worker

@@ -1,0 +1,153 @@
+// dtraced::worker internals: the state of a running Worker and the coroutines that share it,
+// declared once and defined by concern:
+//   worker.cpp      construction, run(), stats(), run_worker()
+//   lifecycle.cpp   the main loop, signals, and the stop sequence with its grace period
+//   pipeline.cpp    a render slot: lease, scene by digest, render on the pool, hand-off
+//   submission.cpp  keeping a rendered tile until the collector acknowledges it
+// Private to src/worker: worker.h is the module's interface, and the only header that sees Asio
+// types is this one (and those of retry_gate.h and in_hand.h, which it includes).
+//
+// Thread safety: everything lives on the event loop (io), except the counters read by stats()
+// and the render pool's work, which sees only copies and the immutable scenes.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <random>
+#include <string>
+
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/signal_set.hpp>
+#include <boost/asio/thread_pool.hpp>
+#include <boost/beast/http/field.hpp>
+
+#include "async/async.h"
+#include "http/client.h"
+#include "http/types.h"
+#include "protocol/messages.h"
+#include "util/clock.h"
+#include "worker/answers.h"
+#include "worker/in_hand.h"
+#include "worker/retry_gate.h"
+#include "worker/scene_cache.h"
+#include "worker/worker.h"
+
+namespace dtraced::worker {
+
+// A lease ready to render: its scene is built.
+struct Work {
+  protocol::Lease lease;
+  ScenePtr scene;
+  InHand::Reservation reservation;
+};
+
+// A rendered tile awaiting its acknowledgement.
+struct HeldTile {
+  std::uint64_t job = 0;
+  std::uint32_t tile = 0;
+  std::string payload;  // protocol::encode_tile_payload
+  InHand::Reservation reservation;
+};
+
+struct SceneOutcome {
+  ScenePtr scene;        // set on success
+  bool stopped = false;  // the worker is stopping; nobody needs the scene now
+  std::string error;     // why not, otherwise
+};
+
+// A fetch of one scene that other slots needing the same scene wait for.
+struct PendingScene {
+  explicit PendingScene(const async::Executor& executor) : done(executor) {}
+  async::Signal done;
+  bool finished = false;
+  SceneOutcome outcome;
+};
+
+// A count the event loop changes and stats() reads from any thread.
+class Counter {
+ public:
+  void add() { n_.fetch_add(1, std::memory_order_relaxed); }
+  void remove() { n_.fetch_sub(1, std::memory_order_relaxed); }
+  std::uint64_t get() const { return n_.load(std::memory_order_relaxed); }
+
+ private:
+  std::atomic<std::uint64_t> n_{0};
+};
+
+struct Worker::Impl {
+  Impl(WorkerConfig resolved, const util::Clock& clock);
+
+  // ---- lifecycle.cpp: start, signals, stop ----
+
+  async::Awaitable<> main_loop(RunOptions options);
+  async::Awaitable<> watch_signals();
+  async::Awaitable<> drain();
+  void begin_stop();
+  bool drained() const { return slots_live == 0 && in_hand.count() == 0 && tiles_held.get() == 0; }
+
+  // ---- pipeline.cpp: lease, scene, render ----
+
+  async::Awaitable<> slot();
+  async::Awaitable<std::optional<Work>> acquire();
+  // nullopt when the worker stopped first.
+  async::Awaitable<std::optional<LeaseAnswer>> request_lease();
+  async::Awaitable<SceneOutcome> ensure_scene(std::string digest);
+  async::Awaitable<SceneOutcome> fetch_scene(std::string digest);
+  async::Awaitable<> render_and_hand_off(Work work);
+  void note_lease_failure(RetryGate::Attempt& attempt, const std::string& message, bool token_rejected);
+  void note_lease_success(RetryGate::Attempt& attempt);
+
+  // ---- submission.cpp ----
+
+  async::Awaitable<> submit(HeldTile tile);
+
+  http::Request authorized(http::Request request) const {
+    request.set(boost::beast::http::field::authorization, authorization);
+    return request;
+  }
+
+  // ---- state (declaration order is construction order) ----
+
+  const WorkerConfig config;
+  const util::Clock& clock;  // every time the worker reads and every sleep
+  const http::Url url;
+  const std::string authorization;
+
+  async::net::io_context io{1};  // run by one thread: run()'s caller
+  async::net::thread_pool pool;  // render threads
+  std::mt19937_64 rng;           // retry jitter
+  SceneCache scenes;
+  std::map<std::string, std::shared_ptr<PendingScene>, std::less<>> fetching;
+  RetryGate lease_gate;
+  RetryGate submit_gate;
+  async::Event stop;     // no more leases
+  async::Event abandon;  // stop submitting: the grace period is over
+  InHand in_hand;
+  GoneJobs gone;
+  std::optional<async::net::signal_set> signals;
+  util::TimePoint stop_requested_at;
+  std::uint32_t slots_live = 0;
+  bool notify_systemd = false;
+  bool ran = false;
+  bool failed = false;
+
+  std::atomic<bool> started{false};
+  std::atomic<bool> stopping{false};
+  Counter tiles_rendered;
+  Counter tiles_submitted;
+  Counter tiles_dropped;
+  Counter tiles_rejected;
+  Counter tiles_abandoned;
+  Counter submit_retries;
+  Counter lease_failures;
+  Counter leases_dropped;
+  Counter scenes_fetched;
+  Counter scenes_rejected;
+  Counter tiles_held;
+};
+
+}  // namespace dtraced::worker

@@ -1,0 +1,545 @@
+// dtraced::worker, unit by unit, without sockets: backoff bounds and jitter, the scene cache and
+// its verification, configuration, the retry gate on a util::ManualClock (a backoff ends when the
+// test moves the clock, not after real time), and what a collector's answers mean.
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <limits>
+#include <memory>
+#include <optional>
+#include <random>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include <boost/asio/co_spawn.hpp>
+#include <boost/asio/io_context.hpp>
+#include <catch2/catch.hpp>
+#include <fmt/format.h>
+
+#include "async/async.h"
+#include "http/client.h"
+#include "http/types.h"
+#include "protocol/messages.h"
+#include "render/tile.h"
+#include "scene/digest.h"
+#include "util/clock.h"
+#include "worker/answers.h"
+#include "worker/backoff.h"
+#include "worker/config.h"
+#include "worker/retry_gate.h"
+#include "worker/scene_cache.h"
+#include "worker/worker.h"
+#include "worker_testing.h"
+
+namespace net = boost::asio;
+using namespace dtraced;
+using namespace dtraced::testing;
+using worker::Backoff;
+using worker::SceneCache;
+using worker::ScenePtr;
+using worker::WorkerConfig;
+
+// ---- backoff -------------------------------------------------------------------------------------
+
+TEST_CASE("backoff caps double from the initial delay up to the maximum and stay there", "[worker][backoff]") {
+  const Backoff backoff(100ms, 10s);
+  CHECK(backoff.cap(0) == 100ms);
+  CHECK(backoff.cap(1) == 200ms);
+  CHECK(backoff.cap(2) == 400ms);
+  CHECK(backoff.cap(6) == 6400ms);
+  CHECK(backoff.cap(7) == 10s);
+  CHECK(backoff.cap(1000) == 10s);
+  CHECK(backoff.cap(std::numeric_limits<std::uint32_t>::max()) == 10s);
+  for (std::uint32_t n = 0; n < 200; ++n) {
+    CHECK(backoff.cap(n) <= backoff.cap(n + 1));
+    CHECK(backoff.cap(n) <= 10s);
+  }
+  // A maximum that is not a power-of-two multiple of the initial delay is reached exactly.
+  const Backoff odd(3ms, 100ms);
+  CHECK(odd.cap(5) == 96ms);
+  CHECK(odd.cap(6) == 100ms);
+  const Backoff flat(50ms, 50ms);
+  CHECK(flat.cap(0) == 50ms);
+  CHECK(flat.cap(9) == 50ms);
+}
+
+TEST_CASE("backoff delays are full jitter within [0, cap] and follow the seed", "[worker][backoff]") {
+  const Backoff backoff(100ms, 10s);
+  std::mt19937_64 rng(1234);
+  for (std::uint32_t n : {0u, 1u, 3u, 7u, 50u}) {
+    const auto cap = backoff.cap(n);
+    auto low = cap, high = 0ms;
+    for (int i = 0; i < 2000; ++i) {
+      const auto d = backoff.delay(n, rng);
+      REQUIRE(d >= 0ms);
+      REQUIRE(d <= cap);
+      low = std::min(low, d);
+      high = std::max(high, d);
+    }
+    // Spread over the window, not bunched at one end.
+    CHECK(low < cap / 4);
+    CHECK(high > cap * 3 / 4);
+  }
+  std::mt19937_64 a(99), b(99), c(100);
+  std::vector<std::int64_t> da, db, dc;
+  for (int i = 0; i < 20; ++i) {
+    da.push_back(backoff.delay(10, a).count());
+    db.push_back(backoff.delay(10, b).count());
+    dc.push_back(backoff.delay(10, c).count());
+  }
+  CHECK(da == db);
+  CHECK(da != dc);
+}
+
+TEST_CASE("retry-after jitter never comes back sooner than asked, nor much later", "[worker][backoff]") {
+  std::mt19937_64 rng(7);
+  for (int i = 0; i < 1000; ++i) {
+    const auto d = worker::jittered_retry_after(500ms, rng);
+    REQUIRE(d >= 500ms);
+    REQUIRE(d <= 750ms);
+    const auto zero = worker::jittered_retry_after(0ms, rng);
+    REQUIRE(zero >= worker::kMinRetryAfter);
+    REQUIRE(zero <= worker::kMinRetryAfter * 3 / 2);
+  }
+}
+
+// ---- scene cache -------------------------------------------------------------------------------
+
+TEST_CASE("the scene cache is bounded and evicts the least recently used scene", "[worker][scene_cache]") {
+  SceneCache cache(2);
+  const ScenePtr a = build(other_scene(0.5)), b = build(other_scene(0.6)), c = build(other_scene(0.7));
+  cache.insert("a", a);
+  cache.insert("b", b);
+  CHECK(cache.size() == 2);
+  CHECK(cache.find("a") == a);  // a is now the most recently used
+  cache.insert("c", c);         // evicts b
+  CHECK(cache.size() == 2);
+  CHECK(cache.contains("a"));
+  CHECK_FALSE(cache.contains("b"));
+  CHECK(cache.find("b") == nullptr);
+  CHECK(cache.find("c") == c);
+
+  // contains() does not count as a use: a stays the least recently used and goes next.
+  CHECK(cache.contains("a"));
+  cache.insert("b", b);
+  CHECK_FALSE(cache.contains("a"));
+  CHECK(cache.contains("b"));
+  CHECK(cache.contains("c"));
+
+  // Inserting a cached digest replaces it and makes it the most recently used.
+  cache.insert("c", a);
+  CHECK(cache.find("c") == a);
+  cache.insert("d", b);
+  CHECK(cache.contains("c"));
+  CHECK_FALSE(cache.contains("b"));
+  CHECK(cache.size() == 2);
+}
+
+TEST_CASE("an evicted scene stays alive while a render still uses it", "[worker][scene_cache]") {
+  SceneCache cache(1);
+  ScenePtr in_use = build(other_scene(0.5));
+  std::weak_ptr<const render::RenderScene> watch = in_use;
+  cache.insert("a", in_use);
+  cache.insert("b", build(other_scene(0.6)));
+  CHECK_FALSE(cache.contains("a"));
+  CHECK_FALSE(watch.expired());
+  in_use.reset();
+  CHECK(watch.expired());
+}
+
+TEST_CASE("prepare_scene builds a scene whose body matches its digest and refuses any other", "[worker][scene_cache]") {
+  const scene::SceneDesc desc = load_tiny_scene();
+  const std::string canonical = scene::canonical_json(desc);
+  const std::string digest = scene::scene_digest(desc);
+
+  SECTION("the canonical body renders exactly as the scene built locally") {
+    const worker::PreparedScene prepared = worker::prepare_scene(canonical, digest, accel::best_isa());
+    REQUIRE(prepared.scene != nullptr);
+    CHECK(prepared.error.empty());
+    const scene::TileRect rect{16, 0, 16, 16};
+    CHECK(same_bits(render::render_tile(*prepared.scene, desc.render, rect).rgb,
+                    render::render_tile(*build(desc), desc.render, rect).rgb));
+  }
+  SECTION("a body with other whitespace but the same scene is accepted") {
+    CHECK(worker::prepare_scene(kTinyScene, digest, accel::best_isa()).scene != nullptr);
+  }
+  SECTION("a tampered body is refused") {
+    std::string tampered = canonical;
+    const std::size_t at = tampered.find("\"radius\":1");
+    REQUIRE(at != std::string::npos);
+    tampered.replace(at, 10, "\"radius\":2");
+    const worker::PreparedScene prepared = worker::prepare_scene(tampered, digest, accel::best_isa());
+    CHECK(prepared.scene == nullptr);
+    CHECK_THAT(prepared.error, Catch::Contains("another scene"));
+  }
+  SECTION("a body that does not load is refused") {
+    const worker::PreparedScene prepared = worker::prepare_scene(canonical.substr(0, 40), digest, accel::best_isa());
+    CHECK(prepared.scene == nullptr);
+    CHECK_THAT(prepared.error, Catch::Contains("does not load"));
+  }
+  SECTION("a valid scene under another scene's digest is refused") {
+    const std::string other = scene::scene_digest(other_scene(0.5));
+    CHECK(worker::prepare_scene(canonical, other, accel::best_isa()).scene == nullptr);
+  }
+  SECTION("a scene naming a mesh file is refused, whatever file it names") {
+    // A worker never reads its own disk on a scene's behalf; canonical scenes carry meshes inline.
+    const std::string with_file =
+        R"({"camera": {}, "scene_objects": [{"type": "mesh", "file": "/etc/hostname"}], "scene_lights": []})";
+    const worker::PreparedScene prepared = worker::prepare_scene(with_file, digest, accel::best_isa());
+    CHECK(prepared.scene == nullptr);
+    CHECK_THAT(prepared.error, Catch::Contains("/scene_objects/0/file") && Catch::Contains("inline"));
+  }
+}
+
+// ---- configuration -------------------------------------------------------------------------------
+
+TEST_CASE("worker configuration is validated field by field", "[worker][config]") {
+  const auto mentions = [](const util::Errors& errors, std::string_view field) {
+    for (const util::Error& e : errors) {
+      if (e.path == field && !e.message.empty() && e.to_string().starts_with(std::string(field) + ": ")) return true;
+    }
+    return false;
+  };
+  const util::Errors defaults = worker::validate(WorkerConfig{});
+  CHECK(mentions(defaults, "collector_url"));
+  CHECK(mentions(defaults, "token"));
+  CHECK(defaults.size() == 2);
+
+  const WorkerConfig good = test_config(7878);
+  CHECK(worker::validate(good).empty());
+
+  struct Case {
+    std::string_view field;
+    std::function<void(WorkerConfig&)> change;
+  };
+  const std::vector<Case> cases = {
+      {"collector_url", [](WorkerConfig& c) { c.collector_url = "https://example.org"; }},
+      {"collector_url", [](WorkerConfig& c) { c.collector_url = "http://host/path"; }},
+      {"token", [](WorkerConfig& c) { c.token = "two words"; }},
+      {"token", [](WorkerConfig& c) { c.token = "line\n"; }},
+      {"token", [](WorkerConfig& c) { c.token = std::string(worker::kMaxTokenBytes + 1, 'x'); }},
+      {"name", [](WorkerConfig& c) { c.name = "tab\there"; }},
+      {"name", [](WorkerConfig& c) { c.name = std::string(protocol::kMaxWorkerNameBytes + 1, 'n'); }},
+      {"threads", [](WorkerConfig& c) { c.threads = protocol::kMaxWorkerThreads + 1; }},
+      {"scene_cache", [](WorkerConfig& c) { c.scene_cache = 0; }},
+      {"scene_cache", [](WorkerConfig& c) { c.scene_cache = worker::kMaxSceneCache + 1; }},
+      {"grace", [](WorkerConfig& c) { c.grace = worker::kMaxGrace + 1s; }},
+      {"grace", [](WorkerConfig& c) { c.grace = -1s; }},
+      {"timeouts.connect", [](WorkerConfig& c) { c.timeouts.connect = 0ms; }},
+      {"timeouts.read", [](WorkerConfig& c) { c.timeouts.read = worker::kMaxClientTimeout + 1ms; }},
+      {"backoff_initial", [](WorkerConfig& c) { c.backoff_initial = 0ms; }},
+      {"backoff_max", [](WorkerConfig& c) { c.backoff_max = c.backoff_initial - 1ms; }},
+      {"max_unacknowledged", [](WorkerConfig& c) { c.max_unacknowledged = worker::kMaxUnacknowledged + 1; }},
+  };
+  for (const Case& c : cases) {
+    WorkerConfig config = good;
+    c.change(config);
+    const util::Errors errors = worker::validate(config);
+    INFO(c.field);
+    CHECK(errors.size() == 1);
+    CHECK(mentions(errors, c.field));
+  }
+
+  // Worker::create refuses what validate() refuses, with the same errors, and builds nothing.
+  WorkerConfig bad = good;
+  bad.scene_cache = 0;
+  bad.token.clear();
+  const auto refused = worker::Worker::create(bad);
+  REQUIRE_FALSE(refused.ok());
+  CHECK(refused.error() == worker::validate(bad));
+  CHECK(refused.error().size() == 2);
+  CHECK(worker::Worker::create(good).ok());
+}
+
+TEST_CASE("worker defaults are resolved from the host", "[worker][config]") {
+  WorkerConfig config = test_config(7878);
+  config.name.clear();
+  config.threads = 0;
+  config.max_unacknowledged = 0;
+  const WorkerConfig resolved = worker::resolve_defaults(config);
+  CHECK(resolved.threads >= 1);
+  CHECK(resolved.max_unacknowledged == worker::kInHandPerThread * resolved.threads);
+  CHECK_FALSE(resolved.name.empty());
+  CHECK(resolved.name.size() <= protocol::kMaxWorkerNameBytes);
+  CHECK(resolved.name.ends_with(fmt::format("-{}", ::getpid())));
+  CHECK(worker::validate(resolved).empty());
+}
+
+// ---- the retry gate, on a ManualClock ------------------------------------------------------------
+
+namespace {
+
+// A RetryGate on an io_context that the test runs by hand, and requests that wait at it. Nothing
+// here waits on real time: a request gets out when the test has moved the clock far enough.
+struct GateRig {
+  static constexpr std::uint64_t kSeed = 5;
+
+  // A request at the gate: `attempt` is set once the gate lets it out (nullopt: stopped).
+  struct Request {
+    bool done = false;
+    std::optional<worker::RetryGate::Attempt> attempt;
+  };
+
+  explicit GateRig(Backoff b = Backoff(100ms, 400ms)) : backoff(b), gate(io.get_executor(), clock, b, rng) {}
+
+  // Every coroutine ends while the gate and its requests are still there, even after a failed
+  // REQUIRE left some waiting.
+  ~GateRig() {
+    stop.set();
+    settle();
+  }
+
+  // A new request at the gate, run until it waits or is let out.
+  Request& enter() {
+    Request* r = &requests.emplace_back();  // a deque: it stays where it is
+    net::co_spawn(
+        io,
+        [this, r]() -> async::Awaitable<> {
+          std::optional<worker::RetryGate::Attempt> got = co_await gate.enter(stop);
+          if (got) r->attempt.emplace(std::move(*got));  // an Attempt moves, but is not assigned
+          r->done = true;
+        },
+        async::log_failure("a request at the gate"));
+    settle();
+    return *r;
+  }
+
+  // Runs the loop until every coroutine waits (for the clock, the gate or the stop).
+  void settle() {
+    io.restart();
+    io.poll();
+  }
+
+  // Whether `r` waits at the gate until exactly `deadline` on the clock: still waiting 1 ms before
+  // it, let out at it.
+  bool waits_until(const Request& r, util::TimePoint deadline) {
+    if (r.done || clock.next_deadline() != deadline) return false;
+    clock.advance_to(deadline - 1ms);
+    settle();
+    if (r.done) return false;
+    clock.advance_to(deadline);
+    settle();
+    return r.done;
+  }
+
+  // The delays the gate draws, in order: the same generator from the same seed.
+  std::vector<std::chrono::milliseconds> delays(std::uint32_t n) const {
+    std::mt19937_64 replica(kSeed);
+    std::vector<std::chrono::milliseconds> out;
+    for (std::uint32_t failures = 0; failures < n; ++failures) out.push_back(backoff.delay(failures, replica));
+    return out;
+  }
+
+  Backoff backoff;
+  util::ManualClock clock;
+  net::io_context io;
+  std::mt19937_64 rng{kSeed};
+  async::Event stop{io.get_executor()};
+  worker::RetryGate gate;
+  std::deque<Request> requests;  // after the gate: their Attempts go back to it
+};
+
+}  // namespace
+
+TEST_CASE("after a failure the next request waits on the clock until its jittered backoff is over",
+          "[worker][retry_gate]") {
+  GateRig rig;
+  const auto d = rig.delays(1).at(0);
+  REQUIRE(d > 1ms);  // the seed draws a real wait, so that "not before" means something
+
+  GateRig::Request& first = rig.enter();
+  REQUIRE(first.done);  // nothing has failed: out at once, and not as a probe
+  CHECK_FALSE(first.attempt->probe());
+  const auto failed_at = rig.clock.now();
+  CHECK(rig.gate.failed(*first.attempt) == 1);
+
+  GateRig::Request& second = rig.enter();
+  REQUIRE(rig.waits_until(second, failed_at + d));
+  CHECK(second.attempt->probe());
+  CHECK(rig.clock.sleepers() == 0);
+}
+
+TEST_CASE("requests in flight together fail as one round and back off once", "[worker][retry_gate]") {
+  GateRig rig;
+  GateRig::Request& a = rig.enter();
+  GateRig::Request& b = rig.enter();
+  REQUIRE((a.done && b.done));
+  const auto failed_at = rig.clock.now();
+  CHECK(rig.gate.failed(*a.attempt) == 1);
+  rig.clock.advance(1ms);
+  CHECK(rig.gate.failed(*b.attempt) == 0);  // the same outage: no second, longer backoff
+
+  const auto d = rig.delays(1).at(0);
+  REQUIRE(d > 1ms);
+  GateRig::Request& next = rig.enter();
+  CHECK(rig.waits_until(next, failed_at + d));  // the first failure's backoff, unchanged
+}
+
+TEST_CASE("while the collector fails, one probe at a time goes out, oldest first, and a success frees all",
+          "[worker][retry_gate]") {
+  GateRig rig;
+  GateRig::Request& first = rig.enter();
+  CHECK(rig.gate.failed(*first.attempt) == 1);
+  first.attempt.reset();
+
+  GateRig::Request& a = rig.enter();
+  GateRig::Request& b = rig.enter();
+  GateRig::Request& c = rig.enter();
+  rig.clock.advance(rig.backoff.cap(0));
+  rig.settle();
+  REQUIRE(a.done);  // the oldest request probes; the others wait for its outcome
+  CHECK(a.attempt->probe());
+  CHECK_FALSE(b.done);
+  CHECK_FALSE(c.done);
+
+  // The probe fails: the next backoff is drawn from the doubled window, and b probes after it.
+  CHECK(rig.gate.failed(*a.attempt) == 2);
+  rig.clock.advance(rig.backoff.cap(1));
+  rig.settle();
+  REQUIRE(b.done);
+  CHECK(b.attempt->probe());
+  CHECK_FALSE(c.done);
+
+  // The collector answers: the failures end, and every request waiting goes out at once.
+  CHECK(rig.gate.succeeded(*b.attempt) == 2);
+  rig.settle();
+  REQUIRE(c.done);
+  CHECK_FALSE(c.attempt->probe());
+  GateRig::Request& d = rig.enter();
+  CHECK(d.done);
+  CHECK(rig.clock.sleepers() == 0);
+}
+
+TEST_CASE("a collector without work holds requests for its retry-after, then lets one ask at a time",
+          "[worker][retry_gate]") {
+  GateRig rig;
+  rig.gate.idle_for(50ms);
+  const auto idle_from = rig.clock.now();
+  GateRig::Request& a = rig.enter();
+  GateRig::Request& b = rig.enter();
+  REQUIRE(rig.waits_until(a, idle_from + 50ms));
+  CHECK(a.attempt->probe());
+  CHECK_FALSE(b.done);
+
+  rig.gate.busy();  // work again: no more probing
+  rig.settle();
+  REQUIRE(b.done);
+  CHECK_FALSE(b.attempt->probe());
+}
+
+TEST_CASE("a stop ends every wait at the gate and forgets its wake on the clock", "[worker][retry_gate]") {
+  GateRig rig(Backoff(10s, 10s));
+  GateRig::Request& first = rig.enter();
+  CHECK(rig.gate.failed(*first.attempt) == 1);
+  first.attempt.reset();
+
+  REQUIRE(rig.delays(1).at(0) > 0ms);
+
+  GateRig::Request& waiting = rig.enter();
+  REQUIRE(rig.clock.sleepers() == 1);
+  rig.stop.set();
+  rig.settle();
+  REQUIRE(waiting.done);
+  CHECK_FALSE(waiting.attempt.has_value());
+  CHECK(rig.clock.sleepers() == 0);
+}
+
+// ---- what the collector's answers mean -----------------------------------------------------------
+
+namespace {
+
+http::ClientResult answer(http::Response response) {
+  http::ClientResult result;
+  result.response = std::move(response);
+  return result;
+}
+
+http::ClientResult json_answer(http::Status status, std::string body) {
+  return answer(http::make_text_response(status, std::move(body), http::kJsonContentType));
+}
+
+http::ClientResult refused() {
+  http::ClientResult result;
+  result.error = http::ClientError::kConnect;
+  result.message = "connecting to 127.0.0.1:1: connection refused";
+  return result;
+}
+
+}  // namespace
+
+TEST_CASE("a submission's answer decides whether its tile is kept, dropped or sent again", "[worker][answers]") {
+  using worker::classify_submit;
+  using worker::SubmitVerdict;
+  const auto verdict = [](const http::ClientResult& r) { return classify_submit(r).verdict; };
+
+  CHECK(verdict(json_answer(http::Status::ok, protocol::encode(protocol::SubmitResult::kStored))) ==
+        SubmitVerdict::kAcknowledged);
+  CHECK(
+      classify_submit(json_answer(http::Status::ok, protocol::encode(protocol::SubmitResult::kAlreadyDone))).message ==
+      "already_done");
+  CHECK(verdict(json_answer(http::Status::ok, protocol::encode(protocol::SubmitResult::kJobGone))) ==
+        SubmitVerdict::kJobGone);
+  CHECK(verdict(answer(http::make_error(http::Status::gone, "job 7 was cancelled"))) == SubmitVerdict::kJobGone);
+
+  // The collector's state, not the tile's: kept and sent again.
+  CHECK(verdict(refused()) == SubmitVerdict::kRetry);
+  CHECK(classify_submit(refused()).message == refused().message);
+  for (const http::Status status : {http::Status::request_timeout, http::Status::too_many_requests,
+                                    http::Status::internal_server_error, http::Status::service_unavailable}) {
+    INFO(static_cast<unsigned>(status));
+    CHECK(verdict(answer(http::make_error(status, "later"))) == SubmitVerdict::kRetry);
+  }
+  const auto unauthorized = classify_submit(answer(http::make_error(http::Status::unauthorized, "wrong token")));
+  CHECK(unauthorized.verdict == SubmitVerdict::kRetry);
+  CHECK(unauthorized.token_rejected);
+  // Probably stored, but it cannot be known: sending it again is harmless.
+  CHECK(verdict(json_answer(http::Status::ok, "{\"result\": 3}")) == SubmitVerdict::kRetry);
+  CHECK(verdict(answer(http::make_text_response(http::Status::found, ""))) == SubmitVerdict::kRetry);
+
+  // Any other 4xx says the tile itself is wrong: sending it again cannot help.
+  const auto bad = classify_submit(answer(http::make_error(http::Status::bad_request, "too many pixels", "/rgb")));
+  CHECK(bad.verdict == SubmitVerdict::kRejected);
+  CHECK(bad.message == "HTTP 400: too many pixels (at /rgb)");
+  CHECK(verdict(answer(http::make_error(http::Status::not_found, "no such tile"))) == SubmitVerdict::kRejected);
+}
+
+TEST_CASE("a lease answer is a lease, a retry-after, or a failure to retry with backoff", "[worker][answers]") {
+  using worker::classify_lease;
+  const scene::SceneDesc desc = load_tiny_scene();
+  const protocol::Lease lease{kJob, scene::scene_digest(desc), 1, scene::TileRect{16, 0, 16, 16}, desc.render};
+
+  const auto leased = classify_lease(json_answer(http::Status::ok, protocol::encode(protocol::LeaseReply{lease})));
+  CHECK(leased.error.empty());
+  CHECK(leased.lease == lease);
+  CHECK_FALSE(leased.retry_after);
+
+  const auto idle =
+      classify_lease(json_answer(http::Status::ok, protocol::encode(protocol::LeaseReply{protocol::RetryAfter{250}})));
+  CHECK(idle.error.empty());
+  CHECK_FALSE(idle.lease);
+  CHECK(idle.retry_after == 250ms);
+
+  const auto rejected = classify_lease(answer(http::make_error(http::Status::unauthorized, "wrong token")));
+  CHECK(rejected.token_rejected);
+  CHECK(rejected.error == "token rejected (HTTP 401)");
+  CHECK(classify_lease(refused()).error == refused().message);
+  CHECK(classify_lease(answer(http::make_error(http::Status::service_unavailable, "busy"))).error == "HTTP 503: busy");
+  CHECK_THAT(classify_lease(json_answer(http::Status::ok, "{\"lease\": 1}")).error,
+             Catch::StartsWith("malformed lease reply: "));
+}
+
+TEST_CASE("an unexpected answer is quoted short and printable in the logs", "[worker][answers]") {
+  CHECK(worker::describe_answer(http::make_text_response(http::Status::bad_gateway, "")) == "HTTP 502");
+  const std::string body = "bad\x01gate\n" + std::string(500, 'x');
+  const std::string quoted = worker::describe_answer(http::make_text_response(http::Status::bad_gateway, body));
+  CHECK(quoted.starts_with("HTTP 502: bad?gate?xxx"));
+  CHECK(quoted.size() == std::string_view("HTTP 502: ").size() + worker::kMaxQuotedBodyBytes);
+  CHECK(worker::should_log_failure(1));
+  CHECK_FALSE(worker::should_log_failure(0));
+  CHECK_FALSE(worker::should_log_failure(2));
+  CHECK(worker::should_log_failure(worker::kLogEveryNthFailure));
+}
