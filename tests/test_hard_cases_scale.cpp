@@ -333,4 +333,74 @@ TEST_CASE("self-intersection at scale: tiny far sphere and huge sphere have no s
   }
 }
 
+// =============================================================================================
+// 8. A huge ground sphere against a plane at the same height.
+//
+// Small objects (a ball of radius 0.1, a slab 0.05 thick, a pole, a pebble of radius 0.02) stand
+// on a ground that is either the plane y = 0 or a sphere of radius R whose top is at y = 0, for R
+// from 1e5 to 1e7. Every pixel sees the ground within x = 6 units of the top, where the sphere
+// sags at most x^2 / (2 R) = 18 / R below the plane and its normal tilts by at most 6 / R, so the
+// two images must agree, shadows included:
+// - a pixel is in shadow (exactly 0: there is no other light) in both images or in neither, but
+//   for pixels whose centre lies within the sag's shift of a shadow edge: the shift is at most
+//   ~2e-4 units at R = 1e5 against ~1e-2 units of ground per pixel, so about 2 of the ~100 edge
+//   pixels; we allow kMaxShadowFlips;
+// - a pixel lit in both differs by at most the geometric change of cos / d^2: with the light at
+//   least d = 1.2 above the ground and cos >= 0.17, (tilt + sag / d) / cos + 2 sag / d <= 154 / R
+//   relative; we allow 200 / R (4.2e-4 measured at R = 1e5, 1/R beyond).
+// A hit-point error bound meant for a point computed in float (gamma(5) |p - c|, 0.3 at R = 1e6)
+// starts the shadow rays that far above the ground, past the pebble and the slab, and their
+// shadows vanish or detach: 47, 168 and 204 pixels flip at R = 1e5, 1e6, 1e7.
+TEST_CASE("a huge ground sphere renders like a plane at the same height, shadows included", "[hard][scale]") {
+  constexpr std::uint32_t kSide = 96;
+  constexpr std::uint32_t kMaxShadowFlips = 5;
+
+  scene::SceneDesc base = make_desc({0.2, 0.9, 1.8}, {0, 0, 0}, 35.0, kSide);
+  base.objects.push_back(sphere({0, 0.1, 0}, 0.1, diffuse({0.9, 0.3, 0.2})));
+  base.objects.push_back(box({-0.7, 0, 0.2}, {-0.3, 0.05, 0.5}, diffuse({0.2, 0.6, 0.3})));
+  base.objects.push_back(box({0.5, 0, -0.4}, {0.54, 0.5, -0.36}, diffuse({0.3, 0.3, 0.8})));
+  base.objects.push_back(sphere({0.35, 0.02, 0.55}, 0.02, diffuse({0.8, 0.8, 0.2})));
+  base.lights.push_back(point_light({1.5, 1.2, 0.8}, 4.0));
+
+  scene::SceneDesc flat = base;
+  flat.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, diffuse()));
+  const render::RenderScene flat_scene = render::RenderScene::build(flat);
+  const render::Tile want = render_image(flat_scene, flat.render);
+  std::uint32_t flat_shadowed = 0;
+  for (std::size_t i = 0; i < want.rgb.size(); i += 3) flat_shadowed += want.rgb[i] == 0.0f;
+
+  for (const double radius : {1e5, 1e6, 1e7}) {
+    CAPTURE(radius);
+    scene::SceneDesc round = base;
+    round.objects.push_back(sphere({0, -radius, 0}, radius, diffuse()));
+    const render::Tile got = render_image(render::RenderScene::build(round), round.render);
+    CHECK(got.stats.nan_samples == 0);
+    CHECK(got.stats.inf_samples == 0);
+    const double max_lit_diff_allowed = 200 / radius;
+    std::uint32_t flips = 0, lit_over = 0, round_shadowed = 0;
+    double max_lit_diff = 0;
+    for (std::size_t i = 0; i < want.rgb.size(); i += 3) {
+      const bool want_dark = want.rgb[i] == 0.0f, got_dark = got.rgb[i] == 0.0f;
+      round_shadowed += got_dark;
+      if (want_dark != got_dark) {
+        ++flips;
+        continue;
+      }
+      for (int c = 0; c < 3 && !want_dark; ++c) {
+        const double diff =
+            std::abs(double(got.rgb[i + c]) - want.rgb[i + c]) / std::max(1e-30, double(want.rgb[i + c]));
+        max_lit_diff = std::max(max_lit_diff, diff);
+        lit_over += diff > max_lit_diff_allowed;
+      }
+    }
+    report(
+        "[huge ground] R = %.0e: %u shadowed pixels (plane: %u), %u flip between lit and shadowed, max relative "
+        "difference where both are lit %.2e (%u channels over %.1e)\n",
+        radius, round_shadowed, flat_shadowed, flips, max_lit_diff, lit_over, max_lit_diff_allowed);
+    REQUIRE(flat_shadowed > 200);  // the view shows shadows worth comparing
+    CHECK(flips <= kMaxShadowFlips);
+    CHECK(lit_over == 0);
+  }
+}
+
 }  // namespace dtraced
