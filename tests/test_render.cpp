@@ -8,6 +8,7 @@
 #include <catch2/catch.hpp>
 
 #include "math/float_util.h"
+#include "render/integrator.h"
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "render/shading.h"
@@ -120,6 +121,57 @@ TEST_CASE("Lambertian plane under a point light matches the closed form", "[rend
     }
   }
   REQUIRE(checked > 500);
+}
+
+// A point light 1e-20 above a Lambertian plane, straight above the point a camera ray hits: the
+// squared distance, 1e-40, is below float's normal range and I cos / d^2 is 1e40 I. Computed in
+// float that overflows to Inf, and the black green channel turns Inf * 0 into NaN. The radiance
+// must be the closed form albedo / pi * I / h^2 where float can hold it (I = 1e-12: 1.6e27), the
+// clamp kMaxLightTerm where it cannot (I = 1: 1.6e39), 0 in the black channel, and the same from
+// the packet path and the generic path.
+TEST_CASE("A point light almost touching a surface gives finite radiance, the closed form where float holds it",
+          "[render][closed-form]") {
+  const Vec3d albedo{0.5, 0.0, 0.25};
+  for (const double intensity : {1e-12, 1.0}) {
+    CAPTURE(intensity);
+    scene::SceneDesc d;
+    d.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, diffuse(albedo)));
+    d.lights.push_back(testing::point_light({0, 1e-20, 0}, intensity));
+    d.camera = {{0, 1, 0}, {0, 0, 0}, {0, 0, 1}, 30.0};  // looking straight down
+    d.render.width = 1;
+    d.render.height = 1;
+    const render::RenderScene rs = render::RenderScene::build(d);
+    const math::Ray ray = rs.camera().generate(0.5, 0.5, 1, 1);
+    REQUIRE(ray.d == Vec3f{0, -1, 0});  // so the hit is (0, 0, 0) exactly
+
+    const render::TraceLimits limits{Vec3f{0, 0, 0}, 8};
+    render::TraceStats stats;
+    const Vec3f got = render::trace_radiance(rs, ray, math::SampleKey{}, limits, stats);
+    const double h = double(rs.lights()[0].position.y);
+    for (int c = 0; c < 3; ++c) {
+      const double want = double(float(albedo[c])) / std::numbers::pi * double(rs.lights()[0].intensity[c]) / (h * h);
+      INFO("channel " << c << ": got " << got[c] << ", closed form " << want);
+      CHECK(std::isfinite(got[c]));
+      if (want <= double(render::kMaxLightTerm)) {
+        CHECK(std::abs(double(got[c]) - want) <= 1e-6 * want);
+      } else {
+        CHECK(got[c] == render::kMaxLightTerm);
+      }
+    }
+
+    render::TraceLimits generic = limits;
+    generic.specialise = false;
+    CHECK(render::trace_radiance(rs, ray, math::SampleKey{}, generic, stats) == got);
+    Vec3f packet[accel::kPacketSize];
+    math::Ray rays[accel::kPacketSize] = {ray};
+    const math::SampleKey keys[accel::kPacketSize] = {};
+    render::trace_radiance8(rs, rays, keys, 1u, limits, stats, packet);
+    CHECK(packet[0] == got);
+    const render::Tile tile = render_all(d);
+    CHECK(tile.stats.nan_samples == 0);
+    CHECK(tile.stats.inf_samples == 0);
+    CHECK(pixel(tile, 0, 0) == got);
+  }
 }
 
 TEST_CASE("Fresnel reflectance at normal incidence is ((n-1)/(n+1))^2", "[render][fresnel]") {

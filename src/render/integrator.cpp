@@ -4,6 +4,7 @@
 #include <array>
 #include <bit>
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <utility>
 
@@ -86,6 +87,42 @@ void tangent_frame(const Vec3f& w, Vec3f& t, Vec3f& b) {
   b = Vec3f{c, sign + w.y * w.y * a, -w.y};
 }
 
+// Squared distances below this are subnormal floats: they have lost bits, and 1 / dist2 overflows.
+constexpr float kMinNormal = std::numeric_limits<float>::min();
+
+// v / |v|, given dist2 = dot(v, v) computed in float (v != 0). A subnormal dist2 (|v| below about
+// 1e-19) has lost bits, and its square root more, so there the direction is taken in double.
+Vec3f unit_towards(const Vec3f& v, float dist2) {
+  if (dist2 >= kMinNormal) {
+    const float dist = std::sqrt(dist2);
+    return v / dist;
+  }
+  return Vec3f(math::normalize(Vec3d(v)));
+}
+
+// The radiance one light, or one area-light sample, reflects: f * emitted * g per channel, with g
+// the geometric factor. `fast` is the caller's float evaluation of it, kept when it can be
+// trusted: `fast_ok` (the float squared distance in g is a normal float) and every channel at
+// most kMaxLightTerm, which NaN and Inf are not. So every ordinary scene keeps its bits, and pays
+// four comparisons. Otherwise, a light within ~1e-19 of the point, dist2 underflowed, g
+// overflowed and Inf * 0 in a black channel made NaN; `exact_factor()` then gives g in double,
+// where neither can happen for float inputs, and the term is clamped to kMaxLightTerm. An
+// emission beyond float (+Inf) stays Inf, as it was.
+template <typename ExactFactor>
+Vec3f light_term(const Vec3f& fast, bool fast_ok, const Vec3f& f, const Vec3f& emitted, ExactFactor exact_factor) {
+  if (fast_ok && fast.x <= kMaxLightTerm && fast.y <= kMaxLightTerm && fast.z <= kMaxLightTerm) return fast;
+  const double g = exact_factor();
+  Vec3f out;
+  for (int c = 0; c < 3; ++c) {
+    const double v = double(f[c]) * double(emitted[c]) * g;
+    out[c] = std::isfinite(v) ? float(std::min(v, double(kMaxLightTerm))) : float(v);
+  }
+  return out;
+}
+
+// |v|^2 in double: exact squares of floats, never 0 for v != 0.
+double length_squared_d(const Vec3f& v) { return math::length_squared(Vec3d(v)); }
+
 // One sample of an area light seen from a shading point: the direction and distance to a point
 // on the emitting surface and the Monte Carlo weight cos_l / pdf (pdf in solid angle).
 struct AreaSample {
@@ -93,7 +130,18 @@ struct AreaSample {
   Vec3f point;          // the sampled point on the light
   float cos_l = 0.0f;   // dot(nf, l), > 0
   float weight = 0.0f;  // cos_l / pdf_solid_angle, > 0
+  // Disk and rect: weight = cos_l * area * cos_light / dist2, dist2 = |to_point|^2. A sphere's
+  // weight has no distance in it: dist2 stays 1.
+  Vec3f to_point;
+  float cos_light = 0.0f;
+  float dist2 = 1.0f;
 };
+
+// AreaSample::weight in double (see light_term).
+double exact_weight(const AreaLightF& a, const AreaSample& s) {
+  if (a.shape == AreaShape::kSphere) return s.weight;
+  return double(s.cos_l) * double(a.area) * double(s.cos_light) / length_squared_d(s.to_point);
+}
 
 // Draws a point of light `a` seen from p (shading normal nf) from the uniforms (u1, u2). False
 // when the sample cannot contribute: p inside or on a sphere light, the point below p's horizon,
@@ -137,15 +185,17 @@ bool sample_area_light(const AreaLightF& a, const Vec3f& p, const Vec3f& nf, flo
   }
   const Vec3f to_q = q - p;
   const float dist2 = math::dot(to_q, to_q);
-  if (!(dist2 > 0.0f)) return false;
-  const float dist = std::sqrt(dist2);
-  out.l = to_q / dist;
+  if (to_q == Vec3f{0, 0, 0} || std::isnan(dist2)) return false;
+  out.l = unit_towards(to_q, dist2);
   const float cos_light = -math::dot(out.l, a.normal);  // one-sided: emits on the normal's side
   if (!(cos_light > 0.0f)) return false;
   out.cos_l = math::dot(nf, out.l);
   if (!(out.cos_l > 0.0f)) return false;
   out.point = q;
   out.weight = out.cos_l * a.area * cos_light / dist2;
+  out.to_point = to_q;
+  out.cos_light = cos_light;
+  out.dist2 = dist2;
   return true;
 }
 
@@ -189,8 +239,9 @@ bool hit_emitter(const AreaLightF& a, const math::Ray& ray, float& t) {
 
 // A point light as seen from one hit point (see Tracer::light_setup).
 struct LightSample {
+  Vec3f to_light;      // light position - hit point
   Vec3f l;             // unit direction towards the light
-  float dist2 = 0.0f;  // squared distance to the light
+  float dist2 = 0.0f;  // squared distance to the light, in float
   float cos_l = 0.0f;  // dot(nf, l), > 0
 };
 
@@ -297,11 +348,10 @@ struct Tracer {
   // same shadow rays.
   static bool light_setup(const accel::Hit& hit, const Vec3f& nf, const PointLightF& light, LightSample& ls,
                           math::Ray& shadow) {
-    const Vec3f to_light = light.position - hit.p;
-    ls.dist2 = math::dot(to_light, to_light);
-    if (!(ls.dist2 > 0.0f)) return false;
-    const float dist = std::sqrt(ls.dist2);
-    ls.l = to_light / dist;
+    ls.to_light = light.position - hit.p;
+    ls.dist2 = math::dot(ls.to_light, ls.to_light);
+    if (ls.to_light == Vec3f{0, 0, 0} || std::isnan(ls.dist2)) return false;
+    ls.l = unit_towards(ls.to_light, ls.dist2);
     ls.cos_l = math::dot(nf, ls.l);
     if (!(ls.cos_l > 0.0f)) return false;
     shadow = shadow_ray(hit, ls.l, light.position);
@@ -340,8 +390,10 @@ struct Tracer {
   // Light reflected towards wo from one light whose shadow ray let `vis` (> 0) of it through.
   static Vec3f light_contribution(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const PointLightF& light,
                                   const LightSample& ls, float vis) {
+    const Vec3f f = brdf(m, wo, nf, ls.l);
     const float e = vis * ls.cos_l / ls.dist2;  // irradiance per unit intensity
-    return math::mul(brdf(m, wo, nf, ls.l), light.intensity) * e;
+    return light_term(math::mul(f, light.intensity) * e, ls.dist2 >= kMinNormal, f, light.intensity,
+                      [&] { return double(vis) * double(ls.cos_l) / length_squared_d(ls.to_light); });
   }
 
   // Whether a hit on material m gathers direct light at all.
@@ -385,7 +437,9 @@ struct Tracer {
             if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point, kAreaShadowEnd), media);
           }
           if (vis <= 0.0f) continue;
-          acc += math::mul(brdf(m, wo, nf, as.l), a.radiance) * (as.weight * vis);
+          const Vec3f f = brdf(m, wo, nf, as.l);
+          acc += light_term(math::mul(f, a.radiance) * (as.weight * vis), as.dist2 >= kMinNormal, f, a.radiance,
+                            [&] { return exact_weight(a, as) * double(vis); });
         }
         sum += acc / float(a.samples);
       }

@@ -50,6 +50,14 @@ struct TraceLimits {
   bool specialise = true;
 };
 
+// The most one light (or one area-light sample) adds to a shading point's radiance per channel.
+// A point light a hair's breadth from a surface gives I / d^2 beyond float's range; the term is
+// clamped here instead, far above anything a display or an image format tells apart, and far
+// enough below FLT_MAX (2^128) that a path's sum over every light (scene::kMaxLights, 10^4 <
+// 2^14) stays finite. A light whose own intensity is beyond float (+Inf) is not clamped: its
+// samples are Inf, dropped and counted at the film as before.
+inline constexpr float kMaxLightTerm = 0x1p100f;
+
 // Random-number dimensions of a camera sample: the film position takes the first two; the
 // integrator draws from kFirstIntegratorDim on, in a fixed order along the path.
 inline constexpr std::uint32_t kFirstIntegratorDim = 2;
