@@ -132,7 +132,8 @@ class DielectricReference {
 
   DielectricReference(const render::RenderScene& rs, std::uint32_t max_depth);
 
-  Result trace_camera_ray(const math::Ray& ray) const;
+  // A camera ray, starting inside the shapes `media` (shape indices, outermost first).
+  Result trace_camera_ray(const math::Ray& ray, const std::vector<std::uint32_t>& media = {}) const;
 
  private:
   bool nearest(const V3L& o, const V3L& d, LD t_min, LD& t_hit, std::uint32_t& id, V3L& normal) const;
@@ -161,12 +162,15 @@ struct ReferenceComparison {
   std::uint32_t over_tolerance = 0;
   render::TraceStats stats;
 };
-ReferenceComparison compare_with_reference(const scene::SceneDesc& desc, LD tolerance);
+// `camera_media`: the shapes the camera is inside, outermost first, as the reference sees them.
+ReferenceComparison compare_with_reference(const scene::SceneDesc& desc, LD tolerance,
+                                           const std::vector<std::uint32_t>& camera_media = {});
 
 // Checks a scene of clear dielectrics under a uniform background: no NaN or Inf, no energy
 // created, every pixel equal to the long-double reference, and, when loss_tolerance >= 0,
 // nothing lost beyond it (energy conservation of Fresnel splitting: F + (1 - F) = 1 at every
 // interface, so only the renderer's two cut-offs can lose light).
-void check_clear_dielectrics(const char* name, const scene::SceneDesc& desc, double loss_tolerance);
+void check_clear_dielectrics(const char* name, const scene::SceneDesc& desc, double loss_tolerance,
+                             const std::vector<std::uint32_t>& camera_media = {});
 
 }  // namespace dtraced::testing

@@ -173,9 +173,10 @@ DielectricReference::DielectricReference(const render::RenderScene& rs, std::uin
   }
 }
 
-DielectricReference::Result DielectricReference::trace_camera_ray(const math::Ray& ray) const {
+DielectricReference::Result DielectricReference::trace_camera_ray(const math::Ray& ray,
+                                                                  const std::vector<std::uint32_t>& media) const {
   Result out;
-  trace(ld(ray.o), math::normalize(ld(ray.d)), 0, 0, 1, {}, out);
+  trace(ld(ray.o), math::normalize(ld(ray.d)), 0, 0, 1, media, out);
   return out;
 }
 
@@ -295,7 +296,8 @@ void DielectricReference::trace(V3L o, const V3L& d, LD t_min, std::uint32_t dep
   }
 }
 
-ReferenceComparison compare_with_reference(const scene::SceneDesc& desc, LD tolerance) {
+ReferenceComparison compare_with_reference(const scene::SceneDesc& desc, LD tolerance,
+                                           const std::vector<std::uint32_t>& camera_media) {
   const render::RenderScene rs = render::RenderScene::build(desc);
   const render::Tile tile = render_image(rs, desc.render);
   const DielectricReference reference(rs, desc.render.max_depth);
@@ -304,7 +306,8 @@ ReferenceComparison compare_with_reference(const scene::SceneDesc& desc, LD tole
   out.stats = tile.stats;
   for (std::uint32_t y = 0; y < desc.render.height; ++y) {
     for (std::uint32_t x = 0; x < desc.render.width; ++x) {
-      const DielectricReference::Result ref = reference.trace_camera_ray(pixel_ray(rs, desc.render, x, y));
+      const DielectricReference::Result ref =
+          reference.trace_camera_ray(pixel_ray(rs, desc.render, x, y), camera_media);
       const LD lost = ref.lost_depth + ref.lost_cutoff;
       out.max_lost = std::max(out.max_lost, lost);
       out.max_lost_depth = std::max(out.max_lost_depth, ref.lost_depth);
@@ -324,9 +327,10 @@ ReferenceComparison compare_with_reference(const scene::SceneDesc& desc, LD tole
 // created, every pixel equal to the long-double reference, and, when loss_tolerance >= 0,
 // nothing lost beyond it (energy conservation of Fresnel splitting: F + (1 - F) = 1 at every
 // interface, so only the renderer's two cut-offs can lose light).
-void check_clear_dielectrics(const char* name, const scene::SceneDesc& desc, double loss_tolerance) {
+void check_clear_dielectrics(const char* name, const scene::SceneDesc& desc, double loss_tolerance,
+                             const std::vector<std::uint32_t>& camera_media) {
   CAPTURE(name);
-  const ReferenceComparison r = compare_with_reference(desc, kReferenceTolerance);
+  const ReferenceComparison r = compare_with_reference(desc, kReferenceTolerance, camera_media);
   report(
       "[dielectric] %-22s L/B in [%.8f, %.8f]; reference drops up to %.3Le (max_depth %.3Le), bookkeeping "
       "%.1Le; max |L/B - ref| %.3Le, %u px over %.0Le; nan %llu inf %llu\n",

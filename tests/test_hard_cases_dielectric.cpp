@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -295,6 +296,170 @@ TEST_CASE("hard-case demo scenes load, and the ior-1 demo sphere is invisible", 
   const render::Tile a = render_image(render::RenderScene::build(without), without.render);
   const render::Tile b = render_image(render::RenderScene::build(with_clear), with_clear.render);
   CHECK(std::memcmp(a.rgb.data(), b.rgb.data(), a.rgb.size() * sizeof(float)) == 0);
+}
+
+// =============================================================================================
+// 7. A camera inside glass.
+//
+// Camera paths start in the media that contain the camera (RenderScene::camera_media), so the
+// first surface a camera inside glass meets is one it leaves, from the dense side, where total
+// internal reflection happens. Inside a glass sphere of radius R and index n, a straight line at
+// distance h from the centre meets the surface at sin(theta) = h / R every time (every chord of
+// the line's circle has the same angle), so a ray with h > R / n reflects totally at every
+// meeting, never leaves, and ends at max_depth with nothing: its pixel is exactly 0 (no lights,
+// clear glass). A ray with h < R / n leaves with 1 - F of its weight at each meeting: under a
+// uniform background B its pixel is B (1 - F^k), k the meetings before a cut-off, at least B / 2
+// away from the critical distance. The long-double reference, started in the same media, agrees
+// with those pixels to kReferenceTolerance. Starting outside every medium, as the renderer did,
+// the first crossing counts as entering the glass: no ray reflects totally and the h > R / n
+// pixels show the background.
+namespace {
+
+// A closed cube [lo, hi]^3 of 12 triangles, wound so their normals point out.
+std::shared_ptr<const scene::Mesh> cube_mesh(double lo, double hi) {
+  auto mesh = std::make_shared<scene::Mesh>();
+  const auto v = [&](int i) { return Vec3f{float(i & 1 ? hi : lo), float(i & 2 ? hi : lo), float(i & 4 ? hi : lo)}; };
+  // Corner indices of each face, counter-clockwise seen from outside.
+  const int faces[6][4] = {{0, 4, 6, 2}, {1, 3, 7, 5}, {0, 1, 5, 4}, {2, 6, 7, 3}, {0, 2, 3, 1}, {4, 5, 7, 6}};
+  for (const auto& f : faces) {
+    for (const int i : {f[0], f[1], f[2], f[0], f[2], f[3]}) mesh->vertices.push_back(v(i));
+  }
+  return mesh;
+}
+
+scene::Object mesh_object(std::shared_ptr<const scene::Mesh> mesh, const scene::Material& m) {
+  scene::Object o = object_of(scene::ObjectType::kMesh, m);
+  o.mesh = std::move(mesh);
+  return o;
+}
+
+// Renders `desc`, a camera inside clear glass sphere `inner` (its index n_in) with every other
+// sphere concentric to it and nothing else but a uniform background, and holds each pixel to the
+// critical distance h_c = R n_out / n_in (n_out: the medium around the sphere). Concentric spheres
+// keep n h along a path (Bouguer's law), so a ray that reflects totally once does so forever and
+// no path is chaotic: the reference must agree, except within 1e-3 of h_c. There F is near 1 and
+// the path meets the surface up to max_depth times, so float's error in F (cos_t = sqrt(1 -
+// sin^2) cancels) grows 64-fold: 2e-3 of B measured at 6e-5 from h_c.
+void check_camera_inside_sphere(const scene::SceneDesc& desc, std::uint32_t inner, double n_out,
+                                const std::vector<std::uint32_t>& media) {
+  const render::RenderScene rs = render::RenderScene::build(desc);
+  REQUIRE(rs.camera_media() == media);
+  const render::Tile tile = render_image(rs, desc.render);
+  CHECK(tile.stats.nan_samples == 0);
+  CHECK(tile.stats.inf_samples == 0);
+
+  const accel::SphereShape& s = rs.geometry().shapes()[inner].sphere;
+  const LD critical_h = LD(s.radius) * LD(float(n_out)) / LD(rs.material(inner).ior);
+  const DielectricReference reference(rs, desc.render.max_depth);
+  const double background = desc.render.background.z;
+  std::uint32_t total = 0, escaping = 0, wrong_total = 0, wrong_escaping = 0, off_reference = 0;
+  LD max_diff = 0;
+  for (std::uint32_t y = 0; y < desc.render.height; ++y) {
+    for (std::uint32_t x = 0; x < desc.render.width; ++x) {
+      const math::Ray ray = pixel_ray(rs, desc.render, x, y);
+      const LD h = line_sphere(ld(ray.o), ld(ray.d), ld(s.center), s.radius).h;
+      const float* px = tile_pixel(tile, x, y);
+      if (h > critical_h * (1 + 1e-3)) {
+        ++total;
+        wrong_total += px[0] != 0.0f || px[1] != 0.0f || px[2] != 0.0f;
+      } else if (h < critical_h * (1 - 1e-3)) {
+        ++escaping;
+        wrong_escaping += !(px[2] >= 0.5 * background);
+      } else {
+        continue;
+      }
+      const LD diff = std::abs(LD(px[2]) / LD(background) - reference.trace_camera_ray(ray, media).background);
+      max_diff = std::max(max_diff, diff);
+      off_reference += !(diff <= kReferenceTolerance);
+    }
+  }
+  report(
+      "[inside] %u pixels past the critical distance %.4Lf (%u not black), %u below it (%u under B / 2); "
+      "max |L/B - reference| %.2Le (%u over %.0Le)\n",
+      total, critical_h, wrong_total, escaping, wrong_escaping, max_diff, off_reference, kReferenceTolerance);
+  REQUIRE(total > 500);
+  REQUIRE(escaping > 500);
+  CHECK(wrong_total == 0);
+  CHECK(wrong_escaping == 0);
+  CHECK(off_reference == 0);
+}
+
+}  // namespace
+
+TEST_CASE("a camera inside a glass sphere sees total internal reflection where h > R / n", "[hard][inside]") {
+  // 0.8 from the centre, looking along a tangent: the middle of the view has h = 0.8 > 1 / 1.5,
+  // the sides (turned more than 34 degrees) h < 1 / 1.5.
+  scene::SceneDesc desc = make_desc({0.8, 0, 0}, {0.8, 0, -1}, 100.0, 64);
+  desc.render.background = {0.25, 0.5, 1.0};
+  desc.render.max_depth = 64;
+  desc.objects.push_back(sphere({0, 0, 0}, 1.0, glass(1.5)));
+  check_camera_inside_sphere(desc, 0, 1.0, {0});
+}
+
+TEST_CASE("a camera inside nested glass, or inside a glass box, starts in every medium around it", "[hard][inside]") {
+  const Vec3d background{0.25, 0.5, 1.0};
+  SECTION("glass sphere in a water sphere, listed first: the stack is water, then glass") {
+    // Leaving glass for water, total reflection needs h > 1.33 / 1.5 = 0.887: the middle of the
+    // view from 0.95 off the centre. Started in glass alone the band 0.667 < h < 0.887 would be
+    // black too; started with water on top, the glass surface would be index-matched (no
+    // reflection at all); started outside, nothing would be.
+    scene::SceneDesc desc = make_desc({0.95, 0, 0}, {0.95, 0, -1}, 90.0, 64);
+    desc.render.background = background;
+    desc.render.max_depth = 64;
+    desc.objects.push_back(sphere({0, 0, 0}, 1.0, glass(1.5)));
+    desc.objects.push_back(sphere({0, 0, 0}, 3.0, glass(1.33)));
+    check_camera_inside_sphere(desc, 0, 1.33, {1, 0});
+  }
+  SECTION("glass box: faces met past the critical angle reflect") {
+    scene::SceneDesc desc = make_desc({0.5, 0.2, 0.1}, {-1, -0.6, -1}, 90.0, 64);
+    desc.render.background = background;
+    desc.render.max_depth = 64;
+    desc.objects.push_back(box({-1, -1, -1}, {1, 1, 1}, glass(1.5)));
+    REQUIRE(render::RenderScene::build(desc).camera_media() == std::vector<std::uint32_t>{0});
+    check_clear_dielectrics("camera in a glass box", desc, -1, {0});
+  }
+}
+
+TEST_CASE("camera media: closed shapes that contain the camera, transparent ones only", "[hard][inside]") {
+  scene::SceneDesc desc = make_desc({0.2, 0.3, 0.1}, {0, 0, -1}, 60.0, 8);
+  const auto media = [&](std::vector<scene::Object> objects) {
+    desc.objects = std::move(objects);
+    return render::RenderScene::build(desc).camera_media();
+  };
+  using Ids = std::vector<std::uint32_t>;
+  CHECK(media({sphere({5, 0, 0}, 1.0, glass(1.5))}).empty());  // outside
+  CHECK(media({sphere({0, 0, 0}, 1.0, diffuse())}).empty());   // opaque
+  CHECK(media({sphere({0, 0, 0}, 1.0, diffuse()), box({2, 2, 2}, {3, 3, 3}, glass(1.5))}).empty());
+  CHECK(media({plane({0, 1, 0}, {0, 1, 0}, glass(1.33))}).empty());  // no inside
+  CHECK(media({box({-1, -1, -1}, {1, 1, 1}, glass(1.5))}) == Ids{0});
+  CHECK(media({mesh_object(cube_mesh(-1, 1), glass(1.5))}) == Ids{0});  // a closed mesh
+  CHECK(media({mesh_object(cube_mesh(0.5, 1), glass(1.5))}).empty());
+  // Three nested media in scene order inner, outer, middle: outermost first.
+  CHECK(media({sphere({0, 0, 0}, 0.5, glass(1.2)), mesh_object(cube_mesh(-3, 3), glass(1.5)),
+               sphere({0, 0, 0}, 2.0, glass(1.33))}) == Ids{1, 2, 0});
+}
+
+TEST_CASE("a camera inside a glass mesh cube renders like one inside a glass box", "[hard][inside]") {
+  scene::SceneDesc desc = make_desc({0.5, 0.2, 0.1}, {-1, -0.6, -1}, 90.0, 64);
+  desc.render.background = {0.25, 0.5, 1.0};
+  desc.render.max_depth = 64;
+  desc.objects.push_back(box({-1, -1, -1}, {1, 1, 1}, glass(1.5)));
+  const render::Tile want = render_image(render::RenderScene::build(desc), desc.render);
+  desc.objects[0] = mesh_object(cube_mesh(-1, 1), glass(1.5));
+  const render::Tile got = render_image(render::RenderScene::build(desc), desc.render);
+  // Triangles and slabs round differently, so rays that reach an edge may part ways; elsewhere the
+  // paths are the same.
+  std::uint32_t close = 0, black_in_both = 0;
+  for (std::size_t i = 0; i < want.rgb.size(); i += 3) {
+    bool same = true;
+    for (int c = 0; c < 3; ++c) same = same && std::abs(want.rgb[i + c] - got.rgb[i + c]) <= 1e-4f;
+    close += same;
+    black_in_both += want.rgb[i + 2] == 0.0f && got.rgb[i + 2] == 0.0f;
+  }
+  report("[inside] glass mesh cube vs glass box: %u of %zu pixels within 1e-4, %u black in both\n", close,
+         want.rgb.size() / 3, black_in_both);
+  CHECK(close >= want.rgb.size() / 3 * 99 / 100);
+  CHECK(black_in_both > 500);  // faces met past the critical angle
 }
 
 }  // namespace dtraced

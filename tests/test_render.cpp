@@ -384,6 +384,15 @@ TEST_CASE("Packets match per pixel with misses, lights behind and on surfaces, a
     g.ior = 1.4;
     glass.objects.push_back(sphere({0, 0, 1.5}, 0.5, g));
     check_packets_match_per_pixel(glass);
+    // The camera inside glass (a water sphere around everything): every path and first-hit
+    // shadow ray starts in that medium.
+    scene::SceneDesc inside = glass;
+    scene::Material water = g;
+    water.transparency = 0.9;
+    water.ior = 1.33;
+    inside.objects.push_back(sphere({0, 0, 0}, 8.0, water));
+    REQUIRE(render::RenderScene::build(inside).camera_media() == std::vector<std::uint32_t>{6});
+    check_packets_match_per_pixel(inside);
   }
 }
 

@@ -33,6 +33,13 @@ struct MediumStack {
   std::array<std::uint32_t, kCapacity> ids{};
   int size = 0;
 
+  // Where every camera path starts: inside the objects that contain the camera.
+  static MediumStack at_camera(const RenderScene& s) {
+    MediumStack m;
+    for (const std::uint32_t id : s.camera_media()) m.push(id);
+    return m;
+  }
+
   float current_ior(const RenderScene& s) const { return size == 0 ? 1.0f : s.object_material(ids[size - 1]).ior; }
   bool contains(std::uint32_t id) const {
     for (int i = 0; i < size; ++i)
@@ -277,6 +284,9 @@ struct Tracer {
   }
 
   bool transparent_scene() const { return kRefract && scene.has_transparency(); }
+
+  // The media a camera path starts in; without refraction there are none to look up.
+  MediumStack camera_media() const { return kRefract ? MediumStack::at_camera(scene) : MediumStack{}; }
 
   // Fraction of a light's emission that reaches the shadow ray's end. Opaque surfaces
   // block. A transparent one passes transparency * (1 - F) at each crossing, the shadow ray going
@@ -550,7 +560,7 @@ template <unsigned kF>
 Vec3f trace_radiance_with(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& key,
                           const TraceLimits& limits, TraceStats& stats) {
   Tracer<kF> tracer{scene, limits, stats, key};
-  return tracer.trace(ray, 0, 1.0f, MediumStack{});
+  return tracer.trace(ray, 0, 1.0f, tracer.camera_media());
 }
 
 template <unsigned kF>
@@ -560,6 +570,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
   constexpr int kN = accel::kPacketSize;
   T tracer{scene, limits, stats};
   const accel::Geometry& geometry = scene.geometry();
+  const MediumStack camera_media = tracer.camera_media();
 
   accel::Hit hits[kN];
   stats.rays += std::popcount(valid);
@@ -615,8 +626,8 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
         if (!(cast >> i & 1u)) continue;
         first[i].found = crossed >> i & 1u;
         if (first[i].found) first[i].hit = hits_scratch[i];
-        // A camera ray's first hit is seen from outside every medium, as Tracer::trace has it.
-        const float vis = tracer.transmittance_walk(shadow[i], MediumStack{}, &first[i]);
+        // A camera ray's first hit is seen from the media around the camera, as Tracer::trace has it.
+        const float vis = tracer.transmittance_walk(shadow[i], camera_media, &first[i]);
         if (vis <= 0.0f) continue;
         direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
       }
@@ -628,7 +639,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
     const FirstHit first{(hit_mask >> i & 1u) ? &hits[i] : nullptr, (direct_mask >> i & 1u) ? &direct[i] : nullptr};
     // Each lane's own random numbers, from the first dimension on, as trace_radiance has them.
     T lane{scene, limits, stats, keys[i]};
-    out[i] = lane.trace(rays[i], 0, 1.0f, MediumStack{}, &first);
+    out[i] = lane.trace(rays[i], 0, 1.0f, camera_media, &first);
   }
 }
 

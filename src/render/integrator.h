@@ -5,7 +5,8 @@
 // a sphere's cone of directions or a disk's or rect's area), Lambert diffuse plus normalised
 // Blinn-Phong specular, mirror reflection, and dielectric refraction with exact Fresnel and total
 // internal reflection. Nested and touching transparent objects are handled with a small per-path
-// stack of the media the path is inside. Camera, mirror and refracted rays that reach an area
+// stack of the media the path is inside; camera paths start inside the media that contain the
+// camera (RenderScene::camera_media). Camera, mirror and refracted rays that reach an area
 // light's emitting side before any surface return its radiance Le. Pure function of (scene, ray,
 // sample key, settings): thread-safe.
 //
