@@ -239,8 +239,8 @@ TEST_CASE("Self-intersection: offset origins never re-hit, inward rays always ex
   };
   // Radius 1e-3..1e3, centres up to 1e4 away, as long as the sphere spans >= 2^-20 of its
   // distance from the origin (>= ~8 float ulps of its centre): below that a float point on it
-  // cannot be represented well enough to be offset inward (accuracy notes 1.11); the test below
-  // reports that regime without asserting.
+  // cannot be represented well enough to be offset inward (floats near the centre are ~1.2e-7 |c|
+  // apart, a good part of r); the test below reports that regime without asserting.
   report("spheres r 1e-3..1e3, |c| <= min(1e4, 2^20 r)", sphere_trials(rng, 60000, 1e-3, 1e3, 1e4, 0x1p20), 59000);
   report("spheres r 1e-3..1e3, |c| <= 1e4 with r/|c| >= 1e-3", sphere_trials(rng, 10000, 1e-3, 1e3, 1e4, 1e3), 9900);
   report("boxes at scale 1e-3, |c| <= 1", box_trials(rng, 15000, 1e-3, 1.0), 14900);

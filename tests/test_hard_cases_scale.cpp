@@ -71,8 +71,8 @@ LitSphere render_lit_sphere(const scene::SceneDesc& desc) {
 // kMaxShadeError of the closed form (relative to the value at cos = 1).
 TEST_CASE("far unit sphere: silhouette, normals and shading match a long-double reference", "[hard][far]") {
   constexpr std::uint32_t kSide = 128;
-  // 1e-4 rad: 8x the error of a local-frame hit point at 1e6 (1.2e-5 rad in the accuracy
-  // notes), 100x below what o + t d gives at 1e5 (0.8 degrees).
+  // 1e-4 rad: 8x the normal error of a hit point formed in the sphere's frame at 1e6 (about
+  // 1.2e-5 rad; DTRACED_HARD_VERBOSE prints it), 100x below what o + t d gives at 1e5 (0.8 degrees).
   constexpr LD kMaxNormalAngle = 1e-4;
   // A normal error delta changes cos by at most delta, so the shaded value by delta * peak.
   constexpr LD kMaxShadeError = 2e-4;

@@ -4,11 +4,11 @@
 // A benchmark, not a test: it prints tables (and optionally a CSV) and judges nothing but the
 // issue's throughput targets, which it marks MET or MISSED.
 //
-// Protocol (/work/shared/notes/simd.md section 5):
+// Protocol:
 // - Scenes are built in memory from a seed: "spheres" = scene::generate_sphere_field with its
 //   infinite ground plane replaced by a tessellated triangle grid (Embree has no plane, and both
 //   libraries must trace the same primitives); "mesh" = about 1M triangles, lat-long tessellated
-//   spheres on a tessellated ground, as in the notes' harness.
+//   spheres on a tessellated ground.
 // - Ray sets are generated once per scene and fed unchanged to every tracer: camera rays (pinhole,
 //   1 spp, 16x16-pixel tiles cut into 4x2-pixel packets of 8), shadow rays from the camera rays'
 //   hits to one point light (only where the light is in front of the surface, as the renderer
@@ -255,7 +255,8 @@ BenchScene make_mesh_scene(std::uint32_t spheres, std::uint32_t ground_quads, st
   const Dice dice(seed);
   BenchScene s;
   s.name = "mesh";
-  // Spheres overlap each other and sink a little into the ground, as in the notes' harness.
+  // Spheres overlap each other and sink a little into the ground, so the tree has overlapping
+  // bounds to cope with, as in a real scene.
   const float field = 10.0f * std::sqrt(float(spheres) / 400.0f);
   for (std::uint32_t i = 0; i < spheres; ++i) {
     const float r = float(0.6 + 1.0 * dice.uniform(i, 0));
