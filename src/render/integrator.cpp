@@ -4,11 +4,11 @@
 #include <array>
 #include <bit>
 #include <cmath>
-#include <limits>
 #include <numbers>
 #include <utility>
 
 #include "math/rng.h"
+#include "render/light_sampling.h"
 #include "render/shading.h"
 
 namespace dtraced::render {
@@ -83,166 +83,6 @@ constexpr unsigned feature_bits(const SceneFeatures& f) {
          (f.shadows ? kShadows : 0u) | (f.area_lights ? kAreaLights : 0u) | (f.point_lights ? kPointLights : 0u);
 }
 static_assert(feature_bits(SceneFeatures::all()) == kAllFeatures);
-
-// An orthonormal pair perpendicular to unit w (Duff et al. 2017: branch-free, continuous except
-// across w.z = 0).
-void tangent_frame(const Vec3f& w, Vec3f& t, Vec3f& b) {
-  const float sign = std::copysign(1.0f, w.z);
-  const float a = -1.0f / (sign + w.z);
-  const float c = w.x * w.y * a;
-  t = Vec3f{1.0f + sign * w.x * w.x * a, sign * c, -sign * w.x};
-  b = Vec3f{c, sign + w.y * w.y * a, -w.y};
-}
-
-// Squared distances below this are subnormal floats: they have lost bits, and 1 / dist2 overflows.
-constexpr float kMinNormal = std::numeric_limits<float>::min();
-
-// v / |v|, given dist2 = dot(v, v) computed in float (v != 0). A subnormal dist2 (|v| below about
-// 1e-19) has lost bits, and its square root more, so there the direction is taken in double.
-Vec3f unit_towards(const Vec3f& v, float dist2) {
-  if (dist2 >= kMinNormal) {
-    const float dist = std::sqrt(dist2);
-    return v / dist;
-  }
-  return Vec3f(math::normalize(Vec3d(v)));
-}
-
-// The radiance one light, or one area-light sample, reflects: f * emitted * g per channel, with g
-// the geometric factor. `fast` is the caller's float evaluation of it, kept when it can be
-// trusted: `fast_ok` (the float squared distance in g is a normal float) and every channel at
-// most kMaxLightTerm, which NaN and Inf are not. So every ordinary scene keeps its bits, and pays
-// four comparisons. Otherwise, a light within ~1e-19 of the point, dist2 underflowed, g
-// overflowed and Inf * 0 in a black channel made NaN; `exact_factor()` then gives g in double,
-// where neither can happen for float inputs, and the term is clamped to kMaxLightTerm. An
-// emission beyond float (+Inf) stays Inf, as it was.
-template <typename ExactFactor>
-Vec3f light_term(const Vec3f& fast, bool fast_ok, const Vec3f& f, const Vec3f& emitted, ExactFactor exact_factor) {
-  if (fast_ok && fast.x <= kMaxLightTerm && fast.y <= kMaxLightTerm && fast.z <= kMaxLightTerm) return fast;
-  const double g = exact_factor();
-  Vec3f out;
-  for (int c = 0; c < 3; ++c) {
-    const double v = double(f[c]) * double(emitted[c]) * g;
-    out[c] = std::isfinite(v) ? float(std::min(v, double(kMaxLightTerm))) : float(v);
-  }
-  return out;
-}
-
-// |v|^2 in double: exact squares of floats, never 0 for v != 0.
-double length_squared_d(const Vec3f& v) { return math::length_squared(Vec3d(v)); }
-
-// One sample of an area light seen from a shading point: the direction and distance to a point
-// on the emitting surface and the Monte Carlo weight cos_l / pdf (pdf in solid angle).
-struct AreaSample {
-  Vec3f l;              // unit direction towards the sampled point
-  Vec3f point;          // the sampled point on the light
-  float cos_l = 0.0f;   // dot(nf, l), > 0
-  float weight = 0.0f;  // cos_l / pdf_solid_angle, > 0
-  // Disk and rect: weight = cos_l * area * cos_light / dist2, dist2 = |to_point|^2. A sphere's
-  // weight has no distance in it: dist2 stays 1.
-  Vec3f to_point;
-  float cos_light = 0.0f;
-  float dist2 = 1.0f;
-};
-
-// AreaSample::weight in double (see light_term).
-double exact_weight(const AreaLightF& a, const AreaSample& s) {
-  if (a.shape == AreaShape::kSphere) return s.weight;
-  return double(s.cos_l) * double(a.area) * double(s.cos_light) / length_squared_d(s.to_point);
-}
-
-// Draws a point of light `a` seen from p (shading normal nf) from the uniforms (u1, u2). False
-// when the sample cannot contribute: p inside or on a sphere light, the point below p's horizon,
-// or p behind a one-sided disk or rect.
-bool sample_area_light(const AreaLightF& a, const Vec3f& p, const Vec3f& nf, float u1, float u2, AreaSample& out) {
-  constexpr float kTwoPi = 2.0f * std::numbers::pi_v<float>;
-  const float phi = kTwoPi * u2;
-  if (a.shape == AreaShape::kSphere) {
-    // Uniform over the cone of directions the sphere subtends: pdf 1 / (2 pi (1 - cos_max)).
-    const Vec3f to_c = a.center - p;
-    const float d2 = math::dot(to_c, to_c);
-    const float r2 = a.radius * a.radius;
-    if (!(d2 > r2)) return false;
-    const float d = std::sqrt(d2);
-    const Vec3f w = to_c / d;
-    const float sin2_max = r2 / d2;
-    // 1 - cos_max without the cancellation of 1 - sqrt(1 - s^2) for small lights.
-    const float one_minus_cos_max = sin2_max / (1.0f + std::sqrt(std::max(0.0f, 1.0f - sin2_max)));
-    const float one_minus_cos = u1 * one_minus_cos_max;
-    const float cos_t = 1.0f - one_minus_cos;
-    const float sin2_t = std::max(0.0f, one_minus_cos * (2.0f - one_minus_cos));
-    const float sin_t = std::sqrt(sin2_t);
-    Vec3f t, b;
-    tangent_frame(w, t, b);
-    out.l = math::normalize(t * (sin_t * std::cos(phi)) + b * (sin_t * std::sin(phi)) + w * cos_t);
-    out.cos_l = math::dot(nf, out.l);
-    if (!(out.cos_l > 0.0f)) return false;
-    // The near intersection of the sampled direction with the sphere.
-    const float dist = d * cos_t - std::sqrt(std::max(0.0f, r2 - d2 * sin2_t));
-    out.point = p + out.l * dist;
-    out.weight = out.cos_l * (kTwoPi * one_minus_cos_max);
-    return true;
-  }
-  // Disk and rect: uniform over the area (pdf 1 / A), turned into solid angle by dist^2 / cos.
-  Vec3f q;
-  if (a.shape == AreaShape::kDisk) {
-    const float r = a.radius * std::sqrt(u1);
-    q = a.center + a.edge_u * (r * std::cos(phi)) + a.edge_v * (r * std::sin(phi));
-  } else {
-    q = a.corner + a.edge_u * u1 + a.edge_v * u2;
-  }
-  const Vec3f to_q = q - p;
-  const float dist2 = math::dot(to_q, to_q);
-  if (to_q == Vec3f{0, 0, 0} || std::isnan(dist2)) return false;
-  out.l = unit_towards(to_q, dist2);
-  const float cos_light = -math::dot(out.l, a.normal);  // one-sided: emits on the normal's side
-  if (!(cos_light > 0.0f)) return false;
-  out.cos_l = math::dot(nf, out.l);
-  if (!(out.cos_l > 0.0f)) return false;
-  out.point = q;
-  out.weight = out.cos_l * a.area * cos_light / dist2;
-  out.to_point = to_q;
-  out.cos_light = cos_light;
-  out.dist2 = dist2;
-  return true;
-}
-
-// Where `ray` meets the emitting surface of area light `a` at t in (ray.t_min, ray.t_max): a
-// sphere from outside, a disk or rect from the normal's side. Lights are few and not in the BVH.
-bool hit_emitter(const AreaLightF& a, const math::Ray& ray, float& t) {
-  if (a.shape == AreaShape::kSphere) {
-    const Vec3f oc = ray.o - a.center;
-    const float c = math::dot(oc, oc) - a.radius * a.radius;
-    if (!(c > 0.0f)) return false;  // origin inside or on the sphere: its outside is not seen
-    const float b = math::dot(oc, ray.d);
-    if (!(b < 0.0f)) return false;  // moving away from the centre
-    // The squared distance of the centre from the ray's line, formed without the cancellation
-    // of b^2 - c for distant lights.
-    const Vec3f perp = oc - ray.d * b;
-    const float disc = a.radius * a.radius - math::dot(perp, perp);
-    if (!(disc >= 0.0f)) return false;
-    t = -b - std::sqrt(disc);
-  } else {
-    const float denom = math::dot(ray.d, a.normal);
-    if (!(denom < 0.0f)) return false;  // parallel, or reaching the back
-    t = math::dot(a.center - ray.o, a.normal) / denom;
-    if (!(t > ray.t_min && t < ray.t_max)) return false;
-    const Vec3f q = ray.o + ray.d * t;
-    if (a.shape == AreaShape::kDisk) {
-      const Vec3f rel = q - a.center;
-      if (!(math::dot(rel, rel) <= a.radius * a.radius)) return false;
-    } else {
-      // Coordinates of q in the (edge_u, edge_v) basis; a parallelogram in general.
-      const Vec3f rel = q - a.corner;
-      const float uu = math::dot(a.edge_u, a.edge_u), vv = math::dot(a.edge_v, a.edge_v);
-      const float uv = math::dot(a.edge_u, a.edge_v);
-      const float ru = math::dot(rel, a.edge_u), rv = math::dot(rel, a.edge_v);
-      const float det = uu * vv - uv * uv;
-      const float s = (ru * vv - rv * uv) / det, w = (rv * uu - ru * uv) / det;
-      if (!(s >= 0.0f && s <= 1.0f && w >= 0.0f && w <= 1.0f)) return false;
-    }
-  }
-  return t > ray.t_min && t < ray.t_max;
-}
 
 // A point light as seen from one hit point (see Tracer::light_setup).
 struct LightSample {
