@@ -272,17 +272,24 @@ TEST_CASE("a clear sphere of ior 1 is invisible, bitwise", "[hard][invisible]") 
 // =============================================================================================
 // The demo scenes in scenes/hard/ load without errors, and the invisible-sphere demo keeps its
 // promise through the file format too: without its last object (the clear ior-1 sphere) it
-// renders the same bits.
+// renders the same bits. huge_ground.json shows small objects and their shadows on a ground
+// sphere of radius 1e6 (test 8 of the scale cases), inside_glass.json a camera inside glass
+// (test 7 below).
 TEST_CASE("hard-case demo scenes load, and the ior-1 demo sphere is invisible", "[hard][scenes]") {
   const std::string dir = std::string(DTRACED_SOURCE_DIR) + "/scenes/hard/";
-  for (const char* name :
-       {"far_sphere.json", "grazing_light.json", "glass_cube_tir.json", "nested_glass.json", "invisible_ior1.json"}) {
+  for (const char* name : {"far_sphere.json", "grazing_light.json", "glass_cube_tir.json", "nested_glass.json",
+                           "invisible_ior1.json", "huge_ground.json", "inside_glass.json"}) {
     CAPTURE(name);
     const scene::LoadResult loaded = scene::load_scene_file(dir + name);
     INFO(scene::format_errors(loaded.errors));
     CHECK(loaded.ok());
     CHECK(loaded.warnings.empty());
   }
+  // The camera of inside_glass.json is inside its glass sphere (object 0), 0.83 from the centre
+  // of a sphere of radius 1.1 and index 1.5: the critical distance 0.73 is in view.
+  const scene::LoadResult inside = scene::load_scene_file(dir + "inside_glass.json");
+  REQUIRE(inside.ok());
+  CHECK(render::RenderScene::build(*inside.scene).camera_media() == std::vector<std::uint32_t>{0});
   const scene::LoadResult loaded = scene::load_scene_file(dir + "invisible_ior1.json");
   REQUIRE(loaded.ok());
   scene::SceneDesc with_clear = *loaded.scene;

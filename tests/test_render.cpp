@@ -317,9 +317,9 @@ scene::SceneDesc without_transparency(scene::SceneDesc d) {
 }  // namespace
 
 TEST_CASE("Packets render the bundled scenes bitwise like the per-pixel path on every isa", "[render][packets]") {
-  for (const char* name :
-       {"showcase.json", "snowman.json", "room.json", "hard/far_sphere.json", "hard/glass_cube_tir.json",
-        "hard/grazing_light.json", "hard/invisible_ior1.json", "hard/nested_glass.json"}) {
+  for (const char* name : {"showcase.json", "snowman.json", "room.json", "hard/far_sphere.json",
+                           "hard/glass_cube_tir.json", "hard/grazing_light.json", "hard/invisible_ior1.json",
+                           "hard/nested_glass.json", "hard/huge_ground.json", "hard/inside_glass.json"}) {
     INFO(name);
     scene::SceneDesc d = testing::load_bundled(name);
     // Small and odd-sized: partial 4x2 blocks at the image's own right and bottom edges too.
