@@ -12,6 +12,7 @@
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "render/tile.h"
+#include "render_checks.h"
 #include "scene/load.h"
 #include "scene_builders.h"
 
@@ -39,30 +40,16 @@ scene::SceneDesc sphere_on_background() {
   d.camera.position = {0, 0, 5};
   d.camera.look_at = {0, 0, 0};
   d.camera.fov_deg = 40;
-  scene::Object o;
-  o.type = scene::ObjectType::kSphere;
-  o.sphere = {{0, 0, 0}, 1.0};
-  o.material.color = {0.8, 0.3, 0.2};
-  o.material.diffuse = 1.0;
-  d.objects.push_back(o);
-  scene::Light l;
-  l.position = {3, 4, 5};
-  d.lights.push_back(l);
-  d.render.width = 32;
-  d.render.height = 24;
-  d.render.samples = 64;
-  d.render.min_samples = 8;
-  d.render.error_target = 0.02;
-  d.render.background = {0.2, 0.3, 0.4};
+  d.objects.push_back(testing::sphere({0, 0, 0}, 1.0, testing::diffuse({0.8, 0.3, 0.2})));
+  d.lights.push_back(testing::point_light({3, 4, 5}, 1.0));
+  d.render = {
+      .width = 32, .height = 24, .samples = 64, .background = {0.2, 0.3, 0.4}, .error_target = 0.02, .min_samples = 8};
   return d;
 }
 
 render::LocalResult render_with(const render::RenderScene& rs, const scene::RenderSettings& s, std::uint32_t tile,
                                 std::uint32_t threads, bool packets) {
-  render::LocalOptions o;
-  o.tile_size = tile;
-  o.threads = threads;
-  o.packets = packets;
+  render::LocalOptions o = testing::local_options(threads, tile, packets);
   o.want_variance = true;
   return render::render_local(rs, s, o);
 }

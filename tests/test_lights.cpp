@@ -15,6 +15,7 @@
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "render/tile.h"
+#include "render_checks.h"
 #include "scene/load.h"
 #include "scene_builders.h"
 
@@ -22,50 +23,22 @@ using namespace dtraced;
 using math::Vec3d;
 using math::Vec3f;
 using testing::box;
+using testing::disk_light;
+using testing::local_options;
+using testing::pixel;
 using testing::plane;
+using testing::rect_light_down;
+using testing::render_tiled;
+using testing::Rendered;
+using testing::require_identical;
 using testing::sphere;
+using testing::sphere_light;
 
 namespace {
 
 constexpr double kPi = std::numbers::pi;
 
-scene::Material white() {
-  scene::Material m;
-  m.color = {1, 1, 1};
-  m.diffuse = 1.0;
-  return m;
-}
-
-scene::Light sphere_light(Vec3d c, double r, double le) {
-  scene::Light l;
-  l.type = scene::LightType::kSphere;
-  l.position = c;
-  l.radius = r;
-  l.intensity = le;
-  return l;
-}
-
-scene::Light disk_light(Vec3d c, double r, Vec3d n, double le) {
-  scene::Light l;
-  l.type = scene::LightType::kDisk;
-  l.position = c;
-  l.radius = r;
-  l.normal = n;
-  l.intensity = le;
-  return l;
-}
-
-// A rect facing -y (down), edges along x and z.
-scene::Light rect_light_down(Vec3d c, double a, double b, double le) {
-  scene::Light l;
-  l.type = scene::LightType::kRect;
-  l.position = c;
-  l.edge_u = {a, 0, 0};
-  l.edge_v = {0, 0, b};
-  l.normal = {0, -1, 0};
-  l.intensity = le;
-  return l;
-}
+scene::Material white() { return testing::diffuse({1, 1, 1}); }
 
 // The white plane at y = 0 and a 1x1 camera looking at its origin from the side.
 scene::SceneDesc receiver_scene() {
@@ -76,11 +49,6 @@ scene::SceneDesc receiver_scene() {
   d.render.height = 1;
   d.render.samples = 1;
   return d;
-}
-
-Vec3f pixel(const render::Tile& t, std::uint32_t x, std::uint32_t y) {
-  const float* p = &t.rgb[(std::size_t(y) * t.rect.width + x) * 3];
-  return {p[0], p[1], p[2]};
 }
 
 render::Tile render_all(const render::RenderScene& rs, const scene::RenderSettings& s, bool packets = true,
@@ -141,37 +109,6 @@ std::vector<ClosedFormCase> closed_form_cases() {
   return cases;
 }
 
-struct Rendered {
-  std::vector<float> rgb;
-  render::TraceStats stats;
-};
-
-Rendered render_tiled(const render::RenderScene& rs, const scene::RenderSettings& s, std::uint32_t tw, std::uint32_t th,
-                      bool packets, bool specialise) {
-  Rendered out;
-  out.rgb.assign(std::size_t(s.width) * s.height * 3, -1.0f);
-  for (std::uint32_t y0 = 0; y0 < s.height; y0 += th) {
-    for (std::uint32_t x0 = 0; x0 < s.width; x0 += tw) {
-      const render::TileRect rect{x0, y0, std::min(tw, s.width - x0), std::min(th, s.height - y0)};
-      const render::Tile t = render::render_tile(rs, s, rect, {.packets = packets, .specialise = specialise});
-      for (std::uint32_t row = 0; row < rect.height; ++row) {
-        std::memcpy(&out.rgb[(std::size_t(y0 + row) * s.width + x0) * 3], &t.rgb[std::size_t(row) * rect.width * 3],
-                    std::size_t(rect.width) * 3 * sizeof(float));
-      }
-      out.stats.add(t.stats);
-    }
-  }
-  return out;
-}
-
-void require_identical(const Rendered& want, const Rendered& got) {
-  REQUIRE(want.rgb.size() == got.rgb.size());
-  REQUIRE(std::memcmp(want.rgb.data(), got.rgb.data(), want.rgb.size() * sizeof(float)) == 0);
-  REQUIRE(want.stats.rays == got.stats.rays);
-  REQUIRE(want.stats.nan_samples == got.stats.nan_samples);
-  REQUIRE(want.stats.inf_samples == got.stats.inf_samples);
-}
-
 // Renders `d` on every supported isa, per pixel and in packets, specialised and generic, in
 // tilings with partial 4x2 blocks, and requires every image and ray count to equal the generic
 // per-pixel render on the scalar isa. Returns that reference.
@@ -195,12 +132,6 @@ Rendered check_all_paths_match(const scene::SceneDesc& d) {
     }
   }
   return reference;
-}
-
-scene::SceneDesc load_scene(const std::string& relative) {
-  scene::LoadResult r = scene::load_scene_file(std::string(DTRACED_SOURCE_DIR) + "/scenes/" + relative);
-  REQUIRE(r.ok());
-  return *r.scene;
 }
 
 // A small scene with every light type and material kind, and lights in view: a sphere light and
@@ -236,11 +167,7 @@ scene::SceneDesc mixed_scene() {
   d.lights.push_back(back);
   d.lights.push_back(scene::Light{{-2, 3, 3}, {1, 0.9, 0.8}, 6});  // a point light too
   d.camera = {{0, 1.2, 4.5}, {0, 0.8, 0}, {0, 1, 0}, 50};
-  d.render.width = 29;
-  d.render.height = 19;
-  d.render.samples = 2;
-  d.render.max_depth = 4;
-  d.render.background = {0.1, 0.2, 0.3};
+  d.render = {.width = 29, .height = 19, .samples = 2, .max_depth = 4, .background = {0.1, 0.2, 0.3}};
   return d;
 }
 
@@ -445,7 +372,7 @@ TEST_CASE("Area lights render the same bits per pixel and in packets, specialise
 TEST_CASE("The specialised path renders the bundled scenes like the generic one", "[specialise]") {
   for (const char* name : {"showcase.json", "diffuse.json", "soft_shadows.json", "hard/nested_glass.json"}) {
     INFO(name);
-    scene::SceneDesc d = load_scene(name);
+    scene::SceneDesc d = testing::load_bundled(name);
     d.render.width = 37;
     d.render.height = 23;
     d.render.samples = 2;
@@ -454,12 +381,12 @@ TEST_CASE("The specialised path renders the bundled scenes like the generic one"
 }
 
 TEST_CASE("Scene features are derived from what the scene uses", "[specialise]") {
-  const render::SceneFeatures diffuse = render::RenderScene::build(load_scene("diffuse.json")).features();
+  const render::SceneFeatures diffuse = render::RenderScene::build(testing::load_bundled("diffuse.json")).features();
   CHECK(diffuse == render::SceneFeatures{.shadows = true, .point_lights = true});
   CHECK(render::feature_names(diffuse) == "shadows point-lights");
-  const render::SceneFeatures showcase = render::RenderScene::build(load_scene("showcase.json")).features();
+  const render::SceneFeatures showcase = render::RenderScene::build(testing::load_bundled("showcase.json")).features();
   CHECK(render::feature_names(showcase) == "reflection refraction specular shadows point-lights");
-  const render::SceneFeatures soft = render::RenderScene::build(load_scene("soft_shadows.json")).features();
+  const render::SceneFeatures soft = render::RenderScene::build(testing::load_bundled("soft_shadows.json")).features();
   CHECK(render::feature_names(soft) == "reflection refraction specular shadows area-lights");
   CHECK(render::feature_names(render::SceneFeatures{}) == "none");
   CHECK(render::feature_names(render::SceneFeatures::all()) ==
@@ -467,7 +394,7 @@ TEST_CASE("Scene features are derived from what the scene uses", "[specialise]")
 }
 
 TEST_CASE("A scene with only point lights has no noise beyond antialiasing", "[specialise][determinism]") {
-  scene::SceneDesc d = load_scene("showcase.json");
+  scene::SceneDesc d = testing::load_bundled("showcase.json");
   d.render.width = 48;
   d.render.height = 27;
   d.render.samples = 1;  // pixel centres: no random number is drawn at all
@@ -479,7 +406,7 @@ TEST_CASE("A scene with only point lights has no noise beyond antialiasing", "[s
   REQUIRE(std::memcmp(a.rgb.data(), b.rgb.data(), a.rgb.size() * sizeof(float)) == 0);
 
   // With an area light the seed does matter: the check above could fail.
-  scene::SceneDesc soft = load_scene("soft_shadows.json");
+  scene::SceneDesc soft = testing::load_bundled("soft_shadows.json");
   soft.render.width = 48;
   soft.render.height = 27;
   soft.render.samples = 1;
@@ -496,12 +423,8 @@ TEST_CASE("render_local renders area lights identically for any thread count and
   d.render.width = 41;
   d.render.height = 27;
   const render::RenderScene rs = render::RenderScene::build(d);
-  render::LocalOptions one;
-  one.threads = 1;
-  one.tile_size = 64;
-  render::LocalOptions two;
-  two.threads = 2;
-  two.tile_size = 5;
+  const render::LocalOptions one = local_options(/* threads = */ 1, /* tile_size = */ 64);
+  const render::LocalOptions two = local_options(/* threads = */ 2, /* tile_size = */ 5);
   const render::LocalResult a = render::render_local(rs, d.render, one);
   const render::LocalResult b = render::render_local(rs, d.render, two);
   REQUIRE(std::memcmp(a.image.rgb.data(), b.image.rgb.data(), a.image.rgb.size() * sizeof(float)) == 0);

@@ -107,6 +107,16 @@ TEST_CASE("float_util: gamma bounds n roundings", "[math][float]") {
   }
 }
 
+TEST_CASE("float_util: gamma_d is gamma for double's unit roundoff", "[math][float]") {
+  CHECK(kMachineEpsilonD == 0x1p-53);
+  CHECK(gamma_d(0) == 0.0);
+  for (int n = 1; n < 20; ++n) {
+    CHECK(gamma_d(n + 1) > gamma_d(n));
+    CHECK(gamma_d(n) == Approx(n * 0x1p-53).epsilon(1e-12));
+    CHECK(gamma_d(n) < double(gamma(n)) * 1e-8);  // 2^-29 of the float bound
+  }
+}
+
 TEST_CASE("rng: deterministic, key-sensitive, in the unit interval below 1", "[math][rng]") {
   const SampleKey k{42, 1, 10, 20, 3};
   CHECK(sample_hash(k, 0) == sample_hash(k, 0));

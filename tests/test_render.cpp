@@ -8,10 +8,12 @@
 #include <catch2/catch.hpp>
 
 #include "math/float_util.h"
+#include "render/integrator.h"
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "render/shading.h"
 #include "render/tile.h"
+#include "render_checks.h"
 #include "scene/generate.h"
 #include "scene/load.h"
 #include "scene_builders.h"
@@ -20,22 +22,16 @@ using namespace dtraced;
 using math::Vec3d;
 using math::Vec3f;
 using testing::box;
+using testing::diffuse;
+using testing::local_options;
+using testing::pixel;
 using testing::plane;
+using testing::render_tiled;
+using testing::Rendered;
+using testing::require_identical;
 using testing::sphere;
 
 namespace {
-
-scene::Material diffuse_material(Vec3d color) {
-  scene::Material m;
-  m.color = color;
-  m.diffuse = 1.0;
-  return m;
-}
-
-Vec3f pixel(const render::Tile& t, std::uint32_t x, std::uint32_t y) {
-  const float* p = &t.rgb[(std::size_t(y) * t.rect.width + x) * 3];
-  return {p[0], p[1], p[2]};
-}
 
 render::Tile render_all(const scene::SceneDesc& d) {
   const render::RenderScene rs = render::RenderScene::build(d);
@@ -60,7 +56,7 @@ std::optional<double> ref_sphere_t(Vec3d o, Vec3d d, Vec3d c, double r, double* 
 TEST_CASE("Lambertian sphere under a point light matches the closed form at pixel centres", "[render][closed-form]") {
   scene::SceneDesc d;
   const Vec3d albedo{0.7, 0.5, 0.3};
-  d.objects.push_back(sphere({0, 0, 0}, 1.0, diffuse_material(albedo)));
+  d.objects.push_back(sphere({0, 0, 0}, 1.0, diffuse(albedo)));
   const Vec3d light_pos{3, 4, 5};
   const double intensity = 40.0;
   d.lights.push_back({light_pos, {1, 1, 1}, intensity});
@@ -101,7 +97,7 @@ TEST_CASE("Lambertian sphere under a point light matches the closed form at pixe
 
 TEST_CASE("Lambertian plane under a point light matches the closed form", "[render][closed-form]") {
   scene::SceneDesc d;
-  d.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, diffuse_material({0.5, 0.5, 0.5})));
+  d.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, diffuse({0.5, 0.5, 0.5})));
   const double h = 2.0, intensity = 10.0;
   d.lights.push_back({{0.3, h, -0.2}, {1, 1, 1}, intensity});
   d.camera = {{0, 3, 4}, {0, 0, 0}, {0, 1, 0}, 50.0};
@@ -125,6 +121,57 @@ TEST_CASE("Lambertian plane under a point light matches the closed form", "[rend
     }
   }
   REQUIRE(checked > 500);
+}
+
+// A point light 1e-20 above a Lambertian plane, straight above the point a camera ray hits: the
+// squared distance, 1e-40, is below float's normal range and I cos / d^2 is 1e40 I. Computed in
+// float that overflows to Inf, and the black green channel turns Inf * 0 into NaN. The radiance
+// must be the closed form albedo / pi * I / h^2 where float can hold it (I = 1e-12: 1.6e27), the
+// clamp kMaxLightTerm where it cannot (I = 1: 1.6e39), 0 in the black channel, and the same from
+// the packet path and the generic path.
+TEST_CASE("A point light almost touching a surface gives finite radiance, the closed form where float holds it",
+          "[render][closed-form]") {
+  const Vec3d albedo{0.5, 0.0, 0.25};
+  for (const double intensity : {1e-12, 1.0}) {
+    CAPTURE(intensity);
+    scene::SceneDesc d;
+    d.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, diffuse(albedo)));
+    d.lights.push_back(testing::point_light({0, 1e-20, 0}, intensity));
+    d.camera = {{0, 1, 0}, {0, 0, 0}, {0, 0, 1}, 30.0};  // looking straight down
+    d.render.width = 1;
+    d.render.height = 1;
+    const render::RenderScene rs = render::RenderScene::build(d);
+    const math::Ray ray = rs.camera().generate(0.5, 0.5, 1, 1);
+    REQUIRE(ray.d == Vec3f{0, -1, 0});  // so the hit is (0, 0, 0) exactly
+
+    const render::TraceLimits limits{Vec3f{0, 0, 0}, 8};
+    render::TraceStats stats;
+    const Vec3f got = render::trace_radiance(rs, ray, math::SampleKey{}, limits, stats);
+    const double h = double(rs.lights()[0].position.y);
+    for (int c = 0; c < 3; ++c) {
+      const double want = double(float(albedo[c])) / std::numbers::pi * double(rs.lights()[0].intensity[c]) / (h * h);
+      INFO("channel " << c << ": got " << got[c] << ", closed form " << want);
+      CHECK(std::isfinite(got[c]));
+      if (want <= double(render::kMaxLightTerm)) {
+        CHECK(std::abs(double(got[c]) - want) <= 1e-6 * want);
+      } else {
+        CHECK(got[c] == render::kMaxLightTerm);
+      }
+    }
+
+    render::TraceLimits generic = limits;
+    generic.specialise = false;
+    CHECK(render::trace_radiance(rs, ray, math::SampleKey{}, generic, stats) == got);
+    Vec3f packet[accel::kPacketSize];
+    math::Ray rays[accel::kPacketSize] = {ray};
+    const math::SampleKey keys[accel::kPacketSize] = {};
+    render::trace_radiance8(rs, rays, keys, 1u, limits, stats, packet);
+    CHECK(packet[0] == got);
+    const render::Tile tile = render_all(d);
+    CHECK(tile.stats.nan_samples == 0);
+    CHECK(tile.stats.inf_samples == 0);
+    CHECK(pixel(tile, 0, 0) == got);
+  }
 }
 
 TEST_CASE("Fresnel reflectance at normal incidence is ((n-1)/(n+1))^2", "[render][fresnel]") {
@@ -172,7 +219,7 @@ TEST_CASE("A glass slab in front of a uniform background transmits (1-R)/(1+R) o
   glass.ior = 1.5;
   d.objects.push_back(box({-5, -5, -0.5}, {5, 5, 0.5}, glass));
   // A black plane behind the camera swallows everything the slab reflects back.
-  scene::Material black = diffuse_material({0, 0, 0});
+  scene::Material black = diffuse({0, 0, 0});
   d.objects.push_back(plane({0, 0, 20}, {0, 0, -1}, black));
   d.camera = {{0, 0, 10}, {0, 0, 0}, {0, 1, 0}, 10.0};
   d.render.width = 3;
@@ -217,12 +264,8 @@ TEST_CASE("Images are bitwise identical for any tile size and thread count", "[r
     d.render.height = 64;
     d.render.samples = 3;
     const render::RenderScene rs = render::RenderScene::build(d);
-    render::LocalOptions one;
-    one.threads = 1;
-    one.tile_size = 16;
-    render::LocalOptions all;
-    all.threads = 0;
-    all.tile_size = 64;
+    const render::LocalOptions one = local_options(/* threads = */ 1, /* tile_size = */ 16);
+    const render::LocalOptions all = local_options(/* threads = */ 0, /* tile_size = */ 64);
     const auto a = render::render_local(rs, d.render, one);
     const auto b = render::render_local(rs, d.render, all);
     REQUIRE(a.image.rgb.size() == b.image.rgb.size());
@@ -239,39 +282,6 @@ TEST_CASE("Images are bitwise identical for any tile size and thread count", "[r
 }
 
 namespace {
-
-struct Rendered {
-  std::vector<float> rgb;  // the whole image, row-major
-  render::TraceStats stats;
-};
-
-// The whole image of `settings`, rendered as tiles of tw x th pixels (smaller at the right and
-// bottom edges) and assembled.
-Rendered render_tiled(const render::RenderScene& rs, const scene::RenderSettings& settings, std::uint32_t tw,
-                      std::uint32_t th, bool packets) {
-  Rendered out;
-  out.rgb.assign(std::size_t(settings.width) * settings.height * 3, -1.0f);
-  for (std::uint32_t y0 = 0; y0 < settings.height; y0 += th) {
-    for (std::uint32_t x0 = 0; x0 < settings.width; x0 += tw) {
-      const render::TileRect rect{x0, y0, std::min(tw, settings.width - x0), std::min(th, settings.height - y0)};
-      const render::Tile t = render::render_tile(rs, settings, rect, {.packets = packets});
-      for (std::uint32_t row = 0; row < rect.height; ++row) {
-        std::memcpy(&out.rgb[(std::size_t(y0 + row) * settings.width + x0) * 3],
-                    &t.rgb[std::size_t(row) * rect.width * 3], std::size_t(rect.width) * 3 * sizeof(float));
-      }
-      out.stats.add(t.stats);
-    }
-  }
-  return out;
-}
-
-void require_identical(const Rendered& want, const Rendered& got) {
-  REQUIRE(want.rgb.size() == got.rgb.size());
-  REQUIRE(std::memcmp(want.rgb.data(), got.rgb.data(), want.rgb.size() * sizeof(float)) == 0);
-  REQUIRE(want.stats.rays == got.stats.rays);
-  REQUIRE(want.stats.nan_samples == got.stats.nan_samples);
-  REQUIRE(want.stats.inf_samples == got.stats.inf_samples);
-}
 
 // Renders `d` on every supported isa, per pixel and in packets, in tilings that leave partial 4x2
 // blocks at tile edges, and requires every image and every ray count to equal the reference:
@@ -297,12 +307,6 @@ Rendered check_packets_match_per_pixel(const scene::SceneDesc& d) {
   return reference;
 }
 
-scene::SceneDesc load_scene(const std::string& relative) {
-  scene::LoadResult r = scene::load_scene_file(std::string(DTRACED_SOURCE_DIR) + "/scenes/" + relative);
-  REQUIRE(r.ok());
-  return *r.scene;
-}
-
 // The same scene with every transparent material made opaque, so that its first-hit shadow rays
 // go through the packet path (occluded8) rather than the transmittance walk.
 scene::SceneDesc without_transparency(scene::SceneDesc d) {
@@ -313,11 +317,11 @@ scene::SceneDesc without_transparency(scene::SceneDesc d) {
 }  // namespace
 
 TEST_CASE("Packets render the bundled scenes bitwise like the per-pixel path on every isa", "[render][packets]") {
-  for (const char* name :
-       {"showcase.json", "snowman.json", "room.json", "hard/far_sphere.json", "hard/glass_cube_tir.json",
-        "hard/grazing_light.json", "hard/invisible_ior1.json", "hard/nested_glass.json"}) {
+  for (const char* name : {"showcase.json", "snowman.json", "room.json", "hard/far_sphere.json",
+                           "hard/glass_cube_tir.json", "hard/grazing_light.json", "hard/invisible_ior1.json",
+                           "hard/nested_glass.json", "hard/huge_ground.json", "hard/inside_glass.json"}) {
     INFO(name);
-    scene::SceneDesc d = load_scene(name);
+    scene::SceneDesc d = testing::load_bundled(name);
     // Small and odd-sized: partial 4x2 blocks at the image's own right and bottom edges too.
     d.render.width = 37;
     d.render.height = 23;
@@ -344,12 +348,12 @@ TEST_CASE("Packets render a generated sphere field bitwise like the per-pixel pa
 
 TEST_CASE("Packets match per pixel with misses, lights behind and on surfaces, and many lights", "[render][packets]") {
   scene::SceneDesc d;
-  scene::Material shiny = diffuse_material({0.8, 0.6, 0.4});
+  scene::Material shiny = diffuse({0.8, 0.6, 0.4});
   shiny.specular = 0.5;
   shiny.shininess = 20;
-  scene::Material half_mirror = diffuse_material({0.3, 0.7, 0.9});
+  scene::Material half_mirror = diffuse({0.3, 0.7, 0.9});
   half_mirror.reflectivity = 0.5;
-  scene::Material dark = diffuse_material({0, 0, 0});  // direct light still computed, adds zero
+  scene::Material dark = diffuse({0, 0, 0});  // direct light still computed, adds zero
   scene::Material specular_only;
   specular_only.diffuse = 0;
   specular_only.specular = 1;
@@ -357,7 +361,7 @@ TEST_CASE("Packets match per pixel with misses, lights behind and on surfaces, a
   d.objects.push_back(sphere({0.8, 0.2, -0.5}, 0.6, half_mirror));
   d.objects.push_back(box({-0.3, -1, 0.6}, {0.3, -0.4, 1.0}, specular_only));
   d.objects.push_back(sphere({0.2, 0.9, 0.5}, 0.25, dark));
-  d.objects.push_back(plane({0, -1, 0}, {0, 1, 0}, diffuse_material({0.5, 0.5, 0.5})));
+  d.objects.push_back(plane({0, -1, 0}, {0, 1, 0}, diffuse({0.5, 0.5, 0.5})));
   d.lights.push_back({{2, 3, 4}, {1, 1, 1}, 30});
   d.lights.push_back({{-3, 0.5, 1}, {1, 0.5, 0.2}, 10});
   d.lights.push_back({{0, -2, 0}, {1, 1, 1}, 5});        // below the floor: cos <= 0 for most points
@@ -380,6 +384,15 @@ TEST_CASE("Packets match per pixel with misses, lights behind and on surfaces, a
     g.ior = 1.4;
     glass.objects.push_back(sphere({0, 0, 1.5}, 0.5, g));
     check_packets_match_per_pixel(glass);
+    // The camera inside glass (a water sphere around everything): every path and first-hit
+    // shadow ray starts in that medium.
+    scene::SceneDesc inside = glass;
+    scene::Material water = g;
+    water.transparency = 0.9;
+    water.ior = 1.33;
+    inside.objects.push_back(sphere({0, 0, 0}, 8.0, water));
+    REQUIRE(render::RenderScene::build(inside).camera_media() == std::vector<std::uint32_t>{6});
+    check_packets_match_per_pixel(inside);
   }
 }
 
@@ -387,9 +400,9 @@ TEST_CASE("Packets drop and count NaN and Inf samples exactly like the per-pixel
   scene::SceneDesc d;
   // A light brighter than float's range: its float intensity is +Inf, so lit samples are Inf,
   // and NaN where a zero colour channel multiplies it.
-  d.objects.push_back(sphere({-0.6, 0, 0}, 0.5, diffuse_material({1, 1, 1})));
-  d.objects.push_back(sphere({0.6, 0, 0}, 0.5, diffuse_material({1, 0, 1})));
-  d.objects.push_back(plane({0, -0.5, 0}, {0, 1, 0}, diffuse_material({0.5, 0.5, 0.5})));
+  d.objects.push_back(sphere({-0.6, 0, 0}, 0.5, diffuse({1, 1, 1})));
+  d.objects.push_back(sphere({0.6, 0, 0}, 0.5, diffuse({1, 0, 1})));
+  d.objects.push_back(plane({0, -0.5, 0}, {0, 1, 0}, diffuse({0.5, 0.5, 0.5})));
   d.lights.push_back({{0, 0, 3}, {1, 1, 1}, 1e300});
   d.lights.push_back({{0, 3, 0}, {1, 1, 1}, 2});
   d.camera = {{0, 0.5, 4}, {0, 0, 0}, {0, 1, 0}, 40.0};
@@ -403,18 +416,13 @@ TEST_CASE("Packets drop and count NaN and Inf samples exactly like the per-pixel
 }
 
 TEST_CASE("render_local gives the same image with and without packets", "[render][packets]") {
-  scene::SceneDesc d = load_scene("room.json");
+  scene::SceneDesc d = testing::load_bundled("room.json");
   d.render.width = 45;
   d.render.height = 31;
   d.render.samples = 2;
   const render::RenderScene rs = render::RenderScene::build(d);
-  render::LocalOptions pixels;
-  pixels.threads = 2;
-  pixels.tile_size = 16;
-  pixels.packets = false;
-  render::LocalOptions packets;
-  packets.threads = 2;
-  packets.tile_size = 7;
+  const render::LocalOptions pixels = local_options(/* threads = */ 2, /* tile_size = */ 16, /* packets = */ false);
+  const render::LocalOptions packets = local_options(/* threads = */ 2, /* tile_size = */ 7);
   const auto a = render::render_local(rs, d.render, pixels);
   const auto b = render::render_local(rs, d.render, packets);
   REQUIRE(a.image.rgb.size() == b.image.rgb.size());

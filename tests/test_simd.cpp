@@ -20,53 +20,12 @@
 #include "accel/geometry.h"
 #include "accel/isa.h"
 #include "math/rng.h"
-#include "math/vec.h"
+#include "shape_builders.h"
 
 using namespace dtraced::accel;
-using dtraced::math::Ray;
-using dtraced::math::Vec3d;
+using namespace dtraced::testing;
 
 namespace {
-
-constexpr float kInf = std::numeric_limits<float>::infinity();
-
-struct TestRng {
-  std::uint64_t state;
-  std::uint64_t next() { return dtraced::math::mix64(state += 0x9e3779b97f4a7c15ULL); }
-  double uniform() { return double(next() >> 11) * 0x1p-53; }
-  double uniform(double a, double b) { return a + (b - a) * uniform(); }
-  Vec3d unit() {
-    const double z = uniform(-1.0, 1.0);
-    const double phi = uniform(0.0, 2.0 * std::numbers::pi);
-    const double s = std::sqrt(std::max(0.0, 1.0 - z * z));
-    return {s * std::cos(phi), s * std::sin(phi), z};
-  }
-};
-
-Shape sphere(const Vec3f& c, float r) {
-  Shape s;
-  s.type = ShapeType::kSphere;
-  s.sphere = {c, r};
-  return s;
-}
-Shape box(const Vec3f& lo, const Vec3f& hi) {
-  Shape s;
-  s.type = ShapeType::kBox;
-  s.box = {lo, hi};
-  return s;
-}
-Shape plane(const Vec3f& p, const Vec3f& n) {
-  Shape s;
-  s.type = ShapeType::kPlane;
-  s.plane = {p, n};
-  return s;
-}
-Shape triangle(const Vec3f& a, const Vec3f& b, const Vec3f& c) {
-  Shape s;
-  s.type = ShapeType::kTriangle;
-  s.triangle = {a, b, c};
-  return s;
-}
 
 // A closed lat-long sphere of 2 * rings * segments triangles (sharing every edge and vertex).
 void add_mesh_sphere(std::vector<Shape>& out, const Vec3d& c, double r, int rings, int segments) {
@@ -187,10 +146,6 @@ std::vector<Ray> shadow_rays(const Geometry& ref, const std::vector<Ray>& from, 
   return rays;
 }
 
-bool same_hit(const Hit& a, const Hit& b) {
-  return a.t == b.t && a.shape == b.shape && a.p == b.p && a.p_error == b.p_error && a.n == b.n;
-}
-
 struct Mismatches {
   int single = 0, packet = 0, occluded = 0, occluded_packet = 0;
   long rays = 0;
@@ -240,20 +195,20 @@ void check_all_isas(const std::vector<Shape>& shapes, const std::vector<Ray>& ra
   }
 }
 
-// The nearest hit over every shape, one by one; keeps the first of equal t (the smaller id),
-// which is the BVH's tie rule.
-bool brute_force(const std::vector<Shape>& shapes, const Ray& r, Hit& want) {
-  bool found = false;
-  for (std::uint32_t id = 0; id < shapes.size(); ++id) {
-    Hit h;
-    Ray clipped = r;
-    if (found) clipped.t_max = want.t;
-    if (intersect_shape(shapes[id], id, clipped, h)) {
-      want = h;
-      found = true;
-    }
+// Rays whose answer from `geo` differs from brute force over every shape (shape, t and hit record
+// bit for bit); with `occluded`, also each ray's any-hit answer against the brute-force hit.
+int brute_force_mismatches(const std::vector<Shape>& shapes, const Geometry& geo, const std::vector<Ray>& rays,
+                           bool occluded) {
+  int mismatches = 0;
+  for (const Ray& r : rays) {
+    Hit want;
+    const bool w = brute_force(shapes, r, want);
+    Hit got;
+    const bool g = geo.intersect(r, got);
+    mismatches += (w != g) || (w && !same_hit(want, got));
+    if (occluded) mismatches += geo.occluded(r) != w;
   }
-  return found;
+  return mismatches;
 }
 
 }  // namespace
@@ -315,17 +270,8 @@ TEST_CASE("the BVH with triangles equals brute force over every shape", "[simd]"
   const std::vector<Ray> rays = random_rays(42, 20000, 50.0);
   for (const Isa isa : supported_isas()) {
     const Geometry geo = Geometry::build(shapes, isa);
-    int mismatches = 0;
-    for (const Ray& r : rays) {
-      Hit want;
-      const bool w = brute_force(shapes, r, want);
-      Hit got;
-      const bool g = geo.intersect(r, got);
-      // Brute force keeps the first of equal t (the smaller id): the BVH's tie rule.
-      mismatches += (w != g) || (w && !same_hit(want, got));
-    }
     INFO("isa " << isa_name(isa));
-    CHECK(mismatches == 0);
+    CHECK(brute_force_mismatches(shapes, geo, rays, /* occluded = */ false) == 0);
   }
 }
 
@@ -554,16 +500,7 @@ TEST_CASE("huge shapes stay out of the tree and every path still equals brute fo
     const Geometry geo = Geometry::build(shapes, isa);
     INFO("isa " << isa_name(isa));
     CHECK(geo.stats().outside == 2);  // floor and ceiling; a wall has 1/6 of the area
-    int mismatches = 0;
-    for (const Ray& r : rays) {
-      Hit want;
-      const bool w = brute_force(shapes, r, want);
-      Hit got;
-      const bool g = geo.intersect(r, got);
-      mismatches += (w != g) || (w && !same_hit(want, got));
-      mismatches += geo.occluded(r) != w;
-    }
-    CHECK(mismatches == 0);
+    CHECK(brute_force_mismatches(shapes, geo, rays, /* occluded = */ true) == 0);
   }
   const Geometry ref = Geometry::build(shapes, Isa::kScalar);
   std::vector<Ray> more = camera_rays(256, 160, {0, 15, -55}, {0, 5, 0});

@@ -18,6 +18,24 @@ using math::next_float_up;
 
 namespace detail {
 
+namespace {
+
+// The part of a sphere hit's error bound that comes from double arithmetic, per unit of
+// |local point| + |centre| on each axis. The point is computed in double, so its bound is made of
+// double roundings (pbrt-v4's gamma(5) |p| is the bound of the same steps in float, which for a
+// sphere of radius 1e6 is 0.3: shadow rays then start 0.3 above a ground sphere and small objects
+// lose their shadows). Re-projecting the local point onto the sphere, pl * (r / |pl|), leaves each
+// coordinate within gamma_d(5) |pl_i| of a point exactly on it (pbrt-v4's analysis, with double's
+// epsilon); adding the centre rounds once more, eps_d (|c_i| + |pl_i|). An origin offset by the
+// bound must also be seen as outside (or inside) by the next ray's own sphere test, whose
+// c = |f|^2 - r^2 carries about 2.5 eps_d r of radial uncertainty (f = o - c rounded, three
+// squares and two sums); the offset along n is at least the bound times r / (|pl| + |c|) <= 1
+// per axis, so 6 + 3 roundings are needed. gamma_d(16) leaves room for rounding the bound itself.
+// Rounding the point to float is the separate gamma(1) |p_i| term.
+constexpr double kSphereDoubleError = math::gamma_d(16);
+
+}  // namespace
+
 bool shape_is_valid(const Shape& shape) {
   switch (shape.type) {
     case ShapeType::kSphere: {
@@ -78,9 +96,8 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
         pl[i] *= scale;
         hit.n[i] = float(pl[i] / rad);
         hit.p[i] = float(double(s.center[i]) + pl[i]);
-        // pbrt-v4's bound for the re-projected local point (our double arithmetic is far tighter),
-        // plus the final rounding of centre + local point to float.
-        hit.p_error[i] = gamma(5) * std::abs(float(pl[i])) + gamma(1) * std::abs(hit.p[i]);
+        hit.p_error[i] = float(kSphereDoubleError * (std::abs(pl[i]) + std::abs(double(s.center[i])))) +
+                         gamma(1) * std::abs(hit.p[i]);
       }
       return;
     }
@@ -124,6 +141,9 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
     case ShapeType::kTriangle: {
       // pbrt-v4's triangle hit point: barycentric blend of the vertices, here with the
       // barycentrics in double; the bound gamma(7) sum |b_i v_i| covers it with room to spare.
+      // A float bound is the right kind here, unlike a sphere's: the barycentrics come from the
+      // float edge functions (double only in the rare zero-edge fallback), so they sum to 1 only
+      // to float precision and the point leaves the triangle's plane by float-sized amounts.
       const TriangleShape& tri = shape.triangle;
       const float vd[9] = {tri.v0.x, tri.v0.y, tri.v0.z, tri.v1.x, tri.v1.y, tri.v1.z, tri.v2.x, tri.v2.y, tri.v2.z};
       TriangleUvw uvw{};

@@ -2,8 +2,9 @@
 // structure over them.
 //
 // Owns: render-ready shapes (spheres, axis-aligned boxes, triangles, infinite planes), a binned-SAH
-// BVH over the bounded ones (planes and a few huge shapes stay outside the tree), nearest-hit queries with conservative
-// hit-point error bounds, and the pbrt-v4 style origin offset for secondary rays.
+// BVH over the bounded ones (planes and a few huge shapes stay outside the tree), nearest-hit
+// queries with conservative hit-point error bounds, and the pbrt-v4 style origin offset for
+// secondary rays.
 //
 // Two traversal paths answer every query with the same bits (see accel/isa.h):
 // - Isa::kScalar, the reference: one ray at a time through the binary BVH, scalar kernels.
@@ -13,12 +14,16 @@
 //   same IEEE operations as the scalar ones (no FMA), so hit/miss, t and shape agree bit for bit.
 // Thread-safety: a built Geometry is immutable; any number of threads may query it at once.
 //
-// Robustness contract (see /work/shared/notes/accuracy.md 1.2-1.5, 1.10):
+// Robustness contract (after pbrt-v4's conservative error bounds and origin offsets, Ray Tracing
+// Gems ch. 7 for spheres, Woop, Benthin and Wald 2013 for watertight triangles and Ize 2013 for the
+// slab test):
 // - A hit has t in the open interval (ray.t_min, ray.t_max); NaN never counts as a hit. Rays are
 //   expected to have t_min >= 0 and a (float-)normalised direction.
 // - Spheres are intersected in double (Ray Tracing Gems ch. 7 form), boxes with the conservative
-//   slab test (Ize 2013 / pbrt-v4), planes in float. Hit.p comes with a per-axis bound p_error
-//   such that offset_ray_origin() yields an origin from which the same surface is not re-hit.
+//   slab test (Ize 2013 / pbrt-v4), planes in float. Hit.p comes with a per-axis bound p_error,
+//   made of the roundings of the arithmetic that computed it (double for spheres, float for the
+//   rest), such that offset_ray_origin() yields an origin from which the same surface is not
+//   re-hit.
 // - Geometry::intersect returns exactly what intersect_shape() over all shapes returns (same
 //   shape, same t bits); among shapes hit at the same t the smallest index wins.
 // - Shapes with non-finite parameters, spheres with radius <= 0, boxes with lo > hi on some axis

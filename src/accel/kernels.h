@@ -135,11 +135,12 @@ inline float box_t(const float* b, const RayPre& r, float t_min, BoxFace* face =
   return kNaN;
 }
 
-// Sphere roots in double (Ray Tracing Gems ch. 7 with the cross-product discriminant of the
-// accuracy notes 1.3): f = o - c is exact in double for float inputs, the products of f x d lose
-// no bits that matter, and the Numerical-Recipes form q = -(b + sign(b) sqrt(disc)) avoids the
-// cancellation of -b - sqrt(disc). The direction need not be exactly unit length: with
-// a = |d|^2 the quadratic is a t^2 + 2 b t + c with disc/4 = a r^2 - |f x d|^2.
+// Sphere roots in double (Ray Tracing Gems ch. 7, with the discriminant taken from the cross
+// product f x d rather than b^2 - c): f = o - c is exact in double for float inputs unless their
+// magnitudes differ by more than 2^29 (then it is within half a double ulp, which the hit-point
+// bound in geometry.cpp allows for), the products of f x d lose no bits that matter, and the
+// Numerical-Recipes form q = -(b + sign(b) sqrt(disc)) avoids the cancellation of -b - sqrt(disc). The direction need
+// not be exactly unit length: with a = |d|^2 the quadratic is a t^2 + 2 b t + c with disc/4 = a r^2 - |f x d|^2.
 struct SphereRoots {
   double f[3];    // o - c
   double t0, t1;  // t0 <= t1 unless one is NaN

@@ -91,6 +91,49 @@ inline std::uint32_t node_test1(const WideNode& node, const Single& s, float cul
   return bits;
 }
 
+// The sphere test of kernels.h (sphere_roots, then sphere_t's choice of root) on one vector of
+// lanes, operation for operation: from f = o - c, the direction d, a = |d|^2 and r^2, all in
+// double, and t_min per lane, t gets each lane's chosen float root or NaN. Shared by the single-ray
+// and the packet kernels, whose loops make the constants once (SphereConsts) and pass them in.
+template <class DD, class DF>
+struct SphereConsts {
+  hn::Vec<DD> zero, nan;  // double
+  hn::Vec<DF> inf, nanf;  // float
+};
+template <class DD, class DF>
+HWY_INLINE SphereConsts<DD, DF> sphere_consts(DD dd, DF df) {
+  return {hn::Zero(dd), hn::Set(dd, std::numeric_limits<double>::quiet_NaN()), hn::Set(df, kInfF),
+          hn::Set(df, std::numeric_limits<float>::quiet_NaN())};
+}
+template <class DD, class DF, class VD, class VF>
+HWY_INLINE void sphere_lanes(DD dd, DF df, const SphereConsts<DD, DF>& k, VD fx, VD fy, VD fz, VD dx, VD dy, VD dz,
+                             VD a, VD rr, VF tmin, float* t) {
+  const auto zero = k.zero, nan = k.nan;
+  const auto inf = k.inf, nanf = k.nanf;
+  const auto cx = hn::Sub(hn::Mul(fy, dz), hn::Mul(fz, dy));
+  const auto cy = hn::Sub(hn::Mul(fz, dx), hn::Mul(fx, dz));
+  const auto cz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
+  const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(cx, cx), hn::Mul(cy, cy)), hn::Mul(cz, cz)));
+  const auto ok = hn::Ge(disc, zero);
+  if (hn::AllFalse(dd, ok)) {  // most sphere tests miss: skip the square root and divisions
+    hn::StoreU(nanf, df, t);
+    return;
+  }
+  const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
+  const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
+  const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
+  const auto r0 = hn::Div(c, q);
+  const auto r1 = hn::Div(q, a);
+  const auto swap = hn::Gt(r0, r1);
+  const auto lo = hn::IfThenElse(ok, hn::IfThenElse(swap, r1, r0), nan);
+  const auto hi = hn::IfThenElse(ok, hn::IfThenElse(swap, r0, r1), nan);
+  const auto t0 = hn::DemoteTo(df, lo);
+  const auto t1 = hn::DemoteTo(df, hi);
+  const auto use0 = hn::And(hn::Gt(t0, tmin), hn::Lt(t0, inf));
+  const auto use1 = hn::And(hn::Gt(t1, tmin), hn::Lt(t1, inf));
+  hn::StoreU(hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf)), df, t);
+}
+
 // Sphere roots of one ray against a block of 4 spheres, in double exactly as sphere_roots and
 // sphere_t; t[i] gets the chosen float root or NaN.
 inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
@@ -100,39 +143,14 @@ inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
   const auto ox = hn::Set(dd, double(s.r.o[0])), oy = hn::Set(dd, double(s.r.o[1])), oz = hn::Set(dd, double(s.r.o[2]));
   const auto dx = hn::Set(dd, double(s.r.d[0])), dy = hn::Set(dd, double(s.r.d[1])), dz = hn::Set(dd, double(s.r.d[2]));
   const auto a = hn::Set(dd, s.a);
-  const auto zero = hn::Zero(dd);
-  const auto nan = hn::Set(dd, std::numeric_limits<double>::quiet_NaN());
   const auto tmin = hn::Set(df, s.t_min);
-  const auto inf = hn::Set(df, kInfF);
-  const auto nanf = hn::Set(df, std::numeric_limits<float>::quiet_NaN());
+  const auto k = sphere_consts(dd, df);
   for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
     const auto fx = hn::Sub(ox, hn::PromoteTo(dd, hn::LoadU(df, b.cx + i)));
     const auto fy = hn::Sub(oy, hn::PromoteTo(dd, hn::LoadU(df, b.cy + i)));
     const auto fz = hn::Sub(oz, hn::PromoteTo(dd, hn::LoadU(df, b.cz + i)));
     const auto rad = hn::PromoteTo(dd, hn::LoadU(df, b.r + i));
-    const auto rr = hn::Mul(rad, rad);
-    const auto cx = hn::Sub(hn::Mul(fy, dz), hn::Mul(fz, dy));
-    const auto cy = hn::Sub(hn::Mul(fz, dx), hn::Mul(fx, dz));
-    const auto cz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
-    const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(cx, cx), hn::Mul(cy, cy)), hn::Mul(cz, cz)));
-    const auto ok = hn::Ge(disc, zero);
-    if (hn::AllFalse(dd, ok)) {  // most sphere tests miss: skip the square root and divisions
-      hn::StoreU(nanf, df, t + i);
-      continue;
-    }
-    const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
-    const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
-    const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
-    const auto r0 = hn::Div(c, q);
-    const auto r1 = hn::Div(q, a);
-    const auto swap = hn::Gt(r0, r1);
-    const auto lo = hn::IfThenElse(ok, hn::IfThenElse(swap, r1, r0), nan);
-    const auto hi = hn::IfThenElse(ok, hn::IfThenElse(swap, r0, r1), nan);
-    const auto t0 = hn::DemoteTo(df, lo);
-    const auto t1 = hn::DemoteTo(df, hi);
-    const auto use0 = hn::And(hn::Gt(t0, tmin), hn::Lt(t0, inf));
-    const auto use1 = hn::And(hn::Gt(t1, tmin), hn::Lt(t1, inf));
-    hn::StoreU(hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf)), df, t + i);
+    sphere_lanes(dd, df, k, fx, fy, fz, dx, dy, dz, a, hn::Mul(rad, rad), tmin, t + i);
   }
 }
 
@@ -157,6 +175,55 @@ inline V triangle_t_error8(D d, V sax, V say, V sbx, V sby, V scx, V scy, V saz,
   return hn::Div(num, hn::Abs(det));
 }
 
+// The watertight test of kernels.h (triangle_t, float part) on one vector of lanes, operation for
+// operation: from the vertices relative to the origin, already sheared in x and y (sax ... scy),
+// their z before the shear (az, bz, cz), the shear sz and t_min per lane, t gets each lane's t or
+// NaN. Returns the lanes whose float edge function came out exactly zero, which the caller redoes
+// with the scalar triangle_t_double. Shared by the single-ray and the packet kernels, whose loops
+// make the constants 0, +Inf and NaN once and pass them in.
+template <class D, class V>
+HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V sby, V scx, V scy, V az, V bz, V cz,
+                               V sz, V tmin, float* t) {
+  const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
+  const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
+  const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
+  const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
+  const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
+  const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
+  if (hn::AllTrue(d, hn::AndNot(zero_edge, hn::And(neg, pos)))) {  // the common case: all outside
+    hn::StoreU(nan, d, t);
+    return zero_edge;  // no lane
+  }
+  const auto det = hn::Add(hn::Add(u, v), w);
+  const auto saz = hn::Mul(sz, az), sbz = hn::Mul(sz, bz), scz = hn::Mul(sz, cz);
+  const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(v, sbz)), hn::Mul(w, scz));
+  const auto tv = hn::Div(tt, det);
+  const auto err = triangle_t_error8(d, sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, v, w, det);
+  const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::And(hn::Ne(det, zero), hn::Gt(tv, err)),
+                                                        hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
+  hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t);
+  return zero_edge;
+}
+
+// Redoes the lanes of `zero_edge` (a ray through an edge or a vertex: rare) with the scalar
+// triangle_t_double, from the sheared coordinates `v` (sax, say, sbx, sby, scx, scy, az, bz, cz).
+// lane_ray(k) is lane k's Single.
+template <class D, class M, class LaneRay>
+HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], float* t, LaneRay lane_ray) {
+  if (hn::AllFalse(d, zero_edge)) return;
+  alignas(64) float l[9][kPacketSize];  // lanes of a single-ray block (4) or a packet (8)
+  for (int j = 0; j < 9; ++j) hn::StoreU(v[j], d, l[j]);
+  std::uint8_t mb[8] = {};
+  hn::StoreMaskBits(d, zero_edge, mb);
+  for (std::size_t k = 0; k < hn::Lanes(d); ++k) {
+    if (mb[0] >> k & 1u) {
+      const Single& s = lane_ray(k);
+      t[k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], l[6][k], l[7][k], l[8][k], s.r,
+                               s.t_min, nullptr);
+    }
+  }
+}
+
 // Watertight test of one ray against a block of 4 triangles, exactly as triangle_t; lanes whose
 // float edge function is zero are redone by the scalar triangle_t_double.
 inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
@@ -165,10 +232,8 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
   const RayPre& r = s.r;
   const auto ox = hn::Set(d, r.o[r.kx]), oy = hn::Set(d, r.o[r.ky]), oz = hn::Set(d, r.o[r.kz]);
   const auto sx = hn::Set(d, r.sx), sy = hn::Set(d, r.sy), sz = hn::Set(d, r.sz);
-  const auto zero = hn::Zero(d);
   const auto tmin = hn::Set(d, s.t_min);
-  const auto inf = hn::Set(d, kInfF);
-  const auto nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
   for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
     const auto ax = hn::Sub(hn::LoadU(d, b.v[0][r.kx] + i), ox), ay = hn::Sub(hn::LoadU(d, b.v[0][r.ky] + i), oy),
                az = hn::Sub(hn::LoadU(d, b.v[0][r.kz] + i), oz);
@@ -179,44 +244,9 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
     const auto sax = hn::Sub(ax, hn::Mul(sx, az)), say = hn::Sub(ay, hn::Mul(sy, az));
     const auto sbx = hn::Sub(bx, hn::Mul(sx, bz)), sby = hn::Sub(by, hn::Mul(sy, bz));
     const auto scx = hn::Sub(cx, hn::Mul(sx, cz)), scy = hn::Sub(cy, hn::Mul(sy, cz));
-    const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
-    const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
-    const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
-    const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
-    const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
-    const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
-    if (hn::AllTrue(d, hn::AndNot(zero_edge, hn::And(neg, pos)))) {  // the common case: all outside
-      hn::StoreU(nan, d, t + i);
-      continue;
-    }
-    const auto det = hn::Add(hn::Add(u, v), w);
-    const auto saz = hn::Mul(sz, az), sbz = hn::Mul(sz, bz), scz = hn::Mul(sz, cz);
-    const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(v, sbz)), hn::Mul(w, scz));
-    const auto tv = hn::Div(tt, det);
-    const auto err = triangle_t_error8(d, sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, v, w, det);
-    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::And(hn::Ne(det, zero), hn::Gt(tv, err)),
-                                                          hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
-    hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
-    if (!hn::AllFalse(d, zero_edge)) {
-      alignas(64) float l[6][kWidth], lz[3][kWidth];
-      hn::StoreU(sax, d, l[0]);
-      hn::StoreU(say, d, l[1]);
-      hn::StoreU(sbx, d, l[2]);
-      hn::StoreU(sby, d, l[3]);
-      hn::StoreU(scx, d, l[4]);
-      hn::StoreU(scy, d, l[5]);
-      hn::StoreU(az, d, lz[0]);
-      hn::StoreU(bz, d, lz[1]);
-      hn::StoreU(cz, d, lz[2]);
-      std::uint8_t mb[8] = {};
-      hn::StoreMaskBits(d, zero_edge, mb);
-      for (std::size_t k = 0; k < n; ++k) {
-        if (mb[0] >> k & 1u) {
-          t[i + k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], lz[0][k], lz[1][k],
-                                       lz[2][k], r, s.t_min, nullptr);
-        }
-      }
-    }
+    const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz, tmin, t + i);
+    redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
+                    [&s](std::size_t) -> const Single& { return s; });
   }
 }
 
@@ -484,42 +514,16 @@ inline void sphere8(const Packet& p, float cx, float cy, float cz, float radius,
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const std::size_t n = hn::Lanes(dd);
-  const auto zero = hn::Zero(dd);
-  const auto nan = hn::Set(dd, std::numeric_limits<double>::quiet_NaN());
-  const auto inf = hn::Set(df, kInfF);
-  const auto nanf = hn::Set(df, std::numeric_limits<float>::quiet_NaN());
   const auto ccx = hn::Set(dd, double(cx)), ccy = hn::Set(dd, double(cy)), ccz = hn::Set(dd, double(cz));
   const auto rad = hn::Set(dd, double(radius));
   const auto rr = hn::Mul(rad, rad);
+  const auto k = sphere_consts(dd, df);
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     const auto fx = hn::Sub(hn::LoadU(dd, p.od[0] + i), ccx);
     const auto fy = hn::Sub(hn::LoadU(dd, p.od[1] + i), ccy);
     const auto fz = hn::Sub(hn::LoadU(dd, p.od[2] + i), ccz);
     const auto dx = hn::LoadU(dd, p.dd[0] + i), dy = hn::LoadU(dd, p.dd[1] + i), dz = hn::LoadU(dd, p.dd[2] + i);
-    const auto a = hn::LoadU(dd, p.a + i);
-    const auto ux = hn::Sub(hn::Mul(fy, dz), hn::Mul(fz, dy));
-    const auto uy = hn::Sub(hn::Mul(fz, dx), hn::Mul(fx, dz));
-    const auto uz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
-    const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(ux, ux), hn::Mul(uy, uy)), hn::Mul(uz, uz)));
-    const auto ok = hn::Ge(disc, zero);
-    if (hn::AllFalse(dd, ok)) {
-      hn::StoreU(nanf, df, t + i);
-      continue;
-    }
-    const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
-    const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
-    const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
-    const auto r0 = hn::Div(c, q);
-    const auto r1 = hn::Div(q, a);
-    const auto swap = hn::Gt(r0, r1);
-    const auto lo = hn::IfThenElse(ok, hn::IfThenElse(swap, r1, r0), nan);
-    const auto hi = hn::IfThenElse(ok, hn::IfThenElse(swap, r0, r1), nan);
-    const auto t0 = hn::DemoteTo(df, lo);
-    const auto t1 = hn::DemoteTo(df, hi);
-    const auto tmin = hn::LoadU(df, p.t_min + i);
-    const auto use0 = hn::And(hn::Gt(t0, tmin), hn::Lt(t0, inf));
-    const auto use1 = hn::And(hn::Gt(t1, tmin), hn::Lt(t1, inf));
-    hn::StoreU(hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf)), df, t + i);
+    sphere_lanes(dd, df, k, fx, fy, fz, dx, dy, dz, hn::LoadU(dd, p.a + i), rr, hn::LoadU(df, p.t_min + i), t + i);
   }
 }
 
@@ -528,9 +532,7 @@ inline void sphere8(const Packet& p, float cx, float cy, float cz, float radius,
 inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
-  const auto zero = hn::Zero(d);
-  const auto inf = hn::Set(d, kInfF);
-  const auto nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     const auto kx0 = hn::Gt(hn::LoadU(d, p.kx0 + i), zero), kx1 = hn::Gt(hn::LoadU(d, p.kx1 + i), zero);
     const auto ky0 = hn::Gt(hn::LoadU(d, p.ky0 + i), zero), ky1 = hn::Gt(hn::LoadU(d, p.ky1 + i), zero);
@@ -553,47 +555,10 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
     const auto sax = hn::Sub(rel[0][0], hn::Mul(sx, rel[0][2])), say = hn::Sub(rel[0][1], hn::Mul(sy, rel[0][2]));
     const auto sbx = hn::Sub(rel[1][0], hn::Mul(sx, rel[1][2])), sby = hn::Sub(rel[1][1], hn::Mul(sy, rel[1][2]));
     const auto scx = hn::Sub(rel[2][0], hn::Mul(sx, rel[2][2])), scy = hn::Sub(rel[2][1], hn::Mul(sy, rel[2][2]));
-    const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
-    const auto vv = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
-    const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
-    const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(vv, zero)), hn::Lt(w, zero));
-    const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(vv, zero)), hn::Gt(w, zero));
-    const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(vv, zero)), hn::Eq(w, zero));
-    const auto rejected = hn::AndNot(zero_edge, hn::And(neg, pos));
-    if (hn::AllTrue(d, rejected)) {
-      hn::StoreU(nan, d, t + i);
-      continue;
-    }
-    const auto det = hn::Add(hn::Add(u, vv), w);
-    const auto saz = hn::Mul(sz, rel[0][2]), sbz = hn::Mul(sz, rel[1][2]), scz = hn::Mul(sz, rel[2][2]);
-    const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(vv, sbz)), hn::Mul(w, scz));
-    const auto tv = hn::Div(tt, det);
-    const auto tmin = hn::LoadU(d, p.t_min + i);
-    const auto err = triangle_t_error8(d, sax, say, sbx, sby, scx, scy, saz, sbz, scz, u, vv, w, det);
-    const auto ok = hn::AndNot(hn::And(neg, pos), hn::And(hn::And(hn::Ne(det, zero), hn::Gt(tv, err)),
-                                                          hn::And(hn::Gt(tv, tmin), hn::Lt(tv, inf))));
-    hn::StoreU(hn::IfThenElse(ok, tv, nan), d, t + i);
-    if (!hn::AllFalse(d, zero_edge)) {
-      alignas(64) float l[9][kP];
-      hn::StoreU(sax, d, l[0]);
-      hn::StoreU(say, d, l[1]);
-      hn::StoreU(sbx, d, l[2]);
-      hn::StoreU(sby, d, l[3]);
-      hn::StoreU(scx, d, l[4]);
-      hn::StoreU(scy, d, l[5]);
-      hn::StoreU(rel[0][2], d, l[6]);
-      hn::StoreU(rel[1][2], d, l[7]);
-      hn::StoreU(rel[2][2], d, l[8]);
-      std::uint8_t mb[8] = {};
-      hn::StoreMaskBits(d, zero_edge, mb);
-      for (std::size_t k = 0; k < n; ++k) {
-        if (mb[0] >> k & 1u) {
-          const Single& s = p.single[i + k];
-          t[i + k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], l[6][k], l[7][k], l[8][k],
-                                       s.r, s.t_min, nullptr);
-        }
-      }
-    }
+    const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2],
+                                          rel[2][2], sz, hn::LoadU(d, p.t_min + i), t + i);
+    redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2]}, t + i,
+                    [&p, i](std::size_t k) -> const Single& { return p.single[i + k]; });
   }
 }
 

@@ -4,11 +4,11 @@
 // A benchmark, not a test: it prints tables (and optionally a CSV) and judges nothing but the
 // issue's throughput targets, which it marks MET or MISSED.
 //
-// Protocol (/work/shared/notes/simd.md section 5):
+// Protocol:
 // - Scenes are built in memory from a seed: "spheres" = scene::generate_sphere_field with its
 //   infinite ground plane replaced by a tessellated triangle grid (Embree has no plane, and both
 //   libraries must trace the same primitives); "mesh" = about 1M triangles, lat-long tessellated
-//   spheres on a tessellated ground, as in the notes' harness.
+//   spheres on a tessellated ground.
 // - Ray sets are generated once per scene and fed unchanged to every tracer: camera rays (pinhole,
 //   1 spp, 16x16-pixel tiles cut into 4x2-pixel packets of 8), shadow rays from the camera rays'
 //   hits to one point light (only where the light is in front of the surface, as the renderer
@@ -255,7 +255,8 @@ BenchScene make_mesh_scene(std::uint32_t spheres, std::uint32_t ground_quads, st
   const Dice dice(seed);
   BenchScene s;
   s.name = "mesh";
-  // Spheres overlap each other and sink a little into the ground, as in the notes' harness.
+  // Spheres overlap each other and sink a little into the ground, so the tree has overlapping
+  // bounds to cope with, as in a real scene.
   const float field = 10.0f * std::sqrt(float(spheres) / 400.0f);
   for (std::uint32_t i = 0; i < spheres; ++i) {
     const float r = float(0.6 + 1.0 * dice.uniform(i, 0));
@@ -623,154 +624,140 @@ std::vector<Isa> chosen_isas(const Options& opt) {
   return out;
 }
 
-void bench_scene(const BenchScene& s, const Options& opt, std::uint32_t threads, Csv& csv) {
-  fmt::print("\n==== scene '{}': {}\n", s.name, s.description);
-  const Runner runner{opt, threads};
-  const std::vector<Isa> all_supported = accel::supported_isas();
+// What the parts of one scene's ray benchmark share: the scene, its ray sets, the scalar reference
+// geometry and its answers, and the rows measured so far.
+struct SceneBench {
+  const BenchScene& scene;
+  const Options& opt;
+  Runner runner;
+  const Geometry& reference;
+  const RaySets& sets;
+  Answers ref[3];  // the reference's answers, per set
+  std::vector<Row> rows;
+
+  const RaySet& set(std::size_t k) const {
+    const RaySet* of[3] = {&sets.camera, &sets.shadow, &sets.secondary};
+    return *of[k];
+  }
+};
+
+// The instruction sets this build or CPU cannot run, as notes.
+void note_unsupported_isas() {
+  const std::vector<Isa> supported = accel::supported_isas();
   for (Isa isa : {Isa::kSse4, Isa::kAvx2, Isa::kAvx512}) {
-    if (std::find(all_supported.begin(), all_supported.end(), isa) == all_supported.end()) {
+    if (std::find(supported.begin(), supported.end(), isa) == supported.end()) {
       fmt::print("note: isa {} skipped: not supported by this build or CPU\n", accel::isa_name(isa));
     }
   }
-  const std::vector<Isa> isas = chosen_isas(opt);
+}
 
-  std::vector<std::string> build_lines;
-  const auto build_line = [&](const Geometry& g) {
-    const accel::BuildStats& b = g.stats();
-    build_lines.push_back(fmt::format("  {:<8} {:>9.3f} {:>13.3f} {:>10} {:>11} {:>9} {:>10}", accel::isa_name(g.isa()),
-                                      b.seconds, b.wide_seconds, b.nodes, b.wide_nodes, b.leaves, b.max_depth));
-  };
+std::string build_line(const Geometry& g) {
+  const accel::BuildStats& b = g.stats();
+  return fmt::format("  {:<8} {:>9.3f} {:>13.3f} {:>10} {:>11} {:>9} {:>10}", accel::isa_name(g.isa()), b.seconds,
+                     b.wide_seconds, b.nodes, b.wide_nodes, b.leaves, b.max_depth);
+}
 
-  // The reference: scalar geometry, single rays. It also generates the shadow and secondary rays.
-  const Geometry reference = Geometry::build(s.shapes, Isa::kScalar);
-  build_line(reference);
-  const RaySets sets = make_rays(s, reference, opt.width, opt.height, opt.seed);
-  fmt::print(
-      "ray sets: camera {} rays ({}x{}, 1 spp, 4x2-pixel packets in 16x16 tiles, {} packets, {} hit); shadow {} "
-      "rays ({} packets, to the point light at ({:g}, {:g}, {:g}), t_max = distance, only where the light is in "
-      "front); secondary {} rays (1 cosine-weighted bounce per hit, seed {}, traced one at a time)\n",
-      with_commas(sets.camera.count), opt.width, opt.height, with_commas(sets.camera.packets()),
-      with_commas(sets.camera_hits), with_commas(sets.shadow.count), with_commas(sets.shadow.packets()), s.light.x,
-      s.light.y, s.light.z, with_commas(sets.secondary.count), opt.seed);
-  const RaySet* set_of[3] = {&sets.camera, &sets.shadow, &sets.secondary};
-
-  std::vector<Row> rows;
-  Answers ref[3];
+// Our rows: the scalar reference's single rays (whose answers every other row is compared with),
+// then packets on each chosen isa. Returns one line of build statistics per geometry.
+std::vector<std::string> add_our_rows(SceneBench& b, const std::vector<Isa>& isas) {
+  std::vector<std::string> build_lines = {build_line(b.reference)};
   {
     Row r{"scalar single", {}};
-    r.cells[0] = runner.run("intersect", sets.camera, ours_single_intersect(reference), ref[0]);
-    r.cells[1] = runner.run("occluded", sets.shadow, ours_single_occluded(reference), ref[1]);
-    r.cells[2] = runner.run("intersect", sets.secondary, ours_single_intersect(reference), ref[2]);
-    rows.push_back(r);
+    r.cells[0] = b.runner.run("intersect", b.sets.camera, ours_single_intersect(b.reference), b.ref[0]);
+    r.cells[1] = b.runner.run("occluded", b.sets.shadow, ours_single_occluded(b.reference), b.ref[1]);
+    r.cells[2] = b.runner.run("intersect", b.sets.secondary, ours_single_intersect(b.reference), b.ref[2]);
+    b.rows.push_back(r);
   }
   Answers answers;
   const auto packet_row = [&](const std::string& name, const Geometry& g) {
     Row r{name, {}};
-    r.cells[0] = runner.run("intersect8", sets.camera, ours_intersect8(g), answers);
-    r.cells[0].mismatch = compare(sets.camera, answers, ref[0]);
-    r.cells[1] = runner.run("occluded8", sets.shadow, ours_occluded8(g), answers);
-    r.cells[1].mismatch =
-        compare(sets.shadow, answers, ref[1], ours_what_hit(g, sets.shadow), ours_what_hit(reference, sets.shadow));
-    r.cells[2] = runner.run("intersect", sets.secondary, ours_single_intersect(g), answers);
-    r.cells[2].mismatch = compare(sets.secondary, answers, ref[2]);
-    rows.push_back(r);
+    r.cells[0] = b.runner.run("intersect8", b.sets.camera, ours_intersect8(g), answers);
+    r.cells[0].mismatch = compare(b.sets.camera, answers, b.ref[0]);
+    r.cells[1] = b.runner.run("occluded8", b.sets.shadow, ours_occluded8(g), answers);
+    r.cells[1].mismatch = compare(b.sets.shadow, answers, b.ref[1], ours_what_hit(g, b.sets.shadow),
+                                  ours_what_hit(b.reference, b.sets.shadow));
+    r.cells[2] = b.runner.run("intersect", b.sets.secondary, ours_single_intersect(g), answers);
+    r.cells[2].mismatch = compare(b.sets.secondary, answers, b.ref[2]);
+    b.rows.push_back(r);
   };
-  if (std::find(isas.begin(), isas.end(), Isa::kScalar) != isas.end()) packet_row("scalar packet", reference);
+  if (std::find(isas.begin(), isas.end(), Isa::kScalar) != isas.end()) packet_row("scalar packet", b.reference);
   for (Isa isa : isas) {
     if (isa == Isa::kScalar) continue;
-    const Geometry g = Geometry::build(s.shapes, isa);  // one SIMD geometry alive at a time
-    build_line(g);
+    const Geometry g = Geometry::build(b.scene.shapes, isa);  // one SIMD geometry alive at a time
+    build_lines.push_back(build_line(g));
     packet_row(std::string(accel::isa_name(isa)), g);
   }
+  return build_lines;
+}
 
-  std::string embree_note;
 #ifdef DTRACED_BENCH_EMBREE
-  if (opt.embree) {
-    const EmbreeQuality q = opt.embree_quality == "high"  ? EmbreeQuality::kHigh
-                            : opt.embree_quality == "low" ? EmbreeQuality::kLow
-                                                          : EmbreeQuality::kMedium;
-    std::string error;
-    const std::unique_ptr<EmbreeTracer> e = EmbreeTracer::build(s.shapes, q, 0, error);
-    if (!e) {
-      embree_note = fmt::format("embree: skipped, build failed: {}", error);
-    } else {
-      embree_note = fmt::format(
-          "embree {}: RTC_BUILD_QUALITY_{}, spheres as RTC_GEOMETRY_TYPE_SPHERE_POINT, triangles as "
-          "RTC_GEOMETRY_TYPE_TRIANGLE: the same primitives as ours{}; build {:.3f} s wall on Embree's own threads.\n"
-          "  What differs: Embree accepts hits in [tnear, tfar], ours in the open (t_min, t_max); Embree tests "
-          "spheres in float, ours in double; our triangle test is watertight, Embree's default build is not. "
-          "'embree 1' passes the COHERENT flag for camera and shadow rays, INCOHERENT for secondary ones",
-          EmbreeTracer::version(),
-          opt.embree_quality == "high"  ? "HIGH"
-          : opt.embree_quality == "low" ? "LOW"
-                                        : "MEDIUM",
-          e->skipped() ? fmt::format(" ({} boxes/planes left out)", e->skipped()) : std::string(), e->build_seconds());
-      const EmbreeTracer& et = *e;
-      const auto cell = [&](std::size_t k, const std::string& method, const PacketFn& fn) {
-        Cell c = runner.run(method, *set_of[k], fn, answers);
-        // An occlusion answer does not say what was hit: ask rtcIntersect1, outside the timing.
-        const WhatHit embree_hit = [&](std::size_t i) {
-          std::uint32_t id = kMissId;
-          et.intersect1(&set_of[k]->rays[i], 1u, &id, /*coherent=*/false);
-          return id;
-        };
-        c.mismatch = compare(*set_of[k], answers, ref[k], k == 1 ? embree_hit : WhatHit(),
-                             k == 1 ? ours_what_hit(reference, sets.shadow) : WhatHit());
-        return c;
-      };
-      Row r1{"embree 1", {}};
-      r1.cells[0] = cell(0, "rtcIntersect1", [&](const Ray* r, std::uint32_t v, std::uint32_t* o) {
-        et.intersect1(r, v, o, /*coherent=*/true);
-      });
-      r1.cells[1] = cell(1, "rtcOccluded1", [&](const Ray* r, std::uint32_t v, std::uint32_t* o) {
-        et.occluded1(r, v, o, /*coherent=*/true);
-        for (int i = 0; i < kLanes; ++i) {
-          if ((v >> i & 1u) && o[i] == 0) o[i] = kMissId;
-        }
-      });
-      r1.cells[2] = cell(2, "rtcIntersect1", [&](const Ray* r, std::uint32_t v, std::uint32_t* o) {
-        et.intersect1(r, v, o, /*coherent=*/false);
-      });
-      rows.push_back(r1);
-      Row r8{"embree 8", {}};
-      r8.cells[0] = cell(0, "rtcIntersect8", [&](const Ray* r, std::uint32_t v, std::uint32_t* o) {
-        et.intersect8(r, v, o, /*coherent=*/true);
-      });
-      r8.cells[1] = cell(1, "rtcOccluded8", [&](const Ray* r, std::uint32_t v, std::uint32_t* o) {
-        et.occluded8(r, v, o, /*coherent=*/true);
-        for (int i = 0; i < kLanes; ++i) {
-          if ((v >> i & 1u) && o[i] == 0) o[i] = kMissId;
-        }
-      });
-      rows.push_back(r8);
-    }
-  } else {
-    embree_note = "embree: off (--no-embree)";
+// Embree's occlusion answers are 0 (free) or 1 (blocked); ours write kMissId for free.
+void mark_free_as_miss(std::uint32_t valid, std::uint32_t* out) {
+  for (int i = 0; i < kLanes; ++i) {
+    if ((valid >> i & 1u) && out[i] == 0) out[i] = kMissId;
   }
-#else
-  embree_note = "embree: not compiled in (configure with -DDTRACED_BENCH_EMBREE=ON and libembree-dev)";
+}
+
+// Embree's rows on the very same primitives and rays. Returns the note that describes them.
+std::string add_embree_rows(SceneBench& b) {
+  const Options& opt = b.opt;
+  const EmbreeQuality q = opt.embree_quality == "high"  ? EmbreeQuality::kHigh
+                          : opt.embree_quality == "low" ? EmbreeQuality::kLow
+                                                        : EmbreeQuality::kMedium;
+  std::string error;
+  const std::unique_ptr<EmbreeTracer> e = EmbreeTracer::build(b.scene.shapes, q, 0, error);
+  if (!e) return fmt::format("embree: skipped, build failed: {}", error);
+  const std::string note = fmt::format(
+      "embree {}: RTC_BUILD_QUALITY_{}, spheres as RTC_GEOMETRY_TYPE_SPHERE_POINT, triangles as "
+      "RTC_GEOMETRY_TYPE_TRIANGLE: the same primitives as ours{}; build {:.3f} s wall on Embree's own threads.\n"
+      "  What differs: Embree accepts hits in [tnear, tfar], ours in the open (t_min, t_max); Embree tests "
+      "spheres in float, ours in double; our triangle test is watertight, Embree's default build is not. "
+      "'embree 1' passes the COHERENT flag for camera and shadow rays, INCOHERENT for secondary ones",
+      EmbreeTracer::version(),
+      opt.embree_quality == "high"  ? "HIGH"
+      : opt.embree_quality == "low" ? "LOW"
+                                    : "MEDIUM",
+      e->skipped() ? fmt::format(" ({} boxes/planes left out)", e->skipped()) : std::string(), e->build_seconds());
+  const EmbreeTracer& et = *e;
+  Answers answers;
+  const auto cell = [&](std::size_t k, const std::string& method, const PacketFn& fn) {
+    Cell c = b.runner.run(method, b.set(k), fn, answers);
+    // An occlusion answer does not say what was hit: ask rtcIntersect1, outside the timing.
+    const WhatHit embree_hit = [&](std::size_t i) {
+      std::uint32_t id = kMissId;
+      et.intersect1(&b.set(k).rays[i], 1u, &id, /*coherent=*/false);
+      return id;
+    };
+    c.mismatch = compare(b.set(k), answers, b.ref[k], k == 1 ? embree_hit : WhatHit(),
+                         k == 1 ? ours_what_hit(b.reference, b.sets.shadow) : WhatHit());
+    return c;
+  };
+  // Embree's entry points as packet functions; occlusion answers marked as ours are.
+  using Method = void (EmbreeTracer::*)(const Ray*, std::uint32_t, std::uint32_t*, bool) const;
+  const auto intersect = [&et](Method m, bool coherent) -> PacketFn {
+    return [&et, m, coherent](const Ray* r, std::uint32_t v, std::uint32_t* o) { (et.*m)(r, v, o, coherent); };
+  };
+  const auto occluded = [&et](Method m) -> PacketFn {
+    return [&et, m](const Ray* r, std::uint32_t v, std::uint32_t* o) {
+      (et.*m)(r, v, o, /*coherent=*/true);
+      mark_free_as_miss(v, o);
+    };
+  };
+  Row r1{"embree 1", {}};
+  r1.cells[0] = cell(0, "rtcIntersect1", intersect(&EmbreeTracer::intersect1, /*coherent=*/true));
+  r1.cells[1] = cell(1, "rtcOccluded1", occluded(&EmbreeTracer::occluded1));
+  r1.cells[2] = cell(2, "rtcIntersect1", intersect(&EmbreeTracer::intersect1, /*coherent=*/false));
+  b.rows.push_back(r1);
+  Row r8{"embree 8", {}};
+  r8.cells[0] = cell(0, "rtcIntersect8", intersect(&EmbreeTracer::intersect8, /*coherent=*/true));
+  r8.cells[1] = cell(1, "rtcOccluded8", occluded(&EmbreeTracer::occluded8));
+  b.rows.push_back(r8);
+  return note;
+}
 #endif
 
-  fmt::print("\nBVH build (ours; Geometry::stats()):\n  {:<8} {:>9} {:>13} {:>10} {:>11} {:>9} {:>10}\n", "isa",
-             "seconds", "wide_seconds", "nodes", "wide_nodes", "leaves", "max_depth");
-  for (const std::string& l : build_lines) fmt::print("{}\n", l);
-  fmt::print("{}\n", embree_note);
-
-  std::fflush(stdout);
-  print_table(rows, /*all=*/false, 1, opt.runs);
-  if (threads > 1) print_table(rows, /*all=*/true, threads, opt.runs);
-  print_methods_and_mismatches(rows);
-
-  for (const Row& r : rows) {
-    for (SetKind k : kSets) {
-      const Cell& c = r.cells[std::size_t(k)];
-      if (!c.measured) continue;
-      csv.row(s.name, r.tracer, k, c, 1, set_of[std::size_t(k)]->count, c.one);
-      csv.row(s.name, r.tracer, k, c, threads, set_of[std::size_t(k)]->count, c.all);
-    }
-  }
-
-  // The targets. "Best isa" is the highest instruction set measured.
+// The targets, from the 1-thread medians. "Best isa" is the highest instruction set measured.
+void print_targets(const BenchScene& s, const std::vector<Isa>& isas, const std::vector<Row>& rows) {
   const Row* best_row =
       isas.empty() ? nullptr
                    : find_row(rows, isas.back() == Isa::kScalar ? "scalar packet" : accel::isa_name(isas.back()));
@@ -788,6 +775,52 @@ void bench_scene(const BenchScene& s, const Options& opt, std::uint32_t threads,
   print_ratio(fmt::format("secondary: {} intersect / embree rtcIntersect1 (incoherent)", best_name), best_row, e1,
               SetKind::kSecondary, 0.7);
   std::fflush(stdout);
+}
+
+void bench_scene(const BenchScene& s, const Options& opt, std::uint32_t threads, Csv& csv) {
+  fmt::print("\n==== scene '{}': {}\n", s.name, s.description);
+  note_unsupported_isas();
+  const std::vector<Isa> isas = chosen_isas(opt);
+
+  // The reference: scalar geometry, single rays. It also generates the shadow and secondary rays.
+  const Geometry reference = Geometry::build(s.shapes, Isa::kScalar);
+  const RaySets sets = make_rays(s, reference, opt.width, opt.height, opt.seed);
+  fmt::print(
+      "ray sets: camera {} rays ({}x{}, 1 spp, 4x2-pixel packets in 16x16 tiles, {} packets, {} hit); shadow {} "
+      "rays ({} packets, to the point light at ({:g}, {:g}, {:g}), t_max = distance, only where the light is in "
+      "front); secondary {} rays (1 cosine-weighted bounce per hit, seed {}, traced one at a time)\n",
+      with_commas(sets.camera.count), opt.width, opt.height, with_commas(sets.camera.packets()),
+      with_commas(sets.camera_hits), with_commas(sets.shadow.count), with_commas(sets.shadow.packets()), s.light.x,
+      s.light.y, s.light.z, with_commas(sets.secondary.count), opt.seed);
+
+  SceneBench b{s, opt, Runner{opt, threads}, reference, sets, {}, {}};
+  const std::vector<std::string> build_lines = add_our_rows(b, isas);
+  std::string embree_note;
+#ifdef DTRACED_BENCH_EMBREE
+  embree_note = opt.embree ? add_embree_rows(b) : "embree: off (--no-embree)";
+#else
+  embree_note = "embree: not compiled in (configure with -DDTRACED_BENCH_EMBREE=ON and libembree-dev)";
+#endif
+
+  fmt::print("\nBVH build (ours; Geometry::stats()):\n  {:<8} {:>9} {:>13} {:>10} {:>11} {:>9} {:>10}\n", "isa",
+             "seconds", "wide_seconds", "nodes", "wide_nodes", "leaves", "max_depth");
+  for (const std::string& l : build_lines) fmt::print("{}\n", l);
+  fmt::print("{}\n", embree_note);
+
+  std::fflush(stdout);
+  print_table(b.rows, /*all=*/false, 1, opt.runs);
+  if (threads > 1) print_table(b.rows, /*all=*/true, threads, opt.runs);
+  print_methods_and_mismatches(b.rows);
+
+  for (const Row& r : b.rows) {
+    for (SetKind k : kSets) {
+      const Cell& c = r.cells[std::size_t(k)];
+      if (!c.measured) continue;
+      csv.row(s.name, r.tracer, k, c, 1, b.set(std::size_t(k)).count, c.one);
+      csv.row(s.name, r.tracer, k, c, threads, b.set(std::size_t(k)).count, c.all);
+    }
+  }
+  print_targets(s, isas, b.rows);
 }
 
 // ---------------------------------------------------------------- whole renders

@@ -23,6 +23,15 @@ struct EmbreeTracer::Impl {
     if (geom == RTC_INVALID_GEOMETRY_ID) return kMissId;
     return shape_of[geom][prim];
   }
+  // Commits geometry g at quality q into the scene; its primitive k is our shape shapes[k].
+  void attach(RTCGeometry g, RTCBuildQuality q, std::vector<std::uint32_t> shapes) {
+    rtcSetGeometryBuildQuality(g, q);
+    rtcCommitGeometry(g);
+    const unsigned geom = rtcAttachGeometry(scene, g);
+    rtcReleaseGeometry(g);
+    if (shape_of.size() <= geom) shape_of.resize(geom + 1);
+    shape_of[geom] = std::move(shapes);
+  }
 };
 
 namespace {
@@ -136,12 +145,7 @@ std::unique_ptr<EmbreeTracer> EmbreeTracer::build(const std::vector<accel::Shape
       v[4 * k + 2] = s.center.z;
       v[4 * k + 3] = s.radius;
     }
-    rtcSetGeometryBuildQuality(g, q);
-    rtcCommitGeometry(g);
-    const unsigned id = rtcAttachGeometry(im.scene, g);
-    rtcReleaseGeometry(g);
-    if (im.shape_of.size() <= id) im.shape_of.resize(id + 1);
-    im.shape_of[id] = std::move(spheres);
+    im.attach(g, q, std::move(spheres));
   }
   if (!triangles.empty()) {
     RTCGeometry g = rtcNewGeometry(im.device, RTC_GEOMETRY_TYPE_TRIANGLE);
@@ -160,12 +164,7 @@ std::unique_ptr<EmbreeTracer> EmbreeTracer::build(const std::vector<accel::Shape
         idx[3 * k + c] = static_cast<std::uint32_t>(3 * k + c);
       }
     }
-    rtcSetGeometryBuildQuality(g, q);
-    rtcCommitGeometry(g);
-    const unsigned id = rtcAttachGeometry(im.scene, g);
-    rtcReleaseGeometry(g);
-    if (im.shape_of.size() <= id) im.shape_of.resize(id + 1);
-    im.shape_of[id] = std::move(triangles);
+    im.attach(g, q, std::move(triangles));
   }
 
   const auto start = std::chrono::steady_clock::now();

@@ -378,17 +378,24 @@ void on_png_write(png_structp png, png_bytep src, std::size_t n) {
 
 void on_png_flush(png_structp) {}
 
-// Owns a read struct and its info struct.
-class PngReader {
+// Owns a libpng read (kWrite false) or write struct and its info struct.
+template <bool kWrite>
+class PngHandle {
  public:
-  explicit PngReader(PngIo* io)
-      : png_(png_create_read_struct(PNG_LIBPNG_VER_STRING, io, on_png_error, on_png_warning)),
+  explicit PngHandle(PngIo* io)
+      : png_(kWrite ? png_create_write_struct(PNG_LIBPNG_VER_STRING, io, on_png_error, on_png_warning)
+                    : png_create_read_struct(PNG_LIBPNG_VER_STRING, io, on_png_error, on_png_warning)),
         info_(png_ ? png_create_info_struct(png_) : nullptr) {}
-  ~PngReader() {
-    if (png_) png_destroy_read_struct(&png_, info_ ? &info_ : nullptr, nullptr);
+  ~PngHandle() {
+    if (!png_) return;
+    if constexpr (kWrite) {
+      png_destroy_write_struct(&png_, info_ ? &info_ : nullptr);
+    } else {
+      png_destroy_read_struct(&png_, info_ ? &info_ : nullptr, nullptr);
+    }
   }
-  PngReader(const PngReader&) = delete;
-  PngReader& operator=(const PngReader&) = delete;
+  PngHandle(const PngHandle&) = delete;
+  PngHandle& operator=(const PngHandle&) = delete;
 
   bool ok() const { return png_ && info_; }
   png_structp png() const { return png_; }
@@ -398,26 +405,8 @@ class PngReader {
   png_structp png_;
   png_infop info_;
 };
-
-class PngWriter {
- public:
-  explicit PngWriter(PngIo* io)
-      : png_(png_create_write_struct(PNG_LIBPNG_VER_STRING, io, on_png_error, on_png_warning)),
-        info_(png_ ? png_create_info_struct(png_) : nullptr) {}
-  ~PngWriter() {
-    if (png_) png_destroy_write_struct(&png_, info_ ? &info_ : nullptr);
-  }
-  PngWriter(const PngWriter&) = delete;
-  PngWriter& operator=(const PngWriter&) = delete;
-
-  bool ok() const { return png_ && info_; }
-  png_structp png() const { return png_; }
-  png_infop info() const { return info_; }
-
- private:
-  png_structp png_;
-  png_infop info_;
-};
+using PngReader = PngHandle<false>;
+using PngWriter = PngHandle<true>;
 
 // What guarded_png_read_header learned, after libpng's transformations to 8- or 16-bit RGB.
 struct PngHeader {

@@ -1,7 +1,7 @@
 // dtraced::math floating-point helpers for conservative rounding-error bounds (pbrt-v4 style).
 //
-// gamma(n) bounds the relative error of n successive float operations; next_float_up/down step
-// one ulp. Pure functions: thread-safe.
+// gamma(n) bounds the relative error of n successive float operations (gamma_d(n) of double
+// ones); next_float_up/down step one ulp. Pure functions: thread-safe.
 #pragma once
 
 #include <bit>
@@ -14,6 +14,11 @@ namespace dtraced::math {
 inline constexpr float kMachineEpsilon = std::numeric_limits<float>::epsilon() * 0.5f;
 
 constexpr float gamma(int n) { return (float(n) * kMachineEpsilon) / (1.0f - float(n) * kMachineEpsilon); }
+
+// The same for n successive double operations (unit roundoff 2^-53): the bound for a quantity
+// computed in double, such as a sphere's hit point.
+inline constexpr double kMachineEpsilonD = std::numeric_limits<double>::epsilon() * 0.5;
+constexpr double gamma_d(int n) { return (double(n) * kMachineEpsilonD) / (1.0 - double(n) * kMachineEpsilonD); }
 
 // The next representable float above v (+inf stays +inf; -0 becomes the smallest positive).
 inline float next_float_up(float v) {

@@ -8,6 +8,7 @@
 #include <utility>
 
 #include "math/rng.h"
+#include "render/light_sampling.h"
 #include "render/shading.h"
 
 namespace dtraced::render {
@@ -31,6 +32,13 @@ struct MediumStack {
   static constexpr int kCapacity = 16;
   std::array<std::uint32_t, kCapacity> ids{};
   int size = 0;
+
+  // Where every camera path starts: inside the objects that contain the camera.
+  static MediumStack at_camera(const RenderScene& s) {
+    MediumStack m;
+    for (const std::uint32_t id : s.camera_media()) m.push(id);
+    return m;
+  }
 
   float current_ior(const RenderScene& s) const { return size == 0 ? 1.0f : s.object_material(ids[size - 1]).ior; }
   bool contains(std::uint32_t id) const {
@@ -76,121 +84,11 @@ constexpr unsigned feature_bits(const SceneFeatures& f) {
 }
 static_assert(feature_bits(SceneFeatures::all()) == kAllFeatures);
 
-// An orthonormal pair perpendicular to unit w (Duff et al. 2017: branch-free, continuous except
-// across w.z = 0).
-void tangent_frame(const Vec3f& w, Vec3f& t, Vec3f& b) {
-  const float sign = std::copysign(1.0f, w.z);
-  const float a = -1.0f / (sign + w.z);
-  const float c = w.x * w.y * a;
-  t = Vec3f{1.0f + sign * w.x * w.x * a, sign * c, -sign * w.x};
-  b = Vec3f{c, sign + w.y * w.y * a, -w.y};
-}
-
-// One sample of an area light seen from a shading point: the direction and distance to a point
-// on the emitting surface and the Monte Carlo weight cos_l / pdf (pdf in solid angle).
-struct AreaSample {
-  Vec3f l;              // unit direction towards the sampled point
-  Vec3f point;          // the sampled point on the light
-  float cos_l = 0.0f;   // dot(nf, l), > 0
-  float weight = 0.0f;  // cos_l / pdf_solid_angle, > 0
-};
-
-// Draws a point of light `a` seen from p (shading normal nf) from the uniforms (u1, u2). False
-// when the sample cannot contribute: p inside or on a sphere light, the point below p's horizon,
-// or p behind a one-sided disk or rect.
-bool sample_area_light(const AreaLightF& a, const Vec3f& p, const Vec3f& nf, float u1, float u2, AreaSample& out) {
-  constexpr float kTwoPi = 2.0f * std::numbers::pi_v<float>;
-  const float phi = kTwoPi * u2;
-  if (a.shape == AreaShape::kSphere) {
-    // Uniform over the cone of directions the sphere subtends: pdf 1 / (2 pi (1 - cos_max)).
-    const Vec3f to_c = a.center - p;
-    const float d2 = math::dot(to_c, to_c);
-    const float r2 = a.radius * a.radius;
-    if (!(d2 > r2)) return false;
-    const float d = std::sqrt(d2);
-    const Vec3f w = to_c / d;
-    const float sin2_max = r2 / d2;
-    // 1 - cos_max without the cancellation of 1 - sqrt(1 - s^2) for small lights.
-    const float one_minus_cos_max = sin2_max / (1.0f + std::sqrt(std::max(0.0f, 1.0f - sin2_max)));
-    const float one_minus_cos = u1 * one_minus_cos_max;
-    const float cos_t = 1.0f - one_minus_cos;
-    const float sin2_t = std::max(0.0f, one_minus_cos * (2.0f - one_minus_cos));
-    const float sin_t = std::sqrt(sin2_t);
-    Vec3f t, b;
-    tangent_frame(w, t, b);
-    out.l = math::normalize(t * (sin_t * std::cos(phi)) + b * (sin_t * std::sin(phi)) + w * cos_t);
-    out.cos_l = math::dot(nf, out.l);
-    if (!(out.cos_l > 0.0f)) return false;
-    // The near intersection of the sampled direction with the sphere.
-    const float dist = d * cos_t - std::sqrt(std::max(0.0f, r2 - d2 * sin2_t));
-    out.point = p + out.l * dist;
-    out.weight = out.cos_l * (kTwoPi * one_minus_cos_max);
-    return true;
-  }
-  // Disk and rect: uniform over the area (pdf 1 / A), turned into solid angle by dist^2 / cos.
-  Vec3f q;
-  if (a.shape == AreaShape::kDisk) {
-    const float r = a.radius * std::sqrt(u1);
-    q = a.center + a.edge_u * (r * std::cos(phi)) + a.edge_v * (r * std::sin(phi));
-  } else {
-    q = a.corner + a.edge_u * u1 + a.edge_v * u2;
-  }
-  const Vec3f to_q = q - p;
-  const float dist2 = math::dot(to_q, to_q);
-  if (!(dist2 > 0.0f)) return false;
-  const float dist = std::sqrt(dist2);
-  out.l = to_q / dist;
-  const float cos_light = -math::dot(out.l, a.normal);  // one-sided: emits on the normal's side
-  if (!(cos_light > 0.0f)) return false;
-  out.cos_l = math::dot(nf, out.l);
-  if (!(out.cos_l > 0.0f)) return false;
-  out.point = q;
-  out.weight = out.cos_l * a.area * cos_light / dist2;
-  return true;
-}
-
-// Where `ray` meets the emitting surface of area light `a` at t in (ray.t_min, ray.t_max): a
-// sphere from outside, a disk or rect from the normal's side. Lights are few and not in the BVH.
-bool hit_emitter(const AreaLightF& a, const math::Ray& ray, float& t) {
-  if (a.shape == AreaShape::kSphere) {
-    const Vec3f oc = ray.o - a.center;
-    const float c = math::dot(oc, oc) - a.radius * a.radius;
-    if (!(c > 0.0f)) return false;  // origin inside or on the sphere: its outside is not seen
-    const float b = math::dot(oc, ray.d);
-    if (!(b < 0.0f)) return false;  // moving away from the centre
-    // The squared distance of the centre from the ray's line, formed without the cancellation
-    // of b^2 - c for distant lights.
-    const Vec3f perp = oc - ray.d * b;
-    const float disc = a.radius * a.radius - math::dot(perp, perp);
-    if (!(disc >= 0.0f)) return false;
-    t = -b - std::sqrt(disc);
-  } else {
-    const float denom = math::dot(ray.d, a.normal);
-    if (!(denom < 0.0f)) return false;  // parallel, or reaching the back
-    t = math::dot(a.center - ray.o, a.normal) / denom;
-    if (!(t > ray.t_min && t < ray.t_max)) return false;
-    const Vec3f q = ray.o + ray.d * t;
-    if (a.shape == AreaShape::kDisk) {
-      const Vec3f rel = q - a.center;
-      if (!(math::dot(rel, rel) <= a.radius * a.radius)) return false;
-    } else {
-      // Coordinates of q in the (edge_u, edge_v) basis; a parallelogram in general.
-      const Vec3f rel = q - a.corner;
-      const float uu = math::dot(a.edge_u, a.edge_u), vv = math::dot(a.edge_v, a.edge_v);
-      const float uv = math::dot(a.edge_u, a.edge_v);
-      const float ru = math::dot(rel, a.edge_u), rv = math::dot(rel, a.edge_v);
-      const float det = uu * vv - uv * uv;
-      const float s = (ru * vv - rv * uv) / det, w = (rv * uu - ru * uv) / det;
-      if (!(s >= 0.0f && s <= 1.0f && w >= 0.0f && w <= 1.0f)) return false;
-    }
-  }
-  return t > ray.t_min && t < ray.t_max;
-}
-
 // A point light as seen from one hit point (see Tracer::light_setup).
 struct LightSample {
+  Vec3f to_light;      // light position - hit point
   Vec3f l;             // unit direction towards the light
-  float dist2 = 0.0f;  // squared distance to the light
+  float dist2 = 0.0f;  // squared distance to the light, in float
   float cos_l = 0.0f;  // dot(nf, l), > 0
 };
 
@@ -226,6 +124,9 @@ struct Tracer {
   }
 
   bool transparent_scene() const { return kRefract && scene.has_transparency(); }
+
+  // The media a camera path starts in; without refraction there are none to look up.
+  MediumStack camera_media() const { return kRefract ? MediumStack::at_camera(scene) : MediumStack{}; }
 
   // Fraction of a light's emission that reaches the shadow ray's end. Opaque surfaces
   // block. A transparent one passes transparency * (1 - F) at each crossing, the shadow ray going
@@ -297,11 +198,10 @@ struct Tracer {
   // same shadow rays.
   static bool light_setup(const accel::Hit& hit, const Vec3f& nf, const PointLightF& light, LightSample& ls,
                           math::Ray& shadow) {
-    const Vec3f to_light = light.position - hit.p;
-    ls.dist2 = math::dot(to_light, to_light);
-    if (!(ls.dist2 > 0.0f)) return false;
-    const float dist = std::sqrt(ls.dist2);
-    ls.l = to_light / dist;
+    ls.to_light = light.position - hit.p;
+    ls.dist2 = math::dot(ls.to_light, ls.to_light);
+    if (ls.to_light == Vec3f{0, 0, 0} || std::isnan(ls.dist2)) return false;
+    ls.l = unit_towards(ls.to_light, ls.dist2);
     ls.cos_l = math::dot(nf, ls.l);
     if (!(ls.cos_l > 0.0f)) return false;
     shadow = shadow_ray(hit, ls.l, light.position);
@@ -340,8 +240,10 @@ struct Tracer {
   // Light reflected towards wo from one light whose shadow ray let `vis` (> 0) of it through.
   static Vec3f light_contribution(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const PointLightF& light,
                                   const LightSample& ls, float vis) {
+    const Vec3f f = brdf(m, wo, nf, ls.l);
     const float e = vis * ls.cos_l / ls.dist2;  // irradiance per unit intensity
-    return math::mul(brdf(m, wo, nf, ls.l), light.intensity) * e;
+    return light_term(math::mul(f, light.intensity) * e, ls.dist2 >= kMinNormal, f, light.intensity,
+                      [&] { return double(vis) * double(ls.cos_l) / length_squared_d(ls.to_light); });
   }
 
   // Whether a hit on material m gathers direct light at all.
@@ -385,7 +287,9 @@ struct Tracer {
             if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point, kAreaShadowEnd), media);
           }
           if (vis <= 0.0f) continue;
-          acc += math::mul(brdf(m, wo, nf, as.l), a.radiance) * (as.weight * vis);
+          const Vec3f f = brdf(m, wo, nf, as.l);
+          acc += light_term(math::mul(f, a.radiance) * (as.weight * vis), as.dist2 >= kMinNormal, f, a.radiance,
+                            [&] { return exact_weight(a, as) * double(vis); });
         }
         sum += acc / float(a.samples);
       }
@@ -496,7 +400,7 @@ template <unsigned kF>
 Vec3f trace_radiance_with(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& key,
                           const TraceLimits& limits, TraceStats& stats) {
   Tracer<kF> tracer{scene, limits, stats, key};
-  return tracer.trace(ray, 0, 1.0f, MediumStack{});
+  return tracer.trace(ray, 0, 1.0f, tracer.camera_media());
 }
 
 template <unsigned kF>
@@ -506,6 +410,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
   constexpr int kN = accel::kPacketSize;
   T tracer{scene, limits, stats};
   const accel::Geometry& geometry = scene.geometry();
+  const MediumStack camera_media = tracer.camera_media();
 
   accel::Hit hits[kN];
   stats.rays += std::popcount(valid);
@@ -561,8 +466,8 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
         if (!(cast >> i & 1u)) continue;
         first[i].found = crossed >> i & 1u;
         if (first[i].found) first[i].hit = hits_scratch[i];
-        // A camera ray's first hit is seen from outside every medium, as Tracer::trace has it.
-        const float vis = tracer.transmittance_walk(shadow[i], MediumStack{}, &first[i]);
+        // A camera ray's first hit is seen from the media around the camera, as Tracer::trace has it.
+        const float vis = tracer.transmittance_walk(shadow[i], camera_media, &first[i]);
         if (vis <= 0.0f) continue;
         direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
       }
@@ -574,7 +479,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
     const FirstHit first{(hit_mask >> i & 1u) ? &hits[i] : nullptr, (direct_mask >> i & 1u) ? &direct[i] : nullptr};
     // Each lane's own random numbers, from the first dimension on, as trace_radiance has them.
     T lane{scene, limits, stats, keys[i]};
-    out[i] = lane.trace(rays[i], 0, 1.0f, MediumStack{}, &first);
+    out[i] = lane.trace(rays[i], 0, 1.0f, camera_media, &first);
   }
 }
 

@@ -5,7 +5,8 @@
 // a sphere's cone of directions or a disk's or rect's area), Lambert diffuse plus normalised
 // Blinn-Phong specular, mirror reflection, and dielectric refraction with exact Fresnel and total
 // internal reflection. Nested and touching transparent objects are handled with a small per-path
-// stack of the media the path is inside. Camera, mirror and refracted rays that reach an area
+// stack of the media the path is inside; camera paths start inside the media that contain the
+// camera (RenderScene::camera_media). Camera, mirror and refracted rays that reach an area
 // light's emitting side before any surface return its radiance Le. Pure function of (scene, ray,
 // sample key, settings): thread-safe.
 //
@@ -49,6 +50,14 @@ struct TraceLimits {
   // generic path, which renders the same bits (the tests and the benchmark compare them).
   bool specialise = true;
 };
+
+// The most one light (or one area-light sample) adds to a shading point's radiance per channel.
+// A point light a hair's breadth from a surface gives I / d^2 beyond float's range; the term is
+// clamped here instead, far above anything a display or an image format tells apart, and far
+// enough below FLT_MAX (2^128) that a path's sum over every light (scene::kMaxLights, 10^4 <
+// 2^14) stays finite. A light whose own intensity is beyond float (+Inf) is not clamped: its
+// samples are Inf, dropped and counted at the film as before.
+inline constexpr float kMaxLightTerm = 0x1p100f;
 
 // Random-number dimensions of a camera sample: the film position takes the first two; the
 // integrator draws from kFirstIntegratorDim on, in a fixed order along the path.

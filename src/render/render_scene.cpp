@@ -1,5 +1,6 @@
 #include "render/render_scene.h"
 
+#include <algorithm>
 #include <cassert>
 #include <cmath>
 #include <limits>
@@ -108,6 +109,71 @@ AreaLightF to_area_light(const scene::Light& l) {
   return a;
 }
 
+// Whether the point o is strictly inside a sphere or box (as the renderer has them, in float).
+bool solid_contains(const accel::Shape& s, const Vec3f& o) {
+  if (s.type == accel::ShapeType::kSphere) {
+    const Vec3d f = Vec3d(o) - Vec3d(s.sphere.center);
+    const double r = s.sphere.radius;
+    return math::dot(f, f) < r * r;
+  }
+  if (s.type == accel::ShapeType::kBox) {
+    const accel::BoxShape& b = s.box;
+    return o.x > b.lo.x && o.x < b.hi.x && o.y > b.lo.y && o.y < b.hi.y && o.z > b.lo.z && o.z < b.hi.z;
+  }
+  return false;
+}
+
+// See RenderScene::camera_media(). `first_shape[i]`: the first shape of object i.
+std::vector<std::uint32_t> find_camera_media(const accel::Geometry& geometry, const std::vector<scene::Object>& objects,
+                                             const std::vector<std::uint32_t>& shape_object,
+                                             const std::vector<std::uint32_t>& first_shape, const Vec3f& camera) {
+  // Any direction serves closed shapes; this one lies off every axis and diagonal, so a probe from
+  // a camera placed on a round coordinate does not run along the edges of a mesh laid out on a grid.
+  math::Ray probe;
+  probe.o = camera;
+  probe.d = math::normalize(Vec3f{0.5361f, 0.6712f, 0.5118f});
+  // Meshes: count the probe's crossings of each object, walking from hit to hit as a path through
+  // an index-matched surface does (t_min moves to the hit, so a ray through an edge shared by two
+  // triangles crosses once).
+  std::vector<std::uint32_t> crossings(objects.size(), 0);
+  std::vector<float> last_t(objects.size(), 0.0f);
+  const bool meshes = std::any_of(objects.begin(), objects.end(), [](const scene::Object& o) {
+    return o.type == scene::ObjectType::kMesh && o.material.transparency > 0.0;
+  });
+  if (meshes) {
+    math::Ray walk = probe;
+    accel::Hit hit;
+    for (std::size_t n = 0; n < shape_object.size() && geometry.intersect(walk, hit); ++n) {
+      const std::uint32_t object = shape_object[hit.shape];
+      ++crossings[object];
+      last_t[object] = hit.t;
+      walk.t_min = hit.t;
+    }
+  }
+  struct Medium {
+    float exit_t;
+    std::uint32_t object;
+  };
+  std::vector<Medium> media;
+  for (std::uint32_t i = 0; i < objects.size(); ++i) {
+    if (!(objects[i].material.transparency > 0.0)) continue;
+    if (objects[i].type == scene::ObjectType::kMesh) {
+      if (crossings[i] % 2 == 1) media.push_back({last_t[i], i});
+      continue;
+    }
+    const accel::Shape& shape = geometry.shapes()[first_shape[i]];
+    if (!solid_contains(shape, camera)) continue;
+    accel::Hit exit;
+    const bool found = accel::intersect_shape(shape, first_shape[i], probe, exit);
+    media.push_back({found ? exit.t : std::numeric_limits<float>::infinity(), i});
+  }
+  // Outermost (farthest exit) first; ties in scene order.
+  std::stable_sort(media.begin(), media.end(), [](const Medium& a, const Medium& b) { return a.exit_t > b.exit_t; });
+  std::vector<std::uint32_t> out;
+  for (const Medium& m : media) out.push_back(m.object);
+  return out;
+}
+
 }  // namespace
 
 std::string feature_names(const SceneFeatures& f) {
@@ -149,8 +215,10 @@ RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
   shapes.reserve(shape_count);
   rs.shape_object_.reserve(shape_count);
   rs.materials_.reserve(desc.objects.size());
+  std::vector<std::uint32_t> first_shape(desc.objects.size());
   for (std::size_t i = 0; i < desc.objects.size(); ++i) {
     const scene::Object& o = desc.objects[i];
+    first_shape[i] = static_cast<std::uint32_t>(shapes.size());
     append_shapes(o, shapes);
     rs.shape_object_.resize(shapes.size(), static_cast<std::uint32_t>(i));
     rs.materials_.push_back(to_material(o.material));
@@ -178,6 +246,11 @@ RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
   rs.camera_.up = math::cross(rs.camera_.right, rs.camera_.forward);
   rs.camera_.tan_half_fov = std::tan(c.fov_deg * std::numbers::pi / 360.0);
   assert(math::is_finite(rs.camera_.right));
+  if (rs.has_transparency_) {
+    // Where camera rays start (CameraF::generate).
+    const Vec3f origin(rs.camera_.position);
+    rs.camera_media_ = find_camera_media(rs.geometry_, desc.objects, rs.shape_object_, first_shape, origin);
+  }
   return rs;
 }
 

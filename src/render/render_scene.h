@@ -103,6 +103,12 @@ class RenderScene {
   const SceneFeatures& features() const { return features_; }
   const CameraF& camera() const { return camera_; }
   bool has_transparency() const { return has_transparency_; }
+  // The transparent objects that contain the camera, outermost first: the media every camera path
+  // starts in, so a camera inside glass sees its first crossing as leaving the glass. Spheres and
+  // boxes contain it when it is strictly inside; a mesh (a closed one: an open mesh has no inside)
+  // when a ray from the camera crosses it an odd number of times; planes never. Nested media are
+  // ordered by where that ray leaves them, farthest first. Empty without transparent objects.
+  const std::vector<std::uint32_t>& camera_media() const { return camera_media_; }
 
  private:
   accel::Geometry geometry_;
@@ -113,6 +119,7 @@ class RenderScene {
   SceneFeatures features_;
   CameraF camera_;
   bool has_transparency_ = false;
+  std::vector<std::uint32_t> camera_media_;  // object indices, outermost first
 };
 
 }  // namespace dtraced::render

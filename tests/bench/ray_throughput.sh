@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Ray throughput and whole-render speed-up: runs dtraced-bench-rays (src/bench/bench_rays.cpp) on
-# both scenes (100,000 spheres; about 1M triangles) with the protocol of
-# /work/shared/notes/simd.md section 5 (one warm-up, median and min-max of RUNS runs, one thread by
+# both scenes (100,000 spheres; about 1M triangles) with the protocol written at the top of
+# bench_rays.cpp (one warm-up, median and min-max of RUNS runs, one thread by
 # thread CPU time and all threads by wall time), then the whole-render benchmark (scenes/showcase.json
 # at 1920x1080, 16 spp, scalar vs best isa). A benchmark, not a test: it prints tables and marks the
 # issue's targets MET or MISSED, and fails only when it cannot run.
