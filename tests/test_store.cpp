@@ -41,7 +41,6 @@ using Catch::Matchers::Contains;
 using dtraced::store::Blob;
 using dtraced::store::CommitResult;
 using dtraced::store::OpenOptions;
-using dtraced::store::Status;
 using dtraced::store::Store;
 using dtraced::store::StoredJob;
 using dtraced::store::StoredTile;
@@ -50,6 +49,7 @@ using dtraced::store::TileOutcome;
 using dtraced::store::TileWrite;
 using dtraced::store::TileWriter;
 using dtraced::store::WriterLimits;
+using dtraced::util::Status;
 using namespace std::chrono_literals;
 
 // A 64x64 tile of linear RGB float32, as the wire and the collector carry it.
@@ -116,18 +116,18 @@ Blob make_pixels(std::int64_t job, std::uint32_t tile, std::size_t bytes, std::u
 
 Store open_ok(const std::string& dir, const OpenOptions& options = {}) {
   auto r = Store::open(dir, options);
-  if (!r) FAIL(r.error());
+  if (!r) FAIL(r.error().message);
   return std::move(r).value();
 }
 
 std::string open_error(const std::string& dir) {
   auto r = Store::open(dir);
   REQUIRE_FALSE(r.ok());
-  return r.error();
+  return r.error().message;
 }
 
 void require_ok(const Status& st) {
-  if (!st) FAIL(st.error());
+  if (!st) FAIL(st.error().message);
 }
 
 StoredJob sample_job(std::string digest = "digest-a") {
@@ -146,7 +146,7 @@ std::int64_t make_job(Store& store, std::optional<std::string> key = std::nullop
   StoredJob job = sample_job();
   job.client_key = std::move(key);
   auto id = store.insert_job(job);
-  if (!id) FAIL(id.error());
+  if (!id) FAIL(id.error().message);
   return id.value();
 }
 
@@ -314,14 +314,14 @@ TEST_CASE("jobs: insert, get, list, state changes, lookup by client key, constra
   SECTION("a job needs its scene") {
     auto r = store.insert_job(sample_job("no-such-digest"));
     REQUIRE_FALSE(r.ok());
-    CHECK_THAT(r.error(), Contains("FOREIGN KEY"));
+    CHECK_THAT(r.error().message, Contains("FOREIGN KEY"));
   }
   SECTION("client keys are unique") {
     StoredJob c = sample_job();
     c.client_key = "one-shot:abc";
     auto r = store.insert_job(c);
     REQUIRE_FALSE(r.ok());
-    CHECK_THAT(r.error(), Contains("UNIQUE"));
+    CHECK_THAT(r.error().message, Contains("UNIQUE"));
   }
   SECTION("unknown states and zero tile sizes are refused") {
     StoredJob c = sample_job();
@@ -332,12 +332,12 @@ TEST_CASE("jobs: insert, get, list, state changes, lookup by client key, constra
     CHECK_FALSE(store.insert_job(c).ok());
     Status st = store.set_job_state(id_a.value(), "paused", 0);
     REQUIRE_FALSE(st.ok());
-    CHECK_THAT(st.error(), Contains("CHECK"));
+    CHECK_THAT(st.error().message, Contains("CHECK"));
   }
   SECTION("state of a missing job") {
     Status st = store.set_job_state(999, "done", 0);
     REQUIRE_FALSE(st.ok());
-    CHECK_THAT(st.error(), Contains("no job 999"));
+    CHECK_THAT(st.error().message, Contains("no job 999"));
   }
   CHECK(store.list_jobs().value().size() == 2);
 }
@@ -398,20 +398,20 @@ TEST_CASE("transaction() commits together or not at all", "[store]") {
     require_ok(store.put_scene("digest-b", "{}"));
     std::vector<TileWrite> w{tile_write(job, 0, 100)};
     REQUIRE(store.insert_tiles(w).ok());
-    return dtraced::store::Error{"changed my mind"};
+    return dtraced::util::Error{"changed my mind"};
   });
   REQUIRE_FALSE(failed.ok());
-  CHECK(failed.error() == "changed my mind");
+  CHECK(failed.error().message == "changed my mind");
   CHECK_FALSE(store.get_scene("digest-b").value().has_value());
   CHECK(store.count_tiles(job).value() == 0);
 
   require_ok(store.transaction([&]() -> Status {
     if (Status st = store.put_scene("digest-b", "{}"); !st) return st;
     auto id = store.insert_job(sample_job("digest-b"));
-    if (!id) return dtraced::store::Error{id.error()};
+    if (!id) return id.error();
     std::vector<TileWrite> w{tile_write(id.value(), 0, 100)};
     auto r = store.insert_tiles(w);
-    if (!r) return dtraced::store::Error{r.error()};
+    if (!r) return r.error();
     CHECK(store.transaction([] { return Status{}; }).ok() == false);  // not reentrant
     return {};
   }));
@@ -539,7 +539,7 @@ TEST_CASE("state paths that are not what they should be", "[store]") {
     write_bytes(tmp.path() + "/file", "x");
     auto r = Store::open(tmp.path() + "/file");
     REQUIRE_FALSE(r.ok());
-    CHECK_THAT(r.error(), Contains(tmp.path() + "/file"));
+    CHECK_THAT(r.error().message, Contains(tmp.path() + "/file"));
   }
   SECTION("the database path is a directory") {
     fs::create_directory(tmp.db());

@@ -281,17 +281,17 @@ PreparedJob prepare_job(std::string_view body) {
 }
 
 // Stores a scene and a job in one transaction; returns the job's id.
-store::Result<std::int64_t> insert_scene_and_job(store::Store& s, const store::StoredJob& row,
-                                                 std::string_view scene_json) {
+util::Result<std::int64_t> insert_scene_and_job(store::Store& s, const store::StoredJob& row,
+                                                std::string_view scene_json) {
   std::int64_t id = 0;
-  const store::Status status = s.transaction([&]() -> store::Status {
-    if (store::Status put = s.put_scene(row.digest, scene_json); !put) return put;
-    store::Result<std::int64_t> inserted = s.insert_job(row);
-    if (!inserted) return store::Error{inserted.error()};
+  const util::Status status = s.transaction([&]() -> util::Status {
+    if (util::Status put = s.put_scene(row.digest, scene_json); !put) return put;
+    util::Result<std::int64_t> inserted = s.insert_job(row);
+    if (!inserted) return inserted.error();
     id = inserted.value();
     return {};
   });
-  if (!status) return store::Error{status.error()};
+  if (!status) return status.error();
   return id;
 }
 
@@ -465,7 +465,7 @@ std::optional<std::string> Collector::Impl::open() {
   queue_ = WorkQueue(config_.queue);
 
   auto opened = store::Store::open(config_.state_dir);
-  if (!opened) return opened.error();
+  if (!opened) return opened.error().message;
   store::Store s = std::move(opened).value();
 
   output_dir_ = config_.effective_output_dir();
@@ -518,7 +518,7 @@ std::optional<std::string> Collector::Impl::bump_epoch() {
 
 std::optional<std::string> Collector::Impl::restore(store::Store& s) {
   auto rows = s.list_jobs();
-  if (!rows) return rows.error();
+  if (!rows) return rows.error().message;
   for (const store::StoredJob& row : rows.value()) {
     auto made = record_from_row(row);
     if (auto* error = std::get_if<std::string>(&made)) return fmt::format("{}: {}", s.path(), *error);
@@ -528,7 +528,7 @@ std::optional<std::string> Collector::Impl::restore(store::Store& s) {
     } else if (rec.state == JobState::kCancelled) {
       // Its status still says how far it got.
       auto count = s.count_tiles(row.id);
-      if (!count) return count.error();
+      if (!count) return count.error().message;
       rec.tiles_done = static_cast<TileIndex>(std::min<std::uint64_t>(count.value(), rec.tiles_total));
     }
     if (!rec.unfinished() && rec.settings.error_target > 0) {
@@ -555,7 +555,7 @@ Collector::Impl::SampleCounts Collector::Impl::read_sample_counts(JobId id, scen
     if (s == nullptr) return c;
     auto tiles = s->stored_tiles(static_cast<std::int64_t>(id));
     if (!tiles) {
-      c.error = tiles.error();
+      c.error = tiles.error().message;
       return c;
     }
     indices = std::move(tiles.value());
@@ -569,7 +569,7 @@ Collector::Impl::SampleCounts Collector::Impl::read_sample_counts(JobId id, scen
       if (s == nullptr) return c;
       auto tile = s->get_tile(static_cast<std::int64_t>(id), index);
       if (!tile) {
-        c.error = tile.error();
+        c.error = tile.error().message;
         return c;
       }
       stored = std::move(tile.value());
@@ -609,10 +609,10 @@ net::awaitable<void> Collector::Impl::restore_sample_counts(JobId id) {
 std::optional<std::string> Collector::Impl::restore_active(store::Store& s, const store::StoredJob& row,
                                                            JobRecord& rec) {
   auto scene_json = s.get_scene(row.digest);
-  if (!scene_json) return scene_json.error();
+  if (!scene_json) return scene_json.error().message;
   if (!scene_json.value()) return fmt::format("{}: job {}: its scene {} is missing", s.path(), rec.id, row.digest);
   auto tiles = s.get_all_tiles(row.id);
-  if (!tiles) return tiles.error();
+  if (!tiles) return tiles.error().message;
 
   std::vector<TileIndex> stored;
   rec.restored.assign(rec.tiles_total, false);
@@ -668,7 +668,7 @@ std::optional<std::string> Collector::Impl::enqueue_one_shot(store::Store& s) {
 
   const std::string key = one_shot_client_key(p.digest, {p.settings, p.png_bit_depth}, p.tile_size, p.submit.output);
   auto found = s.find_job_by_key(key);
-  if (!found) return found.error();
+  if (!found) return found.error().message;
   if (found.value()) {
     const store::StoredJob& row = *found.value();
     const JobId id = static_cast<JobId>(row.id);
@@ -708,7 +708,7 @@ std::optional<std::string> Collector::Impl::enqueue_one_shot(store::Store& s) {
   row.created_unix = now_unix();
   row.client_key = key;
   auto inserted = insert_scene_and_job(s, row, p.scene_json);
-  if (!inserted) return inserted.error();
+  if (!inserted) return inserted.error().message;
   row.id = inserted.value();
   auto made = record_from_row(row);
   if (auto* error = std::get_if<std::string>(&made)) return *error;
@@ -862,7 +862,7 @@ net::awaitable<http::Response> Collector::Impl::submit_job(http::Request req) {
   }
   if (!reply.value || !reply.value->ok()) {
     ++counters_.store_busy;
-    const std::string why = reply.value ? reply.value->error() : std::string("the store task failed");
+    const std::string why = reply.value ? reply.value->error().message : std::string("the store task failed");
     util::log_error("collector: a job could not be stored: {}", why);
     co_return busy("the job could not be stored; retry later");
   }
@@ -959,7 +959,7 @@ net::awaitable<http::Response> Collector::Impl::cancel_job(JobId id) {
   if (!reply.ok() || !reply.value->ok()) {
     ++counters_.store_busy;
     if (reply.value && !reply.value->ok())
-      util::log_error("collector: job {}: cannot record the cancellation: {}", id, reply.value->error());
+      util::log_error("collector: job {}: cannot record the cancellation: {}", id, reply.value->error().message);
     co_return busy("the cancellation could not be stored; retry later");
   }
   job = find_job(id);
@@ -1171,8 +1171,8 @@ void Collector::Impl::persist_rendering(JobRecord& job) {
   const auto id = static_cast<std::int64_t>(job.id);
   auto pending = std::make_shared<net::executor_work_guard<net::io_context::executor_type>>(ioc_->get_executor());
   const store::SubmitStatus status = writer_->post([id, pending](store::Store& s) {
-    if (store::Status st = s.set_job_state(id, store::kJobRendering, 0); !st) {
-      util::log_warn("collector: job {}: cannot record the rendering state: {}", id, st.error());
+    if (util::Status st = s.set_job_state(id, store::kJobRendering, 0); !st) {
+      util::log_warn("collector: job {}: cannot record the rendering state: {}", id, st.error().message);
     }
   });
   job.rendering_persisted = status == store::SubmitStatus::kAccepted;
@@ -1227,7 +1227,7 @@ net::awaitable<void> Collector::Impl::finish_job(JobId id) {
       util::log_warn(
           "collector: job {}: the image is written but the store did not record it as done ({}); a "
           "restart writes it again",
-          id, reply.value ? reply.value->error() : std::string("store unavailable"));
+          id, reply.value ? reply.value->error().message : std::string("store unavailable"));
     }
   }
   job = find_job(id);
@@ -1292,7 +1292,7 @@ store::Store* Collector::Impl::read_store_locked(std::string& error) {
     options.verify_integrity = false;  // verified at start-up by the first connection
     auto opened = store::Store::open(config_.state_dir, options);
     if (!opened) {
-      error = opened.error();
+      error = opened.error().message;
       return nullptr;
     }
     read_store_.emplace(std::move(opened).value());
@@ -1311,7 +1311,7 @@ Collector::Impl::Encoded Collector::Impl::encode_from_store(JobId id, scene::Ren
     if (s == nullptr) return e;
     auto tiles = s->get_all_tiles(static_cast<std::int64_t>(id));
     if (!tiles) {
-      e.error = tiles.error();
+      e.error = tiles.error().message;
       return e;
     }
     const std::uint64_t count = scene::TileGrid(settings, tile_size).count();
@@ -1337,7 +1337,7 @@ Collector::Impl::FetchedScene Collector::Impl::scene_from_store(const std::strin
   if (s == nullptr) return f;
   auto json = s->get_scene(digest);
   if (!json) {
-    f.error = json.error();
+    f.error = json.error().message;
     return f;
   }
   f.json = std::move(json.value());

@@ -15,6 +15,10 @@
 
 namespace dtraced::store {
 
+using util::Error;
+using util::Result;
+using util::Status;
+
 namespace {
 
 namespace fs = std::filesystem;
@@ -244,7 +248,7 @@ struct Store::Impl {
   // Runs a statement without parameters or results.
   Status exec(std::string_view sql) {
     auto q = query(sql);
-    if (!q) return Error{q.error()};
+    if (!q) return q.error();
     const int rc = q.value().step();
     if (rc != SQLITE_DONE) return error(sql, rc);
     return {};
@@ -273,7 +277,7 @@ struct Store::Impl {
   // (on SQLITE_FULL, SQLITE_IOERR, SQLITE_NOMEM), in which case there is nothing to do.
   void rollback() {
     if (sqlite3_get_autocommit(db) != 0) return;
-    if (Status st = exec(kSqlRollback); !st) util::log_error("{}", st.error());
+    if (Status st = exec(kSqlRollback); !st) util::log_error("{}", st.error().message);
   }
 
   Status set_config(int op, int value, std::string_view name) {
@@ -306,7 +310,7 @@ Status Store::Impl::verify_integrity() {
   auto check = exec_rows("PRAGMA quick_check", kMaxIntegrityLinesReported);
   if (!check) {
     return Error{
-        fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(check.error()), kRefuse)};
+        fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(check.error().message), kRefuse)};
   }
   const auto& lines = check.value();
   if (lines.size() != 1 || lines[0] != "ok") {
@@ -316,7 +320,8 @@ Status Store::Impl::verify_integrity() {
   }
   auto fk = exec_rows("PRAGMA foreign_key_check", kMaxIntegrityLinesReported);
   if (!fk) {
-    return Error{fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(fk.error()), kRefuse)};
+    return Error{
+        fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(fk.error().message), kRefuse)};
   }
   if (!fk.value().empty()) {
     return Error{
@@ -329,7 +334,8 @@ Status Store::Impl::verify_integrity() {
 
 Status Store::Impl::check_schema() {
   auto tables = exec_rows(kSqlTables);
-  if (!tables) return Error{fmt::format("{}: cannot list tables: {}; {}", path, detail(tables.error()), kRefuse)};
+  if (!tables)
+    return Error{fmt::format("{}: cannot list tables: {}; {}", path, detail(tables.error().message), kRefuse)};
   auto has_table = [&](std::string_view name) {
     for (const auto& t : tables.value()) {
       if (t == name) return true;
@@ -342,7 +348,7 @@ Status Store::Impl::check_schema() {
   }
   {
     auto q = query(kSqlSchemaVersion);
-    if (!q) return Error{q.error()};
+    if (!q) return q.error();
     const int rc = q.value().step();
     if (rc == SQLITE_DONE) {
       return Error{fmt::format("{}: the meta table has no schema_version; {}", path, kRefuse)};
@@ -364,7 +370,7 @@ Status Store::Impl::check_schema() {
           fmt::format("{}: schema version {} but table '{}' is missing; {}", path, kSchemaVersion, spec.name, kRefuse)};
     }
     auto q = query(kSqlColumns);
-    if (!q) return Error{q.error()};
+    if (!q) return q.error();
     q.value().bind(spec.name);
     std::string columns;
     int rc;
@@ -432,9 +438,9 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   for (const auto& [op, value, name] : {std::tuple{SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 1, "no checkpoint on close"},
                                         std::tuple{SQLITE_DBCONFIG_DEFENSIVE, 1, "defensive mode"},
                                         std::tuple{SQLITE_DBCONFIG_TRUSTED_SCHEMA, 0, "untrusted schema"}}) {
-    if (auto st = impl->set_config(op, value, name); !st) return Error{st.error()};
+    if (auto st = impl->set_config(op, value, name); !st) return st.error();
   }
-  if (auto st = impl->exec_rows("PRAGMA query_only = ON"); !st) return Error{st.error()};
+  if (auto st = impl->exec_rows("PRAGMA query_only = ON"); !st) return st.error();
   if (const int brc = sqlite3_busy_timeout(db, static_cast<int>(options.busy_timeout.count())); brc != SQLITE_OK) {
     return impl->error("setting the busy timeout", brc);
   }
@@ -448,48 +454,49 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
     if ((sqlite3_extended_errcode(db) & 0xff) == SQLITE_NOTADB) {
       return Error{fmt::format("{}: not an SQLite database ({}); {}", path, sqlite3_errmsg(db), kRefuse)};
     }
-    return Error{fmt::format("{}: cannot read the database: {}; {}", path, impl->detail(count.error()), kRefuse)};
+    return Error{
+        fmt::format("{}: cannot read the database: {}; {}", path, impl->detail(count.error().message), kRefuse)};
   }
   const std::int64_t objects = count.value().empty() ? 0 : std::stoll(count.value()[0]);
   if (options.verify_integrity) {
-    if (auto st = impl->verify_integrity(); !st) return Error{st.error()};
+    if (auto st = impl->verify_integrity(); !st) return st.error();
   }
   const bool fresh = objects == 0;
   if (!fresh) {
-    if (auto st = impl->check_schema(); !st) return Error{st.error()};
+    if (auto st = impl->check_schema(); !st) return st.error();
   }
 
   // From here on the file is ours to write.
   for (const char* pragma : {"PRAGMA query_only = OFF", "PRAGMA synchronous = FULL", "PRAGMA foreign_keys = ON"}) {
-    if (auto st = impl->exec_rows(pragma); !st) return Error{st.error()};
+    if (auto st = impl->exec_rows(pragma); !st) return st.error();
   }
   if (fresh) {
     // The page size only takes effect before the first table exists and before WAL mode.
-    if (auto st = impl->exec_rows(fmt::format("PRAGMA page_size = {}", kPageSizeBytes)); !st) return Error{st.error()};
+    if (auto st = impl->exec_rows(fmt::format("PRAGMA page_size = {}", kPageSizeBytes)); !st) return st.error();
   }
   auto mode = impl->exec_rows("PRAGMA journal_mode = WAL");
-  if (!mode) return Error{mode.error()};
+  if (!mode) return mode.error();
   if (mode.value().size() != 1 || mode.value()[0] != "wal") {
     return Error{fmt::format("{}: cannot switch to WAL journaling (journal mode is '{}')", path,
                              mode.value().empty() ? "?" : mode.value()[0])};
   }
   if (auto st = impl->exec_rows(fmt::format("PRAGMA journal_size_limit = {}", kJournalSizeLimitBytes)); !st) {
-    return Error{st.error()};
+    return st.error();
   }
   if (fresh) {
-    if (auto st = impl->create_schema(); !st) return Error{st.error()};
+    if (auto st = impl->create_schema(); !st) return st.error();
     util::log_info("{}: created a new database (schema version {})", path, kSchemaVersion);
   }
   if (options.max_database_bytes > 0) {
     auto page = impl->exec_rows("PRAGMA page_size");
-    if (!page) return Error{page.error()};
+    if (!page) return page.error();
     const std::uint64_t page_bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
     if (page_bytes == 0) return Error{fmt::format("{}: cannot read the page size", path)};
     const std::uint64_t pages = (options.max_database_bytes + page_bytes - 1) / page_bytes;
-    if (auto st = impl->exec_rows(fmt::format("PRAGMA max_page_count = {}", pages)); !st) return Error{st.error()};
+    if (auto st = impl->exec_rows(fmt::format("PRAGMA max_page_count = {}", pages)); !st) return st.error();
   }
   if (auto st = impl->set_config(SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 0, "checkpoint on close"); !st) {
-    return Error{st.error()};
+    return st.error();
   }
   return Store(std::move(impl));
 }
@@ -519,7 +526,7 @@ Status Store::transaction(const std::function<Status()>& body) {
 
 Status Store::put_scene(std::string_view digest, std::string_view json) {
   auto q = impl_->query(kSqlPutScene);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(digest).bind(json).step();
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("storing scene {}", digest), rc);
   return {};
@@ -527,7 +534,7 @@ Status Store::put_scene(std::string_view digest, std::string_view json) {
 
 Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
   auto q = impl_->query(kSqlGetScene);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(digest).step();
   if (rc == SQLITE_DONE) return std::optional<std::string>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading scene {}", digest), rc);
@@ -536,7 +543,7 @@ Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
 
 Result<std::int64_t> Store::insert_job(const StoredJob& job) {
   auto q = impl_->query(kSqlInsertJob);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value()
                      .bind(job.digest)
                      .bind(job.settings_json)
@@ -554,7 +561,7 @@ Result<std::int64_t> Store::insert_job(const StoredJob& job) {
 
 Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix) {
   auto q = impl_->query(kSqlSetJobState);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(id).bind(state).bind(finished_unix).step();
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the state of job {}", id), rc);
   if (sqlite3_changes64(impl_->db) != 1) return Error{fmt::format("{}: no job {}", impl_->path, id)};
@@ -563,7 +570,7 @@ Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_
 
 Result<std::vector<StoredJob>> Store::list_jobs() {
   auto q = impl_->query(kSqlListJobs);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   std::vector<StoredJob> jobs;
   int rc;
   while ((rc = q.value().step()) == SQLITE_ROW) jobs.push_back(read_job(q.value().get()));
@@ -573,7 +580,7 @@ Result<std::vector<StoredJob>> Store::list_jobs() {
 
 Result<std::optional<StoredJob>> Store::get_job(std::int64_t id) {
   auto q = impl_->query(kSqlGetJob);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(id).step();
   if (rc == SQLITE_DONE) return std::optional<StoredJob>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading job {}", id), rc);
@@ -582,7 +589,7 @@ Result<std::optional<StoredJob>> Store::get_job(std::int64_t id) {
 
 Result<std::optional<StoredJob>> Store::find_job_by_key(std::string_view client_key) {
   auto q = impl_->query(kSqlFindJobByKey);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(client_key).step();
   if (rc == SQLITE_DONE) return std::optional<StoredJob>();
   if (rc != SQLITE_ROW) return impl_->error("looking up a job by client key", rc);
@@ -592,7 +599,7 @@ Result<std::optional<StoredJob>> Store::find_job_by_key(std::string_view client_
 Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
   {
     auto q = query(kSqlInsertTile);
-    if (!q) return Error{q.error()};
+    if (!q) return q.error();
     const int rc =
         q.value().bind(w.job).bind(std::int64_t{w.tile}).bind_blob(w.pixels).bind(w.worker).bind(w.stored_unix).step();
     if (rc == SQLITE_DONE) {
@@ -607,7 +614,7 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
   }
   // Already present: compare the bytes (duplicates are rare, so the extra read is cheap overall).
   auto q = query(kSqlTilePixels);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(w.job).bind(std::int64_t{w.tile}).step();
   if (rc != SQLITE_ROW) return error(fmt::format("reading back tile {} of job {}", w.tile, w.job), rc);
   sqlite3_stmt* s = q.value().get();
@@ -620,7 +627,7 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
 Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite> writes) {
   const bool own_transaction = sqlite3_get_autocommit(impl_->db) != 0;
   if (own_transaction) {
-    if (auto st = impl_->exec(kSqlBegin); !st) return Error{st.error()};
+    if (auto st = impl_->exec(kSqlBegin); !st) return st.error();
   }
   std::vector<CommitResult> results;
   results.reserve(writes.size());
@@ -628,14 +635,14 @@ Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite>
     auto r = impl_->insert_tile(w);
     if (!r) {
       if (own_transaction) impl_->rollback();
-      return Error{r.error()};
+      return r.error();
     }
     results.push_back(std::move(r).value());
   }
   if (own_transaction) {
     if (auto st = impl_->exec(kSqlCommit); !st) {
       impl_->rollback();
-      return Error{st.error()};
+      return st.error();
     }
   }
   return results;
@@ -643,7 +650,7 @@ Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite>
 
 Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
   auto q = impl_->query(kSqlStoredTiles);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   q.value().bind(job);
   std::vector<std::uint32_t> tiles;
   int rc;
@@ -656,7 +663,7 @@ Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
 
 Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
   auto q = impl_->query(kSqlCountTiles);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(job).step();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("counting the tiles of job {}", job), rc);
   return static_cast<std::uint64_t>(sqlite3_column_int64(q.value().get(), 0));
@@ -664,7 +671,7 @@ Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
 
 Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_t tile) {
   auto q = impl_->query(kSqlGetTile);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   const int rc = q.value().bind(job).bind(std::int64_t{tile}).step();
   if (rc == SQLITE_DONE) return std::optional<StoredTile>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading tile {} of job {}", tile, job), rc);
@@ -673,7 +680,7 @@ Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_
 
 Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
   auto q = impl_->query(kSqlGetAllTiles);
-  if (!q) return Error{q.error()};
+  if (!q) return q.error();
   q.value().bind(job);
   std::vector<StoredTile> tiles;
   int rc;

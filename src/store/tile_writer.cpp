@@ -133,7 +133,8 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
   const std::chrono::duration<double> took = std::chrono::steady_clock::now() - start;
   writes = {};  // the pixels are on disk (or not); release them before counting them out
 
-  if (!result) util::log_error("store writer: a batch of {} tiles was not stored: {}", end - begin, result.error());
+  if (!result)
+    util::log_error("store writer: a batch of {} tiles was not stored: {}", end - begin, result.error().message);
   {
     std::lock_guard lock(mu_);
     ++stats_.batches;
@@ -163,8 +164,8 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
     }
   }
   for (std::size_t k = begin; k < end; ++k) {
-    CommitResult r =
-        result ? std::move(result.value()[k - begin]) : CommitResult{TileOutcome::kFailed, false, result.error()};
+    CommitResult r = result ? std::move(result.value()[k - begin])
+                            : CommitResult{TileOutcome::kFailed, false, result.error().message};
     call_guarded("tile callback", [&] { items[k].done(std::move(r)); });
     items[k].done = nullptr;
   }
