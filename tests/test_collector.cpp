@@ -1,6 +1,6 @@
-// Tests for dtraced::collector: the pure routes and token check, the job helpers, and the service
-// driven through its request handler without sockets (Collector::handle_sync runs the loop until
-// the answer and the work it started are done): submit -> lease -> tiles -> image; duplicates and
+// Tests for dtraced::collector: the configuration, and the service driven through its request
+// handler without sockets (Collector::handle_sync runs the loop until the answer and the work it
+// started are done): submit -> lease -> tiles -> image; duplicates and
 // faulty duplicates; refused payloads; unknown jobs; the token; cancel; priorities; restarts on
 // the same state directory (after a clean destruction, and after a SIGKILL of a forked child that
 // had acknowledged tiles), where stored tiles are never leased again; a corrupt database; the
@@ -234,82 +234,7 @@ std::uint64_t metric(const Harness& h, std::uint64_t coll::CollectorCounters::*f
 
 }  // namespace
 
-// ---- pure pieces ----------------------------------------------------------------------------------
-
-TEST_CASE("routes map method and target to an endpoint", "[collector][routes]") {
-  using coll::match_route;
-  using coll::Route;
-  using coll::RouteError;
-  using coll::RouteKind;
-  const auto kind = [](Verb v, std::string_view t) {
-    auto r = match_route(v, t);
-    REQUIRE(std::holds_alternative<Route>(r));
-    return std::get<Route>(r);
-  };
-  const auto error = [](Verb v, std::string_view t) {
-    auto r = match_route(v, t);
-    REQUIRE(std::holds_alternative<RouteError>(r));
-    return std::get<RouteError>(r);
-  };
-  CHECK(kind(Verb::get, "/healthz").kind == RouteKind::kHealthz);
-  CHECK(kind(Verb::get, "/metrics").kind == RouteKind::kMetrics);
-  CHECK(kind(Verb::post, "/v1/jobs").kind == RouteKind::kSubmitJob);
-  CHECK(kind(Verb::get, "/v1/jobs").kind == RouteKind::kListJobs);
-  CHECK(kind(Verb::get, "/v1/jobs/7") == Route{RouteKind::kJobStatus, 7, 0, "", dtraced::image::ImageFormat::kPng});
-  CHECK(kind(Verb::get, "/v1/jobs/7/image").image_format == dtraced::image::ImageFormat::kPng);
-  CHECK(kind(Verb::get, "/v1/jobs/7/image?format=pfm").image_format == dtraced::image::ImageFormat::kPfm);
-  CHECK(kind(Verb::get, "/v1/jobs/7/image?format=ppm").image_format == dtraced::image::ImageFormat::kPpm);
-  CHECK(kind(Verb::post, "/v1/jobs/9007199254740991/cancel").job == 9007199254740991ull);
-  const Route tile = kind(Verb::put, "/v1/jobs/3/tiles/0");
-  CHECK((tile.kind == RouteKind::kPutTile && tile.job == 3 && tile.tile == 0));
-  CHECK(kind(Verb::post, "/v1/lease").kind == RouteKind::kLease);
-  const std::string digest(64, 'a');
-  CHECK(kind(Verb::get, "/v1/scenes/" + digest).digest == digest);
-
-  CHECK(error(Verb::get, "/nope").status == Status::not_found);
-  CHECK(error(Verb::get, "/v1/jobs/0").status == Status::not_found);
-  CHECK(error(Verb::get, "/v1/jobs/007").status == Status::not_found);
-  CHECK(error(Verb::get, "/v1/jobs/-1").status == Status::not_found);
-  CHECK(error(Verb::get, "/v1/jobs/9007199254740992").status == Status::not_found);
-  CHECK(error(Verb::get, "/v1/jobs/1/").status == Status::not_found);
-  CHECK(error(Verb::put, "/v1/jobs/1/tiles/x").status == Status::not_found);
-  CHECK(error(Verb::put, "/v1/jobs/1/tiles/262144").status == Status::not_found);
-  CHECK(error(Verb::get, "/v1/scenes/" + std::string(64, 'A')).status == Status::not_found);
-  CHECK(error(Verb::get, "/a/b/c/d/e/f/g/h").status == Status::not_found);
-  const RouteError wrong = error(Verb::delete_, "/v1/jobs/1");
-  CHECK(wrong.status == Status::method_not_allowed);
-  CHECK(wrong.allow == "GET");
-  CHECK(error(Verb::get, "/v1/lease").allow == "POST");
-  CHECK(error(Verb::get, "/v1/jobs/1/image?format=jpg").status == Status::bad_request);
-  CHECK(error(Verb::get, "/v1/jobs/1/image?size=2").field == "/format");
-  CHECK(error(Verb::get, "/v1/jobs/1/image?format=png&format=pfm").status == Status::bad_request);
-  CHECK(error(Verb::get, "/v1/jobs?x=1").status == Status::bad_request);
-  CHECK(error(Verb::get, "http://host/v1/jobs").status == Status::bad_request);
-
-  CHECK(coll::route_body_limit(RouteKind::kPutTile) == protocol::kMaxTilePayloadBytes);
-  CHECK(coll::route_body_limit(RouteKind::kSubmitJob) == protocol::kMaxJobSubmitBytes);
-  CHECK(coll::route_body_limit(RouteKind::kLease) == protocol::kMaxMessageBytes);
-  CHECK(coll::is_health_check(Verb::get, "/healthz"));
-  CHECK_FALSE(coll::is_health_check(Verb::post, "/healthz"));
-}
-
-TEST_CASE("the token check accepts exactly the bearer token", "[collector][routes]") {
-  const coll::TokenCheck check(kToken);
-  const auto with = [](std::string value) {
-    Request req = dtraced::http::make_request(Verb::get, "/metrics");
-    if (!value.empty()) req.set(boost::beast::http::field::authorization, value);
-    return req;
-  };
-  CHECK(check.accepts(with(fmt::format("Bearer {}", kToken))));
-  CHECK(check.accepts(with(fmt::format("bearer {}", kToken))));
-  CHECK_FALSE(check.accepts(with("")));
-  CHECK_FALSE(check.accepts(with("Bearer")));
-  CHECK_FALSE(check.accepts(with("Bearer ")));
-  CHECK_FALSE(check.accepts(with(std::string(kToken))));
-  CHECK_FALSE(check.accepts(with(fmt::format("Basic {}", kToken))));
-  CHECK_FALSE(check.accepts(with(fmt::format("Bearer {}x", kToken))));
-  CHECK_FALSE(check.accepts(with(fmt::format("Bearer {}", kToken.substr(1)))));
-}
+// ---- configuration --------------------------------------------------------------------------------
 
 TEST_CASE("collector configuration is validated", "[collector][config]") {
   TempDir dir;
@@ -1089,49 +1014,6 @@ std::string adaptive_payload(const protocol::Lease& l, std::vector<std::uint32_t
 constexpr std::string_view kAdaptive = R"(, "samples": 16, "error_target": 0.1, "min_samples": 4)";
 
 }  // namespace
-
-TEST_CASE("tile blobs: floats alone (as stored before counts existed) or floats then counts", "[collector][jobs]") {
-  const std::vector<float> rgb = {1, 2, 3, 4, 5, 6};
-  const std::vector<std::uint32_t> spp = {7, 65536};
-  const dtraced::store::Blob plain = coll::pixels_to_blob(rgb);
-  CHECK(plain.size() == 24);
-  auto t = coll::blob_to_tile(plain, 2);
-  REQUIRE(t);
-  CHECK(t->rgb == rgb);
-  CHECK(t->spp.empty());
-  const dtraced::store::Blob with = coll::pixels_to_blob(rgb, spp);
-  CHECK(with.size() == 32);
-  t = coll::blob_to_tile(with, 2);
-  REQUIRE(t);
-  CHECK(t->rgb == rgb);
-  CHECK(t->spp == spp);
-  for (const std::size_t bad : {0u, 23u, 28u, 33u}) {
-    CHECK_FALSE(coll::blob_to_tile(dtraced::store::Blob(bad), 2).has_value());
-  }
-}
-
-TEST_CASE("sample counts are checked against the job's settings", "[collector][jobs]") {
-  dtraced::scene::RenderSettings s;
-  s.samples = 100;
-  s.min_samples = 8;
-  const dtraced::scene::TileRect rect{10, 20, 2, 1};
-  const std::vector<std::uint32_t> good = {8, 100};
-  CHECK(coll::check_sample_counts(s, rect, {}) == std::nullopt);
-  CHECK(coll::check_sample_counts(s, rect, good).value_or("").find("uniformly") != std::string::npos);
-  s.error_target = 0.05;
-  CHECK(coll::check_sample_counts(s, rect, {}).value_or("").find("no sample counts") != std::string::npos);
-  for (const std::uint32_t n : {8u, 16u, 32u, 64u, 100u}) {
-    const std::vector<std::uint32_t> counts = {n, 100};
-    CHECK(coll::check_sample_counts(s, rect, counts) == std::nullopt);
-  }
-  for (const std::uint32_t n : {0u, 1u, 4u, 24u, 128u, 101u}) {
-    INFO(n);
-    const std::vector<std::uint32_t> counts = {100, n};
-    const auto why = coll::check_sample_counts(s, rect, counts);
-    REQUIRE(why);
-    CHECK(why->find("pixel (11, 20)") != std::string::npos);
-  }
-}
 
 TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their mean survives restarts",
           "[collector][service][adaptive]") {

@@ -30,6 +30,7 @@
 #include <boost/json/value.hpp>
 #include <fmt/format.h>
 
+#include "collector/admission.h"
 #include "collector/jobs.h"
 #include "collector/queue.h"
 #include "collector/routes.h"
@@ -59,8 +60,6 @@ using protocol::JobState;
 constexpr std::size_t kInlinePayloadBytes = 256 << 10;
 // A failed image write (disk full, output directory gone) is tried again after this long.
 constexpr std::chrono::seconds kFinishRetryDelay{5};
-// Retry-After, in seconds, on the 503s of a busy or failing store.
-constexpr std::string_view kBusyRetryAfterSeconds = "1";
 // The epoch file holds one decimal number.
 constexpr std::uint64_t kMaxEpochFileBytes = 64;
 
@@ -192,18 +191,14 @@ http::Response json_text(http::Status status, std::string body) {
   return http::make_text_response(status, std::move(body), http::kJsonContentType);
 }
 
-http::Response busy(std::string_view message) {
-  http::Response res = http::make_error(http::Status::service_unavailable, message);
-  res.set(bhttp::field::retry_after, kBusyRetryAfterSeconds);
-  return res;
-}
+http::Response busy_answer(std::string_view message) { return respond(busy(std::string(message))); }
 
-http::Response decode_failure(const util::Errors& errors) {
+http::Response decode_failure_answer(const util::Errors& errors) {
   const protocol::ErrorBody body = protocol::error_body(errors);
   return http::make_error(http::Status::bad_request, body.error, body.field);
 }
 
-http::Response job_not_found(JobId id) {
+http::Response job_not_found_answer(JobId id) {
   return http::make_error(http::Status::not_found, fmt::format("no such job: {}", id));
 }
 
@@ -753,50 +748,27 @@ std::optional<std::string> Collector::Impl::listen() {
 // own limit, so that no request buffers more than its endpoint accepts (a wrong token, none at
 // all). handle() checks the same again, for requests that reach it by other paths (tests).
 std::optional<http::Response> Collector::Impl::check_header(const http::Request& header, std::uint64_t& body_limit) {
-  const std::string_view target(header.target().data(), header.target().size());
-  if (is_health_check(header.method(), target)) return std::nullopt;
-  if (!token_.accepts(header)) {
-    ++counters_.auth_failures;
-    http::Response res = http::make_error(http::Status::unauthorized, "missing or wrong bearer token");
-    res.set(bhttp::field::www_authenticate, "Bearer");
-    return res;
+  auto admitted = admit(header, token_, config_.limits.max_body_bytes);
+  if (!admitted) {
+    if (admitted.error().status == http::Status::unauthorized) ++counters_.auth_failures;
+    return respond(admitted.error());
   }
-  auto matched = match_route(header.method(), target);
-  if (auto* error = std::get_if<RouteError>(&matched)) {
-    http::Response res = http::make_error(error->status, error->message, error->field);
-    if (!error->allow.empty()) res.set(bhttp::field::allow, error->allow);
-    return res;
-  }
-  body_limit = std::min<std::uint64_t>(
-      {body_limit, route_body_limit(std::get<Route>(matched).kind), config_.limits.max_body_bytes});
+  body_limit = std::min(body_limit, admitted->body_limit);
   return std::nullopt;
 }
 
 net::awaitable<http::Response> Collector::Impl::handle(http::Request req) {
-  const std::string_view target(req.target().data(), req.target().size());
-  if (is_health_check(req.method(), target)) {
+  auto admitted = admit(req, token_, config_.limits.max_body_bytes);
+  if (!admitted) {
+    if (admitted.error().status == http::Status::unauthorized) ++counters_.auth_failures;
+    co_return respond(admitted.error());
+  }
+  Route route = std::move(admitted->route);
+  if (route.kind == RouteKind::kHealthz) {
     co_return http::make_json_response(http::Status::ok, boost::json::value{{"ok", true}});
   }
-  if (!token_.accepts(req)) {
-    ++counters_.auth_failures;
-    http::Response res = http::make_error(http::Status::unauthorized, "missing or wrong bearer token");
-    res.set(bhttp::field::www_authenticate, "Bearer");
-    co_return res;
-  }
-  auto matched = match_route(req.method(), target);
-  if (auto* error = std::get_if<RouteError>(&matched)) {
-    http::Response res = http::make_error(error->status, error->message, error->field);
-    if (!error->allow.empty()) res.set(bhttp::field::allow, error->allow);
-    co_return res;
-  }
-  Route route = std::move(std::get<Route>(matched));
-  const std::uint64_t limit = std::min<std::uint64_t>(route_body_limit(route.kind), config_.limits.max_body_bytes);
-  if (req.body().size() > limit) {
-    co_return http::make_error(
-        http::Status::payload_too_large,
-        fmt::format("request body of {} bytes exceeds this endpoint's limit of {} bytes", req.body().size(), limit));
-  }
-  if (!opened_) co_return busy("the collector is starting");
+  if (auto sized = check_body_size(req.body().size(), admitted->body_limit); !sized) co_return respond(sized.error());
+  if (!opened_) co_return busy_answer("the collector is starting");
 
   switch (route.kind) {
     case RouteKind::kHealthz:
@@ -825,11 +797,11 @@ net::awaitable<http::Response> Collector::Impl::handle(http::Request req) {
 
 net::awaitable<http::Response> Collector::Impl::submit_job(http::Request req) {
   if (unfinished_jobs() >= config_.max_unfinished_jobs) {
-    co_return busy(fmt::format("too many unfinished jobs (limit {}); retry later", config_.max_unfinished_jobs));
+    co_return busy_answer(fmt::format("too many unfinished jobs (limit {}); retry later", config_.max_unfinished_jobs));
   }
   auto prepare = [body = std::move(req.body())] { return prepare_job(body); };
   PreparedJob p = co_await on_pool(pool_, std::move(prepare));
-  if (!p.errors.empty()) co_return decode_failure(p.errors);
+  if (!p.errors.empty()) co_return decode_failure_answer(p.errors);
 
   const std::uint64_t pixels = std::uint64_t{p.settings.width} * p.settings.height;
   if (pixels > config_.max_unfinished_pixels) {
@@ -839,10 +811,10 @@ net::awaitable<http::Response> Collector::Impl::submit_job(http::Request req) {
                                "/width");
   }
   if (unfinished_pixels() + pixels > config_.max_unfinished_pixels) {
-    co_return busy(fmt::format("unfinished jobs already hold {} of the limit of {} pixels; retry later",
-                               unfinished_pixels(), config_.max_unfinished_pixels));
+    co_return busy_answer(fmt::format("unfinished jobs already hold {} of the limit of {} pixels; retry later",
+                                      unfinished_pixels(), config_.max_unfinished_pixels));
   }
-  if (!writer_ || stopping_) co_return busy("the collector is stopping");
+  if (!writer_ || stopping_) co_return busy_answer("the collector is stopping");
 
   store::StoredJob row;
   row.digest = p.digest;
@@ -858,13 +830,13 @@ net::awaitable<http::Response> Collector::Impl::submit_job(http::Request req) {
   auto reply = co_await on_writer(*writer_, std::move(insert));
   if (reply.status != store::SubmitStatus::kAccepted) {
     ++counters_.store_busy;
-    co_return busy("the store is busy; retry later");
+    co_return busy_answer("the store is busy; retry later");
   }
   if (!reply.value || !reply.value->ok()) {
     ++counters_.store_busy;
     const std::string why = reply.value ? reply.value->error().message : std::string("the store task failed");
     util::log_error("collector: a job could not be stored: {}", why);
-    co_return busy("the job could not be stored; retry later");
+    co_return busy_answer("the job could not be stored; retry later");
   }
   row.id = reply.value->value();
   auto made = record_from_row(row);
@@ -902,13 +874,13 @@ http::Response Collector::Impl::list_jobs() const {
 
 http::Response Collector::Impl::job_status_response(JobId id) const {
   const JobRecord* job = find_job(id);
-  if (job == nullptr) return job_not_found(id);
+  if (job == nullptr) return job_not_found_answer(id);
   return json_text(http::Status::ok, protocol::encode(job_status(*job, now_unix(), Clock::now())));
 }
 
 net::awaitable<http::Response> Collector::Impl::job_image(JobId id, image::ImageFormat format) {
   const JobRecord* job = find_job(id);
-  if (job == nullptr) co_return job_not_found(id);
+  if (job == nullptr) co_return job_not_found_answer(id);
   // PNG at the job's bit depth, as its output file is written.
   const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth)};
   Encoded encoded;
@@ -944,12 +916,12 @@ net::awaitable<http::Response> Collector::Impl::job_image(JobId id, image::Image
 
 net::awaitable<http::Response> Collector::Impl::cancel_job(JobId id) {
   JobRecord* job = find_job(id);
-  if (job == nullptr) co_return job_not_found(id);
+  if (job == nullptr) co_return job_not_found_answer(id);
   if (job->state == JobState::kCancelled) co_return job_status_response(id);
   if (job->state == JobState::kDone || job->finishing) {
     co_return http::make_error(http::Status::conflict, fmt::format("job {} is finished; nothing to cancel", id));
   }
-  if (!writer_ || stopping_) co_return busy("the collector is stopping");
+  if (!writer_ || stopping_) co_return busy_answer("the collector is stopping");
   const std::int64_t when = now_unix();
   // Durable first: a cancellation that is answered must survive a crash.
   auto record = [id, when](store::Store& s) {
@@ -960,7 +932,7 @@ net::awaitable<http::Response> Collector::Impl::cancel_job(JobId id) {
     ++counters_.store_busy;
     if (reply.value && !reply.value->ok())
       util::log_error("collector: job {}: cannot record the cancellation: {}", id, reply.value->error().message);
-    co_return busy("the cancellation could not be stored; retry later");
+    co_return busy_answer("the cancellation could not be stored; retry later");
   }
   job = find_job(id);
   // While the store wrote, the last tile may have arrived: then the job finishes after all, and
@@ -979,7 +951,7 @@ net::awaitable<http::Response> Collector::Impl::cancel_job(JobId id) {
 
 http::Response Collector::Impl::lease(std::string_view body) {
   auto request = protocol::decode_lease_request(body);
-  if (!request) return decode_failure(request.error());
+  if (!request) return decode_failure_answer(request.error());
   const TimePoint now = Clock::now();
   const LeaseResult result = queue_.lease(now);
   JobRecord* job = result.grant ? find_job(result.grant->job) : nullptr;
@@ -1021,7 +993,7 @@ net::awaitable<http::Response> Collector::Impl::scene(std::string digest) {
   FetchedScene fetched = co_await on_pool(pool_, std::move(fetch));
   if (!fetched.error.empty()) {
     util::log_error("collector: cannot read scene {}: {}", digest, fetched.error);
-    co_return busy("the store could not be read; retry later");
+    co_return busy_answer("the store could not be read; retry later");
   }
   if (!fetched.json) co_return http::make_error(http::Status::not_found, fmt::format("no such scene: {}", digest));
   co_return json_text(http::Status::ok, std::move(*fetched.json));
@@ -1074,9 +1046,9 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
                     expected.x0, expected.y0),
         "/rect");
   }
-  if (auto why = check_sample_counts(job->settings, expected, p.spp)) {
+  if (auto counts = check_sample_counts(job->settings, expected, p.spp); !counts) {
     ++counters_.tiles_refused;
-    co_return http::make_error(http::Status::bad_request, *why, "/spp");
+    co_return http::make_error(http::Status::bad_request, counts.error().message, counts.error().path);
   }
   if (!job->restored.empty() && job->restored[p.tile]) ++counters_.restored_tile_submissions;
 
@@ -1092,7 +1064,7 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
   }
   // Not stored yet, or the job is done and its pixels are only in the store: the store decides
   // (INSERT OR IGNORE: the first result wins, and a duplicate is compared with it).
-  if (!writer_ || stopping_) co_return busy("the collector is stopping; retry later");
+  if (!writer_ || stopping_) co_return busy_answer("the collector is stopping; retry later");
   store::TileWrite write;
   write.job = static_cast<std::int64_t>(job->id);
   write.tile = p.tile;
@@ -1102,7 +1074,7 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
   auto reply = co_await commit_tile(*writer_, std::move(write));
   if (reply.status != store::SubmitStatus::kAccepted) {
     ++counters_.store_busy;
-    co_return busy("the store's queue is full; retry later");
+    co_return busy_answer("the store's queue is full; retry later");
   }
   const store::CommitResult& result = *reply.value;
   switch (result.outcome) {
@@ -1124,7 +1096,7 @@ net::awaitable<http::Response> Collector::Impl::put_tile(Route route, http::Requ
   }
   ++counters_.store_busy;
   util::log_warn("collector: tile {} of job {} was not stored: {}", p.tile, route.job, result.error);
-  co_return busy("the tile could not be stored; retry later");
+  co_return busy_answer("the tile could not be stored; retry later");
 }
 
 http::Response Collector::Impl::on_tile_stored(JobId id, const protocol::TilePayload& payload) {
