@@ -33,6 +33,7 @@
 #include <catch2/catch.hpp>
 #include <fmt/format.h>
 
+#include "eventually.h"
 #include "http/client.h"
 #include "http/server.h"
 #include "http/types.h"
@@ -46,6 +47,7 @@ using tcp = net::ip::tcp;
 using boost::system::error_code;
 using namespace std::chrono_literals;
 using namespace dtraced::http;
+using dtraced::testing::eventually;
 
 // The longest any single wait in these tests may take before the test fails instead of hanging.
 constexpr auto kBound = 10s;
@@ -228,16 +230,6 @@ ClientResult post_echo(const Url& url, std::string json) {
   return dtraced::http::request_sync(
       url, dtraced::http::make_request(Verb::post, "/echo", std::move(json), dtraced::http::kJsonContentType),
       kTimeouts, kMaxResponse);
-}
-
-// Polls `condition` until it holds or kBound passes: for state only visible through a counter.
-bool eventually(const std::function<bool()>& condition) {
-  const auto deadline = std::chrono::steady_clock::now() + kBound;
-  while (!condition()) {
-    if (std::chrono::steady_clock::now() > deadline) return false;
-    std::this_thread::sleep_for(5ms);
-  }
-  return true;
 }
 
 bool connection_refused(std::uint16_t port) {
