@@ -26,16 +26,12 @@
 #include <fmt/format.h>
 
 #include "async/async.h"
+#include "http/names.h"
 
 namespace dtraced::http {
 namespace {
 
-namespace net = async::net;
-namespace beast = boost::beast;
-namespace bhttp = boost::beast::http;
-using async::kAwaitTuple;
-using tcp = net::ip::tcp;
-using boost::system::error_code;
+using namespace names;
 // Every deadline here is a socket deadline (resolving, connecting, writing, reading): real time.
 using RealClock = std::chrono::steady_clock;
 
@@ -264,23 +260,10 @@ std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
 }
 
 std::string_view to_string(ClientError error) {
-  switch (error) {
-    case ClientError::kNone:
-      return "none";
-    case ClientError::kConnect:
-      return "connect";
-    case ClientError::kTimeout:
-      return "timeout";
-    case ClientError::kTooLarge:
-      return "too_large";
-    case ClientError::kProtocol:
-      return "protocol";
-    case ClientError::kIo:
-      return "io";
-    case ClientError::kCancelled:
-      return "cancelled";
-  }
-  return "unknown";
+  // The enum's order.
+  constexpr std::string_view kNames[] = {"none", "connect", "timeout", "too_large", "protocol", "io", "cancelled"};
+  const auto i = static_cast<std::size_t>(error);
+  return i < std::size(kNames) ? kNames[i] : "unknown";
 }
 
 net::awaitable<ClientResult> request(Url url, Request req, ClientTimeouts timeouts, std::uint64_t max_response_body) {

@@ -59,6 +59,7 @@ struct ClientTimeouts {
   std::chrono::milliseconds read{30'000};    // from the end of the write to the end of the body
 };
 
+// to_string follows this order.
 enum class ClientError {
   kNone,
   kConnect,    // name not resolved, connection refused or unreachable: the server never saw it

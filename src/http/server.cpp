@@ -28,17 +28,13 @@
 #include <boost/beast/http/write.hpp>
 
 #include "async/async.h"
+#include "http/names.h"
 #include "util/log.h"
 
 namespace dtraced::http {
 namespace {
 
-namespace net = async::net;
-namespace beast = boost::beast;
-namespace bhttp = boost::beast::http;
-using async::kAwaitTuple;
-using tcp = net::ip::tcp;
-using boost::system::error_code;
+using namespace names;
 
 // Socket deadlines are beast::tcp_stream's expires_at/after, in real time: one timer per
 // connection, re-armed per phase, that closes the socket when it fires. Racing each operation

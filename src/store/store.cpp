@@ -77,40 +77,15 @@ constexpr TableSpec kTables[] = {
 constexpr std::string_view kRefuse =
     "refusing to open it; the file was left untouched (move it away or restore a backup to start afresh)";
 
-// Statements. The cache is keyed by their text.
+// Statements used in several places. The others stand in the function that runs them; the cache
+// of prepared statements is keyed by their text.
 constexpr std::string_view kSqlBegin = "BEGIN IMMEDIATE";
 constexpr std::string_view kSqlCommit = "COMMIT";
 constexpr std::string_view kSqlRollback = "ROLLBACK";
-constexpr std::string_view kSqlCountSchema = "SELECT count(*) FROM sqlite_schema";
-constexpr std::string_view kSqlTables =
-    "SELECT name FROM sqlite_schema WHERE type = 'table' AND name NOT LIKE 'sqlite\\_%' ESCAPE '\\'";
-constexpr std::string_view kSqlColumns = "SELECT name FROM pragma_table_info(?1) ORDER BY cid";
-constexpr std::string_view kSqlSchemaVersion = "SELECT value FROM meta WHERE key = 'schema_version'";
-constexpr std::string_view kSqlPutScene = "INSERT INTO scenes(digest, json) VALUES (?1, ?2) ON CONFLICT DO NOTHING";
-constexpr std::string_view kSqlGetScene = "SELECT json FROM scenes WHERE digest = ?1";
-constexpr std::string_view kSqlInsertJob =
-    "INSERT INTO jobs(digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
-    "client_key) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
-constexpr std::string_view kSqlSetJobState = "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1";
 // The job queries select the columns in the order read_job expects.
-constexpr std::string_view kSqlListJobs =
+constexpr std::string_view kSelectJobs =
     "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
-    "FROM jobs ORDER BY id";
-constexpr std::string_view kSqlGetJob =
-    "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
-    "FROM jobs WHERE id = ?1";
-constexpr std::string_view kSqlFindJobByKey =
-    "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
-    "FROM jobs WHERE client_key = ?1";
-constexpr std::string_view kSqlInsertTile =
-    "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
-constexpr std::string_view kSqlTilePixels = "SELECT pixels FROM tiles WHERE job = ?1 AND tile = ?2";
-constexpr std::string_view kSqlStoredTiles = "SELECT tile FROM tiles WHERE job = ?1 ORDER BY tile";
-constexpr std::string_view kSqlCountTiles = "SELECT count(*) FROM tiles WHERE job = ?1";
-constexpr std::string_view kSqlGetTile =
-    "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 AND tile = ?2";
-constexpr std::string_view kSqlGetAllTiles =
-    "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 ORDER BY tile";
+    "FROM jobs ";
 
 std::string column_text(sqlite3_stmt* s, int i) {
   const auto* p = reinterpret_cast<const char*>(sqlite3_column_text(s, i));
@@ -124,7 +99,7 @@ Blob column_blob(sqlite3_stmt* s, int i) {
   return p != nullptr ? Blob(p, p + n) : Blob();
 }
 
-// Column order of the kSql*Job* queries. The schema's CHECKs keep the casts exact.
+// Column order of kSelectJobs. The schema's CHECKs keep the casts exact.
 StoredJob read_job(sqlite3_stmt* s) {
   StoredJob job;
   job.id = sqlite3_column_int64(s, 0);
@@ -193,23 +168,15 @@ class Query {
 }  // namespace
 
 std::string_view to_string(TileOutcome outcome) {
-  switch (outcome) {
-    case TileOutcome::kStored:
-      return "stored";
-    case TileOutcome::kAlreadyPresent:
-      return "already_present";
-    case TileOutcome::kRejected:
-      return "rejected";
-    case TileOutcome::kFailed:
-      return "failed";
-  }
-  return "unknown";
+  constexpr std::string_view kNames[] = {"stored", "already_present", "rejected", "failed"};  // the enum's order
+  const auto i = static_cast<std::size_t>(outcome);
+  return i < std::size(kNames) ? kNames[i] : "unknown";
 }
 
 struct Store::Impl {
   sqlite3* db = nullptr;
   std::string path;
-  std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the kSql* literals
+  std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the statements' text
 
   Impl() = default;
   Impl(const Impl&) = delete;
@@ -293,6 +260,17 @@ struct Store::Impl {
     return m;
   }
 
+  // The one job `sql` selects with `key` bound, if any; `what` names the lookup in an error.
+  template <typename Key>
+  Result<std::optional<StoredJob>> select_job(std::string_view sql, const Key& key, std::string_view what) {
+    auto q = query(sql);
+    if (!q) return q.error();
+    const int rc = q.value().bind(key).step();
+    if (rc == SQLITE_DONE) return std::optional<StoredJob>();
+    if (rc != SQLITE_ROW) return error(what, rc);
+    return std::optional<StoredJob>(read_job(q.value().get()));
+  }
+
   Result<CommitResult> insert_tile(const TileWrite& w);
   Status check_schema();
   Status verify_integrity();
@@ -333,7 +311,9 @@ Status Store::Impl::verify_integrity() {
 }
 
 Status Store::Impl::check_schema() {
-  auto tables = exec_rows(kSqlTables);
+  constexpr std::string_view kSql =
+      "SELECT name FROM sqlite_schema WHERE type = 'table' AND name NOT LIKE 'sqlite\\_%' ESCAPE '\\'";
+  auto tables = exec_rows(kSql);
   if (!tables)
     return Error{fmt::format("{}: cannot list tables: {}; {}", path, detail(tables.error().message), kRefuse)};
   auto has_table = [&](std::string_view name) {
@@ -347,7 +327,8 @@ Status Store::Impl::check_schema() {
         fmt::format("{}: the database has tables but no meta table: not a dtraced database; {}", path, kRefuse)};
   }
   {
-    auto q = query(kSqlSchemaVersion);
+    constexpr std::string_view kSql = "SELECT value FROM meta WHERE key = 'schema_version'";
+    auto q = query(kSql);
     if (!q) return q.error();
     const int rc = q.value().step();
     if (rc == SQLITE_DONE) {
@@ -369,7 +350,8 @@ Status Store::Impl::check_schema() {
       return Error{
           fmt::format("{}: schema version {} but table '{}' is missing; {}", path, kSchemaVersion, spec.name, kRefuse)};
     }
-    auto q = query(kSqlColumns);
+    constexpr std::string_view kSql = "SELECT name FROM pragma_table_info(?1) ORDER BY cid";
+    auto q = query(kSql);
     if (!q) return q.error();
     q.value().bind(spec.name);
     std::string columns;
@@ -449,7 +431,8 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   }
 
   // The first read parses the header: "file is not a database" shows up here (at prepare time).
-  auto count = impl->exec_rows(kSqlCountSchema);
+  constexpr std::string_view kSql = "SELECT count(*) FROM sqlite_schema";
+  auto count = impl->exec_rows(kSql);
   if (!count) {
     if ((sqlite3_extended_errcode(db) & 0xff) == SQLITE_NOTADB) {
       return Error{fmt::format("{}: not an SQLite database ({}); {}", path, sqlite3_errmsg(db), kRefuse)};
@@ -525,7 +508,8 @@ Status Store::transaction(const std::function<Status()>& body) {
 }
 
 Status Store::put_scene(std::string_view digest, std::string_view json) {
-  auto q = impl_->query(kSqlPutScene);
+  constexpr std::string_view kSql = "INSERT INTO scenes(digest, json) VALUES (?1, ?2) ON CONFLICT DO NOTHING";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(digest).bind(json).step();
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("storing scene {}", digest), rc);
@@ -533,7 +517,8 @@ Status Store::put_scene(std::string_view digest, std::string_view json) {
 }
 
 Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
-  auto q = impl_->query(kSqlGetScene);
+  constexpr std::string_view kSql = "SELECT json FROM scenes WHERE digest = ?1";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(digest).step();
   if (rc == SQLITE_DONE) return std::optional<std::string>();
@@ -542,7 +527,10 @@ Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
 }
 
 Result<std::int64_t> Store::insert_job(const StoredJob& job) {
-  auto q = impl_->query(kSqlInsertJob);
+  constexpr std::string_view kSql =
+      "INSERT INTO jobs(digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
+      "client_key) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value()
                      .bind(job.digest)
@@ -560,7 +548,8 @@ Result<std::int64_t> Store::insert_job(const StoredJob& job) {
 }
 
 Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix) {
-  auto q = impl_->query(kSqlSetJobState);
+  constexpr std::string_view kSql = "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(id).bind(state).bind(finished_unix).step();
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the state of job {}", id), rc);
@@ -569,7 +558,8 @@ Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_
 }
 
 Result<std::vector<StoredJob>> Store::list_jobs() {
-  auto q = impl_->query(kSqlListJobs);
+  static const std::string kSql = std::string(kSelectJobs) + "ORDER BY id";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   std::vector<StoredJob> jobs;
   int rc;
@@ -579,26 +569,20 @@ Result<std::vector<StoredJob>> Store::list_jobs() {
 }
 
 Result<std::optional<StoredJob>> Store::get_job(std::int64_t id) {
-  auto q = impl_->query(kSqlGetJob);
-  if (!q) return q.error();
-  const int rc = q.value().bind(id).step();
-  if (rc == SQLITE_DONE) return std::optional<StoredJob>();
-  if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading job {}", id), rc);
-  return std::optional<StoredJob>(read_job(q.value().get()));
+  static const std::string kSql = std::string(kSelectJobs) + "WHERE id = ?1";
+  return impl_->select_job(kSql, id, fmt::format("reading job {}", id));
 }
 
 Result<std::optional<StoredJob>> Store::find_job_by_key(std::string_view client_key) {
-  auto q = impl_->query(kSqlFindJobByKey);
-  if (!q) return q.error();
-  const int rc = q.value().bind(client_key).step();
-  if (rc == SQLITE_DONE) return std::optional<StoredJob>();
-  if (rc != SQLITE_ROW) return impl_->error("looking up a job by client key", rc);
-  return std::optional<StoredJob>(read_job(q.value().get()));
+  static const std::string kSql = std::string(kSelectJobs) + "WHERE client_key = ?1";
+  return impl_->select_job(kSql, client_key, "looking up a job by client key");
 }
 
 Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
   {
-    auto q = query(kSqlInsertTile);
+    constexpr std::string_view kSql =
+        "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
+    auto q = query(kSql);
     if (!q) return q.error();
     const int rc =
         q.value().bind(w.job).bind(std::int64_t{w.tile}).bind_blob(w.pixels).bind(w.worker).bind(w.stored_unix).step();
@@ -613,7 +597,8 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
     }
   }
   // Already present: compare the bytes (duplicates are rare, so the extra read is cheap overall).
-  auto q = query(kSqlTilePixels);
+  constexpr std::string_view kSql = "SELECT pixels FROM tiles WHERE job = ?1 AND tile = ?2";
+  auto q = query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(w.job).bind(std::int64_t{w.tile}).step();
   if (rc != SQLITE_ROW) return error(fmt::format("reading back tile {} of job {}", w.tile, w.job), rc);
@@ -649,7 +634,8 @@ Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite>
 }
 
 Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
-  auto q = impl_->query(kSqlStoredTiles);
+  constexpr std::string_view kSql = "SELECT tile FROM tiles WHERE job = ?1 ORDER BY tile";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   q.value().bind(job);
   std::vector<std::uint32_t> tiles;
@@ -662,7 +648,8 @@ Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
 }
 
 Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
-  auto q = impl_->query(kSqlCountTiles);
+  constexpr std::string_view kSql = "SELECT count(*) FROM tiles WHERE job = ?1";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(job).step();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("counting the tiles of job {}", job), rc);
@@ -670,7 +657,8 @@ Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
 }
 
 Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_t tile) {
-  auto q = impl_->query(kSqlGetTile);
+  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 AND tile = ?2";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(job).bind(std::int64_t{tile}).step();
   if (rc == SQLITE_DONE) return std::optional<StoredTile>();
@@ -679,7 +667,8 @@ Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_
 }
 
 Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
-  auto q = impl_->query(kSqlGetAllTiles);
+  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 ORDER BY tile";
+  auto q = impl_->query(kSql);
   if (!q) return q.error();
   q.value().bind(job);
   std::vector<StoredTile> tiles;

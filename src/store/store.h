@@ -103,6 +103,7 @@ struct TileWrite {
   std::int64_t stored_unix = 0;
 };
 
+// to_string and the writer's counters (WriterStats) follow this order.
 enum class TileOutcome {
   kStored,          // newly stored by this transaction, which committed
   kAlreadyPresent,  // a row for (job, tile) existed (or came earlier in the same batch)

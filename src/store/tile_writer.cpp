@@ -25,6 +25,11 @@ void call_guarded(std::string_view what, F&& f) {
   }
 }
 
+// The counter of each TileOutcome, in the enum's order.
+constexpr std::uint64_t WriterStats::*kOutcomeCounters[] = {&WriterStats::tiles_stored,
+                                                            &WriterStats::tiles_already_present,
+                                                            &WriterStats::tiles_rejected, &WriterStats::tiles_failed};
+
 }  // namespace
 
 TileWriter::TileWriter(Store store, WriterLimits limits)
@@ -145,22 +150,7 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
     if (!result) {
       stats_.tiles_failed += end - begin;
     } else {
-      for (const CommitResult& r : result.value()) {
-        switch (r.outcome) {
-          case TileOutcome::kStored:
-            ++stats_.tiles_stored;
-            break;
-          case TileOutcome::kAlreadyPresent:
-            ++stats_.tiles_already_present;
-            break;
-          case TileOutcome::kRejected:
-            ++stats_.tiles_rejected;
-            break;
-          case TileOutcome::kFailed:
-            ++stats_.tiles_failed;
-            break;
-        }
-      }
+      for (const CommitResult& r : result.value()) ++(stats_.*kOutcomeCounters[static_cast<std::size_t>(r.outcome)]);
     }
   }
   for (std::size_t k = begin; k < end; ++k) {
