@@ -33,9 +33,11 @@
 #include <catch2/catch.hpp>
 #include <fmt/format.h>
 
+#include "eventually.h"
 #include "http/client.h"
 #include "http/server.h"
 #include "http/types.h"
+#include "util/clock.h"
 
 namespace {
 
@@ -44,16 +46,8 @@ namespace bhttp = boost::beast::http;
 using tcp = net::ip::tcp;
 using boost::system::error_code;
 using namespace std::chrono_literals;
-using dtraced::http::ClientError;
-using dtraced::http::ClientResult;
-using dtraced::http::ClientTimeouts;
-using dtraced::http::Request;
-using dtraced::http::Response;
-using dtraced::http::Server;
-using dtraced::http::ServerLimits;
-using dtraced::http::Status;
-using dtraced::http::Url;
-using dtraced::http::Verb;
+using namespace dtraced::http;
+using dtraced::testing::eventually;
 
 // The longest any single wait in these tests may take before the test fails instead of hanging.
 constexpr auto kBound = 10s;
@@ -124,9 +118,10 @@ ServerLimits generous_limits() {
 // A server on 127.0.0.1, on an ephemeral port, with its io_context on a thread of its own.
 class TestServer {
  public:
-  TestServer(ServerLimits limits, Server::Handler handler, Server::HeaderCheck check = {})
-      : server_(io_.get_executor(), net::ip::make_address("127.0.0.1"), 0, limits, std::move(handler),
-                std::move(check)) {
+  TestServer(ServerLimits limits, Server::Handler handler, Server::HeaderCheck check = {},
+             const dtraced::util::Clock& clock = dtraced::util::real_clock())
+      : server_(io_.get_executor(), net::ip::make_address("127.0.0.1"), 0, limits, std::move(handler), std::move(check),
+                clock) {
     REQUIRE(!server_.start());
     REQUIRE(server_.port() != 0);
     thread_ = std::thread([this] { io_.run(); });
@@ -237,16 +232,6 @@ ClientResult post_echo(const Url& url, std::string json) {
       kTimeouts, kMaxResponse);
 }
 
-// Polls `condition` until it holds or kBound passes: for state only visible through a counter.
-bool eventually(const std::function<bool()>& condition) {
-  const auto deadline = std::chrono::steady_clock::now() + kBound;
-  while (!condition()) {
-    if (std::chrono::steady_clock::now() > deadline) return false;
-    std::this_thread::sleep_for(5ms);
-  }
-  return true;
-}
-
 bool connection_refused(std::uint16_t port) {
   net::io_context io;
   tcp::socket socket(io);
@@ -266,19 +251,18 @@ std::uint16_t unused_port() {
 }  // namespace
 
 TEST_CASE("parse_base_url accepts http://host[:port] and explains every rejection", "[http]") {
-  std::string error;
-  auto url = dtraced::http::parse_base_url("http://127.0.0.1:7878", error);
+  auto url = dtraced::http::parse_base_url("http://127.0.0.1:7878");
   REQUIRE(url);
   CHECK(url->host == "127.0.0.1");
   CHECK(url->port == 7878);
   CHECK(url->to_string() == "http://127.0.0.1:7878");
 
-  url = dtraced::http::parse_base_url("HTTP://collector.example-farm.org/", error);
+  url = dtraced::http::parse_base_url("HTTP://collector.example-farm.org/");
   REQUIRE(url);
   CHECK(url->host == "collector.example-farm.org");
   CHECK(url->port == 80);
 
-  url = dtraced::http::parse_base_url("http://[::1]:9000", error);
+  url = dtraced::http::parse_base_url("http://[::1]:9000");
   REQUIRE(url);
   CHECK(url->host == "::1");
   CHECK(url->host_header() == "[::1]:9000");
@@ -303,10 +287,15 @@ TEST_CASE("parse_base_url accepts http://host[:port] and explains every rejectio
   };
   for (const auto& [text, why] : bad) {
     INFO(text);
-    error.clear();
-    CHECK_FALSE(dtraced::http::parse_base_url(text, error));
-    CHECK_THAT(error, Catch::Contains(why));
+    const auto refused = dtraced::http::parse_base_url(text);
+    REQUIRE_FALSE(refused);
+    CHECK_THAT(refused.error().message, Catch::Contains(why));
   }
+  // The older form says the same.
+  std::string error;
+  CHECK_FALSE(dtraced::http::parse_base_url("https://host", error));
+  CHECK_THAT(error, Catch::Contains("https"));
+  CHECK(dtraced::http::parse_base_url("http://host:1", error)->port == 1);
 }
 
 TEST_CASE("make_error builds the JSON error shape", "[http]") {
@@ -516,15 +505,22 @@ TEST_CASE("server: graceful stop finishes the request in flight, closes idle con
   CHECK(server.metrics().open_connections == 0);
 }
 
-TEST_CASE("server: stop cancels a request still running at its deadline", "[http]") {
+TEST_CASE("server: stop cancels a request still running when its grace ends on the server's clock", "[http]") {
   Gate gate;  // never opened
-  TestServer server(generous_limits(), routes(&gate));
+  dtraced::util::ManualClock clock;
+  TestServer server(generous_limits(), routes(&gate), {}, clock);
   auto slow = std::async(std::launch::async, [url = server.url()] {
     return dtraced::http::request_sync(url, dtraced::http::make_request(Verb::get, "/slow"), kTimeouts, kMaxResponse);
   });
   REQUIRE(gate.entered.get_future().wait_for(kBound) == std::future_status::ready);
 
-  std::future<void>& stopped = server.stop(200ms);
+  const auto grace = std::chrono::minutes(10);
+  std::future<void>& stopped = server.stop(grace);
+  // The stop sleeps on the clock until the grace ends; the request still runs meanwhile.
+  REQUIRE(clock.wait_for_sleepers(1, kBound));
+  CHECK(clock.next_deadline() == clock.now() + grace);
+  CHECK(stopped.wait_for(0s) == std::future_status::timeout);
+  clock.advance(grace);
   REQUIRE(stopped.wait_for(kBound) == std::future_status::ready);
   REQUIRE(slow.wait_for(kBound) == std::future_status::ready);
   const ClientResult res = slow.get();

@@ -14,16 +14,7 @@
 namespace {
 
 using namespace std::chrono_literals;
-using dtraced::collector::CompleteResult;
-using dtraced::collector::Duration;
-using dtraced::collector::JobId;
-using dtraced::collector::LeaseGrant;
-using dtraced::collector::LeaseResult;
-using dtraced::collector::QueueConfig;
-using dtraced::collector::TileIndex;
-using dtraced::collector::TileStatus;
-using dtraced::collector::TimePoint;
-using dtraced::collector::WorkQueue;
+using namespace dtraced::collector;
 
 // An arbitrary origin for the fake clock; only differences matter.
 const TimePoint t0 = TimePoint{} + 1000h;
@@ -358,19 +349,23 @@ TEST_CASE("with nothing eligible, lease suggests when to ask again", "[queue]") 
 }
 
 TEST_CASE("queue configuration is checked", "[queue]") {
-  CHECK_FALSE(dtraced::collector::check_queue_config({}).has_value());
+  CHECK(check_queue_config({}).empty());
   QueueConfig c;
   c.max_copies = 0;
-  CHECK(dtraced::collector::check_queue_config(c).value().find("max_copies") != std::string::npos);
+  CHECK(check_queue_config(c) == dtraced::util::Errors{{"must be in [1, 16]", "max_copies"}});
   c = {};
   c.reoffer_floor = 0s;
-  CHECK(dtraced::collector::check_queue_config(c).has_value());
+  CHECK(check_queue_config(c).at(0).path == "reoffer_floor");
   c = {};
   c.reoffer_factor = 0.5;
-  CHECK(dtraced::collector::check_queue_config(c).has_value());
+  CHECK(check_queue_config(c).at(0).path == "reoffer_factor");
   c = {};
   c.min_retry_after = 10s;
-  CHECK(dtraced::collector::check_queue_config(c).has_value());
+  CHECK(check_queue_config(c).at(0).path == "min_retry_after");
+  // Every problem at once.
+  c.max_copies = 0;
+  c.window_size = 0;
+  CHECK(check_queue_config(c).size() == 3);
 }
 
 // ---- a simulated farm ----------------------------------------------------------------------

@@ -102,8 +102,8 @@ int run_collector_role(const RoleArgs& a) {
                given.size() == 1 ? "it needs" : "they need");
     return kExitUsage;
   }
-  if (auto why = collector::check_collector_config(c)) {
-    fmt::print(stderr, "{}\n", *why);
+  if (const util::Errors errors = collector::check_collector_config(c); !errors.empty()) {
+    fmt::print(stderr, "{}\n", util::to_string(errors));
     return kExitUsage;
   }
   return collector::run_collector(c);

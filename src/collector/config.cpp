@@ -6,65 +6,91 @@
 #include <fmt/format.h>
 
 namespace dtraced::collector {
+namespace {
+
+void check_token(const std::string& token, util::Errors& errors) {
+  if (token.empty()) {
+    errors.push_back({"must not be empty (the collector never runs without authentication)", "token"});
+    return;
+  }
+  if (token.size() > kMaxTokenBytes) errors.push_back({fmt::format("longer than {} bytes", kMaxTokenBytes), "token"});
+  for (const char ch : token) {
+    // Header field values: visible ASCII only, so the token survives every HTTP stack unchanged.
+    if (ch < 0x21 || ch > 0x7e) {
+      errors.push_back({"must be printable ASCII without spaces", "token"});
+      return;
+    }
+  }
+}
+
+void check_limits(const http::ServerLimits& l, util::Errors& errors) {
+  if (l.max_header_bytes == 0) errors.push_back({"must be > 0", "limits.max_header_bytes"});
+  if (l.max_body_bytes < protocol::kMaxMessageBytes) {
+    errors.push_back({fmt::format("must be at least {} (the control messages)", protocol::kMaxMessageBytes),
+                      "limits.max_body_bytes"});
+  }
+  if (l.read_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.read_timeout"});
+  if (l.write_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.write_timeout"});
+  if (l.idle_keepalive_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.idle_keepalive_timeout"});
+  if (l.max_connections == 0) errors.push_back({"must be > 0", "limits.max_connections"});
+}
+
+void check_queue_and_writer(const CollectorConfig& c, util::Errors& errors) {
+  for (util::Error& e : check_queue_config(c.queue)) errors.push_back({std::move(e.message), "queue." + e.path});
+  if (c.queue.max_retry_after > std::chrono::milliseconds(protocol::kMaxRetryAfterMs)) {
+    errors.push_back({fmt::format("must be at most {} ms (the protocol's limit)", protocol::kMaxRetryAfterMs),
+                      "queue.max_retry_after"});
+  }
+  const store::WriterLimits& w = c.writer;
+  if (w.max_batch_tiles == 0) errors.push_back({"must be > 0", "writer.max_batch_tiles"});
+  if (w.max_pending_tiles == 0) errors.push_back({"must be > 0", "writer.max_pending_tiles"});
+  if (w.max_pending_tasks == 0) errors.push_back({"must be > 0", "writer.max_pending_tasks"});
+  if (w.max_pending_bytes < protocol::kMaxTilePayloadBytes) {
+    errors.push_back({fmt::format("must hold at least one largest tile ({} bytes)", protocol::kMaxTilePayloadBytes),
+                      "writer.max_pending_bytes"});
+  }
+}
+
+void check_one_shot(const CollectorConfig& c, util::Errors& errors) {
+  if (!c.one_shot) {
+    if (c.exit_when_done) errors.push_back({"needs a one-shot job (a scene and an output)", "exit_when_done"});
+    return;
+  }
+  const OneShotJob& j = *c.one_shot;
+  if (j.scene_path.empty()) errors.push_back({"must name a scene file", "scene"});
+  if (auto why = protocol::check_output_name(j.output)) errors.push_back({"output name " + *why, "output"});
+  if (j.priority < protocol::kMinPriority || j.priority > protocol::kMaxPriority) {
+    errors.push_back({fmt::format("must be in [{}, {}]", protocol::kMinPriority, protocol::kMaxPriority), "priority"});
+  }
+  // The overrides are checked with the scene, by the job decoder, at start.
+}
+
+}  // namespace
 
 std::string CollectorConfig::effective_output_dir() const {
   if (!output_dir.empty()) return output_dir;
   return (std::filesystem::path(state_dir) / "output").string();
 }
 
-std::optional<std::string> check_collector_config(const CollectorConfig& c) {
+util::Errors check_collector_config(const CollectorConfig& c) {
+  util::Errors errors;
   boost::system::error_code ec;
   boost::asio::ip::make_address(c.listen_address, ec);
-  if (ec) return fmt::format("listen_address: '{}' is not an IPv4 or IPv6 address", c.listen_address);
-  if (c.state_dir.empty()) return "state_dir: must not be empty";
-  if (c.token.empty()) return "token: must not be empty (the collector never runs without authentication)";
-  if (c.token.size() > kMaxTokenBytes) return fmt::format("token: longer than {} bytes", kMaxTokenBytes);
-  for (const char ch : c.token) {
-    // Header field values: visible ASCII only, so the token survives every HTTP stack unchanged.
-    if (ch < 0x21 || ch > 0x7e) return "token: must be printable ASCII without spaces";
-  }
-  const http::ServerLimits& l = c.limits;
-  if (l.max_header_bytes == 0) return "limits.max_header_bytes: must be > 0";
-  if (l.max_body_bytes < protocol::kMaxMessageBytes) {
-    return fmt::format("limits.max_body_bytes: must be at least {} (the control messages)", protocol::kMaxMessageBytes);
-  }
-  if (l.read_timeout.count() <= 0 || l.write_timeout.count() <= 0 || l.idle_keepalive_timeout.count() <= 0) {
-    return "limits: read, write and keep-alive timeouts must be > 0";
-  }
-  if (l.max_connections == 0) return "limits.max_connections: must be > 0";
-  if (auto q = check_queue_config(c.queue)) return "queue: " + *q;
-  if (c.queue.max_retry_after > std::chrono::milliseconds(protocol::kMaxRetryAfterMs)) {
-    return fmt::format("queue: max_retry_after must be at most {} ms (the protocol's limit)",
-                       protocol::kMaxRetryAfterMs);
-  }
-  const store::WriterLimits& w = c.writer;
-  if (w.max_batch_tiles == 0 || w.max_pending_tiles == 0 || w.max_pending_tasks == 0) {
-    return "writer: batch and pending limits must be > 0";
-  }
-  if (w.max_pending_bytes < protocol::kMaxTilePayloadBytes) {
-    return fmt::format("writer.max_pending_bytes: must hold at least one largest tile ({} bytes)",
-                       protocol::kMaxTilePayloadBytes);
-  }
+  if (ec) errors.push_back({fmt::format("'{}' is not an IPv4 or IPv6 address", c.listen_address), "listen_address"});
+  if (c.state_dir.empty()) errors.push_back({"must not be empty", "state_dir"});
+  check_token(c.token, errors);
+  check_limits(c.limits, errors);
+  check_queue_and_writer(c, errors);
   if (c.shutdown_grace.count() <= 0 || c.shutdown_grace > kMaxShutdownGrace) {
-    return fmt::format("shutdown_grace: must be > 0 and at most {} ms", kMaxShutdownGrace.count());
+    errors.push_back({fmt::format("must be > 0 and at most {} ms", kMaxShutdownGrace.count()), "shutdown_grace"});
   }
   if (c.cpu_threads == 0 || c.cpu_threads > kMaxCpuThreads) {
-    return fmt::format("cpu_threads: must be in [1, {}]", kMaxCpuThreads);
+    errors.push_back({fmt::format("must be in [1, {}]", kMaxCpuThreads), "cpu_threads"});
   }
-  if (c.max_unfinished_jobs == 0) return "max_unfinished_jobs: must be > 0";
-  if (c.max_unfinished_pixels == 0) return "max_unfinished_pixels: must be > 0";
-  if (c.one_shot) {
-    const OneShotJob& j = *c.one_shot;
-    if (j.scene_path.empty()) return "scene: must name a scene file";
-    if (auto why = protocol::check_output_name(j.output)) return "output: output name " + *why;
-    if (j.priority < protocol::kMinPriority || j.priority > protocol::kMaxPriority) {
-      return fmt::format("priority: must be in [{}, {}]", protocol::kMinPriority, protocol::kMaxPriority);
-    }
-    // The overrides are checked with the scene, by the job decoder, at start.
-  } else if (c.exit_when_done) {
-    return "exit_when_done: needs a one-shot job (a scene and an output)";
-  }
-  return std::nullopt;
+  if (c.max_unfinished_jobs == 0) errors.push_back({"must be > 0", "max_unfinished_jobs"});
+  if (c.max_unfinished_pixels == 0) errors.push_back({"must be > 0", "max_unfinished_pixels"});
+  check_one_shot(c, errors);
+  return errors;
 }
 
 }  // namespace dtraced::collector

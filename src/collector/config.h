@@ -9,12 +9,14 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <string_view>
 
 #include "collector/queue.h"
 #include "http/server.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
 #include "store/tile_writer.h"
+#include "util/result.h"
 
 namespace dtraced::collector {
 
@@ -67,7 +69,11 @@ struct CollectorConfig {
   std::string effective_output_dir() const;
 };
 
-// nullopt when usable; otherwise what is wrong, naming the option ("token: must not be empty").
-std::optional<std::string> check_collector_config(const CollectorConfig& config);
+// Name of the start counter's file in the state directory.
+inline constexpr std::string_view kEpochFileName = "collector.epoch";
+
+// Every problem of the configuration, none when it is usable; each Error's path names the option
+// ("token", "limits.read_timeout") and its message what is wrong.
+util::Errors check_collector_config(const CollectorConfig& config);
 
 }  // namespace dtraced::collector

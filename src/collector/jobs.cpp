@@ -38,23 +38,29 @@ std::optional<TileBlob> blob_to_tile(const store::Blob& blob, std::size_t pixels
   return t;
 }
 
-std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const scene::TileRect& rect,
-                                               std::span<const std::uint32_t> spp) {
+util::Status check_sample_counts(const scene::RenderSettings& settings, const scene::TileRect& rect,
+                                 std::span<const std::uint32_t> spp) {
+  constexpr std::string_view kField = "/spp";
   const bool adaptive = settings.error_target > 0;
   if (!adaptive) {
-    if (spp.empty()) return std::nullopt;
-    return std::string("the tile carries sample counts, but the job samples uniformly (no error target)");
+    if (spp.empty()) return {};
+    return util::Error("the tile carries sample counts, but the job samples uniformly (no error target)",
+                       std::string(kField));
   }
-  if (spp.empty()) return std::string("the job samples adaptively, but the tile carries no sample counts");
+  if (spp.empty()) {
+    return util::Error("the job samples adaptively, but the tile carries no sample counts", std::string(kField));
+  }
   assert(spp.size() == std::size_t{rect.width} * rect.height);
   for (std::size_t i = 0; i < spp.size(); ++i) {
     const std::uint32_t n = spp[i];
     if (!scene::is_valid_sample_count(settings, n)) {
-      return fmt::format("pixel ({}, {}) took {} samples; a pixel takes {} or stops at a checkpoint {} * 2^k below it",
-                         rect.x0 + i % rect.width, rect.y0 + i / rect.width, n, settings.samples, settings.min_samples);
+      return util::Error(
+          fmt::format("pixel ({}, {}) took {} samples; a pixel takes {} or stops at a checkpoint {} * 2^k below it",
+                      rect.x0 + i % rect.width, rect.y0 + i / rect.width, n, settings.samples, settings.min_samples),
+          std::string(kField));
     }
   }
-  return std::nullopt;
+  return {};
 }
 
 void count_samples(JobRecord& job, std::span<const std::uint32_t> spp) {

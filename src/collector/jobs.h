@@ -26,6 +26,7 @@
 #include "scene/description.h"
 #include "scene/tiling.h"
 #include "store/store.h"
+#include "util/result.h"
 
 namespace dtraced::collector {
 
@@ -102,10 +103,10 @@ struct TileBlob {
 std::optional<TileBlob> blob_to_tile(const store::Blob& blob, std::size_t pixels);
 
 // Whether a submitted tile's sample counts fit the job: present exactly when it is adaptive
-// (settings.error_target > 0), one per pixel, each scene::is_valid_sample_count. nullopt when they
-// do, else the problem, naming the first bad pixel.
-std::optional<std::string> check_sample_counts(const scene::RenderSettings& settings, const scene::TileRect& rect,
-                                               std::span<const std::uint32_t> spp);
+// (settings.error_target > 0), one per pixel, each scene::is_valid_sample_count. The error names
+// the first bad pixel; its path is the payload's "/spp".
+util::Status check_sample_counts(const scene::RenderSettings& settings, const scene::TileRect& rect,
+                                 std::span<const std::uint32_t> spp);
 
 // Adds a stored tile's counts to the job's running mean (a uniform job needs none: a no-op).
 void count_samples(JobRecord& job, std::span<const std::uint32_t> spp);

@@ -22,31 +22,33 @@ Duration scaled(Duration d, double factor) {
 
 }  // namespace
 
-std::optional<std::string> check_queue_config(const QueueConfig& c) {
+util::Errors check_queue_config(const QueueConfig& c) {
+  util::Errors errors;
   const auto positive = [](Duration d) { return d > Duration::zero() && d <= kMaxConfigDuration; };
-  if (!positive(c.reoffer_floor)) return "reoffer_floor must be > 0 and at most a week";
+  if (!positive(c.reoffer_floor)) errors.push_back({"must be > 0 and at most a week", "reoffer_floor"});
   if (!positive(c.reoffer_ceiling) || c.reoffer_ceiling < c.reoffer_floor) {
-    return "reoffer_ceiling must be >= reoffer_floor and at most a week";
+    errors.push_back({"must be >= reoffer_floor and at most a week", "reoffer_ceiling"});
   }
   if (!(c.reoffer_factor >= 1 && c.reoffer_factor <= kMaxReofferFactor)) {
-    return fmt::format("reoffer_factor must be in [1, {}]", kMaxReofferFactor);
+    errors.push_back({fmt::format("must be in [1, {}]", kMaxReofferFactor), "reoffer_factor"});
   }
   if (c.max_copies < 1 || c.max_copies > kMaxCopiesLimit) {
-    return fmt::format("max_copies must be in [1, {}]", kMaxCopiesLimit);
+    errors.push_back({fmt::format("must be in [1, {}]", kMaxCopiesLimit), "max_copies"});
   }
   if (!(c.copy_expiry_factor >= 1 && c.copy_expiry_factor <= kMaxCopyExpiryFactor)) {
-    return fmt::format("copy_expiry_factor must be in [1, {}]", kMaxCopyExpiryFactor);
+    errors.push_back({fmt::format("must be in [1, {}]", kMaxCopyExpiryFactor), "copy_expiry_factor"});
   }
   if (c.window_size < 1 || c.window_size > kMaxWindowSize) {
-    return fmt::format("window_size must be in [1, {}]", kMaxWindowSize);
+    errors.push_back({fmt::format("must be in [1, {}]", kMaxWindowSize), "window_size"});
   }
   if (!positive(c.min_retry_after) || !positive(c.max_retry_after) || c.min_retry_after > c.max_retry_after) {
-    return "min_retry_after and max_retry_after must be > 0, at most a week, and min <= max";
+    errors.push_back(
+        {"min_retry_after and max_retry_after must be > 0, at most a week, and min <= max", "min_retry_after"});
   }
-  return std::nullopt;
+  return errors;
 }
 
-WorkQueue::WorkQueue(QueueConfig config) : config_(config) { assert(!check_queue_config(config_)); }
+WorkQueue::WorkQueue(QueueConfig config) : config_(config) { assert(check_queue_config(config_).empty()); }
 
 bool WorkQueue::add_job(JobId id, std::int32_t priority, TileIndex tile_count,
                         std::span<const TileIndex> already_stored) {

@@ -3,8 +3,8 @@
 // Owns: the scheduling rules of the farm (README.md, "Work queue"), as a pure data structure. No
 // sockets, no SQL, no clock reads: every call that depends on time takes `now`, a
 // std::chrono::steady_clock time point (monotonic: worker and collector wall clocks may disagree,
-// and a lease must not be re-offered because someone set the date). Tests drive it with a fake
-// clock.
+// and a lease must not be re-offered because someone set the date), which the collector reads from
+// its util::Clock. Tests drive it with a fake clock.
 //
 // Rules.
 //  - Jobs are served by priority (higher first), then by id (lower first: submission order).
@@ -47,11 +47,14 @@
 #include <utility>
 #include <vector>
 
+#include "util/clock.h"
+#include "util/result.h"
+
 namespace dtraced::collector {
 
-using Clock = std::chrono::steady_clock;
-using TimePoint = Clock::time_point;
-using Duration = Clock::duration;
+// Monotonic time, as util::Clock::now() reads it (the collector's injected clock).
+using TimePoint = util::TimePoint;
+using Duration = util::SteadyClock::duration;
 using JobId = std::uint64_t;
 using TileIndex = std::uint32_t;
 
@@ -81,8 +84,8 @@ struct QueueConfig {
   Duration max_retry_after = std::chrono::milliseconds(500);
 };
 
-// nullopt when usable; otherwise what is wrong, naming the field.
-std::optional<std::string> check_queue_config(const QueueConfig& config);
+// Every problem of the configuration, none when it is usable; each Error's path names the field.
+util::Errors check_queue_config(const QueueConfig& config);
 
 struct LeaseGrant {
   JobId job = 0;

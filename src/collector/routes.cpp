@@ -19,11 +19,11 @@ namespace {
 // without looking further.
 constexpr std::size_t kMaxSegments = 6;
 
-RouteError not_found() { return RouteError{http::Status::not_found, "no such endpoint", "", ""}; }
+Refusal not_found() { return Refusal{http::Status::not_found, util::Error("no such endpoint"), {}}; }
 
-RouteError wrong_method(std::string_view allow) {
-  return RouteError{http::Status::method_not_allowed, fmt::format("method not allowed here; use {}", allow), "",
-                    std::string(allow)};
+Refusal wrong_method(std::string_view allow) {
+  return Refusal{http::Status::method_not_allowed, util::Error(fmt::format("method not allowed here; use {}", allow)),
+                 std::string(allow)};
 }
 
 // Decimal digits without sign or leading zeros, at most `max`.
@@ -56,7 +56,7 @@ std::optional<std::vector<std::string_view>> split_path(std::string_view path) {
 }
 
 // Only the image route takes a query: format=NAME (image::format_from_name), once.
-std::variant<image::ImageFormat, RouteError> parse_image_query(std::string_view query) {
+util::Result<image::ImageFormat, Refusal> parse_image_query(std::string_view query) {
   image::ImageFormat format = image::ImageFormat::kPng;
   bool seen = false;
   while (!query.empty()) {
@@ -67,16 +67,11 @@ std::variant<image::ImageFormat, RouteError> parse_image_query(std::string_view 
     const std::size_t eq = item.find('=');
     const std::string_view key = item.substr(0, eq);
     const std::string_view value = eq == std::string_view::npos ? std::string_view() : item.substr(eq + 1);
-    if (key != "format") {
-      return RouteError{http::Status::bad_request, fmt::format("unknown query parameter '{}'", key.substr(0, 64)),
-                        "/format", ""};
-    }
-    if (seen) return RouteError{http::Status::bad_request, "format given twice", "/format", ""};
+    if (key != "format") return bad_request(fmt::format("unknown query parameter '{}'", key.substr(0, 64)), "/format");
+    if (seen) return bad_request("format given twice", "/format");
     seen = true;
     const std::optional<image::ImageFormat> named = image::format_from_name(value);
-    if (!named) {
-      return RouteError{http::Status::bad_request, fmt::format("format must be {}", image::name_list()), "/format", ""};
-    }
+    if (!named) return bad_request(fmt::format("format must be {}", image::name_list()), "/format");
     format = *named;
   }
   return format;
@@ -84,10 +79,8 @@ std::variant<image::ImageFormat, RouteError> parse_image_query(std::string_view 
 
 }  // namespace
 
-std::variant<Route, RouteError> match_route(http::Verb method, std::string_view target) {
-  if (target.empty() || target[0] != '/') {
-    return RouteError{http::Status::bad_request, "request target must be a path starting with '/'", "", ""};
-  }
+util::Result<Route, Refusal> match_route(http::Verb method, std::string_view target) {
+  if (target.empty() || target[0] != '/') return bad_request("request target must be a path starting with '/'");
   const std::size_t qmark = target.find('?');
   const std::string_view path = target.substr(0, qmark);
   const std::string_view query = qmark == std::string_view::npos ? std::string_view() : target.substr(qmark + 1);
@@ -163,10 +156,10 @@ std::variant<Route, RouteError> match_route(http::Verb method, std::string_view 
 
   if (route.kind == RouteKind::kJobImage) {
     auto format = parse_image_query(query);
-    if (auto* error = std::get_if<RouteError>(&format)) return std::move(*error);
-    route.image_format = std::get<image::ImageFormat>(format);
+    if (!format) return std::move(format).error();
+    route.image_format = format.value();
   } else if (!query.empty() && route.kind != RouteKind::kHealthz) {
-    return RouteError{http::Status::bad_request, "this endpoint takes no query parameters", "", ""};
+    return bad_request("this endpoint takes no query parameters");
   }
   return route;
 }

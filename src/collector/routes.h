@@ -26,12 +26,13 @@
 #include <cstdint>
 #include <string>
 #include <string_view>
-#include <variant>
 
 #include "collector/queue.h"
+#include "collector/refusal.h"
 #include "http/types.h"
 #include "image/image_io.h"
 #include "protocol/messages.h"
+#include "util/result.h"
 #include "util/sha256.h"
 
 namespace dtraced::collector {
@@ -60,17 +61,9 @@ struct Route {
   bool operator==(const Route&) const = default;
 };
 
-// A request that names no endpoint: answer it with make_error(status, message, field), plus an
-// Allow field when `allow` is not empty (405).
-struct RouteError {
-  http::Status status = http::Status::not_found;
-  std::string message;
-  std::string field;
-  std::string allow;
-  bool operator==(const RouteError&) const = default;
-};
-
-std::variant<Route, RouteError> match_route(http::Verb method, std::string_view target);
+// The endpoint a request names, or why it names none (404, 405 with the allowed methods, 400 for
+// a bad target or query).
+util::Result<Route, Refusal> match_route(http::Verb method, std::string_view target);
 
 // The largest request body the route accepts: protocol::kMaxTilePayloadBytes for tiles,
 // kMaxJobSubmitBytes for submissions, kMaxMessageBytes for everything else.

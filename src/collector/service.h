@@ -1,11 +1,19 @@
 // dtraced::collector service: the collector daemon, wired together.
 //
-// Owns: one io_context (the event loop) and everything that lives on it: the WorkQueue, the job
-// table (jobs.h), the HTTP server and its handler, the metrics counters. Beside the loop it owns
-// a store::TileWriter (SQLite on its own thread; results are posted back to the loop), a second,
-// read-only SQLite connection used from the thread pool, and a small thread pool for CPU work
-// (parsing and digesting submitted scenes, decoding large tile payloads, encoding and writing
-// images). There is no rendering here: the collector never builds a RenderScene.
+// Owns: the collector's Context (context.h: one io_context, the event loop, and everything that
+// lives on it: the WorkQueue, the job table, the HTTP server, the metrics counters; beside the
+// loop a store::TileWriter, SQLite on its own thread, a second SQLite connection used from the
+// thread pool, and a small thread pool for CPU work), and the entry points around it. The work is
+// done by free functions of the Context, one concern a file: restore.h (start-up), admission.h
+// and handlers.h (requests), lifecycle.h (finishing and cancelling jobs), stop.h. There is no
+// rendering here: the collector never builds a RenderScene.
+//
+// Construction: create() validates the configuration (every problem, each naming its option)
+// before anything else, as Worker::create does; nothing is opened until open().
+//
+// Time: everything the collector decides in time (job creation and finish times, the ETA, lease
+// re-offers, the finish retry, the stop's grace) reads the injected util::Clock and sleeps only
+// through async::sleep_until on it. Socket deadlines stay in real time (http/server.h).
 //
 // Lifecycle: open() (start-up, blocking, before the loop runs) -> listen() -> run() on one
 // thread until stop(). Start-up opens the database (a bad one stops start-up with a message and
@@ -23,9 +31,9 @@
 //
 // Stop: stop() (any thread; run_collector calls it on SIGINT/SIGTERM through a signal_set on the
 // loop) sends STOPPING=1, stops the server gracefully (no new connections; requests in flight
-// finish within shutdown_grace), waits for image writes in flight within the same grace, drains
-// the TileWriter (everything accepted is committed and answered), closes the database and ends
-// run().
+// finish within shutdown_grace), waits for image writes in flight within the same grace (both on
+// the clock), drains the TileWriter (everything accepted is committed and answered), closes the
+// database and ends run().
 //
 // Threading: open(), listen(), run(), handle_sync() and run_until_idle() from one thread, never
 // concurrently; handle() on the loop; stop() and port() from any thread.
@@ -33,8 +41,6 @@
 
 #include <cstdint>
 #include <memory>
-#include <optional>
-#include <string>
 
 #include <boost/asio/awaitable.hpp>
 #include <boost/asio/io_context.hpp>
@@ -42,26 +48,30 @@
 #include "collector/config.h"
 #include "collector/metrics.h"
 #include "http/types.h"
+#include "util/clock.h"
+#include "util/result.h"
 
 namespace dtraced::collector {
 
-// Name of the start counter's file in the state directory.
-inline constexpr std::string_view kEpochFileName = "collector.epoch";
+struct Context;
 
 class Collector {
  public:
-  explicit Collector(CollectorConfig config);
+  // A collector for `config`, or every problem check_collector_config finds in it (each Error's
+  // path names the option). `clock` must outlive the collector.
+  static util::Result<std::unique_ptr<Collector>, util::Errors> create(CollectorConfig config,
+                                                                       const util::Clock& clock = util::real_clock());
   ~Collector();
   Collector(const Collector&) = delete;
   Collector& operator=(const Collector&) = delete;
 
-  // Start-up (see the top of this file). nullopt on success, else a message for the operator.
-  // Blocking; call once, before anything else.
-  std::optional<std::string> open();
+  // Start-up (see the top of this file); the error is a message for the operator. Blocking; call
+  // once, before anything else.
+  util::Status open();
 
   // Binds and listens, then sends READY=1. Does nothing when the collector is already stopping
   // (a one-shot job that was finished before this start).
-  std::optional<std::string> listen();
+  util::Status listen();
 
   // Runs the loop on the calling thread until the stop sequence has ended. The exit code: 0, or
   // 1 when the one-shot job of an exit_when_done collector was cancelled.
@@ -88,8 +98,8 @@ class Collector {
   boost::asio::io_context& io_context();
 
  private:
-  struct Impl;
-  std::unique_ptr<Impl> impl_;
+  explicit Collector(std::unique_ptr<Context> context);
+  std::unique_ptr<Context> context_;
 };
 
 // The collector role, blocking: open, listen, run until SIGINT or SIGTERM (or the one-shot job is

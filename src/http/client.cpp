@@ -9,13 +9,11 @@
 #include <utility>
 #include <vector>
 
-#include <boost/asio/as_tuple.hpp>
 #include <boost/asio/co_spawn.hpp>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/steady_timer.hpp>
 #include <boost/asio/this_coro.hpp>
-#include <boost/asio/use_awaitable.hpp>
 #include <boost/beast/core/error.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
 #include <boost/beast/core/tcp_stream.hpp>
@@ -27,17 +25,16 @@
 #include <boost/system/system_error.hpp>
 #include <fmt/format.h>
 
+#include "async/async.h"
+#include "http/names.h"
+
 namespace dtraced::http {
 namespace {
 
-namespace net = boost::asio;
-namespace beast = boost::beast;
-namespace bhttp = boost::beast::http;
-using tcp = net::ip::tcp;
-using boost::system::error_code;
-using Clock = std::chrono::steady_clock;
+using namespace names;
+// Every deadline here is a socket deadline (resolving, connecting, writing, reading): real time.
+using RealClock = std::chrono::steady_clock;
 
-constexpr auto kAwaitTuple = net::as_tuple(net::use_awaitable);
 constexpr std::string_view kScheme = "http://";
 constexpr std::size_t kMaxHostBytes = 253;  // the longest DNS name
 constexpr std::string_view kUserAgent = "dtraced";
@@ -74,7 +71,7 @@ struct PendingResolve {
 };
 
 // Fills `endpoints` for `url` by `deadline`, or returns why it could not.
-net::awaitable<std::optional<ClientResult>> resolve(const Url& url, Clock::time_point deadline,
+net::awaitable<std::optional<ClientResult>> resolve(const Url& url, RealClock::time_point deadline,
                                                     std::vector<tcp::endpoint>& endpoints) {
   error_code ec;
   const net::ip::address address = net::ip::make_address(url.host, ec);
@@ -136,7 +133,7 @@ ClientResult read_failure(const error_code& ec, const std::string& where, const 
 net::awaitable<ClientResult> exchange(const Url& url, Request req, const ClientTimeouts& timeouts,
                                       std::uint64_t max_response_body) {
   const std::string where = url.to_string();
-  const auto connect_deadline = Clock::now() + timeouts.connect;
+  const auto connect_deadline = RealClock::now() + timeouts.connect;
 
   std::vector<tcp::endpoint> endpoints;
   if (std::optional<ClientResult> failed = co_await resolve(url, connect_deadline, endpoints)) co_return *failed;
@@ -203,29 +200,22 @@ std::string Url::host_header() const {
   return fmt::format("{}:{}", host, port);
 }
 
-std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
-  if (text.size() > kMaxUrlBytes) {
-    error = fmt::format("URL is longer than {} bytes", kMaxUrlBytes);
-    return std::nullopt;
-  }
+util::Result<Url> parse_base_url(std::string_view text) {
+  if (text.size() > kMaxUrlBytes) return util::Error(fmt::format("URL is longer than {} bytes", kMaxUrlBytes));
   for (const char c : text) {
     const auto u = static_cast<unsigned char>(c);
-    if (u <= ' ' || u >= 0x7f) {
-      error = "URL contains a space, a control character or a non-ASCII byte";
-      return std::nullopt;
-    }
+    if (u <= ' ' || u >= 0x7f) return util::Error("URL contains a space, a control character or a non-ASCII byte");
   }
   if (!starts_with_icase(text, kScheme)) {
-    error = starts_with_icase(text, "https://")
-                ? "https is not supported: dtraced speaks plain HTTP (put a TLS proxy in front of it)"
-                : fmt::format("URL '{}' must start with http://", text);
-    return std::nullopt;
+    return util::Error(starts_with_icase(text, "https://")
+                           ? "https is not supported: dtraced speaks plain HTTP (put a TLS proxy in front of it)"
+                           : fmt::format("URL '{}' must start with http://", text));
   }
   std::string_view rest = text.substr(kScheme.size());
   if (!rest.empty() && rest.back() == '/') rest.remove_suffix(1);
   if (rest.find_first_of("/?#@") != std::string_view::npos) {
-    error = fmt::format("URL '{}' must be http://host[:port], without a path, query, fragment or user name", text);
-    return std::nullopt;
+    return util::Error(
+        fmt::format("URL '{}' must be http://host[:port], without a path, query, fragment or user name", text));
   }
 
   Url url;
@@ -234,10 +224,8 @@ std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
     const std::size_t close = rest.find(']');
     error_code ec;
     if (close != std::string_view::npos) net::ip::make_address_v6(rest.substr(1, close - 1), ec);
-    if (close == std::string_view::npos || ec) {
-      error = fmt::format("URL '{}' has a malformed IPv6 address", text);
-      return std::nullopt;
-    }
+    if (close == std::string_view::npos || ec)
+      return util::Error(fmt::format("URL '{}' has a malformed IPv6 address", text));
     url.host = std::string(rest.substr(1, close - 1));
     port_part = rest.substr(close + 1);
   } else {
@@ -245,8 +233,7 @@ std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
     const std::string_view host = rest.substr(0, colon);
     if (host.empty() || host.size() > kMaxHostBytes ||
         !std::all_of(host.begin(), host.end(), [](char c) { return is_host_name_char(c); })) {
-      error = fmt::format("URL '{}' has no valid host name", text);
-      return std::nullopt;
+      return util::Error(fmt::format("URL '{}' has no valid host name", text));
     }
     url.host = std::string(host);
     if (colon != std::string_view::npos) port_part = rest.substr(colon);
@@ -258,32 +245,25 @@ std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
     const auto [end, ec] = std::from_chars(digits.data(), digits.data() + digits.size(), value);
     if (port_part.front() != ':' || digits.empty() || digits.size() > 5 || ec != std::errc() ||
         end != digits.data() + digits.size() || value == 0 || value > 65535) {
-      error = fmt::format("URL '{}' has no valid port (1-65535)", text);
-      return std::nullopt;
+      return util::Error(fmt::format("URL '{}' has no valid port (1-65535)", text));
     }
     url.port = static_cast<std::uint16_t>(value);
   }
   return url;
 }
 
+std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
+  util::Result<Url> url = parse_base_url(text);
+  if (url) return std::move(url).value();
+  error = std::move(url).error().message;
+  return std::nullopt;
+}
+
 std::string_view to_string(ClientError error) {
-  switch (error) {
-    case ClientError::kNone:
-      return "none";
-    case ClientError::kConnect:
-      return "connect";
-    case ClientError::kTimeout:
-      return "timeout";
-    case ClientError::kTooLarge:
-      return "too_large";
-    case ClientError::kProtocol:
-      return "protocol";
-    case ClientError::kIo:
-      return "io";
-    case ClientError::kCancelled:
-      return "cancelled";
-  }
-  return "unknown";
+  // The enum's order.
+  constexpr std::string_view kNames[] = {"none", "connect", "timeout", "too_large", "protocol", "io", "cancelled"};
+  const auto i = static_cast<std::size_t>(error);
+  return i < std::size(kNames) ? kNames[i] : "unknown";
 }
 
 net::awaitable<ClientResult> request(Url url, Request req, ClientTimeouts timeouts, std::uint64_t max_response_body) {

@@ -5,19 +5,17 @@
 #include <cassert>
 #include <exception>
 #include <list>
+#include <mutex>
 #include <optional>
 #include <string>
 #include <tuple>
 #include <utility>
 
-#include <boost/asio/as_tuple.hpp>
 #include <boost/asio/bind_cancellation_slot.hpp>
 #include <boost/asio/cancellation_signal.hpp>
 #include <boost/asio/co_spawn.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/post.hpp>
-#include <boost/asio/steady_timer.hpp>
-#include <boost/asio/use_awaitable.hpp>
 #include <boost/beast/core/error.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
 #include <boost/beast/core/string.hpp>
@@ -29,25 +27,22 @@
 #include <boost/beast/http/read.hpp>
 #include <boost/beast/http/write.hpp>
 
+#include "async/async.h"
+#include "http/names.h"
 #include "util/log.h"
 
 namespace dtraced::http {
 namespace {
 
-namespace net = boost::asio;
-namespace beast = boost::beast;
-namespace bhttp = boost::beast::http;
-using tcp = net::ip::tcp;
-using boost::system::error_code;
-using Clock = std::chrono::steady_clock;
+using namespace names;
 
-// Deadlines are beast::tcp_stream's expires_at/after: one timer per connection, re-armed per
-// phase, that closes the socket when it fires. Racing each operation against a steady_timer with
-// awaitable_operators' || would spawn two coroutines per read or write for the same effect.
+// Socket deadlines are beast::tcp_stream's expires_at/after, in real time: one timer per
+// connection, re-armed per phase, that closes the socket when it fires. Racing each operation
+// against a timer with awaitable_operators' || would spawn two coroutines per read or write for
+// the same effect.
 //
-// One completion token for every awaited operation: errors come back as values, so a peer's
-// misbehaviour is handled where it happens instead of unwinding the session.
-constexpr auto kAwaitTuple = net::as_tuple(net::use_awaitable);
+// One completion token for every awaited operation (async::kAwaitTuple): errors come back as
+// values, so a peer's misbehaviour is handled where it happens instead of unwinding the session.
 
 // Bytes asked of the kernel per read while waiting for the start of a request.
 constexpr std::size_t kReadChunkBytes = 16 * 1024;
@@ -111,14 +106,14 @@ struct Connection {
 
 struct Server::Impl {
   Impl(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-       Handler handler, HeaderCheck header_check)
+       Handler handler, HeaderCheck header_check, const util::Clock& clock)
       : executor(executor),
         endpoint(address, port),
         limits(limits),
         handler(std::move(handler)),
         header_check(std::move(header_check)),
-        acceptor(executor),
-        drained(executor) {}
+        clock(clock),
+        acceptor(executor) {}
 
   static net::awaitable<void> accept_loop(std::shared_ptr<Impl> self);
   static void spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, bool rejecting);
@@ -130,9 +125,14 @@ struct Server::Impl {
   static net::awaitable<void> respond_and_close(Impl& self, Connection& conn, Response res);
   static net::awaitable<void> linger_and_close(Connection& conn);
   static net::awaitable<void> stop(std::shared_ptr<Impl> self, std::chrono::milliseconds grace);
-  static net::awaitable<void> wait_until_drained(Impl& self, Clock::time_point deadline);
+  static net::awaitable<void> wait_until_drained(Impl& self, util::TimePoint deadline);
   void cut_all();
   void count_response(unsigned status);
+  // Adds `n` to a counter (a negative n to a gauge).
+  void count(std::uint64_t ServerMetrics::*counter, std::int64_t n = 1) {
+    std::lock_guard lock(metrics_mu);
+    counts.*counter += static_cast<std::uint64_t>(n);
+  }
 
   // Immutable after construction.
   const net::any_io_executor executor;
@@ -140,6 +140,7 @@ struct Server::Impl {
   const ServerLimits limits;
   const Handler handler;
   const HeaderCheck header_check;  // may be empty
+  const util::Clock& clock;
 
   // Owned by the executor.
   tcp::acceptor acceptor;
@@ -147,18 +148,14 @@ struct Server::Impl {
   std::size_t sessions = 0;           // connections that are not rejecting
   std::size_t rejecting = 0;
   bool started = false;
-  bool stopping = false;      // no new connections; answers say Connection: close
-  bool cutting = false;       // the grace period is over: cancellations and errors are expected
-  net::steady_timer drained;  // poked when a connection is erased while stopping
+  bool stopping = false;                 // no new connections; answers say Connection: close
+  bool cutting = false;                  // the grace period is over: cancellations and errors are expected
+  async::Event* erased_event = nullptr;  // set when a connection is erased while stop() waits
 
   // Read from any thread.
   std::atomic<std::uint16_t> bound_port{0};
-  std::atomic<std::uint64_t> requests{0};
-  std::atomic<std::uint64_t> responses_4xx{0};
-  std::atomic<std::uint64_t> responses_5xx{0};
-  std::atomic<std::uint64_t> read_timeouts{0};
-  std::atomic<std::uint64_t> rejected_connections{0};
-  std::atomic<std::uint64_t> open_connections{0};
+  mutable std::mutex metrics_mu;
+  ServerMetrics counts;  // guarded by metrics_mu
 };
 
 net::awaitable<void> Server::Impl::accept_loop(std::shared_ptr<Impl> self) {
@@ -168,12 +165,11 @@ net::awaitable<void> Server::Impl::accept_loop(std::shared_ptr<Impl> self) {
     if (ec) {
       if (ec == net::error::operation_aborted || !self->acceptor.is_open()) co_return;
       util::log_warn("http: accept failed: {}", ec.message());
-      net::steady_timer pause(self->executor, kAcceptErrorBackoff);
-      co_await pause.async_wait(kAwaitTuple);
+      co_await async::sleep_for(self->clock, kAcceptErrorBackoff);
       continue;
     }
     if (self->sessions >= self->limits.max_connections) {
-      self->rejected_connections.fetch_add(1, std::memory_order_relaxed);
+      self->count(&ServerMetrics::rejected_connections);
       if (self->rejecting < kMaxRejectingConnections) spawn(self, std::move(socket), /*rejecting=*/true);
       continue;
     }
@@ -190,7 +186,7 @@ void Server::Impl::spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, 
     ++self->rejecting;
   } else {
     ++self->sessions;
-    self->open_connections.fetch_add(1, std::memory_order_relaxed);
+    self->count(&ServerMetrics::open_connections);
   }
   auto body = rejecting ? reject(self, *it) : session(self, *it);
   net::co_spawn(self->executor, std::move(body),
@@ -201,27 +197,19 @@ void Server::Impl::spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, 
 
 void Server::Impl::on_finished(const std::shared_ptr<Impl>& self, std::list<Connection>::iterator it,
                                std::exception_ptr error) {
-  if (error && !self->cutting) {
-    try {
-      std::rethrow_exception(error);
-    } catch (const std::exception& e) {
-      util::log_error("http: connection ended by an exception: {}", e.what());
-    } catch (...) {
-      util::log_error("http: connection ended by an unknown exception");
-    }
-  }
+  if (!self->cutting) async::log_exception("http: a connection", error);
   it->finished = true;
   if (it->rejecting) {
     --self->rejecting;
   } else {
     --self->sessions;
-    self->open_connections.fetch_sub(1, std::memory_order_relaxed);
+    self->count(&ServerMetrics::open_connections, -1);
   }
   // Erase later: this completion handler runs inside co_spawn's machinery, which still holds the
   // cancellation slot that lives in *it.
   net::post(self->executor, [self, it] {
     self->connections.erase(it);
-    if (self->stopping) self->drained.cancel();
+    if (self->stopping && self->erased_event != nullptr) self->erased_event->set();
   });
 }
 
@@ -239,7 +227,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
       if (ec) {
         // A fresh connection that never speaks counts as a stalled request; an idle keep-alive
         // connection timing out is ordinary.
-        if (ec == beast::error::timeout && first) self->read_timeouts.fetch_add(1, std::memory_order_relaxed);
+        if (ec == beast::error::timeout && first) self->count(&ServerMetrics::read_timeouts);
         co_return;
       }
       buffer.commit(n);
@@ -248,7 +236,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     conn.busy = true;
 
     // One whole request before its deadline, within the size limits.
-    const auto read_deadline = Clock::now() + limits.read_timeout;
+    const auto read_deadline = std::chrono::steady_clock::now() + limits.read_timeout;  // a socket deadline
     conn.stream.expires_at(read_deadline);
     bhttp::request_parser<bhttp::string_body> parser;
     parser.header_limit(limits.max_header_bytes);
@@ -295,7 +283,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     }
     if (ec) {
       if (ec == beast::error::timeout) {
-        self->read_timeouts.fetch_add(1, std::memory_order_relaxed);
+        self->count(&ServerMetrics::read_timeouts);
         co_return;
       }
       std::optional<Response> answer = answer_read_error(ec, request_limits);
@@ -383,24 +371,26 @@ net::awaitable<void> Server::Impl::stop(std::shared_ptr<Impl> self, std::chrono:
   for (Connection& conn : self->connections) {
     if (!conn.busy && !conn.finished) conn.stream.close();
   }
-  co_await wait_until_drained(*self, Clock::now() + grace);
+  co_await wait_until_drained(*self, self->clock.now() + grace);
   if (self->connections.empty()) co_return;
 
   const auto busy = std::count_if(self->connections.begin(), self->connections.end(),
                                   [](const Connection& conn) { return !conn.finished; });
   util::log_warn("http: {} connection(s) still busy {} ms after stop; cancelling them", busy, grace.count());
   self->cut_all();
-  co_await wait_until_drained(*self, Clock::now() + kCutUnwindTimeout);
+  co_await wait_until_drained(*self, self->clock.now() + kCutUnwindTimeout);
   if (!self->connections.empty()) {
     util::log_warn("http: {} connection(s) did not unwind after cancellation", self->connections.size());
   }
 }
 
-net::awaitable<void> Server::Impl::wait_until_drained(Impl& self, Clock::time_point deadline) {
-  // The timer serves as a condition variable: erasing a connection while stopping cancels it.
-  while (!self.connections.empty() && Clock::now() < deadline) {
-    self.drained.expires_at(deadline);
-    co_await self.drained.async_wait(kAwaitTuple);
+net::awaitable<void> Server::Impl::wait_until_drained(Impl& self, util::TimePoint deadline) {
+  // Woken by the deadline on the clock, or by each connection erased, to look again.
+  while (!self.connections.empty() && self.clock.now() < deadline) {
+    async::Event erased(self.executor);
+    self.erased_event = &erased;
+    co_await async::sleep_until(self.clock, deadline, &erased);
+    self.erased_event = nullptr;
   }
 }
 
@@ -417,15 +407,16 @@ void Server::Impl::cut_all() {
 }
 
 void Server::Impl::count_response(unsigned status) {
-  requests.fetch_add(1, std::memory_order_relaxed);
-  if (status >= 400 && status < 500) responses_4xx.fetch_add(1, std::memory_order_relaxed);
-  if (status >= 500 && status < 600) responses_5xx.fetch_add(1, std::memory_order_relaxed);
+  std::lock_guard lock(metrics_mu);
+  ++counts.requests;
+  if (status >= 400 && status < 500) ++counts.responses_4xx;
+  if (status >= 500 && status < 600) ++counts.responses_5xx;
 }
 
 Server::Server(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-               Handler handler, HeaderCheck header_check)
+               Handler handler, HeaderCheck header_check, const util::Clock& clock)
     : impl_(std::make_shared<Impl>(std::move(executor), address, port, limits, std::move(handler),
-                                   std::move(header_check))) {
+                                   std::move(header_check), clock)) {
   assert(limits.max_header_bytes > 0 && limits.max_body_bytes > 0 && limits.max_connections > 0);
   assert(limits.read_timeout.count() > 0 && limits.write_timeout.count() > 0 &&
          limits.idle_keepalive_timeout.count() > 0);
@@ -455,16 +446,7 @@ error_code Server::start() {
   }
   s.started = true;
   s.bound_port.store(bound.port());
-  net::co_spawn(s.executor, Impl::accept_loop(impl_), [](std::exception_ptr error) {
-    if (!error) return;
-    try {
-      std::rethrow_exception(error);
-    } catch (const std::exception& e) {
-      util::log_error("http: accept loop ended by an exception: {}", e.what());
-    } catch (...) {
-      util::log_error("http: accept loop ended by an unknown exception");
-    }
-  });
+  net::co_spawn(s.executor, Impl::accept_loop(impl_), async::log_failure("http: the accept loop"));
   return {};
 }
 
@@ -473,15 +455,8 @@ std::uint16_t Server::port() const { return impl_->bound_port.load(); }
 net::awaitable<void> Server::stop(std::chrono::milliseconds grace) { return Impl::stop(impl_, grace); }
 
 ServerMetrics Server::metrics() const {
-  const Impl& s = *impl_;
-  ServerMetrics m;
-  m.requests = s.requests.load(std::memory_order_relaxed);
-  m.responses_4xx = s.responses_4xx.load(std::memory_order_relaxed);
-  m.responses_5xx = s.responses_5xx.load(std::memory_order_relaxed);
-  m.read_timeouts = s.read_timeouts.load(std::memory_order_relaxed);
-  m.rejected_connections = s.rejected_connections.load(std::memory_order_relaxed);
-  m.open_connections = s.open_connections.load(std::memory_order_relaxed);
-  return m;
+  std::lock_guard lock(impl_->metrics_mu);
+  return impl_->counts;
 }
 
 }  // namespace dtraced::http

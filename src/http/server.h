@@ -19,11 +19,17 @@
 // requests in flight (being read, handled or written) finish until its deadline, answering them
 // with Connection: close, then cancels the handlers still running and closes their sockets.
 //
+// Time: the server's own decisions (stop()'s grace and the unwind bound after it, the pause after
+// a failed accept) read and sleep on the injected util::Clock, so a test decides when a grace
+// ends. Socket deadlines (read, write, keep-alive and linger, Beast's expires_after on each
+// stream) stay in real time: they bound what the kernel and the peer do, not what the server
+// decides.
+//
 // Threading: the server, its sessions and the handler all run on the executor given to the
 // constructor, which must not run two handlers at once (an io_context run by one thread, or a
 // strand); so the handler may use state owned by that executor without locks, and must not block
 // it. Call start() before the executor runs or on it; await stop() on it. port() and metrics() may
-// be called from any thread. The io_context must outlive the Server. Destroying the Server without
+// be called from any thread. The clock and the io_context must outlive the Server. Destroying the Server without
 // stop() closes everything abruptly; coroutines still pending keep the internals alive until they
 // end or the io_context is destroyed.
 #pragma once
@@ -41,6 +47,7 @@
 #include <boost/system/error_code.hpp>
 
 #include "http/types.h"
+#include "util/clock.h"
 
 namespace dtraced::http {
 
@@ -53,7 +60,7 @@ struct ServerLimits {
   std::size_t max_connections = 256;                         // open sessions; more get 503
 };
 
-// Counters since start(); a snapshot, each field read atomically (not all together).
+// Counters since start(); a snapshot, all fields read together.
 struct ServerMetrics {
   std::uint64_t requests = 0;  // responses sent, the server's own 4xx and 5xx (and 503s) included
   std::uint64_t responses_4xx = 0;
@@ -79,7 +86,8 @@ class Server {
   // Nothing happens until start(). `port` 0 asks the kernel for a free port (see port()).
   // Limits must be positive (asserted).
   Server(boost::asio::any_io_executor executor, boost::asio::ip::address address, std::uint16_t port,
-         ServerLimits limits, Handler handler, HeaderCheck header_check = {});
+         ServerLimits limits, Handler handler, HeaderCheck header_check = {},
+         const util::Clock& clock = util::real_clock());
   ~Server();
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
@@ -93,7 +101,7 @@ class Server {
   std::uint16_t port() const;
 
   // Graceful stop (see the top of this file). Completes when every connection has ended, or
-  // about a second after `grace` if a cancelled handler ignores its cancellation. A second call
+  // about a second after `grace` (on the clock) if a cancelled handler ignores its cancellation. A second call
   // returns at once. Must be awaited on the server's executor.
   boost::asio::awaitable<void> stop(std::chrono::milliseconds grace);
 

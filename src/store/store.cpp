@@ -15,6 +15,10 @@
 
 namespace dtraced::store {
 
+using util::Error;
+using util::Result;
+using util::Status;
+
 namespace {
 
 namespace fs = std::filesystem;
@@ -73,40 +77,15 @@ constexpr TableSpec kTables[] = {
 constexpr std::string_view kRefuse =
     "refusing to open it; the file was left untouched (move it away or restore a backup to start afresh)";
 
-// Statements. The cache is keyed by their text.
+// Statements used in several places. The others stand in the function that runs them; the cache
+// of prepared statements is keyed by their text.
 constexpr std::string_view kSqlBegin = "BEGIN IMMEDIATE";
 constexpr std::string_view kSqlCommit = "COMMIT";
 constexpr std::string_view kSqlRollback = "ROLLBACK";
-constexpr std::string_view kSqlCountSchema = "SELECT count(*) FROM sqlite_schema";
-constexpr std::string_view kSqlTables =
-    "SELECT name FROM sqlite_schema WHERE type = 'table' AND name NOT LIKE 'sqlite\\_%' ESCAPE '\\'";
-constexpr std::string_view kSqlColumns = "SELECT name FROM pragma_table_info(?1) ORDER BY cid";
-constexpr std::string_view kSqlSchemaVersion = "SELECT value FROM meta WHERE key = 'schema_version'";
-constexpr std::string_view kSqlPutScene = "INSERT INTO scenes(digest, json) VALUES (?1, ?2) ON CONFLICT DO NOTHING";
-constexpr std::string_view kSqlGetScene = "SELECT json FROM scenes WHERE digest = ?1";
-constexpr std::string_view kSqlInsertJob =
-    "INSERT INTO jobs(digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
-    "client_key) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
-constexpr std::string_view kSqlSetJobState = "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1";
 // The job queries select the columns in the order read_job expects.
-constexpr std::string_view kSqlListJobs =
+constexpr std::string_view kSelectJobs =
     "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
-    "FROM jobs ORDER BY id";
-constexpr std::string_view kSqlGetJob =
-    "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
-    "FROM jobs WHERE id = ?1";
-constexpr std::string_view kSqlFindJobByKey =
-    "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
-    "FROM jobs WHERE client_key = ?1";
-constexpr std::string_view kSqlInsertTile =
-    "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
-constexpr std::string_view kSqlTilePixels = "SELECT pixels FROM tiles WHERE job = ?1 AND tile = ?2";
-constexpr std::string_view kSqlStoredTiles = "SELECT tile FROM tiles WHERE job = ?1 ORDER BY tile";
-constexpr std::string_view kSqlCountTiles = "SELECT count(*) FROM tiles WHERE job = ?1";
-constexpr std::string_view kSqlGetTile =
-    "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 AND tile = ?2";
-constexpr std::string_view kSqlGetAllTiles =
-    "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 ORDER BY tile";
+    "FROM jobs ";
 
 std::string column_text(sqlite3_stmt* s, int i) {
   const auto* p = reinterpret_cast<const char*>(sqlite3_column_text(s, i));
@@ -120,7 +99,7 @@ Blob column_blob(sqlite3_stmt* s, int i) {
   return p != nullptr ? Blob(p, p + n) : Blob();
 }
 
-// Column order of the kSql*Job* queries. The schema's CHECKs keep the casts exact.
+// Column order of kSelectJobs. The schema's CHECKs keep the casts exact.
 StoredJob read_job(sqlite3_stmt* s) {
   StoredJob job;
   job.id = sqlite3_column_int64(s, 0);
@@ -189,23 +168,15 @@ class Query {
 }  // namespace
 
 std::string_view to_string(TileOutcome outcome) {
-  switch (outcome) {
-    case TileOutcome::kStored:
-      return "stored";
-    case TileOutcome::kAlreadyPresent:
-      return "already_present";
-    case TileOutcome::kRejected:
-      return "rejected";
-    case TileOutcome::kFailed:
-      return "failed";
-  }
-  return "unknown";
+  constexpr std::string_view kNames[] = {"stored", "already_present", "rejected", "failed"};  // the enum's order
+  const auto i = static_cast<std::size_t>(outcome);
+  return i < std::size(kNames) ? kNames[i] : "unknown";
 }
 
 struct Store::Impl {
   sqlite3* db = nullptr;
   std::string path;
-  std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the kSql* literals
+  std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the statements' text
 
   Impl() = default;
   Impl(const Impl&) = delete;
@@ -244,7 +215,7 @@ struct Store::Impl {
   // Runs a statement without parameters or results.
   Status exec(std::string_view sql) {
     auto q = query(sql);
-    if (!q) return Error{q.error()};
+    if (!q) return q.error();
     const int rc = q.value().step();
     if (rc != SQLITE_DONE) return error(sql, rc);
     return {};
@@ -273,7 +244,7 @@ struct Store::Impl {
   // (on SQLITE_FULL, SQLITE_IOERR, SQLITE_NOMEM), in which case there is nothing to do.
   void rollback() {
     if (sqlite3_get_autocommit(db) != 0) return;
-    if (Status st = exec(kSqlRollback); !st) util::log_error("{}", st.error());
+    if (Status st = exec(kSqlRollback); !st) util::log_error("{}", st.error().message);
   }
 
   Status set_config(int op, int value, std::string_view name) {
@@ -287,6 +258,17 @@ struct Store::Impl {
     std::string_view m = message;
     if (m.starts_with(path) && m.substr(path.size()).starts_with(": ")) m.remove_prefix(path.size() + 2);
     return m;
+  }
+
+  // The one job `sql` selects with `key` bound, if any; `what` names the lookup in an error.
+  template <typename Key>
+  Result<std::optional<StoredJob>> select_job(std::string_view sql, const Key& key, std::string_view what) {
+    auto q = query(sql);
+    if (!q) return q.error();
+    const int rc = q.value().bind(key).step();
+    if (rc == SQLITE_DONE) return std::optional<StoredJob>();
+    if (rc != SQLITE_ROW) return error(what, rc);
+    return std::optional<StoredJob>(read_job(q.value().get()));
   }
 
   Result<CommitResult> insert_tile(const TileWrite& w);
@@ -306,7 +288,7 @@ Status Store::Impl::verify_integrity() {
   auto check = exec_rows("PRAGMA quick_check", kMaxIntegrityLinesReported);
   if (!check) {
     return Error{
-        fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(check.error()), kRefuse)};
+        fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(check.error().message), kRefuse)};
   }
   const auto& lines = check.value();
   if (lines.size() != 1 || lines[0] != "ok") {
@@ -316,7 +298,8 @@ Status Store::Impl::verify_integrity() {
   }
   auto fk = exec_rows("PRAGMA foreign_key_check", kMaxIntegrityLinesReported);
   if (!fk) {
-    return Error{fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(fk.error()), kRefuse)};
+    return Error{
+        fmt::format("{}: the database is corrupt or unreadable: {}; {}", path, detail(fk.error().message), kRefuse)};
   }
   if (!fk.value().empty()) {
     return Error{
@@ -328,8 +311,11 @@ Status Store::Impl::verify_integrity() {
 }
 
 Status Store::Impl::check_schema() {
-  auto tables = exec_rows(kSqlTables);
-  if (!tables) return Error{fmt::format("{}: cannot list tables: {}; {}", path, detail(tables.error()), kRefuse)};
+  constexpr std::string_view kSql =
+      "SELECT name FROM sqlite_schema WHERE type = 'table' AND name NOT LIKE 'sqlite\\_%' ESCAPE '\\'";
+  auto tables = exec_rows(kSql);
+  if (!tables)
+    return Error{fmt::format("{}: cannot list tables: {}; {}", path, detail(tables.error().message), kRefuse)};
   auto has_table = [&](std::string_view name) {
     for (const auto& t : tables.value()) {
       if (t == name) return true;
@@ -341,8 +327,9 @@ Status Store::Impl::check_schema() {
         fmt::format("{}: the database has tables but no meta table: not a dtraced database; {}", path, kRefuse)};
   }
   {
-    auto q = query(kSqlSchemaVersion);
-    if (!q) return Error{q.error()};
+    constexpr std::string_view kSql = "SELECT value FROM meta WHERE key = 'schema_version'";
+    auto q = query(kSql);
+    if (!q) return q.error();
     const int rc = q.value().step();
     if (rc == SQLITE_DONE) {
       return Error{fmt::format("{}: the meta table has no schema_version; {}", path, kRefuse)};
@@ -363,8 +350,9 @@ Status Store::Impl::check_schema() {
       return Error{
           fmt::format("{}: schema version {} but table '{}' is missing; {}", path, kSchemaVersion, spec.name, kRefuse)};
     }
-    auto q = query(kSqlColumns);
-    if (!q) return Error{q.error()};
+    constexpr std::string_view kSql = "SELECT name FROM pragma_table_info(?1) ORDER BY cid";
+    auto q = query(kSql);
+    if (!q) return q.error();
     q.value().bind(spec.name);
     std::string columns;
     int rc;
@@ -432,9 +420,9 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   for (const auto& [op, value, name] : {std::tuple{SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 1, "no checkpoint on close"},
                                         std::tuple{SQLITE_DBCONFIG_DEFENSIVE, 1, "defensive mode"},
                                         std::tuple{SQLITE_DBCONFIG_TRUSTED_SCHEMA, 0, "untrusted schema"}}) {
-    if (auto st = impl->set_config(op, value, name); !st) return Error{st.error()};
+    if (auto st = impl->set_config(op, value, name); !st) return st.error();
   }
-  if (auto st = impl->exec_rows("PRAGMA query_only = ON"); !st) return Error{st.error()};
+  if (auto st = impl->exec_rows("PRAGMA query_only = ON"); !st) return st.error();
   if (const int brc = sqlite3_busy_timeout(db, static_cast<int>(options.busy_timeout.count())); brc != SQLITE_OK) {
     return impl->error("setting the busy timeout", brc);
   }
@@ -443,53 +431,55 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   }
 
   // The first read parses the header: "file is not a database" shows up here (at prepare time).
-  auto count = impl->exec_rows(kSqlCountSchema);
+  constexpr std::string_view kSql = "SELECT count(*) FROM sqlite_schema";
+  auto count = impl->exec_rows(kSql);
   if (!count) {
     if ((sqlite3_extended_errcode(db) & 0xff) == SQLITE_NOTADB) {
       return Error{fmt::format("{}: not an SQLite database ({}); {}", path, sqlite3_errmsg(db), kRefuse)};
     }
-    return Error{fmt::format("{}: cannot read the database: {}; {}", path, impl->detail(count.error()), kRefuse)};
+    return Error{
+        fmt::format("{}: cannot read the database: {}; {}", path, impl->detail(count.error().message), kRefuse)};
   }
   const std::int64_t objects = count.value().empty() ? 0 : std::stoll(count.value()[0]);
   if (options.verify_integrity) {
-    if (auto st = impl->verify_integrity(); !st) return Error{st.error()};
+    if (auto st = impl->verify_integrity(); !st) return st.error();
   }
   const bool fresh = objects == 0;
   if (!fresh) {
-    if (auto st = impl->check_schema(); !st) return Error{st.error()};
+    if (auto st = impl->check_schema(); !st) return st.error();
   }
 
   // From here on the file is ours to write.
   for (const char* pragma : {"PRAGMA query_only = OFF", "PRAGMA synchronous = FULL", "PRAGMA foreign_keys = ON"}) {
-    if (auto st = impl->exec_rows(pragma); !st) return Error{st.error()};
+    if (auto st = impl->exec_rows(pragma); !st) return st.error();
   }
   if (fresh) {
     // The page size only takes effect before the first table exists and before WAL mode.
-    if (auto st = impl->exec_rows(fmt::format("PRAGMA page_size = {}", kPageSizeBytes)); !st) return Error{st.error()};
+    if (auto st = impl->exec_rows(fmt::format("PRAGMA page_size = {}", kPageSizeBytes)); !st) return st.error();
   }
   auto mode = impl->exec_rows("PRAGMA journal_mode = WAL");
-  if (!mode) return Error{mode.error()};
+  if (!mode) return mode.error();
   if (mode.value().size() != 1 || mode.value()[0] != "wal") {
     return Error{fmt::format("{}: cannot switch to WAL journaling (journal mode is '{}')", path,
                              mode.value().empty() ? "?" : mode.value()[0])};
   }
   if (auto st = impl->exec_rows(fmt::format("PRAGMA journal_size_limit = {}", kJournalSizeLimitBytes)); !st) {
-    return Error{st.error()};
+    return st.error();
   }
   if (fresh) {
-    if (auto st = impl->create_schema(); !st) return Error{st.error()};
+    if (auto st = impl->create_schema(); !st) return st.error();
     util::log_info("{}: created a new database (schema version {})", path, kSchemaVersion);
   }
   if (options.max_database_bytes > 0) {
     auto page = impl->exec_rows("PRAGMA page_size");
-    if (!page) return Error{page.error()};
+    if (!page) return page.error();
     const std::uint64_t page_bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
     if (page_bytes == 0) return Error{fmt::format("{}: cannot read the page size", path)};
     const std::uint64_t pages = (options.max_database_bytes + page_bytes - 1) / page_bytes;
-    if (auto st = impl->exec_rows(fmt::format("PRAGMA max_page_count = {}", pages)); !st) return Error{st.error()};
+    if (auto st = impl->exec_rows(fmt::format("PRAGMA max_page_count = {}", pages)); !st) return st.error();
   }
   if (auto st = impl->set_config(SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 0, "checkpoint on close"); !st) {
-    return Error{st.error()};
+    return st.error();
   }
   return Store(std::move(impl));
 }
@@ -518,16 +508,18 @@ Status Store::transaction(const std::function<Status()>& body) {
 }
 
 Status Store::put_scene(std::string_view digest, std::string_view json) {
-  auto q = impl_->query(kSqlPutScene);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "INSERT INTO scenes(digest, json) VALUES (?1, ?2) ON CONFLICT DO NOTHING";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   const int rc = q.value().bind(digest).bind(json).step();
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("storing scene {}", digest), rc);
   return {};
 }
 
 Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
-  auto q = impl_->query(kSqlGetScene);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "SELECT json FROM scenes WHERE digest = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   const int rc = q.value().bind(digest).step();
   if (rc == SQLITE_DONE) return std::optional<std::string>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading scene {}", digest), rc);
@@ -535,8 +527,11 @@ Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
 }
 
 Result<std::int64_t> Store::insert_job(const StoredJob& job) {
-  auto q = impl_->query(kSqlInsertJob);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql =
+      "INSERT INTO jobs(digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
+      "client_key) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   const int rc = q.value()
                      .bind(job.digest)
                      .bind(job.settings_json)
@@ -553,8 +548,9 @@ Result<std::int64_t> Store::insert_job(const StoredJob& job) {
 }
 
 Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix) {
-  auto q = impl_->query(kSqlSetJobState);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   const int rc = q.value().bind(id).bind(state).bind(finished_unix).step();
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the state of job {}", id), rc);
   if (sqlite3_changes64(impl_->db) != 1) return Error{fmt::format("{}: no job {}", impl_->path, id)};
@@ -562,8 +558,9 @@ Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_
 }
 
 Result<std::vector<StoredJob>> Store::list_jobs() {
-  auto q = impl_->query(kSqlListJobs);
-  if (!q) return Error{q.error()};
+  static const std::string kSql = std::string(kSelectJobs) + "ORDER BY id";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   std::vector<StoredJob> jobs;
   int rc;
   while ((rc = q.value().step()) == SQLITE_ROW) jobs.push_back(read_job(q.value().get()));
@@ -572,27 +569,21 @@ Result<std::vector<StoredJob>> Store::list_jobs() {
 }
 
 Result<std::optional<StoredJob>> Store::get_job(std::int64_t id) {
-  auto q = impl_->query(kSqlGetJob);
-  if (!q) return Error{q.error()};
-  const int rc = q.value().bind(id).step();
-  if (rc == SQLITE_DONE) return std::optional<StoredJob>();
-  if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading job {}", id), rc);
-  return std::optional<StoredJob>(read_job(q.value().get()));
+  static const std::string kSql = std::string(kSelectJobs) + "WHERE id = ?1";
+  return impl_->select_job(kSql, id, fmt::format("reading job {}", id));
 }
 
 Result<std::optional<StoredJob>> Store::find_job_by_key(std::string_view client_key) {
-  auto q = impl_->query(kSqlFindJobByKey);
-  if (!q) return Error{q.error()};
-  const int rc = q.value().bind(client_key).step();
-  if (rc == SQLITE_DONE) return std::optional<StoredJob>();
-  if (rc != SQLITE_ROW) return impl_->error("looking up a job by client key", rc);
-  return std::optional<StoredJob>(read_job(q.value().get()));
+  static const std::string kSql = std::string(kSelectJobs) + "WHERE client_key = ?1";
+  return impl_->select_job(kSql, client_key, "looking up a job by client key");
 }
 
 Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
   {
-    auto q = query(kSqlInsertTile);
-    if (!q) return Error{q.error()};
+    constexpr std::string_view kSql =
+        "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
+    auto q = query(kSql);
+    if (!q) return q.error();
     const int rc =
         q.value().bind(w.job).bind(std::int64_t{w.tile}).bind_blob(w.pixels).bind(w.worker).bind(w.stored_unix).step();
     if (rc == SQLITE_DONE) {
@@ -606,8 +597,9 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
     }
   }
   // Already present: compare the bytes (duplicates are rare, so the extra read is cheap overall).
-  auto q = query(kSqlTilePixels);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "SELECT pixels FROM tiles WHERE job = ?1 AND tile = ?2";
+  auto q = query(kSql);
+  if (!q) return q.error();
   const int rc = q.value().bind(w.job).bind(std::int64_t{w.tile}).step();
   if (rc != SQLITE_ROW) return error(fmt::format("reading back tile {} of job {}", w.tile, w.job), rc);
   sqlite3_stmt* s = q.value().get();
@@ -620,7 +612,7 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
 Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite> writes) {
   const bool own_transaction = sqlite3_get_autocommit(impl_->db) != 0;
   if (own_transaction) {
-    if (auto st = impl_->exec(kSqlBegin); !st) return Error{st.error()};
+    if (auto st = impl_->exec(kSqlBegin); !st) return st.error();
   }
   std::vector<CommitResult> results;
   results.reserve(writes.size());
@@ -628,22 +620,23 @@ Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite>
     auto r = impl_->insert_tile(w);
     if (!r) {
       if (own_transaction) impl_->rollback();
-      return Error{r.error()};
+      return r.error();
     }
     results.push_back(std::move(r).value());
   }
   if (own_transaction) {
     if (auto st = impl_->exec(kSqlCommit); !st) {
       impl_->rollback();
-      return Error{st.error()};
+      return st.error();
     }
   }
   return results;
 }
 
 Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
-  auto q = impl_->query(kSqlStoredTiles);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "SELECT tile FROM tiles WHERE job = ?1 ORDER BY tile";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   q.value().bind(job);
   std::vector<std::uint32_t> tiles;
   int rc;
@@ -655,16 +648,18 @@ Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
 }
 
 Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
-  auto q = impl_->query(kSqlCountTiles);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "SELECT count(*) FROM tiles WHERE job = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   const int rc = q.value().bind(job).step();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("counting the tiles of job {}", job), rc);
   return static_cast<std::uint64_t>(sqlite3_column_int64(q.value().get(), 0));
 }
 
 Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_t tile) {
-  auto q = impl_->query(kSqlGetTile);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 AND tile = ?2";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   const int rc = q.value().bind(job).bind(std::int64_t{tile}).step();
   if (rc == SQLITE_DONE) return std::optional<StoredTile>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading tile {} of job {}", tile, job), rc);
@@ -672,8 +667,9 @@ Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_
 }
 
 Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
-  auto q = impl_->query(kSqlGetAllTiles);
-  if (!q) return Error{q.error()};
+  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 ORDER BY tile";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
   q.value().bind(job);
   std::vector<StoredTile> tiles;
   int rc;

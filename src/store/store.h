@@ -13,6 +13,12 @@
 //   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
 //   (what a pixels blob holds is the collector's business: collector/jobs.h, pixels_to_blob)
 //
+// Failures: every call returns a util::Result or util::Status. An expected failure (a bad
+// database file, a constraint violation, a full disk) is a util::Error whose message names the
+// database file and, for SQLite failures, carries sqlite3_errmsg and the extended result code
+// (its path and file fields stay empty). The store never throws for those; an exception out of it
+// means a programming error or memory exhaustion.
+//
 // Durability: journal_mode=WAL with synchronous=FULL, so a transaction whose COMMIT returned
 // survives a process kill and (given honest disks) a power loss. foreign_keys=ON.
 //
@@ -42,7 +48,7 @@
 #include <string_view>
 #include <vector>
 
-#include "store/result.h"
+#include "util/result.h"
 
 namespace dtraced::store {
 
@@ -97,6 +103,7 @@ struct TileWrite {
   std::int64_t stored_unix = 0;
 };
 
+// to_string and the writer's counters (WriterStats) follow this order.
 enum class TileOutcome {
   kStored,          // newly stored by this transaction, which committed
   kAlreadyPresent,  // a row for (job, tile) existed (or came earlier in the same batch)
@@ -128,7 +135,7 @@ class Store {
  public:
   // Creates `state_dir` (and parents) if missing, then opens or creates <state_dir>/dtraced.db as
   // described at the top of this file.
-  static Result<Store> open(const std::string& state_dir, const OpenOptions& options = {});
+  static util::Result<Store> open(const std::string& state_dir, const OpenOptions& options = {});
 
   Store(Store&&) noexcept;
   Store& operator=(Store&&) noexcept;
@@ -142,31 +149,31 @@ class Store {
   // Runs `body` inside one BEGIN IMMEDIATE ... COMMIT: every store call made by `body` on this
   // Store is part of it. An error from `body` (or a failed COMMIT) rolls everything back. Not
   // reentrant.
-  Status transaction(const std::function<Status()>& body);
+  util::Status transaction(const std::function<util::Status()>& body);
 
   // Scenes are immutable and content-addressed: storing a digest that exists already is a no-op.
-  Status put_scene(std::string_view digest, std::string_view json);
-  Result<std::optional<std::string>> get_scene(std::string_view digest);
+  util::Status put_scene(std::string_view digest, std::string_view json);
+  util::Result<std::optional<std::string>> get_scene(std::string_view digest);
 
   // Inserts a job (job.id is ignored) and returns its id. Fails when the scene is missing, the
   // client_key is taken, the state is unknown or tile_size is 0.
-  Result<std::int64_t> insert_job(const StoredJob& job);
+  util::Result<std::int64_t> insert_job(const StoredJob& job);
   // Fails when there is no such job or the state is unknown.
-  Status set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix);
-  Result<std::vector<StoredJob>> list_jobs();  // ascending id
-  Result<std::optional<StoredJob>> get_job(std::int64_t id);
-  Result<std::optional<StoredJob>> find_job_by_key(std::string_view client_key);
+  util::Status set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix);
+  util::Result<std::vector<StoredJob>> list_jobs();  // ascending id
+  util::Result<std::optional<StoredJob>> get_job(std::int64_t id);
+  util::Result<std::optional<StoredJob>> find_job_by_key(std::string_view client_key);
 
   // Stores tile results in one transaction (or inside the caller's transaction()): INSERT OR
   // IGNORE, so the first stored result wins. Returns one CommitResult per write, in order:
   // kStored, kAlreadyPresent or kRejected. An error means the transaction failed and nothing
   // was stored. TileWriter calls this on its thread; tests and tools may call it directly.
-  Result<std::vector<CommitResult>> insert_tiles(std::span<const TileWrite> writes);
+  util::Result<std::vector<CommitResult>> insert_tiles(std::span<const TileWrite> writes);
 
-  Result<std::vector<std::uint32_t>> stored_tiles(std::int64_t job);  // ascending tile index
-  Result<std::uint64_t> count_tiles(std::int64_t job);
-  Result<std::optional<StoredTile>> get_tile(std::int64_t job, std::uint32_t tile);
-  Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);  // ascending tile index
+  util::Result<std::vector<std::uint32_t>> stored_tiles(std::int64_t job);  // ascending tile index
+  util::Result<std::uint64_t> count_tiles(std::int64_t job);
+  util::Result<std::optional<StoredTile>> get_tile(std::int64_t job, std::uint32_t tile);
+  util::Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);  // ascending tile index
 
  private:
   struct Impl;

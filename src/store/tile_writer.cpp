@@ -25,6 +25,11 @@ void call_guarded(std::string_view what, F&& f) {
   }
 }
 
+// The counter of each TileOutcome, in the enum's order.
+constexpr std::uint64_t WriterStats::*kOutcomeCounters[] = {&WriterStats::tiles_stored,
+                                                            &WriterStats::tiles_already_present,
+                                                            &WriterStats::tiles_rejected, &WriterStats::tiles_failed};
+
 }  // namespace
 
 TileWriter::TileWriter(Store store, WriterLimits limits)
@@ -133,7 +138,8 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
   const std::chrono::duration<double> took = std::chrono::steady_clock::now() - start;
   writes = {};  // the pixels are on disk (or not); release them before counting them out
 
-  if (!result) util::log_error("store writer: a batch of {} tiles was not stored: {}", end - begin, result.error());
+  if (!result)
+    util::log_error("store writer: a batch of {} tiles was not stored: {}", end - begin, result.error().message);
   {
     std::lock_guard lock(mu_);
     ++stats_.batches;
@@ -144,27 +150,12 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
     if (!result) {
       stats_.tiles_failed += end - begin;
     } else {
-      for (const CommitResult& r : result.value()) {
-        switch (r.outcome) {
-          case TileOutcome::kStored:
-            ++stats_.tiles_stored;
-            break;
-          case TileOutcome::kAlreadyPresent:
-            ++stats_.tiles_already_present;
-            break;
-          case TileOutcome::kRejected:
-            ++stats_.tiles_rejected;
-            break;
-          case TileOutcome::kFailed:
-            ++stats_.tiles_failed;
-            break;
-        }
-      }
+      for (const CommitResult& r : result.value()) ++(stats_.*kOutcomeCounters[static_cast<std::size_t>(r.outcome)]);
     }
   }
   for (std::size_t k = begin; k < end; ++k) {
-    CommitResult r =
-        result ? std::move(result.value()[k - begin]) : CommitResult{TileOutcome::kFailed, false, result.error()};
+    CommitResult r = result ? std::move(result.value()[k - begin])
+                            : CommitResult{TileOutcome::kFailed, false, result.error().message};
     call_guarded("tile callback", [&] { items[k].done(std::move(r)); });
     items[k].done = nullptr;
   }

@@ -1,0 +1,34 @@
+// dtraced::collector admission: whether a request may reach a handler, decided in one place.
+//
+// Owns: admit(), the one rule for a request's head (the health check needs no token; every other
+// request needs the bearer token, then a route; the route sets the body limit), which both the
+// server's header check (before the body is read) and the handler (for requests that reach it
+// by other paths, such as tests) apply; and the body check the handler adds once the body is in.
+// Pure functions of the request and the immutable token check: tested without sockets.
+//
+// Thread safety: pure functions.
+#pragma once
+
+#include <cstdint>
+
+#include "collector/refusal.h"
+#include "collector/routes.h"
+#include "http/types.h"
+#include "util/result.h"
+
+namespace dtraced::collector {
+
+struct Admitted {
+  Route route;
+  // The largest body this request may carry: the route's limit under the configured cap, or
+  // no limit of the collector's own for the health check (the server's limit still holds).
+  std::uint64_t body_limit = 0;
+};
+
+// The health check (no token), else the token (401), else the route (404, 405, 400).
+util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes);
+
+// 413 when the body is over the admitted limit.
+util::Result<void, Refusal> check_body_size(std::uint64_t body_bytes, std::uint64_t body_limit);
+
+}  // namespace dtraced::collector

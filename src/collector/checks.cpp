@@ -1,0 +1,88 @@
+#include "collector/checks.h"
+
+#include <cmath>
+#include <utility>
+#include <variant>
+
+#include <fmt/format.h>
+
+namespace dtraced::collector {
+
+util::Result<void, Refusal> check_job_slots(const Load& load, const CollectorConfig& config) {
+  if (load.unfinished_jobs < config.max_unfinished_jobs) return {};
+  return busy(fmt::format("too many unfinished jobs (limit {}); retry later", config.max_unfinished_jobs));
+}
+
+util::Result<void, Refusal> check_job_room(std::uint32_t width, std::uint32_t height, const Load& load,
+                                           const CollectorConfig& config) {
+  const std::uint64_t pixels = std::uint64_t{width} * height;
+  if (pixels > config.max_unfinished_pixels) {
+    return Refusal{http::Status::payload_too_large,
+                   util::Error(fmt::format("a {}x{} image is more than the collector's limit of {} pixels in flight",
+                                           width, height, config.max_unfinished_pixels),
+                               "/width"),
+                   {}};
+  }
+  if (load.unfinished_pixels + pixels > config.max_unfinished_pixels) {
+    return busy(fmt::format("unfinished jobs already hold {} of the limit of {} pixels; retry later",
+                            load.unfinished_pixels, config.max_unfinished_pixels));
+  }
+  if (!load.accepting_writes) return busy("the collector is stopping");
+  return {};
+}
+
+util::Result<CancelAction, Refusal> check_cancel(JobId id, const JobRecord* job, bool accepting_writes) {
+  if (job == nullptr) return job_not_found(id);
+  if (job->state == protocol::JobState::kCancelled) return CancelAction::kAlreadyCancelled;
+  if (job->state == protocol::JobState::kDone || job->finishing) {
+    return Refusal{http::Status::conflict, util::Error(fmt::format("job {} is finished; nothing to cancel", id)), {}};
+  }
+  if (!accepting_writes) return busy("the collector is stopping");
+  return CancelAction::kCancel;
+}
+
+util::Result<protocol::TilePayload, Refusal> check_tile_payload(std::string_view body) {
+  auto decoded = protocol::decode_tile_payload(body);
+  if (auto* failure = std::get_if<protocol::TilePayloadFailure>(&decoded)) {
+    return bad_request("tile payload: " + failure->message);
+  }
+  auto& payload = std::get<protocol::TilePayload>(decoded);
+  for (std::size_t i = 0; i < payload.rgb.size(); ++i) {
+    if (!std::isfinite(payload.rgb[i])) {
+      const std::size_t pixel = i / 3;
+      return bad_request(
+          fmt::format("pixel ({}, {}) holds a non-finite value", payload.rect.x0 + pixel % payload.rect.width,
+                      payload.rect.y0 + pixel / payload.rect.width),
+          "/pixels");
+    }
+  }
+  return std::move(payload);
+}
+
+util::Result<TileAction, Refusal> check_tile(const Route& route, const JobRecord* job, const protocol::TilePayload& p) {
+  if (p.job != route.job) {
+    return bad_request(fmt::format("the payload is for job {} but the URL names job {}", p.job, route.job), "/job");
+  }
+  if (p.tile != route.tile) {
+    return bad_request(fmt::format("the payload is tile {} but the URL names tile {}", p.tile, route.tile), "/tile");
+  }
+  if (job == nullptr || job->state == protocol::JobState::kCancelled) return TileAction::kJobGone;
+  if (p.tile >= job->tiles_total) {
+    return bad_request(fmt::format("job {} has {} tiles; there is no tile {}", job->id, job->tiles_total, p.tile),
+                       "/tile");
+  }
+  const scene::TileRect expected = scene::TileGrid(job->settings, job->tile_size).rect(p.tile);
+  if (p.rect != expected) {
+    return bad_request(
+        fmt::format("the payload's rectangle {}x{} at ({}, {}) is not tile {} of job {}: {}x{} at ({}, {})",
+                    p.rect.width, p.rect.height, p.rect.x0, p.rect.y0, p.tile, job->id, expected.width, expected.height,
+                    expected.x0, expected.y0),
+        "/rect");
+  }
+  if (util::Status counts = check_sample_counts(job->settings, expected, p.spp); !counts) {
+    return Refusal{http::Status::bad_request, std::move(counts).error(), {}};
+  }
+  return TileAction::kStore;
+}
+
+}  // namespace dtraced::collector

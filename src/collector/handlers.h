@@ -1,0 +1,52 @@
+// dtraced::collector handlers: one function per route of README.md's "HTTP API".
+//
+// Owns: what each admitted request (admission.h) gets. A handler is a pure check (checks.h), then
+// one effectful step on the Context (the queue, the store writer, the thread pool, an image),
+// then an answer; each lives in a file of its concern under handlers/, so a new route is a new
+// small file, a RouteKind (routes.h) and one line in the router (router.h).
+//
+//   handlers/jobs.cpp            POST /v1/jobs, GET /v1/jobs, GET /v1/jobs/{id}, POST .../cancel
+//   handlers/tiles.cpp           PUT /v1/jobs/{id}/tiles/{tile}
+//   handlers/lease.cpp           POST /v1/lease
+//   handlers/scenes_images.cpp   GET /v1/scenes/{digest}, GET /v1/jobs/{id}/image
+//   handlers/status.cpp          GET /healthz, GET /metrics
+//
+// Thread safety: on the loop only; each may suspend (co_await) while the pool or the store works,
+// and looks its job up again afterwards.
+#pragma once
+
+#include <string>
+#include <string_view>
+
+#include "async/async.h"
+#include "collector/context.h"
+#include "collector/routes.h"
+#include "http/types.h"
+#include "image/image_io.h"
+#include "protocol/messages.h"
+
+namespace dtraced::collector {
+
+async::Awaitable<http::Response> submit_job(Context& c, http::Request req);
+http::Response list_jobs(const Context& c);
+http::Response get_job(const Context& c, JobId id);
+async::Awaitable<http::Response> cancel_job(Context& c, JobId id);
+
+async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req);
+
+http::Response lease_tile(Context& c, std::string_view body);
+
+async::Awaitable<http::Response> get_scene(Context& c, std::string digest);
+async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format);
+
+http::Response get_health();
+http::Response get_metrics(const Context& c);
+
+// ---- answers shared by the handler files ------------------------------------------------------
+
+// `body` (already JSON) with `status`.
+http::Response json_answer(http::Status status, std::string body);
+// A tile upload's answer: 410 for job_gone, else 200.
+http::Response submit_answer(protocol::SubmitResult result);
+
+}  // namespace dtraced::collector

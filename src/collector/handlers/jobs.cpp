@@ -1,0 +1,118 @@
+// POST /v1/jobs, GET /v1/jobs, GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel.
+#include <algorithm>
+#include <memory>
+#include <string>
+#include <utility>
+
+#include <fmt/format.h>
+
+#include "collector/checks.h"
+#include "collector/handlers.h"
+#include "collector/lifecycle.h"
+#include "collector/submission.h"
+#include "collector/writer_bridge.h"
+#include "util/log.h"
+
+namespace dtraced::collector {
+namespace {
+
+// The stored row becomes a queued job in memory.
+http::Response enqueue_submitted(Context& c, store::StoredJob row, std::shared_ptr<const std::string> scene_json) {
+  auto made = record_from_row(row);
+  if (!made) {
+    util::log_error("collector: {}", made.error().message);
+    return http::make_error(http::Status::internal_server_error, "the stored job is unusable");
+  }
+  JobRecord rec = std::move(made).value();
+  rec.scene_json = std::move(scene_json);
+  if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total)) {
+    util::log_error("collector: job {} could not be queued", rec.id);
+    return http::make_error(http::Status::internal_server_error, "the job could not be queued");
+  }
+  ++c.counters.jobs_submitted;
+  util::log_info("collector: job {} submitted: {}x{}, {} samples, {} tiles of {}, priority {}, -> {}", rec.id,
+                 rec.settings.width, rec.settings.height, rec.settings.samples, rec.tiles_total, rec.tile_size,
+                 rec.priority, rec.output);
+  const protocol::JobCreated created{rec.id, rec.digest};
+  c.jobs.emplace(rec.id, std::move(rec));
+  return json_answer(http::Status::created, protocol::encode(created));
+}
+
+Load load_of(const Context& c) { return Load{c.unfinished_jobs(), c.unfinished_pixels(), c.accepting_writes()}; }
+
+}  // namespace
+
+async::Awaitable<http::Response> submit_job(Context& c, http::Request req) {
+  if (auto slots = check_job_slots(load_of(c), c.config); !slots) co_return respond(slots.error());
+  // In an optional: on_pool needs a default-constructible result.
+  auto prepare = [body = std::move(req.body())] { return std::optional(prepare_job(body)); };
+  std::optional<util::Result<PreparedJob, util::Errors>> prepared = co_await async::on_pool(c.pool, std::move(prepare));
+  if (!prepared->ok()) co_return respond(decode_failure(prepared->error()));
+  PreparedJob& p = prepared->value();
+  if (auto room = check_job_room(p.settings.width, p.settings.height, load_of(c), c.config); !room) {
+    co_return respond(room.error());
+  }
+
+  // Durable first: the job and its scene are stored (one transaction) before the 201.
+  store::StoredJob row = job_row(p, c.clock.unix_seconds());
+  std::shared_ptr<const std::string> scene_json = c.intern_scene(p.digest, std::move(p.scene_json));
+  auto insert = [row, scene_json](store::Store& s) { return insert_scene_and_job(s, row, *scene_json); };
+  auto reply = co_await on_writer(*c.writer, std::move(insert));
+  if (reply.status != store::SubmitStatus::kAccepted) {
+    ++c.counters.store_busy;
+    co_return respond(busy("the store is busy; retry later"));
+  }
+  if (!reply.value || !reply.value->ok()) {
+    ++c.counters.store_busy;
+    const std::string why = reply.value ? reply.value->error().message : std::string("the store task failed");
+    util::log_error("collector: a job could not be stored: {}", why);
+    co_return respond(busy("the job could not be stored; retry later"));
+  }
+  row.id = reply.value->value();
+  co_return enqueue_submitted(c, std::move(row), std::move(scene_json));
+}
+
+http::Response list_jobs(const Context& c) {
+  protocol::JobList list;
+  const std::int64_t unix_now = c.clock.unix_seconds();
+  const TimePoint now = c.clock.now();
+  // The newest ones when there are more than a list may hold.
+  for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < protocol::kMaxListedJobs; ++it) {
+    list.jobs.push_back(job_status(it->second, unix_now, now));
+  }
+  std::reverse(list.jobs.begin(), list.jobs.end());
+  return json_answer(http::Status::ok, protocol::encode(list));
+}
+
+http::Response get_job(const Context& c, JobId id) {
+  const JobRecord* job = c.find_job(id);
+  if (job == nullptr) return respond(job_not_found(id));
+  return json_answer(http::Status::ok, protocol::encode(job_status(*job, c.clock.unix_seconds(), c.clock.now())));
+}
+
+async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {
+  auto checked = check_cancel(id, c.find_job(id), c.accepting_writes());
+  if (!checked) co_return respond(checked.error());
+  if (checked.value() == CancelAction::kAlreadyCancelled) co_return get_job(c, id);
+
+  // Durable first: a cancellation that is answered must survive a crash.
+  const std::int64_t when = c.clock.unix_seconds();
+  auto record = [id, when](store::Store& s) {
+    return s.set_job_state(static_cast<std::int64_t>(id), store::kJobCancelled, when);
+  };
+  auto reply = co_await on_writer(*c.writer, std::move(record));
+  if (!reply.ok() || !reply.value->ok()) {
+    ++c.counters.store_busy;
+    if (reply.value && !reply.value->ok()) {
+      util::log_error("collector: job {}: cannot record the cancellation: {}", id, reply.value->error().message);
+    }
+    co_return respond(busy("the cancellation could not be stored; retry later"));
+  }
+  JobRecord* job = c.find_job(id);
+  // While the store wrote, the last tile may have arrived: then the job finishes after all, and
+  // its "done" reaches the store after this "cancelled".
+  if (job->unfinished() && !job->finishing) apply_cancel(c, *job, when);
+  co_return get_job(c, id);
+}
+
+}  // namespace dtraced::collector

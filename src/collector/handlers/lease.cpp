@@ -1,0 +1,53 @@
+// POST /v1/lease: the next tile to render, or when to ask again.
+#include <algorithm>
+#include <cstdint>
+#include <utility>
+
+#include "collector/handlers.h"
+#include "util/log.h"
+
+namespace dtraced::collector {
+namespace {
+
+// The queue's suggestion, within what the protocol carries (at least 1 ms).
+http::Response retry_after(std::chrono::milliseconds suggested) {
+  const auto ms = std::min<std::int64_t>(std::max<std::int64_t>(suggested.count(), 1), protocol::kMaxRetryAfterMs);
+  return json_answer(http::Status::ok,
+                     protocol::encode(protocol::LeaseReply{protocol::RetryAfter{static_cast<std::uint32_t>(ms)}}));
+}
+
+}  // namespace
+
+http::Response lease_tile(Context& c, std::string_view body) {
+  auto request = protocol::decode_lease_request(body);
+  if (!request) return respond(decode_failure(request.error()));
+  const TimePoint now = c.clock.now();
+  const LeaseResult result = c.queue.lease(now);
+  JobRecord* job = result.grant ? c.find_job(result.grant->job) : nullptr;
+  if (!result.grant || job == nullptr || !job->unfinished()) {
+    if (result.grant) {
+      util::log_error("collector: the queue leased tile {} of job {}, which is not unfinished", result.grant->tile,
+                      result.grant->job);
+    }
+    ++c.counters.lease_retries;
+    return retry_after(result.retry_after);
+  }
+  const TileIndex tile = result.grant->tile;
+  if (!job->restored.empty() && job->restored[tile]) {
+    // Impossible by construction (the queue was told these are stored); counted to prove it.
+    ++c.counters.restored_tile_leases;
+    util::log_error("collector: tile {} of job {} was stored before this start and is being leased again", tile,
+                    job->id);
+  }
+  if (!job->first_lease) job->first_lease = now;
+  if (job->state == protocol::JobState::kQueued) job->state = protocol::JobState::kRendering;
+  protocol::Lease lease;
+  lease.job = job->id;
+  lease.digest = job->digest;
+  lease.tile = tile;
+  lease.rect = scene::TileGrid(job->settings, job->tile_size).rect(tile);
+  lease.settings = job->settings;
+  return json_answer(http::Status::ok, protocol::encode(protocol::LeaseReply{std::move(lease)}));
+}
+
+}  // namespace dtraced::collector

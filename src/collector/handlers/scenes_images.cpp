@@ -1,0 +1,65 @@
+// GET /v1/scenes/{digest} and GET /v1/jobs/{id}/image: reads, from memory or, off the loop, the store.
+#include <memory>
+#include <optional>
+#include <string>
+#include <utility>
+
+#include <fmt/format.h>
+
+#include "collector/handlers.h"
+#include "util/log.h"
+
+namespace dtraced::collector {
+
+async::Awaitable<http::Response> get_scene(Context& c, std::string digest) {
+  if (const auto it = c.scenes.find(digest); it != c.scenes.end()) {
+    if (std::shared_ptr<const std::string> json = it->second.lock()) co_return json_answer(http::Status::ok, *json);
+  }
+  // In an optional: on_pool needs a default-constructible result.
+  auto fetch = [&reader = c.reader, digest] { return std::optional(reader.scene(digest)); };
+  std::optional<util::Result<std::optional<std::string>>> fetched = co_await async::on_pool(c.pool, std::move(fetch));
+  if (!fetched->ok()) {
+    util::log_error("collector: cannot read scene {}: {}", digest, fetched->error().message);
+    co_return respond(busy("the store could not be read; retry later"));
+  }
+  std::optional<std::string>& json = fetched->value();
+  if (!json) co_return http::make_error(http::Status::not_found, fmt::format("no such scene: {}", digest));
+  co_return json_answer(http::Status::ok, std::move(*json));
+}
+
+async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format) {
+  const JobRecord* job = c.find_job(id);
+  if (job == nullptr) co_return respond(job_not_found(id));
+  // PNG at the job's bit depth, as its output file is written.
+  const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth)};
+  std::optional<util::Result<std::string>> encoded;  // optional: on_pool needs a default-constructible result
+  if (job->unfinished()) {
+    // The framebuffer as it is now. The snapshot is held (and released) here, on the loop; the
+    // pool only reads through a plain pointer, so copy-on-write stays exact.
+    std::shared_ptr<const image::ImageRGBf> snapshot = job->framebuffer;
+    const std::uint32_t w = job->settings.width, h = job->settings.height;
+    auto encode = [image = snapshot.get(), w, h, format, options] {
+      std::string error;
+      std::optional<std::string> bytes = image != nullptr
+                                             ? image::encode_image(format, *image, options, error)
+                                             : image::encode_image(format, image::ImageRGBf(w, h), options, error);
+      return std::optional(bytes ? util::Result<std::string>(std::move(*bytes)) : util::Error(std::move(error)));
+    };
+    encoded = co_await async::on_pool(c.pool, std::move(encode));
+  } else {
+    // Done or cancelled: the pixels live in the store only.
+    auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, options, format] {
+      return std::optional(reader.encode_image(id, settings, tile_size, options, format));
+    };
+    encoded = co_await async::on_pool(c.pool, std::move(assemble));
+  }
+  if (!encoded->ok()) {
+    const std::string& why = encoded->error().message;
+    util::log_error("collector: job {}: cannot produce its image: {}", id, why);
+    co_return http::make_error(http::Status::internal_server_error, "cannot produce the image: " + why);
+  }
+  co_return http::make_binary_response(http::Status::ok, std::move(encoded->value()),
+                                       image::format_info(format).content_type);
+}
+
+}  // namespace dtraced::collector

@@ -1,0 +1,26 @@
+// GET /healthz and GET /metrics, and the answers the handler files share.
+#include <utility>
+
+#include <boost/json/value.hpp>
+
+#include "collector/handlers.h"
+#include "collector/metrics.h"
+
+namespace dtraced::collector {
+
+http::Response get_health() { return http::make_json_response(http::Status::ok, boost::json::value{{"ok", true}}); }
+
+http::Response get_metrics(const Context& c) {
+  return http::make_text_response(http::Status::ok, format_metrics(c.metrics()), kMetricsContentType);
+}
+
+http::Response json_answer(http::Status status, std::string body) {
+  return http::make_text_response(status, std::move(body), http::kJsonContentType);
+}
+
+http::Response submit_answer(protocol::SubmitResult result) {
+  const http::Status status = result == protocol::SubmitResult::kJobGone ? http::Status::gone : http::Status::ok;
+  return json_answer(status, protocol::encode(result));
+}
+
+}  // namespace dtraced::collector

@@ -1,0 +1,140 @@
+// PUT /v1/jobs/{id}/tiles/{tile}: a worker's result, acknowledged "stored" only once durable.
+#include <optional>
+#include <string>
+#include <utility>
+
+#include <boost/beast/core/string.hpp>
+#include <fmt/format.h>
+
+#include "collector/checks.h"
+#include "collector/handlers.h"
+#include "collector/lifecycle.h"
+#include "collector/writer_bridge.h"
+#include "util/log.h"
+
+namespace dtraced::collector {
+namespace {
+
+// Tile payloads larger than this are checksummed and checked on the thread pool rather than on
+// the loop (SHA-256 of 256 KiB is a fraction of a millisecond; of the largest payload, tens).
+constexpr std::size_t kInlinePayloadBytes = 256 << 10;
+
+// The worker's name as it gave it in kWorkerHeader: printable ASCII, bounded; "unknown" if none.
+std::string worker_name(const http::Request& req) {
+  const auto it = req.find(boost::beast::string_view(kWorkerHeader.data(), kWorkerHeader.size()));
+  std::string name;
+  if (it != req.end()) {
+    for (const char c : it->value()) {
+      if (name.size() == protocol::kMaxWorkerNameBytes) break;
+      name += (c >= 0x20 && c <= 0x7e) ? c : '?';
+    }
+  }
+  return name.empty() ? std::string("unknown") : name;
+}
+
+// check_tile_payload, on the pool for a large body.
+async::Awaitable<util::Result<protocol::TilePayload, Refusal>> checked_payload(Context& c, http::Request req) {
+  if (req.body().size() <= kInlinePayloadBytes) co_return check_tile_payload(req.body());
+  // In an optional: on_pool needs a default-constructible result.
+  auto check = [body = std::move(req.body())] { return std::optional(check_tile_payload(body)); };
+  co_return *co_await async::on_pool(c.pool, std::move(check));
+}
+
+http::Response duplicate(Context& c, bool identical, JobId job, TileIndex tile, const std::string& worker) {
+  ++c.counters.tile_duplicates;
+  if (!identical) {
+    ++c.counters.faulty_results;
+    util::log_warn("collector: tile {} of job {} from worker '{}' differs from the stored result: faulty worker?", tile,
+                   job, worker);
+  }
+  return submit_answer(protocol::SubmitResult::kAlreadyDone);
+}
+
+// The store committed the tile: it leaves the queue and enters the framebuffer.
+http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payload) {
+  const CompleteResult completed = c.queue.complete(id, payload.tile, c.clock.now());
+  JobRecord* job = c.find_job(id);
+  if (completed == CompleteResult::kJobGone || job == nullptr || !job->unfinished()) {
+    // Cancelled while the store wrote: the pixels are stored, and nobody wants them.
+    ++c.counters.tiles_job_gone;
+    return submit_answer(protocol::SubmitResult::kJobGone);
+  }
+  if (completed == CompleteResult::kAlreadyDone) {
+    util::log_error("collector: the store stored tile {} of job {}, which the queue had as done", payload.tile, id);
+    ++c.counters.tile_duplicates;
+    return submit_answer(protocol::SubmitResult::kAlreadyDone);
+  }
+  copy_tile(writable_framebuffer(*job), payload.rect, payload.rgb);
+  count_samples(*job, payload.spp);
+  ++job->tiles_done;
+  ++job->stored_this_run;
+  ++c.counters.tiles_stored;
+  if (job->state == protocol::JobState::kQueued) job->state = protocol::JobState::kRendering;
+  persist_rendering(c, *job);
+  if (c.queue.is_done(id)) start_finish(c, id);
+  return submit_answer(protocol::SubmitResult::kStored);
+}
+
+// The store decides (INSERT OR IGNORE: the first result wins, and a duplicate is compared with it).
+async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol::TilePayload& p,
+                                            const std::string& worker) {
+  store::TileWrite write;
+  write.job = static_cast<std::int64_t>(id);
+  write.tile = p.tile;
+  write.pixels = pixels_to_blob(p.rgb, p.spp);
+  write.worker = fmt::format("epoch={} worker={}", c.epoch, worker);
+  write.stored_unix = c.clock.unix_seconds();
+  auto reply = co_await commit_tile(*c.writer, std::move(write));
+  if (reply.status != store::SubmitStatus::kAccepted) {
+    ++c.counters.store_busy;
+    co_return respond(busy("the store's queue is full; retry later"));
+  }
+  const store::CommitResult& result = *reply.value;
+  switch (result.outcome) {
+    case store::TileOutcome::kStored:
+      co_return on_tile_stored(c, id, p);
+    case store::TileOutcome::kAlreadyPresent:
+      co_return duplicate(c, result.identical, id, p.tile, worker);
+    case store::TileOutcome::kRejected:
+      util::log_error("collector: the store refused tile {} of job {}: {}", p.tile, id, result.error);
+      co_return http::make_error(http::Status::internal_server_error, "the store refused the tile");
+    case store::TileOutcome::kFailed:
+      break;
+  }
+  ++c.counters.store_busy;
+  util::log_warn("collector: tile {} of job {} was not stored: {}", p.tile, id, result.error);
+  co_return respond(busy("the tile could not be stored; retry later"));
+}
+
+}  // namespace
+
+async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req) {
+  const std::string worker = worker_name(req);
+  const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req));
+  if (!checked) {
+    ++c.counters.tiles_refused;
+    co_return respond(checked.error());
+  }
+  const protocol::TilePayload& p = checked.value();
+  JobRecord* job = c.find_job(route.job);
+  const auto action = check_tile(route, job, p);
+  if (!action) {
+    ++c.counters.tiles_refused;
+    co_return respond(action.error());
+  }
+  if (action.value() == TileAction::kJobGone) {
+    ++c.counters.tiles_job_gone;
+    co_return submit_answer(protocol::SubmitResult::kJobGone);
+  }
+  if (!job->restored.empty() && job->restored[p.tile]) ++c.counters.restored_tile_submissions;
+  if (job->unfinished() && c.queue.tile_status(job->id, p.tile) == TileStatus::kStored) {
+    // The framebuffer holds the stored pixels: compare here, no store round trip.
+    const bool identical = job->framebuffer && tile_matches(*job->framebuffer, p.rect, p.rgb);
+    co_return duplicate(c, identical, job->id, p.tile, worker);
+  }
+  // Not stored yet, or the job is done and its pixels are only in the store.
+  if (!c.accepting_writes()) co_return respond(busy("the collector is stopping; retry later"));
+  co_return co_await store_tile(c, route.job, p, worker);
+}
+
+}  // namespace dtraced::collector

@@ -1,0 +1,143 @@
+#include "collector/lifecycle.h"
+
+#include <cassert>
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <utility>
+
+#include <boost/asio/co_spawn.hpp>
+#include <boost/asio/executor_work_guard.hpp>
+#include <fmt/format.h>
+
+#include "collector/stop.h"
+#include "collector/writer_bridge.h"
+#include "image/image_io.h"
+#include "util/log.h"
+
+namespace dtraced::collector {
+namespace {
+
+namespace net = async::net;
+namespace fs = std::filesystem;
+
+void finish_ended(Context& c) {
+  assert(c.finishes_in_flight > 0);
+  --c.finishes_in_flight;
+  if (c.stopping && c.finish_ended_event != nullptr) c.finish_ended_event->set();
+}
+
+// Starts the images whose write failed again, once, after kFinishRetryDelay; a stop ends the wait.
+async::Awaitable<> retry_finishes(Context& c) {
+  co_await async::sleep_for(c.clock, kFinishRetryDelay, &*c.stop_begun);
+  c.retry_armed = false;
+  if (c.stopping) co_return;
+  for (auto& [id, job] : c.jobs) {
+    if (job.unfinished() && job.finish_failed && !job.finishing) start_finish(c, id);
+  }
+}
+
+void arm_finish_retry(Context& c) {
+  if (c.retry_armed || c.stopping) return;
+  c.retry_armed = true;
+  net::co_spawn(*c.ioc, retry_finishes(c), async::log_failure("collector: retrying image writes"));
+}
+
+struct Written {
+  bool ok = false;
+  std::string error;
+};
+
+async::Awaitable<> finish_job(Context& c, JobId id) {
+  JobRecord* job = c.find_job(id);
+  std::shared_ptr<const image::ImageRGBf> image = job->framebuffer;
+  if (!image) image = std::make_shared<const image::ImageRGBf>(job->settings.width, job->settings.height);
+  const std::string path = (fs::path(c.output_dir) / job->output).string();
+  auto write = [img = image.get(), path, bits = job->png_bit_depth] {
+    Written w;
+    w.ok = image::write_image(path, *img, {.png_bit_depth = static_cast<int>(bits)}, w.error);
+    return w;
+  };
+  const Written written = co_await async::on_pool(c.pool, std::move(write));
+  image.reset();
+  job = c.find_job(id);
+  if (!written.ok) {
+    ++c.counters.image_write_failures;
+    util::log_error("collector: job {}: cannot write its image: {}; trying again in {} s", id, written.error,
+                    kFinishRetryDelay.count());
+    job->finishing = false;
+    job->finish_failed = true;
+    finish_ended(c);
+    arm_finish_retry(c);
+    co_return;
+  }
+  ++c.counters.images_written;
+  const std::int64_t when = c.clock.unix_seconds();
+  if (c.writer) {
+    auto mark_done = [id, when](store::Store& s) {
+      return s.set_job_state(static_cast<std::int64_t>(id), store::kJobDone, when);
+    };
+    auto reply = co_await on_writer(*c.writer, std::move(mark_done));
+    if (!reply.ok() || !reply.value->ok()) {
+      util::log_warn(
+          "collector: job {}: the image is written but the store did not record it as done ({}); a "
+          "restart writes it again",
+          id, reply.value ? reply.value->error().message : std::string("store unavailable"));
+    }
+  }
+  job = c.find_job(id);
+  job->state = protocol::JobState::kDone;
+  job->finished_unix = when;
+  job->finishing = false;
+  job->tiles_done = job->tiles_total;
+  release(*job);
+  c.queue.remove_job(id);
+  util::log_info("collector: job {} done: {} written", id, path);
+  finish_ended(c);
+  if (c.one_shot_id == id && c.config.exit_when_done) begin_stop(c, 0);
+}
+
+}  // namespace
+
+void persist_rendering(Context& c, JobRecord& job) {
+  if (job.rendering_persisted || !c.writer) return;
+  // Informational (a restart derives the state from the stored tiles), so not awaited; but the
+  // loop counts it as outstanding work until the store thread has run it, so a test that runs
+  // the loop until idle sees the state written.
+  const auto id = static_cast<std::int64_t>(job.id);
+  auto pending = std::make_shared<net::executor_work_guard<net::io_context::executor_type>>(c.ioc->get_executor());
+  const store::SubmitStatus status = c.writer->post([id, pending](store::Store& s) {
+    if (util::Status st = s.set_job_state(id, store::kJobRendering, 0); !st) {
+      util::log_warn("collector: job {}: cannot record the rendering state: {}", id, st.error().message);
+    }
+  });
+  job.rendering_persisted = status == store::SubmitStatus::kAccepted;
+}
+
+void start_finish(Context& c, JobId id) {
+  JobRecord* job = c.find_job(id);
+  assert(job != nullptr && job->unfinished());
+  job->finishing = true;
+  job->finish_failed = false;
+  ++c.finishes_in_flight;
+  net::co_spawn(*c.ioc, finish_job(c, id),
+                async::log_failure(fmt::format("collector: writing the image of job {}", id)));
+}
+
+void apply_cancel(Context& c, JobRecord& job, std::int64_t when) {
+  c.queue.cancel(job.id);
+  job.state = protocol::JobState::kCancelled;
+  job.finished_unix = when;
+  release(job);
+  ++c.counters.jobs_cancelled;
+  util::log_info("collector: job {} cancelled", job.id);
+  if (c.one_shot_id == job.id && c.config.exit_when_done) begin_stop(c, 1);
+}
+
+void release(JobRecord& job) {
+  job.framebuffer.reset();
+  job.scene_json.reset();
+  job.restored = {};
+}
+
+}  // namespace dtraced::collector

@@ -1,0 +1,255 @@
+#include "collector/restore.h"
+
+#include <algorithm>
+#include <cassert>
+#include <charconv>
+#include <filesystem>
+#include <limits>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <boost/asio/co_spawn.hpp>
+#include <fmt/format.h>
+
+#include "collector/lifecycle.h"
+#include "collector/stop.h"
+#include "collector/submission.h"
+#include "scene/load.h"
+#include "util/file.h"
+#include "util/log.h"
+
+namespace dtraced::collector {
+namespace {
+
+namespace fs = std::filesystem;
+using protocol::JobState;
+
+// The epoch file holds one decimal number.
+constexpr std::uint64_t kMaxEpochFileBytes = 64;
+
+util::Status bump_epoch(Context& c) {
+  const std::string path = (fs::path(c.config.state_dir) / kEpochFileName).string();
+  std::int64_t previous = 0;
+  std::error_code ec;
+  if (fs::exists(path, ec)) {
+    std::string error;
+    auto text = util::read_file_limited(path, kMaxEpochFileBytes, error);
+    if (!text) return util::Error(std::move(error));
+    std::string_view digits = *text;
+    while (!digits.empty() && (digits.back() == '\n' || digits.back() == ' ')) digits.remove_suffix(1);
+    const auto [end, parse_error] = std::from_chars(digits.data(), digits.data() + digits.size(), previous);
+    if (parse_error != std::errc() || end != digits.data() + digits.size() || previous < 0 ||
+        previous == std::numeric_limits<std::int64_t>::max()) {
+      return util::Error(fmt::format("{}: not a start counter; refusing to start (fix the file or remove it)", path));
+    }
+  }
+  c.epoch = previous + 1;
+  std::string error;
+  if (!util::write_file_atomic(path, fmt::format("{}\n", c.epoch), error)) return util::Error(std::move(error));
+  return {};
+}
+
+// An unfinished job's scene and stored tiles, into its record and the queue.
+util::Status restore_active(Context& c, store::Store& s, const store::StoredJob& row, JobRecord& rec) {
+  auto scene_json = s.get_scene(row.digest);
+  if (!scene_json) return std::move(scene_json).error();
+  if (!scene_json.value()) {
+    return util::Error(fmt::format("{}: job {}: its scene {} is missing", s.path(), rec.id, row.digest));
+  }
+  auto tiles = s.get_all_tiles(row.id);
+  if (!tiles) return std::move(tiles).error();
+
+  std::vector<TileIndex> stored;
+  rec.restored.assign(rec.tiles_total, false);
+  const scene::TileGrid grid(rec.settings, rec.tile_size);
+  for (store::StoredTile& t : tiles.value()) {
+    if (t.tile >= rec.tiles_total) {
+      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
+                                     rec.tiles_total));
+    }
+    const scene::TileRect rect = grid.rect(t.tile);
+    const std::size_t pixels = std::size_t{rect.width} * rect.height;
+    auto stored_tile = blob_to_tile(t.pixels, pixels);
+    if (!stored_tile) {
+      return util::Error(fmt::format(
+          "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample counts)",
+          s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16));
+    }
+    copy_tile(writable_framebuffer(rec), rect, stored_tile->rgb);
+    count_samples(rec, stored_tile->spp);
+    t.pixels = {};  // free as we go: the framebuffer holds them now
+    stored.push_back(t.tile);
+    rec.restored[t.tile] = true;
+  }
+  if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total, stored)) {
+    return util::Error(fmt::format("{}: job {}: cannot be queued (duplicate tiles?)", s.path(), rec.id));
+  }
+  rec.tiles_done = static_cast<TileIndex>(stored.size());
+  c.restored_tiles += stored.size();
+  rec.state = rec.tiles_done > 0 ? JobState::kRendering : JobState::kQueued;
+  rec.rendering_persisted = row.state == store::kJobRendering;
+  rec.scene_json = c.intern_scene(row.digest, std::move(*scene_json.value()));
+  if (rec.tiles_done == rec.tiles_total) c.to_finish.push_back(rec.id);
+  util::log_info("collector: job {} restored: {}/{} tiles stored", rec.id, rec.tiles_done, rec.tiles_total);
+  return {};
+}
+
+util::Status restore(Context& c, store::Store& s) {
+  auto rows = s.list_jobs();
+  if (!rows) return std::move(rows).error();
+  for (const store::StoredJob& row : rows.value()) {
+    auto made = record_from_row(row);
+    if (!made) return util::Error(fmt::format("{}: {}", s.path(), made.error().message));
+    JobRecord rec = std::move(made).value();
+    if (rec.unfinished()) {
+      if (auto restored = restore_active(c, s, row, rec); !restored) return restored;
+    } else if (rec.state == JobState::kCancelled) {
+      // Its status still says how far it got.
+      auto count = s.count_tiles(row.id);
+      if (!count) return std::move(count).error();
+      rec.tiles_done = static_cast<TileIndex>(std::min<std::uint64_t>(count.value(), rec.tiles_total));
+    }
+    if (!rec.unfinished() && rec.settings.error_target > 0) {
+      // Its mean spp needs every stored tile read: done after start-up, off the loop, so that
+      // start-up time does not grow with the job history (see restore_sample_counts).
+      rec.spp_pending = true;
+      c.to_count.push_back(rec.id);
+    }
+    c.jobs.emplace(rec.id, std::move(rec));
+  }
+  return {};
+}
+
+// The one-shot job stored before with the same arguments, picked up where it was.
+util::Status resume_one_shot(Context& c, store::Store& s, const store::StoredJob& row) {
+  const JobId id = static_cast<JobId>(row.id);
+  c.one_shot_id = id;
+  JobRecord* rec = c.find_job(id);
+  assert(rec != nullptr);
+  if (rec->unfinished()) {
+    util::log_info("collector: one-shot job {} resumed: {}/{} tiles stored", id, rec->tiles_done, rec->tiles_total);
+  } else if (rec->state == JobState::kCancelled) {
+    util::log_error("collector: one-shot job {} was cancelled; nothing to do", id);
+    if (c.config.exit_when_done) begin_stop(c, 1);
+  } else {
+    const fs::path path = fs::path(c.output_dir) / rec->output;
+    std::error_code ec;
+    if (fs::exists(path, ec)) {
+      util::log_info("collector: one-shot job {} is done; {} is written", id, path.string());
+      if (c.config.exit_when_done) begin_stop(c, 0);
+    } else {
+      // Done, but the image is gone: assemble it again from the stored tiles.
+      util::log_info("collector: one-shot job {} is done but {} is missing; writing it again", id, path.string());
+      JobRecord again = *rec;
+      again.state = JobState::kRendering;
+      if (auto restored = restore_active(c, s, row, again); !restored) return restored;
+      *rec = std::move(again);
+    }
+  }
+  return {};
+}
+
+util::Status enqueue_one_shot(Context& c, store::Store& s) {
+  const OneShotJob& one = *c.config.one_shot;
+  scene::LoadResult loaded = scene::load_scene_file(one.scene_path);
+  if (!loaded.ok()) return util::Error("scene: " + scene::format_errors(loaded.errors));
+
+  protocol::JobSubmit submit;
+  submit.scene = std::move(*loaded.scene);
+  submit.output = one.output;
+  submit.priority = one.priority;
+  submit.overrides = one.overrides;
+  // Through the wire format, so a one-shot job meets exactly the checks of a submitted one.
+  auto prepared = prepare_job(protocol::encode(submit));
+  if (!prepared) {
+    const protocol::ErrorBody e = protocol::error_body(prepared.error());
+    return util::Error(e.field.empty() ? "one-shot job: " + e.error : "one-shot job: " + e.field + ": " + e.error);
+  }
+  PreparedJob& p = prepared.value();
+
+  const std::string key = one_shot_client_key(p.digest, {p.settings, p.png_bit_depth}, p.tile_size, p.submit.output);
+  auto found = s.find_job_by_key(key);
+  if (!found) return std::move(found).error();
+  if (found.value()) return resume_one_shot(c, s, *found.value());
+
+  store::StoredJob row = job_row(p, c.clock.unix_seconds());
+  row.client_key = key;
+  auto inserted = insert_scene_and_job(s, row, p.scene_json);
+  if (!inserted) return std::move(inserted).error();
+  row.id = inserted.value();
+  auto made = record_from_row(row);
+  if (!made) return std::move(made).error();
+  JobRecord rec = std::move(made).value();
+  rec.scene_json = c.intern_scene(p.digest, std::move(p.scene_json));
+  if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total)) {
+    return util::Error(fmt::format("job {}: cannot be queued", rec.id));
+  }
+  c.one_shot_id = rec.id;
+  util::log_info("collector: one-shot job {} enqueued: {} -> {} ({}x{}, {} samples, {} tiles)", rec.id, one.scene_path,
+                 rec.output, rec.settings.width, rec.settings.height, rec.settings.samples, rec.tiles_total);
+  c.jobs.emplace(rec.id, std::move(rec));
+  return {};
+}
+
+// Fills in a finished adaptive job's mean spp after start-up; until then its status reports the
+// mean as unknown. A tile that cannot be read leaves it unknown for good (logged).
+async::Awaitable<> restore_sample_counts(Context& c, JobId id) {
+  const JobRecord* job = c.find_job(id);
+  if (job == nullptr || c.stopping) co_return;
+  // In an optional: on_pool needs a default-constructible result.
+  auto read = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, total = job->tiles_total] {
+    return std::optional(reader.sample_counts(id, settings, tile_size, total));
+  };
+  const std::optional<util::Result<SampleTally>> counted = co_await async::on_pool(c.pool, std::move(read));
+  JobRecord* rec = c.find_job(id);
+  if (rec == nullptr) co_return;
+  rec->spp_pending = false;
+  if (counted->ok()) {
+    rec->spp.add(counted->value());
+  } else {
+    rec->spp.known = false;
+  }
+  if (!rec->spp.known) {
+    util::log_warn(
+        "collector: job {}: mean spp unknown: {}", id,
+        counted->ok() ? std::string("a stored tile's sample counts do not parse") : counted->error().message);
+  }
+}
+
+}  // namespace
+
+util::Status open_collector(Context& c) {
+  if (c.opened) return util::Error("the collector is already open");
+  auto opened = store::Store::open(c.config.state_dir);
+  if (!opened) return std::move(opened).error();
+  store::Store s = std::move(opened).value();
+
+  c.output_dir = c.config.effective_output_dir();
+  std::error_code ec;
+  fs::create_directories(c.output_dir, ec);
+  if (ec) {
+    return util::Error(fmt::format("output directory {}: cannot create it: {}", c.output_dir, ec.message()));
+  }
+
+  if (auto bumped = bump_epoch(c); !bumped) return bumped;
+  if (auto restored = restore(c, s); !restored) return restored;
+  if (c.config.one_shot) {
+    if (auto enqueued = enqueue_one_shot(c, s); !enqueued) return enqueued;
+  }
+
+  c.writer = std::make_unique<store::TileWriter>(std::move(s), c.config.writer);
+  c.opened = true;
+  for (const JobId id : c.to_finish) start_finish(c, id);
+  c.to_finish.clear();
+  for (const JobId id : c.to_count) {
+    async::net::co_spawn(*c.ioc, restore_sample_counts(c, id),
+                         async::log_failure(fmt::format("collector: reading the sample counts of job {}", id)));
+  }
+  c.to_count.clear();
+  util::log_info("collector: start {} on {}; {} unfinished job(s), {} tile(s) already stored", c.epoch,
+                 c.config.state_dir, c.unfinished_jobs(), c.restored_tiles);
+  return {};
+}
+
+}  // namespace dtraced::collector

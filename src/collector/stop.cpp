@@ -1,0 +1,70 @@
+#include "collector/stop.h"
+
+#include <exception>
+#include <memory>
+#include <utility>
+
+#include <boost/asio/co_spawn.hpp>
+
+#include "util/log.h"
+#include "util/sd_notify.h"
+
+namespace dtraced::collector {
+namespace {
+
+namespace net = async::net;
+
+// Drains the store writer and closes the database, off the loop: stop() blocks until every
+// accepted tile is committed, and its callbacks post here.
+async::Awaitable<> close_store(Context& c) {
+  if (c.writer) {
+    std::unique_ptr<store::TileWriter> writer = std::move(c.writer);
+    c.last_writer_stats = writer->stats();
+    auto drain = [&writer] {
+      writer->stop();
+      writer.reset();  // closes the database
+      return true;
+    };
+    co_await async::on_pool(c.pool, std::move(drain));
+  }
+  auto close_reads = [&reader = c.reader] {
+    reader.close();
+    return true;
+  };
+  co_await async::on_pool(c.pool, std::move(close_reads));
+}
+
+async::Awaitable<> stop_sequence(Context& c) {
+  util::sd_notify_state("STOPPING=1");
+  util::log_info("collector: stopping (grace {} ms)", c.config.shutdown_grace.count());
+  const util::TimePoint deadline = c.clock.now() + c.config.shutdown_grace;
+  if (c.server) co_await c.server->stop(c.config.shutdown_grace);
+  // Images being written: let them finish within the grace, so their jobs are marked done.
+  while (c.finishes_in_flight > 0 && c.clock.now() < deadline) {
+    async::Event ended(c.ioc->get_executor());
+    c.finish_ended_event = &ended;
+    co_await async::sleep_until(c.clock, deadline, &ended);
+    c.finish_ended_event = nullptr;
+  }
+  if (c.finishes_in_flight > 0) {
+    util::log_warn("collector: {} image(s) still being written at the end of the grace; a restart writes them",
+                   c.finishes_in_flight);
+  }
+  co_await close_store(c);
+  util::log_info("collector: stopped; the database is closed");
+}
+
+}  // namespace
+
+void begin_stop(Context& c, int exit_code) {
+  if (c.stopping) return;
+  c.stopping = true;
+  if (!c.exit_code) c.exit_code = exit_code;
+  c.stop_begun->set();  // a finish retry waiting for its delay gives up
+  net::co_spawn(*c.ioc, stop_sequence(c), [&c](const std::exception_ptr& error) {
+    async::log_exception("collector: stopping", error);
+    c.ioc->stop();  // whatever happened, run() returns
+  });
+}
+
+}  // namespace dtraced::collector

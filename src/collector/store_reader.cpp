@@ -1,0 +1,100 @@
+#include "collector/store_reader.h"
+
+#include <utility>
+#include <vector>
+
+#include <fmt/format.h>
+
+#include "scene/tiling.h"
+
+namespace dtraced::collector {
+
+StoreReader::StoreReader(std::string state_dir) : state_dir_(std::move(state_dir)) {}
+
+util::Result<store::Store*> StoreReader::store_locked() {
+  if (closed_) return util::Error("the collector is stopping");
+  if (!store_) {
+    store::OpenOptions options;
+    options.verify_integrity = false;  // verified at start-up by the first connection
+    auto opened = store::Store::open(state_dir_, options);
+    if (!opened) return std::move(opened).error();
+    store_.emplace(std::move(opened).value());
+  }
+  return &*store_;
+}
+
+util::Result<std::string> StoreReader::encode_image(JobId id, const scene::RenderSettings& settings,
+                                                    std::uint32_t tile_size, const image::WriteOptions& options,
+                                                    image::ImageFormat format) {
+  image::ImageRGBf image(settings.width, settings.height);
+  {
+    std::lock_guard lock(mu_);
+    auto s = store_locked();
+    if (!s) return std::move(s).error();
+    auto tiles = s.value()->get_all_tiles(static_cast<std::int64_t>(id));
+    if (!tiles) return std::move(tiles).error();
+    const scene::TileGrid grid(settings, tile_size);
+    for (const store::StoredTile& t : tiles.value()) {
+      if (t.tile >= grid.count()) continue;
+      const scene::TileRect rect = grid.rect(t.tile);
+      auto stored_tile = blob_to_tile(t.pixels, std::size_t{rect.width} * rect.height);
+      if (!stored_tile) return util::Error(fmt::format("stored tile {} has the wrong size", t.tile));
+      copy_tile(image, rect, stored_tile->rgb);
+    }
+  }
+  std::string error;
+  std::optional<std::string> bytes = image::encode_image(format, image, options, error);
+  if (!bytes) return util::Error(std::move(error));
+  return std::move(*bytes);
+}
+
+util::Result<std::optional<std::string>> StoreReader::scene(const std::string& digest) {
+  std::lock_guard lock(mu_);
+  auto s = store_locked();
+  if (!s) return std::move(s).error();
+  return s.value()->get_scene(digest);
+}
+
+util::Result<SampleTally> StoreReader::sample_counts(JobId id, const scene::RenderSettings& settings,
+                                                     std::uint32_t tile_size, TileIndex tiles_total) {
+  std::vector<std::uint32_t> indices;
+  {
+    std::lock_guard lock(mu_);
+    auto s = store_locked();
+    if (!s) return std::move(s).error();
+    auto tiles = s.value()->stored_tiles(static_cast<std::int64_t>(id));
+    if (!tiles) return std::move(tiles).error();
+    indices = std::move(tiles).value();
+  }
+  SampleTally tally;
+  const scene::TileGrid grid(settings, tile_size);
+  for (const std::uint32_t index : indices) {
+    if (index >= tiles_total) continue;
+    std::optional<store::StoredTile> stored;
+    {
+      std::lock_guard lock(mu_);
+      auto s = store_locked();
+      if (!s) return std::move(s).error();
+      auto tile = s.value()->get_tile(static_cast<std::int64_t>(id), index);
+      if (!tile) return std::move(tile).error();
+      stored = std::move(tile).value();
+    }
+    if (!stored) continue;
+    const scene::TileRect rect = grid.rect(index);
+    auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
+    if (!parsed) {
+      tally.known = false;  // the image itself is checked when it is served
+      continue;
+    }
+    tally.add(parsed->spp);
+  }
+  return tally;
+}
+
+void StoreReader::close() {
+  std::lock_guard lock(mu_);
+  store_.reset();
+  closed_ = true;
+}
+
+}  // namespace dtraced::collector

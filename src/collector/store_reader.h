@@ -1,0 +1,57 @@
+// dtraced::collector store reader: the collector's second SQLite connection, for reads too large
+// for the event loop.
+//
+// Owns: a Store opened on first use (without the integrity check: the first connection ran it at
+// start-up) and the reads that go through it: a finished or cancelled job's image, assembled from
+// its stored tiles and encoded; a scene by digest; a finished adaptive job's sample counts. The
+// store writer (store/tile_writer.h) has the other connection; WAL lets the two work at once.
+//
+// Thread safety: every member function may be called from any thread (the thread pool's); the
+// connection is used by one caller at a time under a lock. The sample counts are read one tile
+// per lock, so image and scene reads go on in between.
+#pragma once
+
+#include <cstdint>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "collector/jobs.h"
+#include "image/image_io.h"
+#include "scene/description.h"
+#include "store/store.h"
+#include "util/result.h"
+
+namespace dtraced::collector {
+
+class StoreReader {
+ public:
+  explicit StoreReader(std::string state_dir);
+
+  // The image of a job whose pixels live in the store only (done or cancelled), black where no
+  // tile is stored, encoded in `format`.
+  util::Result<std::string> encode_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
+                                         const image::WriteOptions& options, image::ImageFormat format);
+
+  // A scene's canonical text; nullopt when no scene has this digest.
+  util::Result<std::optional<std::string>> scene(const std::string& digest);
+
+  // The sample counts of a finished adaptive job's stored tiles. A tile whose blob holds no
+  // readable counts makes the tally unknown (its image is checked when it is served).
+  util::Result<SampleTally> sample_counts(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
+                                          TileIndex tiles_total);
+
+  // Closes the connection for good: reads after this fail ("the collector is stopping").
+  void close();
+
+ private:
+  // The connection, opened if need be; call with mu_ held.
+  util::Result<store::Store*> store_locked();
+
+  const std::string state_dir_;
+  std::mutex mu_;
+  std::optional<store::Store> store_;  // guarded by mu_
+  bool closed_ = false;                // guarded by mu_: stopping, never reopen
+};
+
+}  // namespace dtraced::collector

@@ -1,0 +1,87 @@
+#include "collector/submission.h"
+
+#include <utility>
+
+#include <fmt/format.h>
+
+#include "scene/digest.h"
+#include "scene/tiling.h"
+#include "util/sha256.h"
+
+namespace dtraced::collector {
+
+util::Result<PreparedJob, util::Errors> prepare_job(std::string_view body) {
+  auto decoded = protocol::decode_job_submit(body);
+  if (!decoded) return std::move(decoded).error();
+  PreparedJob p;
+  p.submit = std::move(decoded).value();
+  p.settings = protocol::effective_settings(p.submit);
+  p.tile_size = scene::tile_size_or_default(p.submit.overrides);
+  p.png_bit_depth = scene::png_bit_depth_or_default(p.submit.overrides);
+  p.scene_json = scene::canonical_json(p.submit.scene);
+  p.digest = util::sha256_hex(p.scene_json);  // = scene::scene_digest, without a second serialisation
+  p.submit.scene = {};
+  return p;
+}
+
+store::StoredJob job_row(const PreparedJob& job, std::int64_t created_unix) {
+  store::StoredJob row;
+  row.digest = job.digest;
+  row.settings_json = protocol::encode_settings({job.settings, job.png_bit_depth});
+  row.output = job.submit.output;  // "" stands for job-<id>.png
+  row.priority = job.submit.priority;
+  row.tile_size = job.tile_size;
+  row.state = std::string(store::kJobQueued);
+  row.created_unix = created_unix;
+  return row;
+}
+
+util::Result<std::int64_t> insert_scene_and_job(store::Store& s, const store::StoredJob& row,
+                                                std::string_view scene_json) {
+  std::int64_t id = 0;
+  const util::Status status = s.transaction([&]() -> util::Status {
+    if (util::Status put = s.put_scene(row.digest, scene_json); !put) return put;
+    util::Result<std::int64_t> inserted = s.insert_job(row);
+    if (!inserted) return inserted.error();
+    id = inserted.value();
+    return {};
+  });
+  if (!status) return status.error();
+  return id;
+}
+
+util::Result<JobRecord> record_from_row(const store::StoredJob& row) {
+  auto settings = protocol::decode_settings(row.settings_json);
+  if (!settings) {
+    return util::Error(
+        fmt::format("job {}: stored settings are unreadable: {}", row.id, util::to_string(settings.error())));
+  }
+  const auto state = protocol::job_state_from_string(row.state);
+  if (!state) return util::Error(fmt::format("job {}: unknown state '{}'", row.id, row.state));
+  if (row.tile_size < scene::kMinTileSize || row.tile_size > scene::kMaxTileSize) {
+    return util::Error(fmt::format("job {}: tile size {} is out of range", row.id, row.tile_size));
+  }
+  const std::uint64_t tiles = scene::TileGrid(settings.value().render, row.tile_size).count();
+  if (tiles == 0 || tiles > protocol::kMaxTilesPerJob) {
+    return util::Error(fmt::format("job {}: {} tiles, outside [1, {}]", row.id, tiles, protocol::kMaxTilesPerJob));
+  }
+  if (row.id <= 0 || static_cast<std::uint64_t>(row.id) > protocol::kMaxId) {
+    return util::Error(fmt::format("job id {} is out of range", row.id));
+  }
+  JobRecord rec;
+  rec.id = static_cast<JobId>(row.id);
+  rec.digest = row.digest;
+  rec.settings = settings.value().render;
+  rec.png_bit_depth = settings.value().png_bit_depth;
+  rec.output = row.output.empty() ? default_output_name(rec.id) : row.output;
+  rec.priority = row.priority;
+  rec.tile_size = row.tile_size;
+  rec.state = *state;
+  rec.created_unix = row.created_unix;
+  rec.finished_unix = row.finished_unix;
+  rec.tiles_total = static_cast<TileIndex>(tiles);
+  rec.tiles_done = rec.state == protocol::JobState::kDone ? rec.tiles_total : 0;
+  return rec;
+}
+
+}  // namespace dtraced::collector

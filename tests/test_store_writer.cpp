@@ -1,0 +1,427 @@
+// Tests for dtraced::store::TileWriter: group commit from many threads (exactly-once "stored",
+// duplicates, rejected tiles, failed batches, bounded queue, draining stop), acknowledged tiles
+// surviving a SIGKILL (a forked child writes, the parent kills it and reopens), and a commit-rate
+// benchmark that prints figures only.
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <cstring>
+#include <future>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <catch2/catch.hpp>
+#include <fmt/format.h>
+
+#include "child_process.h"
+#include "store_testing.h"
+
+namespace {
+using namespace dtraced::testing;
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Group commit.
+
+TEST_CASE("1000 tiles submitted from several threads are each stored exactly once", "[store][writer]") {
+  StoreDir tmp;
+  const std::int64_t job = job_in(tmp);
+  Callbacks callbacks;
+  TileWriter writer(open_ok(tmp.path()));
+  constexpr std::uint32_t kThreads = 4, kPerThread = 250, kTiles = kThreads * kPerThread;
+  constexpr std::size_t kBytes = 2000;
+  std::vector<std::thread> threads;
+  std::atomic<int> refused{0};
+  for (std::uint32_t t = 0; t < kThreads; ++t) {
+    threads.emplace_back([&, t] {
+      for (std::uint32_t k = 0; k < kPerThread; ++k) {
+        const std::uint32_t tile = t * kPerThread + k;
+        if (writer.submit(tile_write(job, tile, kBytes), callbacks.done(tile)) != SubmitStatus::kAccepted) ++refused;
+      }
+    });
+  }
+  for (auto& th : threads) th.join();
+  REQUIRE(refused == 0);
+  REQUIRE(callbacks.wait_for(kTiles));
+  auto results = callbacks.results();
+  REQUIRE(results.size() == kTiles);
+  for (const auto& [tile, rs] : results) {
+    REQUIRE(rs.size() == 1);
+    CHECK(rs[0].outcome == TileOutcome::kStored);
+  }
+
+  // Duplicates: same bytes and different bytes.
+  REQUIRE(writer.submit(tile_write(job, 17, kBytes), callbacks.done(100017)) == SubmitStatus::kAccepted);
+  REQUIRE(writer.submit(tile_write(job, 18, kBytes, 9), callbacks.done(100018)) == SubmitStatus::kAccepted);
+  REQUIRE(callbacks.wait_for(kTiles + 2));
+  results = callbacks.results();
+  CHECK(results[100017].at(0).outcome == TileOutcome::kAlreadyPresent);
+  CHECK(results[100017].at(0).identical);
+  CHECK(results[100018].at(0).outcome == TileOutcome::kAlreadyPresent);
+  CHECK_FALSE(results[100018].at(0).identical);
+
+  const auto stats = writer.stats();
+  CHECK(stats.tiles_stored == kTiles);
+  CHECK(stats.tiles_already_present == 2);
+  CHECK(stats.pending_tiles == 0);
+  CHECK(stats.pending_bytes == 0);
+  CHECK(stats.batches <= kTiles + 2);
+  WARN(fmt::format("1000 concurrent submits went into {} transactions (largest {})", stats.batches,
+                   stats.largest_batch));
+
+  // Readable from another connection while the writer still runs (WAL: readers do not block).
+  Store reader = open_ok(tmp.path(), OpenOptions{.verify_integrity = false});
+  auto all = reader.get_all_tiles(job);
+  REQUIRE(all.ok());
+  REQUIRE(all.value().size() == kTiles);
+  for (const StoredTile& t : all.value()) {
+    REQUIRE(t.pixels == make_pixels(job, t.tile, kBytes));
+  }
+}
+
+TEST_CASE("tasks run in submission order with the tiles around them", "[store][writer]") {
+  StoreDir tmp;
+  Callbacks callbacks;
+  TileWriter writer(open_ok(tmp.path()));
+  Gate gate;
+  gate.close(writer);
+  // The job is created by a task queued before its tile, in the same drained batch.
+  std::promise<std::int64_t> job_id;
+  REQUIRE(writer.post([&](Store& store) { job_id.set_value(make_job(store)); }) == SubmitStatus::kAccepted);
+  REQUIRE(writer.submit(tile_write(1, 0, 100), callbacks.done(0)) == SubmitStatus::kAccepted);
+  std::promise<std::uint64_t> counted;
+  REQUIRE(writer.post([&](Store& store) { counted.set_value(store.count_tiles(1).value()); }) ==
+          SubmitStatus::kAccepted);
+  gate.open();
+  REQUIRE(callbacks.wait_for(1));
+  CHECK(job_id.get_future().get() == 1);
+  CHECK(callbacks.results()[0].at(0).outcome == TileOutcome::kStored);
+  CHECK(counted.get_future().get() == 1);
+  writer.stop();  // the count is updated after a task returns
+  CHECK(writer.stats().tasks_run == 3);
+}
+
+TEST_CASE("a transaction holds at most max_batch_tiles tiles", "[store][writer]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  Callbacks callbacks;
+  TileWriter writer(std::move(setup), WriterLimits{.max_batch_tiles = 4});
+  Gate gate;
+  gate.close(writer);
+  for (std::uint32_t t = 0; t < 10; ++t) {
+    REQUIRE(writer.submit(tile_write(job, t, 100), callbacks.done(t)) == SubmitStatus::kAccepted);
+  }
+  gate.open();
+  REQUIRE(callbacks.wait_for(10));
+  writer.stop();
+  CHECK(writer.stats().batches == 3);
+  CHECK(writer.stats().largest_batch == 4);
+  CHECK(writer.stats().tiles_stored == 10);
+}
+
+TEST_CASE("a rejected tile does not fail the rest of its batch", "[store][writer]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  Callbacks callbacks;
+  TileWriter writer(std::move(setup));
+  Gate gate;
+  gate.close(writer);
+  REQUIRE(writer.submit(tile_write(job, 0, 100), callbacks.done(0)) == SubmitStatus::kAccepted);
+  REQUIRE(writer.submit(tile_write(job + 1, 0, 100), callbacks.done(1)) == SubmitStatus::kAccepted);
+  REQUIRE(writer.submit(tile_write(job, 1, 100), callbacks.done(2)) == SubmitStatus::kAccepted);
+  gate.open();
+  REQUIRE(callbacks.wait_for(3));
+  auto r = callbacks.results();
+  CHECK(r[0].at(0).outcome == TileOutcome::kStored);
+  CHECK(r[1].at(0).outcome == TileOutcome::kRejected);
+  CHECK(r[2].at(0).outcome == TileOutcome::kStored);
+  CHECK(writer.stats().batches == 1);
+}
+
+TEST_CASE("a failed transaction fails every tile of the batch and stores none", "[store][writer]") {
+  StoreDir tmp;
+  const std::int64_t job = job_in(tmp);
+  Callbacks callbacks;
+  std::uint64_t stored_after = 0;
+  SECTION("the database is full (a size cap stands in for the disk)") {
+    TileWriter writer(open_ok(tmp.path(), OpenOptions{.max_database_bytes = 256 * 1024}));
+    Gate gate;
+    gate.close(writer);
+    for (std::uint32_t t = 0; t < 10; ++t) {  // ~480 KiB in one transaction
+      REQUIRE(writer.submit(tile_write(job, t, kBenchTileBytes), callbacks.done(t)) == SubmitStatus::kAccepted);
+    }
+    gate.open();
+    REQUIRE(callbacks.wait_for(10));
+    for (const auto& [tile, rs] : callbacks.results()) {
+      CHECK(rs.at(0).outcome == TileOutcome::kFailed);
+      CHECK_THAT(rs.at(0).error, Contains("full"));
+    }
+    CHECK(writer.stats().tiles_failed == 10);
+    // The writer goes on: a batch that fits is stored.
+    REQUIRE(writer.submit(tile_write(job, 0, kBenchTileBytes), callbacks.done(100)) == SubmitStatus::kAccepted);
+    REQUIRE(callbacks.wait_for(11));
+    CHECK(callbacks.results()[100].at(0).outcome == TileOutcome::kStored);
+    stored_after = 1;
+  }
+  SECTION("another connection holds the write lock past the busy timeout") {
+    TileWriter writer(open_ok(tmp.path(), OpenOptions{.busy_timeout = 50ms}));
+    sqlite3* other = nullptr;
+    REQUIRE(sqlite3_open_v2(tmp.db().c_str(), &other, SQLITE_OPEN_READWRITE, nullptr) == SQLITE_OK);
+    REQUIRE(sqlite3_exec(other, "BEGIN IMMEDIATE", nullptr, nullptr, nullptr) == SQLITE_OK);
+    for (std::uint32_t t = 0; t < 5; ++t) {
+      REQUIRE(writer.submit(tile_write(job, t, 100), callbacks.done(t)) == SubmitStatus::kAccepted);
+    }
+    REQUIRE(callbacks.wait_for(5));
+    for (const auto& [tile, rs] : callbacks.results()) {
+      CHECK(rs.at(0).outcome == TileOutcome::kFailed);
+      CHECK_THAT(rs.at(0).error, Contains("locked"));
+    }
+    REQUIRE(sqlite3_exec(other, "ROLLBACK", nullptr, nullptr, nullptr) == SQLITE_OK);
+    sqlite3_close(other);
+    REQUIRE(writer.submit(tile_write(job, 0, 100), callbacks.done(100)) == SubmitStatus::kAccepted);
+    REQUIRE(callbacks.wait_for(6));
+    CHECK(callbacks.results()[100].at(0).outcome == TileOutcome::kStored);
+    stored_after = 1;
+  }
+  Store check = open_ok(tmp.path());
+  CHECK(check.count_tiles(job).value() == stored_after);
+}
+
+TEST_CASE("the pending queue is bounded in tiles, bytes and tasks", "[store][writer]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  Callbacks callbacks;
+  std::size_t accepted = 0;
+  SECTION("tiles") {
+    TileWriter writer(std::move(setup), WriterLimits{.max_pending_tiles = 3, .max_pending_bytes = 1 << 20});
+    Gate gate;
+    gate.close(writer);
+    for (std::uint32_t t = 0; t < 3; ++t) {
+      REQUIRE(writer.submit(tile_write(job, t, 100), callbacks.done(t)) == SubmitStatus::kAccepted);
+    }
+    CHECK(writer.submit(tile_write(job, 3, 100), callbacks.done(3)) == SubmitStatus::kBusy);
+    CHECK(writer.stats().busy_refusals == 1);
+    CHECK(writer.stats().pending_tiles == 3);
+    gate.open();
+    REQUIRE(callbacks.wait_for(3));
+    CHECK(writer.submit(tile_write(job, 3, 100), callbacks.done(3)) == SubmitStatus::kAccepted);
+    accepted = 4;
+    REQUIRE(callbacks.wait_for(accepted));
+  }
+  SECTION("bytes") {
+    TileWriter writer(std::move(setup), WriterLimits{.max_pending_tiles = 100, .max_pending_bytes = 2500});
+    Gate gate;
+    gate.close(writer);
+    REQUIRE(writer.submit(tile_write(job, 0, 1000), callbacks.done(0)) == SubmitStatus::kAccepted);
+    REQUIRE(writer.submit(tile_write(job, 1, 1000), callbacks.done(1)) == SubmitStatus::kAccepted);
+    CHECK(writer.submit(tile_write(job, 2, 1000), callbacks.done(2)) == SubmitStatus::kBusy);
+    CHECK(writer.submit(tile_write(job, 2, 3000), callbacks.done(2)) == SubmitStatus::kTooLarge);
+    CHECK(writer.submit(tile_write(job, 2, 400), callbacks.done(2)) == SubmitStatus::kAccepted);
+    CHECK(writer.stats().pending_bytes == 2 * (1000 + 8) + 400 + 8);
+    gate.open();
+    accepted = 3;
+    REQUIRE(callbacks.wait_for(accepted));
+    CHECK(writer.stats().pending_bytes == 0);
+  }
+  SECTION("tasks") {
+    TileWriter writer(std::move(setup), WriterLimits{.max_pending_tasks = 2});
+    Gate gate;
+    gate.close(writer);  // the running task still counts
+    CHECK(writer.post([](Store&) {}) == SubmitStatus::kAccepted);
+    CHECK(writer.post([](Store&) {}) == SubmitStatus::kBusy);
+    // Tiles have their own limits.
+    CHECK(writer.submit(tile_write(job, 0, 100), callbacks.done(0)) == SubmitStatus::kAccepted);
+    gate.open();
+    accepted = 1;
+    REQUIRE(callbacks.wait_for(accepted));
+  }
+  for (const auto& [tile, rs] : callbacks.results()) {
+    REQUIRE(rs.size() == 1);  // refused submissions are never called back
+    CHECK(rs[0].outcome == TileOutcome::kStored);
+  }
+  CHECK(callbacks.count() == accepted);
+}
+
+TEST_CASE("stop() commits and calls back everything accepted, then refuses", "[store][writer]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  Callbacks callbacks;
+  std::uint32_t accepted = 0;
+  {
+    TileWriter writer(std::move(setup));
+    Gate gate;
+    gate.close(writer);
+    for (; accepted < 100; ++accepted) {
+      REQUIRE(writer.submit(tile_write(job, accepted, 500), callbacks.done(accepted)) == SubmitStatus::kAccepted);
+    }
+    auto stopped = std::async(std::launch::async, [&] { writer.stop(); });
+    // stop() refuses new work at once, even while the writer is still busy.
+    const auto deadline = std::chrono::steady_clock::now() + kWaitLimit;
+    for (;;) {
+      const SubmitStatus s = writer.submit(tile_write(job, accepted, 500), callbacks.done(accepted));
+      if (s == SubmitStatus::kStopped) break;
+      REQUIRE(s == SubmitStatus::kAccepted);
+      ++accepted;
+      REQUIRE(std::chrono::steady_clock::now() < deadline);
+      std::this_thread::sleep_for(1ms);
+    }
+    CHECK(writer.post([](Store&) {}) == SubmitStatus::kStopped);
+    CHECK(callbacks.count() == 0);  // still held by the gate
+    gate.open();
+    REQUIRE(stopped.wait_for(kWaitLimit) == std::future_status::ready);
+    CHECK(callbacks.count() == accepted);  // stop() returned after every callback
+    writer.stop();                         // idempotent
+  }
+  for (const auto& [tile, rs] : callbacks.results()) {
+    REQUIRE(rs.size() == 1);
+    CHECK(rs[0].outcome == TileOutcome::kStored);
+  }
+  Store check = open_ok(tmp.path());
+  CHECK(check.count_tiles(job).value() == accepted);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Durability: what was acknowledged survives the death of the process that acknowledged it.
+
+TEST_CASE("acknowledged tiles survive a SIGKILL of the writing process", "[store][writer][durability]") {
+  StoreDir tmp;
+  const std::int64_t job = job_in(tmp);
+  constexpr std::size_t kAcksBeforeKill = 300;
+  ForkedChild child([&tmp, job](int fd) {
+    // Write tiles as fast as possible and report each acknowledgement on the pipe, after its
+    // commit returned, until killed.
+    auto opened = Store::open(tmp.path(), OpenOptions{.verify_integrity = false});
+    if (!opened) ::_exit(2);
+    TileWriter writer(std::move(opened).value(), WriterLimits{.max_pending_tiles = 256});
+    for (std::uint32_t tile = 0; tile < 1'000'000; ++tile) {
+      for (;;) {
+        const SubmitStatus s = writer.submit(tile_write(job, tile, 4096), [fd, tile](CommitResult r) {
+          if (r.outcome != TileOutcome::kStored) ::_exit(3);
+          if (::write(fd, &tile, sizeof tile) != sizeof tile) ::_exit(4);
+        });
+        if (s == SubmitStatus::kAccepted) break;
+        if (s != SubmitStatus::kBusy) ::_exit(5);
+        std::this_thread::sleep_for(100us);
+      }
+    }
+    ::pause();
+    ::_exit(6);
+  });
+  std::string reports;
+  const auto enough = [](const std::string& r) { return r.size() >= kAcksBeforeKill * sizeof(std::uint32_t); };
+  REQUIRE(child.read(reports, enough, kWaitLimit));
+  const int status = child.kill_and_wait();
+  CHECK(WTERMSIG(status) == SIGKILL);
+  // What the child wrote before it died: the pipe holds it until read.
+  child.read(
+      reports, [](const std::string&) { return false; }, kWaitLimit);
+  std::set<std::uint32_t> acked;
+  for (std::size_t i = 0; i + sizeof(std::uint32_t) <= reports.size(); i += sizeof(std::uint32_t)) {
+    std::uint32_t tile = 0;
+    std::memcpy(&tile, reports.data() + i, sizeof tile);
+    acked.insert(tile);
+  }
+  INFO("acknowledged before the kill: " << acked.size());
+
+  // A full open (integrity check included) recovers the WAL and finds every acknowledged tile.
+  Store store = open_ok(tmp.path());
+  auto all = store.get_all_tiles(job);
+  REQUIRE(all.ok());
+  std::set<std::uint32_t> stored;
+  for (const StoredTile& t : all.value()) {
+    REQUIRE(t.pixels == make_pixels(job, t.tile, 4096));
+    stored.insert(t.tile);
+  }
+  for (std::uint32_t tile : acked) REQUIRE(stored.count(tile) == 1);
+  WARN(fmt::format("durability: {} tiles acknowledged before SIGKILL, {} found after reopening", acked.size(),
+                   stored.size()));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Benchmark: figures only, no assertion on time.
+
+TEST_CASE("benchmark: durable tile commits per second with 64x64 float tiles", "[store][benchmark]") {
+  StoreDir tmp;
+  const std::int64_t job = job_in(tmp);
+  using Clock = std::chrono::steady_clock;
+  auto seconds_since = [](Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); };
+  std::uint32_t next_tile = 0;
+  std::vector<Blob> pool;  // distinct contents, made before timing
+  for (int i = 0; i < 64; ++i) pool.push_back(make_pixels(job, 1000000 + i, kBenchTileBytes));
+
+  // 1. Store::insert_tiles directly: one transaction per batch of a fixed size.
+  {
+    Store store = open_ok(tmp.path(), OpenOptions{.verify_integrity = false});
+    for (std::size_t batch : {1, 16, 256}) {
+      const std::size_t total = batch == 1 ? 100 : 1024;
+      const auto t0 = Clock::now();
+      for (std::size_t done = 0; done < total; done += batch) {
+        std::vector<TileWrite> w;
+        for (std::size_t k = 0; k < batch; ++k) w.push_back({job, next_tile++, pool[k % pool.size()], "bench", 0});
+        REQUIRE(store.insert_tiles(w).ok());
+      }
+      const double s = seconds_since(t0);
+      WARN(fmt::format("insert_tiles, {:>3} tiles per transaction: {:>7.0f} tiles/s ({:.2f} ms per transaction)", batch,
+                       total / s, 1e3 * s / (total / batch)));
+    }
+  }
+  // 2. TileWriter, four producers submitting as fast as the bounded queue lets them.
+  {
+    std::atomic<std::uint64_t> stored{0}, busy{0};
+    TileWriter writer(open_ok(tmp.path(), OpenOptions{.verify_integrity = false}));
+    constexpr std::uint32_t kProducers = 4, kPerProducer = 1000;
+    const std::uint32_t base = next_tile;
+    const auto t0 = Clock::now();
+    std::vector<std::thread> producers;
+    for (std::uint32_t p = 0; p < kProducers; ++p) {
+      producers.emplace_back([&, p] {
+        for (std::uint32_t k = 0; k < kPerProducer; ++k) {
+          for (;;) {
+            const std::uint32_t tile = base + p * kPerProducer + k;
+            const SubmitStatus s =
+                writer.submit({job, tile, pool[tile % pool.size()], "bench", 0}, [&](CommitResult r) {
+                  if (r.outcome == TileOutcome::kStored) ++stored;
+                });
+            if (s == SubmitStatus::kAccepted) break;
+            ++busy;
+            std::this_thread::sleep_for(100us);
+          }
+        }
+      });
+    }
+    for (auto& th : producers) th.join();
+    writer.stop();
+    const double s = seconds_since(t0);
+    const auto stats = writer.stats();
+    CHECK(stored == kProducers * kPerProducer);
+    WARN(fmt::format(
+        "TileWriter, {} producers: {:.0f} durable tiles/s ({} tiles of {} bytes in {:.2f} s; {} transactions, "
+        "mean {:.1f} and largest {} tiles; {:.0f}% of the wall time inside transactions; {} busy refusals)",
+        kProducers, kProducers * kPerProducer / s, kProducers * kPerProducer, kBenchTileBytes, s, stats.batches,
+        double(stats.tiles_stored) / stats.batches, stats.largest_batch, 100 * stats.write_seconds / s, busy.load()));
+  }
+  // 3. The floor under SQLite: the same bytes appended to a plain file, one fdatasync per 256.
+  {
+    const std::string path = tmp.path() + "/raw.bin";
+    const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    REQUIRE(fd >= 0);
+    constexpr std::size_t kTotal = 1024, kBatch = 256;
+    const auto t0 = Clock::now();
+    for (std::size_t i = 0; i < kTotal; ++i) {
+      const Blob& b = pool[i % pool.size()];
+      REQUIRE(::write(fd, b.data(), b.size()) == static_cast<ssize_t>(b.size()));
+      if ((i + 1) % kBatch == 0) REQUIRE(::fdatasync(fd) == 0);
+    }
+    const double s = seconds_since(t0);
+    ::close(fd);
+    WARN(fmt::format("plain file append + fdatasync per {}: {:.0f} tiles/s ({:.0f} MB/s)", kBatch, kTotal / s,
+                     kTotal * kBenchTileBytes / s / 1e6));
+  }
+}
