@@ -1,0 +1,277 @@
+#include "jsonio/parse.h"
+
+#include <algorithm>
+#include <charconv>
+#include <cmath>
+#include <cstdint>
+#include <system_error>
+#include <utility>
+#include <vector>
+
+// basic_parser's member definitions live in this header; it must be included by exactly the
+// translation units that instantiate basic_parser with their own handler (this one).
+#include <boost/json/basic_parser_impl.hpp>
+#include <boost/json/error.hpp>
+#include <boost/json/object.hpp>
+#include <boost/json/string.hpp>
+#include <boost/json/value_stack.hpp>
+#include <fmt/format.h>
+
+namespace dtraced::jsonio {
+namespace {
+
+namespace json = boost::json;
+
+// Keys of one object are compared linearly for duplicates. No object dtraced reads has more than
+// a handful of keys; past this many the object is wrong anyway (every extra key is an unknown-key
+// error later), so duplicate tracking stops instead of going quadratic on hostile input.
+constexpr std::size_t kMaxTrackedKeys = 64;
+
+// Where the parser is inside the document, so an error can name a JSON Pointer.
+struct Frame {
+  bool is_array = false;
+  std::size_t index = 0;  // array: index of the element being read
+  bool has_key = false;   // object: a key was read and its value is being read
+  std::string key;
+  std::vector<std::string> seen_keys;
+};
+
+// The basic_parser handler: builds the value with Boost's value_stack (as boost::json::parser
+// does) while keeping a path stack. Returning true everywhere: no callback aborts parsing.
+class StrictHandler {
+ public:
+  static constexpr std::size_t max_object_size = json::object::max_size();
+  static constexpr std::size_t max_array_size = json::array::max_size();
+  static constexpr std::size_t max_key_size = json::string::max_size();
+  static constexpr std::size_t max_string_size = json::string::max_size();
+
+  // The value stack's scratch space comes from the same storage as the value: with the
+  // loader's arena, growing it for a 100k-element array costs no heap churn.
+  StrictHandler(json::storage_ptr storage, std::size_t max_errors) : stack_(storage), max_errors_(max_errors) {
+    stack_.reset(std::move(storage));
+  }
+
+  bool on_document_begin(json::error_code&) { return true; }
+  bool on_document_end(json::error_code&) { return true; }
+
+  bool on_array_begin(json::error_code&) { return open(/* is_array = */ true); }
+  bool on_array_end(std::size_t n, json::error_code&) {
+    stack_.push_array(n);
+    return close();
+  }
+  bool on_object_begin(json::error_code&) { return open(/* is_array = */ false); }
+  bool on_object_end(std::size_t n, json::error_code&) {
+    stack_.push_object(n);
+    return close();
+  }
+
+  bool on_string_part(json::string_view s, std::size_t, json::error_code&) {
+    stack_.push_chars(s);
+    return true;
+  }
+  bool on_string(json::string_view s, std::size_t, json::error_code&) {
+    stack_.push_string(s);
+    return value_done();
+  }
+  bool on_key_part(json::string_view s, std::size_t, json::error_code&) {
+    stack_.push_chars(s);
+    key_part_.append(s.data(), s.size());
+    return true;
+  }
+  bool on_key(json::string_view s, std::size_t, json::error_code&) {
+    stack_.push_key(s);
+    key_part_.append(s.data(), s.size());
+    key_read(std::move(key_part_));
+    key_part_.clear();
+    return true;
+  }
+
+  bool on_number_part(json::string_view s, json::error_code&) {
+    number_part_.append(s.data(), s.size());
+    return true;
+  }
+  bool on_int64(std::int64_t i, json::string_view, json::error_code&) {
+    number_part_.clear();
+    stack_.push_int64(i);
+    return value_done();
+  }
+  bool on_uint64(std::uint64_t u, json::string_view, json::error_code&) {
+    number_part_.clear();
+    stack_.push_uint64(u);
+    return value_done();
+  }
+  bool on_double(double boost_value, json::string_view s, json::error_code&) {
+    number_part_.append(s.data(), s.size());
+    stack_.push_double(precise_double(number_part_, boost_value));
+    number_part_.clear();
+    return value_done();
+  }
+  bool on_bool(bool b, json::error_code&) {
+    stack_.push_bool(b);
+    return value_done();
+  }
+  bool on_null(json::error_code&) {
+    stack_.push_null();
+    return value_done();
+  }
+  // Comments are disabled in parse_options; these only satisfy the handler concept.
+  bool on_comment_part(json::string_view, json::error_code&) { return true; }
+  bool on_comment(json::string_view, json::error_code&) { return true; }
+
+  json::value release() { return stack_.release(); }
+  util::Errors& errors() { return errors_; }
+
+  // JSON Pointer of the value being read now (or of the container, between values).
+  std::string current_path() const {
+    std::string path;
+    for (std::size_t i = 0; i < depth_; ++i) {
+      const Frame& f = frames_[i];
+      if (f.is_array) {
+        path += fmt::format("/{}", f.index);
+      } else if (f.has_key) {
+        path += '/';
+        path += pointer_escape(f.key);
+      }
+    }
+    return path;
+  }
+
+ private:
+  // from_chars is correctly rounded; Boost 1.81's conversion is not (see the header).
+  static double precise_double(const std::string& text, double boost_value) {
+    double d = 0;
+    const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), d, std::chars_format::general);
+    // On overflow/underflow from_chars leaves `d` alone; Boost's value (+-inf, or a value near
+    // zero) is then the right one, and the reader reports the out-of-range number by path.
+    if (ec != std::errc() || end != text.data() + text.size()) return boost_value;
+    return d;
+  }
+
+  // Frames are reused rather than popped, so a large document does not reallocate key vectors
+  // for every object.
+  bool open(bool is_array) {
+    if (depth_ == frames_.size()) frames_.emplace_back();
+    Frame& f = frames_[depth_++];
+    f.is_array = is_array;
+    f.index = 0;
+    f.has_key = false;
+    f.key.clear();
+    f.seen_keys.clear();
+    return true;
+  }
+  bool close() {
+    --depth_;
+    return value_done();
+  }
+
+  void key_read(std::string key) {
+    Frame& f = frames_[depth_ - 1];
+    f.key = std::move(key);
+    f.has_key = true;
+    if (f.seen_keys.size() >= kMaxTrackedKeys) return;
+    if (std::find(f.seen_keys.begin(), f.seen_keys.end(), f.key) != f.seen_keys.end()) {
+      if (errors_.size() < max_errors_) errors_.push_back({fmt::format("duplicate key \"{}\"", f.key), current_path()});
+    } else {
+      f.seen_keys.push_back(f.key);
+    }
+  }
+
+  // A value (scalar or closed container) is complete: advance the enclosing container.
+  bool value_done() {
+    if (depth_ == 0) return true;
+    Frame& f = frames_[depth_ - 1];
+    if (f.is_array) {
+      ++f.index;
+    } else {
+      f.has_key = false;
+    }
+    return true;
+  }
+
+  json::value_stack stack_;
+  std::vector<Frame> frames_;
+  std::size_t depth_ = 0;
+  std::string key_part_;
+  std::string number_part_;
+  util::Errors errors_;
+  std::size_t max_errors_;
+};
+
+std::string describe_parse_error(const json::error_code& ec, std::size_t max_depth) {
+  if (ec == json::error::too_deep) return fmt::format("nesting is deeper than the limit of {} levels", max_depth);
+  if (ec == json::error::extra_data) return "unexpected data after the JSON document";
+  if (ec == json::error::incomplete) return "unexpected end of input";
+  return ec.message();
+}
+
+}  // namespace
+
+std::string pointer_escape(std::string_view token) {
+  std::string out;
+  out.reserve(token.size());
+  for (const char c : token) {
+    if (c == '~') {
+      out += "~0";
+    } else if (c == '/') {
+      out += "~1";
+    } else {
+      out += c;
+    }
+  }
+  return out;
+}
+
+Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t max_errors, json::storage_ptr storage) {
+  json::parse_options options;
+  options.max_depth = max_depth;  // the other options already default to strict JSON
+
+  json::basic_parser<StrictHandler> parser(options, std::move(storage), max_errors);
+  json::error_code ec;
+  const std::size_t consumed = parser.write_some(/* more = */ false, text.data(), text.size(), ec);
+  if (!ec && consumed != text.size()) ec = json::error::extra_data;
+
+  if (ec) {
+    // Line and column count from 1; the column counts bytes, which is what editors show for
+    // ASCII and close enough otherwise.
+    const std::string_view before = text.substr(0, std::min(consumed, text.size()));
+    const std::size_t line = 1 + static_cast<std::size_t>(std::count(before.begin(), before.end(), '\n'));
+    const std::size_t line_start = before.rfind('\n') == std::string_view::npos ? 0 : before.rfind('\n') + 1;
+    const std::size_t column = consumed - line_start + 1;
+    auto& handler = parser.handler();
+    // The syntax error is pushed past the error limit if need be: it is the one that matters.
+    handler.errors().push_back({fmt::format("invalid JSON at line {}, column {} (byte {}): {}", line, column, consumed,
+                                            describe_parse_error(ec, max_depth)),
+                                handler.current_path()});
+    return Document{json::value(), /* parsed = */ false, std::move(handler.errors())};
+  }
+  // Constructed, not assigned: assigning into a value with the default storage would deep-copy
+  // the whole tree out of the caller's arena.
+  return Document{parser.handler().release(), /* parsed = */ true, std::move(parser.handler().errors())};
+}
+
+std::string_view kind_name(const json::value& v) {
+  switch (v.kind()) {
+    case json::kind::object:
+      return "an object";
+    case json::kind::array:
+      return "an array";
+    case json::kind::string:
+      return "a string";
+    case json::kind::bool_:
+      return "a boolean";
+    case json::kind::null:
+      return "null";
+    default:
+      return "a number";
+  }
+}
+
+json::value exact_number(double d, json::storage_ptr storage) {
+  constexpr double kExactIntegers = 9007199254740992.0;  // 2^53
+  if (d == std::floor(d) && std::abs(d) <= kExactIntegers) {
+    return json::value(static_cast<std::int64_t>(d), std::move(storage));
+  }
+  return json::value(d, std::move(storage));
+}
+
+}  // namespace dtraced::jsonio
