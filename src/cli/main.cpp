@@ -7,9 +7,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <memory>
 #include <optional>
-#include <set>
 #include <string>
 
 #include <CLI/CLI.hpp>
@@ -54,16 +52,7 @@ int main(int argc, char** argv) {
   RoleArgs role;
   add_role_options(app, role);
   // --config FILE: a JSON object of long flag names in snake_case; flags on the command line win.
-  app.set_config("--config", "", "JSON file of role options (keys: long flag names, e.g. state_dir)");
-  {
-    std::set<std::string> known;
-    for (const CLI::Option* opt : app.get_options()) {
-      for (const std::string& name : opt->get_lnames()) {
-        if (name != "help" && name != "version" && name != "config") known.insert(name);
-      }
-    }
-    app.config_formatter(std::make_shared<JsonConfig>(config_file_argument(argc, argv), std::move(known)));
-  }
+  add_config_option(app, config_file_argument(argc, argv));
   app.fallthrough(false);
 
   RenderArgs render;
