@@ -134,9 +134,14 @@ check "--isa is not a collector option" 2 "$DTRACED" --role collector --isa scal
 echo '{"role": "collector", "listen": "127.0.0.1:0", "state_dir": "/nonexistent", "bogus_key": 1}' >"$work/c1.json"
 check "config with an unknown key" 2 "$DTRACED" --config "$work/c1.json"
 expect_text "the unknown key is named with its file" "$work/err" "c1.json: /bogus_key: unknown key"
+echo '{"role": "collector", "state_dr": "/x"}' >"$work/c1b.json"
+check "config with a misspelt key" 2 "$DTRACED" --config "$work/c1b.json"
+expect_text "a misspelt key gets a suggestion, worded as in scenes and bodies" "$work/err" \
+  'c1b.json: /state_dr: unknown key "state_dr" (did you mean "state_dir"?)'
 echo '[1' >"$work/c2.json"
 check "config that is not JSON" 2 "$DTRACED" --config "$work/c2.json" --role worker
 expect_text "the bad config file is named" "$work/err" "c2.json"
+expect_text "a syntax error in a config names the line" "$work/err" "invalid JSON at line 2, column 1"
 check "a collector flag with --role worker" 2 "$DTRACED" --role worker --state-dir x --collector http://127.0.0.1:1 --token-file "$work/token"
 check "a role and a verb together" 2 "$DTRACED" --role worker validate "$SCENES/snowman.json"
 check "collector without a token file" 2 "$DTRACED" --role collector --state-dir "$work/s"

@@ -1,11 +1,11 @@
-// Tests for dtraced::protocol: every message's JSON codec round trips exactly, malformed bodies
-// are refused with the JSON path of the problem (embedded scenes included), and the binary tile
-// payload round trips bit for bit and detects each kind of corruption.
+// Tests for dtraced::protocol's messages: every JSON codec round trips exactly, and malformed
+// bodies are refused with the JSON path of the problem (embedded scenes included), in the words
+// scene files and config files use for the same mistake. test_protocol_payload.cpp has the tile
+// payload.
 #include <algorithm>
 #include <bit>
 #include <cfloat>
 #include <cstdint>
-#include <cstring>
 #include <functional>
 #include <limits>
 #include <string>
@@ -16,9 +16,7 @@
 #include <catch2/catch.hpp>
 
 #include "protocol/messages.h"
-#include "protocol/tile_payload.h"
 #include "scene/load.h"
-#include "util/sha256.h"
 
 namespace {
 
@@ -320,7 +318,9 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
 
   const std::vector<BadBody> cases = {
       // submissions
-      {"unknown key", submit, submit_body(kSceneJson, R"("priorty": 1)"), "/priorty", "unknown key \"priorty\""},
+      // Unknown keys are worded as in scene and config files: a suggestion, or the known keys.
+      {"unknown key", submit, submit_body(kSceneJson, R"("priorty": 1)"), "/priorty",
+       "unknown key \"priorty\" (did you mean \"priority\"?)"},
       {"priority as a string", submit, submit_body(kSceneJson, R"("priority": "high")"), "/priority",
        "expected an integer, got a string"},
       {"priority out of range", submit, submit_body(kSceneJson, R"("priority": 1001)"), "/priority",
@@ -372,7 +372,7 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
       {"duplicate top-level key", submit, submit_body(kSceneJson, R"("priority": 1, "priority": 2)"), "/priority",
        "duplicate key \"priority\""},
       {"truncated body", submit, R"({"scene": {"camera": )", "/scene/camera", "unexpected end of input"},
-      {"not an object", submit, "[]", "", "expected an object, got an array"},
+      {"not an object", submit, "[]", "", "expected a JSON object at the top level, got an array"},
       {"empty body", submit, "", "", "unexpected end of input"},
       {"trailing garbage", submit, submit_body(kSceneJson) + "x", "", "invalid JSON"},
       {"too deep", submit, submit_body(kSceneJson, "\"x\": " + nested_arrays(65)), deep_path,
@@ -403,6 +403,8 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
       {"worker name empty", lease_request, R"({"worker": "", "threads": 1})", "/worker", "printable ASCII"},
       {"threads 0", lease_request, R"({"worker": "w", "threads": 0})", "/threads", "[1, 4096] (got 0)"},
       {"threads missing", lease_request, R"({"worker": "w"})", "/threads", "required key is missing"},
+      {"unknown key far from any", lease_request, R"({"worker": "w", "threads": 1, "zzz": 1})", "/zzz",
+       "unknown key \"zzz\"; known keys: worker, threads"},
       // lease reply
       {"both lease and retry", lease_reply, R"({"lease": {}, "retry_after_ms": 5})", "", "exactly one of"},
       {"neither lease nor retry", lease_reply, "{}", "", "exactly one of"},
@@ -411,7 +413,7 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
        lease_body(kRect,
                   R"({"width": 64, "height": 64, "samples": 1, "max_depth": 8, "background": [0, -1, 0],
                       "seed": 0, "frame": 0})"),
-       "/lease/settings/background/1", "must be in [0, "},
+       "/lease/settings/background/1", "must be >= 0 (got -1)"},
       {"tile wider than allowed", lease_reply, lease_body(R"("x": 0, "y": 0, "width": 2000, "height": 32)", kSettings),
        "/lease/width", "[1, 1024] (got 2000)"},
       {"tile past the image", lease_reply, lease_body(R"("x": 48, "y": 0, "width": 32, "height": 32)", kSettings),
@@ -473,162 +475,6 @@ TEST_CASE("output names", "[protocol]") {
   }
   CHECK_FALSE(protocol::check_output_name(std::string(251, 'x') + ".png").has_value());
   CHECK(protocol::check_output_name(std::string(252, 'x') + ".png").has_value());
-}
-
-// ---- tile payload --------------------------------------------------------------------------
-
-namespace {
-
-protocol::TilePayload test_tile(std::uint32_t w, std::uint32_t h) {
-  protocol::TilePayload p;
-  p.job = 0x0102030405060708ull;
-  p.tile = 77;
-  p.rect = {96, 64, w, h};
-  p.rgb.resize(std::size_t{w} * h * 3);
-  for (std::size_t i = 0; i < p.rgb.size(); ++i) p.rgb[i] = static_cast<float>(i) * 0.37f + 1e-3f;
-  return p;
-}
-
-protocol::TilePayloadError error_of(std::string_view bytes) {
-  auto d = protocol::decode_tile_payload(bytes);
-  REQUIRE(std::holds_alternative<protocol::TilePayloadFailure>(d));
-  INFO(std::get<protocol::TilePayloadFailure>(d).message);
-  return std::get<protocol::TilePayloadFailure>(d).code;
-}
-
-// Recomputes nothing: header edits keep the old checksum unless re-encoded, so corruptions that
-// must be caught before the checksum are built through the encoder with the checksum refreshed.
-std::string with_checksum(std::string bytes) {
-  bytes.resize(bytes.size() - protocol::kTileChecksumBytes);
-  const auto sum = dtraced::util::sha256_bytes(bytes);
-  bytes.append(reinterpret_cast<const char*>(sum.data()), sum.size());
-  return bytes;
-}
-
-}  // namespace
-
-TEST_CASE("a tile payload round trips bit for bit, special floats included", "[protocol][tile]") {
-  protocol::TilePayload p = test_tile(32, 17);
-  p.rgb[0] = -0.0f;
-  p.rgb[1] = std::numeric_limits<float>::denorm_min();
-  p.rgb[2] = std::numeric_limits<float>::infinity();
-  p.rgb[3] = std::bit_cast<float>(0x7fc12345u);  // a NaN with a payload
-  p.rgb[4] = FLT_MAX;
-  const std::string bytes = protocol::encode_tile_payload(p);
-  REQUIRE(bytes.size() == protocol::tile_payload_size(32, 17));
-  REQUIRE(bytes.size() == 40 + 32 * 17 * 12 + 32);
-
-  // The header layout, little-endian.
-  CHECK(bytes.substr(0, 8) == "DTTILE01");
-  CHECK(bytes.substr(8, 8) == std::string("\x08\x07\x06\x05\x04\x03\x02\x01", 8));
-  CHECK(bytes.substr(16, 4) == std::string("\x4d\0\0\0", 4));  // tile 77
-  CHECK(bytes.substr(20, 4) == std::string("\x60\0\0\0", 4));  // x 96
-  CHECK(bytes.substr(36, 4) == std::string(4, '\0'));          // reserved
-
-  auto d = protocol::decode_tile_payload(bytes);
-  REQUIRE(std::holds_alternative<protocol::TilePayload>(d));
-  const protocol::TilePayload& back = std::get<protocol::TilePayload>(d);
-  CHECK(back.job == p.job);
-  CHECK(back.tile == p.tile);
-  CHECK(back.rect == p.rect);
-  REQUIRE(back.rgb.size() == p.rgb.size());
-  CHECK(std::memcmp(back.rgb.data(), p.rgb.data(), p.rgb.size() * sizeof(float)) == 0);
-
-  // The largest tile is within the upload limit (which leaves room for sample counts).
-  CHECK(protocol::tile_payload_size(dtraced::scene::kMaxTileSize, dtraced::scene::kMaxTileSize) <
-        protocol::kMaxTilePayloadBytes);
-}
-
-TEST_CASE("each kind of payload corruption is detected and named", "[protocol][tile]") {
-  const std::string good = protocol::encode_tile_payload(test_tile(8, 8));
-  REQUIRE(std::holds_alternative<protocol::TilePayload>(protocol::decode_tile_payload(good)));
-  using E = protocol::TilePayloadError;
-
-  SECTION("a flipped pixel bit fails the checksum") {
-    std::string bad = good;
-    bad[40 + 100] ^= 0x10;
-    CHECK(error_of(bad) == E::kBadChecksum);
-  }
-  SECTION("a flipped header bit (the job) fails the checksum") {
-    std::string bad = good;
-    bad[9] ^= 0x01;
-    CHECK(error_of(bad) == E::kBadChecksum);
-  }
-  SECTION("a flipped checksum bit fails the checksum") {
-    std::string bad = good;
-    bad[bad.size() - 1] ^= 0x80;
-    CHECK(error_of(bad) == E::kBadChecksum);
-  }
-  SECTION("one byte short is the wrong size") { CHECK(error_of(good.substr(0, good.size() - 1)) == E::kWrongSize); }
-  SECTION("one byte long is the wrong size") { CHECK(error_of(good + "x") == E::kWrongSize); }
-  SECTION("a header claiming a bigger tile is the wrong size") {
-    std::string bad = good;
-    bad[28] = 9;  // width 9 with the pixels of width 8
-    CHECK(error_of(with_checksum(bad)) == E::kWrongSize);
-  }
-  SECTION("shorter than a header and checksum is truncated") {
-    CHECK(error_of(good.substr(0, 71)) == E::kTruncated);
-    CHECK(error_of("") == E::kTruncated);
-  }
-  SECTION("wrong magic") {
-    std::string bad = good;
-    bad[7] = '2';
-    CHECK(error_of(with_checksum(bad)) == E::kBadMagic);
-  }
-  SECTION("reserved word not zero") {
-    std::string bad = good;
-    bad[39] = 1;
-    CHECK(error_of(with_checksum(bad)) == E::kUnknownFlags);
-    bad = good;
-    bad[36] = 2;  // bit 1: not defined
-    CHECK(error_of(with_checksum(bad)) == E::kUnknownFlags);
-  }
-  SECTION("the counts flag without the counts, or counts without the flag, is the wrong size") {
-    std::string bad = good;
-    bad[36] = 1;
-    CHECK(error_of(with_checksum(bad)) == E::kWrongSize);
-    protocol::TilePayload p = test_tile(8, 8);
-    p.spp.assign(64, 5);
-    bad = protocol::encode_tile_payload(p);
-    bad[36] = 0;
-    CHECK(error_of(with_checksum(bad)) == E::kWrongSize);
-  }
-  SECTION("zero or oversized dimensions") {
-    std::string bad = good;
-    bad[28] = 0;
-    CHECK(error_of(with_checksum(bad)) == E::kBadDimensions);
-    bad = good;
-    bad[32] = 0x01;  // height 0x401 = 1025
-    bad[33] = 0x04;
-    CHECK(error_of(with_checksum(bad)) == E::kBadDimensions);
-  }
-}
-
-TEST_CASE("a tile payload carries per-pixel sample counts behind flag bit 0", "[protocol][tile][adaptive]") {
-  protocol::TilePayload p = test_tile(5, 3);
-  p.spp = {1, 2, 4, 8, 16, 32, 64, 65536, 0xffffffffu, 7, 7, 7, 9, 10, 11};
-  const std::string bytes = protocol::encode_tile_payload(p);
-  REQUIRE(bytes.size() == protocol::tile_payload_size(5, 3, /* sample_counts = */ true));
-  REQUIRE(bytes.size() == 40 + 5 * 3 * 16 + 32);
-  CHECK(bytes.substr(36, 4) == std::string("\x01\0\0\0", 4));  // flags
-  // The counts follow the floats, little-endian.
-  CHECK(bytes.substr(40 + 5 * 3 * 12, 8) == std::string("\x01\0\0\0\x02\0\0\0", 8));
-  auto d = protocol::decode_tile_payload(bytes);
-  REQUIRE(std::holds_alternative<protocol::TilePayload>(d));
-  CHECK(std::get<protocol::TilePayload>(d) == p);
-
-  // A payload without counts keeps the old layout (flags 0) and decodes with none.
-  p.spp.clear();
-  const std::string plain = protocol::encode_tile_payload(p);
-  CHECK(plain.size() == protocol::tile_payload_size(5, 3));
-  CHECK(plain.substr(36, 4) == std::string(4, '\0'));
-  auto back = protocol::decode_tile_payload(plain);
-  REQUIRE(std::holds_alternative<protocol::TilePayload>(back));
-  CHECK(std::get<protocol::TilePayload>(back).spp.empty());
-
-  // The largest payload with counts is the upload limit.
-  CHECK(protocol::tile_payload_size(dtraced::scene::kMaxTileSize, dtraced::scene::kMaxTileSize, true) ==
-        protocol::kMaxTilePayloadBytes);
 }
 
 TEST_CASE("adaptive settings travel in submissions, leases and stored settings", "[protocol][json][adaptive]") {

@@ -57,6 +57,7 @@
 #include "protocol/tile_payload.h"
 #include "util/file.h"
 #include "util/log.h"
+#include "util/result.h"
 
 namespace dtraced::bench {
 namespace {
@@ -166,17 +167,15 @@ std::string quote(const http::Response& res) {
 }
 
 // The first line of the file, without surrounding blanks (the rule the dtraced CLI applies).
-std::optional<std::string> read_token(const std::string& path, std::string& error) {
+util::Result<std::string> read_token(const std::string& path) {
+  std::string error;
   auto text = util::read_file_limited(path, kMaxTokenBytes, error);
-  if (!text) return std::nullopt;
+  if (!text) return util::Error{std::move(error)};
   std::string token = text->substr(0, text->find('\n'));
   const std::size_t begin = token.find_first_not_of(" \t\r");
   const std::size_t end = token.find_last_not_of(" \t\r");
   token = begin == std::string::npos ? std::string() : token.substr(begin, end - begin + 1);
-  if (token.empty()) {
-    error = fmt::format("{}: the token file's first line is empty", path);
-    return std::nullopt;
-  }
+  if (token.empty()) return util::Error{fmt::format("{}: the token file's first line is empty", path)};
   return token;
 }
 
@@ -191,19 +190,20 @@ net::awaitable<void> pause_for(net::steady_timer& timer, Clock::duration d) {
   co_await timer.async_wait(net::use_awaitable);
 }
 
-// Before the run: the job must exist and still have tiles to lease. nullopt when it does.
-net::awaitable<std::optional<std::string>> check_job(const Run& run) {
-  http::ClientResult r =
-      co_await exchange(run, http::make_request(http::Verb::get, fmt::format("/v1/jobs/{}", run.job)), "dtraced-load");
-  if (!r.ok()) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, r.message);
-  if (r.response.result() != http::Status::ok) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, quote(r.response));
+// Before the run: the job must exist and still have tiles to lease.
+net::awaitable<util::Status> check_job(const Run& run) {
+  const std::string target = fmt::format("/v1/jobs/{}", run.job);
+  http::ClientResult r = co_await exchange(run, http::make_request(http::Verb::get, target), "dtraced-load");
+  if (!r.ok()) co_return util::Error{r.message, "GET " + target};
+  if (r.response.result() != http::Status::ok) co_return util::Error{quote(r.response), "GET " + target};
   auto status = protocol::decode_job_status(r.response.body());
-  if (!status) co_return fmt::format("GET /v1/jobs/{}: {}", run.job, status.error().front().to_string());
+  if (!status) co_return util::Error{status.error().front().to_string(), "GET " + target};
   const protocol::JobStatus& s = status.value();
   if (s.state != protocol::JobState::kQueued && s.state != protocol::JobState::kRendering) {
-    co_return fmt::format("job {} is {}; the load needs an unfinished job", run.job, protocol::to_string(s.state));
+    co_return util::Error{
+        fmt::format("job {} is {}; the load needs an unfinished job", run.job, protocol::to_string(s.state))};
   }
-  co_return std::nullopt;
+  co_return util::Status();
 }
 
 net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
@@ -369,9 +369,9 @@ int run_load(const Options& o) {
     fmt::print(stderr, "--collector: {}\n", error);
     return 2;
   }
-  std::optional<std::string> token = read_token(o.token_file, error);
+  const util::Result<std::string> token = read_token(o.token_file);
   if (!token) {
-    fmt::print(stderr, "--token-file: {}\n", error);
+    fmt::print(stderr, "--token-file: {}\n", token.error().to_string());
     return 2;
   }
   Run run;
@@ -381,21 +381,21 @@ int run_load(const Options& o) {
   run.lease_only = o.lease_only;
 
   net::io_context io{1};
-  std::optional<std::string> problem = "the job check did not finish";
-  net::co_spawn(io, check_job(run), [&problem](std::exception_ptr e, std::optional<std::string> result) {
+  util::Status checked = util::Error{"the job check did not finish"};
+  net::co_spawn(io, check_job(run), [&checked](std::exception_ptr e, util::Status result) {
     if (!e) {
-      problem = std::move(result);
+      checked = std::move(result);
       return;
     }
     try {
       std::rethrow_exception(e);
     } catch (const std::exception& ex) {
-      problem = fmt::format("job check: {}", ex.what());
+      checked = util::Error{fmt::format("job check: {}", ex.what())};
     }
   });
   io.run();
-  if (problem) {
-    fmt::print(stderr, "dtraced-load: {}\n", *problem);
+  if (!checked) {
+    fmt::print(stderr, "dtraced-load: {}\n", checked.error().to_string());
     return 1;
   }
 

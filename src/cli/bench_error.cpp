@@ -25,6 +25,7 @@
 #include "scene/digest.h"
 #include "scene/load.h"
 #include "util/file.h"
+#include "util/result.h"
 
 extern char** environ;
 
@@ -66,8 +67,8 @@ double median(std::vector<double> v) {
 
 // Renders `repeats` times and keeps the median wall time. Renders are deterministic, so every
 // repeat must give the same bits: a difference is a bug and fails the run.
-std::optional<Timed> timed_render(const render::RenderScene& rs, const scene::RenderSettings& s,
-                                  const render::LocalOptions& opts, std::uint32_t repeats, std::string& error) {
+util::Result<Timed> timed_render(const render::RenderScene& rs, const scene::RenderSettings& s,
+                                 const render::LocalOptions& opts, std::uint32_t repeats) {
   Timed t;
   std::vector<double> seconds;
   for (std::uint32_t i = 0; i < repeats; ++i) {
@@ -76,8 +77,8 @@ std::optional<Timed> timed_render(const render::RenderScene& rs, const scene::Re
     if (i == 0) {
       t.result = std::move(r);
     } else if (r.image.rgb != t.result.image.rgb) {
-      error = fmt::format("two renders at {} spp gave different images: rendering is not deterministic", s.samples);
-      return std::nullopt;
+      return util::Error{
+          fmt::format("two renders at {} spp gave different images: rendering is not deterministic", s.samples)};
     }
   }
   t.seconds = median(seconds);
@@ -124,9 +125,8 @@ std::optional<image::ImageRGBf> read_cached(const std::string& path, const scene
 // The closed form when the scene has one, else a high-sample render with a disjoint seed, cached
 // as PFM (image and its per-pixel variance of the mean) under a name that carries the digest of
 // exactly what was rendered.
-std::optional<Reference> make_reference(const scene::SceneDesc& desc, const render::RenderScene& rs,
-                                        const BenchErrorArgs& args, const render::LocalOptions& base,
-                                        std::string& error) {
+util::Result<Reference> make_reference(const scene::SceneDesc& desc, const render::RenderScene& rs,
+                                       const BenchErrorArgs& args, const render::LocalOptions& base) {
   std::string why_not;
   if (std::optional<image::ImageRGBf> exact =
           render::closed_form_reference(desc, rs, render::kReferenceGrid, why_not)) {
@@ -163,9 +163,9 @@ std::optional<Reference> make_reference(const scene::SceneDesc& desc, const rend
   const render::LocalResult r = render::render_local(rs, s, opts);
   std::error_code ec;
   if (!dir.empty()) std::filesystem::create_directories(dir, ec);
+  std::string error;
   if (!image::write_image(image_path, r.image, {}, error) || !image::write_image(var_path, r.variance, {}, error)) {
-    error = fmt::format("caching the reference: {}", error);
-    return std::nullopt;
+    return util::Error{fmt::format("caching the reference: {}", error)};
   }
   ref.image = r.image;
   ref.noise = reference_noise(r.image, r.variance);
@@ -234,15 +234,12 @@ std::string gp_quote(const std::string& s) {
 }
 
 // Runs gnuplot on a script written beside the plot; the process's exit status decides.
-bool draw_plot(const std::string& csv, const std::string& plot, const std::string& scene, std::string& error) {
+util::Status draw_plot(const std::string& csv, const std::string& plot, const std::string& scene) {
   const std::string ext = std::filesystem::path(plot).extension().string();
   std::string terminal;
   if (ext == ".svg") terminal = "svg size 820,560 dynamic background rgb 'white'";
   if (ext == ".png") terminal = "pngcairo size 820,560 background rgb 'white'";
-  if (terminal.empty()) {
-    error = fmt::format("{}: the plot must be .svg or .png", plot);
-    return false;
-  }
+  if (terminal.empty()) return util::Error{fmt::format("{}: the plot must be .svg or .png", plot)};
   const std::string col = "(strcol(3) eq '{}' ? $9 : NaN)";
   std::string script = fmt::format(
       "set terminal {}\nset output {}\nset datafile separator ','\nset logscale xy\n"
@@ -256,28 +253,25 @@ bool draw_plot(const std::string& csv, const std::string& plot, const std::strin
       "  '' skip 1 using 6:{2}:(sprintf('%g', $4)) with labels offset -1.6,-0.8 notitle\n",
       gp_quote(csv), fmt::format(fmt::runtime(col), "uniform"), fmt::format(fmt::runtime(col), "adaptive"));
   const std::string script_path = plot + ".gp";
-  if (!util::write_file_atomic(script_path, script, error)) return false;
+  std::string error;
+  if (!util::write_file_atomic(script_path, script, error)) return util::Error{std::move(error)};
 
   std::string arg0 = "gnuplot", arg1 = script_path;
   char* argv[] = {arg0.data(), arg1.data(), nullptr};
   pid_t pid = 0;
   const int rc = ::posix_spawnp(&pid, "gnuplot", nullptr, nullptr, argv, environ);
   if (rc != 0) {
-    error = fmt::format("cannot run gnuplot ({}): install gnuplot-nox, or pass --no-plot", std::strerror(rc));
-    return false;
+    return util::Error{
+        fmt::format("cannot run gnuplot ({}): install gnuplot-nox, or pass --no-plot", std::strerror(rc))};
   }
   int status = 0;
   while (::waitpid(pid, &status, 0) < 0) {
-    if (errno != EINTR) {
-      error = fmt::format("waiting for gnuplot: {}", std::strerror(errno));
-      return false;
-    }
+    if (errno != EINTR) return util::Error{fmt::format("waiting for gnuplot: {}", std::strerror(errno))};
   }
   if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
-    error = fmt::format("gnuplot failed on {} (status {})", script_path, status);
-    return false;
+    return util::Error{fmt::format("gnuplot failed on {} (status {})", script_path, status)};
   }
-  return true;
+  return {};
 }
 
 std::string fmt_target(double t) { return t > 0 ? fmt::format("{:g}", t) : std::string("-"); }
@@ -319,6 +313,129 @@ CLI::App* add_bench_error_verb(CLI::App& app, BenchErrorArgs& args, std::optiona
   return e;
 }
 
+namespace {
+
+// The flags that only make sense together, checked before any render.
+util::Status check_bench_args(const BenchErrorArgs& args, const std::vector<double>& targets,
+                              const std::string& plot_path) {
+  if (args.min_samples >= args.max_spp && !targets.empty()) {
+    return util::Error{fmt::format("--min-samples {} must be below --max-spp {} for adaptive rows to stop early",
+                                   args.min_samples, args.max_spp)};
+  }
+  if (args.reference_spp && *args.reference_spp <= args.max_spp) {
+    return util::Error{
+        fmt::format("--reference-spp {} must be above --max-spp {}: the reference needs more samples than any row",
+                    *args.reference_spp, args.max_spp)};
+  }
+  if (!args.no_plot) {
+    const std::string ext = std::filesystem::path(plot_path).extension().string();
+    if (ext != ".svg" && ext != ".png") {
+      return util::Error{fmt::format("{}: the plot must be .svg or .png (or pass --no-plot)", plot_path)};
+    }
+  }
+  return {};
+}
+
+// One row: the median time of `repeats` renders at `s`, and the image's error against the reference.
+util::Result<Row> measure(const render::RenderScene& rs, const render::LocalOptions& opts, const BenchErrorArgs& args,
+                          const Reference& ref, const char* kind, double target, const scene::RenderSettings& s) {
+  util::Result<Timed> t = timed_render(rs, s, opts, args.repeats);
+  if (!t) return std::move(t).error();
+  std::string error;
+  const std::optional<image::ImageDiff> d = image::compare_images(t->result.image, ref.image, error);
+  if (!d) return util::Error{std::move(error)};
+  Row row{kind, target, double(s.samples), t->seconds, 0.0, *d};
+  if (!t->result.spp.empty()) {
+    double total = 0;
+    for (const std::uint32_t n : t->result.spp) total += n;
+    row.spp = total / double(t->result.spp.size());
+  }
+  row.mrays = t->seconds > 0 ? double(t->result.stats.all_rays()) / t->seconds / 1e6 : 0.0;
+  return row;
+}
+
+// The uniform rows at 1, 2, 4, ... spp, then one adaptive row per target.
+util::Result<std::vector<Row>> measure_rows(const render::RenderScene& rs, const render::LocalOptions& opts,
+                                            const BenchErrorArgs& args, const Reference& ref,
+                                            const scene::RenderSettings& render, const std::vector<double>& targets) {
+  std::vector<Row> rows;
+  scene::RenderSettings s = render;
+  s.error_target = 0.0;
+  for (std::uint32_t spp = 1; spp <= args.max_spp; spp *= 2) {
+    s.samples = spp;
+    util::Result<Row> row = measure(rs, opts, args, ref, "uniform", 0.0, s);
+    if (!row) return std::move(row).error();
+    rows.push_back(std::move(row).value());
+  }
+  for (const double target : targets) {
+    s.samples = args.max_spp;
+    s.error_target = target;
+    s.min_samples = args.min_samples;
+    util::Result<Row> row = measure(rs, opts, args, ref, "adaptive", target, s);
+    if (!row) return std::move(row).error();
+    rows.push_back(std::move(row).value());
+  }
+  return rows;
+}
+
+// The table, the convergence slope and each adaptive row against uniform sampling.
+void print_rows(const std::vector<Row>& rows, double noise) {
+  fmt::print("\n{:<9} {:>7} {:>8} {:>9} {:>8} {:>10} {:>10} {:>8} {:>9} {:>8} {:>11}\n", "kind", "target", "spp",
+             "seconds", "Mrays/s", "MSE", "relMSE", "PSNR dB", "max abs", "NaN/Inf", "efficiency");
+  for (const Row& r : rows) {
+    fmt::print("{:<9} {:>7} {:>8.2f} {:>9.4f} {:>8.2f} {:>10.3e} {:>10.3e} {:>8.2f} {:>9.3g} {:>8} {:>11.4g}\n", r.kind,
+               fmt_target(r.target), r.spp, r.seconds, r.mrays, r.diff.mse, r.diff.rel_mse, r.diff.psnr_db,
+               r.diff.max_abs, r.diff.nonfinite, r.efficiency());
+  }
+
+  const double slope = convergence_slope(rows, noise);
+  fmt::print("\nuniform relMSE against spp, 2 spp up{}: log-log slope {:.3f} (Monte Carlo's 1/spp is -1)\n",
+             noise > 0 ? ", reference noise removed" : "", slope);
+  for (const Row& r : rows) {
+    if (r.kind != "adaptive") continue;
+    const std::optional<double> u = uniform_seconds_at(rows, r.diff.rel_mse);
+    if (u) {
+      fmt::print(
+          "adaptive {:g}: relMSE {:.3e} in {:.4f} s at a mean {:.1f} spp; uniform needs {:.4f} s: time ratio "
+          "adaptive/uniform {:.2f}\n",
+          r.target, r.diff.rel_mse, r.seconds, r.spp, *u, r.seconds / *u);
+    } else {
+      fmt::print("adaptive {:g}: relMSE {:.3e} in {:.4f} s at a mean {:.1f} spp; outside the uniform rows' range\n",
+                 r.target, r.diff.rel_mse, r.seconds, r.spp);
+    }
+  }
+}
+
+// The specialised path against the generic one: same bits, and what it saves. Whether the bits
+// were the same.
+util::Result<bool> compare_specialised(const render::RenderScene& rs, const render::LocalOptions& opts,
+                                       const BenchErrorArgs& args, const scene::RenderSettings& render) {
+  scene::RenderSettings ss = render;
+  ss.samples = args.spec_spp;
+  ss.error_target = 0.0;
+  render::LocalOptions generic = opts, special = opts;
+  generic.specialise = false;
+  special.specialise = true;
+  util::Result<Timed> tg = timed_render(rs, ss, generic, args.repeats);
+  if (!tg) return std::move(tg).error();
+  util::Result<Timed> ts = timed_render(rs, ss, special, args.repeats);
+  if (!ts) return std::move(ts).error();
+  const bool same_bits = tg->result.image.rgb == ts->result.image.rgb;
+  fmt::print(
+      "specialised path ({}) at {} spp: generic {:.4f} s, specialised {:.4f} s, speed-up x{:.2f}, same bits: "
+      "{}\n",
+      render::feature_names(rs.features()), ss.samples, tg->seconds, ts->seconds, tg->seconds / ts->seconds,
+      same_bits ? "yes" : "NO");
+  return same_bits;
+}
+
+int failed(const util::Error& e) {
+  fmt::print(stderr, "{}\n", e.to_string());
+  return kExitFailed;
+}
+
+}  // namespace
+
 int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   scene::LoadResult loaded = scene::load_scene_file(args.scene);
   if (!loaded.ok()) {
@@ -328,27 +445,10 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   scene::SceneDesc desc = *loaded.scene;
   desc.render = scene::apply(args.overrides, desc.render);
   const std::vector<double> targets = args.no_adaptive ? std::vector<double>{} : args.targets;
-  if (args.min_samples >= args.max_spp && !targets.empty()) {
-    fmt::print(stderr, "--min-samples {} must be below --max-spp {} for adaptive rows to stop early\n",
-               args.min_samples, args.max_spp);
-    return kExitFailed;
-  }
-  if (args.reference_spp && *args.reference_spp <= args.max_spp) {
-    fmt::print(stderr, "--reference-spp {} must be above --max-spp {}: the reference needs more samples than any row\n",
-               *args.reference_spp, args.max_spp);
-    return kExitFailed;
-  }
   const std::string stem = std::filesystem::path(args.scene).stem().string();
   const std::string csv_path = args.csv.empty() ? stem + "-error.csv" : args.csv;
   const std::string plot_path = args.plot.empty() ? stem + "-error.svg" : args.plot;
-
-  if (!args.no_plot) {  // before the renders, not after
-    const std::string ext = std::filesystem::path(plot_path).extension().string();
-    if (ext != ".svg" && ext != ".png") {
-      fmt::print(stderr, "{}: the plot must be .svg or .png (or pass --no-plot)\n", plot_path);
-      return kExitFailed;
-    }
-  }
+  if (const util::Status ok = check_bench_args(args, targets, plot_path); !ok) return failed(ok.error());
 
   const auto build_start = std::chrono::steady_clock::now();
   const render::RenderScene rs = render::RenderScene::build(desc, isa);
@@ -357,12 +457,8 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   opts.threads = args.threads;
   opts.tile_size = scene::tile_size_or_default(args.overrides);
 
-  std::string error;
-  const std::optional<Reference> ref = make_reference(desc, rs, args, opts, error);
-  if (!ref) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
+  const util::Result<Reference> ref = make_reference(desc, rs, args, opts);
+  if (!ref) return failed(ref.error());
   const std::string_view isa_str = accel::isa_name(isa);
   fmt::print(
       "dtraced bench error {}: {}x{}, {} kernels, median of {} renders per row (scene build {:.3f} s, "
@@ -379,99 +475,22 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
     warm.error_target = 0.0;
     (void)render::render_local(rs, warm, opts);
   }
+  const util::Result<std::vector<Row>> rows = measure_rows(rs, opts, args, *ref, desc.render, targets);
+  if (!rows) return failed(rows.error());
+  print_rows(*rows, ref->noise);
+  const util::Result<bool> same_bits = compare_specialised(rs, opts, args, desc.render);
+  if (!same_bits) return failed(same_bits.error());
 
-  std::vector<Row> rows;
-  const auto measure = [&](const char* kind, double target, scene::RenderSettings s) -> bool {
-    const std::optional<Timed> t = timed_render(rs, s, opts, args.repeats, error);
-    if (!t) return false;
-    const std::optional<image::ImageDiff> d = image::compare_images(t->result.image, ref->image, error);
-    if (!d) return false;
-    Row row{kind, target, double(s.samples), t->seconds, 0.0, *d};
-    if (!t->result.spp.empty()) {
-      double total = 0;
-      for (const std::uint32_t n : t->result.spp) total += n;
-      row.spp = total / double(t->result.spp.size());
-    }
-    row.mrays = t->seconds > 0 ? double(t->result.stats.all_rays()) / t->seconds / 1e6 : 0.0;
-    rows.push_back(row);
-    return true;
-  };
-  scene::RenderSettings s = desc.render;
-  s.error_target = 0.0;
-  bool ok = true;
-  for (std::uint32_t spp = 1; ok && spp <= args.max_spp; spp *= 2) {
-    s.samples = spp;
-    ok = measure("uniform", 0.0, s);
-  }
-  for (std::size_t i = 0; ok && i < targets.size(); ++i) {
-    s.samples = args.max_spp;
-    s.error_target = targets[i];
-    s.min_samples = args.min_samples;
-    ok = measure("adaptive", targets[i], s);
-  }
-  if (!ok) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
-
-  fmt::print("\n{:<9} {:>7} {:>8} {:>9} {:>8} {:>10} {:>10} {:>8} {:>9} {:>8} {:>11}\n", "kind", "target", "spp",
-             "seconds", "Mrays/s", "MSE", "relMSE", "PSNR dB", "max abs", "NaN/Inf", "efficiency");
-  for (const Row& r : rows) {
-    fmt::print("{:<9} {:>7} {:>8.2f} {:>9.4f} {:>8.2f} {:>10.3e} {:>10.3e} {:>8.2f} {:>9.3g} {:>8} {:>11.4g}\n", r.kind,
-               fmt_target(r.target), r.spp, r.seconds, r.mrays, r.diff.mse, r.diff.rel_mse, r.diff.psnr_db,
-               r.diff.max_abs, r.diff.nonfinite, r.efficiency());
-  }
-
-  const double slope = convergence_slope(rows, ref->noise);
-  fmt::print("\nuniform relMSE against spp, 2 spp up{}: log-log slope {:.3f} (Monte Carlo's 1/spp is -1)\n",
-             ref->noise > 0 ? ", reference noise removed" : "", slope);
-  for (const Row& r : rows) {
-    if (r.kind != "adaptive") continue;
-    const std::optional<double> u = uniform_seconds_at(rows, r.diff.rel_mse);
-    if (u) {
-      fmt::print(
-          "adaptive {:g}: relMSE {:.3e} in {:.4f} s at a mean {:.1f} spp; uniform needs {:.4f} s: time ratio "
-          "adaptive/uniform {:.2f}\n",
-          r.target, r.diff.rel_mse, r.seconds, r.spp, *u, r.seconds / *u);
-    } else {
-      fmt::print("adaptive {:g}: relMSE {:.3e} in {:.4f} s at a mean {:.1f} spp; outside the uniform rows' range\n",
-                 r.target, r.diff.rel_mse, r.seconds, r.spp);
-    }
-  }
-
-  // The specialised path against the generic one: same bits, and what it saves.
-  scene::RenderSettings ss = desc.render;
-  ss.samples = args.spec_spp;
-  ss.error_target = 0.0;
-  render::LocalOptions generic = opts, special = opts;
-  generic.specialise = false;
-  special.specialise = true;
-  const std::optional<Timed> tg = timed_render(rs, ss, generic, args.repeats, error);
-  const std::optional<Timed> ts = tg ? timed_render(rs, ss, special, args.repeats, error) : std::nullopt;
-  if (!ts) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
-  const bool same_bits = tg->result.image.rgb == ts->result.image.rgb;
-  fmt::print(
-      "specialised path ({}) at {} spp: generic {:.4f} s, specialised {:.4f} s, speed-up x{:.2f}, same bits: "
-      "{}\n",
-      render::feature_names(rs.features()), ss.samples, tg->seconds, ts->seconds, tg->seconds / ts->seconds,
-      same_bits ? "yes" : "NO");
-
-  if (!util::write_file_atomic(csv_path, csv_text(rows, stem, isa_str, ref->noise), error)) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
+  std::string error;
+  if (!util::write_file_atomic(csv_path, csv_text(*rows, stem, isa_str, ref->noise), error)) {
+    return failed(util::Error{std::move(error)});
   }
   fmt::print("wrote {}\n", csv_path);
   if (!args.no_plot) {
-    if (!draw_plot(csv_path, plot_path, stem, error)) {
-      fmt::print(stderr, "{}\n", error);
-      return kExitFailed;
-    }
+    if (const util::Status drawn = draw_plot(csv_path, plot_path, stem); !drawn) return failed(drawn.error());
     fmt::print("wrote {}\n", plot_path);
   }
-  if (!same_bits) {
+  if (!*same_bits) {
     fmt::print(stderr, "the specialised path rendered different bits from the generic one: a bug\n");
     return kExitFailed;
   }

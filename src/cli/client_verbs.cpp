@@ -37,12 +37,12 @@ class Session {
     }
     url_ = *url;
     if (!args.token_file.empty()) {
-      auto token = read_token_file(args.token_file, error);
+      auto token = read_token_file(args.token_file);
       if (!token) {
-        fmt::print(stderr, "{}\n", error);
+        fmt::print(stderr, "{}\n", token.error().to_string());
         return false;
       }
-      token_ = *token;
+      token_ = std::move(token).value();
     }
     timeouts_.read = timeouts_.write = std::chrono::milliseconds(args.timeout_ms);
     return true;
@@ -109,17 +109,15 @@ bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s
 
 }  // namespace
 
-std::optional<std::string> read_token_file(const std::string& path, std::string& error) {
+util::Result<std::string> read_token_file(const std::string& path) {
+  std::string error;
   auto text = util::read_file_limited(path, kMaxTokenBytes, error);
-  if (!text) return std::nullopt;
+  if (!text) return util::Error{std::move(error)};
   std::string token = text->substr(0, text->find('\n'));
   while (!token.empty() && (token.back() == '\r' || token.back() == ' ' || token.back() == '\t')) token.pop_back();
   std::size_t start = token.find_first_not_of(" \t");
   token = start == std::string::npos ? "" : token.substr(start);
-  if (token.empty()) {
-    error = fmt::format("{}: the token file is empty", path);
-    return std::nullopt;
-  }
+  if (token.empty()) return util::Error{fmt::format("{}: the token file is empty", path)};
   return token;
 }
 

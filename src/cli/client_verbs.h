@@ -6,8 +6,10 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <utility>
 
 #include "scene/overrides.h"
+#include "util/result.h"
 
 namespace dtraced::cli {
 
@@ -40,7 +42,16 @@ int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& out
 int run_cancel(const ClientArgs& client, std::uint64_t id);
 
 // Reads a bearer token from a file: the first line, without surrounding whitespace; empty or
-// over 4096 bytes is an error (returned as nullopt with `error` set).
-std::optional<std::string> read_token_file(const std::string& path, std::string& error);
+// over 4096 bytes is an error (its message names the file).
+util::Result<std::string> read_token_file(const std::string& path);
+
+// The same with the error in `error`: the form run_worker_role (roles.cpp) still calls. To go
+// once that call moves to the Result form.
+inline std::optional<std::string> read_token_file(const std::string& path, std::string& error) {
+  util::Result<std::string> token = read_token_file(path);
+  if (token) return std::move(token).value();
+  error = token.error().message;
+  return std::nullopt;
+}
 
 }  // namespace dtraced::cli

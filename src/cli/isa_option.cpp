@@ -16,27 +16,22 @@ std::string supported_isa_names(std::string_view separator) {
   return out;
 }
 
-std::optional<accel::Isa> choose_isa(const std::optional<std::string>& flag, const char* env, std::string& error) {
+util::Result<accel::Isa> choose_isa(const std::optional<std::string>& flag, const char* env) {
   if (!flag && env == nullptr) return accel::best_isa();
   const std::string value = flag ? *flag : std::string(env);
   const std::string source = flag ? fmt::format("--isa {}", value) : fmt::format("DTRACED_ISA={}", value);
   const std::optional<accel::Isa> isa = accel::parse_isa(value);
-  if (!isa) {
-    error = fmt::format("{}: not an instruction set (scalar, sse4, avx2, avx512 or best)", source);
-    return std::nullopt;
-  }
+  if (!isa) return util::Error{fmt::format("{}: not an instruction set (scalar, sse4, avx2, avx512 or best)", source)};
   const std::vector<accel::Isa> supported = accel::supported_isas();
   if (std::find(supported.begin(), supported.end(), *isa) == supported.end()) {
-    error = fmt::format("{}: this CPU supports {}", source, supported_isa_names(", "));
-    return std::nullopt;
+    return util::Error{fmt::format("{}: this CPU supports {}", source, supported_isa_names(", "))};
   }
-  return isa;
+  return *isa;
 }
 
 std::string version_line(std::string_view version, const char* env) {
-  std::string error;
-  const std::optional<accel::Isa> isa = choose_isa(std::nullopt, env, error);
-  const std::string kernels = isa ? std::string(accel::isa_name(*isa)) : fmt::format("none ({})", error);
+  const util::Result<accel::Isa> isa = choose_isa(std::nullopt, env);
+  const std::string kernels = isa ? std::string(accel::isa_name(*isa)) : fmt::format("none ({})", isa.error().message);
   return fmt::format("dtraced {} (kernels: {}; supported: {})", version, kernels, supported_isa_names(" "));
 }
 

@@ -12,13 +12,14 @@
 #include <string_view>
 
 #include "accel/isa.h"
+#include "util/result.h"
 
 namespace dtraced::cli {
 
 // `flag`: the --isa value when given; `env`: $DTRACED_ISA when set. On a name that is not an
-// instruction set, or one this CPU lacks, returns nullopt and sets `error` to a message naming
-// where the value came from ("--isa avx512: this CPU supports scalar, sse4, avx2").
-std::optional<accel::Isa> choose_isa(const std::optional<std::string>& flag, const char* env, std::string& error);
+// instruction set, or one this CPU lacks, an error whose message names where the value came from
+// ("--isa avx512: this CPU supports scalar, sse4, avx2").
+util::Result<accel::Isa> choose_isa(const std::optional<std::string>& flag, const char* env);
 
 // "scalar sse4 avx2": accel::supported_isas(), by name.
 std::string supported_isa_names(std::string_view separator);

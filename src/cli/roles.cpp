@@ -2,7 +2,12 @@
 
 #include <charconv>
 #include <filesystem>
+#include <optional>
 #include <string>
+#include <string_view>
+#include <type_traits>
+#include <utility>
+#include <variant>
 #include <vector>
 
 #include <fmt/format.h>
@@ -13,6 +18,7 @@
 #include "collector/config.h"
 #include "collector/service.h"
 #include "image/image_io.h"
+#include "util/result.h"
 #include "worker/config.h"
 #include "worker/worker.h"
 
@@ -24,45 +30,54 @@ constexpr int kExitUsage = 2;
 constexpr const char* kCollectorGroup = "Collector role (--role collector)";
 constexpr const char* kWorkerGroup = "Worker role (--role worker)";
 
+struct ListenAddress {
+  std::string host;
+  std::uint16_t port = 0;
+};
+
 // "HOST:PORT" with an IPv4 address or a bracketed IPv6 address ("[::1]:7878").
-bool parse_listen(const std::string& text, std::string& host, std::uint16_t& port, std::string& error) {
+util::Result<ListenAddress> parse_listen(const std::string& text) {
   const std::size_t colon = text.rfind(':');
   if (colon == std::string::npos || colon == 0) {
-    error = fmt::format("--listen: expected ADDRESS:PORT, got \"{}\"", text);
-    return false;
+    return util::Error{fmt::format("expected ADDRESS:PORT, got \"{}\"", text), "--listen"};
   }
-  host = text.substr(0, colon);
-  if (host.size() >= 2 && host.front() == '[' && host.back() == ']') host = host.substr(1, host.size() - 2);
+  ListenAddress out;
+  out.host = text.substr(0, colon);
+  if (out.host.size() >= 2 && out.host.front() == '[' && out.host.back() == ']') {
+    out.host = out.host.substr(1, out.host.size() - 2);
+  }
   const std::string p = text.substr(colon + 1);
   unsigned value = 0;
   const auto [end, ec] = std::from_chars(p.data(), p.data() + p.size(), value);
   if (ec != std::errc() || end != p.data() + p.size() || value > 65535) {
-    error = fmt::format("--listen: bad port \"{}\" (0-65535)", p);
-    return false;
+    return util::Error{fmt::format("bad port \"{}\" (0-65535)", p), "--listen"};
   }
-  port = static_cast<std::uint16_t>(value);
-  return true;
+  out.port = static_cast<std::uint16_t>(value);
+  return out;
+}
+
+// The role's bearer token from --token-file, without which the role cannot work (`why`).
+util::Result<std::string> role_token(const RoleArgs& a, std::string_view why) {
+  if (a.token_file.empty()) return util::Error{fmt::format("--token-file is required: {}", why)};
+  return read_token_file(a.token_file);
+}
+
+int usage_error(const util::Error& e) {
+  fmt::print(stderr, "{}\n", e.to_string());
+  return kExitUsage;
 }
 
 int run_collector_role(const RoleArgs& a) {
   collector::CollectorConfig c;
-  std::string error;
-  if (!parse_listen(a.listen, c.listen_address, c.port, error)) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitUsage;
-  }
+  const util::Result<ListenAddress> listen = parse_listen(a.listen);
+  if (!listen) return usage_error(listen.error());
+  c.listen_address = listen->host;
+  c.port = listen->port;
+  util::Result<std::string> token = role_token(a, "every request but /healthz needs the bearer token");
+  if (!token) return usage_error(token.error());
+  c.token = std::move(token).value();
   c.state_dir = a.state_dir;
   c.output_dir = a.output_dir;
-  if (a.token_file.empty()) {
-    fmt::print(stderr, "--token-file is required: every request but /healthz needs the bearer token\n");
-    return kExitUsage;
-  }
-  auto token = read_token_file(a.token_file, error);
-  if (!token) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitUsage;
-  }
-  c.token = *token;
   if (a.max_connections) c.limits.max_connections = *a.max_connections;
   if (a.max_body_bytes) c.limits.max_body_bytes = *a.max_body_bytes;
   if (a.read_timeout_ms) c.limits.read_timeout = std::chrono::milliseconds(*a.read_timeout_ms);
@@ -141,6 +156,69 @@ int run_worker_role(const RoleArgs& a) {
   return worker::run_worker(w);
 }
 
+// A numeric flag of one role: its field, range and help. The range has the field's type.
+using NumberField = std::variant<std::uint32_t RoleArgs::*, std::optional<std::uint32_t> RoleArgs::*,
+                                 std::optional<std::uint64_t> RoleArgs::*, std::optional<double> RoleArgs::*>;
+struct NumberFlag {
+  const char* group;
+  const char* name;
+  NumberField field;
+  double lo, hi;  // exact for every bound below
+  const char* help;
+};
+
+// In the order --help lists them.
+const NumberFlag kNumberFlags[] = {
+    {kCollectorGroup, "--max-connections", &RoleArgs::max_connections, 1, 100000, "Open connections at most"},
+    {kCollectorGroup, "--max-body-bytes", &RoleArgs::max_body_bytes, 1024, 4294967296.0, "Largest request body"},
+    {kCollectorGroup, "--read-timeout-ms", &RoleArgs::read_timeout_ms, 10, 3600000,
+     "Time a client has to send its request"},
+    {kCollectorGroup, "--write-timeout-ms", &RoleArgs::write_timeout_ms, 10, 3600000,
+     "Time a client has to read an answer"},
+    {kCollectorGroup, "--reoffer-floor-ms", &RoleArgs::reoffer_floor_ms, 1, 86400000,
+     "A leased tile is not offered again before this"},
+    {kCollectorGroup, "--reoffer-factor", &RoleArgs::reoffer_factor, 1, 1000,
+     "Re-offer bound as a multiple of the p90 tile time"},
+    {kCollectorGroup, "--max-copies", &RoleArgs::max_copies, 1, 64, "Workers rendering one tile at once, at most"},
+    {kCollectorGroup, "--shutdown-grace-ms", &RoleArgs::shutdown_grace_ms, 0, 600000,
+     "On SIGTERM, time for requests in flight"},
+    {kCollectorGroup, "--cpu-threads", &RoleArgs::cpu_threads, 1, 256, "Threads for image encoding and payload checks"},
+    {kWorkerGroup, "-t,--threads", &RoleArgs::threads, 0, 4096, "Render threads (0: every core)"},
+    {kWorkerGroup, "--scene-cache", &RoleArgs::scene_cache, 1, 1024, "Scenes kept built in memory"},
+    {kWorkerGroup, "--grace-seconds", &RoleArgs::grace_seconds, 0, 3600,
+     "On SIGTERM, time to submit the tiles in hand"},
+    {kWorkerGroup, "--connect-timeout-ms", &RoleArgs::connect_timeout_ms, 1, 600000, "Connect timeout"},
+    {kWorkerGroup, "--request-timeout-ms", &RoleArgs::request_timeout_ms, 1, 600000,
+     "Read and write timeout of each request"},
+    {kWorkerGroup, "--max-unacknowledged", &RoleArgs::max_unacknowledged, 0, 65536,
+     "Tiles in hand at most (0: 4 per thread)"},
+};
+
+template <typename T>
+struct Unoptional {
+  using type = T;
+};
+template <typename T>
+struct Unoptional<std::optional<T>> {
+  using type = T;
+};
+
+// The flags of kNumberFlags in `group`.
+void add_number_flags(CLI::App& app, RoleArgs& a, const char* group) {
+  for (const NumberFlag& f : kNumberFlags) {
+    if (std::string_view(f.group) != group) continue;
+    std::visit(
+        [&](auto member) {
+          auto& field = a.*member;
+          using T = typename Unoptional<std::remove_reference_t<decltype(field)>>::type;
+          app.add_option(f.name, field, f.help)
+              ->check(CLI::Range(static_cast<T>(f.lo), static_cast<T>(f.hi)))
+              ->group(group);
+        },
+        f.field);
+  }
+}
+
 }  // namespace
 
 void add_role_options(CLI::App& app, RoleArgs& a) {
@@ -154,33 +232,7 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   app.add_option("--state-dir", a.state_dir, "Directory of the durable state (dtraced.db)")->group(kCollectorGroup);
   app.add_option("--output-dir", a.output_dir, "Directory for finished images (default STATE_DIR/output)")
       ->group(kCollectorGroup);
-  app.add_option("--max-connections", a.max_connections, "Open connections at most")
-      ->check(CLI::Range(1u, 100000u))
-      ->group(kCollectorGroup);
-  app.add_option("--max-body-bytes", a.max_body_bytes, "Largest request body")
-      ->check(CLI::Range(std::uint64_t{1024}, std::uint64_t{1} << 32))
-      ->group(kCollectorGroup);
-  app.add_option("--read-timeout-ms", a.read_timeout_ms, "Time a client has to send its request")
-      ->check(CLI::Range(10u, 3600000u))
-      ->group(kCollectorGroup);
-  app.add_option("--write-timeout-ms", a.write_timeout_ms, "Time a client has to read an answer")
-      ->check(CLI::Range(10u, 3600000u))
-      ->group(kCollectorGroup);
-  app.add_option("--reoffer-floor-ms", a.reoffer_floor_ms, "A leased tile is not offered again before this")
-      ->check(CLI::Range(1u, 86400000u))
-      ->group(kCollectorGroup);
-  app.add_option("--reoffer-factor", a.reoffer_factor, "Re-offer bound as a multiple of the p90 tile time")
-      ->check(CLI::Range(1.0, 1000.0))
-      ->group(kCollectorGroup);
-  app.add_option("--max-copies", a.max_copies, "Workers rendering one tile at once, at most")
-      ->check(CLI::Range(1u, 64u))
-      ->group(kCollectorGroup);
-  app.add_option("--shutdown-grace-ms", a.shutdown_grace_ms, "On SIGTERM, time for requests in flight")
-      ->check(CLI::Range(0u, 600000u))
-      ->group(kCollectorGroup);
-  app.add_option("--cpu-threads", a.cpu_threads, "Threads for image encoding and payload checks")
-      ->check(CLI::Range(1u, 256u))
-      ->group(kCollectorGroup);
+  add_number_flags(app, a, kCollectorGroup);
   app.add_option("--scene", a.scene, "One-shot: enqueue this scene at start (resumed after a restart)")
       ->group(kCollectorGroup);
   app.add_option("-o,--output", a.output, "One-shot: the image to write (" + image::extension_list() + ")")
@@ -194,24 +246,7 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
 
   app.add_option("--collector", a.collector, "Collector base URL, http://HOST:PORT")->group(kWorkerGroup);
   app.add_option("--name", a.name, "Worker name in the collector's logs (default HOST-PID)")->group(kWorkerGroup);
-  app.add_option("-t,--threads", a.threads, "Render threads (0: every core)")
-      ->check(CLI::Range(0u, 4096u))
-      ->group(kWorkerGroup);
-  app.add_option("--scene-cache", a.scene_cache, "Scenes kept built in memory")
-      ->check(CLI::Range(1u, 1024u))
-      ->group(kWorkerGroup);
-  app.add_option("--grace-seconds", a.grace_seconds, "On SIGTERM, time to submit the tiles in hand")
-      ->check(CLI::Range(0u, 3600u))
-      ->group(kWorkerGroup);
-  app.add_option("--connect-timeout-ms", a.connect_timeout_ms, "Connect timeout")
-      ->check(CLI::Range(1u, 600000u))
-      ->group(kWorkerGroup);
-  app.add_option("--request-timeout-ms", a.request_timeout_ms, "Read and write timeout of each request")
-      ->check(CLI::Range(1u, 600000u))
-      ->group(kWorkerGroup);
-  app.add_option("--max-unacknowledged", a.max_unacknowledged, "Tiles in hand at most (0: 4 per thread)")
-      ->check(CLI::Range(0u, 65536u))
-      ->group(kWorkerGroup);
+  add_number_flags(app, a, kWorkerGroup);
   // Also an option of `render` (main adds it there, bound to the same value).
   app.add_option("--isa", a.isa, kIsaHelp)->group(kWorkerGroup);
 }

@@ -3,11 +3,13 @@
 //
 // Owns: every JSON body that crosses the wire (README.md, "HTTP API", lists the endpoints) and the
 // limits on them. Encoders always produce a body that the matching decoder accepts and that
-// decodes to an equal struct (doubles included, bit for bit). Decoders are strict in the way the
-// scene loader is: unknown keys, duplicate keys, wrong types, integers out of range, numbers that
-// overflow a double, oversized or too deeply nested bodies are all errors, each located by the
-// JSON Pointer of the offending value ("/tile_size", "/scene/scene_objects/3/radius"); "" names
-// the body as a whole. A decoder returns either the struct or its errors, never a partial struct.
+// decodes to an equal struct (doubles included, bit for bit). Decoders read with jsonio's strict
+// reader (jsonio/reader.h), as the scene loader and config files do, so a mistake is worded the
+// same in all three: unknown keys (with a did-you-mean), duplicate keys, wrong types, integers out
+// of range, numbers that overflow a double, oversized or too deeply nested bodies are all errors,
+// each located by the JSON Pointer of the offending value ("/tile_size",
+// "/scene/scene_objects/3/radius"); "" names the body as a whole. A decoder returns either the
+// struct or its errors, never a partial struct.
 //
 // Numbers: integers may be written as integral doubles (640.0, 1e3), as in scene files; ids,
 // seeds and counters stay within 2^53 - 1 so that a JavaScript client reads them exactly.

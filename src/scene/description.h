@@ -3,10 +3,12 @@
 // converts. Values only: thread-safe to share read-only.
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "image/image.h"
@@ -84,6 +86,10 @@ struct Mesh {
 
 enum class ObjectType { kSphere, kBox, kPlane, kMesh };
 
+// The "type" names of scene files, indexed by ObjectType.
+inline constexpr std::array<std::string_view, 4> kObjectTypeNames = {"sphere", "box", "plane", "mesh"};
+inline std::string_view type_name(ObjectType t) { return kObjectTypeNames[static_cast<std::size_t>(t)]; }
+
 struct Object {
   ObjectType type = ObjectType::kSphere;
   Sphere sphere;  // valid when type == kSphere
@@ -101,6 +107,17 @@ struct Object {
 };
 
 enum class LightType { kPoint, kSphere, kRect, kDisk };
+
+// The "type" names of scene files, in the order messages list them, and the type each names.
+inline constexpr std::array<std::string_view, 4> kLightTypeNames = {"point", "sphere", "disk", "rect"};
+inline constexpr std::array<LightType, 4> kLightTypes = {LightType::kPoint, LightType::kSphere, LightType::kDisk,
+                                                         LightType::kRect};
+inline std::string_view type_name(LightType t) {
+  for (std::size_t i = 0; i < kLightTypes.size(); ++i) {
+    if (kLightTypes[i] == t) return kLightTypeNames[i];
+  }
+  return "?";
+}
 
 // A light. `intensity * color` is the emitted quantity: radiant intensity I (W/sr) for a point
 // light, radiance Le (W/sr/m^2) leaving every point of an area light's emitting surface.

@@ -244,6 +244,32 @@ json::object material(const Material& m) {
   return o;
 }
 
+// The material of mesh instance `k`: the mirror, the glass, or a seeded glossy colour.
+Material instance_material(const SphereDice& dice, int k, bool mirror, bool glass) {
+  Material m;
+  if (mirror) {
+    m.color = {0.92, 0.92, 0.95};
+    m.diffuse = 0.05;
+    m.specular = 0.8;
+    m.shininess = 512;
+    m.reflectivity = 0.9;
+  } else if (glass) {
+    m.color = {1, 1, 1};
+    m.diffuse = 0;
+    m.specular = 0.9;
+    m.shininess = 512;
+    m.transparency = 0.95;
+  } else {
+    m.color = {0.15 + 0.75 * dice.uniform(k, kRed), 0.15 + 0.75 * dice.uniform(k, kGreen),
+               0.15 + 0.75 * dice.uniform(k, kBlue)};
+    m.diffuse = 0.85;
+    m.specular = 0.15 + 0.5 * dice.uniform(k, kSpecular);
+    m.shininess = 16 + 200 * dice.uniform(k, kShininess);
+    m.reflectivity = 0.1;
+  }
+  return m;
+}
+
 }  // namespace
 
 GeneratedMeshScene generate_mesh_scene(std::uint32_t triangles, std::uint64_t seed, const std::string& model_prefix) {
@@ -291,27 +317,7 @@ GeneratedMeshScene generate_mesh_scene(std::uint32_t triangles, std::uint64_t se
     // The mirror and the glass sphere sit mid-field, where the others reflect and refract in them.
     const int mirror = instances / 2, glass = mirror - 1;
     const bool sphere = k == mirror || k == glass || dice.uniform(k, kKind) < 0.5;
-    Material m;
-    if (k == mirror) {
-      m.color = {0.92, 0.92, 0.95};
-      m.diffuse = 0.05;
-      m.specular = 0.8;
-      m.shininess = 512;
-      m.reflectivity = 0.9;
-    } else if (k == glass) {
-      m.color = {1, 1, 1};
-      m.diffuse = 0;
-      m.specular = 0.9;
-      m.shininess = 512;
-      m.transparency = 0.95;
-    } else {
-      m.color = {0.15 + 0.75 * dice.uniform(k, kRed), 0.15 + 0.75 * dice.uniform(k, kGreen),
-                 0.15 + 0.75 * dice.uniform(k, kBlue)};
-      m.diffuse = 0.85;
-      m.specular = 0.15 + 0.5 * dice.uniform(k, kSpecular);
-      m.shininess = 16 + 200 * dice.uniform(k, kShininess);
-      m.reflectivity = 0.1;
-    }
+    const Material m = instance_material(dice, k, k == mirror, k == glass);
     json::object o;
     o["type"] = "mesh";
     if (sphere) {

@@ -129,12 +129,17 @@ bool triangle_is_degenerate(const Vec3f& v0, const Vec3f& v1, const Vec3f& v2) {
   return !(std::isfinite(n.x) && (n.x != 0.0 || n.y != 0.0 || n.z != 0.0));
 }
 
-bool build_obj_mesh(Mesh& mesh, std::size_t max_triangles, std::vector<std::string>& errors) {
+util::Result<void, util::Errors> build_obj_mesh(Mesh& mesh, std::size_t max_triangles) {
   mesh.vertices.clear();
   mesh.degenerate_triangles = 0;
-  const std::size_t errors_before = errors.size();
+  std::vector<std::string> errors;
+  const auto failed = [&errors, &mesh] {
+    mesh.vertices.clear();
+    mesh.degenerate_triangles = 0;
+    return util::Errors(errors.begin(), errors.end());
+  };
   check_vertex_lines(mesh.obj, errors);
-  if (errors.size() != errors_before) return false;
+  if (!errors.empty()) return failed();
 
   tinyobj::ObjReaderConfig config;
   config.triangulate = true;
@@ -145,14 +150,14 @@ bool build_obj_mesh(Mesh& mesh, std::size_t max_triangles, std::vector<std::stri
   const bool parsed = reader.ParseFromString(mesh.obj, "", config);
   if (!parsed || !reader.Error().empty()) {
     add_tinyobj_messages(reader.Error().empty() ? std::string("the OBJ does not parse") : reader.Error(), errors);
-    return false;
+    return failed();
   }
   // An out-of-range index makes tinyobjloader warn and drop the polygons it triangulates itself;
   // a scene must not lose faces silently.
   if (reader.Warning().find("out of bounds") != std::string::npos ||
       reader.Warning().find("invalid vertex index") != std::string::npos) {
     add_tinyobj_messages(reader.Warning(), errors);
-    return false;
+    return failed();
   }
 
   const std::vector<tinyobj::real_t>& v = reader.GetAttrib().vertices;
@@ -162,7 +167,7 @@ bool build_obj_mesh(Mesh& mesh, std::size_t max_triangles, std::vector<std::stri
   if (triangles > max_triangles) {
     errors.push_back(fmt::format("{} triangles, more than the {} this scene has left (the limit is per scene)",
                                  triangles, max_triangles));
-    return false;
+    return failed();
   }
 
   const Mat3 r = rotation(mesh.rotate_deg);
@@ -208,12 +213,8 @@ bool build_obj_mesh(Mesh& mesh, std::size_t max_triangles, std::vector<std::stri
       next += 3;
     }
   }
-  if (!ok) {
-    mesh.vertices.clear();
-    mesh.degenerate_triangles = 0;
-    return false;
-  }
-  return true;
+  if (!ok) return failed();
+  return {};
 }
 
 }  // namespace dtraced::scene

@@ -17,19 +17,18 @@
 #pragma once
 
 #include <cstddef>
-#include <string>
-#include <vector>
 
 #include "scene/description.h"
+#include "util/result.h"
 
 namespace dtraced::scene {
 
 // Fills mesh.vertices and mesh.degenerate_triangles from mesh.obj under mesh's transform. On
-// failure returns false with one or more messages in `errors` (each "line N: problem" when the
-// problem has a line, for the caller to prefix with the file and field), and leaves the vertices
-// empty. `max_triangles` bounds the triangles this mesh may add (what is left of the scene's
-// budget); more is an error.
-bool build_obj_mesh(Mesh& mesh, std::size_t max_triangles, std::vector<std::string>& errors);
+// failure returns one or more errors (each message "line N: problem" when the problem has a line;
+// path and file empty, for the caller to fill in with the field and prefix with the OBJ file),
+// and leaves the vertices empty. `max_triangles` bounds the triangles this mesh may add (what is
+// left of the scene's budget); more is an error.
+util::Result<void, util::Errors> build_obj_mesh(Mesh& mesh, std::size_t max_triangles);
 
 // Whether a triangle of these float vertices has zero area: cross(v1 - v0, v2 - v0) computed in
 // double from the float coordinates is zero (or not finite). The same test accel uses to decide

@@ -1,0 +1,130 @@
+#include "cli/commands.h"
+
+#include "cli/bench_error.h"
+#include "cli/overrides_flags.h"
+#include "image/image_io.h"
+#include "protocol/messages.h"
+
+namespace dtraced::cli {
+
+namespace {
+
+void add_render(CLI::App& app, LocalCommands& c, std::optional<std::string>& isa_flag) {
+  RenderArgs& render = c.render;
+  CLI::App* r = app.add_subcommand("render", "Render a scene on this machine to an image file");
+  r->add_option("scene", render.scene, "Scene file (JSON)")->required();
+  r->add_option("-o,--output", render.output, "Output image: " + image::extension_list() + " (by extension)")
+      ->required();
+  add_override_flags(*r, render.overrides);
+  r->add_option("--spp-map", render.spp_map,
+                "Also write the samples each pixel took: .pfm raw counts, .png/.ppm grey (white = --samples)");
+  r->add_option("-t,--threads", render.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
+  r->add_flag("-q,--quiet", render.quiet, "No progress bar and no summary line");
+  r->add_option("--isa", isa_flag, kIsaHelp);
+  c.render_cmd = r;
+}
+
+void add_generate(CLI::App& app, LocalCommands& c) {
+  GenerateArgs& generate = c.generate;
+  CLI::App* g = app.add_subcommand("generate", "Write a generated stress scene (many spheres on a plane)");
+  CLI::Option* count = g->add_option("-n,--count", generate.count, "Number of spheres")
+                           ->check(CLI::Range(1u, 500000u));  // keeps the file under the loader's size limit
+  g->add_option("--seed", generate.seed, "Generator seed");
+  g->add_option("--mesh-triangles", generate.mesh_triangles,
+                "Write a mesh scene of about this many triangles (OBJ files beside the scene) instead of spheres")
+      ->check(CLI::Range(1u, 20000000u))
+      ->excludes(count);
+  g->add_option("--models-dir", generate.models_dir,
+                "With --mesh-triangles: directory of the OBJ files, relative to the scene's (default: beside it)");
+  g->add_option("-o,--output", generate.output, "Output scene file (JSON)")->required();
+  c.generate_cmd = g;
+}
+
+// --collector, --token-file and --timeout-ms, which every client verb takes.
+void add_connection_options(CLI::App* sub, ClientArgs& client) {
+  sub->add_option("--collector", client.collector, "Collector base URL")
+      ->envname("DTRACED_COLLECTOR")
+      ->capture_default_str();
+  sub->add_option("--token-file", client.token_file, "File holding the bearer token")->envname("DTRACED_TOKEN_FILE");
+  sub->add_option("--timeout-ms", client.timeout_ms, "Per-request read/write timeout")
+      ->check(CLI::Range(100u, 3600000u))
+      ->capture_default_str();
+}
+
+CLI::App* add_client_subcommand(CLI::App& app, ClientArgs& client, const std::string& name,
+                                const std::string& description) {
+  CLI::App* sub = app.add_subcommand(name, description);
+  add_connection_options(sub, client);
+  return sub;
+}
+
+}  // namespace
+
+void add_local_commands(CLI::App& app, LocalCommands& c, std::optional<std::string>& isa_flag) {
+  add_render(app, c, isa_flag);
+
+  c.validate_cmd = app.add_subcommand("validate", "Check scene files; print OK or every error found");
+  c.validate_cmd->add_option("scene", c.validate_files, "Scene files (JSON)")->required();
+
+  CLI::App* compare = app.add_subcommand("compare", "Compare two images: RMSE, PSNR and largest absolute difference");
+  compare->add_option("a", c.compare.a, "First image (" + image::extension_list() + ")")->required();
+  compare->add_option("b", c.compare.b, "Second image")->required();
+  compare->add_option("--max-rmse", c.compare.max_rmse, "Exit 1 when the RMSE is above this");
+  c.compare_cmd = compare;
+
+  add_generate(app, c);
+  c.bench_error_cmd = add_bench_error_verb(app, c.bench_error, isa_flag);
+}
+
+std::optional<int> run_local_command(const LocalCommands& c, accel::Isa isa) {
+  if (c.render_cmd->parsed()) {
+    RenderArgs render = c.render;
+    render.isa = isa;
+    return run_render(render);
+  }
+  if (c.bench_error_cmd->parsed()) return run_bench_error(c.bench_error, isa);
+  if (c.validate_cmd->parsed()) return run_validate(c.validate_files);
+  if (c.compare_cmd->parsed()) return run_compare(c.compare);
+  if (c.generate_cmd->parsed()) return run_generate(c.generate);
+  return std::nullopt;
+}
+
+void add_client_commands(CLI::App& app, ClientCommands& c) {
+  CLI::App* submit =
+      add_client_subcommand(app, c.client, "submit", "Submit a render job to a collector; prints the job id");
+  submit->add_option("scene", c.submit.scene, "Scene file (JSON)")->required();
+  submit->add_option("-o,--output", c.submit.output,
+                     "Output file name on the collector (" + image::extension_list() + ")");
+  submit->add_option("--priority", c.submit.priority, "Higher runs first")
+      ->check(CLI::Range(protocol::kMinPriority, protocol::kMaxPriority));
+  add_override_flags(*submit, c.submit.overrides);
+  c.submit_cmd = submit;
+
+  c.list_cmd = add_client_subcommand(app, c.client, "list", "List the collector's jobs");
+  c.list_cmd->add_flag("--json", c.list_json, "Machine-readable JSON");
+
+  CLI::App* status = add_client_subcommand(app, c.client, "status", "Show one job's progress");
+  status->add_option("id", c.status.id, "Job id")->required();
+  status->add_flag("--json", c.status.json, "Machine-readable JSON");
+  status->add_flag("-w,--wait", c.status.wait, "Wait until the job is done (a progress bar on a terminal)");
+  status->add_option("--poll-ms", c.status.poll_ms, "Poll interval with --wait")->check(CLI::Range(50u, 60000u));
+  c.status_cmd = status;
+
+  c.fetch_cmd = add_client_subcommand(app, c.client, "fetch", "Fetch a job's image (partial while it renders)");
+  c.fetch_cmd->add_option("id", c.fetch_id, "Job id")->required();
+  c.fetch_cmd->add_option("-o,--output", c.fetch_output, "Image file (" + image::extension_list() + ")")->required();
+
+  c.cancel_cmd = add_client_subcommand(app, c.client, "cancel", "Cancel a job");
+  c.cancel_cmd->add_option("id", c.cancel_id, "Job id")->required();
+}
+
+std::optional<int> run_client_command(const ClientCommands& c) {
+  if (c.submit_cmd->parsed()) return run_submit(c.client, c.submit);
+  if (c.list_cmd->parsed()) return run_list(c.client, c.list_json);
+  if (c.status_cmd->parsed()) return run_status(c.client, c.status);
+  if (c.fetch_cmd->parsed()) return run_fetch(c.client, c.fetch_id, c.fetch_output);
+  if (c.cancel_cmd->parsed()) return run_cancel(c.client, c.cancel_id);
+  return std::nullopt;
+}
+
+}  // namespace dtraced::cli

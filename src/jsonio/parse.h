@@ -1,0 +1,56 @@
+// dtraced::jsonio strict parsing: JSON text into a boost::json::value under the rules every
+// reader of dtraced needs (scene files, wire messages, config files) and that boost::json::parse
+// alone (Boost 1.81) does not give:
+//   - doubles are converted with std::from_chars, so they are correctly rounded. Boost 1.81's
+//     own conversion is off by an ulp for about one double in five, which would break the
+//     "canonical JSON reloads to the same bits" promise that scene digests rest on;
+//   - duplicate keys are reported (Boost keeps the last one silently): which of two values a
+//     writer meant is anyone's guess;
+//   - a syntax error is located by line, column, byte offset and the JSON Pointer of the value
+//     being read when it happened;
+//   - nesting depth is bounded through parse_options::max_depth, never a global.
+// It is still Boost.JSON's parser (basic_parser) that reads the text; only the handler that
+// builds the value is ours. reader.h reads the value that comes out.
+//
+// Stateless functions: thread-safe.
+#pragma once
+
+#include <cstddef>
+#include <string>
+#include <string_view>
+
+#include <boost/json/storage_ptr.hpp>
+#include <boost/json/value.hpp>
+
+#include "util/result.h"
+
+namespace dtraced::jsonio {
+
+struct Document {
+  boost::json::value value;  // null when !parsed
+  bool parsed = false;       // false after a syntax error: `value` is unusable
+  // The syntax error (at most one: parsing stops there) and duplicate keys (all of them, up to
+  // `max_errors`), each with `path` the JSON Pointer of the value at fault and `file` empty.
+  // Duplicate keys do not stop parsing; the last occurrence is kept in `value`.
+  util::Errors errors;
+};
+
+// Parses `text` as strict RFC 8259 JSON (no comments, no trailing commas, valid UTF-8, nothing
+// but whitespace after the document), at most `max_depth` levels deep. The value's memory comes
+// from `storage`.
+Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t max_errors,
+                      boost::json::storage_ptr storage = {});
+
+// Escapes one reference token of a JSON Pointer (RFC 6901): '~' -> "~0", '/' -> "~1".
+std::string pointer_escape(std::string_view token);
+
+// "an object", "an array", "a string", "a boolean", "null" or "a number", for error messages.
+std::string_view kind_name(const boost::json::value& v);
+
+// `d` as a JSON value that prints exactly: integral values within 2^53 as integers ("640", not
+// Boost's "6.4E2"; they convert back to the identical double), others by Boost's Ryu, the
+// shortest digits that read back (correctly rounded, as parse_strict reads them) to the same
+// double. -0 prints as 0: every reader here turns -0 into +0 anyway.
+boost::json::value exact_number(double d, boost::json::storage_ptr storage = {});
+
+}  // namespace dtraced::jsonio

@@ -1,0 +1,55 @@
+// dtraced::protocol codec, internal: the reading and writing that the message codecs of
+// messages.cpp and job_messages.cpp share. Not for other modules: they call messages.h.
+//
+// Every decoder is one call of decode_object: the body parsed under its size and depth limits,
+// its top level an object with a known set of keys, each key read by jsonio (reader.h), and
+// either the message or every error found.
+//
+// Stateless functions: thread-safe.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include <boost/json/object.hpp>
+#include <boost/json/value.hpp>
+
+#include "jsonio/reader.h"
+#include "protocol/messages.h"
+
+namespace dtraced::protocol::detail {
+
+using jsonio::Fields;
+using jsonio::Need;
+using jsonio::Path;
+using jsonio::Reader;
+
+// Decodes `text`: at most `max_bytes` and `max_depth` levels, a top-level object whose keys are
+// among `keys`, read by `read(Fields&, T&)`. The message, or every error of the body.
+template <typename T, typename Read>
+Decoded<T> decode_object(std::string_view text, std::size_t max_bytes, std::size_t max_depth,
+                         std::span<const std::string_view> keys, Read read) {
+  Reader r({}, kMaxDecodeErrors);
+  const std::optional<boost::json::value> body = r.parse(text, "body", max_bytes, max_depth);
+  const Path root;
+  const boost::json::object* o = body ? r.object(*body, root) : nullptr;
+  if (o == nullptr) return r.take_errors();
+  Fields f(r, *o, root, keys);
+  T message{};
+  read(f, message);
+  if (r.failed()) return r.take_errors();
+  return message;
+}
+
+// The object's required "digest": is_digest.
+void read_digest(Fields& f, std::string& out);
+// The object's "output": a file name (check_output_name).
+void read_output(Fields& f, std::string& out, Need need);
+// The object's optional "png_bit_depth" (8 or 16) into `out`; false after an error.
+bool read_bit_depth(Fields& f, std::uint32_t& out);
+
+}  // namespace dtraced::protocol::detail

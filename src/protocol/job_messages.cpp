@@ -1,0 +1,229 @@
+// The job messages: submission (POST /v1/jobs), its answer, and job statuses and lists.
+#include <array>
+#include <cassert>
+#include <cfloat>
+#include <limits>
+
+#include <boost/json/array.hpp>
+#include <boost/json/object.hpp>
+#include <boost/json/serialize.hpp>
+#include <boost/json/value.hpp>
+#include <fmt/format.h>
+
+#include "protocol/codec.h"
+#include "protocol/messages.h"
+#include "scene/digest.h"
+#include "scene/scene_json.h"
+
+namespace dtraced::protocol {
+namespace {
+
+namespace json = boost::json;
+using namespace detail;
+
+// Indexed by JobState.
+constexpr std::array<std::string_view, 4> kJobStateNames = {"queued", "rendering", "done", "cancelled"};
+
+constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size"};
+constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
+                                               std::array<std::string_view, 1>{"png_bit_depth"});
+constexpr std::array<std::string_view, 2> kJobCreatedKeys = {"id", "digest"};
+constexpr std::array<std::string_view, 13> kJobStatusKeys = {
+    "id",         "state",       "output",    "priority", "width",  "height",  "samples",
+    "tiles_done", "tiles_total", "elapsed_s", "eta_s",    "digest", "mean_spp"};
+constexpr std::array<std::string_view, 1> kJobListKeys = {"jobs"};
+
+// The scene of a submission: loaded from the embedded object, with paths under "/scene".
+void read_submitted_scene(Fields& f, scene::SceneDesc& out) {
+  const json::value* s = f.get("scene", Need::kRequired);
+  if (s == nullptr) return;
+  if (!s->is_object()) {
+    f.reader().error(f.path("scene"), fmt::format("expected an object (a scene), got {}", jsonio::kind_name(*s)));
+    return;
+  }
+  // The loader reads text, so the embedded object goes back to text: exact, because the reader
+  // converted its numbers with correct rounding and Boost writes the shortest digits that read
+  // back to the same double. The body's size limit already bounds it.
+  scene::LoadOptions options;
+  options.max_bytes = std::numeric_limits<std::uint64_t>::max();
+  options.max_errors = kMaxDecodeErrors;
+  // A submission carries its meshes inline: a "file" would make the collector read a file of its
+  // own host into the scene, and from there serve it to any worker.
+  options.allow_mesh_files = false;
+  scene::LoadResult loaded = scene::load_scene_string(json::serialize(*s), "", options);
+  for (util::Error& e : loaded.errors) f.reader().error("/scene" + e.path, std::move(e.message));
+  if (loaded.ok()) out = std::move(*loaded.scene);
+}
+
+// The submission's overrides: each an optional top-level key, with the limits of scene files.
+void read_overrides(Fields& f, scene::Overrides& o) {
+  f.integer("tile_size", o.tile_size, scene::kMinTileSize, scene::kMaxTileSize);
+  scene::read_render_settings(f, o, Need::kOptional);
+  if (f.has("png_bit_depth")) {
+    std::uint32_t bits = scene::kDefaultPngBitDepth;
+    if (read_bit_depth(f, bits)) o.png_bit_depth = bits;
+  }
+}
+
+void read_job_submit(Fields& f, JobSubmit& m) {
+  read_submitted_scene(f, m.scene);
+  read_output(f, m.output, Need::kOptional);
+  f.integer("priority", m.priority, kMinPriority, kMaxPriority, Need::kOptional);
+  read_overrides(f, m.overrides);
+  if (f.reader().failed()) return;
+
+  const scene::RenderSettings s = effective_settings(m);
+  const std::uint32_t tile_size = scene::tile_size_or_default(m.overrides);
+  const std::uint64_t tiles = scene::TileGrid(s, tile_size).count();
+  if (tiles > kMaxTilesPerJob) {
+    f.reader().error(f.path("tile_size"),
+                     fmt::format("a {}x{} image in tiles of {} is {} tiles, more than the limit of {}", s.width,
+                                 s.height, tile_size, tiles, kMaxTilesPerJob));
+  }
+}
+
+// The number at `key` in [lo, hi], or null (`out` stays unset).
+void read_nullable_number(Fields& f, std::string_view key, std::optional<double>& out, double lo, double hi,
+                          Need need) {
+  const json::value* v = f.get(key, need);
+  if (v != nullptr && !v->is_null()) f.number(key, out, lo, hi);
+}
+
+void read_job_status(Fields& f, JobStatus& s) {
+  Reader& r = f.reader();
+  const std::size_t before = r.error_count();
+  f.integer("id", s.id, 1, kMaxId);
+  f.read("state", s.state, Need::kRequired, [&r](const json::value& v, const Path& at) {
+    const auto i = r.choice(v, at, kJobStateNames, "state", "states");
+    return i ? std::optional<JobState>(static_cast<JobState>(*i)) : std::nullopt;
+  });
+  read_output(f, s.output, Need::kRequired);
+  f.integer("priority", s.priority, kMinPriority, kMaxPriority);
+  f.integer("width", s.width, 1, scene::kMaxImageSide);
+  f.integer("height", s.height, 1, scene::kMaxImageSide);
+  f.integer("samples", s.samples, 1, scene::kMaxSamples);
+  f.integer("tiles_done", s.tiles_done, 0, kMaxTilesPerJob);
+  f.integer("tiles_total", s.tiles_total, 1, kMaxTilesPerJob);
+  f.number("elapsed_s", s.elapsed_s, 0, DBL_MAX);
+  read_nullable_number(f, "eta_s", s.eta_s, 0, DBL_MAX, Need::kRequired);
+  read_digest(f, s.digest);
+  // Optional, so that an older collector's answer still reads.
+  read_nullable_number(f, "mean_spp", s.mean_spp, 1, scene::kMaxSamples, Need::kOptional);
+  if (r.error_count() == before && s.tiles_done > s.tiles_total) {
+    r.error(f.path("tiles_done"), fmt::format("must be <= tiles_total (got {} > {})", s.tiles_done, s.tiles_total));
+  }
+}
+
+json::object job_status_object(const JobStatus& s) {
+  json::object o;
+  o["id"] = s.id;
+  o["state"] = to_string(s.state);
+  o["output"] = s.output;
+  o["priority"] = s.priority;
+  o["width"] = s.width;
+  o["height"] = s.height;
+  o["samples"] = s.samples;
+  o["tiles_done"] = s.tiles_done;
+  o["tiles_total"] = s.tiles_total;
+  o["elapsed_s"] = jsonio::exact_number(s.elapsed_s);
+  o["eta_s"] = s.eta_s ? jsonio::exact_number(*s.eta_s) : json::value(nullptr);
+  o["digest"] = s.digest;
+  o["mean_spp"] = s.mean_spp ? jsonio::exact_number(*s.mean_spp) : json::value(nullptr);
+  return o;
+}
+
+}  // namespace
+
+// ---- JobSubmit -----------------------------------------------------------------------------
+
+scene::RenderSettings effective_settings(const JobSubmit& submit) {
+  return scene::apply(submit.overrides, submit.scene.render);
+}
+
+std::string encode(const JobSubmit& m) {
+  json::object o;
+  // The scene travels in its canonical form, which reloads to the identical SceneDesc.
+  jsonio::Document doc = jsonio::parse_strict(scene::canonical_json(m.scene), scene::kMaxJsonDepth, 1);
+  assert(doc.parsed && doc.errors.empty());
+  o["scene"] = std::move(doc.value);
+  if (!m.output.empty()) o["output"] = m.output;
+  o["priority"] = m.priority;
+  const scene::Overrides& v = m.overrides;
+  if (v.tile_size) o["tile_size"] = *v.tile_size;
+  if (v.width) o["width"] = *v.width;
+  if (v.height) o["height"] = *v.height;
+  if (v.samples) o["samples"] = *v.samples;
+  if (v.max_depth) o["max_depth"] = *v.max_depth;
+  if (v.seed) o["seed"] = *v.seed;
+  if (v.frame) o["frame"] = *v.frame;
+  if (v.background) o["background"] = scene::vec3_value(*v.background);
+  if (v.error_target) o["error_target"] = jsonio::exact_number(*v.error_target);
+  if (v.min_samples) o["min_samples"] = *v.min_samples;
+  if (v.png_bit_depth) o["png_bit_depth"] = *v.png_bit_depth;
+  return json::serialize(o);
+}
+
+Decoded<JobSubmit> decode_job_submit(std::string_view text) {
+  return decode_object<JobSubmit>(text, kMaxJobSubmitBytes, kMaxJobSubmitDepth, kSubmitKeys, read_job_submit);
+}
+
+// ---- JobCreated ----------------------------------------------------------------------------
+
+std::string encode(const JobCreated& m) { return json::serialize(json::object{{"id", m.id}, {"digest", m.digest}}); }
+
+Decoded<JobCreated> decode_job_created(std::string_view text) {
+  return decode_object<JobCreated>(text, kMaxMessageBytes, kMaxMessageDepth, kJobCreatedKeys,
+                                   [](Fields& f, JobCreated& m) {
+                                     f.integer("id", m.id, 1, kMaxId);
+                                     read_digest(f, m.digest);
+                                   });
+}
+
+// ---- JobStatus, JobList --------------------------------------------------------------------
+
+std::string_view to_string(JobState state) { return kJobStateNames[static_cast<std::size_t>(state)]; }
+
+std::optional<JobState> job_state_from_string(std::string_view text) {
+  for (std::size_t i = 0; i < kJobStateNames.size(); ++i) {
+    if (text == kJobStateNames[i]) return static_cast<JobState>(i);
+  }
+  return std::nullopt;
+}
+
+std::string encode(const JobStatus& m) { return json::serialize(job_status_object(m)); }
+
+Decoded<JobStatus> decode_job_status(std::string_view text) {
+  return decode_object<JobStatus>(text, kMaxMessageBytes, kMaxMessageDepth, kJobStatusKeys, read_job_status);
+}
+
+std::string encode(const JobList& m) {
+  json::array jobs;
+  jobs.reserve(m.jobs.size());
+  for (const JobStatus& s : m.jobs) jobs.push_back(job_status_object(s));
+  json::object o;
+  o["jobs"] = std::move(jobs);
+  return json::serialize(o);
+}
+
+Decoded<JobList> decode_job_list(std::string_view text) {
+  return decode_object<JobList>(text, kMaxJobListBytes, kMaxMessageDepth, kJobListKeys, [](Fields& f, JobList& m) {
+    Reader& r = f.reader();
+    const json::value* v = f.get("jobs", Need::kRequired);
+    const Path at = f.path("jobs");
+    const json::array* a = v != nullptr ? r.array(*v, at, kMaxListedJobs, "jobs") : nullptr;
+    if (a == nullptr) return;
+    m.jobs.reserve(a->size());
+    for (std::size_t i = 0; i < a->size(); ++i) {
+      const Path element_at = at.index(i);
+      const json::object* o = r.object((*a)[i], element_at);
+      if (o == nullptr) continue;
+      const std::size_t before = r.error_count();
+      Fields element(r, *o, element_at, kJobStatusKeys);
+      JobStatus s;
+      read_job_status(element, s);
+      if (r.error_count() == before) m.jobs.push_back(std::move(s));
+    }
+  });
+}
+
+}  // namespace dtraced::protocol

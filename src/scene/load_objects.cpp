@@ -1,0 +1,438 @@
+// Objects, their materials and meshes, and lights: the elements of "scene_objects" and
+// "scene_lights" (load_objects.h).
+#include "scene/load_objects.h"
+
+#include <cfloat>
+#include <cmath>
+#include <filesystem>
+#include <limits>
+#include <memory>
+#include <span>
+
+#include <boost/json/object.hpp>
+#include <boost/json/string.hpp>
+#include <fmt/format.h>
+
+#include "math/vec.h"
+#include "scene/obj_mesh.h"
+#include "scene/scene_json.h"
+#include "util/file.h"
+
+namespace dtraced::scene::detail {
+namespace {
+
+namespace json = boost::json;
+using jsonio::Need;
+using jsonio::Path;
+
+constexpr double kFloatMax = FLT_MAX;
+constexpr double kInfinity = std::numeric_limits<double>::infinity();
+constexpr double kMaxShininess = 1e4;
+// Decimal fractions such as 0.3 + 0.7 may sum to a hair above 1 in binary; that is not a mistake
+// worth rejecting; the shader's weight 1 - reflectivity - transparency then dips at most 1e-9
+// below zero, which is harmless.
+constexpr double kEnergySlack = 1e-9;
+// Edges count as parallel when |u x v| < kParallelTolerance |u| |v| (as the camera's up does).
+constexpr double kParallelTolerance = 1e-6;
+// A normal this close to unit length is kept as written (see unit_length).
+constexpr double kUnitTolerance = 1e-12;
+
+using Keys = std::span<const std::string_view>;
+constexpr std::array<std::string_view, 7> kMaterialKeys = {"color",        "diffuse",      "specular", "shininess",
+                                                           "reflectivity", "transparency", "ior"};
+constexpr std::array<std::string_view, 4> kSphereKeys = {"type", "loc", "radius", "material"};
+constexpr std::array<std::string_view, 6> kBoxKeys = {"type", "loc", "size", "min", "max", "material"};
+constexpr std::array<std::string_view, 4> kPlaneKeys = {"type", "loc", "normal", "material"};
+constexpr std::array<std::string_view, 7> kMeshKeys = {"type",   "file",  "obj",     "translate",
+                                                       "rotate", "scale", "material"};
+// Keys checked when an object's type is missing or unknown, so typos are still reported.
+constexpr std::array<std::string_view, 13> kAnyObjectKeys = {
+    "type", "loc", "radius", "size", "min", "max", "normal", "material", "file", "obj", "translate", "rotate", "scale"};
+// Indexed by the position of the type in kLightTypeNames (point, sphere, disk, rect).
+constexpr std::array<std::string_view, 4> kPointLightKeys = {"type", "loc", "color", "intensity"};
+constexpr std::array<std::string_view, 7> kSphereLightKeys = {"type",      "loc",     "radius",      "color",
+                                                              "intensity", "samples", "cast_shadows"};
+constexpr std::array<std::string_view, 8> kDiskLightKeys = {"type",  "loc",       "radius",  "normal",
+                                                            "color", "intensity", "samples", "cast_shadows"};
+constexpr std::array<std::string_view, 9> kRectLightKeys = {"type",  "loc",       "u",       "v",           "normal",
+                                                            "color", "intensity", "samples", "cast_shadows"};
+constexpr std::array<Keys, 4> kLightKeys = {kPointLightKeys, kSphereLightKeys, kDiskLightKeys, kRectLightKeys};
+// Keys checked when a light's type is missing or unknown.
+constexpr std::array<std::string_view, 10> kAnyLightKeys = {"type", "loc",   "radius",    "normal",  "u",
+                                                            "v",    "color", "intensity", "samples", "cast_shadows"};
+
+// Normalises with a prior scaling so neither tiny nor huge components underflow or overflow.
+// A vector already within kUnitTolerance of unit length is returned bit for bit: canonical JSON
+// writes the normalised normal, and reading it back must not move it by an ulp.
+std::optional<Vec3d> unit_length(const Vec3d& v) {
+  const double scale = math::max_component(math::abs(v));
+  if (scale == 0) return std::nullopt;
+  if (std::abs(math::length_squared(v) - 1.0) <= kUnitTolerance) return v;
+  const Vec3d s = v / scale;
+  return s / math::length(s);
+}
+
+// The 1-based line of the first byte sequence that is not UTF-8 (RFC 3629: no overlong forms, no
+// surrogates, nothing above U+10FFFF), or 0 when all of `text` is UTF-8.
+std::size_t first_invalid_utf8_line(std::string_view text) {
+  std::size_t line = 1;
+  for (std::size_t i = 0; i < text.size();) {
+    const auto c = static_cast<unsigned char>(text[i]);
+    if (c < 0x80) {
+      line += c == '\n';
+      ++i;
+      continue;
+    }
+    std::size_t n = 0;
+    unsigned lo = 0x80, hi = 0xBF;  // allowed range of the second byte
+    if (c >= 0xC2 && c <= 0xDF) {
+      n = 1;
+    } else if (c >= 0xE0 && c <= 0xEF) {
+      n = 2;
+      if (c == 0xE0) lo = 0xA0;
+      if (c == 0xED) hi = 0x9F;
+    } else if (c >= 0xF0 && c <= 0xF4) {
+      n = 3;
+      if (c == 0xF0) lo = 0x90;
+      if (c == 0xF4) hi = 0x8F;
+    } else {
+      return line;
+    }
+    if (i + n >= text.size()) return line;  // truncated sequence
+    for (std::size_t k = 1; k <= n; ++k) {
+      const auto b = static_cast<unsigned char>(text[i + k]);
+      if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return line;
+    }
+    i += n + 1;
+  }
+  return 0;
+}
+
+// Reads one object or light; holds only references, so one is made per element.
+class ObjectReader {
+ public:
+  explicit ObjectReader(SceneReader& s) : s_(s), r_(s.r) {}
+
+ private:
+  // ---- value readers, for jsonio::Fields::read --------------------------------------------------
+
+  auto vec3() {
+    return [this](const json::value& v, const Path& at) { return read_vec3(r_, v, at); };
+  }
+  auto color() {
+    return [this](const json::value& v, const Path& at) { return read_color(r_, v, at); };
+  }
+  auto float_in(double lo, double hi) {
+    return [this, lo, hi](const json::value& v, const Path& at) -> std::optional<double> {
+      const auto d = read_float(r_, v, at);
+      return d && r_.in_range(*d, at, lo, hi) ? d : std::nullopt;
+    };
+  }
+  auto positive_float() {
+    return [this](const json::value& v, const Path& at) -> std::optional<double> {
+      const auto d = read_float(r_, v, at);
+      return d && r_.positive(*d, at) ? d : std::nullopt;
+    };
+  }
+  auto unit_vector() {
+    return [this](const json::value& v, const Path& at) -> std::optional<Vec3d> {
+      const auto n = read_vec3(r_, v, at);
+      if (!n) return std::nullopt;
+      const auto unit = unit_length(*n);
+      if (!unit) r_.error(at, "must not be zero length");
+      return unit;
+    };
+  }
+
+  void check_keys(const json::object& o, const Path& at, Keys known) { r_.check_keys(o, at, known, kKeyAliases); }
+
+  // The index in `names` of the required "type", or nullopt after reporting why there is none.
+  std::optional<std::size_t> type_of(const json::object& o, const Path& at, Keys names, std::string_view what) {
+    const json::value* t = r_.get(o, "type", at, Need::kRequired);
+    return t != nullptr ? r_.choice(*t, at.key("type"), names, what, "types") : std::nullopt;
+  }
+
+  // ---- objects -------------------------------------------------------------------------------
+
+  void read_material(const json::value& v, const Path& at, Material& m) {
+    const json::object* o = r_.object(v, at);
+    if (o == nullptr) return;
+    jsonio::Fields f(r_, *o, at, kMaterialKeys, kKeyAliases);
+    const std::size_t errors_before = r_.error_count();
+    f.read("color", m.color, Need::kOptional, color());
+    f.read("diffuse", m.diffuse, Need::kOptional, float_in(0, 1));
+    f.read("specular", m.specular, Need::kOptional, float_in(0, 1));
+    f.read("shininess", m.shininess, Need::kOptional, float_in(0, kMaxShininess));
+    f.read("reflectivity", m.reflectivity, Need::kOptional, float_in(0, 1));
+    f.read("transparency", m.transparency, Need::kOptional, float_in(0, 1));
+    f.read("ior", m.ior, Need::kOptional, positive_float());
+    if (r_.error_count() == errors_before && m.reflectivity + m.transparency > 1 + kEnergySlack) {
+      r_.error(at,
+               fmt::format("reflectivity + transparency must be <= 1 (got {} + {})", m.reflectivity, m.transparency));
+    }
+  }
+
+  void read_sphere(jsonio::Fields& f, Sphere& sphere) {
+    check_keys(f.object(), f.at(), kSphereKeys);
+    f.read("loc", sphere.center, Need::kRequired, vec3());
+    f.read("radius", sphere.radius, Need::kRequired, positive_float());
+  }
+
+  // A box is written either as centre and full edge lengths ("loc", "size"; the friendly form)
+  // or as corners ("min", "max"; the canonical form, which round-trips bit for bit).
+  void read_box(jsonio::Fields& f, Box& box) {
+    check_keys(f.object(), f.at(), kBoxKeys);
+    const bool centre_form = f.has("loc") || f.has("size");
+    const bool corner_form = f.has("min") || f.has("max");
+    if (centre_form && corner_form) {
+      r_.error(f.at(), "a box takes either \"loc\" and \"size\" or \"min\" and \"max\", not both");
+      return;
+    }
+    if (corner_form) {
+      std::optional<Vec3d> lo, hi;
+      f.read("min", lo, Need::kRequired, vec3());
+      f.read("max", hi, Need::kRequired, vec3());
+      if (!lo || !hi) return;
+      const Path max_at = f.path("max");
+      for (std::size_t i = 0; i < 3; ++i) {
+        if (!((*lo)[i] < (*hi)[i])) {
+          r_.error(max_at.index(i), fmt::format("must be greater than min (got {} <= {})", (*hi)[i], (*lo)[i]));
+        }
+      }
+      box = Box{*lo, *hi};
+      return;
+    }
+    std::optional<Vec3d> centre, size;
+    f.read("loc", centre, Need::kRequired, vec3());
+    f.read("size", size, Need::kRequired, vec3());
+    const Path size_at = f.path("size");
+    bool ok = centre && size;
+    if (size) {
+      for (std::size_t i = 0; i < 3; ++i) ok = r_.positive((*size)[i], size_at.index(i)) && ok;
+    }
+    if (!ok) return;
+    const Vec3d half = *size * 0.5;
+    box = Box{*centre - half, *centre + half};
+    for (std::size_t i = 0; i < 3; ++i) {
+      if (!(box.min[i] < box.max[i])) {
+        r_.error(size_at.index(i),
+                 "too small to be represented at this location (min and max round to the same value)");
+        return;
+      }
+    }
+    if (math::max_component(math::max(math::abs(box.min), math::abs(box.max))) > kFloatMax) {
+      r_.error(f.at(), "box extends beyond the float range");
+    }
+  }
+
+  void read_plane(jsonio::Fields& f, Plane& plane) {
+    check_keys(f.object(), f.at(), kPlaneKeys);
+    f.read("loc", plane.point, Need::kRequired, vec3());
+    f.read("normal", plane.normal, Need::kRequired, unit_vector());
+  }
+
+  // "scale": one number for all axes or one per axis; each non-zero (a zero flattens the mesh
+  // into degenerate triangles, surely a mistake) and within the float range.
+  std::optional<Vec3d> scale(const json::value& v, const Path& at) {
+    std::optional<Vec3d> s;
+    if (v.is_array()) {
+      s = read_vec3(r_, v, at);
+    } else if (auto d = read_float(r_, v, at)) {
+      s = Vec3d{*d, *d, *d};
+    }
+    if (!s) return std::nullopt;
+    for (std::size_t i = 0; i < 3; ++i) {
+      if ((*s)[i] == 0) {
+        r_.error(v.is_array() ? at.index(i).str() : at.str(), "must not be zero");
+        return std::nullopt;
+      }
+    }
+    return s;
+  }
+
+  // A Wavefront OBJ, from a file or inline, placed by scale, rotate, translate (description.h).
+  void read_mesh(jsonio::Fields& f, Object& out) {
+    check_keys(f.object(), f.at(), kMeshKeys);
+    const std::size_t errors_before = r_.error_count();
+    auto mesh = std::make_shared<Mesh>();
+    f.read("translate", mesh->translate, Need::kOptional, vec3());
+    f.read("rotate", mesh->rotate_deg, Need::kOptional, vec3());
+    f.read("scale", mesh->scale, Need::kOptional,
+           [this](const json::value& v, const Path& at) { return scale(v, at); });
+
+    const bool from_file = f.has("file");
+    if (from_file && f.has("obj")) {
+      r_.error(f.at(), "a mesh takes either \"file\" (an OBJ file) or \"obj\" (the OBJ text inline), not both");
+      return;
+    }
+    if (!from_file && !f.has("obj")) {
+      r_.error(f.at(), "a mesh needs \"file\" (an OBJ file) or \"obj\" (the OBJ text inline)");
+      return;
+    }
+    const Path source_at = f.path(from_file ? "file" : "obj");
+    std::string text;
+    if (!f.string(from_file ? "file" : "obj", text, std::numeric_limits<std::size_t>::max())) return;
+    if (from_file) {
+      mesh->file = std::move(text);
+      if (!read_mesh_file(*mesh, source_at)) return;
+    } else {
+      mesh->obj = std::move(text);
+    }
+    if (r_.error_count() != errors_before) return;
+
+    // Messages about a file's content name the file, so "line 7" can be found.
+    const std::string prefix = mesh->file.empty() ? std::string() : mesh->file + ": ";
+    const auto built = build_obj_mesh(*mesh, s_.options.max_triangles - s_.triangles);
+    if (!built) {
+      for (const util::Error& e : built.error()) r_.error(source_at, prefix + e.message);
+      return;
+    }
+    s_.triangles += mesh->triangle_count();
+    if (mesh->triangle_count() == 0) s_.warning(source_at, prefix + "the OBJ has no faces: the mesh is invisible");
+    out.mesh = std::move(mesh);
+  }
+
+  bool read_mesh_file(Mesh& mesh, const Path& at) {
+    if (!s_.options.allow_mesh_files) {
+      r_.error(at, fmt::format("mesh file \"{}\" not accepted here: a scene sent to a collector or worker must carry "
+                               "its meshes inline as \"obj\" (dtraced submit inlines them)",
+                               mesh.file));
+      return false;
+    }
+    if (mesh.file.empty()) {
+      r_.error(at, "must name an OBJ file");
+      return false;
+    }
+    const std::filesystem::path relative(mesh.file);
+    const std::string& base = s_.options.base_dir;
+    const std::filesystem::path path =
+        relative.is_absolute() || base.empty() ? relative : std::filesystem::path(base) / relative;
+    std::string read_error;
+    std::optional<std::string> text = util::read_file_limited(path.string(), s_.options.max_obj_bytes, read_error);
+    if (!text) {
+      r_.error(at, read_error);
+      return false;
+    }
+    // The canonical form carries the text inside a JSON string, which must be UTF-8.
+    if (const std::size_t line = first_invalid_utf8_line(*text); line != 0) {
+      r_.error(at, fmt::format("{}: line {}: not valid UTF-8 (an OBJ is inlined into the scene as JSON text)",
+                               mesh.file, line));
+      return false;
+    }
+    mesh.obj = std::move(*text);
+    return true;
+  }
+
+  // ---- lights --------------------------------------------------------------------------------
+
+  // A rect light's edges and emitting side: "u" and "v" are required; "normal" is optional (by
+  // default the side of cross(u, v)) and, when given, must be parallel to cross(u, v).
+  void read_rect_light(jsonio::Fields& f, Light& light) {
+    std::optional<Vec3d> u, v;
+    f.read("u", u, Need::kRequired, vec3());
+    f.read("v", v, Need::kRequired, vec3());
+    if (!u || !v) return;
+    const double u_scale = math::max_component(math::abs(*u)), v_scale = math::max_component(math::abs(*v));
+    if (u_scale == 0 || v_scale == 0) {
+      r_.error(f.path(u_scale == 0 ? "u" : "v"), "must not be the zero vector");
+      return;
+    }
+    const Vec3d us = *u / u_scale, vs = *v / v_scale;
+    const Vec3d c = math::cross(us, vs);
+    // Parallel edges: the rectangle would have no area. Same tolerance as the camera's up.
+    if (math::length(c) < kParallelTolerance * math::length(us) * math::length(vs)) {
+      r_.error(f.path("v"), "must not be parallel to \"u\": the rectangle would have no area");
+      return;
+    }
+    light.edge_u = *u;
+    light.edge_v = *v;
+    Vec3d normal = c / math::length(c);
+    if (f.has("normal")) {
+      std::optional<Vec3d> unit;
+      if (!f.read("normal", unit, Need::kOptional, unit_vector())) return;
+      const double cosine = math::dot(*unit, normal);
+      if (std::abs(cosine) < 1.0 - 1e-6) {
+        r_.error(f.path("normal"),
+                 "must be perpendicular to both edges \"u\" and \"v\" (it only picks the side the light emits on)");
+        return;
+      }
+      if (cosine < 0) normal = -normal;
+    }
+    light.normal = normal;
+  }
+
+ public:
+  // ---- entry points (after the helpers, whose return types they deduce) ---------------------
+  // Each takes the element as an object, or nullptr when it was not one (already reported).
+
+  std::optional<Object> object(const json::object* o, const Path& at) {
+    if (o == nullptr) return std::nullopt;
+    const std::size_t errors_before = r_.error_count();
+    Object out;
+    const std::optional<std::size_t> type = type_of(*o, at, kObjectTypeNames, "object type");
+    if (!type) {
+      check_keys(*o, at, kAnyObjectKeys);
+    } else {
+      out.type = static_cast<ObjectType>(*type);
+      jsonio::Fields f(r_, *o, at);
+      switch (out.type) {
+        case ObjectType::kSphere:
+          read_sphere(f, out.sphere);
+          break;
+        case ObjectType::kBox:
+          read_box(f, out.box);
+          break;
+        case ObjectType::kPlane:
+          read_plane(f, out.plane);
+          break;
+        case ObjectType::kMesh:
+          read_mesh(f, out);
+          break;
+      }
+    }
+    if (const json::value* m = o->if_contains("material")) read_material(*m, at.key("material"), out.material);
+    if (!type || r_.error_count() != errors_before) return std::nullopt;
+    return out;
+  }
+
+  std::optional<Light> light(const json::object* o, const Path& at) {
+    if (o == nullptr) return std::nullopt;
+    const std::size_t errors_before = r_.error_count();
+    Light light;
+    const std::optional<std::size_t> type = type_of(*o, at, kLightTypeNames, "light type");
+    check_keys(*o, at, type ? kLightKeys[*type] : Keys(kAnyLightKeys));
+    jsonio::Fields f(r_, *o, at);
+    f.read("loc", light.position, Need::kRequired, vec3());
+    f.read("color", light.color, Need::kOptional, color());
+    f.read("intensity", light.intensity, Need::kOptional, float_in(0, kInfinity));
+    if (!type) return std::nullopt;
+    light.type = kLightTypes[*type];
+    if (light.is_area()) {
+      f.integer("samples", light.samples, 1, kMaxLightSamples, Need::kOptional);
+      f.boolean("cast_shadows", light.cast_shadows, Need::kOptional);
+    }
+    if (light.type == LightType::kSphere || light.type == LightType::kDisk) {
+      f.read("radius", light.radius, Need::kRequired, positive_float());
+    }
+    if (light.type == LightType::kDisk) f.read("normal", light.normal, Need::kRequired, unit_vector());
+    if (light.type == LightType::kRect) read_rect_light(f, light);
+    if (r_.error_count() != errors_before) return std::nullopt;
+    return light;
+  }
+
+ private:
+  SceneReader& s_;
+  jsonio::Reader& r_;
+};
+
+}  // namespace
+
+std::optional<Object> read_object(SceneReader& s, const json::value& v, const Path& at) {
+  return ObjectReader(s).object(s.r.object(v, at), at);
+}
+
+std::optional<Light> read_light(SceneReader& s, const json::value& v, const Path& at) {
+  return ObjectReader(s).light(s.r.object(v, at), at);
+}
+
+}  // namespace dtraced::scene::detail

@@ -1,0 +1,331 @@
+// Tests for dtraced::jsonio: the strict parse (duplicate keys, depth limit, located syntax errors,
+// correctly rounded doubles) and the located reader (shapes, keys with did-you-mean, integers up to
+// 2^53, numbers, strings, the error cap, lazy JSON Pointers), which scenes, wire messages and
+// config files share.
+#include <array>
+#include <bit>
+#include <charconv>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <optional>
+#include <random>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include <boost/json/serialize.hpp>
+#include <catch2/catch.hpp>
+
+#include "jsonio/parse.h"
+#include "jsonio/path.h"
+#include "jsonio/reader.h"
+
+namespace {
+
+namespace json = boost::json;
+namespace jsonio = dtraced::jsonio;
+using jsonio::Fields;
+using jsonio::Need;
+using jsonio::Path;
+using jsonio::Reader;
+
+json::value parse_ok(std::string_view text) {
+  jsonio::Document doc = jsonio::parse_strict(text, 16, 10);
+  INFO(text);
+  REQUIRE(doc.parsed);
+  REQUIRE(doc.errors.empty());
+  return std::move(doc.value);
+}
+
+// The one error a reading reported, as "PATH: MESSAGE".
+std::string only_error(Reader& r) {
+  const dtraced::util::Errors errors = r.take_errors();
+  REQUIRE(errors.size() == 1);
+  return errors[0].to_string();
+}
+
+constexpr std::array<std::string_view, 4> kKnown = {"radius", "color", "loc", "material"};
+
+}  // namespace
+
+// ---- parse ---------------------------------------------------------------------------------
+
+TEST_CASE("duplicate keys are reported at their path, and parsing goes on", "[jsonio][parse]") {
+  const jsonio::Document doc = jsonio::parse_strict(R"({"a": {"b": 1, "b": 2}, "c": [{"d": 1, "d": 1}]})", 16, 10);
+  REQUIRE(doc.parsed);
+  REQUIRE(doc.errors.size() == 2);
+  CHECK(doc.errors[0].to_string() == "/a/b: duplicate key \"b\"");
+  CHECK(doc.errors[1].to_string() == "/c/0/d: duplicate key \"d\"");
+  // The last occurrence is the one kept.
+  CHECK(doc.value.at("a").at("b").as_int64() == 2);
+}
+
+TEST_CASE("nesting is bounded by the depth limit, located where it is crossed", "[jsonio][parse]") {
+  CHECK(jsonio::parse_strict("[[[1]]]", 3, 10).parsed);
+  const jsonio::Document doc = jsonio::parse_strict(R"({"a": [[1]]})", 2, 10);
+  CHECK_FALSE(doc.parsed);
+  REQUIRE(doc.errors.size() == 1);
+  CHECK(doc.errors[0].path == "/a/0");
+  CHECK(doc.errors[0].message.find("nesting is deeper than the limit of 2 levels") != std::string::npos);
+}
+
+TEST_CASE("a syntax error names its line, column, byte and path", "[jsonio][parse]") {
+  const jsonio::Document doc = jsonio::parse_strict("{\n  \"a\": [1,, 2]\n}", 16, 10);
+  CHECK_FALSE(doc.parsed);
+  CHECK(doc.value.is_null());
+  REQUIRE(doc.errors.size() == 1);
+  CHECK(doc.errors[0].path == "/a/1");
+  CHECK(doc.errors[0].message.starts_with("invalid JSON at line 2, column 11 (byte 12): "));
+
+  CHECK(jsonio::parse_strict("", 16, 10).errors.at(0).message.ends_with("unexpected end of input"));
+  CHECK(
+      jsonio::parse_strict("{} []", 16, 10).errors.at(0).message.ends_with("unexpected data after the JSON document"));
+  CHECK_FALSE(jsonio::parse_strict("{\"a\": 1,}", 16, 10).parsed);         // no trailing commas
+  CHECK_FALSE(jsonio::parse_strict("{\"a\": 1 /* x */}", 16, 10).parsed);  // no comments
+  CHECK_FALSE(jsonio::parse_strict("\"\xff\"", 16, 10).parsed);            // UTF-8 only
+}
+
+TEST_CASE("doubles are read correctly rounded: the shortest text of any double reads back to its bits",
+          "[jsonio][parse]") {
+  // Fixed seed: the same 20000 doubles every run, finite ones of every exponent.
+  std::mt19937_64 bits(20240601);
+  int checked = 0;
+  while (checked < 20000) {
+    const double d = std::bit_cast<double>(bits());
+    if (!std::isfinite(d)) continue;
+    char text[64];
+    const auto end = std::to_chars(text, text + sizeof text, d).ptr;
+    const json::value v = parse_ok(std::string_view(text, static_cast<std::size_t>(end - text)));
+    // Integral values may be printed without an exponent, and then read as integers.
+    const double back = v.is_double()  ? v.get_double()
+                        : v.is_int64() ? static_cast<double>(v.get_int64())
+                                       : static_cast<double>(v.get_uint64());
+    INFO(std::string_view(text, static_cast<std::size_t>(end - text)));
+    REQUIRE(std::bit_cast<std::uint64_t>(back) == std::bit_cast<std::uint64_t>(d));
+    ++checked;
+  }
+  // Decimal fractions that round to the nearest double, and the extremes.
+  CHECK(parse_ok("0.30000000000000004").get_double() == 0.1 + 0.2);
+  CHECK(parse_ok("2.2250738585072014e-308").get_double() == std::numeric_limits<double>::min());
+  CHECK(parse_ok("1.7976931348623157e308").get_double() == std::numeric_limits<double>::max());
+  CHECK(parse_ok("4.9e-324").get_double() == std::numeric_limits<double>::denorm_min());
+}
+
+TEST_CASE("exact_number writes integral values as integers and others so they read back exactly", "[jsonio][write]") {
+  CHECK(json::serialize(jsonio::exact_number(640.0)) == "640");
+  CHECK(json::serialize(jsonio::exact_number(-0.0)) == "0");
+  CHECK(json::serialize(jsonio::exact_number(9007199254740992.0)) == "9007199254740992");
+  CHECK(jsonio::exact_number(18014398509481984.0).is_double());  // 2^54: beyond exact integers
+  for (const double d : {0.1, 1e-300, 12.345678901234567, -3.5e20}) {
+    const json::value back = parse_ok(json::serialize(jsonio::exact_number(d)));
+    CHECK(std::bit_cast<std::uint64_t>(back.get_double()) == std::bit_cast<std::uint64_t>(d));
+  }
+}
+
+// ---- reader: errors and paths --------------------------------------------------------------
+
+TEST_CASE("paths are JSON Pointers, escaped, and built only from live parents", "[jsonio][path]") {
+  const Path root;
+  CHECK(root.str().empty());
+  CHECK(root.is_root());
+  const Path a = root.key("a/b");
+  const Path list = a.index(3);
+  CHECK(list.key("~x").str() == "/a~1b/3/~0x");
+  CHECK(jsonio::pointer_escape("~/") == "~0~1");
+  // A copy refers to the same parent: it names the same value.
+  const Path copy = list;
+  CHECK(copy.str() == "/a~1b/3");
+  CHECK_FALSE(copy.is_root());
+}
+
+TEST_CASE("every error carries its file and path; past the cap the rest are counted", "[jsonio][errors]") {
+  Reader r("f.json", 3);
+  const Path root;
+  for (int i = 0; i < 5; ++i) r.error(root.index(static_cast<std::size_t>(i)), "bad");
+  CHECK(r.error_count() == 5);
+  CHECK(r.failed());
+  const dtraced::util::Errors errors = r.take_errors();
+  REQUIRE(errors.size() == 4);
+  CHECK(errors[0].to_string() == "f.json: /0: bad");
+  CHECK(errors[2].to_string() == "f.json: /2: bad");
+  CHECK(errors[3].to_string() == "f.json: 2 more problems not shown");
+  // Taking the errors starts afresh.
+  CHECK_FALSE(r.failed());
+  CHECK(r.take_errors().empty());
+}
+
+TEST_CASE("a reader's parse reports the size limit, syntax errors and duplicate keys", "[jsonio][errors]") {
+  Reader r("", 10);
+  CHECK_FALSE(r.parse("[1, 2]", "body", 5, 8));
+  CHECK(only_error(r) == "body is 6 bytes, larger than the limit of 5 bytes");
+
+  const auto dup = r.parse(R"({"a": 1, "a": 2})", "body", 100, 8);
+  REQUIRE(dup);
+  CHECK(only_error(r) == "/a: duplicate key \"a\"");
+
+  // Duplicate keys fill the cap, but the syntax error after them is still shown.
+  Reader capped("", 2);
+  CHECK_FALSE(capped.parse(R"({"a": 1, "a": 2, "a": 3, "b": })", "body", 100, 8));
+  const dtraced::util::Errors errors = capped.take_errors();
+  REQUIRE_FALSE(errors.empty());
+  CHECK(errors[0].message == "duplicate key \"a\"");
+  CHECK(errors[1].message.starts_with("invalid JSON"));
+}
+
+// ---- reader: shapes and keys ---------------------------------------------------------------
+
+TEST_CASE("unknown keys get a did-you-mean within two edits or by alias, else the known keys", "[jsonio][keys]") {
+  CHECK(jsonio::unknown_key_message("raduis", kKnown) == "unknown key \"raduis\" (did you mean \"radius\"?)");
+  CHECK(jsonio::unknown_key_message("colour", kKnown) == "unknown key \"colour\" (did you mean \"color\"?)");
+  CHECK(jsonio::unknown_key_message("frobnicate", kKnown) ==
+        "unknown key \"frobnicate\"; known keys: radius, color, loc, material");
+  // One edit away, but the whole key: "x" is not a misspelling of "loc"... nor of anything.
+  CHECK(jsonio::unknown_key_message("x", std::array<std::string_view, 1>{"y"}).find("known keys: y") !=
+        std::string::npos);
+  // The caller's aliases: only towards a key that is known here.
+  const std::array<jsonio::KeyAlias, 2> aliases = {{{"center", "loc"}, {"spp", "samples"}}};
+  CHECK(jsonio::unknown_key_message("center", kKnown, aliases) == "unknown key \"center\" (did you mean \"loc\"?)");
+  CHECK(jsonio::unknown_key_message("spp", kKnown, aliases).find("known keys") != std::string::npos);
+
+  Reader r;
+  const json::value v = parse_ok(R"({"loc": 1, "raduis": 2})");
+  const Path root;
+  r.check_keys(v.as_object(), root.key("sphere"), kKnown);
+  CHECK(only_error(r) == "/sphere/raduis: unknown key \"raduis\" (did you mean \"radius\"?)");
+}
+
+TEST_CASE("shapes: objects, arrays with a limit, tuples, required keys", "[jsonio][shapes]") {
+  Reader r;
+  const Path root;
+  CHECK(r.object(parse_ok("[]"), root) == nullptr);
+  CHECK(only_error(r) == "expected a JSON object at the top level, got an array");
+  CHECK(r.object(parse_ok("3"), root.key("camera")) == nullptr);
+  CHECK(only_error(r) == "/camera: expected an object, got a number");
+
+  CHECK(r.array(parse_ok("[1, 2, 3]"), root.key("lights"), 2, "lights") == nullptr);
+  CHECK(only_error(r) == "/lights: too many lights: 3 (limit 2)");
+  CHECK(r.array(parse_ok("[1, 2]"), root.key("lights"), 2, "lights") != nullptr);
+  CHECK(r.array(parse_ok("null"), root.key("lights")) == nullptr);
+  CHECK(only_error(r) == "/lights: expected an array, got null");
+
+  CHECK(r.tuple(parse_ok("[1]"), root.key("loc"), 3, "numbers") == nullptr);
+  CHECK(only_error(r) == "/loc: expected an array of 3 numbers, got 1 element");
+  CHECK(r.tuple(parse_ok("[1, 2]"), root.key("loc"), 3, "numbers") == nullptr);
+  CHECK(only_error(r) == "/loc: expected an array of 3 numbers, got 2 elements");
+  CHECK(r.tuple(parse_ok("\"x\""), root.key("loc"), 3, "numbers") == nullptr);
+  CHECK(only_error(r) == "/loc: expected an array of 3 numbers, got a string");
+
+  const json::value o = parse_ok(R"({"a": 1})");
+  CHECK(r.get(o.as_object(), "a", root, Need::kRequired) != nullptr);
+  CHECK(r.get(o.as_object(), "b", root, Need::kOptional) == nullptr);
+  CHECK_FALSE(r.failed());
+  CHECK(r.get(o.as_object(), "b", root, Need::kRequired) == nullptr);
+  CHECK(only_error(r) == "/b: required key is missing");
+}
+
+// ---- reader: scalars -----------------------------------------------------------------------
+
+TEST_CASE("integers: bounds up to 2^53 either side, integral doubles accepted", "[jsonio][numbers]") {
+  constexpr std::int64_t k53 = jsonio::kMaxExactInteger;
+  Reader r;
+  const Path root;
+  const Path at = root.key("n");
+  CHECK(r.integer(parse_ok("9007199254740992"), at, 0, k53) == k53);
+  CHECK(r.integer(parse_ok("-9007199254740992"), at, -k53, 0) == -k53);
+  CHECK(r.integer(parse_ok("9007199254740992.0"), at, 0, k53) == k53);
+  CHECK(r.integer(parse_ok("1e3"), at, 0, 1000) == 1000);
+  CHECK(r.integer(parse_ok("-0.0"), at, 0, 10) == 0);
+  CHECK_FALSE(r.failed());
+
+  CHECK_FALSE(r.integer(parse_ok("9007199254740992"), at, 0, k53 - 1));
+  CHECK(only_error(r) == "/n: must be an integer in [0, 9007199254740991] (got 9007199254740992)");
+  CHECK_FALSE(r.integer(parse_ok("18446744073709551615"), at, 0, k53));  // a uint64: beyond every bound
+  CHECK(only_error(r) == "/n: must be an integer in [0, 9007199254740992] (got 18446744073709551615)");
+  CHECK_FALSE(r.integer(parse_ok("1e300"), at, -k53, k53));  // never converted: no overflow
+  CHECK(only_error(r).find("must be an integer in [") != std::string::npos);
+  CHECK_FALSE(r.integer(parse_ok("-1"), at, 0, 5));
+  CHECK(only_error(r) == "/n: must be an integer in [0, 5] (got -1)");
+  CHECK_FALSE(r.integer(parse_ok("2.5"), at, 0, 5));
+  CHECK(only_error(r) == "/n: must be an integer (got 2.5)");
+  CHECK_FALSE(r.integer(parse_ok("1e400"), at, 0, 5));
+  CHECK(only_error(r) == "/n: number is out of range (overflows a double)");
+  CHECK_FALSE(r.integer(parse_ok("\"3\""), at, 0, 5));
+  CHECK(only_error(r) == "/n: expected an integer, got a string");
+}
+
+TEST_CASE("numbers: finite, -0 read as +0, ranges worded alike", "[jsonio][numbers]") {
+  Reader r;
+  const Path root;
+  const Path at = root.key("x");
+  const std::optional<double> zero = r.number(parse_ok("-0.0"), at);
+  REQUIRE(zero);
+  CHECK_FALSE(std::signbit(*zero));
+  CHECK(r.number(parse_ok("18446744073709551615"), at) == 18446744073709551615.0);
+  CHECK_FALSE(r.failed());
+
+  CHECK_FALSE(r.number(parse_ok("-1e400"), at));
+  CHECK(only_error(r) == "/x: number is out of range (overflows a double)");
+  CHECK_FALSE(r.number(parse_ok("null"), at));
+  CHECK(only_error(r) == "/x: expected a number, got null");
+  CHECK_FALSE(r.number(parse_ok("1.5"), at, 0, 1));
+  CHECK(only_error(r) == "/x: must be in [0, 1] (got 1.5)");
+  CHECK_FALSE(r.number(parse_ok("-2"), at, 0, std::numeric_limits<double>::max()));
+  CHECK(only_error(r) == "/x: must be >= 0 (got -2)");
+  CHECK_FALSE(r.positive(0.0, at));
+  CHECK(only_error(r) == "/x: must be > 0 (got 0)");
+}
+
+TEST_CASE("strings with a byte limit, booleans, and one of a set of names", "[jsonio][strings]") {
+  Reader r;
+  const Path root;
+  const Path at = root.key("s");
+  CHECK(r.string(parse_ok("\"abc\""), at, 3) == std::string_view("abc"));
+  CHECK_FALSE(r.string(parse_ok("\"abcd\""), at, 3));
+  CHECK(only_error(r) == "/s: string is 4 bytes, longer than the limit of 3");
+  CHECK_FALSE(r.string(parse_ok("[]"), at));
+  CHECK(only_error(r) == "/s: expected a string, got an array");
+
+  CHECK(r.boolean(parse_ok("false"), at) == false);
+  CHECK_FALSE(r.boolean(parse_ok("0"), at));
+  CHECK(only_error(r) == "/s: expected true or false, got a number");
+
+  constexpr std::array<std::string_view, 3> kStates = {"queued", "rendering", "done"};
+  CHECK(r.choice(parse_ok("\"done\""), at, kStates, "state", "states") == 2u);
+  CHECK_FALSE(r.choice(parse_ok("\"paused\""), at, kStates, "state", "states"));
+  CHECK(only_error(r) == "/s: unknown state \"paused\"; known states: queued, rendering, done");
+  CHECK_FALSE(r.choice(parse_ok("3"), at, kStates, "state", "states"));
+  CHECK(only_error(r) == "/s: expected a string (queued, rendering or done), got a number");
+  // A long string is not quoted back.
+  CHECK_FALSE(r.choice(json::value(std::string(100, 'x')), at, kStates, "state", "states"));
+  CHECK(only_error(r) == "/s: unknown state (a string of 100 bytes); known states: queued, rendering, done");
+}
+
+TEST_CASE("fields: required and optional keys, values kept when absent or wrong", "[jsonio][fields]") {
+  constexpr std::array<std::string_view, 5> kKeys = {"id", "name", "ratio", "limit", "on"};
+  const json::value v = parse_ok(R"({"id": 7, "name": "w", "ratio": 2, "extra": 1})");
+  Reader r("c.json");
+  const Path root;
+  Fields f(r, v.as_object(), root.key("job"), kKeys);
+  CHECK(only_error(r) == "c.json: /job/extra: unknown key \"extra\"; known keys: id, name, ratio, limit, on");
+
+  std::uint32_t id = 0;
+  CHECK(f.integer("id", id, 1, 10));
+  CHECK(id == 7);
+  std::string name;
+  CHECK(f.string("name", name, 8));
+  CHECK(name == "w");
+  double ratio = 0.5;
+  CHECK_FALSE(f.number("ratio", ratio, 0, 1));
+  CHECK(ratio == 0.5);  // left alone
+  CHECK(only_error(r) == "c.json: /job/ratio: must be in [0, 1] (got 2)");
+
+  std::optional<std::uint32_t> limit;
+  CHECK(f.integer("limit", limit, 0, 5));  // absent and optional: fine, still unset
+  CHECK_FALSE(limit);
+  bool on = true;
+  CHECK_FALSE(f.boolean("on", on));
+  CHECK(on);
+  CHECK(only_error(r) == "c.json: /job/on: required key is missing");
+  CHECK(f.path("name").str() == "/job/name");
+}
