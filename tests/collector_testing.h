@@ -100,7 +100,7 @@ inline std::string open_error(const coll::CollectorConfig& config) {
   auto collector = must_create(config);
   const util::Status opened = collector->open();
   REQUIRE_FALSE(opened);
-  return opened.error().message;
+  return opened.error().to_string();
 }
 
 inline coll::OneShotJob one_shot(std::string scene_path, std::string output) {
@@ -287,9 +287,8 @@ inline std::set<std::uint32_t> all_tiles() {
 inline image::ImageRGBf fetch_pfm(Harness& h, std::uint64_t job) {
   const Response res = h.call(Verb::get, fmt::format("/v1/jobs/{}/image?format=pfm", job));
   REQUIRE(res.result() == Status::ok);
-  std::string error;
-  auto img = image::decode_image(image::ImageFormat::kPfm, res.body(), "pfm", error);
-  INFO(error);
+  auto img = image::decode_image(image::ImageFormat::kPfm, res.body(), "pfm");
+  if (!img) INFO(img.error().to_string());
   REQUIRE(img);
   return *img;
 }

@@ -258,11 +258,11 @@ class FakeCollector {
       return http::make_error(http::Status::service_unavailable, "failing on purpose");
     }
     auto decoded = protocol::decode_tile_payload(body);
-    if (const auto* failure = std::get_if<protocol::TilePayloadFailure>(&decoded)) {
-      counts_.problems.push_back(fmt::format("tile {}: bad payload: {}", t, failure->message));
-      return http::make_error(http::Status::bad_request, failure->message);
+    if (!decoded) {
+      counts_.problems.push_back(fmt::format("tile {}: bad payload: {}", t, decoded.error().message));
+      return http::make_error(http::Status::bad_request, decoded.error().message);
     }
-    protocol::TilePayload& payload = std::get<protocol::TilePayload>(decoded);
+    protocol::TilePayload& payload = decoded.value();
     if (payload.job != kJob || payload.tile != t || !(payload.rect == rects_[t])) {
       counts_.problems.push_back(fmt::format("tile {}: payload names job {} tile {}", t, payload.job, payload.tile));
       return http::make_error(http::Status::bad_request, "payload does not match the tile");

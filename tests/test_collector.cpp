@@ -82,8 +82,7 @@ TEST_CASE("a job's PNG bit depth and background overrides reach its image and su
       h.put_ok(l);
     }
     REQUIRE(h.status(job).state == protocol::JobState::kDone);
-    std::string error;
-    const auto written = dtraced::util::read_file_limited((dir.path() / "out" / "job-1.png").string(), 1 << 20, error);
+    const auto written = dtraced::util::read_file_limited((dir.path() / "out" / "job-1.png").string(), 1 << 20);
     REQUIRE(written);
     CHECK(png_bit_depth(*written) == 16);
   }
@@ -163,8 +162,7 @@ TEST_CASE("submit, lease every tile, store them, and the image is written", "[co
   CHECK(s.tiles_done == kTiles);
   CHECK(s.eta_s == 0.0);
   REQUIRE(fs::exists(dir.path() / "out" / "job-1.png"));
-  std::string error;
-  auto written = dtraced::image::read_image((dir.path() / "out" / "job-1.png").string(), error);
+  auto written = dtraced::image::read_image((dir.path() / "out" / "job-1.png").string());
   REQUIRE(written);
   CHECK(written->width == 32);
   // The final image, now from the store, is every tile's exact bits.
@@ -201,8 +199,7 @@ TEST_CASE("a named output and a PPM output are written where asked", "[collector
   REQUIRE(leases.size() == 2);
   for (const auto& l : leases) h.put_ok(l);
   CHECK(h.status(job).output == "picture.pfm");
-  std::string error;
-  auto img = dtraced::image::read_image((dir.path() / "out" / "picture.pfm").string(), error);
+  auto img = dtraced::image::read_image((dir.path() / "out" / "picture.pfm").string());
   REQUIRE(img);
   CHECK(img->rgb == expected_image(job, 16, 8, 8, {0, 1}).rgb);
 }

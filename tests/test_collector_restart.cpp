@@ -121,8 +121,7 @@ TEST_CASE("after a SIGKILL, acknowledged tiles are restored and not leased again
   for (const auto& l : leases) h.put_ok(l);
   CHECK(h.collector.metrics().counters.restored_tile_leases == 0);
   CHECK(h.status(1).state == protocol::JobState::kDone);
-  std::string error;
-  auto img = dtraced::image::read_image((dir.path() / "out" / "job-1.png").string(), error);
+  auto img = dtraced::image::read_image((dir.path() / "out" / "job-1.png").string());
   REQUIRE(img);
 }
 
@@ -166,8 +165,7 @@ TEST_CASE("a corrupt database stops start-up with a message and is left untouche
   const auto opened = c->open();
   REQUIRE_FALSE(opened);
   CHECK_THAT(opened.error().message, Catch::Matchers::Contains("dtraced.db"));
-  std::string read_error;
-  CHECK(dtraced::util::read_file_limited(db, 1 << 20, read_error).value() == garbage);
+  CHECK(dtraced::util::read_file_limited(db, 1 << 20).value() == garbage);
   // The start counter was not advanced either.
   CHECK_FALSE(fs::exists(fs::path(config.state_dir) / coll::kEpochFileName));
   CHECK(c->handle_sync(make(Verb::get, "/v1/jobs")).result() == Status::service_unavailable);

@@ -291,11 +291,7 @@ TEST_CASE("parse_base_url accepts http://host[:port] and explains every rejectio
     REQUIRE_FALSE(refused);
     CHECK_THAT(refused.error().message, Catch::Contains(why));
   }
-  // The older form says the same.
-  std::string error;
-  CHECK_FALSE(dtraced::http::parse_base_url("https://host", error));
-  CHECK_THAT(error, Catch::Contains("https"));
-  CHECK(dtraced::http::parse_base_url("http://host:1", error)->port == 1);
+  CHECK(dtraced::http::parse_base_url("http://host:1")->port == 1);
 }
 
 TEST_CASE("make_error builds the JSON error shape", "[http]") {

@@ -55,15 +55,25 @@ class TempDir {
 };
 
 void write_bytes(const std::string& path, std::string_view bytes) {
-  std::string error;
-  REQUIRE(dtraced::util::write_file_atomic(path, bytes, error));
+  REQUIRE(dtraced::util::write_file_atomic(path, bytes));
 }
 
 std::string read_bytes(const std::string& path) {
-  std::string error;
-  auto bytes = dtraced::util::read_file_limited(path, 1 << 26, error);
+  auto bytes = dtraced::util::read_file_limited(path, 1 << 26);
   REQUIRE(bytes);
   return *bytes;
+}
+
+// The image API returns util::Result; the checks below read the value, or the error's text.
+template <typename T>
+std::optional<T> get(dtraced::util::Result<T> result, std::string& error) {
+  if (result) return std::move(result).value();
+  error = result.error().to_string();
+  return std::nullopt;
+}
+bool get(const dtraced::util::Status& status, std::string& error) {
+  if (!status) error = status.error().to_string();
+  return status.ok();
 }
 
 template <std::size_t N>
@@ -195,8 +205,8 @@ TEST_CASE("PFM round trip is bit-exact, including odd sizes and special values",
     if (img.rgb.size() > 3) img.rgb[3] = std::numeric_limits<float>::quiet_NaN();
     const std::string path = dir.file("rt.pfm");
     std::string error;
-    REQUIRE(dtraced::image::write_image(path, img, {}, error));
-    const auto back = dtraced::image::read_image(path, error);
+    REQUIRE(get(dtraced::image::write_image(path, img, {}), error));
+    const auto back = get(dtraced::image::read_image(path), error);
     REQUIRE(back);
     CHECK(back->width == w);
     CHECK(back->height == h);
@@ -212,7 +222,7 @@ TEST_CASE("PFM files are little-endian with rows bottom to top", "[image][pfm]")
   img.pixel(0, 1)[0] = 2.0f;  // bottom
   const std::string path = dir.file("order.pfm");
   std::string error;
-  REQUIRE(dtraced::image::write_image(path, img, {}, error));
+  REQUIRE(get(dtraced::image::write_image(path, img, {}), error));
   const std::string bytes = read_bytes(path);
   const std::string header = "PF\n1 2\n-1.0\n";
   REQUIRE(bytes.size() == header.size() + 24);
@@ -226,19 +236,19 @@ TEST_CASE("PFM reader: big-endian, greyscale, scale", "[image][pfm]") {
   SECTION("big-endian colour") {
     std::string bytes = "PF\n2 1\n1.0\n";
     for (float v : {1.5f, -2.0f, 3.0f, 4.0f, 5.0f, 6.25f}) bytes += be_float(v);
-    const auto img = dtraced::image::decode_image(ImageFormat::kPfm, bytes, "be.pfm", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPfm, bytes, "be.pfm"), error);
     REQUIRE(img);
     CHECK(img->rgb == std::vector<float>{1.5f, -2.0f, 3.0f, 4.0f, 5.0f, 6.25f});
   }
   SECTION("greyscale is replicated, bottom row first") {
     std::string bytes = "Pf\n1 2\n-1\n" + le_float(0.25f) + le_float(0.75f);
-    const auto img = dtraced::image::decode_image(ImageFormat::kPfm, bytes, "grey.pfm", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPfm, bytes, "grey.pfm"), error);
     REQUIRE(img);
     CHECK(img->rgb == std::vector<float>{0.75f, 0.75f, 0.75f, 0.25f, 0.25f, 0.25f});
   }
   SECTION("a scale magnitude other than 1 multiplies") {
     std::string bytes = "PF 1 1 -2.5e0\n" + le_float(1.0f) + le_float(2.0f) + le_float(4.0f);
-    const auto img = dtraced::image::decode_image(ImageFormat::kPfm, bytes, "scaled.pfm", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPfm, bytes, "scaled.pfm"), error);
     REQUIRE(img);
     CHECK(img->rgb == std::vector<float>{2.5f, 5.0f, 10.0f});
   }
@@ -249,9 +259,9 @@ TEST_CASE("PPM round trip within half an 8-bit code", "[image][ppm]") {
   const ImageRGBf img = random_image(13, 5, 0.0f, 1.0f, 7);
   const std::string path = dir.file("rt.ppm");
   std::string error;
-  REQUIRE(dtraced::image::write_image(path, img, {}, error));
+  REQUIRE(get(dtraced::image::write_image(path, img, {}), error));
   CHECK(read_bytes(path).substr(0, 12) == "P6\n13 5\n255\n");
-  const auto back = dtraced::image::read_image(path, error);
+  const auto back = get(dtraced::image::read_image(path), error);
   REQUIRE(back);
   REQUIRE(back->width == 13);
   REQUIRE(back->height == 5);
@@ -264,7 +274,7 @@ TEST_CASE("PPM reader: comments, maxval below 255 and 16-bit samples", "[image][
   SECTION("16-bit big-endian samples") {
     std::string bytes = "P6\n# made by hand\n1 1\n65535\n";
     bytes += std::string("\xff\xff\x80\x00\x00\x00", 6);
-    const auto img = dtraced::image::decode_image(ImageFormat::kPpm, bytes, "x.ppm", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPpm, bytes, "x.ppm"), error);
     REQUIRE(img);
     CHECK(img->rgb[0] == Approx(1.0f));
     CHECK(img->rgb[1] == Approx(srgb_to_linear(32768.0f / 65535.0f)).epsilon(1e-6));
@@ -273,7 +283,7 @@ TEST_CASE("PPM reader: comments, maxval below 255 and 16-bit samples", "[image][
   SECTION("maxval 15") {
     std::string bytes = "P6 2 1 15\n";
     bytes += std::string("\x0f\x00\x05\x01\x02\x03", 6);
-    const auto img = dtraced::image::decode_image(ImageFormat::kPpm, bytes, "x.ppm", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPpm, bytes, "x.ppm"), error);
     REQUIRE(img);
     CHECK(img->rgb[0] == Approx(1.0f));
     CHECK(img->rgb[2] == Approx(srgb_to_linear(5.0f / 15.0f)).epsilon(1e-6));
@@ -281,7 +291,7 @@ TEST_CASE("PPM reader: comments, maxval below 255 and 16-bit samples", "[image][
   SECTION("a sample above maxval is an error") {
     std::string bytes = "P6 1 1 15\n";
     bytes += std::string("\x10\x00\x00", 3);
-    CHECK_FALSE(dtraced::image::decode_image(ImageFormat::kPpm, bytes, "x.ppm", error));
+    CHECK_FALSE(get(dtraced::image::decode_image(ImageFormat::kPpm, bytes, "x.ppm"), error));
     CHECK(contains(error, "exceeds the maxval 15"));
   }
 }
@@ -294,11 +304,11 @@ TEST_CASE("PNG round trips", "[image][png]") {
   std::string error;
   SECTION("8-bit within half a code") {
     const std::string path = dir.file("rt8.png");
-    REQUIRE(dtraced::image::write_image(path, img, {.png_bit_depth = 8}, error));
+    REQUIRE(get(dtraced::image::write_image(path, img, {.png_bit_depth = 8}), error));
     const std::string bytes = read_bytes(path);
     CHECK(static_cast<unsigned char>(bytes[24]) == 8);  // IHDR bit depth
     CHECK(contains(bytes, "sRGB"));
-    const auto back = dtraced::image::read_image(path, error);
+    const auto back = get(dtraced::image::read_image(path), error);
     REQUIRE(back);
     REQUIRE(back->width == 17);
     REQUIRE(back->height == 9);
@@ -306,11 +316,11 @@ TEST_CASE("PNG round trips", "[image][png]") {
   }
   SECTION("16-bit within half a code") {
     const std::string path = dir.file("rt16.png");
-    REQUIRE(dtraced::image::write_image(path, img, {.png_bit_depth = 16}, error));
+    REQUIRE(get(dtraced::image::write_image(path, img, {.png_bit_depth = 16}), error));
     const std::string bytes = read_bytes(path);
     CHECK(static_cast<unsigned char>(bytes[24]) == 16);
     CHECK(contains(bytes, "sRGB"));
-    const auto back = dtraced::image::read_image(path, error);
+    const auto back = get(dtraced::image::read_image(path), error);
     REQUIRE(back);
     CHECK(max_code_error(img, *back, 65535.0) <= 0.5 + 0.05);
   }
@@ -323,8 +333,8 @@ TEST_CASE("PNG round trips", "[image][png]") {
                -std::numeric_limits<float>::infinity(),
                1.0f};
     const std::string path = dir.file("odd.png");
-    REQUIRE(dtraced::image::write_image(path, odd, {}, error));
-    const auto back = dtraced::image::read_image(path, error);
+    REQUIRE(get(dtraced::image::write_image(path, odd, {}), error));
+    const auto back = get(dtraced::image::read_image(path), error);
     REQUIRE(back);
     CHECK(back->rgb == std::vector<float>{0.0f, 1.0f, 0.0f, 1.0f, 0.0f, 1.0f});
   }
@@ -332,8 +342,8 @@ TEST_CASE("PNG round trips", "[image][png]") {
     ImageRGBf two(1, 2);
     two.pixel(0, 0)[1] = 1.0f;
     const std::string path = dir.file("rows.png");
-    REQUIRE(dtraced::image::write_image(path, two, {}, error));
-    const auto back = dtraced::image::read_image(path, error);
+    REQUIRE(get(dtraced::image::write_image(path, two, {}), error));
+    const auto back = get(dtraced::image::read_image(path), error);
     REQUIRE(back);
     CHECK(back->pixel(0, 0)[1] == 1.0f);
     CHECK(back->pixel(0, 1)[1] == 0.0f);
@@ -344,7 +354,7 @@ TEST_CASE("PNG reader converts other colour types", "[image][png]") {
   using dtraced::image::srgb_to_linear;
   std::string error;
   SECTION("8-bit greyscale") {
-    const auto img = dtraced::image::decode_image(ImageFormat::kPng, as_bytes(kGrey8Png), "grey.png", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPng, as_bytes(kGrey8Png), "grey.png"), error);
     REQUIRE(img);
     REQUIRE(img->width == 3);
     REQUIRE(img->height == 2);
@@ -353,12 +363,12 @@ TEST_CASE("PNG reader converts other colour types", "[image][png]") {
     CHECK(img->pixel(2, 1)[1] == Approx(srgb_to_linear(30.0f / 255.0f)).epsilon(1e-6));
   }
   SECTION("palette with transparency: alpha is dropped") {
-    const auto img = dtraced::image::decode_image(ImageFormat::kPng, as_bytes(kPalettePng), "pal.png", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPng, as_bytes(kPalettePng), "pal.png"), error);
     REQUIRE(img);
     CHECK(img->rgb == std::vector<float>{1.0f, 0.0f, 0.0f, 0.0f, 0.0f, 1.0f});
   }
   SECTION("16-bit RGBA tagged linear (gAMA 1.0)") {
-    const auto img = dtraced::image::decode_image(ImageFormat::kPng, as_bytes(kRgba16LinearPng), "lin.png", error);
+    const auto img = get(dtraced::image::decode_image(ImageFormat::kPng, as_bytes(kRgba16LinearPng), "lin.png"), error);
     REQUIRE(img);
     CHECK(img->rgb[0] == Approx(32768.0 / 65535.0).epsilon(1e-6));
     CHECK(img->rgb[1] == 1.0f);
@@ -370,12 +380,12 @@ TEST_CASE("Unknown extensions are errors naming the path and the choices", "[ima
   TempDir dir;
   const std::string path = dir.file("out.jpg");
   std::string error;
-  CHECK_FALSE(dtraced::image::write_image(path, ImageRGBf(2, 2), {}, error));
+  CHECK_FALSE(get(dtraced::image::write_image(path, ImageRGBf(2, 2), {}), error));
   CHECK(contains(error, path));
   CHECK(contains(error, ".png, .ppm or .pfm"));
   CHECK_FALSE(fs::exists(path));
   error.clear();
-  CHECK_FALSE(dtraced::image::read_image(path, error));
+  CHECK_FALSE(get(dtraced::image::read_image(path), error));
   CHECK(contains(error, path));
   CHECK(contains(error, ".png, .ppm or .pfm"));
 }
@@ -387,7 +397,7 @@ TEST_CASE("Malformed files give errors naming the file and the problem", "[image
     const std::string path = dir.file(name);
     write_bytes(path, bytes);
     error.clear();
-    const auto img = dtraced::image::read_image(path, error);
+    const auto img = get(dtraced::image::read_image(path), error);
     CHECK_FALSE(img);
     INFO("error: " << error);
     CHECK(contains(error, path));
@@ -396,7 +406,7 @@ TEST_CASE("Malformed files give errors naming the file and the problem", "[image
 
   SECTION("truncated PFM") {
     const std::string path = dir.file("full.pfm");
-    REQUIRE(dtraced::image::write_image(path, random_image(7, 3, 0.0f, 1.0f, 3), {}, error));
+    REQUIRE(get(dtraced::image::write_image(path, random_image(7, 3, 0.0f, 1.0f, 3), {}), error));
     const std::string bytes = read_bytes(path);
     read_fails("cut.pfm", std::string_view(bytes).substr(0, bytes.size() - 5), "truncated");
     read_fails("header_only.pfm", "PF\n7 3\n-1.0\n", "truncated");
@@ -427,7 +437,7 @@ TEST_CASE("Malformed files give errors naming the file and the problem", "[image
   }
   SECTION("truncated and corrupt PNG") {
     const std::string path = dir.file("full.png");
-    REQUIRE(dtraced::image::write_image(path, random_image(32, 32, 0.0f, 1.0f, 5), {}, error));
+    REQUIRE(get(dtraced::image::write_image(path, random_image(32, 32, 0.0f, 1.0f, 5), {}), error));
     const std::string bytes = read_bytes(path);
     read_fails("cut.png", std::string_view(bytes).substr(0, bytes.size() / 2), "truncated");
     read_fails("no_iend.png", std::string_view(bytes).substr(0, bytes.size() - 12), "truncated");
@@ -437,7 +447,7 @@ TEST_CASE("Malformed files give errors naming the file and the problem", "[image
   }
   SECTION("missing file") {
     const std::string path = dir.file("absent.png");
-    CHECK_FALSE(dtraced::image::read_image(path, error));
+    CHECK_FALSE(get(dtraced::image::read_image(path), error));
     CHECK(contains(error, path));
   }
 }
@@ -446,13 +456,13 @@ TEST_CASE("Writers reject what they cannot encode", "[image][errors]") {
   TempDir dir;
   std::string error;
   const std::string path = dir.file("bad.png");
-  CHECK_FALSE(dtraced::image::write_image(path, ImageRGBf(2, 2), {.png_bit_depth = 12}, error));
+  CHECK_FALSE(get(dtraced::image::write_image(path, ImageRGBf(2, 2), {.png_bit_depth = 12}), error));
   CHECK(contains(error, "bit depth 12"));
-  CHECK_FALSE(dtraced::image::write_image(path, ImageRGBf(0, 3), {}, error));
+  CHECK_FALSE(get(dtraced::image::write_image(path, ImageRGBf(0, 3), {}), error));
   CHECK(contains(error, "empty"));
   ImageRGBf broken(2, 2);
   broken.rgb.resize(5);
-  CHECK_FALSE(dtraced::image::write_image(dir.file("bad.pfm"), broken, {}, error));
+  CHECK_FALSE(get(dtraced::image::write_image(dir.file("bad.pfm"), broken, {}), error));
   CHECK(contains(error, "inconsistent"));
   CHECK(fs::is_empty(dir.path()));  // nothing written, no temporary left behind
 }
@@ -460,12 +470,12 @@ TEST_CASE("Writers reject what they cannot encode", "[image][errors]") {
 TEST_CASE("A successful write leaves only the target file", "[image]") {
   TempDir dir;
   std::string error;
-  REQUIRE(dtraced::image::write_image(dir.file("a.png"), ImageRGBf(3, 3), {}, error));
-  REQUIRE(dtraced::image::write_image(dir.file("a.png"), ImageRGBf(4, 4), {}, error));  // replaces
+  REQUIRE(get(dtraced::image::write_image(dir.file("a.png"), ImageRGBf(3, 3), {}), error));
+  REQUIRE(get(dtraced::image::write_image(dir.file("a.png"), ImageRGBf(4, 4), {}), error));  // replaces
   std::vector<std::string> names;
   for (const auto& entry : fs::directory_iterator(dir.path())) names.push_back(entry.path().filename().string());
   CHECK(names == std::vector<std::string>{"a.png"});
-  const auto back = dtraced::image::read_image(dir.file("a.png"), error);
+  const auto back = get(dtraced::image::read_image(dir.file("a.png")), error);
   REQUIRE(back);
   CHECK(back->width == 4);
 }
@@ -475,7 +485,7 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
   std::string error;
   SECTION("identical images: zero error, infinite PSNR") {
     const ImageRGBf a = random_image(5, 4, 0.0f, 2.0f, 1);
-    const auto d = compare_images(a, a, error);
+    const auto d = get(compare_images(a, a), error);
     REQUIRE(d);
     CHECK(d->mse == 0.0);
     CHECK(d->rmse == 0.0);
@@ -488,7 +498,7 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
     ImageRGBf a = random_image(6, 5, 0.2f, 0.8f, 2);
     ImageRGBf b = a;
     for (float& v : b.rgb) v += 0.1f;
-    const auto d = compare_images(a, b, error);
+    const auto d = get(compare_images(a, b), error);
     REQUIRE(d);
     CHECK(d->rmse == Approx(0.1).epsilon(1e-5));
     CHECK(d->mse == Approx(0.01).epsilon(1e-4));
@@ -498,17 +508,17 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
   SECTION("PSNR is display-referred") {
     ImageRGBf black(2, 1), mixed(2, 1);
     for (int c = 0; c < 3; ++c) mixed.pixel(1, 0)[c] = 4.0f;  // far above white, shows as 1
-    const auto d = compare_images(black, mixed, error);
+    const auto d = get(compare_images(black, mixed), error);
     REQUIRE(d);
     CHECK(d->max_abs == 4.0);
     CHECK(d->mse == Approx(8.0));                         // linear: half the values differ by 4
     CHECK(d->psnr_db == Approx(10.0 * std::log10(2.0)));  // display: half differ by 1
     ImageRGBf white = black;
     for (float& v : white.rgb) v = 1.0f;
-    CHECK(compare_images(black, white, error)->psnr_db == Approx(0.0).margin(1e-9));
+    CHECK(get(compare_images(black, white), error)->psnr_db == Approx(0.0).margin(1e-9));
     ImageRGBf brighter = mixed;
     for (int c = 0; c < 3; ++c) brighter.pixel(1, 0)[c] = 9.0f;
-    CHECK(std::isinf(compare_images(mixed, brighter, error)->psnr_db));  // both clip to white
+    CHECK(std::isinf(get(compare_images(mixed, brighter), error)->psnr_db));  // both clip to white
   }
   SECTION("non-finite values are counted and excluded") {
     ImageRGBf a(2, 1), b(2, 1);
@@ -517,7 +527,7 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
     b.rgb[5] = 0.5f;
     CHECK(dtraced::image::count_nonfinite(a) == 1);
     CHECK(dtraced::image::count_nonfinite(b) == 1);
-    const auto d = compare_images(a, b, error);
+    const auto d = get(compare_images(a, b), error);
     REQUIRE(d);
     CHECK(d->nonfinite == 2);
     CHECK(d->max_abs == 0.5);
@@ -530,18 +540,18 @@ TEST_CASE("compare_images on known inputs", "[image][metrics]") {
       render.pixel(0, 0)[c] = 1.5f;
       render.pixel(1, 0)[c] = 0.5f;  // black reference: the same error weighs 0.25 / 0.01
     }
-    const auto d = compare_images(render, reference, error);
+    const auto d = get(compare_images(render, reference), error);
     REQUIRE(d);
     CHECK(dtraced::image::kRelMseEpsilon == 0.01);
     CHECK(d->rel_mse == Approx((0.25 / 1.01 + 0.25 / 0.01) / 2.0).epsilon(1e-6));
     CHECK(d->mse == Approx(0.25));
-    const auto swapped = compare_images(reference, render, error);
+    const auto swapped = get(compare_images(reference, render), error);
     REQUIRE(swapped);
     CHECK(swapped->rel_mse == Approx((0.25 / (2.25 + 0.01) + 0.25 / 0.26) / 2.0).epsilon(1e-6));
-    CHECK(compare_images(reference, reference, error)->rel_mse == 0.0);
+    CHECK(get(compare_images(reference, reference), error)->rel_mse == 0.0);
   }
   SECTION("size mismatch is an error") {
-    CHECK_FALSE(compare_images(ImageRGBf(2, 3), ImageRGBf(3, 2), error));
+    CHECK_FALSE(get(compare_images(ImageRGBf(2, 3), ImageRGBf(3, 2)), error));
     CHECK(contains(error, "2x3"));
     CHECK(contains(error, "3x2"));
   }

@@ -467,14 +467,15 @@ TEST_CASE("every problem of a body is reported, and the error body summarises th
 TEST_CASE("output names", "[protocol]") {
   for (const char* good : {"a.png", "frame-0001.ppm", "x y.pfm", "caf\xc3\xa9.png", "a.b.png"}) {
     INFO(good);
-    CHECK_FALSE(protocol::check_output_name(good).has_value());
+    CHECK(protocol::check_output_name(good).ok());
   }
   for (const char* bad : {"", "png", ".png", "a.png/", "/a.png", "..", "a..png", "a.jpg", "a.png.exe", "a\\b.png"}) {
     INFO(bad);
-    CHECK(protocol::check_output_name(bad).has_value());
+    CHECK_FALSE(protocol::check_output_name(bad).ok());
   }
-  CHECK_FALSE(protocol::check_output_name(std::string(251, 'x') + ".png").has_value());
-  CHECK(protocol::check_output_name(std::string(252, 'x') + ".png").has_value());
+  CHECK(protocol::check_output_name(std::string(251, 'x') + ".png").ok());
+  CHECK_FALSE(protocol::check_output_name(std::string(252, 'x') + ".png").ok());
+  CHECK(protocol::check_output_name("a.jpg").error().message == "output name must end in .png, .ppm or .pfm");
 }
 
 TEST_CASE("adaptive settings travel in submissions, leases and stored settings", "[protocol][json][adaptive]") {

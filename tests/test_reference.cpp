@@ -29,8 +29,7 @@ double rel_mse_at(const scene::SceneDesc& desc, const render::RenderScene& rs, c
   render::LocalOptions opts;
   opts.threads = 2;
   const render::LocalResult r = render::render_local(rs, s, opts);
-  std::string error;
-  const auto d = image::compare_images(r.image, ref, error);
+  const auto d = image::compare_images(r.image, ref);
   REQUIRE(d);
   CHECK(d->nonfinite == 0);
   return d->rel_mse;

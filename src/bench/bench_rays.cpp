@@ -704,9 +704,9 @@ std::string add_embree_rows(SceneBench& b) {
   const EmbreeQuality q = opt.embree_quality == "high"  ? EmbreeQuality::kHigh
                           : opt.embree_quality == "low" ? EmbreeQuality::kLow
                                                         : EmbreeQuality::kMedium;
-  std::string error;
-  const std::unique_ptr<EmbreeTracer> e = EmbreeTracer::build(b.scene.shapes, q, 0, error);
-  if (!e) return fmt::format("embree: skipped, build failed: {}", error);
+  util::Result<std::unique_ptr<EmbreeTracer>> built = EmbreeTracer::build(b.scene.shapes, q, 0);
+  if (!built) return fmt::format("embree: skipped, build failed: {}", built.error().message);
+  const std::unique_ptr<EmbreeTracer> e = std::move(built).value();
   const std::string note = fmt::format(
       "embree {}: RTC_BUILD_QUALITY_{}, spheres as RTC_GEOMETRY_TYPE_SPHERE_POINT, triangles as "
       "RTC_GEOMETRY_TYPE_TRIANGLE: the same primitives as ours{}; build {:.3f} s wall on Embree's own threads.\n"

@@ -100,16 +100,15 @@ std::string EmbreeTracer::version() { return RTC_VERSION_STRING; }
 
 EmbreeTracer::~EmbreeTracer() = default;
 
-std::unique_ptr<EmbreeTracer> EmbreeTracer::build(const std::vector<accel::Shape>& shapes, EmbreeQuality quality,
-                                                  std::uint32_t build_threads, std::string& error) {
+util::Result<std::unique_ptr<EmbreeTracer>> EmbreeTracer::build(const std::vector<accel::Shape>& shapes,
+                                                                EmbreeQuality quality, std::uint32_t build_threads) {
   std::unique_ptr<EmbreeTracer> t(new EmbreeTracer);
   t->impl_ = std::make_unique<Impl>();
   Impl& im = *t->impl_;
   const std::string config = build_threads ? fmt::format("threads={}", build_threads) : std::string();
   im.device = rtcNewDevice(config.empty() ? nullptr : config.c_str());
   if (!im.device) {
-    error = fmt::format("rtcNewDevice failed (error {})", static_cast<int>(rtcGetDeviceError(nullptr)));
-    return nullptr;
+    return util::Error(fmt::format("rtcNewDevice failed (error {})", static_cast<int>(rtcGetDeviceError(nullptr))));
   }
   std::string last_error;
   rtcSetDeviceErrorFunction(im.device, on_error, &last_error);
@@ -170,10 +169,7 @@ std::unique_ptr<EmbreeTracer> EmbreeTracer::build(const std::vector<accel::Shape
   const auto start = std::chrono::steady_clock::now();
   rtcCommitScene(im.scene);
   t->build_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  if (!last_error.empty()) {
-    error = last_error;
-    return nullptr;
-  }
+  if (!last_error.empty()) return util::Error(last_error);
   rtcSetDeviceErrorFunction(im.device, nullptr, nullptr);  // `last_error` dies with this frame
   return t;
 }

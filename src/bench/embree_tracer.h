@@ -22,6 +22,7 @@
 
 #include "accel/geometry.h"
 #include "math/ray.h"
+#include "util/result.h"
 
 namespace dtraced::bench {
 
@@ -32,9 +33,9 @@ enum class EmbreeQuality { kLow, kMedium, kHigh };
 class EmbreeTracer {
  public:
   // Builds the scene with the given RTC_BUILD_QUALITY_*. `build_threads` = 0 lets Embree use every
-  // hardware thread for the build (its default). Returns nullptr and sets `error` on failure.
-  static std::unique_ptr<EmbreeTracer> build(const std::vector<accel::Shape>& shapes, EmbreeQuality quality,
-                                             std::uint32_t build_threads, std::string& error);
+  // hardware thread for the build (its default). Fails with Embree's message.
+  static util::Result<std::unique_ptr<EmbreeTracer>> build(const std::vector<accel::Shape>& shapes,
+                                                           EmbreeQuality quality, std::uint32_t build_threads);
   ~EmbreeTracer();
   EmbreeTracer(const EmbreeTracer&) = delete;
   EmbreeTracer& operator=(const EmbreeTracer&) = delete;

@@ -168,9 +168,8 @@ std::string quote(const http::Response& res) {
 
 // The first line of the file, without surrounding blanks (the rule the dtraced CLI applies).
 util::Result<std::string> read_token(const std::string& path) {
-  std::string error;
-  auto text = util::read_file_limited(path, kMaxTokenBytes, error);
-  if (!text) return util::Error{std::move(error)};
+  util::Result<std::string> text = util::read_file_limited(path, kMaxTokenBytes);
+  if (!text) return text.error();
   std::string token = text->substr(0, text->find('\n'));
   const std::size_t begin = token.find_first_not_of(" \t\r");
   const std::size_t end = token.find_last_not_of(" \t\r");
@@ -363,10 +362,9 @@ void report(const Options& o, const Run& run, double elapsed_s, double cpu_s) {
 }
 
 int run_load(const Options& o) {
-  std::string error;
-  std::optional<http::Url> url = http::parse_base_url(o.collector, error);
+  util::Result<http::Url> url = http::parse_base_url(o.collector);
   if (!url) {
-    fmt::print(stderr, "--collector: {}\n", error);
+    fmt::print(stderr, "--collector: {}\n", url.error().message);
     return 2;
   }
   const util::Result<std::string> token = read_token(o.token_file);

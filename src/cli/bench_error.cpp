@@ -108,10 +108,9 @@ double reference_noise(const image::ImageRGBf& ref, const image::ImageRGBf& var)
 std::optional<image::ImageRGBf> read_cached(const std::string& path, const scene::RenderSettings& s) {
   std::error_code ec;
   if (!std::filesystem::exists(path, ec)) return std::nullopt;
-  std::string error;
-  std::optional<image::ImageRGBf> img = image::read_image(path, error);
+  util::Result<image::ImageRGBf> img = image::read_image(path);
   if (!img) {
-    fmt::print(stderr, "ignoring the cached reference {}: {}\n", path, error);
+    fmt::print(stderr, "ignoring the cached reference: {}\n", img.error().to_string());
     return std::nullopt;
   }
   if (img->width != s.width || img->height != s.height) {
@@ -119,7 +118,7 @@ std::optional<image::ImageRGBf> read_cached(const std::string& path, const scene
                s.width, s.height);
     return std::nullopt;
   }
-  return img;
+  return std::move(img).value();
 }
 
 // The closed form when the scene has one, else a high-sample render with a disjoint seed, cached
@@ -163,9 +162,10 @@ util::Result<Reference> make_reference(const scene::SceneDesc& desc, const rende
   const render::LocalResult r = render::render_local(rs, s, opts);
   std::error_code ec;
   if (!dir.empty()) std::filesystem::create_directories(dir, ec);
-  std::string error;
-  if (!image::write_image(image_path, r.image, {}, error) || !image::write_image(var_path, r.variance, {}, error)) {
-    return util::Error{fmt::format("caching the reference: {}", error)};
+  for (const auto& [path, img] : {std::pair{&image_path, &r.image}, std::pair{&var_path, &r.variance}}) {
+    if (util::Status written = image::write_image(*path, *img); !written) {
+      return util::Error{fmt::format("caching the reference: {}", written.error().to_string())};
+    }
   }
   ref.image = r.image;
   ref.noise = reference_noise(r.image, r.variance);
@@ -253,8 +253,7 @@ util::Status draw_plot(const std::string& csv, const std::string& plot, const st
       "  '' skip 1 using 6:{2}:(sprintf('%g', $4)) with labels offset -1.6,-0.8 notitle\n",
       gp_quote(csv), fmt::format(fmt::runtime(col), "uniform"), fmt::format(fmt::runtime(col), "adaptive"));
   const std::string script_path = plot + ".gp";
-  std::string error;
-  if (!util::write_file_atomic(script_path, script, error)) return util::Error{std::move(error)};
+  if (util::Status written = util::write_file_atomic(script_path, script); !written) return written.error();
 
   std::string arg0 = "gnuplot", arg1 = script_path;
   char* argv[] = {arg0.data(), arg1.data(), nullptr};
@@ -341,9 +340,8 @@ util::Result<Row> measure(const render::RenderScene& rs, const render::LocalOpti
                           const Reference& ref, const char* kind, double target, const scene::RenderSettings& s) {
   util::Result<Timed> t = timed_render(rs, s, opts, args.repeats);
   if (!t) return std::move(t).error();
-  std::string error;
-  const std::optional<image::ImageDiff> d = image::compare_images(t->result.image, ref.image, error);
-  if (!d) return util::Error{std::move(error)};
+  const util::Result<image::ImageDiff> d = image::compare_images(t->result.image, ref.image);
+  if (!d) return d.error();
   Row row{kind, target, double(s.samples), t->seconds, 0.0, *d};
   if (!t->result.spp.empty()) {
     double total = 0;
@@ -481,9 +479,8 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   const util::Result<bool> same_bits = compare_specialised(rs, opts, args, desc.render);
   if (!same_bits) return failed(same_bits.error());
 
-  std::string error;
-  if (!util::write_file_atomic(csv_path, csv_text(*rows, stem, isa_str, ref->noise), error)) {
-    return failed(util::Error{std::move(error)});
+  if (util::Status written = util::write_file_atomic(csv_path, csv_text(*rows, stem, isa_str, ref->noise)); !written) {
+    return failed(written.error());
   }
   fmt::print("wrote {}\n", csv_path);
   if (!args.no_plot) {

@@ -29,10 +29,9 @@ constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + 
 class Session {
  public:
   bool init(const ClientArgs& args) {
-    std::string error;
-    auto url = http::parse_base_url(args.collector, error);
+    auto url = http::parse_base_url(args.collector);
     if (!url) {
-      fmt::print(stderr, "--collector: {}\n", error);
+      fmt::print(stderr, "--collector: {}\n", url.error().message);
       return false;
     }
     url_ = *url;
@@ -110,9 +109,8 @@ bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s
 }  // namespace
 
 util::Result<std::string> read_token_file(const std::string& path) {
-  std::string error;
-  auto text = util::read_file_limited(path, kMaxTokenBytes, error);
-  if (!text) return util::Error{std::move(error)};
+  util::Result<std::string> text = util::read_file_limited(path, kMaxTokenBytes);
+  if (!text) return text.error();
   std::string token = text->substr(0, text->find('\n'));
   while (!token.empty() && (token.back() == '\r' || token.back() == ' ' || token.back() == '\t')) token.pop_back();
   std::size_t start = token.find_first_not_of(" \t");
@@ -128,8 +126,8 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
     return kExitFailed;
   }
   if (!args.output.empty()) {
-    if (auto why = protocol::check_output_name(args.output)) {
-      fmt::print(stderr, "--output: output name {}\n", *why);
+    if (util::Status ok = protocol::check_output_name(args.output); !ok) {
+      fmt::print(stderr, "--output: {}\n", ok.error().message);
       return kExitFailed;
     }
   }
@@ -232,9 +230,8 @@ int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& out
       session.call(http::Verb::get, fmt::format("/v1/jobs/{}/image?format={}", id, image::format_info(*format).name),
                    {}, kMaxImageResponse);
   if (!resp) return kExitFailed;
-  std::string error;
-  if (!util::write_file_atomic(output, resp->body(), error)) {
-    fmt::print(stderr, "{}\n", error);
+  if (util::Status written = util::write_file_atomic(output, resp->body()); !written) {
+    fmt::print(stderr, "{}\n", written.error().to_string());
     return kExitFailed;
   }
   return kExitOk;

@@ -45,13 +45,4 @@ int run_cancel(const ClientArgs& client, std::uint64_t id);
 // over 4096 bytes is an error (its message names the file).
 util::Result<std::string> read_token_file(const std::string& path);
 
-// The same with the error in `error`: the form run_worker_role (roles.cpp) still calls. To go
-// once that call moves to the Result form.
-inline std::optional<std::string> read_token_file(const std::string& path, std::string& error) {
-  util::Result<std::string> token = read_token_file(path);
-  if (token) return std::move(token).value();
-  error = token.error().message;
-  return std::nullopt;
-}
-
 }  // namespace dtraced::cli

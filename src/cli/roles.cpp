@@ -127,16 +127,8 @@ int run_collector_role(const RoleArgs& a) {
 int run_worker_role(const RoleArgs& a) {
   worker::WorkerConfig w;
   w.collector_url = a.collector;
-  std::string error;
-  if (a.token_file.empty()) {
-    fmt::print(stderr, "--token-file is required: the collector answers only with the bearer token\n");
-    return kExitUsage;
-  }
-  auto token = read_token_file(a.token_file, error);
-  if (!token) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitUsage;
-  }
+  util::Result<std::string> token = role_token(a, "the collector answers only with the bearer token");
+  if (!token) return usage_error(token.error());
   w.token = *token;
   w.name = a.name;
   w.threads = a.threads;

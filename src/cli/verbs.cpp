@@ -26,6 +26,13 @@ namespace {
 constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
 
+// Whether `r` holds a value; prints its error on stderr when it does not.
+template <typename R>
+bool reported(const R& r) {
+  if (!r) fmt::print(stderr, "{}\n", r.error().to_string());
+  return r.ok();
+}
+
 void print_errors(const scene::LoadResult& r) {
   for (const util::Error& e : r.errors) fmt::print(stderr, "{}\n", e.to_string());
 }
@@ -99,20 +106,13 @@ int run_render(const RenderArgs& args) {
   }
   const render::LocalResult result = render::render_local(rs, s, opts);
 
-  std::string error;
   image::WriteOptions wopts;
   wopts.png_bit_depth = static_cast<int>(scene::png_bit_depth_or_default(args.overrides));
-  if (!image::write_image(args.output, result.image, wopts, error)) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
+  if (!reported(image::write_image(args.output, result.image, wopts))) return kExitFailed;
   if (!args.spp_map.empty()) {
     wopts.png_bit_depth = 16;
-    if (!image::write_image(args.spp_map, spp_image(s, result.spp, *image::format_from_path(args.spp_map)), wopts,
-                            error)) {
-      fmt::print(stderr, "{}\n", error);
-      return kExitFailed;
-    }
+    const image::ImageRGBf map = spp_image(s, result.spp, *image::format_from_path(args.spp_map));
+    if (!reported(image::write_image(args.spp_map, map, wopts))) return kExitFailed;
   }
   if (!args.quiet) {
     const double mrays = double(result.stats.all_rays()) / 1e6;
@@ -170,22 +170,12 @@ int run_validate(const std::vector<std::string>& files) {
 }
 
 int run_compare(const CompareArgs& args) {
-  std::string error;
-  const auto a = image::read_image(args.a, error);
-  if (!a) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
-  const auto b = image::read_image(args.b, error);
-  if (!b) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
-  const auto diff = image::compare_images(*a, *b, error);
-  if (!diff) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
+  const auto a = image::read_image(args.a);
+  if (!reported(a)) return kExitFailed;
+  const auto b = image::read_image(args.b);
+  if (!reported(b)) return kExitFailed;
+  const auto diff = image::compare_images(*a, *b);
+  if (!reported(diff)) return kExitFailed;
   const std::string psnr = std::isinf(diff->psnr_db) ? "inf" : fmt::format("{:.2f}", diff->psnr_db);
   fmt::print("rmse {:.6g}  psnr {} dB  max_abs {:.6g}  ({}x{})\n", diff->rmse, psnr, diff->max_abs, a->width,
              a->height);
@@ -206,7 +196,6 @@ int generate_mesh(const GenerateArgs& args) {
   const std::filesystem::path prefix = std::filesystem::path(args.models_dir) / output.stem();
   const scene::GeneratedMeshScene generated =
       scene::generate_mesh_scene(*args.mesh_triangles, args.seed, prefix.generic_string());
-  std::string error;
   for (const scene::GeneratedFile& obj : generated.objs) {
     const std::filesystem::path path = dir / obj.path;
     std::error_code ec;
@@ -215,15 +204,9 @@ int generate_mesh(const GenerateArgs& args) {
       fmt::print(stderr, "{}: cannot create the directory: {}\n", path.parent_path().string(), ec.message());
       return kExitFailed;
     }
-    if (!util::write_file_atomic(path.string(), obj.text, error)) {
-      fmt::print(stderr, "{}\n", error);
-      return kExitFailed;
-    }
+    if (!reported(util::write_file_atomic(path.string(), obj.text))) return kExitFailed;
   }
-  if (!util::write_file_atomic(args.output, generated.scene_json, error)) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
+  if (!reported(util::write_file_atomic(args.output, generated.scene_json))) return kExitFailed;
   const scene::LoadResult loaded = scene::load_scene_file(args.output);
   if (!loaded.ok()) {  // a bug in the generator, not a user error; say so loudly
     print_errors(loaded);
@@ -240,11 +223,7 @@ int generate_mesh(const GenerateArgs& args) {
 int run_generate(const GenerateArgs& args) {
   if (args.mesh_triangles) return generate_mesh(args);
   const scene::SceneDesc desc = scene::generate_sphere_field(args.count, args.seed);
-  std::string error;
-  if (!util::write_file_atomic(args.output, scene::canonical_json(desc), error)) {
-    fmt::print(stderr, "{}\n", error);
-    return kExitFailed;
-  }
+  if (!reported(util::write_file_atomic(args.output, scene::canonical_json(desc)))) return kExitFailed;
   fmt::print(stderr, "wrote {} ({} objects, digest {})\n", args.output, desc.objects.size(), scene::scene_digest(desc));
   return kExitOk;
 }

@@ -43,10 +43,8 @@ util::Result<CancelAction, Refusal> check_cancel(JobId id, const JobRecord* job,
 
 util::Result<protocol::TilePayload, Refusal> check_tile_payload(std::string_view body) {
   auto decoded = protocol::decode_tile_payload(body);
-  if (auto* failure = std::get_if<protocol::TilePayloadFailure>(&decoded)) {
-    return bad_request("tile payload: " + failure->message);
-  }
-  auto& payload = std::get<protocol::TilePayload>(decoded);
+  if (!decoded) return bad_request("tile payload: " + decoded.error().message);
+  protocol::TilePayload& payload = decoded.value();
   for (std::size_t i = 0; i < payload.rgb.size(); ++i) {
     if (!std::isfinite(payload.rgb[i])) {
       const std::size_t pixel = i / 3;

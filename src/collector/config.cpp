@@ -58,7 +58,7 @@ void check_one_shot(const CollectorConfig& c, util::Errors& errors) {
   }
   const OneShotJob& j = *c.one_shot;
   if (j.scene_path.empty()) errors.push_back({"must name a scene file", "scene"});
-  if (auto why = protocol::check_output_name(j.output)) errors.push_back({"output name " + *why, "output"});
+  if (util::Status ok = protocol::check_output_name(j.output); !ok) errors.push_back({ok.error().message, "output"});
   if (j.priority < protocol::kMinPriority || j.priority > protocol::kMaxPriority) {
     errors.push_back({fmt::format("must be in [{}, {}]", protocol::kMinPriority, protocol::kMaxPriority), "priority"});
   }

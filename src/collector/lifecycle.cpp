@@ -55,7 +55,9 @@ async::Awaitable<> finish_job(Context& c, JobId id) {
   const std::string path = (fs::path(c.output_dir) / job->output).string();
   auto write = [img = image.get(), path, bits = job->png_bit_depth] {
     Written w;
-    w.ok = image::write_image(path, *img, {.png_bit_depth = static_cast<int>(bits)}, w.error);
+    const util::Status st = image::write_image(path, *img, {.png_bit_depth = static_cast<int>(bits)});
+    w.ok = st.ok();
+    if (!st) w.error = st.error().to_string();
     return w;
   };
   const Written written = co_await async::on_pool(c.pool, std::move(write));

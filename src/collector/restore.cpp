@@ -33,9 +33,8 @@ util::Status bump_epoch(Context& c) {
   std::int64_t previous = 0;
   std::error_code ec;
   if (fs::exists(path, ec)) {
-    std::string error;
-    auto text = util::read_file_limited(path, kMaxEpochFileBytes, error);
-    if (!text) return util::Error(std::move(error));
+    auto text = util::read_file_limited(path, kMaxEpochFileBytes);
+    if (!text) return text.error();
     std::string_view digits = *text;
     while (!digits.empty() && (digits.back() == '\n' || digits.back() == ' ')) digits.remove_suffix(1);
     const auto [end, parse_error] = std::from_chars(digits.data(), digits.data() + digits.size(), previous);
@@ -45,9 +44,7 @@ util::Status bump_epoch(Context& c) {
     }
   }
   c.epoch = previous + 1;
-  std::string error;
-  if (!util::write_file_atomic(path, fmt::format("{}\n", c.epoch), error)) return util::Error(std::move(error));
-  return {};
+  return util::write_file_atomic(path, fmt::format("{}\n", c.epoch));
 }
 
 // An unfinished job's scene and stored tiles, into its record and the queue.

@@ -42,10 +42,7 @@ util::Result<std::string> StoreReader::encode_image(JobId id, const scene::Rende
       copy_tile(image, rect, stored_tile->rgb);
     }
   }
-  std::string error;
-  std::optional<std::string> bytes = image::encode_image(format, image, options, error);
-  if (!bytes) return util::Error(std::move(error));
-  return std::move(*bytes);
+  return image::encode_image(format, image, options);
 }
 
 util::Result<std::optional<std::string>> StoreReader::scene(const std::string& digest) {

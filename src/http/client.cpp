@@ -252,13 +252,6 @@ util::Result<Url> parse_base_url(std::string_view text) {
   return url;
 }
 
-std::optional<Url> parse_base_url(std::string_view text, std::string& error) {
-  util::Result<Url> url = parse_base_url(text);
-  if (url) return std::move(url).value();
-  error = std::move(url).error().message;
-  return std::nullopt;
-}
-
 std::string_view to_string(ClientError error) {
   // The enum's order.
   constexpr std::string_view kNames[] = {"none", "connect", "timeout", "too_large", "protocol", "io", "cancelled"};

@@ -49,10 +49,6 @@ struct Url {
 // more than kMaxUrlBytes) is rejected with a message that says why.
 util::Result<Url> parse_base_url(std::string_view text);
 
-// The same, in the older form (nullopt, and the message in `error`), for callers outside http/
-// not yet converted (worker/, cli/, bench/); remove once none is left.
-std::optional<Url> parse_base_url(std::string_view text, std::string& error);
-
 struct ClientTimeouts {
   std::chrono::milliseconds connect{5'000};  // resolve and TCP connect
   std::chrono::milliseconds write{30'000};   // the whole request

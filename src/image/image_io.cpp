@@ -611,13 +611,9 @@ std::optional<ImageFormat> format_from_name(std::string_view name) {
 std::string extension_list() { return list_of(&FormatInfo::extension); }
 std::string name_list() { return list_of(&FormatInfo::name); }
 
-std::optional<std::string> encode_image(ImageFormat format, const ImageRGBf& img, const WriteOptions& opts,
-                                        std::string& error) {
+util::Result<std::string> encode_image(ImageFormat format, const ImageRGBf& img, const WriteOptions& opts) {
   std::string problem;
-  if (!check_encodable(img, problem)) {
-    error = fmt::format("{}: {}", format_name(format), problem);
-    return std::nullopt;
-  }
+  if (!check_encodable(img, problem)) return util::Error(problem, "", std::string(format_name(format)));
   switch (format) {
     case ImageFormat::kPpm:
       return encode_ppm(img);
@@ -627,16 +623,14 @@ std::optional<std::string> encode_image(ImageFormat format, const ImageRGBf& img
       break;
   }
   if (opts.png_bit_depth != 8 && opts.png_bit_depth != 16) {
-    error = fmt::format("PNG: unsupported bit depth {} (8 or 16)", opts.png_bit_depth);
-    return std::nullopt;
+    return util::Error(fmt::format("unsupported bit depth {} (8 or 16)", opts.png_bit_depth), "", "PNG");
   }
-  auto out = encode_png(img, opts.png_bit_depth, problem);
-  if (!out) error = problem;
-  return out;
+  std::optional<std::string> out = encode_png(img, opts.png_bit_depth, problem);
+  if (!out) return util::Error(problem);
+  return std::move(*out);
 }
 
-std::optional<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes, std::string_view name,
-                                      std::string& error) {
+util::Result<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes, std::string_view name) {
   std::string problem;
   std::optional<ImageRGBf> img;
   switch (format) {
@@ -650,34 +644,28 @@ std::optional<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes
       img = decode_pfm(bytes, problem);
       break;
   }
-  if (!img) error = fmt::format("{}: {}", name, problem);
-  return img;
+  if (!img) return util::Error(problem, "", std::string(name));
+  return std::move(*img);
 }
 
-bool write_image(const std::string& path, const ImageRGBf& img, const WriteOptions& opts, std::string& error) {
+util::Status write_image(const std::string& path, const ImageRGBf& img, const WriteOptions& opts) {
   const auto format = format_from_path(path);
   if (!format) {
-    error = fmt::format("{}: unknown image format (supported extensions: {})", path, extension_list());
-    return false;
+    return util::Error(fmt::format("unknown image format (supported extensions: {})", extension_list()), "", path);
   }
-  std::string encode_error;
-  const auto bytes = encode_image(*format, img, opts, encode_error);
-  if (!bytes) {
-    error = fmt::format("{}: {}", path, encode_error);
-    return false;
-  }
-  return util::write_file_atomic(path, *bytes, error);
+  util::Result<std::string> bytes = encode_image(*format, img, opts);
+  if (!bytes) return util::Error(bytes.error().to_string(), "", path);
+  return util::write_file_atomic(path, *bytes);
 }
 
-std::optional<ImageRGBf> read_image(const std::string& path, std::string& error) {
+util::Result<ImageRGBf> read_image(const std::string& path) {
   const auto format = format_from_path(path);
   if (!format) {
-    error = fmt::format("{}: unknown image format (supported extensions: {})", path, extension_list());
-    return std::nullopt;
+    return util::Error(fmt::format("unknown image format (supported extensions: {})", extension_list()), "", path);
   }
-  const auto bytes = util::read_file_limited(path, kMaxImageFileBytes, error);
-  if (!bytes) return std::nullopt;
-  return decode_image(*format, *bytes, path, error);
+  util::Result<std::string> bytes = util::read_file_limited(path, kMaxImageFileBytes);
+  if (!bytes) return bytes.error();
+  return decode_image(*format, *bytes, path);
 }
 
 }  // namespace dtraced::image

@@ -34,6 +34,7 @@
 #include <string_view>
 
 #include "image/image.h"
+#include "util/result.h"
 
 namespace dtraced::image {
 
@@ -71,24 +72,25 @@ struct WriteOptions {
 inline constexpr std::uint64_t kMaxImageFileBytes =
     std::uint64_t{kMaxImageSide} * kMaxImageSide * 3 * sizeof(float) + (std::uint64_t{1} << 20);
 
-// Encodes `img` in `format` to bytes in memory: pure, no I/O, so a server can answer with a PNG
-// without touching the disk. Fails (nullopt, `error` set) for an inconsistent or empty image or
-// an unsupported bit depth.
-std::optional<std::string> encode_image(ImageFormat format, const ImageRGBf& img, const WriteOptions& opts,
-                                        std::string& error);
+// Failures are util::Error{problem, "", file}: to_string() reads "FILE: problem" ("PNG: ..." for
+// an image encoded in memory).
 
-// Decodes `bytes` as `format`. `name` (usually the path) prefixes every error message.
-std::optional<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes, std::string_view name,
-                                      std::string& error);
+// Encodes `img` in `format` to bytes in memory: pure, no I/O, so a server can answer with a PNG
+// without touching the disk. Fails for an inconsistent or empty image or an unsupported bit
+// depth.
+util::Result<std::string> encode_image(ImageFormat format, const ImageRGBf& img, const WriteOptions& opts);
+
+// Decodes `bytes` as `format`. `name` (usually the path) is the error's file.
+util::Result<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes, std::string_view name);
 
 // Writes `img` to `path` in the format its extension names, atomically (encoded in memory, then
 // util::write_file_atomic): a concurrent reader sees the old file or the new one, never a torn one.
 // An unknown extension is an error naming the path and the supported extensions.
-bool write_image(const std::string& path, const ImageRGBf& img, const WriteOptions& opts, std::string& error);
+util::Status write_image(const std::string& path, const ImageRGBf& img, const WriteOptions& opts = {});
 
 // Reads the image at `path` in the format its extension names (the content must match: a PPM
 // named .pfm is an error, not a guess). At most kMaxImageFileBytes are read.
-std::optional<ImageRGBf> read_image(const std::string& path, std::string& error);
+util::Result<ImageRGBf> read_image(const std::string& path);
 
 // The standard piecewise sRGB curves (IEC 61966-2-1), evaluated in double. Inputs outside [0, 1]
 // follow the same formulas (linear segment below the knee, power segment above 1); NaN stays NaN.

@@ -16,14 +16,13 @@ double displayed(float linear) { return std::clamp(static_cast<double>(linear_to
 
 }  // namespace
 
-std::optional<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b, std::string& error) {
+util::Result<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b) {
   if (!a.is_consistent() || !b.is_consistent()) {
-    error = "compare: an image is inconsistent (pixel count does not match its size)";
-    return std::nullopt;
+    return util::Error("compare: an image is inconsistent (pixel count does not match its size)");
   }
   if (a.width != b.width || a.height != b.height) {
-    error = fmt::format("compare: image sizes differ: {}x{} vs {}x{}", a.width, a.height, b.width, b.height);
-    return std::nullopt;
+    return util::Error(
+        fmt::format("compare: image sizes differ: {}x{} vs {}x{}", a.width, a.height, b.width, b.height));
   }
 
   ImageDiff diff;

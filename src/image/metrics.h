@@ -26,6 +26,7 @@
 #include <string>
 
 #include "image/image.h"
+#include "util/result.h"
 
 namespace dtraced::image {
 
@@ -41,9 +42,9 @@ struct ImageDiff {
 };
 
 // `b` is the reference for rel_mse; every other figure is symmetric.
-// Fails (nullopt, `error` set) when the sizes differ or an image is inconsistent. Two empty
-// images compare as identical.
-std::optional<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b, std::string& error);
+// Fails when the sizes differ or an image is inconsistent. Two empty images compare as
+// identical.
+util::Result<ImageDiff> compare_images(const ImageRGBf& a, const ImageRGBf& b);
 
 // Number of channel values (not pixels) that are NaN or infinite.
 std::uint64_t count_nonfinite(const ImageRGBf& img);

@@ -86,8 +86,8 @@ void detail::read_output(Fields& f, std::string& out, Need need) {
   std::string name;
   // One byte over the limit still reads, so that check_output_name can say what is wrong.
   if (!f.string("output", name, kMaxOutputNameBytes + 1, need) || !f.has("output")) return;
-  if (auto why = check_output_name(name)) {
-    f.reader().error(f.path("output"), "output name " + *why);
+  if (util::Status ok = check_output_name(name); !ok) {
+    f.reader().error(f.path("output"), ok.error().message);
   } else {
     out = std::move(name);
   }
@@ -106,7 +106,10 @@ bool detail::read_bit_depth(Fields& f, std::uint32_t& out) {
 
 // ---- shared validation ---------------------------------------------------------------------
 
-std::optional<std::string> check_output_name(std::string_view name) {
+namespace {
+
+// Why `name` is no output name, phrased to follow "output name "; nullopt when it is one.
+std::optional<std::string> output_name_problem(std::string_view name) {
   if (name.empty()) return "must not be empty";
   if (name.size() > kMaxOutputNameBytes) {
     return fmt::format("is {} bytes, longer than the limit of {}", name.size(), kMaxOutputNameBytes);
@@ -124,6 +127,13 @@ std::optional<std::string> check_output_name(std::string_view name) {
     if (name.size() > f.extension.size() && name.ends_with(f.extension)) return std::nullopt;
   }
   return fmt::format("must end in {}", image::extension_list());
+}
+
+}  // namespace
+
+util::Status check_output_name(std::string_view name) {
+  if (std::optional<std::string> why = output_name_problem(name)) return util::Error("output name " + *why);
+  return {};
 }
 
 bool is_digest(std::string_view text) {

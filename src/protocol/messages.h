@@ -75,10 +75,10 @@ using Decoded = util::Result<T, util::Errors>;
 
 // ---- validation shared with the command line ----------------------------------------------
 
-// nullopt when `name` is acceptable as a job's output: a plain file name (no '/', '\\', "..",
-// control characters, no leading '.'), at most kMaxOutputNameBytes, ending in the extension of
-// one of image::image_formats() (lower case). Otherwise the reason, phrased to follow "output name ".
-std::optional<std::string> check_output_name(std::string_view name);
+// Whether `name` is acceptable as a job's output: a plain file name (no '/', '\\', "..", control
+// characters, no leading '.'), at most kMaxOutputNameBytes, ending in the extension of one of
+// image::image_formats() (lower case). The error's message starts "output name ".
+util::Status check_output_name(std::string_view name);
 
 // True for kDigestHexChars lower-case hex digits.
 bool is_digest(std::string_view text);

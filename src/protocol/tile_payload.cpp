@@ -72,7 +72,7 @@ std::string encode_tile_payload(const TilePayload& p) {
   return out;
 }
 
-std::variant<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_view bytes) {
+util::Result<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_view bytes) {
   constexpr std::size_t kMinBytes = kTileHeaderBytes + kTileChecksumBytes;
   if (bytes.size() < kMinBytes) {
     return failure(TilePayloadError::kTruncated,

@@ -35,6 +35,7 @@
 #include <vector>
 
 #include "scene/tiling.h"
+#include "util/result.h"
 
 namespace dtraced::protocol {
 
@@ -80,7 +81,8 @@ struct TilePayloadFailure {
   std::string message;  // names the values found, e.g. "payload is 100 bytes; a 2x2 tile needs 120"
 };
 
-// Checks, in this order: minimum size, magic, flags, dimensions, exact size, checksum.
-std::variant<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_view bytes);
+// Checks, in this order: minimum size, magic, flags, dimensions, exact size, checksum. The error
+// carries a code (for tests and counters) beside its message.
+util::Result<TilePayload, TilePayloadFailure> decode_tile_payload(std::string_view bytes);
 
 }  // namespace dtraced::protocol

@@ -143,14 +143,10 @@ LoadResult load_scene_string(std::string_view text, const std::string& file_name
 }
 
 LoadResult load_scene_file(const std::string& path, const LoadOptions& options) {
-  std::string read_error;
-  const std::optional<std::string> text = util::read_file_limited(path, options.max_bytes, read_error);
+  util::Result<std::string> text = util::read_file_limited(path, options.max_bytes);
   if (!text) {
-    // read_file_limited prefixes its message with the path, which the Error carries already.
-    const std::string prefix = path + ": ";
-    if (read_error.starts_with(prefix)) read_error.erase(0, prefix.size());
     LoadResult result;
-    result.errors.push_back({std::move(read_error), "", path});
+    result.errors.push_back(std::move(text).error());  // names the file
     return result;
   }
   // Mesh files are named relative to the scene file, wherever the process runs from.

@@ -307,10 +307,9 @@ class ObjectReader {
     const std::string& base = s_.options.base_dir;
     const std::filesystem::path path =
         relative.is_absolute() || base.empty() ? relative : std::filesystem::path(base) / relative;
-    std::string read_error;
-    std::optional<std::string> text = util::read_file_limited(path.string(), s_.options.max_obj_bytes, read_error);
+    util::Result<std::string> text = util::read_file_limited(path.string(), s_.options.max_obj_bytes);
     if (!text) {
-      r_.error(at, read_error);
+      r_.error(at, text.error().to_string());
       return false;
     }
     // The canonical form carries the text inside a JSON string, which must be UTF-8.

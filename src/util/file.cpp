@@ -14,11 +14,10 @@
 
 namespace dtraced::util {
 
-std::optional<std::string> read_file_limited(const std::string& path, std::uint64_t max_bytes, std::string& error) {
+Result<std::string> read_file_limited(const std::string& path, std::uint64_t max_bytes) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {
-    error = fmt::format("{}: cannot open: {}", path, std::strerror(errno));
-    return std::nullopt;
+    return Error(fmt::format("cannot open: {}", std::strerror(errno)), "", path);
   }
   std::string data;
   char buf[1 << 16];
@@ -26,32 +25,29 @@ std::optional<std::string> read_file_limited(const std::string& path, std::uint6
     in.read(buf, sizeof buf);
     const auto got = static_cast<std::uint64_t>(in.gcount());
     if (data.size() + got > max_bytes) {
-      error = fmt::format("{}: file is larger than the limit of {} bytes", path, max_bytes);
-      return std::nullopt;
+      return Error(fmt::format("file is larger than the limit of {} bytes", max_bytes), "", path);
     }
     data.append(buf, static_cast<std::size_t>(got));
   }
   if (in.bad()) {
-    error = fmt::format("{}: read error", path);
-    return std::nullopt;
+    return Error("read error", "", path);
   }
   return data;
 }
 
-bool write_file_atomic(const std::string& path, std::string_view bytes, std::string& error) {
+Status write_file_atomic(const std::string& path, std::string_view bytes) {
   // mkstemp gives a name no other thread or process is using, in the target's directory so the
   // rename stays on one file system.
   std::string tmp = path + ".tmp.XXXXXX";
   const int fd = ::mkstemp(tmp.data());
   if (fd < 0) {
-    error = fmt::format("{}: cannot create a temporary file: {}", path, std::strerror(errno));
-    return false;
+    return Error(fmt::format("cannot create a temporary file: {}", std::strerror(errno)), "", path);
   }
-  auto fail = [&](const char* what) {
-    error = fmt::format("{}: {}: {}", path, what, std::strerror(errno));
+  auto fail = [&](const char* what) -> Status {
+    Error error(fmt::format("{}: {}", what, std::strerror(errno)), "", path);
     ::close(fd);
     ::unlink(tmp.c_str());
-    return false;
+    return error;
   };
   if (::fchmod(fd, 0644) != 0) return fail("cannot set permissions");
   std::size_t off = 0;
@@ -65,14 +61,14 @@ bool write_file_atomic(const std::string& path, std::string_view bytes, std::str
   }
   if (::fsync(fd) != 0) return fail("flush failed");
   if (::close(fd) != 0) {
-    error = fmt::format("{}: close failed: {}", path, std::strerror(errno));
+    Error error(fmt::format("close failed: {}", std::strerror(errno)), "", path);
     ::unlink(tmp.c_str());
-    return false;
+    return error;
   }
   if (std::rename(tmp.c_str(), path.c_str()) != 0) {
-    error = fmt::format("{}: cannot rename into place: {}", path, std::strerror(errno));
+    Error error(fmt::format("cannot rename into place: {}", std::strerror(errno)), "", path);
     ::unlink(tmp.c_str());
-    return false;
+    return error;
   }
   // The rename itself is durable only once the directory is synced.
   const std::string dir = std::filesystem::path(path).parent_path().string();
@@ -81,7 +77,7 @@ bool write_file_atomic(const std::string& path, std::string_view bytes, std::str
     ::fsync(dfd);
     ::close(dfd);
   }
-  return true;
+  return {};
 }
 
 }  // namespace dtraced::util

@@ -53,11 +53,10 @@ std::string default_worker_name() {
 util::Errors validate(const WorkerConfig& config) {
   util::Errors errors;
 
-  std::string url_error;
   if (config.collector_url.empty()) {
     add_problem(errors, "collector_url", "required (http://host[:port])");
-  } else if (!http::parse_base_url(config.collector_url, url_error)) {
-    add_problem(errors, "collector_url", url_error);
+  } else if (util::Result<http::Url> url = http::parse_base_url(config.collector_url); !url) {
+    add_problem(errors, "collector_url", url.error().message);
   }
 
   if (config.token.empty()) {

@@ -27,8 +27,7 @@ std::uint64_t seed_from(std::uint64_t configured) {
 
 // `text` has passed validate(): it parses.
 http::Url parse_url(const std::string& text) {
-  std::string error;
-  std::optional<http::Url> url = http::parse_base_url(text, error);
+  util::Result<http::Url> url = http::parse_base_url(text);
   assert(url);
   return *url;
 }

@@ -39,11 +39,8 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
     std::shared_ptr<const image::ImageRGBf> snapshot = job->framebuffer;
     const std::uint32_t w = job->settings.width, h = job->settings.height;
     auto encode = [image = snapshot.get(), w, h, format, options] {
-      std::string error;
-      std::optional<std::string> bytes = image != nullptr
-                                             ? image::encode_image(format, *image, options, error)
-                                             : image::encode_image(format, image::ImageRGBf(w, h), options, error);
-      return std::optional(bytes ? util::Result<std::string>(std::move(*bytes)) : util::Error(std::move(error)));
+      return std::optional(image != nullptr ? image::encode_image(format, *image, options)
+                                            : image::encode_image(format, image::ImageRGBf(w, h), options));
     };
     encoded = co_await async::on_pool(c.pool, std::move(encode));
   } else {
@@ -54,7 +51,7 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
     encoded = co_await async::on_pool(c.pool, std::move(assemble));
   }
   if (!encoded->ok()) {
-    const std::string& why = encoded->error().message;
+    const std::string why = encoded->error().to_string();
     util::log_error("collector: job {}: cannot produce its image: {}", id, why);
     co_return http::make_error(http::Status::internal_server_error, "cannot produce the image: " + why);
   }
