@@ -114,7 +114,7 @@ TEST_CASE("A pixel stops only at a checkpoint or at settings.samples", "[adaptiv
   CHECK(seen.size() >= 2);
 }
 
-TEST_CASE("Flat background stops at min_samples; the sphere's outline takes more", "[adaptive]") {
+TEST_CASE("Flat background stops at min_samples, and the sphere's outline takes more", "[adaptive]") {
   const scene::SceneDesc d = sphere_on_background();
   const render::RenderScene rs = render::RenderScene::build(d);
   const render::LocalResult r = render_with(rs, d.render, 8, 2, true);

@@ -204,7 +204,7 @@ TEST_CASE("a named output and a PPM output are written where asked", "[collector
   CHECK(img->rgb == expected_image(job, 16, 8, 8, {0, 1}).rgb);
 }
 
-TEST_CASE("duplicates are answered already_done; different pixels count as faulty", "[collector][service]") {
+TEST_CASE("duplicates are answered already_done, and different pixels count as faulty", "[collector][service]") {
   TempDir dir;
   Harness h(dir);
   const std::uint64_t job = h.submit();

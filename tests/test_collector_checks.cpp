@@ -339,7 +339,7 @@ TEST_CASE("sample counts are checked against the job's settings", "[collector][j
 
 // ---- submissions: body, row, record ----------------------------------------------------------------
 
-TEST_CASE("a submission becomes a queued row, and a stored row a record; bad rows are named",
+TEST_CASE("a submission becomes a queued row, and a stored row a record, and bad rows are named",
           "[collector][submission]") {
   const std::string body = R"({"scene": {
     "camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 40},

@@ -139,7 +139,7 @@ TEST_CASE("paths are JSON Pointers, escaped, and built only from live parents", 
   CHECK_FALSE(copy.is_root());
 }
 
-TEST_CASE("every error carries its file and path; past the cap the rest are counted", "[jsonio][errors]") {
+TEST_CASE("every error carries its file and path, and past the cap the rest are counted", "[jsonio][errors]") {
   Reader r("f.json", 3);
   const Path root;
   for (int i = 0; i < 5; ++i) r.error(root.index(static_cast<std::size_t>(i)), "bad");

@@ -293,7 +293,7 @@ TEST_CASE("A point inside a sphere light gets no light from it, and a ray from i
   REQUIRE(pixel(render_all(outside, d.render), 0, 0).x > 1.0f);
 }
 
-TEST_CASE("Occluders cast soft shadows; cast_shadows false lets the light through", "[lights][shadows]") {
+TEST_CASE("Occluders cast soft shadows, and cast_shadows false lets the light through", "[lights][shadows]") {
   scene::SceneDesc d = receiver_scene();
   scene::Light l = disk_light({0, 2, 0}, 0.8, {0, -1, 0}, 3);
   l.samples = 64;
