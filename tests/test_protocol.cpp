@@ -308,15 +308,31 @@ std::string status_body(std::string_view field, std::string_view value) {
 
 std::string nested_arrays(int n) { return std::string(n, '[') + std::string(n, ']'); }
 
+// Each body is refused, and among its errors is one at `path` whose message holds `fragment`.
+void check_refused(const std::vector<BadBody>& cases) {
+  for (const BadBody& c : cases) {
+    INFO(c.name);
+    const std::vector<DecodeError> errors = c.decode(c.body);
+    REQUIRE_FALSE(errors.empty());
+    std::string all;
+    for (const DecodeError& e : errors) all += e.to_string() + "\n";
+    INFO(all);
+    const bool found = std::any_of(errors.begin(), errors.end(), [&](const DecodeError& e) {
+      return e.path == c.path && e.message.find(c.fragment) != std::string::npos;
+    });
+    CHECK(found);
+  }
+}
+
 }  // namespace
 
-TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[protocol][json][errors]") {
+TEST_CASE("malformed submissions are refused with the JSON path of the problem", "[protocol][json][errors]") {
   // The body is level 1 and may nest 65 levels: 64 arrays fit under "x", the 65th is one too many
   // and sits at index 0 of the 64th.
   std::string deep_path = "/x";
   for (int i = 0; i < 64; ++i) deep_path += "/0";
 
-  const std::vector<BadBody> cases = {
+  check_refused({
       // submissions
       // Unknown keys are worded as in scene and config files: a suggestion, or the known keys.
       {"unknown key", submit, submit_body(kSceneJson, R"("priorty": 1)"), "/priorty",
@@ -378,6 +394,12 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
       {"too deep", submit, submit_body(kSceneJson, "\"x\": " + nested_arrays(65)), deep_path,
        "deeper than the limit of 65 levels"},
       {"body too large", submit, std::string(protocol::kMaxJobSubmitBytes + 1, ' '), "", "larger than the limit"},
+  });
+}
+
+TEST_CASE("malformed answers and worker messages are refused with the JSON path of the problem",
+          "[protocol][json][errors]") {
+  check_refused({
       // job created
       {"id 0", created, R"({"id": 0, "digest": ")" + kDigest + "\"}", "/id", "[1, 9007199254740991] (got 0)"},
       {"short digest", created, R"({"id": 1, "digest": "abc"})", "/digest", "64 lower-case hex digits"},
@@ -434,20 +456,7 @@ TEST_CASE("malformed bodies are refused with the JSON path of the problem", "[pr
       {"settings background of 2 numbers", settings,
        R"({"width": 1, "height": 1, "samples": 1, "max_depth": 0, "background": [0, 0], "seed": 0, "frame": 0})",
        "/background", "expected an array of 3 numbers, got 2 elements"},
-  };
-
-  for (const BadBody& c : cases) {
-    INFO(c.name);
-    const std::vector<DecodeError> errors = c.decode(c.body);
-    REQUIRE_FALSE(errors.empty());
-    std::string all;
-    for (const DecodeError& e : errors) all += e.to_string() + "\n";
-    INFO(all);
-    const bool found = std::any_of(errors.begin(), errors.end(), [&](const DecodeError& e) {
-      return e.path == c.path && e.message.find(c.fragment) != std::string::npos;
-    });
-    CHECK(found);
-  }
+  });
 }
 
 TEST_CASE("every problem of a body is reported, and the error body summarises them", "[protocol][json][errors]") {

@@ -53,13 +53,30 @@ std::string deep_nesting_scene(int arrays) {
 
 }  // namespace
 
-TEST_CASE("malformed scenes report the file and the exact JSON path", "[scene][errors]") {
+namespace {
+
+// Each scene is refused with exactly one error, at `path`, whose message holds `fragment`.
+void check_refused(const std::vector<BadCase>& cases) {
+  for (const BadCase& c : cases) {
+    const LoadResult r = load_scene_string(c.json, kFile);
+    INFO("case: " << c.name << "\nerrors:\n" << format_errors(r.errors));
+    CHECK_FALSE(r.ok());
+    CHECK_FALSE(r.scene.has_value());
+    CHECK(r.errors.size() == 1);
+    CHECK(has_error(r, c.path, c.fragment));
+  }
+}
+
+}  // namespace
+
+TEST_CASE("malformed scene text, unknown keys and wrong kinds of value name the file and JSON path",
+          "[scene][errors]") {
   // Root object, "render" object, then 62 arrays fill the 64 levels; the 63rd array is one too
   // many and sits at index 0 of the 62nd.
   std::string deep_path = "/render/x";
   for (int i = 0; i < 62; ++i) deep_path += "/0";
 
-  const std::vector<BadCase> cases = {
+  check_refused({
       {"syntax error, located by line and column",
        "{\n  \"camera\": {\"position\": [0,0,5],, \"look_at\": [0,0,0]},\n \"scene_objects\": [], \"scene_lights\": "
        "[]}",
@@ -111,6 +128,11 @@ TEST_CASE("malformed scenes report the file and the exact JSON path", "[scene][e
        "expected an object, got a number"},
       {"material is not an object", with_material("true"), "/scene_objects/0/material",
        "expected an object, got a boolean"},
+  });
+}
+
+TEST_CASE("scene values out of range name the file and the exact JSON path", "[scene][errors]") {
+  check_refused({
       {"radius -1", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": -1})"), "/scene_objects/0/radius",
        "must be > 0 (got -1)"},
       {"radius 0", with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 0})"), "/scene_objects/0/radius",
@@ -183,16 +205,7 @@ TEST_CASE("malformed scenes report the file and the exact JSON path", "[scene][e
        "/scene_objects/0/size/0", "too small to be represented"},
       {"sphere key on a plane", with_object(R"({"type": "plane", "loc": [0, 0, 0], "normal": [0, 1, 0], "radius": 1})"),
        "/scene_objects/0/radius", "unknown key"},
-  };
-
-  for (const BadCase& c : cases) {
-    const LoadResult r = load_scene_string(c.json, kFile);
-    INFO("case: " << c.name << "\nerrors:\n" << format_errors(r.errors));
-    CHECK_FALSE(r.ok());
-    CHECK_FALSE(r.scene.has_value());
-    CHECK(r.errors.size() == 1);
-    CHECK(has_error(r, c.path, c.fragment));
-  }
+  });
 }
 
 TEST_CASE("an error prints as FILE: PATH: MESSAGE", "[scene][errors]") {
