@@ -40,6 +40,47 @@ unit_value() {
     END { print value }' "$1"
 }
 
+# Type=notify: where python3 exists, a datagram socket plays systemd's notify socket (one
+# message a line in $root/NAME.notify), with $WATCHDOG_USEC from WatchdogSec= (seconds or
+# minutes), so the test also sees READY=1, WATCHDOG=1 and STATUS= arrive from the service's uid.
+notify_env() { # NAME UNIT: sets NOTIFY_ENV (NOTIFY_SOCKET=..., WATCHDOG_USEC=...), starts the receiver
+  NOTIFY_ENV=()
+  command -v python3 >/dev/null || return 0
+  local sock="$root/$1.sock"
+  python3 -c '
+import os, socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+s.bind(sys.argv[1])
+os.chmod(sys.argv[1], 0o777)
+with open(sys.argv[2], "a") as out:
+    while True:
+        out.write(s.recv(4096).decode(errors="replace") + "\n")
+        out.flush()
+' "$sock" "$root/$1.notify" </dev/null >/dev/null 2>&1 &
+  pids+=($!)
+  for ((t = 0; t < DEADLINE * 10; t++)); do
+    [ -S "$sock" ] && break
+    sleep 0.1
+  done
+  NOTIFY_ENV+=("NOTIFY_SOCKET=$sock")
+  local w
+  w=$(unit_value "$2" WatchdogSec)
+  case $w in
+    *min) NOTIFY_ENV+=("WATCHDOG_USEC=$((${w%min} * 60000000))") ;;
+    *s) NOTIFY_ENV+=("WATCHDOG_USEC=$((${w%s} * 1000000))") ;;
+  esac
+}
+
+# wait_notify NAME TEXT: until the service sent a message starting with TEXT.
+wait_notify() {
+  command -v python3 >/dev/null || return 0
+  for ((t = 0; t < DEADLINE * 10; t++)); do
+    grep -q "^$2" "$root/$1.notify" 2>/dev/null && { echo "ok: $1 sent $2"; return 0; }
+    sleep 0.1
+  done
+  die "$1 did not send $2 to the notify socket within ${DEADLINE}s"
+}
+
 # The host's files, as systemd's installer and the operator leave them (docs/operations.md):
 # the binary, the config directory (root, 0755) with a config (0644) and the token (root, 0600).
 mkdir -p "$root/usr/local/bin" "$root/etc/dtraced" "$root/var/lib" "$root/run/credentials"
@@ -92,6 +133,10 @@ start_unit() {
     chmod 500 "$creds"
   done < <(awk '/^\[/ { s = ($0 == "[Service]") } s && /^LoadCredential=/ { print substr($0, 16) }' "$unit")
   [ -d "$creds" ] && env+=("CREDENTIALS_DIRECTORY=$creds")
+  if [ "$(unit_value "$unit" Type)" = notify ]; then
+    notify_env "$name" "$unit"
+    env+=("${NOTIFY_ENV[@]}")
+  fi
 
   # ExecStart= with the specifiers this project uses (%i, %d, %%) and absolute paths rooted.
   local exec_start
@@ -150,12 +195,17 @@ done
 url="http://127.0.0.1:$port"
 curl -sf "$url/healthz" >/dev/null || die "the collector does not answer /healthz"
 echo "ok: the collector runs as uid $uid_collector and answers /healthz"
+wait_notify collector READY=1
+[ -z "$(unit_value "$UNITS/dtraced-collector.service" WatchdogSec)" ] || wait_notify collector WATCHDOG=1
+wait_notify collector "STATUS=jobs: 0 queued"
 
 # ---- a worker instance -------------------------------------------------------------------------
 install_config "$CONFIGS/worker.json" "$root/etc/dtraced/worker-farm.json" \
   -e "s#\"collector\": *\"[^\"]*\"#\"collector\": \"$url\"#" -e 's#"threads": *[0-9]*#"threads": 1#'
 start_unit worker "$UNITS/dtraced-worker@.service" farm "$uid_worker"
 worker_pid=$STARTED_PID
+wait_notify worker READY=1
+[ -z "$(unit_value "$UNITS/dtraced-worker@.service" WatchdogSec)" ] || wait_notify worker WATCHDOG=1
 
 # ---- the workstation: submit, wait, fetch ------------------------------------------------------
 printf '%s\n' "$TOKEN" >"$root/client-token"
@@ -179,6 +229,8 @@ image="$root/var/lib/dtraced/output/farm.png"
 client fetch "$id" -o "$root/fetched.png" || die "fetch failed"
 cmp -s "$image" "$root/fetched.png" || die "the fetched image differs from the collector's file"
 echo "ok: the worker, as uid $uid_worker, rendered job $id; the image is in the state directory"
+wait_notify collector "STATUS=jobs: 0 queued, 0 rendering, 1 done"
+wait_notify worker "STATUS=[1-9][0-9]* tiles rendered, [1-9][0-9]* submitted"
 
 stop_unit worker "$worker_pid"
 stop_unit collector "$collector_pid"

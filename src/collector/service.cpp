@@ -14,10 +14,12 @@
 #include <boost/asio/signal_set.hpp>
 #include <fmt/format.h>
 
+#include "async/systemd_notifier.h"
 #include "collector/context.h"
 #include "collector/restore.h"
 #include "collector/router.h"
 #include "collector/stop.h"
+#include "collector/systemd_status.h"
 #include "util/log.h"
 #include "util/sd_notify.h"
 
@@ -63,6 +65,10 @@ util::Status Collector::listen() {
   util::log_info("collector: listening on {} port {}; images go to {}", c.config.listen_address, c.server->port(),
                  c.output_dir);
   util::sd_notify_state("READY=1");
+  // Under systemd: WATCHDOG=1 and STATUS= from this loop until the stop begins.
+  async::start_systemd_notifier(c.ioc->get_executor(), c.clock, *c.stop_begun, [&c] {
+    return systemd_status(c.metrics(), /* workers_seen = */ std::nullopt);  // the worker registry's count, once kept
+  });
   return {};
 }
 

@@ -12,6 +12,7 @@
 #include <boost/asio/co_spawn.hpp>
 #include <boost/asio/post.hpp>
 
+#include "async/systemd_notifier.h"
 #include "util/log.h"
 #include "worker/backoff.h"
 #include "worker/worker_impl.h"
@@ -76,6 +77,12 @@ bool Worker::run(const RunOptions& options) {
       s.signals->cancel(ignored);
     }
   });
+  if (options.notify_systemd) {  // WATCHDOG=1 and STATUS= from this loop, under systemd only
+    async::start_systemd_notifier(s.io.get_executor(), s.clock, s.stop, [&s] {
+      return fmt::format("{} tiles rendered, {} submitted, {} in hand", s.tiles_rendered.get(), s.tiles_submitted.get(),
+                         s.in_hand.count());
+    });
+  }
   s.io.run();
   s.pool.join();
   return !s.failed;
