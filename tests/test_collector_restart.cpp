@@ -19,6 +19,7 @@
 #include <fmt/format.h>
 
 #include "child_process.h"
+#include "collector/restore.h"
 #include "collector_testing.h"
 #include "util/file.h"
 
@@ -180,6 +181,30 @@ TEST_CASE("a broken start counter stops start-up", "[collector][service]") {
     out << "twelve\n";
   }
   CHECK_THAT(open_error(config), Catch::Matchers::Contains("collector.epoch"));
+}
+
+TEST_CASE("a second collector on a state directory in use is refused, naming the directory and the PID",
+          "[collector][service][lock]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  std::uint64_t job = 0;
+  {
+    Harness first(config);
+    job = first.submit();
+    const std::string error = open_error(config);
+    CHECK_THAT(error, Catch::Matchers::Contains(fmt::format("state directory {} is in use by another collector "
+                                                            "(process {} holds the lock on",
+                                                            config.state_dir, ::getpid())));
+    CHECK_THAT(error, Catch::Matchers::Contains(coll::kLockFileName.data()));
+    // The refused collector changed nothing: no start counted, the first one's job still served.
+    CHECK(dtraced::util::read_file_limited((fs::path(config.state_dir) / coll::kEpochFileName).string(), 64).value() ==
+          "1\n");
+    CHECK(first.status(job).state == protocol::JobState::kQueued);
+  }
+  // Once the first one is gone, the directory is free again.
+  Harness again(config);
+  CHECK(again.collector.metrics().epoch == 2);
+  CHECK(again.status(job).state == protocol::JobState::kQueued);
 }
 
 TEST_CASE("the one-shot job is enqueued once and resumed after a restart", "[collector][service][one-shot]") {
@@ -386,3 +411,4 @@ TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their me
   CHECK_FALSE(h.status(job).mean_spp.has_value());
   CHECK(h.status(uniform).mean_spp == 1.0);
 }
+

@@ -17,6 +17,7 @@
 #include "collector/submission.h"
 #include "scene/load.h"
 #include "util/file.h"
+#include "util/lock_file.h"
 #include "util/log.h"
 
 namespace dtraced::collector {
@@ -45,6 +46,31 @@ util::Status bump_epoch(Context& c) {
   }
   c.epoch = previous + 1;
   return util::write_file_atomic(path, fmt::format("{}\n", c.epoch));
+}
+
+// One collector per state directory: the lock comes before the database opens, so a second
+// collector never reads (or writes) a database the first one is using.
+util::Status lock_state_dir(Context& c) {
+  const std::string& dir = c.config.state_dir;
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) return util::Error(fmt::format("state directory {}: cannot create it: {}", dir, ec.message()));
+  const std::string path = (fs::path(dir) / kLockFileName).string();
+  auto locked = util::LockFile::acquire(path);
+  if (!locked) {
+    const util::LockRefusal& refusal = locked.error();
+    if (!refusal.held_by_another) {
+      return util::Error(fmt::format("state directory {}: {}", dir, refusal.error.to_string()));
+    }
+    const std::string holder =
+        refusal.holder_pid ? fmt::format("process {}", *refusal.holder_pid) : std::string("another process");
+    return util::Error(fmt::format(
+        "state directory {} is in use by another collector ({} holds the lock on {}); stop it first, or give this "
+        "collector a state directory of its own",
+        dir, holder, path));
+  }
+  c.state_lock.emplace(std::move(locked).value());
+  return {};
 }
 
 // An unfinished job's scene and stored tiles, into its record and the queue.
@@ -218,6 +244,9 @@ async::Awaitable<> restore_sample_counts(Context& c, JobId id) {
 
 util::Status open_collector(Context& c) {
   if (c.opened) return util::Error("the collector is already open");
+  if (!c.state_lock) {
+    if (auto locked = lock_state_dir(c); !locked) return locked;
+  }
   auto opened = store::Store::open(c.config.state_dir);
   if (!opened) return std::move(opened).error();
   store::Store s = std::move(opened).value();
