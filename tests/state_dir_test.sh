@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # End-to-end checks of the collector's state directory with real dtraced processes on 127.0.0.1
 # (ephemeral ports): one collector per directory (a second one exits 1 naming the directory and
-# the PID holding it), a port in use leaves no new state directory behind, and the lock is free
-# again once its holder stops or is killed.
+# the PID holding it), a port in use leaves no new state directory behind, the lock is free
+# again once its holder stops or is killed, and start-up removes the temporary files of
+# interrupted writes (ours only).
 # Every wait is bounded (DEADLINE seconds); every process started here is killed on exit.
 # Needs DTRACED (the binary).
 set -uo pipefail
@@ -102,11 +103,21 @@ check "its message names the port"
 [ ! -e "$work/fresh" ]
 check "it left no state directory behind"
 
-# ---- the lock is released by a stop and by a kill ---------------------------------------------
+# ---- the lock is released by a stop and by a kill; leftovers of killed writes are removed -----
 stop_collector "$first_pid"
+# What a kill during an image write leaves: ours (removed at the next start) and a stranger's.
+head -c 100000 /dev/zero >"$work/state/output/job-1.png.tmp.Ab3xY9"
+head -c 10 /dev/zero >"$work/state/collector.epoch.tmp.q1W2e3"
+echo keep >"$work/state/output/notes.txt.tmp.Ab3xY9"
 start_collector again "$work/state"
 again_pid=$COLLECTOR_PID
 ok "after the first collector stopped, another starts on its directory"
+[ ! -e "$work/state/output/job-1.png.tmp.Ab3xY9" ] && [ ! -e "$work/state/collector.epoch.tmp.q1W2e3" ]
+check "start-up removed the temporary files of interrupted writes"
+grep -q "removed $work/state/output/job-1.png.tmp.Ab3xY9, left by a write that was interrupted" "$work/again.log"
+check "and logged each one"
+[ -e "$work/state/output/notes.txt.tmp.Ab3xY9" ]
+check "a file of another name pattern stays"
 kill -9 "$again_pid"
 wait "$again_pid" 2>/dev/null
 start_collector after_kill "$work/state"

@@ -3,7 +3,9 @@
 // leased again), a job complete but without its image, a corrupt database and a broken start
 // counter (start-up stops, the files untouched), the one-shot job (enqueued once, resumed,
 // checked like a submission), and an adaptive job's sample counts read back.
+#include <fcntl.h>
 #include <sqlite3.h>
+#include <sys/file.h>
 #include <unistd.h>
 
 #include <cstdint>
@@ -205,6 +207,52 @@ TEST_CASE("a second collector on a state directory in use is refused, naming the
   Harness again(config);
   CHECK(again.collector.metrics().epoch == 2);
   CHECK(again.status(job).state == protocol::JobState::kQueued);
+}
+
+TEST_CASE("the temporary-file pattern of atomic writes is recognised exactly", "[collector][service][cleanup]") {
+  using dtraced::util::temporary_target;
+  CHECK(temporary_target("job-1.png.tmp.Ab3xY9") == "job-1.png");
+  CHECK(temporary_target("collector.epoch.tmp.000000") == "collector.epoch");
+  CHECK(temporary_target("job-1.png.tmp.Ab3xY") == "");    // five characters
+  CHECK(temporary_target("job-1.png.tmp.Ab3xY9z") == "");  // seven
+  CHECK(temporary_target("job-1.png.tmp.Ab3-Y9") == "");   // not a letter or digit
+  CHECK(temporary_target("job-1.png.tmpxAb3xY9") == "");   // no ".tmp."
+  CHECK(temporary_target(".tmp.Ab3xY9") == "");            // no target
+  CHECK(temporary_target("job-1.png") == "");
+}
+
+TEST_CASE("start-up removes the temporary files a killed write left, only ours and only unheld",
+          "[collector][service][cleanup]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  const fs::path state(config.state_dir);
+  const fs::path out(config.output_dir);
+  fs::create_directories(state);
+  fs::create_directories(out / "sub");
+  const std::string image(4096, 'x');
+  const std::vector<fs::path> ours = {out / "job-1.png.tmp.Ab3xY9", out / "shot.pfm.tmp.000000",
+                                      state / "collector.epoch.tmp.zzZZ99"};
+  const std::vector<fs::path> others = {
+      out / "notes.txt.tmp.Ab3xY9",          // not an output name
+      out / "job-2.png.tmp.Ab3",             // not the pattern
+      out / "sub" / "job-3.png.tmp.Ab3xY9",  // below our directory
+      state / "dtraced.db.tmp.Ab3xY9",       // in the state directory, only the start counter's
+      out / "job-4.png.tmp.Held00",          // a live writer holds it
+      dir.path() / "elsewhere.png",          // what a link points to
+  };
+  for (const auto& p : ours) write_text(p, image);
+  for (const auto& p : others) write_text(p, image);
+  fs::create_symlink(dir.path() / "elsewhere.png", out / "job-5.png.tmp.Link00");
+  const int held = ::open((out / "job-4.png.tmp.Held00").c_str(), O_RDONLY | O_CLOEXEC);
+  REQUIRE(held >= 0);
+  REQUIRE(::flock(held, LOCK_EX) == 0);
+
+  Harness h(config);
+  for (const auto& p : ours) CHECK_FALSE(fs::exists(p));
+  for (const auto& p : others) CHECK(fs::exists(p));
+  CHECK(fs::is_symlink(out / "job-5.png.tmp.Link00"));
+  CHECK(dtraced::util::read_file_limited((dir.path() / "elsewhere.png").string(), 1 << 20).value() == image);
+  ::close(held);
 }
 
 TEST_CASE("the one-shot job is enqueued once and resumed after a restart", "[collector][service][one-shot]") {

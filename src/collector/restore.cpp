@@ -4,6 +4,7 @@
 #include <cassert>
 #include <charconv>
 #include <filesystem>
+#include <functional>
 #include <limits>
 #include <string>
 #include <utility>
@@ -46,6 +47,21 @@ util::Status bump_epoch(Context& c) {
   }
   c.epoch = previous + 1;
   return util::write_file_atomic(path, fmt::format("{}\n", c.epoch));
+}
+
+// Temporary files of image (and start counter) writes that a kill interrupted: ours only (the
+// names write_file_atomic gives to an output name or the start counter), in our two directories,
+// and none a live writer holds. They are as large as the image, and nothing else removes them.
+void remove_temporaries(const Context& c) {
+  const auto clean = [](const std::string& dir, const std::function<bool(std::string_view)>& ours) {
+    const util::TemporaryCleanup cleanup = util::remove_stale_temporaries(dir, ours);
+    for (const std::string& path : cleanup.removed) {
+      util::log_info("collector: removed {}, left by a write that was interrupted", path);
+    }
+    for (const util::Error& error : cleanup.failed) util::log_warn("collector: {}", error.to_string());
+  };
+  clean(c.config.state_dir, [](std::string_view target) { return target == kEpochFileName; });
+  clean(c.output_dir, [](std::string_view target) { return protocol::check_output_name(target).ok(); });
 }
 
 // One collector per state directory: the lock comes before the database opens, so a second
@@ -258,6 +274,7 @@ util::Status open_collector(Context& c) {
     return util::Error(fmt::format("output directory {}: cannot create it: {}", c.output_dir, ec.message()));
   }
 
+  remove_temporaries(c);
   if (auto bumped = bump_epoch(c); !bumped) return bumped;
   if (auto restored = restore(c, s); !restored) return restored;
   if (c.config.one_shot) {
