@@ -6,9 +6,12 @@
 #include <fcntl.h>
 #include <sqlite3.h>
 #include <sys/file.h>
+#include <sys/mount.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <cstdint>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -460,3 +463,76 @@ TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their me
   CHECK(h.status(uniform).mean_spp == 1.0);
 }
 
+// A small tmpfs of our own, filled to the last byte: mount(2) needs root (or CAP_SYS_ADMIN);
+// without it the test says so and checks nothing.
+namespace {
+struct SmallDisk {
+  explicit SmallDisk(const fs::path& at) : path(at) {
+    fs::create_directories(path);
+    mounted = ::mount("tmpfs", path.c_str(), "tmpfs", 0, "size=8m") == 0;
+  }
+  ~SmallDisk() {
+    if (mounted) ::umount2(path.c_str(), MNT_DETACH);
+  }
+  // Writes a file until the disk refuses another byte.
+  void fill() const {
+    const int fd = ::open((path / "filler").c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+    REQUIRE(fd >= 0);
+    const std::string chunk(4096, 'f');
+    for (std::size_t size = chunk.size(); size > 0; size /= 2) {
+      while (::write(fd, chunk.data(), size) == static_cast<ssize_t>(size)) {
+      }
+    }
+    ::close(fd);
+    const int probe = ::open((path / "probe").c_str(), O_WRONLY | O_CREAT | O_CLOEXEC, 0644);
+    REQUIRE(probe >= 0);
+    const bool full = ::write(probe, "x", 1) < 0 && errno == ENOSPC;
+    ::close(probe);
+    fs::remove(path / "probe");
+    REQUIRE(full);
+  }
+  void free_space() const { fs::remove(path / "filler"); }
+  fs::path path;
+  bool mounted = false;
+};
+}  // namespace
+
+TEST_CASE("a collector starts on a full disk with its stored tiles, and goes on once space frees",
+          "[collector][service][disk]") {
+  TempDir dir;
+  SmallDisk disk(dir.path() / "disk");
+  if (!disk.mounted) {
+    WARN("skipped: cannot mount a tmpfs here (" << std::strerror(errno) << "); run as root to test a full disk");
+    return;
+  }
+  coll::CollectorConfig config = make_config(dir);
+  config.state_dir = (disk.path / "state").string();
+  config.output_dir = (disk.path / "out").string();
+  std::uint64_t job = 0;
+  std::set<std::uint32_t> first;
+  {
+    Harness h(config);
+    job = h.submit();
+    for (const auto& l : h.lease_all()) {
+      if (first.size() == 5) break;
+      REQUIRE(h.put_ok(l) == protocol::SubmitResult::kStored);
+      first.insert(l.tile);
+    }
+  }
+  disk.fill();
+  {
+    Harness h(config);  // opens, or the test fails here
+    CHECK(h.collector.metrics().epoch == 2);
+    CHECK(h.collector.metrics().restored_tiles == 5);
+    CHECK(h.status(job).tiles_done == 5);
+    // The start counter could not be written; it still says 1, whole.
+    CHECK(dtraced::util::read_file_limited((fs::path(config.state_dir) / coll::kEpochFileName).string(), 64).value() ==
+          "1\n");
+  }
+  disk.free_space();
+  Harness h(config);
+  CHECK(h.status(job).tiles_done == 5);
+  for (const auto& l : h.lease_all()) REQUIRE(h.put_ok(l) == protocol::SubmitResult::kStored);
+  CHECK(h.status(job).state == protocol::JobState::kDone);
+  CHECK(fetch_pfm(h, job).rgb == expected_image(job, 32, 24, 8, all_tiles()).rgb);
+}

@@ -46,7 +46,14 @@ util::Status bump_epoch(Context& c) {
     }
   }
   c.epoch = previous + 1;
-  return util::write_file_atomic(path, fmt::format("{}\n", c.epoch));
+  // The number only labels what this start stored (the tiles' `worker` column, a metric): when it
+  // cannot be written (a full disk), starting anyway loses nothing; the next start may then reuse
+  // the number. Refusing to start would keep every stored job from finishing until space frees.
+  if (util::Status written = util::write_file_atomic(path, fmt::format("{}\n", c.epoch)); !written) {
+    util::log_warn("collector: cannot record start {} (the next start may count it again): {}", c.epoch,
+                   written.error().to_string());
+  }
+  return {};
 }
 
 // Temporary files of image (and start counter) writes that a kill interrupted: ours only (the
