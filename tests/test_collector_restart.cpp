@@ -207,9 +207,16 @@ TEST_CASE("a second collector on a state directory in use is refused, naming the
     CHECK(first.status(job).state == protocol::JobState::kQueued);
   }
   // Once the first one is gone, the directory is free again.
-  Harness again(config);
-  CHECK(again.collector.metrics().epoch == 2);
-  CHECK(again.status(job).state == protocol::JobState::kQueued);
+  {
+    Harness again(config);
+    CHECK(again.collector.metrics().epoch == 2);
+    CHECK(again.status(job).state == protocol::JobState::kQueued);
+    // A stopped collector releases it even while the object lives on.
+    again.collector.stop();
+    again.collector.run();
+    Harness third(config);
+    CHECK(third.collector.metrics().epoch == 3);
+  }
 }
 
 TEST_CASE("the temporary-file pattern of atomic writes is recognised exactly", "[collector][service][cleanup]") {

@@ -37,7 +37,7 @@
 // loop) sends STOPPING=1, stops the server gracefully (no new connections; requests in flight
 // finish within shutdown_grace), waits for image writes in flight within the same grace (both on
 // the clock), drains the TileWriter (everything accepted is committed and answered), closes the
-// database and ends run().
+// database, releases the state directory's lock and ends run().
 //
 // Threading: open(), listen(), run(), handle_sync() and run_until_idle() from one thread, never
 // concurrently; handle() on the loop; stop() and port() from any thread.
