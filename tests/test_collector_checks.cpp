@@ -268,6 +268,22 @@ TEST_CASE("a tile payload is refused for its format or a non-finite pixel, befor
   CHECK(non_finite.error() == coll::bad_request("pixel (9, 9) holds a non-finite value", "/pixels"));
 }
 
+TEST_CASE("a tile payload with a negative pixel is refused, naming the pixel, but minus zero passes",
+          "[collector][checks]") {
+  protocol::TilePayload negative = tile_payload(5);  // tile 5: x 8..15, y 8..15
+  negative.rgb[3 * (8 * 2 + 3) + 2] = -0.25f;
+  const auto refused = coll::check_tile_payload(protocol::encode_tile_payload(negative));
+  REQUIRE_FALSE(refused.ok());
+  CHECK(refused.error() == coll::bad_request("pixel (11, 10) holds a negative value (-0.25 in blue); radiance "
+                                             "is never below 0",
+                                             "/pixels"));
+
+  // -0.0 compares equal to 0: a renderer may produce it, and it is not negative radiance.
+  protocol::TilePayload minus_zero = tile_payload(5);
+  minus_zero.rgb[0] = -0.0f;
+  CHECK(coll::check_tile_payload(protocol::encode_tile_payload(minus_zero)).ok());
+}
+
 TEST_CASE("a tile upload is checked against its URL, then its job: range, rectangle, sample counts",
           "[collector][checks]") {
   coll::JobRecord job = job_record();

@@ -3,10 +3,15 @@
 // leased again), a job complete but without its image, a corrupt database and a broken start
 // counter (start-up stops, the files untouched), the one-shot job (enqueued once, resumed,
 // checked like a submission), and an adaptive job's sample counts read back.
+#include <fcntl.h>
 #include <sqlite3.h>
+#include <sys/file.h>
+#include <sys/mount.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <cstdint>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -19,6 +24,7 @@
 #include <fmt/format.h>
 
 #include "child_process.h"
+#include "collector/restore.h"
 #include "collector_testing.h"
 #include "util/file.h"
 
@@ -180,6 +186,83 @@ TEST_CASE("a broken start counter stops start-up", "[collector][service]") {
     out << "twelve\n";
   }
   CHECK_THAT(open_error(config), Catch::Matchers::Contains("collector.epoch"));
+}
+
+TEST_CASE("a second collector on a state directory in use is refused, naming the directory and the PID",
+          "[collector][service][lock]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  std::uint64_t job = 0;
+  {
+    Harness first(config);
+    job = first.submit();
+    const std::string error = open_error(config);
+    CHECK_THAT(error, Catch::Matchers::Contains(fmt::format("state directory {} is in use by another collector "
+                                                            "(process {} holds the lock on",
+                                                            config.state_dir, ::getpid())));
+    CHECK_THAT(error, Catch::Matchers::Contains(coll::kLockFileName.data()));
+    // The refused collector changed nothing: no start counted, the first one's job still served.
+    CHECK(dtraced::util::read_file_limited((fs::path(config.state_dir) / coll::kEpochFileName).string(), 64).value() ==
+          "1\n");
+    CHECK(first.status(job).state == protocol::JobState::kQueued);
+  }
+  // Once the first one is gone, the directory is free again.
+  {
+    Harness again(config);
+    CHECK(again.collector.metrics().epoch == 2);
+    CHECK(again.status(job).state == protocol::JobState::kQueued);
+    // A stopped collector releases it even while the object lives on.
+    again.collector.stop();
+    again.collector.run();
+    Harness third(config);
+    CHECK(third.collector.metrics().epoch == 3);
+  }
+}
+
+TEST_CASE("the temporary-file pattern of atomic writes is recognised exactly", "[collector][service][cleanup]") {
+  using dtraced::util::temporary_target;
+  CHECK(temporary_target("job-1.png.tmp.Ab3xY9") == "job-1.png");
+  CHECK(temporary_target("collector.epoch.tmp.000000") == "collector.epoch");
+  CHECK(temporary_target("job-1.png.tmp.Ab3xY") == "");    // five characters
+  CHECK(temporary_target("job-1.png.tmp.Ab3xY9z") == "");  // seven
+  CHECK(temporary_target("job-1.png.tmp.Ab3-Y9") == "");   // not a letter or digit
+  CHECK(temporary_target("job-1.png.tmpxAb3xY9") == "");   // no ".tmp."
+  CHECK(temporary_target(".tmp.Ab3xY9") == "");            // no target
+  CHECK(temporary_target("job-1.png") == "");
+}
+
+TEST_CASE("start-up removes the temporary files a killed write left, only ours and only unheld",
+          "[collector][service][cleanup]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  const fs::path state(config.state_dir);
+  const fs::path out(config.output_dir);
+  fs::create_directories(state);
+  fs::create_directories(out / "sub");
+  const std::string image(4096, 'x');
+  const std::vector<fs::path> ours = {out / "job-1.png.tmp.Ab3xY9", out / "shot.pfm.tmp.000000",
+                                      state / "collector.epoch.tmp.zzZZ99"};
+  const std::vector<fs::path> others = {
+      out / "notes.txt.tmp.Ab3xY9",          // not an output name
+      out / "job-2.png.tmp.Ab3",             // not the pattern
+      out / "sub" / "job-3.png.tmp.Ab3xY9",  // below our directory
+      state / "dtraced.db.tmp.Ab3xY9",       // in the state directory, only the start counter's
+      out / "job-4.png.tmp.Held00",          // a live writer holds it
+      dir.path() / "elsewhere.png",          // what a link points to
+  };
+  for (const auto& p : ours) write_text(p, image);
+  for (const auto& p : others) write_text(p, image);
+  fs::create_symlink(dir.path() / "elsewhere.png", out / "job-5.png.tmp.Link00");
+  const int held = ::open((out / "job-4.png.tmp.Held00").c_str(), O_RDONLY | O_CLOEXEC);
+  REQUIRE(held >= 0);
+  REQUIRE(::flock(held, LOCK_EX) == 0);
+
+  Harness h(config);
+  for (const auto& p : ours) CHECK_FALSE(fs::exists(p));
+  for (const auto& p : others) CHECK(fs::exists(p));
+  CHECK(fs::is_symlink(out / "job-5.png.tmp.Link00"));
+  CHECK(dtraced::util::read_file_limited((dir.path() / "elsewhere.png").string(), 1 << 20).value() == image);
+  ::close(held);
 }
 
 TEST_CASE("the one-shot job is enqueued once and resumed after a restart", "[collector][service][one-shot]") {
@@ -385,4 +468,78 @@ TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their me
   CHECK(h.status(job).state == protocol::JobState::kDone);
   CHECK_FALSE(h.status(job).mean_spp.has_value());
   CHECK(h.status(uniform).mean_spp == 1.0);
+}
+
+// A small tmpfs of our own, filled to the last byte: mount(2) needs root (or CAP_SYS_ADMIN);
+// without it the test says so and checks nothing.
+namespace {
+struct SmallDisk {
+  explicit SmallDisk(const fs::path& at) : path(at) {
+    fs::create_directories(path);
+    mounted = ::mount("tmpfs", path.c_str(), "tmpfs", 0, "size=8m") == 0;
+  }
+  ~SmallDisk() {
+    if (mounted) ::umount2(path.c_str(), MNT_DETACH);
+  }
+  // Writes a file until the disk refuses another byte.
+  void fill() const {
+    const int fd = ::open((path / "filler").c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+    REQUIRE(fd >= 0);
+    const std::string chunk(4096, 'f');
+    for (std::size_t size = chunk.size(); size > 0; size /= 2) {
+      while (::write(fd, chunk.data(), size) == static_cast<ssize_t>(size)) {
+      }
+    }
+    ::close(fd);
+    const int probe = ::open((path / "probe").c_str(), O_WRONLY | O_CREAT | O_CLOEXEC, 0644);
+    REQUIRE(probe >= 0);
+    const bool full = ::write(probe, "x", 1) < 0 && errno == ENOSPC;
+    ::close(probe);
+    fs::remove(path / "probe");
+    REQUIRE(full);
+  }
+  void free_space() const { fs::remove(path / "filler"); }
+  fs::path path;
+  bool mounted = false;
+};
+}  // namespace
+
+TEST_CASE("a collector starts on a full disk with its stored tiles, and goes on once space frees",
+          "[collector][service][disk]") {
+  TempDir dir;
+  SmallDisk disk(dir.path() / "disk");
+  if (!disk.mounted) {
+    WARN("skipped: cannot mount a tmpfs here (" << std::strerror(errno) << "); run as root to test a full disk");
+    return;
+  }
+  coll::CollectorConfig config = make_config(dir);
+  config.state_dir = (disk.path / "state").string();
+  config.output_dir = (disk.path / "out").string();
+  std::uint64_t job = 0;
+  std::set<std::uint32_t> first;
+  {
+    Harness h(config);
+    job = h.submit();
+    for (const auto& l : h.lease_all()) {
+      if (first.size() == 5) break;
+      REQUIRE(h.put_ok(l) == protocol::SubmitResult::kStored);
+      first.insert(l.tile);
+    }
+  }
+  disk.fill();
+  {
+    Harness h(config);  // opens, or the test fails here
+    CHECK(h.collector.metrics().epoch == 2);
+    CHECK(h.collector.metrics().restored_tiles == 5);
+    CHECK(h.status(job).tiles_done == 5);
+    // The start counter could not be written; it still says 1, whole.
+    CHECK(dtraced::util::read_file_limited((fs::path(config.state_dir) / coll::kEpochFileName).string(), 64).value() ==
+          "1\n");
+  }
+  disk.free_space();
+  Harness h(config);
+  CHECK(h.status(job).tiles_done == 5);
+  for (const auto& l : h.lease_all()) REQUIRE(h.put_ok(l) == protocol::SubmitResult::kStored);
+  CHECK(h.status(job).state == protocol::JobState::kDone);
+  CHECK(fetch_pfm(h, job).rgb == expected_image(job, 32, 24, 8, all_tiles()).rgb);
 }

@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cstdint>
 #include <cstring>
+#include <filesystem>
 #include <future>
 #include <set>
 #include <string>
@@ -21,6 +22,7 @@
 #include <fmt/format.h>
 
 #include "child_process.h"
+#include "eventually.h"
 #include "store_testing.h"
 
 namespace {
@@ -124,6 +126,45 @@ TEST_CASE("a transaction holds at most max_batch_tiles tiles", "[store][writer]"
   CHECK(writer.stats().batches == 3);
   CHECK(writer.stats().largest_batch == 4);
   CHECK(writer.stats().tiles_stored == 10);
+}
+
+TEST_CASE("the WAL stays a few batches long over many commits and is emptied when the writer is idle",
+          "[store][writer][wal]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  const std::string wal = setup.path() + "-wal";
+  constexpr std::uint32_t kTiles = 400;  // 100 transactions in a row, 6.4 MB of pixels
+  constexpr std::size_t kBytes = 16 << 10;
+  constexpr WriterLimits kLimits{.max_batch_tiles = 4, .checkpoint_every_batches = 8};
+  TileWriter writer(std::move(setup), kLimits);
+  Callbacks callbacks;
+  std::atomic<std::uintmax_t> largest_wal{0};
+  Gate gate;
+  gate.close(writer);  // every tile queued before the first batch: the writer is never idle
+  for (std::uint32_t t = 0; t < kTiles; ++t) {
+    auto done = [&, inner = callbacks.done(t)](CommitResult r) {
+      std::error_code ec;
+      const std::uintmax_t size = std::filesystem::file_size(wal, ec);
+      if (!ec && size > largest_wal) largest_wal = size;
+      inner(std::move(r));
+    };
+    REQUIRE(writer.submit(tile_write(job, t, kBytes), done) == SubmitStatus::kAccepted);
+  }
+  gate.open();
+  REQUIRE(callbacks.wait_for(kTiles));
+  CHECK(writer.stats().tiles_stored == kTiles);
+  CHECK(writer.stats().batches == kTiles / 4);
+  // Eight batches of four 16 KiB tiles are 512 KiB of pixels; the WAL adds page headers and the
+  // b-tree pages. Without checkpoints of its own, SQLite lets it reach 1000 pages (4 MiB).
+  INFO("largest WAL: " << largest_wal.load() << " bytes");
+  CHECK(largest_wal.load() <= std::uintmax_t{1} << 20);
+  CHECK(writer.stats().checkpoints >= kTiles / 4 / kLimits.checkpoint_every_batches);
+  // Idle: the WAL file is emptied (its bytes are all in the database).
+  CHECK(eventually([&] { return std::filesystem::file_size(wal) == 0; }));
+  writer.stop();
+  CHECK(writer.stats().checkpoints_failed == 0);
+  Store check = open_ok(tmp.path());
+  CHECK(check.count_tiles(job).value() == kTiles);
 }
 
 TEST_CASE("a rejected tile does not fail the rest of its batch", "[store][writer]") {

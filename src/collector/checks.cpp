@@ -1,6 +1,7 @@
 #include "collector/checks.h"
 
 #include <cmath>
+#include <string_view>
 #include <utility>
 #include <variant>
 
@@ -45,14 +46,18 @@ util::Result<protocol::TilePayload, Refusal> check_tile_payload(std::string_view
   auto decoded = protocol::decode_tile_payload(body);
   if (!decoded) return bad_request("tile payload: " + decoded.error().message);
   protocol::TilePayload& payload = decoded.value();
+  constexpr std::string_view kChannels[] = {"red", "green", "blue"};
   for (std::size_t i = 0; i < payload.rgb.size(); ++i) {
-    if (!std::isfinite(payload.rgb[i])) {
-      const std::size_t pixel = i / 3;
-      return bad_request(
-          fmt::format("pixel ({}, {}) holds a non-finite value", payload.rect.x0 + pixel % payload.rect.width,
-                      payload.rect.y0 + pixel / payload.rect.width),
-          "/pixels");
-    }
+    const float v = payload.rgb[i];
+    // Radiance is a sum of non-negative terms; -0.0 compares equal to 0 and passes.
+    if (std::isfinite(v) && v >= 0.0f) continue;
+    const std::size_t pixel = i / 3;
+    const std::uint32_t x = payload.rect.x0 + static_cast<std::uint32_t>(pixel % payload.rect.width);
+    const std::uint32_t y = payload.rect.y0 + static_cast<std::uint32_t>(pixel / payload.rect.width);
+    if (!std::isfinite(v)) return bad_request(fmt::format("pixel ({}, {}) holds a non-finite value", x, y), "/pixels");
+    return bad_request(fmt::format("pixel ({}, {}) holds a negative value ({} in {}); radiance is never below 0", x, y,
+                                   v, kChannels[i % 3]),
+                       "/pixels");
   }
   return std::move(payload);
 }

@@ -3,7 +3,7 @@
 //
 // Owns: the rules of README.md's "HTTP API" that decide 4xx and 503 answers: a submission's room
 // (unfinished jobs and pixels), a cancellation's state rules, and a tile upload's six checks (the
-// payload's format and finite pixels; the URL against the payload; the job known and not
+// payload's format and finite, non-negative pixels; the URL against the payload; the job known and not
 // cancelled; the tile in range; the rectangle the job's; the sample counts the job's). Each
 // handler runs its check, then does one effectful step (store, queue, image), so adding a route
 // means adding one check here and one small handler file. Nothing here touches the queue, the
@@ -55,9 +55,9 @@ util::Result<CancelAction, Refusal> check_cancel(JobId id, const JobRecord* job,
 
 // ---- tile uploads --------------------------------------------------------------------------------
 
-// What does not depend on the job (400): the payload's format and checksum, then finite pixels.
-// The renderer never produces NaN or infinity: such a tile comes from a broken worker, and
-// accepting it would make it the stored truth.
+// What does not depend on the job (400): the payload's format and checksum, then finite and
+// non-negative pixels. The renderer never produces NaN, infinity or negative radiance: such a tile
+// comes from a broken worker, and accepting it would make it the stored truth.
 util::Result<protocol::TilePayload, Refusal> check_tile_payload(std::string_view body);
 
 enum class TileAction {

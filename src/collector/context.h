@@ -40,6 +40,7 @@
 #include "http/server.h"
 #include "store/tile_writer.h"
 #include "util/clock.h"
+#include "util/lock_file.h"
 
 namespace dtraced::collector {
 
@@ -65,6 +66,10 @@ struct Context {
   const util::Clock& clock;
   const TokenCheck token;
   std::string output_dir;  // set by open_collector
+
+  // The exclusive lock on the state directory (restore.h), taken by open_collector before the
+  // database opens. Declared before everything that uses the directory, so it is released last.
+  std::optional<util::LockFile> state_lock;
 
   // The loop and what lives on it. The io_context is destroyed last but one (see ~Context).
   std::unique_ptr<async::net::io_context> ioc;

@@ -4,6 +4,7 @@
 #include <cassert>
 #include <charconv>
 #include <filesystem>
+#include <functional>
 #include <limits>
 #include <string>
 #include <utility>
@@ -17,6 +18,7 @@
 #include "collector/submission.h"
 #include "scene/load.h"
 #include "util/file.h"
+#include "util/lock_file.h"
 #include "util/log.h"
 
 namespace dtraced::collector {
@@ -44,7 +46,54 @@ util::Status bump_epoch(Context& c) {
     }
   }
   c.epoch = previous + 1;
-  return util::write_file_atomic(path, fmt::format("{}\n", c.epoch));
+  // The number only labels what this start stored (the tiles' `worker` column, a metric): when it
+  // cannot be written (a full disk), starting anyway loses nothing; the next start may then reuse
+  // the number. Refusing to start would keep every stored job from finishing until space frees.
+  if (util::Status written = util::write_file_atomic(path, fmt::format("{}\n", c.epoch)); !written) {
+    util::log_warn("collector: cannot record start {} (the next start may count it again): {}", c.epoch,
+                   written.error().to_string());
+  }
+  return {};
+}
+
+// Temporary files of image (and start counter) writes that a kill interrupted: ours only (the
+// names write_file_atomic gives to an output name or the start counter), in our two directories,
+// and none a live writer holds. They are as large as the image, and nothing else removes them.
+void remove_temporaries(const Context& c) {
+  const auto clean = [](const std::string& dir, const std::function<bool(std::string_view)>& ours) {
+    const util::TemporaryCleanup cleanup = util::remove_stale_temporaries(dir, ours);
+    for (const std::string& path : cleanup.removed) {
+      util::log_info("collector: removed {}, left by a write that was interrupted", path);
+    }
+    for (const util::Error& error : cleanup.failed) util::log_warn("collector: {}", error.to_string());
+  };
+  clean(c.config.state_dir, [](std::string_view target) { return target == kEpochFileName; });
+  clean(c.output_dir, [](std::string_view target) { return protocol::check_output_name(target).ok(); });
+}
+
+// One collector per state directory: the lock comes before the database opens, so a second
+// collector never reads (or writes) a database the first one is using.
+util::Status lock_state_dir(Context& c) {
+  const std::string& dir = c.config.state_dir;
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) return util::Error(fmt::format("state directory {}: cannot create it: {}", dir, ec.message()));
+  const std::string path = (fs::path(dir) / kLockFileName).string();
+  auto locked = util::LockFile::acquire(path);
+  if (!locked) {
+    const util::LockRefusal& refusal = locked.error();
+    if (!refusal.held_by_another) {
+      return util::Error(fmt::format("state directory {}: {}", dir, refusal.error.to_string()));
+    }
+    const std::string holder =
+        refusal.holder_pid ? fmt::format("process {}", *refusal.holder_pid) : std::string("another process");
+    return util::Error(fmt::format(
+        "state directory {} is in use by another collector ({} holds the lock on {}); stop it first, or give this "
+        "collector a state directory of its own",
+        dir, holder, path));
+  }
+  c.state_lock.emplace(std::move(locked).value());
+  return {};
 }
 
 // An unfinished job's scene and stored tiles, into its record and the queue.
@@ -218,6 +267,9 @@ async::Awaitable<> restore_sample_counts(Context& c, JobId id) {
 
 util::Status open_collector(Context& c) {
   if (c.opened) return util::Error("the collector is already open");
+  if (!c.state_lock) {
+    if (auto locked = lock_state_dir(c); !locked) return locked;
+  }
   auto opened = store::Store::open(c.config.state_dir);
   if (!opened) return std::move(opened).error();
   store::Store s = std::move(opened).value();
@@ -229,6 +281,7 @@ util::Status open_collector(Context& c) {
     return util::Error(fmt::format("output directory {}: cannot create it: {}", c.output_dir, ec.message()));
   }
 
+  remove_temporaries(c);
   if (auto bumped = bump_epoch(c); !bumped) return bumped;
   if (auto restored = restore(c, s); !restored) return restored;
   if (c.config.one_shot) {

@@ -4,8 +4,10 @@
 
 #include <algorithm>
 #include <exception>
+#include <filesystem>
 #include <optional>
 #include <stdexcept>
+#include <system_error>
 #include <utility>
 
 #include <boost/asio/co_spawn.hpp>
@@ -41,8 +43,24 @@ util::Status Collector::open() { return open_collector(*context_); }
 
 util::Status Collector::listen() {
   Context& c = *context_;
-  if (!c.opened) return util::Error("listen() before open()");
-  if (c.stopping || c.server) return {};
+  if (c.stopping) return {};
+  if (!c.server) {
+    if (auto bound = bind(); !bound) return bound;
+  }
+  if (!c.opened || ready_) return {};  // bound early, for a new state directory: open() comes next
+  ready_ = true;
+  util::log_info("collector: listening on {} port {}; images go to {}", c.config.listen_address, c.server->port(),
+                 c.output_dir);
+  util::sd_notify_state("READY=1");
+  // Under systemd: WATCHDOG=1 and STATUS= from this loop until the stop begins.
+  async::start_systemd_notifier(c.ioc->get_executor(), c.clock, *c.stop_begun, [&c] {
+    return systemd_status(c.metrics(), /* workers_seen = */ std::nullopt);  // the worker registry's count, once kept
+  });
+  return {};
+}
+
+util::Status Collector::bind() {
+  Context& c = *context_;
   http::ServerLimits limits = c.config.limits;
   // One body limit for the server: the largest of the routes' (each route checks its own).
   limits.max_body_bytes =
@@ -62,13 +80,6 @@ util::Status Collector::listen() {
     return util::Error(
         fmt::format("cannot listen on {} port {}: {}", c.config.listen_address, c.config.port, ec.message()));
   }
-  util::log_info("collector: listening on {} port {}; images go to {}", c.config.listen_address, c.server->port(),
-                 c.output_dir);
-  util::sd_notify_state("READY=1");
-  // Under systemd: WATCHDOG=1 and STATUS= from this loop until the stop begins.
-  async::start_systemd_notifier(c.ioc->get_executor(), c.clock, *c.stop_begun, [&c] {
-    return systemd_status(c.metrics(), /* workers_seen = */ std::nullopt);  // the worker registry's count, once kept
-  });
   return {};
 }
 
@@ -119,6 +130,16 @@ int run_collector(const CollectorConfig& config) {
     return 1;
   }
   Collector& collector = *created.value();
+  // An existing state directory is locked and opened before the port is taken, so a second
+  // collector on it is refused for that, whatever its port. A new one is created only once the
+  // port is bound, so a port in use leaves no empty state directory behind.
+  std::error_code ec;
+  if (!std::filesystem::exists(config.state_dir, ec)) {
+    if (auto bound = collector.listen(); !bound) {
+      util::log_error("collector: cannot start: {}", bound.error().to_string());
+      return 1;
+    }
+  }
   if (auto opened = collector.open(); !opened) {
     util::log_error("collector: cannot start: {}", opened.error().to_string());
     return 1;

@@ -16,13 +16,17 @@
 // through async::sleep_until on it. Socket deadlines stay in real time (http/server.h).
 //
 // Lifecycle: open() (start-up, blocking, before the loop runs) -> listen() -> run() on one
-// thread until stop(). Start-up opens the database (a bad one stops start-up with a message and
-// is left as it was), increments the start counter ("epoch", kept in <state_dir>/collector.epoch),
-// and restores every unfinished job: its scene and settings from the store, its stored tiles into
-// its framebuffer and into the queue as already done, so they are never leased again. Jobs whose
-// tiles are all stored but whose image was not written get it written. A one-shot job (config.h)
-// is then found by its key and resumed, or stored and enqueued. listen() binds, then tells
-// systemd READY=1.
+// thread until stop(). run_collector binds first (listen() before open()) when the state
+// directory does not exist yet, so a port in use leaves nothing behind; otherwise it locks and
+// opens the directory first, so a second collector on it is refused before it takes a port.
+// Start-up takes an exclusive lock on the state directory (restore.h: one collector per
+// directory; a second one fails to open, naming the directory and the PID holding it), opens the
+// database (a bad one stops start-up with a message and is left as it was), increments the start
+// counter ("epoch", kept in <state_dir>/collector.epoch), and restores every unfinished job: its
+// scene and settings from the store, its stored tiles into its framebuffer and into the queue as
+// already done, so they are never leased again. Jobs whose tiles are all stored but whose image
+// was not written get it written. A one-shot job (config.h) is then found by its key and resumed,
+// or stored and enqueued. listen() binds, then tells systemd READY=1.
 //
 // Durability: a job is stored (scene and row, one transaction) before its 201; a tile is
 // acknowledged "stored" only after its transaction committed; a job is marked done in the store
@@ -33,7 +37,7 @@
 // loop) sends STOPPING=1, stops the server gracefully (no new connections; requests in flight
 // finish within shutdown_grace), waits for image writes in flight within the same grace (both on
 // the clock), drains the TileWriter (everything accepted is committed and answered), closes the
-// database and ends run().
+// database, releases the state directory's lock and ends run().
 //
 // Threading: open(), listen(), run(), handle_sync() and run_until_idle() from one thread, never
 // concurrently; handle() on the loop; stop() and port() from any thread.
@@ -70,7 +74,8 @@ class Collector {
   util::Status open();
 
   // Binds and listens, then sends READY=1. Does nothing when the collector is already stopping
-  // (a one-shot job that was finished before this start).
+  // (a one-shot job that was finished before this start). May be called once before open() too:
+  // it then only binds (requests wait until run()), and the call after open() sends READY=1.
   util::Status listen();
 
   // Runs the loop on the calling thread until the stop sequence has ended. The exit code: 0, or
@@ -99,7 +104,9 @@ class Collector {
 
  private:
   explicit Collector(std::unique_ptr<Context> context);
+  util::Status bind();
   std::unique_ptr<Context> context_;
+  bool ready_ = false;  // READY=1 sent
 };
 
 // The collector role, blocking: open, listen, run until SIGINT or SIGTERM (or the one-shot job is

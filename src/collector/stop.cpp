@@ -51,6 +51,9 @@ async::Awaitable<> stop_sequence(Context& c) {
                    c.finishes_in_flight);
   }
   co_await close_store(c);
+  // Nothing of this collector uses the state directory any more: another may open it now, even
+  // while this object lives on (a test, or a tool that stops one collector and opens the next).
+  c.state_lock.reset();
   util::log_info("collector: stopped; the database is closed");
 }
 

@@ -4,7 +4,7 @@
 // stopped gracefully (no new connections; requests in flight finish within shutdown_grace);
 // image writes in flight waited for within the same grace, on the collector's clock; the store
 // writer drained (everything accepted is committed and answered) and closed; the read connection
-// closed; then the loop stops, so run() returns.
+// closed; the state directory's lock released; then the loop stops, so run() returns.
 //
 // Thread safety: on the loop only (Collector::stop posts there).
 #pragma once

@@ -177,6 +177,7 @@ struct Store::Impl {
   sqlite3* db = nullptr;
   std::string path;
   std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the statements' text
+  int busy_timeout_ms = 0;  // OpenOptions::busy_timeout, restored after a checkpoint
 
   Impl() = default;
   Impl(const Impl&) = delete;
@@ -272,6 +273,7 @@ struct Store::Impl {
   }
 
   Result<CommitResult> insert_tile(const TileWrite& w);
+  Status keep_wal_files();
   Status check_schema();
   Status verify_integrity();
   Status create_schema();
@@ -423,7 +425,8 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
     if (auto st = impl->set_config(op, value, name); !st) return st.error();
   }
   if (auto st = impl->exec_rows("PRAGMA query_only = ON"); !st) return st.error();
-  if (const int brc = sqlite3_busy_timeout(db, static_cast<int>(options.busy_timeout.count())); brc != SQLITE_OK) {
+  impl->busy_timeout_ms = static_cast<int>(options.busy_timeout.count());
+  if (const int brc = sqlite3_busy_timeout(db, impl->busy_timeout_ms); brc != SQLITE_OK) {
     return impl->error("setting the busy timeout", brc);
   }
   if (sqlite3_db_readonly(db, "main") == 1) {
@@ -466,6 +469,7 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   if (auto st = impl->exec_rows(fmt::format("PRAGMA journal_size_limit = {}", kJournalSizeLimitBytes)); !st) {
     return st.error();
   }
+  if (auto st = impl->keep_wal_files(); !st) return st.error();
   if (fresh) {
     if (auto st = impl->create_schema(); !st) return st.error();
     util::log_info("{}: created a new database (schema version {})", path, kSchemaVersion);
@@ -676,6 +680,31 @@ Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
   while ((rc = q.value().step()) == SQLITE_ROW) tiles.push_back(read_tile(q.value().get()));
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("reading the tiles of job {}", job), rc);
   return tiles;
+}
+
+// A clean close would otherwise delete the -wal and -shm files, and the next open would have to
+// create them again: on a full disk, the -shm file's allocation fails and the collector could not
+// start until space frees. Kept, they cost a few kilobytes (the WAL is emptied by checkpoints).
+Status Store::Impl::keep_wal_files() {
+  int persist = 1;
+  const int rc = sqlite3_file_control(db, "main", SQLITE_FCNTL_PERSIST_WAL, &persist);
+  if (rc != SQLITE_OK) return error("keeping the WAL files", rc);
+  return {};
+}
+
+Result<CheckpointResult> Store::checkpoint() {
+  // A zero busy timeout: a reader in the way makes the checkpoint partial, never a wait on the
+  // writer thread (acknowledgements would wait with it).
+  sqlite3_busy_timeout(impl_->db, 0);
+  CheckpointResult result;
+  const int rc = sqlite3_wal_checkpoint_v2(impl_->db, "main", SQLITE_CHECKPOINT_TRUNCATE, &result.wal_frames,
+                                           &result.copied_frames);
+  sqlite3_busy_timeout(impl_->db, impl_->busy_timeout_ms);
+  if (rc == SQLITE_BUSY) return result;
+  if (rc != SQLITE_OK) return impl_->error("checkpointing the WAL", rc);
+  // After a TRUNCATE checkpoint that succeeded, SQLite reports an empty log.
+  result.truncated = result.wal_frames == 0 && result.copied_frames == 0;
+  return result;
 }
 
 }  // namespace dtraced::store

@@ -22,6 +22,11 @@
 // Durability: journal_mode=WAL with synchronous=FULL, so a transaction whose COMMIT returned
 // survives a process kill and (given honest disks) a power loss. foreign_keys=ON.
 //
+// Disk space: the WAL is persistent (SQLITE_FCNTL_PERSIST_WAL: its -wal and -shm files stay when
+// the last connection closes, emptied), so opening the database again needs no new disk space;
+// on a full disk, start-up and reads work, and writes fail with a message until space frees.
+// checkpoint() keeps the WAL short.
+//
 // Opening never replaces, truncates or deletes an existing file. A file that is not an SQLite
 // database, fails PRAGMA quick_check, has another schema version, or lacks tables or columns is
 // refused with a message naming the file and the problem, and is left byte-for-byte as it was
@@ -121,6 +126,14 @@ struct CommitResult {
   std::string error;  // for kRejected and kFailed
 };
 
+// What a checkpoint did: the WAL's frames before it, how many of them are in the database file
+// now, and whether the WAL file was emptied (every frame copied and no reader still using it).
+struct CheckpointResult {
+  int wal_frames = 0;
+  int copied_frames = 0;
+  bool truncated = false;
+};
+
 struct OpenOptions {
   // PRAGMA quick_check and foreign_key_check read the whole file. The first connection of a
   // process runs them; further connections to a file already verified may skip them.
@@ -174,6 +187,15 @@ class Store {
   util::Result<std::uint64_t> count_tiles(std::int64_t job);
   util::Result<std::optional<StoredTile>> get_tile(std::int64_t job, std::uint32_t tile);
   util::Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);  // ascending tile index
+
+  // Copies the WAL into the database file and empties the WAL file (wal_checkpoint(TRUNCATE)),
+  // without waiting for other connections: while a reader still uses an older snapshot, it copies
+  // what it can and reports truncated = false, which is no error. SQLite's own checkpoints (every
+  // 1000 pages, PASSIVE) never shrink the file below journal_size_limit, and none runs while the
+  // collector is idle; TileWriter calls this when idle and every few batches, so the WAL stays a
+  // few batches long instead of growing with the job. An error is an I/O failure (a full disk:
+  // copying into the database may need to grow it), naming the file; nothing is lost by it.
+  util::Result<CheckpointResult> checkpoint();
 
  private:
   struct Impl;

@@ -96,6 +96,15 @@ WriterStats TileWriter::stats() const {
 void TileWriter::run() {
   std::vector<Item> batch;
   for (;;) {
+    bool idle = false;
+    {
+      std::lock_guard lock(mu_);
+      idle = queue_.empty();
+    }
+    if (writes_since_checkpoint_ > 0 &&
+        (idle || writes_since_checkpoint_ >= std::max<std::size_t>(limits_.checkpoint_every_batches, 1))) {
+      checkpoint();
+    }
     {
       std::unique_lock lock(mu_);
       wake_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
@@ -111,6 +120,7 @@ void TileWriter::run() {
     // Submission order is kept: tasks run where they were posted, and each run of tiles between
     // them is one transaction.
     for (std::size_t i = 0; i < batch.size();) {
+      ++writes_since_checkpoint_;
       if (batch[i].task) {
         run_task(batch[i]);
         ++i;
@@ -159,6 +169,25 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
     call_guarded("tile callback", [&] { items[k].done(std::move(r)); });
     items[k].done = nullptr;
   }
+}
+
+void TileWriter::checkpoint() {
+  writes_since_checkpoint_ = 0;
+  auto result = store_.checkpoint();
+  {
+    std::lock_guard lock(mu_);
+    ++stats_.checkpoints;
+    if (!result) {
+      ++stats_.checkpoints_failed;
+    } else if (!result.value().truncated) {
+      ++stats_.checkpoints_partial;
+    }
+  }
+  if (!result && !checkpoint_failing_) {
+    util::log_warn("store writer: {} (retried after the next writes; logged once until one succeeds)",
+                   result.error().message);
+  }
+  checkpoint_failing_ = !result;
 }
 
 void TileWriter::run_task(Item& item) {

@@ -8,6 +8,8 @@
 // after its COMMIT returned are the callbacks of those tiles called. A fsync is paid per batch
 // rather than per tile, so the commit rate grows with the load. If the transaction fails, every
 // tile of the batch gets kFailed and none is acknowledged; the thread goes on with the next batch.
+// The thread also checkpoints the WAL (WriterLimits::checkpoint_every_batches), so the -wal file
+// stays a few batches long and is empty when the writer is idle.
 //
 // Other writes (scenes, jobs, state changes) are posted as tasks: a task runs on the writer thread
 // with the Store, in order with the tiles submitted before and after it, each store call its own
@@ -46,6 +48,11 @@ struct WriterLimits {
   std::size_t max_pending_tiles = 4096;
   std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels + worker names
   std::size_t max_pending_tasks = 1024;
+  // A checkpoint (Store::checkpoint: the WAL copied into the database and emptied) after this
+  // many write transactions and tasks in a row, and whenever the queue runs empty after a write:
+  // the WAL then holds at most this many batches (about max_batch_tiles * this many tiles), and
+  // none once the collector is idle, whatever the number of commits before.
+  std::size_t checkpoint_every_batches = 16;
 };
 
 enum class SubmitStatus {
@@ -64,7 +71,10 @@ struct WriterStats {
   std::uint64_t busy_refusals = 0;
   std::uint64_t tasks_run = 0;
   std::uint64_t largest_batch = 0;
-  double write_seconds = 0;  // total time inside tile transactions (inserts + COMMIT)
+  std::uint64_t checkpoints = 0;          // attempted
+  std::uint64_t checkpoints_partial = 0;  // a reader kept the WAL from being emptied
+  std::uint64_t checkpoints_failed = 0;   // an I/O error (a full disk)
+  double write_seconds = 0;               // total time inside tile transactions (inserts + COMMIT)
   std::size_t pending_tiles = 0;
   std::uint64_t pending_bytes = 0;
   std::size_t pending_tasks = 0;
@@ -104,6 +114,7 @@ class TileWriter {
   void run();
   void write_tiles(std::vector<Item>& items, std::size_t begin, std::size_t end);
   void run_task(Item& item);
+  void checkpoint();
 
   Store store_;  // used by thread_ only
   const WriterLimits limits_;
@@ -114,6 +125,9 @@ class TileWriter {
   std::deque<Item> queue_;
   bool stopping_ = false;
   WriterStats stats_;  // pending_* count queued work plus the batch being written
+
+  std::size_t writes_since_checkpoint_ = 0;  // thread_ only
+  bool checkpoint_failing_ = false;          // thread_ only: log a failure streak once
 
   std::mutex stop_mu_;  // serialises stop() so two callers do not both join
   std::thread thread_;  // declared last: starts after every member above exists

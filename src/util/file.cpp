@@ -1,14 +1,17 @@
 #include "util/file.h"
 
 #include <fcntl.h>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <system_error>
 
 #include <fmt/format.h>
 
@@ -43,6 +46,10 @@ Status write_file_atomic(const std::string& path, std::string_view bytes) {
   if (fd < 0) {
     return Error(fmt::format("cannot create a temporary file: {}", std::strerror(errno)), "", path);
   }
+  // Held until the file is renamed or removed (closing releases it): a clean-up at start-up
+  // leaves a temporary file alone while its writer lives. A clean-up that takes the file between
+  // mkstemp and this flock removes it; the rename then fails and the caller retries.
+  ::flock(fd, LOCK_EX | LOCK_NB);
   auto fail = [&](const char* what) -> Status {
     Error error(fmt::format("{}: {}", what, std::strerror(errno)), "", path);
     ::close(fd);
@@ -78,6 +85,53 @@ Status write_file_atomic(const std::string& path, std::string_view bytes) {
     ::close(dfd);
   }
   return {};
+}
+
+std::string_view temporary_target(std::string_view name) {
+  constexpr std::string_view kInfix = ".tmp.";
+  constexpr std::size_t kRandomChars = 6;  // mkstemp's XXXXXX
+  if (name.size() <= kInfix.size() + kRandomChars) return {};
+  const std::string_view random = name.substr(name.size() - kRandomChars);
+  const bool alnum = std::all_of(random.begin(), random.end(), [](char ch) {
+    return (ch >= 'a' && ch <= 'z') || (ch >= 'A' && ch <= 'Z') || (ch >= '0' && ch <= '9');
+  });
+  const std::string_view head = name.substr(0, name.size() - kRandomChars);
+  if (!alnum || !head.ends_with(kInfix)) return {};
+  return head.substr(0, head.size() - kInfix.size());
+}
+
+TemporaryCleanup remove_stale_temporaries(const std::string& dir,
+                                          const std::function<bool(std::string_view target)>& ours) {
+  TemporaryCleanup cleanup;
+  std::error_code ec;
+  std::filesystem::directory_iterator it(dir, ec);
+  if (ec) {
+    if (ec != std::errc::no_such_file_or_directory) {
+      cleanup.failed.push_back(Error(fmt::format("cannot list the directory: {}", ec.message()), "", dir));
+    }
+    return cleanup;
+  }
+  for (; it != std::filesystem::directory_iterator(); it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    const std::string_view target = temporary_target(name);
+    if (target.empty() || !ours(target)) continue;
+    const std::string path = it->path().string();
+    // O_NOFOLLOW and the fstat: only a regular file of this directory, never what a link points to.
+    const int fd = ::open(path.c_str(), O_RDONLY | O_NOFOLLOW | O_CLOEXEC | O_NONBLOCK);
+    if (fd < 0) continue;  // gone already, or a symbolic link
+    struct stat st {};
+    if (::fstat(fd, &st) == 0 && S_ISREG(st.st_mode) && ::flock(fd, LOCK_EX | LOCK_NB) == 0) {
+      if (::unlink(path.c_str()) == 0) {
+        cleanup.removed.push_back(path);
+        cleanup.removed_bytes += static_cast<std::uint64_t>(st.st_size);
+      } else {
+        cleanup.failed.push_back(Error(fmt::format("cannot remove: {}", std::strerror(errno)), "", path));
+      }
+    }
+    ::close(fd);
+  }
+  if (ec) cleanup.failed.push_back(Error(fmt::format("cannot list the directory: {}", ec.message()), "", dir));
+  return cleanup;
 }
 
 }  // namespace dtraced::util

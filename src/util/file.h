@@ -1,11 +1,14 @@
-// dtraced::util file helpers: bounded reads and atomic writes. Stateless: thread-safe.
+// dtraced::util file helpers: bounded reads, atomic writes and the clean-up of their leftovers.
+// Stateless: thread-safe.
 //
 // Failures come back as util::Error{problem, "", path}: to_string() reads "PATH: problem".
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "util/result.h"
 
@@ -16,7 +19,27 @@ namespace dtraced::util {
 Result<std::string> read_file_limited(const std::string& path, std::uint64_t max_bytes);
 
 // Writes `bytes` to `path` through a temporary file in the same directory, flushed and renamed
-// over the target, so a reader sees the old file or the new one, never a torn one.
+// over the target, so a reader sees the old file or the new one, never a torn one. The temporary
+// file is named PATH.tmp.XXXXXX (mkstemp's six letters or digits) and holds an exclusive flock
+// until it is renamed or removed, so remove_stale_temporaries can tell one whose writer died from
+// one being written. A process killed mid-write leaves its temporary file behind.
 Status write_file_atomic(const std::string& path, std::string_view bytes);
+
+// The target name a temporary file of write_file_atomic stands for ("a.png" for
+// "a.png.tmp.Ab3xY9"), or empty when `name` is not of that exact pattern.
+std::string_view temporary_target(std::string_view name);
+
+struct TemporaryCleanup {
+  std::vector<std::string> removed;  // paths
+  std::uint64_t removed_bytes = 0;
+  std::vector<Error> failed;  // files that matched but could not be removed, each naming its path
+};
+
+// Removes, directly in `dir` (never below it, never through a symbolic link), the temporary files
+// of write_file_atomic whose writer died: regular files whose name is TARGET.tmp.XXXXXX with
+// `ours(TARGET)` true, and whose flock nobody holds (a live writer's file is left alone). A
+// missing `dir` is no error. For start-up, before the files' targets are written again.
+TemporaryCleanup remove_stale_temporaries(const std::string& dir,
+                                          const std::function<bool(std::string_view target)>& ours);
 
 }  // namespace dtraced::util
