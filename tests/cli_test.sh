@@ -190,5 +190,15 @@ check "one tile-size range: 2048 is not" 2 "$DTRACED" render "$SCENES/snowman.js
 check "submit checks the background" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --background 1,-1,0
 check "submit checks the bit depth" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --bit-depth 12
 
+# render prints the warnings validate prints.
+echo '{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45},
+ "scene_objects": [{"type": "sphere", "loc": [0, 0, 0], "radius": 1}], "scene_lights": []}' >"$work/nolights.json"
+check "validate a scene without lights" 0 "$DTRACED" validate "$work/nolights.json"
+grep '^warning:' "$work/err" >"$work/validate-warnings"
+expect_text "validate warns about the missing lights" "$work/validate-warnings" "/scene_lights"
+check "render a scene without lights" 0 "$DTRACED" render "$work/nolights.json" -o "$work/nolights.png" --width 8 --height 8 -q
+grep '^warning:' "$work/err" >"$work/render-warnings"
+check "render prints the same warnings as validate" 0 cmp "$work/validate-warnings" "$work/render-warnings"
+
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]
