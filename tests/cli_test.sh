@@ -190,6 +190,19 @@ check "one tile-size range: 2048 is not" 2 "$DTRACED" render "$SCENES/snowman.js
 check "submit checks the background" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --background 1,-1,0
 check "submit checks the bit depth" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --bit-depth 12
 
+# A token file that cannot be read says it is the token file, with its path and the reason.
+check "collector with a missing token file" 2 "$DTRACED" --role collector --state-dir "$work/s" --token-file "$work/no-token"
+expect_text "the collector names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"
+check "worker with a missing token file" 2 "$DTRACED" --role worker --collector http://127.0.0.1:1 --token-file "$work/no-token"
+expect_text "the worker names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"
+check "client verb with a missing token file" 1 "$DTRACED" list --collector http://127.0.0.1:1 --token-file "$work/no-token"
+expect_text "a client verb names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"
+check "a directory as the token file" 2 "$DTRACED" --role worker --collector http://127.0.0.1:1 --token-file "$work"
+expect_text "a directory is not a token file" "$work/err" "the token file is a directory"
+: >"$work/empty-token"
+check "an empty token file" 1 "$DTRACED" status 1 --collector http://127.0.0.1:1 --token-file "$work/empty-token"
+expect_text "an empty token file says so" "$work/err" "empty-token: the token file is empty"
+
 # render prints the warnings validate prints.
 echo '{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45},
  "scene_objects": [{"type": "sphere", "loc": [0, 0, 0], "radius": 1}], "scene_lights": []}' >"$work/nolights.json"
