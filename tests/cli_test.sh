@@ -190,6 +190,16 @@ check "one tile-size range: 2048 is not" 2 "$DTRACED" render "$SCENES/snowman.js
 check "submit checks the background" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --background 1,-1,0
 check "submit checks the bit depth" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --bit-depth 12
 
+# Did-you-mean: an unknown verb or flag is answered with the nearest one of its command.
+check "a misspelt verb" 2 "$DTRACED" rendr "$SCENES/snowman.json"
+expect_text "a misspelt verb gets the nearest verb" "$work/err" "rendr: did you mean render?"
+check "a misspelt flag of a verb" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --sampels 4
+expect_text "a misspelt flag gets the verb's nearest flag" "$work/err" "--sampels: did you mean --samples?"
+check "a misspelt role flag" 2 "$DTRACED" --role collector --stat-dir "$work/s" --token-file "$work/token"
+expect_text "a misspelt role flag gets the nearest flag" "$work/err" "--stat-dir: did you mean --state-dir?"
+check "the seed's -vpw" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" -vpw 64
+expect_text "the seed's -vpw is mapped to --width" "$work/err" "the seed's -vpw is dtraced's --width"
+
 # A token file that cannot be read says it is the token file, with its path and the reason.
 check "collector with a missing token file" 2 "$DTRACED" --role collector --state-dir "$work/s" --token-file "$work/no-token"
 expect_text "the collector names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"

@@ -15,6 +15,7 @@
 #include "cli/isa_option.h"
 #include "cli/json_config.h"
 #include "cli/roles.h"
+#include "cli/suggest.h"
 #include "cli/verbs.h"
 
 namespace {
@@ -41,6 +42,8 @@ int main(int argc, char** argv) {
   const char* isa_env = std::getenv("DTRACED_ISA");
   app.set_version_flag("--version", version_line(version_string(), isa_env));
   app.require_subcommand(0, 1);
+  // An unknown verb or flag gets the nearest known one.
+  app.failure_message(failure_message_with_suggestions);
 
   RoleArgs role;
   add_role_options(app, role);

@@ -1,0 +1,85 @@
+// The command line's pure pieces, without running a verb or a daemon: did-you-mean for unknown
+// verbs and flags, on the real command line main builds.
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+#include <catch2/catch.hpp>
+
+#include "cli/commands.h"
+#include "cli/roles.h"
+#include "cli/suggest.h"
+
+namespace {
+
+namespace cli = dtraced::cli;
+
+// dtraced's own command line (as main builds it), parsed from `args`; returns the failure message
+// CLI11 would print, with suggestions, or "" when the parse succeeded.
+std::string parse_failure(std::vector<std::string> args) {
+  CLI::App app{"test", "dtraced"};
+  app.require_subcommand(0, 1);
+  app.fallthrough(false);
+  cli::RoleArgs role;
+  cli::add_role_options(app, role);
+  cli::LocalCommands local;
+  cli::add_local_commands(app, local, role.isa);
+  cli::ClientCommands client;
+  cli::add_client_commands(app, client);
+  std::vector<std::string> reversed(args.rbegin(), args.rend());  // CLI11 takes them last first
+  try {
+    app.parse(reversed);
+  } catch (const CLI::ParseError& e) {
+    return cli::failure_message_with_suggestions(&app, e);
+  }
+  return "";
+}
+
+}  // namespace
+
+TEST_CASE("nearest_name picks the closest candidate within two edits") {
+  const std::vector<std::string> verbs = {"render", "validate", "submit", "status"};
+  CHECK(cli::nearest_name("rendr", verbs) == "render");
+  CHECK(cli::nearest_name("stauts", verbs) == "status");
+  CHECK(cli::nearest_name("valdiate", verbs) == "validate");
+  CHECK(cli::nearest_name("frobnicate", verbs).empty());
+  // Two letters are never "near" anything: "xy" is two edits from any two-letter name.
+  CHECK(cli::nearest_name("xy", std::vector<std::string>{"ab"}).empty());
+  CHECK(cli::nearest_name("render", std::vector<std::string>{}).empty());
+}
+
+TEST_CASE("An unknown verb is answered with the nearest verb") {
+  const std::string text = parse_failure({"rendr", "scene.json"});
+  CHECK_THAT(text, Catch::Contains("The following arguments were not expected: "));
+  CHECK_THAT(text, Catch::Contains("rendr: did you mean render?"));
+  // CLI11's own pointer to --help stays last.
+  CHECK_THAT(text, Catch::EndsWith("Run with --help for more information.\n"));
+}
+
+TEST_CASE("An unknown flag of a verb is answered with the nearest flag of that verb") {
+  const std::string text = parse_failure({"render", "scene.json", "-o", "x.png", "--sampels", "4"});
+  CHECK_THAT(text, Catch::Contains("--sampels: did you mean --samples?"));
+  CHECK_THAT(parse_failure({"status", "7", "--jsn"}), Catch::Contains("--jsn: did you mean --json?"));
+  // "--flag=value" is judged by its name.
+  CHECK_THAT(parse_failure({"list", "--colector=http://h:1"}),
+             Catch::Contains("--colector: did you mean --collector?"));
+}
+
+TEST_CASE("An unknown role flag is answered with the nearest role flag") {
+  const std::string text = parse_failure({"--role", "collector", "--stat-dir", "/tmp/s"});
+  CHECK_THAT(text, Catch::Contains("--stat-dir: did you mean --state-dir?"));
+}
+
+TEST_CASE("The seed's render flags are mapped to dtraced's") {
+  const std::string text = parse_failure({"render", "scene.json", "-o", "x.png", "-vpw", "64", "-vph", "48"});
+  CHECK_THAT(text, Catch::Contains("-vpw: did you mean --width? (the seed's -vpw is dtraced's --width)"));
+  CHECK_THAT(text, Catch::Contains("-vph: did you mean --height?"));
+}
+
+TEST_CASE("Nothing is suggested when nothing is near or the error is not an unknown argument") {
+  const std::string text = parse_failure({"frobnicate"});
+  CHECK_THAT(text, Catch::Contains("not expected: frobnicate"));
+  CHECK_THAT(text, !Catch::Contains("did you mean"));
+  CHECK_THAT(parse_failure({"render"}), !Catch::Contains("did you mean"));  // a missing argument
+  CHECK(parse_failure({"validate", "scene.json"}).empty());
+}
