@@ -213,6 +213,21 @@ expect_text "a directory is not a token file" "$work/err" "the token file is a d
 check "an empty token file" 1 "$DTRACED" status 1 --collector http://127.0.0.1:1 --token-file "$work/empty-token"
 expect_text "an empty token file says so" "$work/err" "empty-token: the token file is empty"
 
+# --listen takes host names, resolved at start.
+check "a --listen name that does not resolve" 2 "$DTRACED" --role collector --listen nosuch.invalid:0 --state-dir "$work/s" --token-file "$work/token"
+expect_text "the unresolved name is named" "$work/err" '^--listen: cannot resolve the host name "nosuch.invalid"'
+"$DTRACED" --role collector --listen localhost:0 --state-dir "$work/s-localhost" --token-file "$work/token" 2>"$work/localhost.log" &
+localhost_pid=$!
+for _ in $(seq 1 300); do
+  grep -q "listening on" "$work/localhost.log" && break
+  kill -0 "$localhost_pid" 2>/dev/null || break
+  sleep 0.1
+done
+expect_text "a collector listens on localhost:0" "$work/localhost.log" "listening on 127.0.0.1 port [1-9]"
+kill -TERM "$localhost_pid" 2>/dev/null
+wait "$localhost_pid"
+check "a collector on localhost stops cleanly on SIGTERM" 0 test "$?" = 0
+
 # render prints the warnings validate prints.
 echo '{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45},
  "scene_objects": [{"type": "sphere", "loc": [0, 0, 0], "radius": 1}], "scene_lights": []}' >"$work/nolights.json"

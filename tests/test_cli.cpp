@@ -1,5 +1,5 @@
 // The command line's pure pieces, without running a verb or a daemon: did-you-mean for unknown
-// verbs and flags, on the real command line main builds.
+// verbs and flags, on the real command line main builds; --listen addresses and host names.
 #include <string>
 #include <vector>
 
@@ -7,6 +7,7 @@
 #include <catch2/catch.hpp>
 
 #include "cli/commands.h"
+#include "cli/listen_address.h"
 #include "cli/roles.h"
 #include "cli/suggest.h"
 
@@ -82,4 +83,42 @@ TEST_CASE("Nothing is suggested when nothing is near or the error is not an unkn
   CHECK_THAT(text, !Catch::Contains("did you mean"));
   CHECK_THAT(parse_failure({"render"}), !Catch::Contains("did you mean"));  // a missing argument
   CHECK(parse_failure({"validate", "scene.json"}).empty());
+}
+
+TEST_CASE("The listen address takes IPv4 and bracketed IPv6 addresses as they are") {
+  const auto v4 = cli::parse_listen("127.0.0.1:7878");
+  REQUIRE(v4.ok());
+  CHECK(v4->host == "127.0.0.1");
+  CHECK(v4->port == 7878);
+  const auto v6 = cli::parse_listen("[::1]:0");
+  REQUIRE(v6.ok());
+  CHECK(v6->host == "::1");
+  CHECK(v6->port == 0);
+}
+
+TEST_CASE("The listen address resolves a host name to an address") {
+  const auto local = cli::parse_listen("localhost:0");
+  REQUIRE(local.ok());
+  // The first IPv4 address wins, so that localhost binds where IPv6 is off.
+  CHECK(local->host == "127.0.0.1");
+  CHECK(local->port == 0);
+}
+
+TEST_CASE("A bad listen address gets an error that says what is wrong with it") {
+  const auto no_port = cli::parse_listen("localhost");
+  REQUIRE_FALSE(no_port.ok());
+  CHECK(no_port.error().to_string() == "--listen: expected HOST:PORT, got \"localhost\"");
+  const auto bad_port = cli::parse_listen("127.0.0.1:70000");
+  REQUIRE_FALSE(bad_port.ok());
+  CHECK_THAT(bad_port.error().to_string(), Catch::StartsWith("--listen: bad port \"70000\""));
+  const auto empty_port = cli::parse_listen("127.0.0.1:");
+  REQUIRE_FALSE(empty_port.ok());
+  CHECK_THAT(empty_port.error().message, Catch::Contains("bad port"));
+  const auto unresolved = cli::parse_listen("nosuch.invalid:7878");
+  REQUIRE_FALSE(unresolved.ok());
+  CHECK_THAT(unresolved.error().to_string(),
+             Catch::StartsWith("--listen: cannot resolve the host name \"nosuch.invalid\""));
+  const auto bracketed_name = cli::parse_listen("[localhost]:1");
+  REQUIRE_FALSE(bracketed_name.ok());
+  CHECK_THAT(bracketed_name.error().message, Catch::Contains("is not an IP address"));
 }

@@ -1,6 +1,5 @@
 #include "cli/roles.h"
 
-#include <charconv>
 #include <filesystem>
 #include <optional>
 #include <string>
@@ -14,6 +13,7 @@
 #include <fmt/ranges.h>
 
 #include "cli/client_verbs.h"
+#include "cli/listen_address.h"
 #include "cli/overrides_flags.h"
 #include "collector/config.h"
 #include "collector/service.h"
@@ -29,32 +29,6 @@ namespace {
 constexpr int kExitUsage = 2;
 constexpr const char* kCollectorGroup = "Collector role (--role collector)";
 constexpr const char* kWorkerGroup = "Worker role (--role worker)";
-
-struct ListenAddress {
-  std::string host;
-  std::uint16_t port = 0;
-};
-
-// "HOST:PORT" with an IPv4 address or a bracketed IPv6 address ("[::1]:7878").
-util::Result<ListenAddress> parse_listen(const std::string& text) {
-  const std::size_t colon = text.rfind(':');
-  if (colon == std::string::npos || colon == 0) {
-    return util::Error{fmt::format("expected ADDRESS:PORT, got \"{}\"", text), "--listen"};
-  }
-  ListenAddress out;
-  out.host = text.substr(0, colon);
-  if (out.host.size() >= 2 && out.host.front() == '[' && out.host.back() == ']') {
-    out.host = out.host.substr(1, out.host.size() - 2);
-  }
-  const std::string p = text.substr(colon + 1);
-  unsigned value = 0;
-  const auto [end, ec] = std::from_chars(p.data(), p.data() + p.size(), value);
-  if (ec != std::errc() || end != p.data() + p.size() || value > 65535) {
-    return util::Error{fmt::format("bad port \"{}\" (0-65535)", p), "--listen"};
-  }
-  out.port = static_cast<std::uint16_t>(value);
-  return out;
-}
 
 // The role's bearer token from --token-file, without which the role cannot work (`why`).
 util::Result<std::string> role_token(const RoleArgs& a, std::string_view why) {
@@ -218,7 +192,8 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
       ->check(CLI::IsMember({"collector", "worker"}));
   app.add_option("--token-file", a.token_file, "File holding the farm's bearer token (both roles)");
 
-  app.add_option("--listen", a.listen, "Address and port to listen on (ADDRESS:PORT, [IPv6]:PORT; port 0: any)")
+  app.add_option("--listen", a.listen,
+                 "Address and port to listen on (HOST:PORT, HOST an address or a name; [IPv6]:PORT; port 0: any)")
       ->group(kCollectorGroup)
       ->capture_default_str();
   app.add_option("--state-dir", a.state_dir, "Directory of the durable state (dtraced.db)")->group(kCollectorGroup);
