@@ -200,6 +200,31 @@ expect_text "a misspelt role flag gets the nearest flag" "$work/err" "--stat-dir
 check "the seed's -vpw" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" -vpw 64
 expect_text "the seed's -vpw is mapped to --width" "$work/err" "the seed's -vpw is dtraced's --width"
 
+# A bad value is named by its flag when it came from the command line, by the config file and
+# its key when it came from --config.
+check "collector without a state dir" 2 "$DTRACED" --role collector --token-file "$work/token"
+expect_text "the missing state dir is named by its flag" "$work/err" "^--state-dir: must not be empty"
+check "a bad --listen on the command line" 2 "$DTRACED" --role collector --listen 127.0.0.1:bad --state-dir "$work/s" --token-file "$work/token"
+expect_text "the bad listen address is named by its flag" "$work/err" '^--listen: bad port "bad"'
+check "a bad listen in the config" 2 "$DTRACED" --role collector --config "$work/c3.json" --state-dir "$work/s" --token-file "$work/token"
+expect_text "the bad listen address is named by the config file and key" "$work/err" 'c3.json: /listen: bad port "bad"'
+echo '{"role": "collector", "state_dir": ""}' >"$work/c5.json"
+check "an empty state dir in the config" 2 "$DTRACED" --config "$work/c5.json" --token-file "$work/token"
+expect_text "the empty state dir is named by the config file and key" "$work/err" "c5.json: /state_dir: must not be empty"
+echo '{"role": "collector", "max-connections": 0}' >"$work/c6.json"
+check "an out-of-range number in the config" 2 "$DTRACED" --config "$work/c6.json" --state-dir "$work/s" --token-file "$work/token"
+expect_text "the refused number is named by the config file and key as spelt" "$work/err" "c6.json: /max-connections: Value 0 not in range"
+check "an out-of-range number on the command line" 2 "$DTRACED" --role collector --max-connections 0 --state-dir "$work/s" --token-file "$work/token"
+expect_text "the refused number is named by its flag" "$work/err" "^--max-connections: Value 0 not in range"
+echo '{"role": "worker", "collector": "ftp://example"}' >"$work/w2.json"
+check "a bad collector URL in a worker config" 2 "$DTRACED" --config "$work/w2.json" --token-file "$work/token"
+expect_text "the worker's URL is named by the config file and key" "$work/err" "w2.json: /collector: URL 'ftp://example' must start with http://"
+check "a bad collector URL on the command line" 2 "$DTRACED" --role worker --collector ftp://example --token-file "$work/token"
+expect_text "the worker's URL is named by its flag" "$work/err" "^--collector: URL"
+printf 'has space\n' >"$work/token-space"
+check "a token with a space" 2 "$DTRACED" --role collector --state-dir "$work/s" --token-file "$work/token-space"
+expect_text "the token's problem is named by --token-file" "$work/err" "^--token-file: the token it holds: must be printable ASCII"
+
 # A token file that cannot be read says it is the token file, with its path and the reason.
 check "collector with a missing token file" 2 "$DTRACED" --role collector --state-dir "$work/s" --token-file "$work/no-token"
 expect_text "the collector names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"

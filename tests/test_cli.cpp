@@ -1,15 +1,20 @@
 // The command line's pure pieces, without running a verb or a daemon: did-you-mean for unknown
 // verbs and flags, on the real command line main builds; --listen addresses and host names.
+#include <chrono>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <CLI/CLI.hpp>
 #include <catch2/catch.hpp>
 
 #include "cli/commands.h"
+#include "cli/config_errors.h"
 #include "cli/listen_address.h"
 #include "cli/roles.h"
 #include "cli/suggest.h"
+#include "collector/config.h"
+#include "worker/config.h"
 
 namespace {
 
@@ -121,4 +126,28 @@ TEST_CASE("A bad listen address gets an error that says what is wrong with it") 
   const auto bracketed_name = cli::parse_listen("[localhost]:1");
   REQUIRE_FALSE(bracketed_name.ok());
   CHECK_THAT(bracketed_name.error().message, Catch::Contains("is not an IP address"));
+}
+
+TEST_CASE("Configuration problems of either role are named by a flag dtraced has") {
+  CLI::App app{"test", "dtraced"};
+  cli::RoleArgs role;
+  cli::add_role_options(app, role);
+  dtraced::collector::CollectorConfig c;
+  c.listen_address = "not an address";
+  c.cpu_threads = 0;
+  c.exit_when_done = true;
+  dtraced::util::Errors errors = dtraced::collector::check_collector_config(c);
+  dtraced::worker::WorkerConfig w;
+  w.scene_cache = 0;
+  w.timeouts.connect = std::chrono::milliseconds(0);
+  for (dtraced::util::Error& e : dtraced::worker::validate(w)) errors.push_back(std::move(e));
+  REQUIRE(errors.size() >= 8);
+  for (const dtraced::util::Error& e : errors) {
+    INFO(e.to_string());
+    const std::string flag = cli::flag_of_field(e.path);
+    REQUIRE_FALSE(flag.empty());
+    CHECK(app.get_option_no_throw(flag) != nullptr);
+    // Nothing came from a config file here: the problem is named by the flag.
+    CHECK(cli::locate_role_error(app, e).path == flag);
+  }
 }

@@ -13,6 +13,7 @@
 #include <fmt/ranges.h>
 
 #include "cli/client_verbs.h"
+#include "cli/config_errors.h"
 #include "cli/listen_address.h"
 #include "cli/overrides_flags.h"
 #include "collector/config.h"
@@ -41,10 +42,10 @@ int usage_error(const util::Error& e) {
   return kExitUsage;
 }
 
-int run_collector_role(const RoleArgs& a) {
+int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   collector::CollectorConfig c;
   const util::Result<ListenAddress> listen = parse_listen(a.listen);
-  if (!listen) return usage_error(listen.error());
+  if (!listen) return usage_error(locate_role_error(app, listen.error()));
   c.listen_address = listen->host;
   c.port = listen->port;
   util::Result<std::string> token = role_token(a, "every request but /healthz needs the bearer token");
@@ -92,13 +93,13 @@ int run_collector_role(const RoleArgs& a) {
     return kExitUsage;
   }
   if (const util::Errors errors = collector::check_collector_config(c); !errors.empty()) {
-    fmt::print(stderr, "{}\n", util::to_string(errors));
+    fmt::print(stderr, "{}\n", located_errors_text(app, errors));
     return kExitUsage;
   }
   return collector::run_collector(c);
 }
 
-int run_worker_role(const RoleArgs& a) {
+int run_worker_role(const CLI::App& app, const RoleArgs& a) {
   worker::WorkerConfig w;
   w.collector_url = a.collector;
   util::Result<std::string> token = role_token(a, "the collector answers only with the bearer token");
@@ -116,7 +117,7 @@ int run_worker_role(const RoleArgs& a) {
   if (a.max_unacknowledged) w.max_unacknowledged = *a.max_unacknowledged;
   const auto problems = worker::validate(w);
   if (!problems.empty()) {
-    for (const auto& p : problems) fmt::print(stderr, "{}\n", p.to_string());
+    fmt::print(stderr, "{}\n", located_errors_text(app, problems));
     return kExitUsage;
   }
   return worker::run_worker(w);
@@ -227,7 +228,7 @@ int run_role(const CLI::App& app, const RoleArgs& a) {
       return kExitUsage;
     }
   }
-  return a.role == "collector" ? run_collector_role(a) : run_worker_role(a);
+  return a.role == "collector" ? run_collector_role(app, a) : run_worker_role(app, a);
 }
 
 }  // namespace dtraced::cli
