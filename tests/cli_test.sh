@@ -190,5 +190,78 @@ check "one tile-size range: 2048 is not" 2 "$DTRACED" render "$SCENES/snowman.js
 check "submit checks the background" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --background 1,-1,0
 check "submit checks the bit depth" 2 "$DTRACED" submit "$SCENES/snowman.json" --collector http://127.0.0.1:1 --bit-depth 12
 
+# Did-you-mean: an unknown verb or flag is answered with the nearest one of its command.
+check "a misspelt verb" 2 "$DTRACED" rendr "$SCENES/snowman.json"
+expect_text "a misspelt verb gets the nearest verb" "$work/err" "rendr: did you mean render?"
+check "a misspelt flag of a verb" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --sampels 4
+expect_text "a misspelt flag gets the verb's nearest flag" "$work/err" "--sampels: did you mean --samples?"
+check "a misspelt role flag" 2 "$DTRACED" --role collector --stat-dir "$work/s" --token-file "$work/token"
+expect_text "a misspelt role flag gets the nearest flag" "$work/err" "--stat-dir: did you mean --state-dir?"
+check "the seed's -vpw" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" -vpw 64
+expect_text "the seed's -vpw is mapped to --width" "$work/err" "the seed's -vpw is dtraced's --width"
+
+# A bad value is named by its flag when it came from the command line, by the config file and
+# its key when it came from --config.
+check "collector without a state dir" 2 "$DTRACED" --role collector --token-file "$work/token"
+expect_text "the missing state dir is named by its flag" "$work/err" "^--state-dir: must not be empty"
+check "a bad --listen on the command line" 2 "$DTRACED" --role collector --listen 127.0.0.1:bad --state-dir "$work/s" --token-file "$work/token"
+expect_text "the bad listen address is named by its flag" "$work/err" '^--listen: bad port "bad"'
+check "a bad listen in the config" 2 "$DTRACED" --role collector --config "$work/c3.json" --state-dir "$work/s" --token-file "$work/token"
+expect_text "the bad listen address is named by the config file and key" "$work/err" 'c3.json: /listen: bad port "bad"'
+echo '{"role": "collector", "state_dir": ""}' >"$work/c5.json"
+check "an empty state dir in the config" 2 "$DTRACED" --config "$work/c5.json" --token-file "$work/token"
+expect_text "the empty state dir is named by the config file and key" "$work/err" "c5.json: /state_dir: must not be empty"
+echo '{"role": "collector", "max-connections": 0}' >"$work/c6.json"
+check "an out-of-range number in the config" 2 "$DTRACED" --config "$work/c6.json" --state-dir "$work/s" --token-file "$work/token"
+expect_text "the refused number is named by the config file and key as spelt" "$work/err" "c6.json: /max-connections: Value 0 not in range"
+check "an out-of-range number on the command line" 2 "$DTRACED" --role collector --max-connections 0 --state-dir "$work/s" --token-file "$work/token"
+expect_text "the refused number is named by its flag" "$work/err" "^--max-connections: Value 0 not in range"
+echo '{"role": "worker", "collector": "ftp://example"}' >"$work/w2.json"
+check "a bad collector URL in a worker config" 2 "$DTRACED" --config "$work/w2.json" --token-file "$work/token"
+expect_text "the worker's URL is named by the config file and key" "$work/err" "w2.json: /collector: URL 'ftp://example' must start with http://"
+check "a bad collector URL on the command line" 2 "$DTRACED" --role worker --collector ftp://example --token-file "$work/token"
+expect_text "the worker's URL is named by its flag" "$work/err" "^--collector: URL"
+printf 'has space\n' >"$work/token-space"
+check "a token with a space" 2 "$DTRACED" --role collector --state-dir "$work/s" --token-file "$work/token-space"
+expect_text "the token's problem is named by --token-file" "$work/err" "^--token-file: the token it holds: must be printable ASCII"
+
+# A token file that cannot be read says it is the token file, with its path and the reason.
+check "collector with a missing token file" 2 "$DTRACED" --role collector --state-dir "$work/s" --token-file "$work/no-token"
+expect_text "the collector names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"
+check "worker with a missing token file" 2 "$DTRACED" --role worker --collector http://127.0.0.1:1 --token-file "$work/no-token"
+expect_text "the worker names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"
+check "client verb with a missing token file" 1 "$DTRACED" list --collector http://127.0.0.1:1 --token-file "$work/no-token"
+expect_text "a client verb names the missing token file" "$work/err" "no-token: cannot open the token file: No such file or directory"
+check "a directory as the token file" 2 "$DTRACED" --role worker --collector http://127.0.0.1:1 --token-file "$work"
+expect_text "a directory is not a token file" "$work/err" "the token file is a directory"
+: >"$work/empty-token"
+check "an empty token file" 1 "$DTRACED" status 1 --collector http://127.0.0.1:1 --token-file "$work/empty-token"
+expect_text "an empty token file says so" "$work/err" "empty-token: the token file is empty"
+
+# --listen takes host names, resolved at start.
+check "a --listen name that does not resolve" 2 "$DTRACED" --role collector --listen nosuch.invalid:0 --state-dir "$work/s" --token-file "$work/token"
+expect_text "the unresolved name is named" "$work/err" '^--listen: cannot resolve the host name "nosuch.invalid"'
+"$DTRACED" --role collector --listen localhost:0 --state-dir "$work/s-localhost" --token-file "$work/token" 2>"$work/localhost.log" &
+localhost_pid=$!
+for _ in $(seq 1 300); do
+  grep -q "listening on" "$work/localhost.log" && break
+  kill -0 "$localhost_pid" 2>/dev/null || break
+  sleep 0.1
+done
+expect_text "a collector listens on localhost:0" "$work/localhost.log" "listening on 127.0.0.1 port [1-9]"
+kill -TERM "$localhost_pid" 2>/dev/null
+wait "$localhost_pid"
+check "a collector on localhost stops cleanly on SIGTERM" 0 test "$?" = 0
+
+# render prints the warnings validate prints.
+echo '{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45},
+ "scene_objects": [{"type": "sphere", "loc": [0, 0, 0], "radius": 1}], "scene_lights": []}' >"$work/nolights.json"
+check "validate a scene without lights" 0 "$DTRACED" validate "$work/nolights.json"
+grep '^warning:' "$work/err" >"$work/validate-warnings"
+expect_text "validate warns about the missing lights" "$work/validate-warnings" "/scene_lights"
+check "render a scene without lights" 0 "$DTRACED" render "$work/nolights.json" -o "$work/nolights.png" --width 8 --height 8 -q
+grep '^warning:' "$work/err" >"$work/render-warnings"
+check "render prints the same warnings as validate" 0 cmp "$work/validate-warnings" "$work/render-warnings"
+
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]

@@ -14,6 +14,7 @@
 #include "protocol/messages.h"
 #include "scene/load.h"
 #include "util/file.h"
+#include "util/token_file.h"
 
 namespace dtraced::cli {
 
@@ -21,7 +22,6 @@ namespace {
 
 constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
-constexpr std::size_t kMaxTokenBytes = 4096;
 // An image response can be a 16384^2 PFM.
 constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + (1 << 20);
 
@@ -108,16 +108,9 @@ bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s
 
 }  // namespace
 
-util::Result<std::string> read_token_file(const std::string& path) {
-  util::Result<std::string> text = util::read_file_limited(path, kMaxTokenBytes);
-  if (!text) return text.error();
-  std::string token = text->substr(0, text->find('\n'));
-  while (!token.empty() && (token.back() == '\r' || token.back() == ' ' || token.back() == '\t')) token.pop_back();
-  std::size_t start = token.find_first_not_of(" \t");
-  token = start == std::string::npos ? "" : token.substr(start);
-  if (token.empty()) return util::Error{fmt::format("{}: the token file is empty", path)};
-  return token;
-}
+// One reader for both roles and every client verb (util/token_file.h), whose errors say that it
+// is the token file that could not be used.
+util::Result<std::string> read_token_file(const std::string& path) { return util::read_token_file(path); }
 
 int run_submit(const ClientArgs& client, const SubmitArgs& args) {
   scene::LoadResult loaded = scene::load_scene_file(args.scene);

@@ -42,9 +42,9 @@ std::optional<std::string> scalar_text(jsonio::Reader& r, const json::value& v, 
 
 }  // namespace
 
-util::Result<std::vector<CLI::ConfigItem>, util::Errors> read_config_items(std::string_view text,
-                                                                           const std::string& file_name,
-                                                                           const std::set<std::string>& known) {
+util::Result<std::vector<CLI::ConfigItem>, util::Errors> read_config_items(
+    std::string_view text, const std::string& file_name, const std::set<std::string>& known,
+    std::map<std::string, std::string, std::less<>>* pointers) {
   jsonio::Reader r(file_name, kMaxConfigErrors);
   const std::optional<json::value> doc = r.parse(text, "config file", kMaxConfigBytes, kMaxConfigDepth);
   const jsonio::Path root;
@@ -77,6 +77,7 @@ util::Result<std::vector<CLI::ConfigItem>, util::Errors> read_config_items(std::
     } else if (auto s = scalar_text(r, value, at)) {
       item.inputs.push_back(std::move(*s));
     }
+    if (pointers != nullptr) (*pointers)[item.name] = at.str();
     items.push_back(std::move(item));
   }
   if (r.failed()) return r.take_errors();
@@ -91,11 +92,37 @@ void add_config_option(CLI::App& app, std::string file_name) {
       if (name != "help" && name != "version" && name != "config") known.insert(name);
     }
   }
-  app.config_formatter(std::make_shared<JsonConfig>(std::move(file_name), std::move(known)));
+  app.config_formatter(std::make_shared<JsonConfig>(std::move(file_name), std::move(known), &app));
 }
 
-JsonConfig::JsonConfig(std::string file_name, std::set<std::string> known)
-    : file_name_(std::move(file_name)), known_(std::move(known)) {}
+util::Error option_error(const CLI::App& app, std::string_view flag, std::string message) {
+  const auto config = std::dynamic_pointer_cast<const JsonConfig>(app.get_config_formatter());
+  const std::string pointer = config && flag.starts_with("--") ? config->pointer_of(flag.substr(2)) : "";
+  if (pointer.empty()) return util::Error{std::move(message), std::string(flag)};
+  return util::Error{std::move(message), pointer, config->file_name()};
+}
+
+std::string locate_refused_value(const CLI::App& app, const std::string& message) {
+  // CLI11 words these "--flag: problem" (ValidationError) or "Could not convert: --flag = value".
+  constexpr std::string_view kConvert = "Could not convert: ";
+  const bool conversion = message.starts_with(kConvert);
+  const std::size_t start = conversion ? kConvert.size() : 0;
+  const std::size_t end = message.find(conversion ? " = " : ": ", start);
+  if (end == std::string::npos || message.compare(start, 2, "--") != 0) return message;
+  const std::string flag = message.substr(start, end - start);
+  const util::Error located = option_error(app, flag, "");
+  if (located.file.empty()) return message;
+  const std::string problem = conversion ? "cannot convert " + message.substr(end + 3) : message.substr(end + 2);
+  return fmt::format("{}: {}: {} (for {})", located.file, located.path, problem, flag);
+}
+
+JsonConfig::JsonConfig(std::string file_name, std::set<std::string> known, const CLI::App* app)
+    : file_name_(std::move(file_name)), known_(std::move(known)), app_(app) {}
+
+std::string JsonConfig::pointer_of(std::string_view long_name) const {
+  const auto it = pointers_.find(long_name);
+  return it == pointers_.end() ? "" : it->second;
+}
 
 std::string JsonConfig::to_config(const CLI::App*, bool, bool, std::string) const {
   return {};  // writing configs back is not offered
@@ -112,8 +139,15 @@ std::vector<CLI::ConfigItem> JsonConfig::from_config(std::istream& input) const 
           fmt::format("{}: config file is larger than the limit of {} bytes", file_name_, kMaxConfigBytes));
     }
   }
-  auto items = read_config_items(text, file_name_, known_);
+  std::map<std::string, std::string, std::less<>> pointers;
+  auto items = read_config_items(text, file_name_, known_, &pointers);
   if (!items) throw CLI::ConfigError(util::to_string(items.error()));
+  // CLI11 reads the file after the command line and applies a value only to an option the
+  // command line left empty (flags win): those are the values the file is answerable for.
+  for (auto& [name, pointer] : pointers) {
+    const CLI::Option* opt = app_ != nullptr ? app_->get_option_no_throw("--" + name) : nullptr;
+    if (opt != nullptr && opt->empty()) pointers_[name] = std::move(pointer);
+  }
   return std::move(items).value();
 }
 

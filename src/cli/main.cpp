@@ -2,6 +2,7 @@
 //
 // Exit codes: 0 success; 1 the work failed (invalid scene, unreadable or mismatching image,
 // render or write error); 2 usage error (unknown flag, missing argument, bad value).
+#include <algorithm>
 #include <cstdio>
 #include <cstdlib>
 #include <optional>
@@ -15,6 +16,7 @@
 #include "cli/isa_option.h"
 #include "cli/json_config.h"
 #include "cli/roles.h"
+#include "cli/suggest.h"
 #include "cli/verbs.h"
 
 namespace {
@@ -32,6 +34,14 @@ std::string config_file_argument(int argc, char** argv) {
   return "config";
 }
 
+// CLI11's message for a failed parse, told in the user's terms: a refused value the --config
+// file set is named by its file and key, and an unknown verb or flag gets the nearest known one.
+std::string failure_message(const CLI::App* app, const CLI::Error& e) {
+  const std::string text = dtraced::cli::failure_message_with_suggestions(app, e);
+  const std::size_t eol = std::min(text.find('\n'), text.size());
+  return dtraced::cli::locate_refused_value(*app, text.substr(0, eol)) + text.substr(eol);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -41,6 +51,7 @@ int main(int argc, char** argv) {
   const char* isa_env = std::getenv("DTRACED_ISA");
   app.set_version_flag("--version", version_line(version_string(), isa_env));
   app.require_subcommand(0, 1);
+  app.failure_message(failure_message);
 
   RoleArgs role;
   add_role_options(app, role);

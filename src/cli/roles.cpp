@@ -1,6 +1,5 @@
 #include "cli/roles.h"
 
-#include <charconv>
 #include <filesystem>
 #include <optional>
 #include <string>
@@ -14,6 +13,8 @@
 #include <fmt/ranges.h>
 
 #include "cli/client_verbs.h"
+#include "cli/config_errors.h"
+#include "cli/listen_address.h"
 #include "cli/overrides_flags.h"
 #include "collector/config.h"
 #include "collector/service.h"
@@ -30,32 +31,6 @@ constexpr int kExitUsage = 2;
 constexpr const char* kCollectorGroup = "Collector role (--role collector)";
 constexpr const char* kWorkerGroup = "Worker role (--role worker)";
 
-struct ListenAddress {
-  std::string host;
-  std::uint16_t port = 0;
-};
-
-// "HOST:PORT" with an IPv4 address or a bracketed IPv6 address ("[::1]:7878").
-util::Result<ListenAddress> parse_listen(const std::string& text) {
-  const std::size_t colon = text.rfind(':');
-  if (colon == std::string::npos || colon == 0) {
-    return util::Error{fmt::format("expected ADDRESS:PORT, got \"{}\"", text), "--listen"};
-  }
-  ListenAddress out;
-  out.host = text.substr(0, colon);
-  if (out.host.size() >= 2 && out.host.front() == '[' && out.host.back() == ']') {
-    out.host = out.host.substr(1, out.host.size() - 2);
-  }
-  const std::string p = text.substr(colon + 1);
-  unsigned value = 0;
-  const auto [end, ec] = std::from_chars(p.data(), p.data() + p.size(), value);
-  if (ec != std::errc() || end != p.data() + p.size() || value > 65535) {
-    return util::Error{fmt::format("bad port \"{}\" (0-65535)", p), "--listen"};
-  }
-  out.port = static_cast<std::uint16_t>(value);
-  return out;
-}
-
 // The role's bearer token from --token-file, without which the role cannot work (`why`).
 util::Result<std::string> role_token(const RoleArgs& a, std::string_view why) {
   if (a.token_file.empty()) return util::Error{fmt::format("--token-file is required: {}", why)};
@@ -67,10 +42,10 @@ int usage_error(const util::Error& e) {
   return kExitUsage;
 }
 
-int run_collector_role(const RoleArgs& a) {
+int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   collector::CollectorConfig c;
   const util::Result<ListenAddress> listen = parse_listen(a.listen);
-  if (!listen) return usage_error(listen.error());
+  if (!listen) return usage_error(locate_role_error(app, listen.error()));
   c.listen_address = listen->host;
   c.port = listen->port;
   util::Result<std::string> token = role_token(a, "every request but /healthz needs the bearer token");
@@ -118,13 +93,13 @@ int run_collector_role(const RoleArgs& a) {
     return kExitUsage;
   }
   if (const util::Errors errors = collector::check_collector_config(c); !errors.empty()) {
-    fmt::print(stderr, "{}\n", util::to_string(errors));
+    fmt::print(stderr, "{}\n", located_errors_text(app, errors));
     return kExitUsage;
   }
   return collector::run_collector(c);
 }
 
-int run_worker_role(const RoleArgs& a) {
+int run_worker_role(const CLI::App& app, const RoleArgs& a) {
   worker::WorkerConfig w;
   w.collector_url = a.collector;
   util::Result<std::string> token = role_token(a, "the collector answers only with the bearer token");
@@ -142,7 +117,7 @@ int run_worker_role(const RoleArgs& a) {
   if (a.max_unacknowledged) w.max_unacknowledged = *a.max_unacknowledged;
   const auto problems = worker::validate(w);
   if (!problems.empty()) {
-    for (const auto& p : problems) fmt::print(stderr, "{}\n", p.to_string());
+    fmt::print(stderr, "{}\n", located_errors_text(app, problems));
     return kExitUsage;
   }
   return worker::run_worker(w);
@@ -218,7 +193,8 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
       ->check(CLI::IsMember({"collector", "worker"}));
   app.add_option("--token-file", a.token_file, "File holding the farm's bearer token (both roles)");
 
-  app.add_option("--listen", a.listen, "Address and port to listen on (ADDRESS:PORT, [IPv6]:PORT; port 0: any)")
+  app.add_option("--listen", a.listen,
+                 "Address and port to listen on (HOST:PORT, HOST an address or a name; [IPv6]:PORT; port 0: any)")
       ->group(kCollectorGroup)
       ->capture_default_str();
   app.add_option("--state-dir", a.state_dir, "Directory of the durable state (dtraced.db)")->group(kCollectorGroup);
@@ -252,7 +228,7 @@ int run_role(const CLI::App& app, const RoleArgs& a) {
       return kExitUsage;
     }
   }
-  return a.role == "collector" ? run_collector_role(a) : run_worker_role(a);
+  return a.role == "collector" ? run_collector_role(app, a) : run_worker_role(app, a);
 }
 
 }  // namespace dtraced::cli

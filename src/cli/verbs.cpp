@@ -37,6 +37,12 @@ void print_errors(const scene::LoadResult& r) {
   for (const util::Error& e : r.errors) fmt::print(stderr, "{}\n", e.to_string());
 }
 
+// What a loaded scene has that is legal but likely a mistake (no lights, an empty mesh): the
+// same lines from validate and render, so a render never hides what validate would say.
+void print_warnings(const scene::LoadResult& r) {
+  for (const util::Error& w : r.warnings) fmt::print(stderr, "warning: {}\n", w.to_string());
+}
+
 // A one-line progress bar on stderr, redrawn in place; only used when stderr is a terminal.
 class ProgressBar {
  public:
@@ -80,6 +86,7 @@ int run_render(const RenderArgs& args) {
     print_errors(loaded);
     return kExitFailed;
   }
+  print_warnings(loaded);
   scene::SceneDesc& desc = *loaded.scene;
   desc.render = scene::apply(args.overrides, desc.render);
   const scene::RenderSettings& s = desc.render;
@@ -144,7 +151,7 @@ int run_validate(const std::vector<std::string>& files) {
   for (const std::string& f : files) {
     const scene::LoadResult r = scene::load_scene_file(f);
     if (r.ok()) {
-      for (const util::Error& w : r.warnings) fmt::print(stderr, "warning: {}\n", w.to_string());
+      print_warnings(r);
       // Meshes add their triangle counts; degenerate (zero-area) triangles are legal but never
       // seen, so a count is worth a look.
       std::size_t meshes = 0, triangles = 0, degenerate = 0;

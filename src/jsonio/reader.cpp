@@ -8,6 +8,8 @@
 #include <boost/json/string.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/edit_distance.h"
+
 namespace dtraced::jsonio {
 namespace {
 
@@ -15,6 +17,8 @@ namespace json = boost::json;
 
 // A string longer than this is not quoted back in a message about a name it should have been.
 constexpr std::size_t kMaxQuotedBytes = 64;
+
+}  // namespace
 
 std::size_t edit_distance(std::string_view a, std::string_view b) {
   std::vector<std::size_t> row(b.size() + 1);
@@ -30,6 +34,8 @@ std::size_t edit_distance(std::string_view a, std::string_view b) {
   }
   return row[b.size()];
 }
+
+namespace {
 
 bool contains(std::span<const std::string_view> names, std::string_view name) {
   return std::find(names.begin(), names.end(), name) != names.end();
