@@ -97,9 +97,7 @@ async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {
 
   // Durable first: a cancellation that is answered must survive a crash.
   const std::int64_t when = c.clock.unix_seconds();
-  auto record = [id, when](store::Store& s) {
-    return s.set_job_state(static_cast<std::int64_t>(id), store::kJobCancelled, when);
-  };
+  auto record = [id, when](store::Store& s) { return record_state(s, id, StateWrite::kCancelled, when); };
   auto reply = co_await on_writer(*c.writer, std::move(record));
   if (!reply.ok() || !reply.value->ok()) {
     ++c.counters.store_busy;
@@ -107,6 +105,13 @@ async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {
       util::log_error("collector: job {}: cannot record the cancellation: {}", id, reply.value->error().message);
     }
     co_return respond(busy("the cancellation could not be stored; retry later"));
+  }
+  if (const store::StateChange& change = reply.value->value();
+      !change.changed && change.state != store::kJobCancelled) {
+    // The store's state wins over memory's: only a store that was changed behind our back gets here.
+    util::log_error("collector: job {}: the store has it as {}; the cancellation was not recorded", id, change.state);
+    co_return respond(Refusal{
+        http::Status::conflict, util::Error(fmt::format("job {} is {}; nothing to cancel", id, change.state)), {}});
   }
   JobRecord* job = c.find_job(id);
   // While the store wrote, the last tile may have arrived: then the job finishes after all, and
