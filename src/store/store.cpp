@@ -584,6 +584,16 @@ Result<StateChange> Store::change_job_state(std::int64_t id, std::span<const std
   return StateChange{false, column_text(q.value().get(), 0)};
 }
 
+Status Store::set_job_priority(std::int64_t id, std::int32_t priority) {
+  constexpr std::string_view kSql = "UPDATE jobs SET priority = ?2 WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(id).bind(std::int64_t{priority}).step();
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the priority of job {}", id), rc);
+  if (sqlite3_changes64(impl_->db) != 1) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+  return {};
+}
+
 Result<std::vector<StoredJob>> Store::list_jobs() {
   static const std::string kSql = std::string(kSelectJobs) + "ORDER BY id";
   auto q = impl_->query(kSql);

@@ -174,6 +174,8 @@ class Store {
   // Fails when there is no such job or `to` is unknown.
   util::Result<StateChange> change_job_state(std::int64_t id, std::span<const std::string_view> from,
                                              std::string_view to, std::int64_t finished_unix);
+  // Fails when there is no such job or the priority is out of the int32 range.
+  util::Status set_job_priority(std::int64_t id, std::int32_t priority);
   util::Result<std::vector<StoredJob>> list_jobs();  // ascending id
   util::Result<std::optional<StoredJob>> get_job(std::int64_t id);
   util::Result<std::optional<StoredJob>> find_job_by_key(std::string_view client_key);

@@ -1,4 +1,4 @@
-// POST /v1/jobs, GET /v1/jobs, GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel.
+// POST /v1/jobs, GET /v1/jobs[?state=S&limit=N], GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel.
 #include <algorithm>
 #include <memory>
 #include <string>
@@ -72,13 +72,16 @@ async::Awaitable<http::Response> submit_job(Context& c, http::Request req) {
   co_return enqueue_submitted(c, std::move(row), std::move(scene_json));
 }
 
-http::Response list_jobs(const Context& c) {
+http::Response list_jobs(const Context& c, const Route& route) {
   protocol::JobList list;
   const std::int64_t unix_now = c.clock.unix_seconds();
   const TimePoint now = c.clock.now();
-  // The newest ones when there are more than a list may hold.
-  for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < protocol::kMaxListedJobs; ++it) {
-    list.jobs.push_back(job_status(it->second, unix_now, now));
+  const std::size_t limit = std::min(route.list_limit, protocol::kMaxListedJobs);
+  // The newest ones when there are more than the limit.
+  for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < limit; ++it) {
+    protocol::JobStatus status = job_status(it->second, unix_now, now);
+    if (route.list_state && status.state != *route.list_state) continue;
+    list.jobs.push_back(std::move(status));
   }
   std::reverse(list.jobs.begin(), list.jobs.end());
   return json_answer(http::Status::ok, protocol::encode(list));
