@@ -97,7 +97,8 @@ TEST_CASE("routes map method and target to an endpoint", "[collector][routes]") 
   CHECK(kind(Verb::get, "/metrics").kind == RouteKind::kMetrics);
   CHECK(kind(Verb::post, "/v1/jobs").kind == RouteKind::kSubmitJob);
   CHECK(kind(Verb::get, "/v1/jobs").kind == RouteKind::kListJobs);
-  CHECK(kind(Verb::get, "/v1/jobs/7") == Route{RouteKind::kJobStatus, 7, 0, "", dtraced::image::ImageFormat::kPng});
+  CHECK(kind(Verb::get, "/v1/jobs/7") == Route{RouteKind::kJobStatus, 7, 0, "", dtraced::image::ImageFormat::kPng,
+                                               std::nullopt, dtraced::protocol::kMaxListedJobs});
   CHECK(kind(Verb::get, "/v1/jobs/7/image").image_format == dtraced::image::ImageFormat::kPng);
   CHECK(kind(Verb::get, "/v1/jobs/7/image?format=pfm").image_format == dtraced::image::ImageFormat::kPfm);
   CHECK(kind(Verb::get, "/v1/jobs/7/image?format=ppm").image_format == dtraced::image::ImageFormat::kPpm);

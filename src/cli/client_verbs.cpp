@@ -2,8 +2,11 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cstdint>
 #include <map>
+#include <random>
 #include <thread>
 #include <utility>
 
@@ -15,6 +18,7 @@
 #include "scene/load.h"
 #include "util/file.h"
 #include "util/token_file.h"
+#include "worker/backoff.h"
 
 namespace dtraced::cli {
 
@@ -24,6 +28,11 @@ constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
 // An image response can be a 16384^2 PFM.
 constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + (1 << 20);
+// status --wait against an unreachable collector: the workers' backoff (worker/backoff.h), from
+// half a second doubling to five, never sooner than kMinWaitRetry.
+constexpr std::chrono::milliseconds kWaitRetryInitial{500};
+constexpr std::chrono::milliseconds kWaitRetryMax{5000};
+constexpr std::chrono::milliseconds kMinWaitRetry{100};
 
 // One connection's worth of state for a verb: where, with which token, how patient.
 class Session {
@@ -55,12 +64,16 @@ class Session {
                                            verb == http::Verb::post ? http::kJsonContentType : std::string_view{});
     if (!token_.empty()) req.set(boost::beast::http::field::authorization, "Bearer " + token_);
     http::ClientResult r = http::request_sync(url_, std::move(req), timeouts_, max_body);
+    last_failure_transient_ = false;
     if (!r.ok()) {
+      // No answer: the collector may be restarting.
+      last_failure_transient_ = true;
       fmt::print(stderr, "{}\n", r.message);
       return std::nullopt;
     }
     const unsigned code = r.response.result_int();
     if (code < 200 || code >= 300) {
+      last_failure_transient_ = code == 503;  // starting, stopping or busy
       const auto err = protocol::decode_error_body(r.response.body());
       if (err.ok()) {
         const auto& e = err.value();
@@ -73,7 +86,11 @@ class Session {
     return std::move(r.response);
   }
 
+  // Whether the last failed call() may succeed later: no answer at all, or 503.
+  bool last_failure_transient() const { return last_failure_transient_; }
+
  private:
+  bool last_failure_transient_ = false;
   http::Url url_;
   std::string token_;
   http::ClientTimeouts timeouts_;
@@ -162,14 +179,25 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
   return kExitOk;
 }
 
-int run_list(const ClientArgs& client, bool json) {
+int run_list(const ClientArgs& client, const ListArgs& args) {
+  std::string target = "/v1/jobs";
+  char sep = '?';
+  if (!args.state.empty()) {
+    if (!protocol::job_state_from_string(args.state)) {
+      fmt::print(stderr, "--state: '{}' is not a job state (queued, rendering, done, cancelled)\n", args.state);
+      return kExitFailed;
+    }
+    target += fmt::format("{}state={}", sep, args.state);
+    sep = '&';
+  }
+  if (args.limit > 0) target += fmt::format("{}limit={}", sep, args.limit);
   Session session;
   if (!session.init(client)) return kExitFailed;
-  auto resp = session.call(http::Verb::get, "/v1/jobs");
+  auto resp = session.call(http::Verb::get, target);
   if (!resp) return kExitFailed;
-  auto list = decode_or_report(protocol::decode_job_list(resp->body()), "GET /v1/jobs");
+  auto list = decode_or_report(protocol::decode_job_list(resp->body()), "GET " + target);
   if (!list) return kExitFailed;
-  if (json) {
+  if (args.json) {
     fmt::print("{}\n", protocol::encode(*list));
     return kExitOk;
   }
@@ -184,9 +212,33 @@ int run_status(const ClientArgs& client, const StatusArgs& args) {
   if (!session.init(client)) return kExitFailed;
   const std::string target = fmt::format("/v1/jobs/{}", args.id);
   const bool bar = args.wait && !args.json && ::isatty(STDERR_FILENO);
+  // With --wait, a collector restart is ridden out like the workers do: retries with backoff.
+  const worker::Backoff backoff(kWaitRetryInitial, kWaitRetryMax);
+  std::mt19937_64 rng(std::random_device{}());
+  std::uint32_t failures = 0;
+  std::chrono::steady_clock::time_point outage_start;  // of the current run of failures
+  const std::chrono::milliseconds retry_budget = std::chrono::seconds(args.retry_for_s);
   while (true) {
     auto resp = session.call(http::Verb::get, target);
-    if (!resp) return kExitFailed;
+    if (!resp) {
+      const auto now = std::chrono::steady_clock::now();
+      if (failures == 0) outage_start = now;
+      const auto spent = std::chrono::duration_cast<std::chrono::milliseconds>(now - outage_start);
+      if (!args.wait || !session.last_failure_transient() || spent >= retry_budget) {
+        if (args.wait && failures > 0) {
+          fmt::print(stderr, "giving up on {} after {} of retries (--retry-for-s {})\n", target,
+                     format_seconds(spent.count() / 1000.0), args.retry_for_s);
+        }
+        return kExitFailed;
+      }
+      const auto delay = std::min(std::max(backoff.delay(failures, rng), kMinWaitRetry), retry_budget - spent);
+      fmt::print(stderr, "retrying in {} ({} failed attempt{} in a row)\n", format_seconds(delay.count() / 1000.0),
+                 failures + 1, failures == 0 ? "" : "s");
+      std::this_thread::sleep_for(delay);
+      ++failures;
+      continue;
+    }
+    failures = 0;
     auto st = decode_or_report(protocol::decode_job_status(resp->body()), "GET " + target);
     if (!st) return kExitFailed;
     const bool done = finished(st->state);
@@ -236,6 +288,30 @@ int run_cancel(const ClientArgs& client, std::uint64_t id) {
   auto resp = session.call(http::Verb::post, fmt::format("/v1/jobs/{}/cancel", id));
   if (!resp) return kExitFailed;
   auto st = decode_or_report(protocol::decode_job_status(resp->body()), "cancel");
+  if (!st) return kExitFailed;
+  print_status_line(*st);
+  return kExitOk;
+}
+
+int run_priority(const ClientArgs& client, std::uint64_t id, std::int32_t priority) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  const std::string target = fmt::format("/v1/jobs/{}/priority", id);
+  auto resp = session.call(http::Verb::post, target, protocol::encode(protocol::JobPriority{priority}));
+  if (!resp) return kExitFailed;
+  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
+  if (!st) return kExitFailed;
+  print_status_line(*st);
+  return kExitOk;
+}
+
+int run_requeue(const ClientArgs& client, std::uint64_t id) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  const std::string target = fmt::format("/v1/jobs/{}/requeue", id);
+  auto resp = session.call(http::Verb::post, target);
+  if (!resp) return kExitFailed;
+  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
   if (!st) return kExitFailed;
   print_status_line(*st);
   return kExitOk;

@@ -1,4 +1,4 @@
-// dtraced::cli client verbs: submit, list, status, fetch and cancel, spoken to a collector over
+// dtraced::cli client verbs: submit, list, status, fetch, cancel, priority and requeue, spoken to a collector over
 // its HTTP API (one blocking request at a time on a private io_context). Results go to stdout,
 // diagnostics to stderr; each function returns the process exit code (0 ok, 1 failed).
 #pragma once
@@ -27,19 +27,33 @@ struct SubmitArgs {
 };
 int run_submit(const ClientArgs& client, const SubmitArgs& args);
 
-int run_list(const ClientArgs& client, bool json);
+struct ListArgs {
+  bool json = false;
+  std::string state;        // empty: every state; else queued, rendering, done or cancelled
+  std::uint32_t limit = 0;  // 0: as many as the collector lists; else the newest `limit`
+};
+int run_list(const ClientArgs& client, const ListArgs& args);
 
 struct StatusArgs {
   std::uint64_t id = 0;
   bool json = false;  // print the status as JSON (machine-readable)
   bool wait = false;  // poll until the job is done or cancelled (a progress bar on a terminal)
   std::uint32_t poll_ms = 500;
+  // With --wait: how long an unreachable or restarting collector (no answer, or 503) is retried,
+  // with backoff, before giving up; 0 gives up at the first failure.
+  std::uint32_t retry_for_s = 300;
 };
 int run_status(const ClientArgs& client, const StatusArgs& args);
 
 int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output);
 
 int run_cancel(const ClientArgs& client, std::uint64_t id);
+
+// Sets a job's priority (higher runs first); prints its status.
+int run_priority(const ClientArgs& client, std::uint64_t id, std::int32_t priority);
+
+// Puts a cancelled job back in the queue, keeping its stored tiles; prints its status.
+int run_requeue(const ClientArgs& client, std::uint64_t id);
 
 // Reads a bearer token from a file: the first line, without surrounding whitespace; empty or
 // over 4096 bytes is an error (its message names the file).

@@ -101,13 +101,22 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
   c.submit_cmd = submit;
 
   c.list_cmd = add_client_subcommand(app, c.client, "list", "List the collector's jobs");
-  c.list_cmd->add_flag("--json", c.list_json, "Machine-readable JSON");
+  c.list_cmd->add_flag("--json", c.list.json, "Machine-readable JSON");
+  c.list_cmd->add_option("--state", c.list.state, "Only jobs in this state: queued, rendering, done or cancelled")
+      ->check(CLI::IsMember({"queued", "rendering", "done", "cancelled"}));
+  c.list_cmd->add_option("--limit", c.list.limit, "Only the newest N jobs")
+      ->check(CLI::Range(std::uint32_t{1}, static_cast<std::uint32_t>(protocol::kMaxListedJobs)));
 
   CLI::App* status = add_client_subcommand(app, c.client, "status", "Show one job's progress");
   status->add_option("id", c.status.id, "Job id")->required();
   status->add_flag("--json", c.status.json, "Machine-readable JSON");
   status->add_flag("-w,--wait", c.status.wait, "Wait until the job is done (a progress bar on a terminal)");
   status->add_option("--poll-ms", c.status.poll_ms, "Poll interval with --wait")->check(CLI::Range(50u, 60000u));
+  status
+      ->add_option("--retry-for-s", c.status.retry_for_s,
+                   "With --wait: retry an unreachable or restarting collector this long (with backoff)")
+      ->check(CLI::Range(0u, 86400u))
+      ->capture_default_str();
   c.status_cmd = status;
 
   c.fetch_cmd = add_client_subcommand(app, c.client, "fetch", "Fetch a job's image (partial while it renders)");
@@ -116,14 +125,26 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
 
   c.cancel_cmd = add_client_subcommand(app, c.client, "cancel", "Cancel a job");
   c.cancel_cmd->add_option("id", c.cancel_id, "Job id")->required();
+
+  c.priority_cmd = add_client_subcommand(app, c.client, "priority", "Change a job's priority (higher runs first)");
+  c.priority_cmd->add_option("id", c.priority_id, "Job id")->required();
+  c.priority_cmd->add_option("priority", c.priority_value, "New priority")
+      ->required()
+      ->check(CLI::Range(protocol::kMinPriority, protocol::kMaxPriority));
+
+  c.requeue_cmd = add_client_subcommand(app, c.client, "requeue",
+                                        "Put a cancelled job back in the queue, keeping its stored tiles");
+  c.requeue_cmd->add_option("id", c.requeue_id, "Job id")->required();
 }
 
 std::optional<int> run_client_command(const ClientCommands& c) {
   if (c.submit_cmd->parsed()) return run_submit(c.client, c.submit);
-  if (c.list_cmd->parsed()) return run_list(c.client, c.list_json);
+  if (c.list_cmd->parsed()) return run_list(c.client, c.list);
   if (c.status_cmd->parsed()) return run_status(c.client, c.status);
   if (c.fetch_cmd->parsed()) return run_fetch(c.client, c.fetch_id, c.fetch_output);
   if (c.cancel_cmd->parsed()) return run_cancel(c.client, c.cancel_id);
+  if (c.priority_cmd->parsed()) return run_priority(c.client, c.priority_id, c.priority_value);
+  if (c.requeue_cmd->parsed()) return run_requeue(c.client, c.requeue_id);
   return std::nullopt;
 }
 

@@ -58,7 +58,7 @@ struct ClientCommands {
 
   ClientArgs client;
   SubmitArgs submit;
-  bool list_json = false;
+  ListArgs list;
   StatusArgs status;
   std::uint64_t fetch_id = 0;
   std::string fetch_output;
@@ -68,9 +68,14 @@ struct ClientCommands {
   CLI::App* status_cmd = nullptr;
   CLI::App* fetch_cmd = nullptr;
   CLI::App* cancel_cmd = nullptr;
+  std::uint64_t priority_id = 0;
+  std::int32_t priority_value = 0;
+  std::uint64_t requeue_id = 0;
+  CLI::App* priority_cmd = nullptr;
+  CLI::App* requeue_cmd = nullptr;
 };
 
-// Adds submit, list, status, fetch and cancel to `app`.
+// Adds submit, list, status, fetch, cancel, priority and requeue to `app`.
 void add_client_commands(CLI::App& app, ClientCommands& c);
 // Runs the client verb that was parsed; nullopt when none was.
 std::optional<int> run_client_command(const ClientCommands& c);

@@ -10,6 +10,7 @@
 //   handlers/lease.cpp           POST /v1/lease
 //   handlers/scenes_images.cpp   GET /v1/scenes/{digest}, GET /v1/jobs/{id}/image
 //   handlers/status.cpp          GET /healthz, GET /metrics
+//   handlers/manage.cpp          POST /v1/jobs/{id}/priority, POST /v1/jobs/{id}/requeue
 //
 // Thread safety: on the loop only; each may suspend (co_await) while the pool or the store works,
 // and looks its job up again afterwards.
@@ -28,7 +29,8 @@
 namespace dtraced::collector {
 
 async::Awaitable<http::Response> submit_job(Context& c, http::Request req);
-http::Response list_jobs(const Context& c);
+// GET /v1/jobs?state=S&limit=N: the newest `route.list_limit` jobs in `route.list_state`, oldest first.
+http::Response list_jobs(const Context& c, const Route& route);
 http::Response get_job(const Context& c, JobId id);
 async::Awaitable<http::Response> cancel_job(Context& c, JobId id);
 
@@ -38,6 +40,10 @@ http::Response lease_tile(Context& c, std::string_view body);
 
 async::Awaitable<http::Response> get_scene(Context& c, std::string digest);
 async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format);
+
+// handlers/manage.cpp
+async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Request req);
+async::Awaitable<http::Response> requeue_job(Context& c, JobId id);
 
 http::Response get_health();
 http::Response get_metrics(const Context& c);

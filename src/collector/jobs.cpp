@@ -141,4 +141,32 @@ std::string one_shot_client_key(std::string_view digest, const protocol::JobSett
   return util::sha256_hex(text);
 }
 
+util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec) {
+  auto tiles = s.get_all_tiles(static_cast<std::int64_t>(rec.id));
+  if (!tiles) return std::move(tiles).error();
+  std::vector<TileIndex> stored;
+  rec.restored.assign(rec.tiles_total, false);
+  const scene::TileGrid grid(rec.settings, rec.tile_size);
+  for (store::StoredTile& t : tiles.value()) {
+    if (t.tile >= rec.tiles_total) {
+      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
+                                     rec.tiles_total));
+    }
+    const scene::TileRect rect = grid.rect(t.tile);
+    const std::size_t pixels = std::size_t{rect.width} * rect.height;
+    auto stored_tile = blob_to_tile(t.pixels, pixels);
+    if (!stored_tile) {
+      return util::Error(fmt::format(
+          "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample counts)",
+          s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16));
+    }
+    copy_tile(writable_framebuffer(rec), rect, stored_tile->rgb);
+    count_samples(rec, stored_tile->spp);
+    t.pixels = {};  // free as we go: the framebuffer holds them now
+    stored.push_back(t.tile);
+    rec.restored[t.tile] = true;
+  }
+  return stored;
+}
+
 }  // namespace dtraced::collector

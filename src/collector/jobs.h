@@ -120,6 +120,12 @@ bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, st
 // the event loop only.
 image::ImageRGBf& writable_framebuffer(JobRecord& job);
 
+// Reads the job's stored tiles from `s` into `rec`: its framebuffer (black where no tile is
+// stored), its sample tally and its `restored` flags; returns their indices, ascending. Fails,
+// naming the database, on a tile out of range or a blob of the wrong size. Runs wherever `s` may be
+// used (start-up; the store writer's thread for a requeue) on a record no other thread touches.
+util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec);
+
 // The status a client sees. `now_unix` for the elapsed time, `now` for the rate of this process.
 protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, TimePoint now);
 

@@ -76,15 +76,16 @@ async::Awaitable<> finish_job(Context& c, JobId id) {
   ++c.counters.images_written;
   const std::int64_t when = c.clock.unix_seconds();
   if (c.writer) {
-    auto mark_done = [id, when](store::Store& s) {
-      return s.set_job_state(static_cast<std::int64_t>(id), store::kJobDone, when);
-    };
+    auto mark_done = [id, when](store::Store& s) { return record_state(s, id, StateWrite::kDone, when); };
     auto reply = co_await on_writer(*c.writer, std::move(mark_done));
     if (!reply.ok() || !reply.value->ok()) {
       util::log_warn(
           "collector: job {}: the image is written but the store did not record it as done ({}); a "
           "restart writes it again",
           id, reply.value ? reply.value->error().message : std::string("store unavailable"));
+    } else if (!reply.value->value().changed) {
+      util::log_warn("collector: job {}: the image is written but the store has the job as {}", id,
+                     reply.value->value().state);
     }
   }
   job = c.find_job(id);
@@ -101,6 +102,43 @@ async::Awaitable<> finish_job(Context& c, JobId id) {
 
 }  // namespace
 
+std::string_view target_state(StateWrite write) {
+  switch (write) {
+    case StateWrite::kRendering:
+      return store::kJobRendering;
+    case StateWrite::kCancelled:
+      return store::kJobCancelled;
+    case StateWrite::kDone:
+      return store::kJobDone;
+    case StateWrite::kRequeued:
+      return store::kJobQueued;
+  }
+  return store::kJobQueued;
+}
+
+std::span<const std::string_view> source_states(StateWrite write) {
+  static constexpr std::string_view kFromQueued[] = {store::kJobQueued};
+  static constexpr std::string_view kFromUnfinished[] = {store::kJobQueued, store::kJobRendering};
+  static constexpr std::string_view kFromUnfinishedOrCancelled[] = {store::kJobQueued, store::kJobRendering,
+                                                                    store::kJobCancelled};
+  static constexpr std::string_view kFromCancelled[] = {store::kJobCancelled};
+  switch (write) {
+    case StateWrite::kRendering:
+      return kFromQueued;
+    case StateWrite::kCancelled:
+      return kFromUnfinished;
+    case StateWrite::kDone:
+      return kFromUnfinishedOrCancelled;
+    case StateWrite::kRequeued:
+      return kFromCancelled;
+  }
+  return {};
+}
+
+util::Result<store::StateChange> record_state(store::Store& s, JobId id, StateWrite write, std::int64_t when) {
+  return s.change_job_state(static_cast<std::int64_t>(id), source_states(write), target_state(write), when);
+}
+
 void persist_rendering(Context& c, JobRecord& job) {
   if (job.rendering_persisted || !c.writer) return;
   // Informational (a restart derives the state from the stored tiles), so not awaited; but the
@@ -109,8 +147,9 @@ void persist_rendering(Context& c, JobRecord& job) {
   const auto id = static_cast<std::int64_t>(job.id);
   auto pending = std::make_shared<net::executor_work_guard<net::io_context::executor_type>>(c.ioc->get_executor());
   const store::SubmitStatus status = c.writer->post([id, pending](store::Store& s) {
-    if (util::Status st = s.set_job_state(id, store::kJobRendering, 0); !st) {
-      util::log_warn("collector: job {}: cannot record the rendering state: {}", id, st.error().message);
+    // A cancellation committed first stays: the compare-and-set leaves any state but "queued".
+    if (auto changed = record_state(s, static_cast<JobId>(id), StateWrite::kRendering, 0); !changed) {
+      util::log_warn("collector: job {}: cannot record the rendering state: {}", id, changed.error().message);
     }
   });
   job.rendering_persisted = status == store::SubmitStatus::kAccepted;

@@ -153,6 +153,17 @@ bool WorkQueue::cancel(JobId id) {
   return true;
 }
 
+bool WorkQueue::set_priority(JobId id, std::int32_t priority) {
+  auto it = jobs_.find(id);
+  if (it == jobs_.end()) return false;
+  Job& job = it->second;
+  // Re-keyed only if it was in the order: a cancelled or finished job is not.
+  const bool active = active_.erase(order_key(id, job)) == 1;
+  job.priority = priority;
+  if (active) active_.insert(order_key(id, job));
+  return true;
+}
+
 bool WorkQueue::remove_job(JobId id) {
   const auto it = jobs_.find(id);
   if (it == jobs_.end()) return false;

@@ -153,6 +153,9 @@ class WorkQueue {
   // unknown, already cancelled or done.
   bool cancel(JobId job);
 
+  // Changes a job's priority; an active job moves to its new place in the order at once. False
+  // when the job is unknown.
+  bool set_priority(JobId job, std::int32_t priority);
   // Forgets the job entirely (done and written, or cancelled). False when unknown.
   bool remove_job(JobId job);
 

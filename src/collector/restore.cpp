@@ -103,31 +103,9 @@ util::Status restore_active(Context& c, store::Store& s, const store::StoredJob&
   if (!scene_json.value()) {
     return util::Error(fmt::format("{}: job {}: its scene {} is missing", s.path(), rec.id, row.digest));
   }
-  auto tiles = s.get_all_tiles(row.id);
-  if (!tiles) return std::move(tiles).error();
-
-  std::vector<TileIndex> stored;
-  rec.restored.assign(rec.tiles_total, false);
-  const scene::TileGrid grid(rec.settings, rec.tile_size);
-  for (store::StoredTile& t : tiles.value()) {
-    if (t.tile >= rec.tiles_total) {
-      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
-                                     rec.tiles_total));
-    }
-    const scene::TileRect rect = grid.rect(t.tile);
-    const std::size_t pixels = std::size_t{rect.width} * rect.height;
-    auto stored_tile = blob_to_tile(t.pixels, pixels);
-    if (!stored_tile) {
-      return util::Error(fmt::format(
-          "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample counts)",
-          s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16));
-    }
-    copy_tile(writable_framebuffer(rec), rect, stored_tile->rgb);
-    count_samples(rec, stored_tile->spp);
-    t.pixels = {};  // free as we go: the framebuffer holds them now
-    stored.push_back(t.tile);
-    rec.restored[t.tile] = true;
-  }
+  auto loaded = load_stored_tiles(s, rec);
+  if (!loaded) return std::move(loaded).error();
+  const std::vector<TileIndex>& stored = loaded.value();
   if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total, stored)) {
     return util::Error(fmt::format("{}: job {}: cannot be queued (duplicate tiles?)", s.path(), rec.id));
   }

@@ -40,7 +40,7 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
     case RouteKind::kSubmitJob:
       co_return co_await submit_job(c, std::move(req));
     case RouteKind::kListJobs:
-      co_return list_jobs(c);
+      co_return list_jobs(c, route);
     case RouteKind::kJobStatus:
       co_return get_job(c, route.job);
     case RouteKind::kJobImage:
@@ -53,6 +53,10 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
       co_return co_await get_scene(c, std::move(route.digest));
     case RouteKind::kPutTile:
       co_return co_await put_tile(c, std::move(route), std::move(req));
+    case RouteKind::kJobPriority:
+      co_return co_await set_job_priority(c, route.job, std::move(req));
+    case RouteKind::kRequeueJob:
+      co_return co_await requeue_job(c, route.job);
   }
   co_return http::make_error(http::Status::internal_server_error, "unhandled route");
 }

@@ -2,6 +2,7 @@
 
 #include <charconv>
 #include <optional>
+#include <utility>
 #include <vector>
 
 #include <boost/beast/core/string.hpp>
@@ -55,18 +56,26 @@ std::optional<std::vector<std::string_view>> split_path(std::string_view path) {
   return segments;
 }
 
-// Only the image route takes a query: format=NAME (image::format_from_name), once.
-util::Result<image::ImageFormat, Refusal> parse_image_query(std::string_view query) {
-  image::ImageFormat format = image::ImageFormat::kPng;
-  bool seen = false;
+// "a=1&b=2" as (key, value) pairs in order; empty items skipped, a missing '=' an empty value.
+// Bounded by the request line, which the header limit bounds.
+std::vector<std::pair<std::string_view, std::string_view>> query_items(std::string_view query) {
+  std::vector<std::pair<std::string_view, std::string_view>> items;
   while (!query.empty()) {
     const std::size_t amp = query.find('&');
     const std::string_view item = query.substr(0, amp);
     query = amp == std::string_view::npos ? std::string_view() : query.substr(amp + 1);
     if (item.empty()) continue;
     const std::size_t eq = item.find('=');
-    const std::string_view key = item.substr(0, eq);
-    const std::string_view value = eq == std::string_view::npos ? std::string_view() : item.substr(eq + 1);
+    items.emplace_back(item.substr(0, eq), eq == std::string_view::npos ? std::string_view() : item.substr(eq + 1));
+  }
+  return items;
+}
+
+// Only the image route takes a query: format=NAME (image::format_from_name), once.
+util::Result<image::ImageFormat, Refusal> parse_image_query(std::string_view query) {
+  image::ImageFormat format = image::ImageFormat::kPng;
+  bool seen = false;
+  for (const auto& [key, value] : query_items(query)) {
     if (key != "format") return bad_request(fmt::format("unknown query parameter '{}'", key.substr(0, 64)), "/format");
     if (seen) return bad_request("format given twice", "/format");
     seen = true;
@@ -75,6 +84,34 @@ util::Result<image::ImageFormat, Refusal> parse_image_query(std::string_view que
     format = *named;
   }
   return format;
+}
+
+// GET /v1/jobs: state=NAME (protocol::job_state_from_string) and limit=N, each at most once.
+util::Status parse_list_query(std::string_view query, Route& route) {
+  bool seen_state = false;
+  bool seen_limit = false;
+  for (const auto& [key, value] : query_items(query)) {
+    if (key == "state") {
+      if (seen_state) return util::Error("state given twice", "/state");
+      seen_state = true;
+      route.list_state = protocol::job_state_from_string(value);
+      if (!route.list_state) return util::Error("state must be queued, rendering, done or cancelled", "/state");
+    } else if (key == "limit") {
+      if (seen_limit) return util::Error("limit given twice", "/limit");
+      seen_limit = true;
+      const auto limit = parse_decimal(value, protocol::kMaxListedJobs);
+      if (!limit || *limit == 0) {
+        return util::Error(fmt::format("limit must be a whole number from 1 to {}", protocol::kMaxListedJobs),
+                           "/limit");
+      }
+      route.list_limit = static_cast<std::size_t>(*limit);
+    } else {
+      return util::Error(
+          fmt::format("unknown query parameter '{}' (this endpoint takes state and limit)", key.substr(0, 64)),
+          fmt::format("/{}", key.substr(0, 64)));
+    }
+  }
+  return {};
 }
 
 }  // namespace
@@ -136,6 +173,12 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
     } else if (is({"v1", "jobs", "", "cancel"})) {
       route.kind = RouteKind::kCancelJob;
       allow = "POST";
+    } else if (is({"v1", "jobs", "", "priority"})) {
+      route.kind = RouteKind::kJobPriority;
+      allow = "POST";
+    } else if (is({"v1", "jobs", "", "requeue"})) {
+      route.kind = RouteKind::kRequeueJob;
+      allow = "POST";
     } else if (is({"v1", "jobs", "", "tiles", ""})) {
       const auto tile = parse_decimal(seg[4], protocol::kMaxTilesPerJob - 1);
       if (!tile) return not_found();
@@ -158,6 +201,10 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
     auto format = parse_image_query(query);
     if (!format) return std::move(format).error();
     route.image_format = format.value();
+  } else if (route.kind == RouteKind::kListJobs) {
+    if (util::Status parsed = parse_list_query(query, route); !parsed) {
+      return bad_request(parsed.error().message, parsed.error().path);
+    }
   } else if (!query.empty() && route.kind != RouteKind::kHealthz) {
     return bad_request("this endpoint takes no query parameters");
   }

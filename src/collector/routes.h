@@ -10,6 +10,8 @@
 //   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|ppm|pfm]
 //   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
 //   POST /v1/lease                     GET /v1/scenes/{digest}
+//   POST /v1/jobs/{id}/priority        POST /v1/jobs/{id}/requeue
+//   GET /v1/jobs takes ?state=S&limit=N (each at most once)
 //
 // Targets must be in origin form ("/path?query"). Ids are decimal without sign or leading zeros
 // in [1, protocol::kMaxId]; tile indices decimal in [0, protocol::kMaxTilesPerJob); digests are
@@ -24,6 +26,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -50,6 +53,8 @@ enum class RouteKind {
   kLease,
   kScene,
   kPutTile,
+  kJobPriority,  // POST /v1/jobs/{id}/priority
+  kRequeueJob,   // POST /v1/jobs/{id}/requeue
 };
 
 struct Route {
@@ -58,6 +63,8 @@ struct Route {
   TileIndex tile = 0;                                          // kPutTile
   std::string digest;                                          // kScene
   image::ImageFormat image_format = image::ImageFormat::kPng;  // kJobImage
+  std::optional<protocol::JobState> list_state;                // kListJobs: ?state=S
+  std::size_t list_limit = protocol::kMaxListedJobs;           // kListJobs: ?limit=N, [1, kMaxListedJobs]
   bool operator==(const Route&) const = default;
 };
 

@@ -32,6 +32,7 @@ constexpr std::array<std::string_view, 13> kJobStatusKeys = {
     "id",         "state",       "output",    "priority", "width",  "height",  "samples",
     "tiles_done", "tiles_total", "elapsed_s", "eta_s",    "digest", "mean_spp"};
 constexpr std::array<std::string_view, 1> kJobListKeys = {"jobs"};
+constexpr std::array<std::string_view, 1> kJobPriorityKeys = {"priority"};
 
 // The scene of a submission: loaded from the embedded object, with paths under "/scene".
 void read_submitted_scene(Fields& f, scene::SceneDesc& out) {
@@ -224,6 +225,16 @@ Decoded<JobList> decode_job_list(std::string_view text) {
       if (r.error_count() == before) m.jobs.push_back(std::move(s));
     }
   });
+}
+
+// ---- JobPriority ---------------------------------------------------------------------------
+
+std::string encode(const JobPriority& m) { return json::serialize(json::object{{"priority", m.priority}}); }
+
+Decoded<JobPriority> decode_job_priority(std::string_view text) {
+  return decode_object<JobPriority>(
+      text, kMaxMessageBytes, kMaxMessageDepth, kJobPriorityKeys,
+      [](Fields& f, JobPriority& m) { f.integer("priority", m.priority, kMinPriority, kMaxPriority); });
 }
 
 }  // namespace dtraced::protocol

@@ -150,6 +150,16 @@ struct JobList {
 std::string encode(const JobList& m);
 Decoded<JobList> decode_job_list(std::string_view body);
 
+// ---- POST /v1/jobs/{id}/priority ---------------------------------------------------------------
+
+// {"priority": N}: the job's new priority, in [kMinPriority, kMaxPriority].
+struct JobPriority {
+  std::int32_t priority = 0;
+  bool operator==(const JobPriority&) const = default;
+};
+std::string encode(const JobPriority& m);
+Decoded<JobPriority> decode_job_priority(std::string_view body);
+
 // ---- POST /v1/lease ------------------------------------------------------------------------
 
 struct LeaseRequest {

@@ -561,6 +561,43 @@ Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_
   return {};
 }
 
+Result<StateChange> Store::change_job_state(std::int64_t id, std::span<const std::string_view> from,
+                                            std::string_view to, std::int64_t finished_unix) {
+  if (from.empty() || from.size() > kMaxStateChangeSources) {
+    return Error{fmt::format("{}: changing the state of job {}: {} source states (1 to {})", impl_->path, id,
+                             from.size(), kMaxStateChangeSources)};
+  }
+  {
+    // Fixed text (the statement cache is keyed by it): unused slots repeat the first state.
+    constexpr std::string_view kSql =
+        "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1 AND state IN (?4, ?5, ?6, ?7)";
+    auto q = impl_->query(kSql);
+    if (!q) return q.error();
+    q.value().bind(id).bind(to).bind(finished_unix);
+    for (std::size_t i = 0; i < kMaxStateChangeSources; ++i) q.value().bind(from[i < from.size() ? i : 0]);
+    const int rc = q.value().step();
+    if (rc != SQLITE_DONE) return impl_->error(fmt::format("changing the state of job {}", id), rc);
+    if (sqlite3_changes64(impl_->db) == 1) return StateChange{true, std::string(to)};
+  }
+  constexpr std::string_view kSql = "SELECT state FROM jobs WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(id).step();
+  if (rc == SQLITE_DONE) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+  if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading the state of job {}", id), rc);
+  return StateChange{false, column_text(q.value().get(), 0)};
+}
+
+Status Store::set_job_priority(std::int64_t id, std::int32_t priority) {
+  constexpr std::string_view kSql = "UPDATE jobs SET priority = ?2 WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(id).bind(std::int64_t{priority}).step();
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the priority of job {}", id), rc);
+  if (sqlite3_changes64(impl_->db) != 1) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+  return {};
+}
+
 Result<std::vector<StoredJob>> Store::list_jobs() {
   static const std::string kSql = std::string(kSelectJobs) + "ORDER BY id";
   auto q = impl_->query(kSql);

@@ -134,6 +134,13 @@ struct CheckpointResult {
   bool truncated = false;
 };
 
+// What change_job_state did: changed, or left the job in `state` (not one of `from`).
+struct StateChange {
+  bool changed = false;
+  std::string state;  // the stored state after the call
+};
+inline constexpr std::size_t kMaxStateChangeSources = 4;
+
 struct OpenOptions {
   // PRAGMA quick_check and foreign_key_check read the whole file. The first connection of a
   // process runs them; further connections to a file already verified may skip them.
@@ -171,8 +178,17 @@ class Store {
   // Inserts a job (job.id is ignored) and returns its id. Fails when the scene is missing, the
   // client_key is taken, the state is unknown or tile_size is 0.
   util::Result<std::int64_t> insert_job(const StoredJob& job);
-  // Fails when there is no such job or the state is unknown.
+  // Fails when there is no such job or the state is unknown. Unconditional: the collector moves
+  // jobs with change_job_state, which cannot undo a state that was answered.
   util::Status set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix);
+  // Compare-and-set: moves job `id` to `to` (with `finished_unix`) only if its stored state is one
+  // of `from` (1 to kMaxStateChangeSources states), in one UPDATE. A write that lost a race (a
+  // "rendering" posted before a cancellation committed, run after it) thus changes nothing.
+  // Fails when there is no such job or `to` is unknown.
+  util::Result<StateChange> change_job_state(std::int64_t id, std::span<const std::string_view> from,
+                                             std::string_view to, std::int64_t finished_unix);
+  // Fails when there is no such job or the priority is out of the int32 range.
+  util::Status set_job_priority(std::int64_t id, std::int32_t priority);
   util::Result<std::vector<StoredJob>> list_jobs();  // ascending id
   util::Result<std::optional<StoredJob>> get_job(std::int64_t id);
   util::Result<std::optional<StoredJob>> find_job_by_key(std::string_view client_key);

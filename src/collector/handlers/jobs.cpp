@@ -1,4 +1,4 @@
-// POST /v1/jobs, GET /v1/jobs, GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel.
+// POST /v1/jobs, GET /v1/jobs[?state=S&limit=N], GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel.
 #include <algorithm>
 #include <memory>
 #include <string>
@@ -72,13 +72,16 @@ async::Awaitable<http::Response> submit_job(Context& c, http::Request req) {
   co_return enqueue_submitted(c, std::move(row), std::move(scene_json));
 }
 
-http::Response list_jobs(const Context& c) {
+http::Response list_jobs(const Context& c, const Route& route) {
   protocol::JobList list;
   const std::int64_t unix_now = c.clock.unix_seconds();
   const TimePoint now = c.clock.now();
-  // The newest ones when there are more than a list may hold.
-  for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < protocol::kMaxListedJobs; ++it) {
-    list.jobs.push_back(job_status(it->second, unix_now, now));
+  const std::size_t limit = std::min(route.list_limit, protocol::kMaxListedJobs);
+  // The newest ones when there are more than the limit.
+  for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < limit; ++it) {
+    protocol::JobStatus status = job_status(it->second, unix_now, now);
+    if (route.list_state && status.state != *route.list_state) continue;
+    list.jobs.push_back(std::move(status));
   }
   std::reverse(list.jobs.begin(), list.jobs.end());
   return json_answer(http::Status::ok, protocol::encode(list));
@@ -97,9 +100,7 @@ async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {
 
   // Durable first: a cancellation that is answered must survive a crash.
   const std::int64_t when = c.clock.unix_seconds();
-  auto record = [id, when](store::Store& s) {
-    return s.set_job_state(static_cast<std::int64_t>(id), store::kJobCancelled, when);
-  };
+  auto record = [id, when](store::Store& s) { return record_state(s, id, StateWrite::kCancelled, when); };
   auto reply = co_await on_writer(*c.writer, std::move(record));
   if (!reply.ok() || !reply.value->ok()) {
     ++c.counters.store_busy;
@@ -107,6 +108,13 @@ async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {
       util::log_error("collector: job {}: cannot record the cancellation: {}", id, reply.value->error().message);
     }
     co_return respond(busy("the cancellation could not be stored; retry later"));
+  }
+  if (const store::StateChange& change = reply.value->value();
+      !change.changed && change.state != store::kJobCancelled) {
+    // The store's state wins over memory's: only a store that was changed behind our back gets here.
+    util::log_error("collector: job {}: the store has it as {}; the cancellation was not recorded", id, change.state);
+    co_return respond(Refusal{
+        http::Status::conflict, util::Error(fmt::format("job {} is {}; nothing to cancel", id, change.state)), {}});
   }
   JobRecord* job = c.find_job(id);
   // While the store wrote, the last tile may have arrived: then the job finishes after all, and
