@@ -37,6 +37,34 @@ constexpr double kParallelTolerance = 1e-6;
 // A normal this close to unit length is kept as written (see unit_length).
 constexpr double kUnitTolerance = 1e-12;
 
+// The limits of description.h, derived from what shading computes in float (render/).
+//
+// Sizes: the renderer holds every size as a float, so a radius or an ior must round to a normal
+// float (1e-46 rounds to 0: the sphere vanishes, or an ior of 0 divides by zero).
+//
+// ior: a refraction uses eta = ior_after / ior_before, both scene iors (or 1, outside), and
+// computes eta^2, 1 / eta and eta * cos (render/shading.h, dielectric_interface). With every ior
+// in [2^-31, 2^31], eta lies in [2^-62, 2^62] and eta^2 in [2^-124, 2^124]: a normal float, never
+// 0 or +Inf (an Inf eta^2 made the Fresnel term Inf / Inf = NaN).
+//
+// Sphere and disk light radius: light sampling squares the radius in float (r^2 of a sphere's
+// cone, pi r^2 the disk's area), so r in [2^-63, 2^63] keeps r^2 in [2^-126, 2^126] (and
+// pi r^2 < 2^128): normal and finite.
+//
+// Radiance and albedo: a path's radiance is, at each bounce, the direct light (each light's term
+// clamped to render::kMaxLightTerm = 2^100, at most kMaxLights < 2^14 lights: < 2^114) plus at
+// most (reflectivity + transparency) <= 1 (+1e-9) times colour times what the next bounce returns;
+// a path ends in the background, an area light's emission, or after max_depth <= 64 bounces. With
+// material colour <= 1 (kMaxAlbedo) nothing is amplified, so a sample is at most
+// (64 + 1) * max(2^114, emission, background) * (1 + 1e-9)^64 < 2^7 * max(2^114, E): with
+// light colour * intensity and background <= 2^120 (kMaxRadiance), < 2^127 < FLT_MAX. A colour
+// above 1 is no such bound: between two mirrors it multiplies radiance by colour^max_depth (a
+// colour of 3.4e38 overflows in one bounce), and an emission near FLT_MAX overflows as soon as
+// two terms are summed.
+
+// Whether d becomes a normal float (not 0, not subnormal, not infinite) once rounded to float.
+bool normal_as_float(double d) { return std::fpclassify(static_cast<float>(d)) == FP_NORMAL; }
+
 using Keys = std::span<const std::string_view>;
 constexpr std::array<std::string_view, 7> kMaterialKeys = {"color",        "diffuse",      "specular", "shininess",
                                                            "reflectivity", "transparency", "ior"};
@@ -131,7 +159,43 @@ class ObjectReader {
   auto positive_float() {
     return [this](const json::value& v, const Path& at) -> std::optional<double> {
       const auto d = read_float(r_, v, at);
-      return d && r_.positive(*d, at) ? d : std::nullopt;
+      if (!d || !r_.positive(*d, at)) return std::nullopt;
+      if (!normal_as_float(*d)) {
+        r_.error(at, fmt::format("{} is too small for the renderer's float arithmetic: it must round to a normal "
+                                 "float (at least {:g})",
+                                 *d, double(FLT_MIN)));
+        return std::nullopt;
+      }
+      return d;
+    };
+  }
+  // A positive size in [lo, hi], with why in the message.
+  auto size_in(double lo, double hi, std::string_view why) {
+    return [this, lo, hi, why](const json::value& v, const Path& at) -> std::optional<double> {
+      const auto d = read_float(r_, v, at);
+      if (!d || !r_.positive(*d, at)) return std::nullopt;
+      if (!(*d >= lo && *d <= hi)) {
+        r_.error(at, fmt::format("must be in [{:g}, {:g}] ({}) (got {})", lo, hi, why, *d));
+        return std::nullopt;
+      }
+      return d;
+    };
+  }
+  // A material colour: every channel in [0, kMaxAlbedo].
+  auto albedo() {
+    return [this](const json::value& v, const Path& at) -> std::optional<Color> {
+      const auto c = read_color(r_, v, at);
+      if (!c) return std::nullopt;
+      bool ok = true;
+      for (std::size_t i = 0; i < 3; ++i) {
+        if ((*c)[i] > kMaxAlbedo) {
+          r_.error(at.index(i), fmt::format("must be at most {} (a surface reflects no more light than it receives; "
+                                            "above 1, light between mirrors grows without bound) (got {})",
+                                            kMaxAlbedo, (*c)[i]));
+          ok = false;
+        }
+      }
+      return ok ? c : std::nullopt;
     };
   }
   auto unit_vector() {
@@ -159,13 +223,14 @@ class ObjectReader {
     if (o == nullptr) return;
     jsonio::Fields f(r_, *o, at, kMaterialKeys, kKeyAliases);
     const std::size_t errors_before = r_.error_count();
-    f.read("color", m.color, Need::kOptional, color());
+    f.read("color", m.color, Need::kOptional, albedo());
     f.read("diffuse", m.diffuse, Need::kOptional, float_in(0, 1));
     f.read("specular", m.specular, Need::kOptional, float_in(0, 1));
     f.read("shininess", m.shininess, Need::kOptional, float_in(0, kMaxShininess));
     f.read("reflectivity", m.reflectivity, Need::kOptional, float_in(0, 1));
     f.read("transparency", m.transparency, Need::kOptional, float_in(0, 1));
-    f.read("ior", m.ior, Need::kOptional, positive_float());
+    f.read("ior", m.ior, Need::kOptional,
+           size_in(kMinIor, kMaxIor, "2^-31 to 2^31: refraction squares ratios of iors"));
     if (r_.error_count() == errors_before && m.reflectivity + m.transparency > 1 + kEnergySlack) {
       r_.error(at,
                fmt::format("reflectivity + transparency must be <= 1 (got {} + {})", m.reflectivity, m.transparency));
@@ -173,9 +238,18 @@ class ObjectReader {
   }
 
   void read_sphere(jsonio::Fields& f, Sphere& sphere) {
+    const std::size_t errors_before = r_.error_count();
     check_keys(f.object(), f.at(), kSphereKeys);
     f.read("loc", sphere.center, Need::kRequired, vec3());
     f.read("radius", sphere.radius, Need::kRequired, positive_float());
+    // The renderer skips a sphere whose bounds are not finite floats: say so rather than lose it.
+    if (r_.error_count() != errors_before) return;
+    for (std::size_t i = 0; i < 3; ++i) {
+      if (!std::isfinite(static_cast<float>(std::abs(sphere.center[i]) + sphere.radius))) {
+        r_.error(f.path("radius"), "sphere extends beyond the float range");
+        return;
+      }
+    }
   }
 
   // A box is written either as centre and full edge lengths ("loc", "size"; the friendly form)
@@ -411,11 +485,21 @@ class ObjectReader {
       f.boolean("cast_shadows", light.cast_shadows, Need::kOptional);
     }
     if (light.type == LightType::kSphere || light.type == LightType::kDisk) {
-      f.read("radius", light.radius, Need::kRequired, positive_float());
+      f.read("radius", light.radius, Need::kRequired,
+             size_in(kMinLightRadius, kMaxLightRadius, "2^-63 to 2^63: light sampling squares it"));
     }
     if (light.type == LightType::kDisk) f.read("normal", light.normal, Need::kRequired, unit_vector());
     if (light.type == LightType::kRect) read_rect_light(f, light);
     if (r_.error_count() != errors_before) return std::nullopt;
+    for (std::size_t i = 0; i < 3; ++i) {
+      if (light.color[i] * light.intensity > kMaxRadiance) {
+        r_.error(f.has("intensity") ? f.path("intensity") : f.path("color"),
+                 fmt::format("color x intensity must be at most 2^120 ({:g}) per channel, or shading overflows "
+                             "(got {} in channel {})",
+                             kMaxRadiance, light.color[i] * light.intensity, i));
+        return std::nullopt;
+      }
+    }
     return light;
   }
 
