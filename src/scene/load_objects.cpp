@@ -354,11 +354,12 @@ class ObjectReader {
     }
     if (r_.error_count() != errors_before) return;
 
-    // Messages about a file's content name the file, so "line 7" can be found.
-    const std::string prefix = mesh->file.empty() ? std::string() : mesh->file + ": ";
+    // Messages about a file's content name the file, so "line 7" can be found. Both the name and
+    // the messages (which quote the OBJ text) come from the scene: escaped for display.
+    const std::string prefix = mesh->file.empty() ? std::string() : jsonio::printable(mesh->file) + ": ";
     const auto built = build_obj_mesh(*mesh, s_.options.max_triangles - s_.triangles);
     if (!built) {
-      for (const util::Error& e : built.error()) r_.error(source_at, prefix + e.message);
+      for (const util::Error& e : built.error()) r_.error(source_at, prefix + jsonio::printable(e.message));
       return;
     }
     s_.triangles += mesh->triangle_count();
@@ -368,9 +369,9 @@ class ObjectReader {
 
   bool read_mesh_file(Mesh& mesh, const Path& at) {
     if (!s_.options.allow_mesh_files) {
-      r_.error(at, fmt::format("mesh file \"{}\" not accepted here: a scene sent to a collector or worker must carry "
+      r_.error(at, fmt::format("mesh file {} not accepted here: a scene sent to a collector or worker must carry "
                                "its meshes inline as \"obj\" (dtraced submit inlines them)",
-                               mesh.file));
+                               jsonio::quoted(mesh.file)));
       return false;
     }
     if (mesh.file.empty()) {
@@ -383,13 +384,13 @@ class ObjectReader {
         relative.is_absolute() || base.empty() ? relative : std::filesystem::path(base) / relative;
     util::Result<std::string> text = util::read_file_limited(path.string(), s_.options.max_obj_bytes);
     if (!text) {
-      r_.error(at, text.error().to_string());
+      r_.error(at, jsonio::printable(text.error().to_string()));  // it names the file
       return false;
     }
     // The canonical form carries the text inside a JSON string, which must be UTF-8.
     if (const std::size_t line = first_invalid_utf8_line(*text); line != 0) {
       r_.error(at, fmt::format("{}: line {}: not valid UTF-8 (an OBJ is inlined into the scene as JSON text)",
-                               mesh.file, line));
+                               jsonio::printable(mesh.file), line));
       return false;
     }
     mesh.obj = std::move(*text);
