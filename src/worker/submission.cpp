@@ -52,7 +52,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
       case SubmitVerdict::kAcknowledged:
         tiles_submitted.add();
         if (const std::uint32_t ended = lease_gate.accepted(); ended > 0) {
-          util::log_info("the collector {} takes tiles again after {} refused", url.to_string(), ended);
+          util::log_info("the collector {} takes tiles again after {} refused in a row", url.to_string(), ended);
         }
         co_return;
       case SubmitVerdict::kJobGone:
@@ -73,7 +73,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
         if (const auto held_back = log_limiter.admit(fmt::format("refused {}", tile.job), clock.now())) {
           util::log_error(
               "the collector refused tile {} of job {} ({}): dropping it; sending it again cannot help, so this is a "
-              "bug in the worker or the collector; {} refused in a row, leasing with backoff{}",
+              "bug in the worker or the collector; {} tiles refused in a row, leasing with backoff{}",
               tile.tile, tile.job, answer.message, in_a_row, held_back_suffix(*held_back));
         }
         co_return;
