@@ -20,6 +20,7 @@
 #include "jsonio/parse.h"
 #include "jsonio/path.h"
 #include "jsonio/reader.h"
+#include "jsonio/utf8.h"
 
 namespace {
 
@@ -396,4 +397,19 @@ TEST_CASE("printable escapes C0, DEL, C1, separators and bidi controls, keeps ot
   // Long text is cut at a character boundary, never inside one.
   CHECK(jsonio::quoted("ééé", 5) == "\"éé...\"");
   CHECK(jsonio::quoted(std::string(300, 'x')).size() == 200 + 5);
+}
+
+TEST_CASE("utf8_at decodes RFC 3629 sequences and refuses overlong, surrogate, too large and cut ones",
+          "[jsonio][escape]") {
+  using jsonio::utf8_at;
+  CHECK(utf8_at("a", 0).length == 1);
+  CHECK(utf8_at("\xc3\xa9", 0).length == 2);
+  CHECK(utf8_at("\xc3\xa9", 0).code_point == U'\u00e9');
+  CHECK(utf8_at("\xe6\x9d\xb1", 0).code_point == U'\u6771');
+  CHECK(utf8_at("\xf4\x8f\xbf\xbf", 0).code_point == U'\U0010ffff');
+  for (const std::string_view bad : {"\xc0\x80", "\xc1\xbf", "\xe0\x80\x80", "\xed\xa0\x80", "\xf4\x90\x80\x80",
+                                     "\xf5\x80\x80\x80", "\x80", "\xe6\x9d", "\xc3"}) {
+    INFO(jsonio::printable(bad));
+    CHECK(utf8_at(bad, 0).length == 0);
+  }
 }

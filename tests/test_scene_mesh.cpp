@@ -247,6 +247,11 @@ TEST_CASE("a scene's keys, file names and OBJ text are escaped in its errors", "
                   R"(/scene_objects/0/x\ndtraced: info: all good\u001b[2J: unknown key "x\ndtraced)");
   check_printable(load_scene_string(with_object(R"({"type": "mesh", "obj": "v 0 0 0\nv 1\u001b[31m 0 0\n"})"), kFile),
                   R"("1\u001b[31m")");
+  // An OBJ file that is not UTF-8 is refused at its line (it would not fit in the canonical JSON).
+  const TempDir dir;
+  dir.write("latin1.obj", "v 0 0 0\nv 1 0 0\n# caf\xe9\nv 0 1 0\nf 1 2 3\n");
+  check_printable(load_scene_file(dir.write("scene.json", with_object(R"({"type": "mesh", "file": "latin1.obj"})"))),
+                  "latin1.obj: line 3: not valid UTF-8");
   LoadOptions no_files;
   no_files.allow_mesh_files = false;
   check_printable(load_scene_string(with_object(R"({"type": "mesh", "file": "a\r\nb.obj"})"), kFile, no_files),

@@ -17,6 +17,8 @@
 #include <boost/json/value_stack.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/utf8.h"
+
 namespace dtraced::jsonio {
 namespace {
 
@@ -207,26 +209,7 @@ std::string describe_parse_error(const json::error_code& ec, std::size_t max_dep
 
 }  // namespace
 
-std::string pointer_escape(std::string_view token) {
-  std::string out;
-  out.reserve(token.size());
-  for (const char c : token) {
-    if (c == '~') {
-      out += "~0";
-    } else if (c == '/') {
-      out += "~1";
-    } else {
-      out += c;
-    }
-  }
-  return out;
-}
-
-namespace {
-
-// The length of the UTF-8 sequence at text[i] (RFC 3629: no overlong forms, no surrogates,
-// nothing above U+10FFFF) and its code point, or length 0 if there is none.
-std::pair<std::size_t, char32_t> utf8_at(std::string_view text, std::size_t i) {
+Utf8Sequence utf8_at(std::string_view text, std::size_t i) {
   const auto c = static_cast<unsigned char>(text[i]);
   if (c < 0x80) return {1, c};
   std::size_t n = 0;
@@ -246,16 +229,33 @@ std::pair<std::size_t, char32_t> utf8_at(std::string_view text, std::size_t i) {
     if (c == 0xF0) lo = 0x90;
     if (c == 0xF4) hi = 0x8F;
   } else {
-    return {0, 0};
+    return {};
   }
-  if (i + n >= text.size()) return {0, 0};
+  if (i + n >= text.size()) return {};
   for (std::size_t k = 1; k <= n; ++k) {
     const auto b = static_cast<unsigned char>(text[i + k]);
-    if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return {0, 0};
+    if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return {};
     cp = (cp << 6) | (b & 0x3F);
   }
   return {n + 1, cp};
 }
+
+std::string pointer_escape(std::string_view token) {
+  std::string out;
+  out.reserve(token.size());
+  for (const char c : token) {
+    if (c == '~') {
+      out += "~0";
+    } else if (c == '/') {
+      out += "~1";
+    } else {
+      out += c;
+    }
+  }
+  return out;
+}
+
+namespace {
 
 // Whether code point `cp` is shown as an escape (see printable() in the header).
 bool must_escape(char32_t cp) {
@@ -303,7 +303,7 @@ std::string quoted(std::string_view text, std::size_t max_bytes) {
   if (keep > max_bytes) {
     keep = 0;
     while (keep < text.size()) {
-      const std::size_t n = std::max<std::size_t>(1, utf8_at(text, keep).first);
+      const std::size_t n = std::max<std::size_t>(1, utf8_at(text, keep).length);
       if (keep + n > max_bytes) break;
       keep += n;
     }

@@ -13,6 +13,7 @@
 #include <boost/json/string.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/utf8.h"
 #include "math/vec.h"
 #include "scene/obj_mesh.h"
 #include "scene/scene_json.h"
@@ -105,33 +106,10 @@ std::optional<Vec3d> unit_length(const Vec3d& v) {
 std::size_t first_invalid_utf8_line(std::string_view text) {
   std::size_t line = 1;
   for (std::size_t i = 0; i < text.size();) {
-    const auto c = static_cast<unsigned char>(text[i]);
-    if (c < 0x80) {
-      line += c == '\n';
-      ++i;
-      continue;
-    }
-    std::size_t n = 0;
-    unsigned lo = 0x80, hi = 0xBF;  // allowed range of the second byte
-    if (c >= 0xC2 && c <= 0xDF) {
-      n = 1;
-    } else if (c >= 0xE0 && c <= 0xEF) {
-      n = 2;
-      if (c == 0xE0) lo = 0xA0;
-      if (c == 0xED) hi = 0x9F;
-    } else if (c >= 0xF0 && c <= 0xF4) {
-      n = 3;
-      if (c == 0xF0) lo = 0x90;
-      if (c == 0xF4) hi = 0x8F;
-    } else {
-      return line;
-    }
-    if (i + n >= text.size()) return line;  // truncated sequence
-    for (std::size_t k = 1; k <= n; ++k) {
-      const auto b = static_cast<unsigned char>(text[i + k]);
-      if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return line;
-    }
-    i += n + 1;
+    const std::size_t n = jsonio::utf8_at(text, i).length;
+    if (n == 0) return line;
+    line += text[i] == '\n';
+    i += n;
   }
   return 0;
 }
