@@ -1,7 +1,7 @@
 // A fake collector for whole-worker tests: an http::Server on 127.0.0.1 (an ephemeral port, or a
 // chosen one) that serves one job of a small scene and fails in chosen ways (absent, 500s, a 503
-// scene, 503 submissions, a gone job, a bad token, a tampered scene, requests left unanswered),
-// and counts what the worker sent.
+// scene, 503 submissions, refused submissions, a gone job, a bad token, a tampered scene, requests
+// left unanswered), and counts what the worker sent (and when, on a clock the test gives it).
 //
 // Thread safety: the server runs the handler on its own thread; FakeCollector's state is guarded
 // by a mutex, so the test thread may read counts and change rules at any time.
@@ -42,6 +42,7 @@
 #include "protocol/tile_payload.h"
 #include "scene/digest.h"
 #include "scene/tiling.h"
+#include "util/clock.h"
 #include "worker_testing.h"
 
 namespace dtraced::testing {
@@ -64,6 +65,8 @@ struct FakeRules {
   std::set<std::uint32_t> fail_first_submit = {};  // these tiles' first submission: 503
   bool submits_unavailable = false;                // every submission: 503
   bool job_gone = false;                           // submissions: 410; after the first, no more leases
+  bool lease_after_gone = false;                   // with job_gone: the job is leased all the same
+  unsigned refuse_submits = 0;                     // every submission: this 4xx status (0: none)
   bool hang_leases = false;                        // lease requests get no answer until the server stops
   bool hang_submits = false;                       // submissions get no answer until the server stops
   // A tile leased but not stored is offered again after this many "retry after" answers (the
@@ -83,6 +86,7 @@ struct FakeCounts {
   std::vector<std::uint64_t> submit_requests;  // per tile
   std::vector<std::uint64_t> stored;           // per tile: how often "stored" was answered
   std::vector<std::string> problems;           // anything the worker sent that it should not have
+  std::vector<util::TimePoint> request_times;  // of every request, on the clock of stamp_with()
 };
 
 // One job (kJob) of the tiny scene (or of `desc`), failing as `rules` say (set_rules changes them
@@ -114,6 +118,12 @@ class FakeCollector {
       }
       co_return handle(req);
     };
+  }
+
+  // From now on every request is stamped with `clock`'s time (which outlives this fake's server).
+  void stamp_with(const util::Clock& clock) {
+    std::lock_guard lock(mu_);
+    clock_ = &clock;
   }
 
   void set_rules(const std::function<void(FakeRules&)>& change) {
@@ -158,6 +168,7 @@ class FakeCollector {
  private:
   http::Response handle(const http::Request& req) {
     std::lock_guard lock(mu_);
+    if (clock_ != nullptr) counts_.request_times.push_back(clock_->now());
     const std::string expected = fmt::format("Bearer {}", kToken);
     if (rules_.reject_token || req[boost::beast::http::field::authorization] != expected) {
       ++counts_.unauthorized;
@@ -205,7 +216,7 @@ class FakeCollector {
       return http::make_error(http::Status::internal_server_error, "failing on purpose");
     }
     std::optional<std::uint32_t> tile;
-    if (!(rules_.job_gone && counts_.gone_answers > 0)) {
+    if (!(rules_.job_gone && counts_.gone_answers > 0 && !rules_.lease_after_gone)) {
       for (std::uint32_t t = 0; t < rects_.size() && !tile; ++t) {
         if (!leased_[t]) tile = t;
       }
@@ -254,6 +265,9 @@ class FakeCollector {
       ++counts_.gone_answers;
       return json(http::Status::gone, protocol::encode(protocol::SubmitResult::kJobGone));
     }
+    if (rules_.refuse_submits != 0) {
+      return http::make_error(static_cast<http::Status>(rules_.refuse_submits), "refused on purpose");
+    }
     if (rules_.submits_unavailable || (first && rules_.fail_first_submit.contains(t))) {
       return http::make_error(http::Status::service_unavailable, "failing on purpose");
     }
@@ -285,6 +299,7 @@ class FakeCollector {
   const std::vector<scene::TileRect> rects_;
 
   mutable std::mutex mu_;
+  const util::Clock* clock_ = nullptr;
   FakeRules rules_;
   FakeCounts counts_;
   std::vector<bool> leased_;

@@ -20,6 +20,7 @@
 #include "jsonio/parse.h"
 #include "jsonio/path.h"
 #include "jsonio/reader.h"
+#include "jsonio/utf8.h"
 
 namespace {
 
@@ -328,4 +329,87 @@ TEST_CASE("fields: required and optional keys, values kept when absent or wrong"
   CHECK(on);
   CHECK(only_error(r) == "c.json: /job/on: required key is missing");
   CHECK(f.path("name").str() == "/job/name");
+}
+
+// ---- what a message echoes of a document --------------------------------------------------------
+
+TEST_CASE("control characters in keys and strings are escaped in every message and pointer", "[jsonio][escape]") {
+  // A scene whose key carries a newline and a forged log line, and an ANSI escape (clear screen).
+  const std::string forged = "ra\ndtraced: info: job 7 done\x1b[2J";
+  const std::string escaped = "ra\\ndtraced: info: job 7 done\\u001b[2J";
+  const auto no_raw_controls = [](const std::string& s) {
+    INFO(s);
+    for (const char c : s) CHECK(static_cast<unsigned char>(c) >= 0x20);
+    CHECK(s.find('\x7f') == std::string::npos);
+  };
+
+  SECTION("an unknown key, at its pointer and in its message") {
+    Reader r("s.json");
+    const json::value v = parse_ok(R"({"ra\ndtraced: info: job 7 done\u001b[2J": 1})");
+    const Path root;
+    r.check_keys(v.as_object(), root.key("sphere"), kKnown);
+    const std::string e = only_error(r);
+    no_raw_controls(e);
+    CHECK(e ==
+          "s.json: /sphere/" + escaped + ": unknown key \"" + escaped + "\"; known keys: radius, color, loc, material");
+  }
+  SECTION("a duplicate key, from the parser") {
+    const jsonio::Document doc = jsonio::parse_strict(R"({"a\tb\r": 1, "a\tb\r": 2})", 16, 10);
+    REQUIRE(doc.errors.size() == 1);
+    CHECK(doc.errors[0].to_string() == "/a\\tb\\r: duplicate key \"a\\tb\\r\"");
+  }
+  SECTION("a syntax error under such a key") {
+    const jsonio::Document doc = jsonio::parse_strict("{\"a\\u0007\": [1, }", 16, 10);
+    REQUIRE(doc.errors.size() == 1);
+    no_raw_controls(doc.errors[0].to_string());
+    CHECK(doc.errors[0].path == "/a\\u0007/1");
+  }
+  SECTION("a string value that is not one of the names") {
+    Reader r;
+    constexpr std::array<std::string_view, 1> kTypes = {"sphere"};
+    const Path root;
+    CHECK_FALSE(r.choice(json::value(forged), root.key("type"), kTypes, "type", "types"));
+    CHECK(only_error(r) == "/type: unknown type \"" + escaped + "\"; known types: sphere");
+  }
+  SECTION("a path built by hand") {
+    const Path root;
+    CHECK(root.key(forged).str() == "/" + escaped);
+  }
+}
+
+TEST_CASE("printable escapes C0, DEL, C1, separators and bidi controls, keeps other text, marks bad bytes",
+          "[jsonio][escape]") {
+  using jsonio::printable;
+  CHECK(printable("plain text, café, 東京") == "plain text, café, 東京");
+  CHECK(printable(std::string_view("a\0b", 3)) == "a\\u0000b");
+  CHECK(printable("\x01\x1f\x7f") == "\\u0001\\u001f\\u007f");
+  CHECK(printable("\n\r\t") == "\\n\\r\\t");
+  CHECK(printable("back\\slash") == "back\\\\slash");  // so that "\n" in the output is always an escape
+  CHECK(printable("\xc2\x9b"
+                  "31m") == "\\u009b31m");  // C1 CSI
+  CHECK(printable("\xe2\x80\xa8\xe2\x80\xa9") == "\\u2028\\u2029");
+  CHECK(printable("\xe2\x80\xae"
+                  "evil\xe2\x81\xa6") == "\\u202eevil\\u2066");
+  CHECK(printable("\xff"
+                  "a\xc3") == "\\xffa\\xc3");  // not UTF-8: shown as bytes
+  CHECK(printable("say \"hi\"") == "say \"hi\"");
+  CHECK(jsonio::quoted("say \"hi\"\n") == "\"say \\\"hi\\\"\\n\"");
+  // Long text is cut at a character boundary, never inside one.
+  CHECK(jsonio::quoted("ééé", 5) == "\"éé...\"");
+  CHECK(jsonio::quoted(std::string(300, 'x')).size() == 200 + 5);
+}
+
+TEST_CASE("utf8_at decodes RFC 3629 sequences and refuses overlong, surrogate, too large and cut ones",
+          "[jsonio][escape]") {
+  using jsonio::utf8_at;
+  CHECK(utf8_at("a", 0).length == 1);
+  CHECK(utf8_at("\xc3\xa9", 0).length == 2);
+  CHECK(utf8_at("\xc3\xa9", 0).code_point == U'\u00e9');
+  CHECK(utf8_at("\xe6\x9d\xb1", 0).code_point == U'\u6771');
+  CHECK(utf8_at("\xf4\x8f\xbf\xbf", 0).code_point == U'\U0010ffff');
+  for (const std::string_view bad : {"\xc0\x80", "\xc1\xbf", "\xe0\x80\x80", "\xed\xa0\x80", "\xf4\x90\x80\x80",
+                                     "\xf5\x80\x80\x80", "\x80", "\xe6\x9d", "\xc3"}) {
+    INFO(jsonio::printable(bad));
+    CHECK(utf8_at(bad, 0).length == 0);
+  }
 }

@@ -230,3 +230,30 @@ TEST_CASE("the mesh generator is deterministic and its scene loads", "[scene][me
   for (const auto& o : r.scene->objects) triangles += o.mesh ? o.mesh->triangle_count() : 0;
   CHECK(triangles == a.triangles);
 }
+
+TEST_CASE("a scene's keys, file names and OBJ text are escaped in its errors", "[scene][errors][escape]") {
+  // Each error is one line of printable text: a scene cannot forge a line or send a terminal escape.
+  const auto check_printable = [](const LoadResult& r, std::string_view fragment) {
+    const std::string text = format_errors(r.errors);
+    INFO(text);
+    REQUIRE_FALSE(r.errors.empty());
+    CHECK(static_cast<std::size_t>(std::count(text.begin(), text.end(), '\n')) == r.errors.size());
+    for (const char c : text) CHECK((c == '\n' || static_cast<unsigned char>(c) >= 0x20));
+    CHECK(text.find(fragment) != std::string::npos);
+  };
+  check_printable(load_scene_string(with_object(R"({"type": "sphere", "loc": [0, 0, 0], "radius": 1,
+                                                    "x\ndtraced: info: all good\u001b[2J": 1})"),
+                                    kFile),
+                  R"(/scene_objects/0/x\ndtraced: info: all good\u001b[2J: unknown key "x\ndtraced)");
+  check_printable(load_scene_string(with_object(R"({"type": "mesh", "obj": "v 0 0 0\nv 1\u001b[31m 0 0\n"})"), kFile),
+                  R"("1\u001b[31m")");
+  // An OBJ file that is not UTF-8 is refused at its line (it would not fit in the canonical JSON).
+  const TempDir dir;
+  dir.write("latin1.obj", "v 0 0 0\nv 1 0 0\n# caf\xe9\nv 0 1 0\nf 1 2 3\n");
+  check_printable(load_scene_file(dir.write("scene.json", with_object(R"({"type": "mesh", "file": "latin1.obj"})"))),
+                  "latin1.obj: line 3: not valid UTF-8");
+  LoadOptions no_files;
+  no_files.allow_mesh_files = false;
+  check_printable(load_scene_string(with_object(R"({"type": "mesh", "file": "a\r\nb.obj"})"), kFile, no_files),
+                  R"(mesh file "a\r\nb.obj" not accepted)");
+}

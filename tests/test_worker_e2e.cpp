@@ -9,14 +9,19 @@
 #include <signal.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdint>
+#include <cstdio>
 #include <functional>
 #include <future>
+#include <map>
 #include <memory>
 #include <optional>
 #include <random>
 #include <set>
+#include <string>
+#include <string_view>
 #include <thread>
 #include <utility>
 #include <vector>
@@ -414,4 +419,140 @@ TEST_CASE("an adaptive job's tiles carry their per-pixel sample counts", "[worke
   }
   CHECK(seen.contains(4));
   CHECK(seen.contains(16));
+}
+
+// ---- a collector that refuses every tile it leases ------------------------------------------------
+
+namespace {
+
+// While it lives, what the process writes to stderr (the worker's log) goes to a temporary file.
+class CapturedStderr {
+ public:
+  CapturedStderr() : file_(std::tmpfile()) {
+    REQUIRE(file_ != nullptr);
+    std::fflush(stderr);
+    saved_ = ::dup(STDERR_FILENO);
+    REQUIRE(saved_ >= 0);
+    REQUIRE(::dup2(::fileno(file_), STDERR_FILENO) == STDERR_FILENO);
+  }
+  CapturedStderr(const CapturedStderr&) = delete;
+  CapturedStderr& operator=(const CapturedStderr&) = delete;
+  ~CapturedStderr() {
+    restore();
+    std::fclose(file_);
+  }
+
+  // Gives stderr back, and returns the lines written to it meanwhile.
+  std::vector<std::string> lines() {
+    restore();
+    std::rewind(file_);
+    std::vector<std::string> out;
+    std::string line;
+    for (int c = std::fgetc(file_); c != EOF; c = std::fgetc(file_)) {
+      if (c != '\n') {
+        line.push_back(static_cast<char>(c));
+        continue;
+      }
+      out.push_back(std::exchange(line, {}));
+    }
+    return out;
+  }
+
+ private:
+  void restore() {
+    if (saved_ < 0) return;
+    ::dup2(saved_, STDERR_FILENO);
+    ::close(saved_);
+    saved_ = -1;
+  }
+
+  std::FILE* file_;
+  int saved_ = -1;
+};
+
+// What a worker with the default backoffs did in kRefusedFor of simulated time against a
+// collector that leases every tile again and again and takes none.
+struct RefusedRun {
+  bool lasted = false;                               // the clock reached kRefusedFor before kSpinRequests
+  std::map<std::int64_t, std::uint64_t> per_second;  // requests per simulated second
+  std::uint64_t requests = 0;
+  std::vector<std::string> log;
+  WorkerStats stats;
+};
+
+constexpr auto kRefusedFor = 10min;
+// A worker that spins sends these long before its clock moves: the run ends there, failed.
+constexpr std::uint64_t kSpinRequests = 5000;
+
+RefusedRun run_refused(FakeRules rules) {
+  rules.reoffer_after = 0;  // every lease request gets a tile: the collector "keeps leasing"
+  RefusedRun run;
+  CapturedStderr captured;
+  {
+    FakeCollector fake(rules);
+    RunningServer server(0, fake.handler());
+    RunningWorker worker(Farm::config_for(server.port(), [](worker::WorkerConfig& c) {
+      c.backoff_initial = worker::WorkerConfig{}.backoff_initial;
+      c.backoff_max = worker::WorkerConfig{}.backoff_max;
+    }));
+    fake.stamp_with(worker.clock());
+    const util::TimePoint start = worker.start();
+    run.lasted = worker.until([&] {
+      return worker.clock().now() >= start + kRefusedFor || fake.counts().request_times.size() >= kSpinRequests;
+    });
+    run.lasted = run.lasted && worker.clock().now() >= start + kRefusedFor;
+    run.stats = worker.stop_cleanly();
+    // Requests before stamp_with() carry TimePoint::min(): they count in the first second.
+    for (const util::TimePoint t : fake.counts().request_times) {
+      ++run.per_second[std::chrono::duration_cast<std::chrono::seconds>(std::max(t, start) - start).count()];
+      ++run.requests;
+    }
+    CHECK(fake.counts().problems.empty());
+  }
+  run.log = captured.lines();
+  return run;
+}
+
+// Asserts that a refused worker backed off and logged a few lines, not one per refusal.
+void check_backed_off(const RefusedRun& run, std::string_view what) {
+  std::uint64_t busiest = 0;
+  for (const auto& [second, n] : run.per_second) busiest = std::max(busiest, n);
+  INFO(run.requests << " requests, at most " << busiest << " in one simulated second, " << run.log.size()
+                    << " log lines");
+  REQUIRE(run.lasted);
+  // Backoff caps 0.1, 0.2, 0.4, ... 10 s with full jitter: the tiles in hand and a burst of a few
+  // refusals at the start (the hot loop sent 2,100 requests in a second), then one refusal every
+  // 5 s on average, a lease and a submission each.
+  CHECK(busiest <= 60);
+  CHECK(run.requests <= 600);
+  std::uint64_t last_five_minutes = 0;
+  for (const auto& [second, n] : run.per_second) last_five_minutes += second >= 300 ? n : 0;
+  CHECK(last_five_minutes <= 300);
+  // Still trying: the worker is slowed, not stuck.
+  CHECK(run.requests >= 20);
+  // The refusal is logged once, then with a count at most every kLogRepeatEvery (30 s), plus the
+  // lines of start and stop.
+  std::size_t refusals_logged = 0;
+  for (const std::string& line : run.log) refusals_logged += line.find(what) != std::string::npos ? 1 : 0;
+  CHECK(refusals_logged >= 1);
+  CHECK(refusals_logged <= 1 + 10min / 30s);
+  CHECK(run.log.size() <= refusals_logged + 10);
+}
+
+}  // namespace
+
+TEST_CASE("a worker whose every tile is refused backs off and logs each refusal once per interval",
+          "[worker][end_to_end][refusals]") {
+  const RefusedRun run = run_refused({.refuse_submits = 422});
+  check_backed_off(run, "refused tile");
+  CHECK(run.stats.tiles_rejected >= 10);
+  CHECK(run.stats.tiles_submitted == 0);
+}
+
+TEST_CASE("a worker leased again and again a job the collector says is gone backs off",
+          "[worker][end_to_end][refusals]") {
+  const RefusedRun run = run_refused({.job_gone = true, .lease_after_gone = true});
+  check_backed_off(run, "is gone");
+  CHECK(run.stats.tiles_dropped >= 10);
+  CHECK(run.stats.tiles_submitted == 0);
 }

@@ -30,6 +30,7 @@
 #include "worker/answers.h"
 #include "worker/backoff.h"
 #include "worker/config.h"
+#include "worker/log_limiter.h"
 #include "worker/retry_gate.h"
 #include "worker/scene_cache.h"
 #include "worker/worker.h"
@@ -105,6 +106,56 @@ TEST_CASE("retry-after jitter never comes back sooner than asked, nor much later
     REQUIRE(zero >= worker::kMinRetryAfter);
     REQUIRE(zero <= worker::kMinRetryAfter * 3 / 2);
   }
+}
+
+TEST_CASE("retry-after has a floor a collector cannot spin a worker under, and a ceiling", "[worker][backoff]") {
+  // A collector answering 0 ms (or 1 ms) must not get more than 20 lease requests a second from
+  // a worker; one answering an hour must not park it for an hour.
+  CHECK(worker::kMinRetryAfter >= 50ms);
+  CHECK(worker::kMaxRetryAfter <= 60s);
+  std::mt19937_64 rng(7);
+  for (int i = 0; i < 1000; ++i) {
+    for (const auto asked : {0ms, 1ms, 49ms}) REQUIRE(worker::jittered_retry_after(asked, rng) >= 50ms);
+    const auto huge = worker::jittered_retry_after(std::chrono::milliseconds(std::chrono::hours(1)), rng);
+    REQUIRE(huge >= worker::kMaxRetryAfter);
+    REQUIRE(huge <= worker::kMaxRetryAfter * 3 / 2);
+  }
+}
+
+// ---- log limiter ---------------------------------------------------------------------------------
+
+TEST_CASE("identical log lines are written once, then once per interval with a count of the rest",
+          "[worker][log_limiter]") {
+  worker::LogLimiter limiter(30s);
+  util::ManualClock clock;
+  const util::TimePoint t0 = clock.now();
+  CHECK(limiter.admit("refused 7", t0) == std::optional<std::uint64_t>(0));
+  // 2,100 refusals a second for 15 s: nothing more is written...
+  std::uint64_t written = 0;
+  for (int ms = 1; ms < 15'000; ms += 1)
+    written += limiter.admit("refused 7", t0 + std::chrono::milliseconds(ms)) ? 1 : 0;
+  CHECK(written == 0);
+  // ...while another key is written at once.
+  CHECK(limiter.admit("gone 8", t0 + 1s) == std::optional<std::uint64_t>(0));
+  // The first occurrence once the interval is over is written, with the count held back.
+  CHECK_FALSE(limiter.admit("refused 7", t0 + 30s - 1ms));
+  CHECK(limiter.admit("refused 7", t0 + 30s) == std::optional<std::uint64_t>(15'000));
+  CHECK_FALSE(limiter.admit("refused 7", t0 + 31s));
+  CHECK(limiter.admit("refused 7", t0 + 90s) == std::optional<std::uint64_t>(1));
+  CHECK(worker::held_back_suffix(0).empty());
+  CHECK_THAT(worker::held_back_suffix(15'000), Catch::Contains("15000 more like it"));
+}
+
+TEST_CASE("the log limiter remembers a bounded number of keys, forgetting the oldest", "[worker][log_limiter]") {
+  worker::LogLimiter limiter(30s);
+  const util::TimePoint t0 = util::ManualClock().now();
+  for (std::size_t i = 0; i < worker::kMaxLoggedKeys + 10; ++i) {
+    REQUIRE(limiter.admit(fmt::format("key {}", i), t0 + std::chrono::milliseconds(i)) ==
+            std::optional<std::uint64_t>(0));
+  }
+  // The first keys were forgotten: written again as new; the latest are still held back.
+  CHECK(limiter.admit("key 0", t0 + 1s) == std::optional<std::uint64_t>(0));
+  CHECK_FALSE(limiter.admit(fmt::format("key {}", worker::kMaxLoggedKeys + 9), t0 + 1s));
 }
 
 // ---- scene cache -------------------------------------------------------------------------------
@@ -431,6 +482,43 @@ TEST_CASE("a collector without work holds requests for its retry-after, then let
   CHECK_FALSE(b.attempt->probe());
 }
 
+TEST_CASE("refused tiles hold leases back for a backoff that grows until a tile is accepted", "[worker][retry_gate]") {
+  GateRig rig(Backoff(100ms, 10s));
+  // Leases succeed (the collector answers them) but their tiles are refused: without refusals
+  // counting on their own, the gate would let the next lease out at once, forever.
+  std::vector<std::chrono::milliseconds> waits;
+  for (std::uint32_t n = 1; n <= 12; ++n) {
+    GateRig::Request& lease = rig.enter();
+    const util::TimePoint asked_at = rig.clock.now();
+    if (!lease.done) {
+      const std::optional<util::TimePoint> wake = rig.clock.next_deadline();
+      REQUIRE(wake);
+      REQUIRE(rig.waits_until(lease, *wake));
+    }
+    REQUIRE(lease.done);
+    CHECK(lease.attempt->probe() == (n > 1));  // one at a time once a tile was refused
+    waits.push_back(std::chrono::duration_cast<std::chrono::milliseconds>(rig.clock.now() - asked_at));
+    CHECK(rig.gate.succeeded(*lease.attempt) == 0);  // the lease itself was answered
+    CHECK(rig.gate.refused() == n);
+  }
+  // The waits are the backoff delays of 0, 1, 2, ... refusals in a row (same generator, same
+  // seed), so their caps double up to the maximum.
+  const auto expected = rig.delays(11);
+  for (std::size_t i = 1; i < waits.size(); ++i) CHECK(waits[i] == expected[i - 1]);
+  std::chrono::milliseconds total{0};
+  for (const auto w : waits) total += w;
+  CHECK(total >= 10s);  // 12 refusals take seconds, not microseconds
+
+  // An accepted tile ends the refusals: every request goes out at once again.
+  rig.gate.refused();
+  CHECK(rig.gate.accepted() == 13);
+  GateRig::Request& a = rig.enter();
+  GateRig::Request& b = rig.enter();
+  CHECK((a.done && b.done));
+  CHECK_FALSE(a.attempt->probe());
+  CHECK(rig.gate.accepted() == 0);
+}
+
 TEST_CASE("a stop ends every wait at the gate and forgets its wake on the clock", "[worker][retry_gate]") {
   GateRig rig(Backoff(10s, 10s));
   GateRig::Request& first = rig.enter();
@@ -530,6 +618,18 @@ TEST_CASE("a lease answer is a lease, a retry-after, or a failure to retry with 
   CHECK(classify_lease(answer(http::make_error(http::Status::service_unavailable, "busy"))).error == "HTTP 503: busy");
   CHECK_THAT(classify_lease(json_answer(http::Status::ok, "{\"lease\": 1}")).error,
              Catch::StartsWith("malformed lease reply: "));
+}
+
+TEST_CASE("a gone answer is a refusal only for a job leased again after it was answered gone", "[worker][answers]") {
+  worker::GoneAnswers answers;
+  CHECK_FALSE(answers.refusal(7, /*marked=*/false));  // the news: job 7 ended
+  CHECK_FALSE(answers.refusal(7, /*marked=*/true));   // tiles in flight when it came
+  CHECK(answers.refusal(7, /*marked=*/false));        // leased again since, and still gone
+  CHECK(answers.refusal(7, /*marked=*/false));
+  CHECK_FALSE(answers.refusal(8, /*marked=*/false));  // another job's end
+  // Memory is bounded: a job forgotten is news again.
+  for (std::uint64_t job = 100; job < 100 + worker::kRememberedGoneJobs; ++job) answers.refusal(job, false);
+  CHECK_FALSE(answers.refusal(7, /*marked=*/false));
 }
 
 TEST_CASE("an unexpected answer is quoted short and printable in the logs", "[worker][answers]") {

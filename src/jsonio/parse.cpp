@@ -17,6 +17,8 @@
 #include <boost/json/value_stack.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/utf8.h"
+
 namespace dtraced::jsonio {
 namespace {
 
@@ -130,7 +132,7 @@ class StrictHandler {
         path += fmt::format("/{}", f.index);
       } else if (f.has_key) {
         path += '/';
-        path += pointer_escape(f.key);
+        path += printable(pointer_escape(f.key));
       }
     }
     return path;
@@ -170,7 +172,8 @@ class StrictHandler {
     f.has_key = true;
     if (f.seen_keys.size() >= kMaxTrackedKeys) return;
     if (std::find(f.seen_keys.begin(), f.seen_keys.end(), f.key) != f.seen_keys.end()) {
-      if (errors_.size() < max_errors_) errors_.push_back({fmt::format("duplicate key \"{}\"", f.key), current_path()});
+      if (errors_.size() < max_errors_)
+        errors_.push_back({fmt::format("duplicate key {}", quoted(f.key)), current_path()});
     } else {
       f.seen_keys.push_back(f.key);
     }
@@ -206,6 +209,37 @@ std::string describe_parse_error(const json::error_code& ec, std::size_t max_dep
 
 }  // namespace
 
+Utf8Sequence utf8_at(std::string_view text, std::size_t i) {
+  const auto c = static_cast<unsigned char>(text[i]);
+  if (c < 0x80) return {1, c};
+  std::size_t n = 0;
+  unsigned lo = 0x80, hi = 0xBF;  // allowed range of the second byte
+  char32_t cp = 0;
+  if (c >= 0xC2 && c <= 0xDF) {
+    n = 1;
+    cp = c & 0x1F;
+  } else if (c >= 0xE0 && c <= 0xEF) {
+    n = 2;
+    cp = c & 0x0F;
+    if (c == 0xE0) lo = 0xA0;
+    if (c == 0xED) hi = 0x9F;
+  } else if (c >= 0xF0 && c <= 0xF4) {
+    n = 3;
+    cp = c & 0x07;
+    if (c == 0xF0) lo = 0x90;
+    if (c == 0xF4) hi = 0x8F;
+  } else {
+    return {};
+  }
+  if (i + n >= text.size()) return {};
+  for (std::size_t k = 1; k <= n; ++k) {
+    const auto b = static_cast<unsigned char>(text[i + k]);
+    if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return {};
+    cp = (cp << 6) | (b & 0x3F);
+  }
+  return {n + 1, cp};
+}
+
 std::string pointer_escape(std::string_view token) {
   std::string out;
   out.reserve(token.size());
@@ -218,6 +252,65 @@ std::string pointer_escape(std::string_view token) {
       out += c;
     }
   }
+  return out;
+}
+
+namespace {
+
+// Whether code point `cp` is shown as an escape (see printable() in the header).
+bool must_escape(char32_t cp) {
+  return cp < 0x20 || (cp >= 0x7F && cp <= 0x9F) || cp == 0x200E || cp == 0x200F || cp == 0x2028 || cp == 0x2029 ||
+         (cp >= 0x202A && cp <= 0x202E) || (cp >= 0x2066 && cp <= 0x2069);
+}
+
+void append_printable(std::string& out, std::string_view text, bool escape_quote) {
+  for (std::size_t i = 0; i < text.size();) {
+    const auto [n, cp] = utf8_at(text, i);
+    if (n == 0) {
+      out += fmt::format("\\x{:02x}", static_cast<unsigned char>(text[i]));
+      ++i;
+      continue;
+    }
+    if (cp == '\\' || (escape_quote && cp == '"')) {
+      out += '\\';
+      out += static_cast<char>(cp);
+    } else if (cp == '\n') {
+      out += "\\n";
+    } else if (cp == '\r') {
+      out += "\\r";
+    } else if (cp == '\t') {
+      out += "\\t";
+    } else if (must_escape(cp)) {
+      out += fmt::format("\\u{:04x}", static_cast<std::uint32_t>(cp));
+    } else {
+      out.append(text.substr(i, n));
+    }
+    i += n;
+  }
+}
+
+}  // namespace
+
+std::string printable(std::string_view text) {
+  std::string out;
+  out.reserve(text.size());
+  append_printable(out, text, /*escape_quote=*/false);
+  return out;
+}
+
+std::string quoted(std::string_view text, std::size_t max_bytes) {
+  std::size_t keep = text.size();
+  if (keep > max_bytes) {
+    keep = 0;
+    while (keep < text.size()) {
+      const std::size_t n = std::max<std::size_t>(1, utf8_at(text, keep).length);
+      if (keep + n > max_bytes) break;
+      keep += n;
+    }
+  }
+  std::string out = "\"";
+  append_printable(out, text.substr(0, keep), /*escape_quote=*/true);
+  out += keep < text.size() ? "...\"" : "\"";
   return out;
 }
 

@@ -44,6 +44,20 @@ Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t 
 // Escapes one reference token of a JSON Pointer (RFC 6901): '~' -> "~0", '/' -> "~1".
 std::string pointer_escape(std::string_view token);
 
+// `text` made safe to print in a message, a log line or on a terminal. A scene's keys and
+// strings are echoed in errors, and raw they could end a line and forge the next one, or carry
+// a terminal escape sequence. So, JSON-style: a backslash becomes "\\" (so that every escape
+// in the output means one), \n \r \t stay short, and the other C0 controls, DEL, the C1
+// controls (U+0080..U+009F, some terminals obey U+009B as CSI), the line and paragraph
+// separators U+2028/U+2029 and the bidirectional controls (U+200E, U+200F, U+202A..U+202E,
+// U+2066..U+2069, which reorder what a reader sees) become \uXXXX. A byte that does not start
+// valid UTF-8 becomes \xNN. Everything else, including other non-ASCII text, is kept.
+std::string printable(std::string_view text);
+
+// `text` in double quotes for a message: printable(), with '"' escaped as well, and at most
+// `max_bytes` of `text` (longer ones are cut at a character boundary and marked with "...").
+std::string quoted(std::string_view text, std::size_t max_bytes = 200);
+
 // "an object", "an array", "a string", "a boolean", "null" or "a number", for error messages.
 std::string_view kind_name(const boost::json::value& v);
 

@@ -1,5 +1,6 @@
 // dtraced::jsonio paths: the JSON Pointer (RFC 6901) of a value being read, built only when an
-// error needs it.
+// error needs it. It is built for display: a key's control characters are escaped (printable()
+// in parse.h), so a pointer never carries a raw newline or terminal escape into a message.
 //
 // Reading a scene of 10M objects must not allocate a path string per field, so a Path is a link
 // to its parent plus one key or index, and str() walks the chain only for an error message. The
@@ -32,7 +33,7 @@ class Path {
     if (parent_ == nullptr) return {};
     std::string s = parent_->str();
     s += '/';
-    s += is_index_ ? std::to_string(index_) : pointer_escape(key_);
+    s += is_index_ ? std::to_string(index_) : printable(pointer_escape(key_));
     return s;
   }
 

@@ -57,7 +57,7 @@ std::string unknown_key_message(std::string_view key, std::span<const std::strin
                                 std::span<const KeyAlias> aliases) {
   for (const KeyAlias& a : aliases) {
     if (key == a.alias && contains(known, a.meant)) {
-      return fmt::format("unknown key \"{}\" (did you mean \"{}\"?)", key, a.meant);
+      return fmt::format("unknown key {} (did you mean \"{}\"?)", quoted(key), a.meant);
     }
   }
   std::string_view best;
@@ -72,9 +72,9 @@ std::string unknown_key_message(std::string_view key, std::span<const std::strin
   // Two edits catch transpositions ("raduis") and British spellings ("colour") without
   // suggesting "loc" for "foo".
   if (best_distance <= 2 && best_distance < key.size()) {
-    return fmt::format("unknown key \"{}\" (did you mean \"{}\"?)", key, best);
+    return fmt::format("unknown key {} (did you mean \"{}\"?)", quoted(key), best);
   }
-  return fmt::format("unknown key \"{}\"; known keys: {}", key, fmt::join(known, ", "));
+  return fmt::format("unknown key {}; known keys: {}", quoted(key), fmt::join(known, ", "));
 }
 
 util::Errors Reader::take_errors() {
@@ -221,9 +221,9 @@ std::optional<std::size_t> Reader::choice(const json::value& v, const Path& at, 
   const std::string_view text(s->data(), s->size());
   const auto it = std::find(names.begin(), names.end(), text);
   if (it != names.end()) return static_cast<std::size_t>(it - names.begin());
-  const std::string quoted =
-      text.size() <= kMaxQuotedBytes ? fmt::format("\"{}\"", text) : fmt::format("(a string of {} bytes)", text.size());
-  error(at, fmt::format("unknown {} {}; known {}: {}", what, quoted, plural, fmt::join(names, ", ")));
+  const std::string shown =
+      text.size() <= kMaxQuotedBytes ? quoted(text) : fmt::format("(a string of {} bytes)", text.size());
+  error(at, fmt::format("unknown {} {}; known {}: {}", what, shown, plural, fmt::join(names, ", ")));
   return std::nullopt;
 }
 

@@ -28,19 +28,19 @@ using Color = Vec3d;
 // where local = sum over lights of visibility * I / r^2 * cos * (diffuse * colour / pi
 // + specular * (shininess + 8) / (8 pi) * (n.h)^shininess), F the exact dielectric Fresnel term.
 struct Material {
-  Color color{0.8, 0.8, 0.8};
-  double diffuse = 1.0;       // [0, 1]
-  double specular = 0.0;      // [0, 1]
-  double shininess = 32.0;    // >= 0 (Blinn-Phong exponent)
-  double reflectivity = 0.0;  // [0, 1]
-  double transparency = 0.0;  // [0, 1], reflectivity + transparency <= 1
-  double ior = 1.5;           // > 0
+  Color color{0.8, 0.8, 0.8};  // [0, kMaxAlbedo] per channel
+  double diffuse = 1.0;        // [0, 1]
+  double specular = 0.0;       // [0, 1]
+  double shininess = 32.0;     // >= 0 (Blinn-Phong exponent)
+  double reflectivity = 0.0;   // [0, 1]
+  double transparency = 0.0;   // [0, 1], reflectivity + transparency <= 1
+  double ior = 1.5;            // [kMinIor, kMaxIor]
   bool operator==(const Material&) const = default;
 };
 
 struct Sphere {
   Vec3d center;
-  double radius = 1.0;  // > 0
+  double radius = 1.0;  // > 0, a normal float; centre +- radius within the float range
   bool operator==(const Sphere&) const = default;
 };
 
@@ -136,9 +136,9 @@ inline std::string_view type_name(LightType t) {
 struct Light {
   Vec3d position;
   Color color{1, 1, 1};
-  double intensity = 1.0;  // >= 0
+  double intensity = 1.0;  // >= 0; color * intensity <= kMaxRadiance per channel
   LightType type = LightType::kPoint;
-  double radius = 0.0;        // sphere, disk: > 0
+  double radius = 0.0;        // sphere, disk: [kMinLightRadius, kMaxLightRadius]
   Vec3d normal{0, -1, 0};     // disk, rect: unit
   Vec3d edge_u{1, 0, 0};      // rect
   Vec3d edge_v{0, 0, 1};      // rect
@@ -149,6 +149,16 @@ struct Light {
 };
 
 inline constexpr std::uint32_t kMaxLightSamples = 256;
+
+// Limits that keep shading finite in the renderer's float arithmetic; each is derived, from what
+// shading computes, beside the check in load_objects.cpp. docs/scene-format.md states them. Any
+// size (a radius, an ior) must also stay a normal float once rounded to float.
+inline constexpr double kMaxAlbedo = 1.0;        // material colour, per channel
+inline constexpr double kMaxRadiance = 0x1p120;  // light colour * intensity and background, per channel
+inline constexpr double kMinIor = 0x1p-31;       // ior in [kMinIor, kMaxIor]
+inline constexpr double kMaxIor = 0x1p31;
+inline constexpr double kMinLightRadius = 0x1p-63;  // sphere and disk lights: radius in [min, max]
+inline constexpr double kMaxLightRadius = 0x1p63;
 
 struct Camera {
   Vec3d position{0, 0, 5};

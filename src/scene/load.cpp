@@ -76,6 +76,14 @@ void read_render(SceneReader& s, const json::value& v, const Path& at, RenderSet
   if (o == nullptr) return;
   jsonio::Fields f(s.r, *o, at, kRenderKeys, kKeyAliases);
   read_render_settings(f, render, Need::kOptional);
+  // The background is a radiance like a light's emission: the same bound (load_objects.cpp).
+  const Path background = f.path("background");
+  for (std::size_t i = 0; i < 3; ++i) {
+    if (render.background[i] > kMaxRadiance) {
+      s.r.error(background.index(i), fmt::format("must be at most 2^120 ({:g}), or shading overflows (got {})",
+                                                 kMaxRadiance, render.background[i]));
+    }
+  }
 }
 
 // "scene_objects" or "scene_lights": each element read by `read` (nullopt after its errors), and

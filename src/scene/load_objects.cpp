@@ -13,6 +13,7 @@
 #include <boost/json/string.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/utf8.h"
 #include "math/vec.h"
 #include "scene/obj_mesh.h"
 #include "scene/scene_json.h"
@@ -36,6 +37,34 @@ constexpr double kEnergySlack = 1e-9;
 constexpr double kParallelTolerance = 1e-6;
 // A normal this close to unit length is kept as written (see unit_length).
 constexpr double kUnitTolerance = 1e-12;
+
+// The limits of description.h, derived from what shading computes in float (render/).
+//
+// Sizes: the renderer holds every size as a float, so a radius or an ior must round to a normal
+// float (1e-46 rounds to 0: the sphere vanishes, or an ior of 0 divides by zero).
+//
+// ior: a refraction uses eta = ior_after / ior_before, both scene iors (or 1, outside), and
+// computes eta^2, 1 / eta and eta * cos (render/shading.h, dielectric_interface). With every ior
+// in [2^-31, 2^31], eta lies in [2^-62, 2^62] and eta^2 in [2^-124, 2^124]: a normal float, never
+// 0 or +Inf (an Inf eta^2 made the Fresnel term Inf / Inf = NaN).
+//
+// Sphere and disk light radius: light sampling squares the radius in float (r^2 of a sphere's
+// cone, pi r^2 the disk's area), so r in [2^-63, 2^63] keeps r^2 in [2^-126, 2^126] (and
+// pi r^2 < 2^128): normal and finite.
+//
+// Radiance and albedo: a path's radiance is, at each bounce, the direct light (each light's term
+// clamped to render::kMaxLightTerm = 2^100, at most kMaxLights < 2^14 lights: < 2^114) plus at
+// most (reflectivity + transparency) <= 1 (+1e-9) times colour times what the next bounce returns;
+// a path ends in the background, an area light's emission, or after max_depth <= 64 bounces. With
+// material colour <= 1 (kMaxAlbedo) nothing is amplified, so a sample is at most
+// (64 + 1) * max(2^114, emission, background) * (1 + 1e-9)^64 < 2^7 * max(2^114, E): with
+// light colour * intensity and background <= 2^120 (kMaxRadiance), < 2^127 < FLT_MAX. A colour
+// above 1 is no such bound: between two mirrors it multiplies radiance by colour^max_depth (a
+// colour of 3.4e38 overflows in one bounce), and an emission near FLT_MAX overflows as soon as
+// two terms are summed.
+
+// Whether d becomes a normal float (not 0, not subnormal, not infinite) once rounded to float.
+bool normal_as_float(double d) { return std::fpclassify(static_cast<float>(d)) == FP_NORMAL; }
 
 using Keys = std::span<const std::string_view>;
 constexpr std::array<std::string_view, 7> kMaterialKeys = {"color",        "diffuse",      "specular", "shininess",
@@ -77,33 +106,10 @@ std::optional<Vec3d> unit_length(const Vec3d& v) {
 std::size_t first_invalid_utf8_line(std::string_view text) {
   std::size_t line = 1;
   for (std::size_t i = 0; i < text.size();) {
-    const auto c = static_cast<unsigned char>(text[i]);
-    if (c < 0x80) {
-      line += c == '\n';
-      ++i;
-      continue;
-    }
-    std::size_t n = 0;
-    unsigned lo = 0x80, hi = 0xBF;  // allowed range of the second byte
-    if (c >= 0xC2 && c <= 0xDF) {
-      n = 1;
-    } else if (c >= 0xE0 && c <= 0xEF) {
-      n = 2;
-      if (c == 0xE0) lo = 0xA0;
-      if (c == 0xED) hi = 0x9F;
-    } else if (c >= 0xF0 && c <= 0xF4) {
-      n = 3;
-      if (c == 0xF0) lo = 0x90;
-      if (c == 0xF4) hi = 0x8F;
-    } else {
-      return line;
-    }
-    if (i + n >= text.size()) return line;  // truncated sequence
-    for (std::size_t k = 1; k <= n; ++k) {
-      const auto b = static_cast<unsigned char>(text[i + k]);
-      if (k == 1 ? (b < lo || b > hi) : (b < 0x80 || b > 0xBF)) return line;
-    }
-    i += n + 1;
+    const std::size_t n = jsonio::utf8_at(text, i).length;
+    if (n == 0) return line;
+    line += text[i] == '\n';
+    i += n;
   }
   return 0;
 }
@@ -131,7 +137,43 @@ class ObjectReader {
   auto positive_float() {
     return [this](const json::value& v, const Path& at) -> std::optional<double> {
       const auto d = read_float(r_, v, at);
-      return d && r_.positive(*d, at) ? d : std::nullopt;
+      if (!d || !r_.positive(*d, at)) return std::nullopt;
+      if (!normal_as_float(*d)) {
+        r_.error(at, fmt::format("{} is too small for the renderer's float arithmetic: it must round to a normal "
+                                 "float (at least {:g})",
+                                 *d, double(FLT_MIN)));
+        return std::nullopt;
+      }
+      return d;
+    };
+  }
+  // A positive size in [lo, hi], with why in the message.
+  auto size_in(double lo, double hi, std::string_view why) {
+    return [this, lo, hi, why](const json::value& v, const Path& at) -> std::optional<double> {
+      const auto d = read_float(r_, v, at);
+      if (!d || !r_.positive(*d, at)) return std::nullopt;
+      if (!(*d >= lo && *d <= hi)) {
+        r_.error(at, fmt::format("must be in [{:g}, {:g}] ({}) (got {})", lo, hi, why, *d));
+        return std::nullopt;
+      }
+      return d;
+    };
+  }
+  // A material colour: every channel in [0, kMaxAlbedo].
+  auto albedo() {
+    return [this](const json::value& v, const Path& at) -> std::optional<Color> {
+      const auto c = read_color(r_, v, at);
+      if (!c) return std::nullopt;
+      bool ok = true;
+      for (std::size_t i = 0; i < 3; ++i) {
+        if ((*c)[i] > kMaxAlbedo) {
+          r_.error(at.index(i), fmt::format("must be at most {} (a surface reflects no more light than it receives; "
+                                            "above 1, light between mirrors grows without bound) (got {})",
+                                            kMaxAlbedo, (*c)[i]));
+          ok = false;
+        }
+      }
+      return ok ? c : std::nullopt;
     };
   }
   auto unit_vector() {
@@ -159,13 +201,14 @@ class ObjectReader {
     if (o == nullptr) return;
     jsonio::Fields f(r_, *o, at, kMaterialKeys, kKeyAliases);
     const std::size_t errors_before = r_.error_count();
-    f.read("color", m.color, Need::kOptional, color());
+    f.read("color", m.color, Need::kOptional, albedo());
     f.read("diffuse", m.diffuse, Need::kOptional, float_in(0, 1));
     f.read("specular", m.specular, Need::kOptional, float_in(0, 1));
     f.read("shininess", m.shininess, Need::kOptional, float_in(0, kMaxShininess));
     f.read("reflectivity", m.reflectivity, Need::kOptional, float_in(0, 1));
     f.read("transparency", m.transparency, Need::kOptional, float_in(0, 1));
-    f.read("ior", m.ior, Need::kOptional, positive_float());
+    f.read("ior", m.ior, Need::kOptional,
+           size_in(kMinIor, kMaxIor, "2^-31 to 2^31: refraction squares ratios of iors"));
     if (r_.error_count() == errors_before && m.reflectivity + m.transparency > 1 + kEnergySlack) {
       r_.error(at,
                fmt::format("reflectivity + transparency must be <= 1 (got {} + {})", m.reflectivity, m.transparency));
@@ -173,9 +216,18 @@ class ObjectReader {
   }
 
   void read_sphere(jsonio::Fields& f, Sphere& sphere) {
+    const std::size_t errors_before = r_.error_count();
     check_keys(f.object(), f.at(), kSphereKeys);
     f.read("loc", sphere.center, Need::kRequired, vec3());
     f.read("radius", sphere.radius, Need::kRequired, positive_float());
+    // The renderer skips a sphere whose bounds are not finite floats: say so rather than lose it.
+    if (r_.error_count() != errors_before) return;
+    for (std::size_t i = 0; i < 3; ++i) {
+      if (!std::isfinite(static_cast<float>(std::abs(sphere.center[i]) + sphere.radius))) {
+        r_.error(f.path("radius"), "sphere extends beyond the float range");
+        return;
+      }
+    }
   }
 
   // A box is written either as centre and full edge lengths ("loc", "size"; the friendly form)
@@ -280,11 +332,12 @@ class ObjectReader {
     }
     if (r_.error_count() != errors_before) return;
 
-    // Messages about a file's content name the file, so "line 7" can be found.
-    const std::string prefix = mesh->file.empty() ? std::string() : mesh->file + ": ";
+    // Messages about a file's content name the file, so "line 7" can be found. Both the name and
+    // the messages (which quote the OBJ text) come from the scene: escaped for display.
+    const std::string prefix = mesh->file.empty() ? std::string() : jsonio::printable(mesh->file) + ": ";
     const auto built = build_obj_mesh(*mesh, s_.options.max_triangles - s_.triangles);
     if (!built) {
-      for (const util::Error& e : built.error()) r_.error(source_at, prefix + e.message);
+      for (const util::Error& e : built.error()) r_.error(source_at, prefix + jsonio::printable(e.message));
       return;
     }
     s_.triangles += mesh->triangle_count();
@@ -294,9 +347,9 @@ class ObjectReader {
 
   bool read_mesh_file(Mesh& mesh, const Path& at) {
     if (!s_.options.allow_mesh_files) {
-      r_.error(at, fmt::format("mesh file \"{}\" not accepted here: a scene sent to a collector or worker must carry "
+      r_.error(at, fmt::format("mesh file {} not accepted here: a scene sent to a collector or worker must carry "
                                "its meshes inline as \"obj\" (dtraced submit inlines them)",
-                               mesh.file));
+                               jsonio::quoted(mesh.file)));
       return false;
     }
     if (mesh.file.empty()) {
@@ -309,13 +362,13 @@ class ObjectReader {
         relative.is_absolute() || base.empty() ? relative : std::filesystem::path(base) / relative;
     util::Result<std::string> text = util::read_file_limited(path.string(), s_.options.max_obj_bytes);
     if (!text) {
-      r_.error(at, text.error().to_string());
+      r_.error(at, jsonio::printable(text.error().to_string()));  // it names the file
       return false;
     }
     // The canonical form carries the text inside a JSON string, which must be UTF-8.
     if (const std::size_t line = first_invalid_utf8_line(*text); line != 0) {
       r_.error(at, fmt::format("{}: line {}: not valid UTF-8 (an OBJ is inlined into the scene as JSON text)",
-                               mesh.file, line));
+                               jsonio::printable(mesh.file), line));
       return false;
     }
     mesh.obj = std::move(*text);
@@ -411,11 +464,21 @@ class ObjectReader {
       f.boolean("cast_shadows", light.cast_shadows, Need::kOptional);
     }
     if (light.type == LightType::kSphere || light.type == LightType::kDisk) {
-      f.read("radius", light.radius, Need::kRequired, positive_float());
+      f.read("radius", light.radius, Need::kRequired,
+             size_in(kMinLightRadius, kMaxLightRadius, "2^-63 to 2^63: light sampling squares it"));
     }
     if (light.type == LightType::kDisk) f.read("normal", light.normal, Need::kRequired, unit_vector());
     if (light.type == LightType::kRect) read_rect_light(f, light);
     if (r_.error_count() != errors_before) return std::nullopt;
+    for (std::size_t i = 0; i < 3; ++i) {
+      if (light.color[i] * light.intensity > kMaxRadiance) {
+        r_.error(f.has("intensity") ? f.path("intensity") : f.path("color"),
+                 fmt::format("color x intensity must be at most 2^120 ({:g}) per channel, or shading overflows "
+                             "(got {} in channel {})",
+                             kMaxRadiance, light.color[i] * light.intensity, i));
+        return std::nullopt;
+      }
+    }
     return light;
   }
 

@@ -81,4 +81,15 @@ SubmitAnswer classify_submit(const http::ClientResult& result) {
   return {SubmitVerdict::kRetry, fmt::format("unexpected answer: {}", describe_answer(response))};
 }
 
+bool GoneAnswers::refusal(std::uint64_t job, bool marked) {
+  if (jobs_.contains(job)) return !marked;
+  jobs_.insert(job);
+  order_.push_back(job);
+  if (order_.size() > kRememberedGoneJobs) {
+    jobs_.erase(order_.front());
+    order_.pop_front();
+  }
+  return false;
+}
+
 }  // namespace dtraced::worker

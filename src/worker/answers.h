@@ -11,7 +11,9 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <deque>
 #include <optional>
+#include <set>
 #include <string>
 
 #include "http/client.h"
@@ -59,5 +61,23 @@ struct SubmitAnswer {
 
 // The meaning of the answer to PUT /v1/jobs/{job}/tiles/{tile}.
 SubmitAnswer classify_submit(const http::ClientResult& result);
+
+// Jobs answered "gone" (the most recent kRememberedGoneJobs), to tell the normal end of a job
+// from a collector that leases a job again and again and answers "gone" for every tile of it
+// (a refusal, which the worker must back off from: retry_gate.h).
+inline constexpr std::size_t kRememberedGoneJobs = 1024;
+
+class GoneAnswers {
+ public:
+  // A "gone" answer for `job`; `marked` says whether the worker still has the job marked gone
+  // (pipeline.cpp unmarks a job the collector leases again). Returns whether the answer is a
+  // refusal: the job was answered gone before and has been leased again since. The first answer,
+  // and those for tiles in flight when it came, are the news that a job ended, not a refusal.
+  bool refusal(std::uint64_t job, bool marked);
+
+ private:
+  std::set<std::uint64_t> jobs_;
+  std::deque<std::uint64_t> order_;
+};
 
 }  // namespace dtraced::worker

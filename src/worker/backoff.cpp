@@ -23,7 +23,7 @@ Backoff::Ms Backoff::delay(std::uint32_t failures, std::mt19937_64& rng) const {
 }
 
 std::chrono::milliseconds jittered_retry_after(std::chrono::milliseconds asked, std::mt19937_64& rng) {
-  const auto base = std::max(asked, kMinRetryAfter).count();
+  const auto base = std::clamp(asked, kMinRetryAfter, kMaxRetryAfter).count();
   std::uniform_int_distribution<std::chrono::milliseconds::rep> uniform(base, base + base / 2);
   return std::chrono::milliseconds{uniform(rng)};
 }

@@ -17,8 +17,12 @@
 
 namespace dtraced::worker {
 
-// A collector may answer "retry after 0 ms"; asking again at once would spin, so never sooner.
-inline constexpr std::chrono::milliseconds kMinRetryAfter{10};
+// A collector may answer "retry after 0 ms" (or 1 ms): asking again that soon would spin, so
+// never sooner than the shortest wait a collector sends by default (queue.min_retry_after).
+inline constexpr std::chrono::milliseconds kMinRetryAfter{50};
+// Nor later than the longest the protocol lets it ask for (protocol::kMaxRetryAfterMs): a worker
+// told to wait longer (a newer or broken collector) still asks again within a minute.
+inline constexpr std::chrono::milliseconds kMaxRetryAfter{60'000};
 
 class Backoff {
  public:
@@ -43,8 +47,8 @@ class Backoff {
 };
 
 // How long to wait when the collector says "retry after `asked`": uniformly in [base, 1.5 x base]
-// with base = max(asked, kMinRetryAfter); never sooner than asked, so that the workers a collector
-// turns away together do not come back together.
+// with base = `asked` clamped to [kMinRetryAfter, kMaxRetryAfter]; never sooner than asked (up to
+// the ceiling), so that the workers a collector turns away together do not come back together.
 std::chrono::milliseconds jittered_retry_after(std::chrono::milliseconds asked, std::mt19937_64& rng);
 
 }  // namespace dtraced::worker

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <limits>
+#include <utility>
 
 #include <boost/asio/experimental/awaitable_operators.hpp>
 
@@ -26,12 +27,12 @@ async::Awaitable<std::optional<RetryGate::Attempt>> RetryGate::enter(async::Even
   const Ticket ticket(*this);
   for (;;) {
     if (stop.is_set()) co_return std::nullopt;
-    const util::TimePoint not_before = std::max(backoff_until_, idle_until_);
+    const util::TimePoint not_before = std::max({backoff_until_, idle_until_, refused_until_});
     if (clock_.now() < not_before) {
       co_await (async::sleep_until(clock_, not_before, &stop) || changed_.wait());
       continue;
     }
-    const bool probe = failures_ > 0 || idle_;
+    const bool probe = failures_ > 0 || idle_ || refusals_ > 0;
     if (probe && (probing_ || *waiting_.begin() != ticket.number)) {
       co_await (changed_.wait() || stop.wait());
       continue;
@@ -61,6 +62,23 @@ std::uint32_t RetryGate::failed(Attempt& attempt) {
   backoff_until_ = clock_.now() + backoff_.delay(failures_ - 1, rng_);
   changed_.notify_all();
   return failures_;
+}
+
+std::uint32_t RetryGate::refused() {
+  if (refusals_ < std::numeric_limits<std::uint32_t>::max()) ++refusals_;
+  // Later than any wait already set: tiles refused together (in flight at once) do not shorten it.
+  refused_until_ = std::max(refused_until_, clock_.now() + backoff_.delay(refusals_ - 1, rng_));
+  changed_.notify_all();
+  return refusals_;
+}
+
+std::uint32_t RetryGate::accepted() {
+  const std::uint32_t ended = std::exchange(refusals_, 0);
+  if (ended > 0) {
+    refused_until_ = util::TimePoint::min();
+    changed_.notify_all();
+  }
+  return ended;
 }
 
 void RetryGate::idle_for(std::chrono::milliseconds delay) {

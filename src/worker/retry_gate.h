@@ -8,6 +8,13 @@
 // and end the backoff for everyone. Failures are counted in rounds: the requests that were
 // already in flight when the collector went away fail together, and count (and back off) once.
 //
+// Refusals are the other way a collector can fail a worker: it answers every lease, and then
+// refuses the tile (a 4xx that sending it again cannot change, or "job gone" for a job it leased
+// again). Each lease then succeeds, so failures never count up, and without refusals the worker
+// would lease, render and be refused as fast as the network allows (2,100 requests/s were seen).
+// So refusals in a row count on their own, only an acknowledged tile ends them, and while they
+// last leases go one at a time, each after a backoff drawn from the refusals in a row.
+//
 // Time: the gate reads its deadlines from the util::Clock it is given and sleeps on it through
 // async::sleep_until, so a test with a util::ManualClock decides when a backoff is over.
 //
@@ -70,6 +77,14 @@ class RetryGate {
   // request of the same round has already failed (and backed off) for it.
   std::uint32_t failed(Attempt& attempt);
 
+  // The collector would not take a tile it leased: the next request waits a backoff drawn from
+  // the refusals in a row, and requests go one at a time until accepted(). Returns the refusals
+  // in a row counting this one.
+  std::uint32_t refused();
+
+  // The collector took a tile: refusals end. Returns the refusals in a row this ends.
+  std::uint32_t accepted();
+
   // The collector has no work: ask again (one request at a time) no sooner than `delay` from now.
   void idle_for(std::chrono::milliseconds delay);
 
@@ -87,12 +102,14 @@ class RetryGate {
   async::Signal changed_;  // failures, idleness or the probe changed
   std::uint32_t failures_ = 0;
   std::uint64_t round_ = 0;
+  std::uint32_t refusals_ = 0;
   bool probing_ = false;
   std::uint64_t next_ticket_ = 0;
   std::set<std::uint64_t> waiting_;  // tickets of the requests at the gate, oldest first
   bool idle_ = false;
   util::TimePoint backoff_until_ = util::TimePoint::min();
   util::TimePoint idle_until_ = util::TimePoint::min();
+  util::TimePoint refused_until_ = util::TimePoint::min();
 };
 
 }  // namespace dtraced::worker

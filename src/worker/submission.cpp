@@ -8,6 +8,7 @@
 #include <fmt/format.h>
 
 #include "util/log.h"
+#include "worker/log_limiter.h"
 #include "worker/worker_impl.h"
 
 namespace dtraced::worker {
@@ -50,21 +51,33 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
     switch (answer.verdict) {
       case SubmitVerdict::kAcknowledged:
         tiles_submitted.add();
+        if (const std::uint32_t ended = lease_gate.accepted(); ended > 0) {
+          util::log_info("the collector {} takes tiles again after {} refused in a row", url.to_string(), ended);
+        }
         co_return;
       case SubmitVerdict::kJobGone:
+        // Refused only if the collector leased the job again after saying it is gone.
+        if (gone_answers.refusal(tile.job, /*marked=*/gone.contains(tile.job))) lease_gate.refused();
         if (!gone.contains(tile.job)) {
-          util::log_info("job {} is gone ({}): dropping its tiles and leases", tile.job, answer.message);
+          if (const auto held_back = log_limiter.admit(fmt::format("gone {}", tile.job), clock.now())) {
+            util::log_info("job {} is gone ({}): dropping its tiles and leases{}", tile.job, answer.message,
+                           held_back_suffix(*held_back));
+          }
           gone.add(tile.job);
         }
         tiles_dropped.add();
         co_return;
-      case SubmitVerdict::kRejected:
+      case SubmitVerdict::kRejected: {
         tiles_rejected.add();
-        util::log_error(
-            "the collector refused tile {} of job {} ({}): dropping it; sending it again cannot help, so this is a "
-            "bug in the worker or the collector",
-            tile.tile, tile.job, answer.message);
+        const std::uint32_t in_a_row = lease_gate.refused();
+        if (const auto held_back = log_limiter.admit(fmt::format("refused {}", tile.job), clock.now())) {
+          util::log_error(
+              "the collector refused tile {} of job {} ({}): dropping it; sending it again cannot help, so this is a "
+              "bug in the worker or the collector; {} tiles refused in a row, leasing with backoff{}",
+              tile.tile, tile.job, answer.message, in_a_row, held_back_suffix(*held_back));
+        }
         co_return;
+      }
       case SubmitVerdict::kRetry:
         break;
     }

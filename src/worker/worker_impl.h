@@ -32,6 +32,7 @@
 #include "util/clock.h"
 #include "worker/answers.h"
 #include "worker/in_hand.h"
+#include "worker/log_limiter.h"
 #include "worker/retry_gate.h"
 #include "worker/scene_cache.h"
 #include "worker/worker.h"
@@ -128,6 +129,8 @@ struct Worker::Impl {
   async::Event abandon;  // stop submitting: the grace period is over
   InHand in_hand;
   GoneJobs gone;
+  GoneAnswers gone_answers;  // to tell a job's end from a collector that leases it again
+  LogLimiter log_limiter;    // lines that would repeat many times a second
   std::optional<async::net::signal_set> signals;
   util::TimePoint stop_requested_at;
   std::uint32_t slots_live = 0;
