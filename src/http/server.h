@@ -15,6 +15,16 @@
 // gone or hostile. Before closing after a last response the server half-closes and drains what
 // the peer still sends (bounded), so the peer reads the answer instead of a reset.
 //
+// Unauthenticated peers cannot starve authenticated ones. With an `authenticated` predicate, a
+// connection is unauthenticated from accept until a request's header satisfies it; until then it
+// is held to unauthenticated_timeout (for its first request's header and between requests), and
+// when every slot is taken a new connection evicts the oldest unauthenticated one that is waiting
+// for bytes (idle or mid-header: a slowloris) instead of being refused. Authenticated connections
+// are never evicted, so a client with a valid token always finds room unless max_connections
+// authenticated connections are open. There is no per-address cap: farms behind one NAT address
+// (and every test on loopback) would hit it first. Without a predicate every connection counts as
+// authenticated and the cap alone applies.
+//
 // Shutdown is graceful: stop() closes the listener and every idle connection at once, lets
 // requests in flight (being read, handled or written) finish until its deadline, answering them
 // with Connection: close, then cancels the handlers still running and closes their sockets.
@@ -58,6 +68,9 @@ struct ServerLimits {
   std::chrono::milliseconds write_timeout{30'000};           // one whole response
   std::chrono::milliseconds idle_keepalive_timeout{30'000};  // between requests on a connection
   std::size_t max_connections = 256;                         // open sessions; more get 503
+  // Until a request authenticates (see the top of this file): the first request's header
+  // deadline and the idle deadline between requests, each capped by the two above.
+  std::chrono::milliseconds unauthenticated_timeout{5'000};
 };
 
 // Counters since start(); a snapshot, all fields read together.
@@ -68,6 +81,7 @@ struct ServerMetrics {
   std::uint64_t read_timeouts = 0;         // connections dropped at the read deadline
   std::uint64_t rejected_connections = 0;  // connections over max_connections
   std::uint64_t open_connections = 0;      // sessions open now (a gauge)
+  std::uint64_t evicted_connections = 0;   // unauthenticated connections closed to make room
 };
 
 class Server {
@@ -83,10 +97,15 @@ class Server {
   // own limit, so an oversized body is refused with 413 as it arrives. An exception becomes a 500.
   using HeaderCheck = std::function<std::optional<Response>(const Request& header, std::uint64_t& body_limit)>;
 
+  // Optional; called on the server's executor with each request's header until one returns true
+  // on a connection, which is authenticated from then on (see the top of this file). Must not
+  // throw.
+  using Authenticated = std::function<bool(const Request& header)>;
+
   // Nothing happens until start(). `port` 0 asks the kernel for a free port (see port()).
   // Limits must be positive (asserted).
   Server(boost::asio::any_io_executor executor, boost::asio::ip::address address, std::uint16_t port,
-         ServerLimits limits, Handler handler, HeaderCheck header_check = {},
+         ServerLimits limits, Handler handler, HeaderCheck header_check = {}, Authenticated authenticated = {},
          const util::Clock& clock = util::real_clock());
   ~Server();
   Server(const Server&) = delete;
