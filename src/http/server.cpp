@@ -125,6 +125,10 @@ struct Server::Impl {
   bool evict_oldest_unauthenticated();
   void release_slot(Connection& conn);
   void authenticate(Connection& conn, const Request& header);
+  // The 503 a large answer gets over max_held_response_bytes, or nullopt with its bytes counted
+  // as held (in `held`, to give back with release_held once written).
+  std::optional<Response> hold_large_response(const Response& res, std::uint64_t& held);
+  void release_held(std::uint64_t held);
   static void on_finished(const std::shared_ptr<Impl>& self, std::list<Connection>::iterator it,
                           std::exception_ptr error);
   static net::awaitable<void> session(std::shared_ptr<Impl> self, Connection& conn);
@@ -155,6 +159,7 @@ struct Server::Impl {
   tcp::acceptor acceptor;
   std::list<Connection> connections;  // stable addresses: sessions hold a reference to theirs
   std::size_t sessions = 0;           // connections holding a slot (not rejecting, not evicted)
+  std::uint64_t held_bytes = 0;       // large answers handed back by the handler, not yet written
   std::size_t rejecting = 0;
   bool started = false;
   bool stopping = false;                 // no new connections; answers say Connection: close
@@ -320,11 +325,15 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     Response res = co_await call_handler(*self, std::move(req));
 
     const bool keep_alive = client_keep_alive && res.keep_alive() && !self->stopping;
+    std::uint64_t held = 0;
+    if (std::optional<Response> refused = self->hold_large_response(res, held)) res = std::move(*refused);
     res.version(version);
     res.keep_alive(keep_alive);
     self->count_response(res.result_int());
     conn.stream.expires_after(limits.write_timeout);
     std::tie(ec, n) = co_await bhttp::async_write(conn.stream, res, kAwaitTuple);
+    res = Response();  // the body is written (or never will be): free it before lingering
+    self->release_held(held);
     if (ec) co_return;
     if (!keep_alive) {
       co_await linger_and_close(conn);
@@ -354,6 +363,30 @@ void Server::Impl::release_slot(Connection& conn) {
 
 void Server::Impl::authenticate(Connection& conn, const Request& header) {
   if (!conn.authenticated && authenticated(header)) conn.authenticated = true;
+}
+
+std::optional<Response> Server::Impl::hold_large_response(const Response& res, std::uint64_t& held) {
+  held = 0;
+  const std::uint64_t size = res.body().size();
+  if (size < kLargeResponseBytes) return std::nullopt;
+  if (held_bytes > 0 && held_bytes + size > limits.max_held_response_bytes) {
+    count(&ServerMetrics::refused_large_responses);
+    Response busy = make_error(Status::service_unavailable,
+                               fmt::format("{} bytes of answers are waiting for slow readers (limit {}); retry later",
+                                           held_bytes, limits.max_held_response_bytes));
+    busy.set(bhttp::field::retry_after, "1");
+    return busy;
+  }
+  held_bytes += size;
+  held = size;
+  count(&ServerMetrics::held_response_bytes, static_cast<std::int64_t>(size));
+  return std::nullopt;
+}
+
+void Server::Impl::release_held(std::uint64_t held) {
+  if (held == 0) return;
+  held_bytes -= held;
+  count(&ServerMetrics::held_response_bytes, -static_cast<std::int64_t>(held));
 }
 
 net::awaitable<void> Server::Impl::reject(std::shared_ptr<Impl> self, Connection& conn) {
@@ -464,7 +497,8 @@ Server::Server(net::any_io_executor executor, net::ip::address address, std::uin
                                    std::move(header_check), std::move(authenticated), clock)) {
   assert(limits.max_header_bytes > 0 && limits.max_body_bytes > 0 && limits.max_connections > 0);
   assert(limits.read_timeout.count() > 0 && limits.write_timeout.count() > 0 &&
-         limits.idle_keepalive_timeout.count() > 0 && limits.unauthenticated_timeout.count() > 0);
+         limits.idle_keepalive_timeout.count() > 0 && limits.unauthenticated_timeout.count() > 0 &&
+         limits.max_held_response_bytes > 0);
 }
 
 Server::~Server() {
