@@ -57,6 +57,7 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   if (a.max_body_bytes) c.limits.max_body_bytes = *a.max_body_bytes;
   if (a.read_timeout_ms) c.limits.read_timeout = std::chrono::milliseconds(*a.read_timeout_ms);
   if (a.write_timeout_ms) c.limits.write_timeout = std::chrono::milliseconds(*a.write_timeout_ms);
+  if (a.idle_timeout_ms) c.limits.idle_keepalive_timeout = std::chrono::milliseconds(*a.idle_timeout_ms);
   if (a.reoffer_floor_ms) c.queue.reoffer_floor = std::chrono::milliseconds(*a.reoffer_floor_ms);
   if (a.reoffer_factor) c.queue.reoffer_factor = *a.reoffer_factor;
   if (a.max_copies) c.queue.max_copies = *a.max_copies;
@@ -142,6 +143,8 @@ const NumberFlag kNumberFlags[] = {
      "Time a client has to send its request"},
     {kCollectorGroup, "--write-timeout-ms", &RoleArgs::write_timeout_ms, 10, 3600000,
      "Time a client has to read an answer"},
+    {kCollectorGroup, "--idle-timeout-ms", &RoleArgs::idle_timeout_ms, 10, 3600000,
+     "Time an authenticated connection may idle between requests"},
     {kCollectorGroup, "--reoffer-floor-ms", &RoleArgs::reoffer_floor_ms, 1, 86400000,
      "A leased tile is not offered again before this"},
     {kCollectorGroup, "--reoffer-factor", &RoleArgs::reoffer_factor, 1, 1000,

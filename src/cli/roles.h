@@ -23,8 +23,8 @@ struct RoleArgs {
   std::string listen = "127.0.0.1:7878";
   std::string state_dir;
   std::string output_dir;
-  std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, reoffer_floor_ms, max_copies,
-      shutdown_grace_ms, cpu_threads;
+  std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, idle_timeout_ms, reoffer_floor_ms,
+      max_copies, shutdown_grace_ms, cpu_threads;
   std::optional<std::uint64_t> max_body_bytes;
   std::optional<double> reoffer_factor;
   std::string scene;           // one-shot job

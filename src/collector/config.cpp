@@ -32,6 +32,8 @@ void check_limits(const http::ServerLimits& l, util::Errors& errors) {
   if (l.read_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.read_timeout"});
   if (l.write_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.write_timeout"});
   if (l.idle_keepalive_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.idle_keepalive_timeout"});
+  if (l.unauthenticated_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.unauthenticated_timeout"});
+  if (l.max_held_response_bytes == 0) errors.push_back({"must be > 0", "limits.max_held_response_bytes"});
   if (l.max_connections == 0) errors.push_back({"must be > 0", "limits.max_connections"});
 }
 

@@ -73,6 +73,13 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_http_rejected_connections_total", "counter", "Connections refused over the connection cap.",
         m.http.rejected_connections);
   w.one("dtraced_http_open_connections", "gauge", "Open HTTP connections.", m.http.open_connections);
+  w.one("dtraced_http_evicted_connections_total", "counter",
+        "Unauthenticated connections closed to make room for a new one.", m.http.evicted_connections);
+  w.one("dtraced_http_held_response_bytes", "gauge", "Bytes of large answers waiting for their readers.",
+        m.http.held_response_bytes);
+  w.one("dtraced_http_refused_large_responses_total", "counter",
+        "Large answers replaced by 503 because too many bytes were waiting for slow readers.",
+        m.http.refused_large_responses);
   w.one("dtraced_auth_failures_total", "counter", "Requests refused for a missing or wrong token.", c.auth_failures);
 
   w.one("dtraced_store_commit_batches_total", "counter", "Tile transactions attempted by the store writer.",

@@ -24,6 +24,8 @@ std::optional<http::Response> check_request_header(Context& c, const http::Reque
   return std::nullopt;
 }
 
+bool is_authenticated(const Context& c, const http::Request& head) { return c.token.accepts(head); }
+
 async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
   auto admitted = admit_counted(c, req);
   if (!admitted) co_return respond(admitted.error());

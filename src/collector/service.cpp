@@ -73,7 +73,7 @@ util::Status Collector::bind() {
       c.ioc->get_executor(), address, c.config.port, limits,
       [&c](http::Request req) { return handle_request(c, std::move(req)); },
       [&c](const http::Request& head, std::uint64_t& body_limit) { return check_request_header(c, head, body_limit); },
-      c.clock);
+      [&c](const http::Request& head) { return is_authenticated(c, head); }, c.clock);
   ec = c.server->start();
   if (ec) {
     c.server.reset();

@@ -93,10 +93,14 @@ std::string loggable_target(const Request& req) {
 
 // One accepted socket. Lives in Impl::connections from accept until its coroutine has ended.
 struct Connection {
-  Connection(tcp::socket socket, bool rejecting) : stream(std::move(socket)), rejecting(rejecting) {}
+  Connection(tcp::socket socket, bool rejecting, bool authenticated)
+      : stream(std::move(socket)), rejecting(rejecting), authenticated(authenticated) {}
 
   beast::tcp_stream stream;
   const bool rejecting;             // over the cap: answered 503 and closed
+  bool authenticated;               // a request's header passed the predicate (or there is none)
+  bool reading = false;             // waiting for or reading a request: an unauthenticated one may be evicted
+  bool holds_slot = false;          // counted in sessions (and unauthenticated) until released
   bool busy = false;                // a request is being read, handled or written: stop() lets it finish
   bool finished = false;            // its coroutine has completed; erased soon after
   net::cancellation_signal cancel;  // cancels the coroutine (and the handler) when stop() gives up
@@ -106,17 +110,25 @@ struct Connection {
 
 struct Server::Impl {
   Impl(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-       Handler handler, HeaderCheck header_check, const util::Clock& clock)
+       Handler handler, HeaderCheck header_check, Authenticated authenticated, const util::Clock& clock)
       : executor(executor),
         endpoint(address, port),
         limits(limits),
         handler(std::move(handler)),
         header_check(std::move(header_check)),
+        authenticated(std::move(authenticated)),
         clock(clock),
         acceptor(executor) {}
 
   static net::awaitable<void> accept_loop(std::shared_ptr<Impl> self);
   static void spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, bool rejecting);
+  bool evict_oldest_unauthenticated();
+  void release_slot(Connection& conn);
+  void authenticate(Connection& conn, const Request& header);
+  // The 503 a large answer gets over max_held_response_bytes, or nullopt with its bytes counted
+  // as held (in `held`, to give back with release_held once written).
+  std::optional<Response> hold_large_response(const Response& res, std::uint64_t& held);
+  void release_held(std::uint64_t held);
   static void on_finished(const std::shared_ptr<Impl>& self, std::list<Connection>::iterator it,
                           std::exception_ptr error);
   static net::awaitable<void> session(std::shared_ptr<Impl> self, Connection& conn);
@@ -139,13 +151,15 @@ struct Server::Impl {
   const tcp::endpoint endpoint;
   const ServerLimits limits;
   const Handler handler;
-  const HeaderCheck header_check;  // may be empty
+  const HeaderCheck header_check;     // may be empty
+  const Authenticated authenticated;  // may be empty: every connection is authenticated
   const util::Clock& clock;
 
   // Owned by the executor.
   tcp::acceptor acceptor;
   std::list<Connection> connections;  // stable addresses: sessions hold a reference to theirs
-  std::size_t sessions = 0;           // connections that are not rejecting
+  std::size_t sessions = 0;           // connections holding a slot (not rejecting, not evicted)
+  std::uint64_t held_bytes = 0;       // large answers handed back by the handler, not yet written
   std::size_t rejecting = 0;
   bool started = false;
   bool stopping = false;                 // no new connections; answers say Connection: close
@@ -168,6 +182,8 @@ net::awaitable<void> Server::Impl::accept_loop(std::shared_ptr<Impl> self) {
       co_await async::sleep_for(self->clock, kAcceptErrorBackoff);
       continue;
     }
+    // Room for the newcomer: the oldest unauthenticated connection waiting for bytes goes first.
+    if (self->sessions >= self->limits.max_connections) self->evict_oldest_unauthenticated();
     if (self->sessions >= self->limits.max_connections) {
       self->count(&ServerMetrics::rejected_connections);
       if (self->rejecting < kMaxRejectingConnections) spawn(self, std::move(socket), /*rejecting=*/true);
@@ -181,10 +197,12 @@ void Server::Impl::spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, 
   // Requests and answers are small and written whole: Nagle would only add latency.
   error_code ignored;
   socket.set_option(tcp::no_delay(true), ignored);
-  const auto it = self->connections.emplace(self->connections.end(), std::move(socket), rejecting);
+  const auto it = self->connections.emplace(self->connections.end(), std::move(socket), rejecting,
+                                            /*authenticated=*/!self->authenticated);
   if (rejecting) {
     ++self->rejecting;
   } else {
+    it->holds_slot = true;
     ++self->sessions;
     self->count(&ServerMetrics::open_connections);
   }
@@ -202,8 +220,7 @@ void Server::Impl::on_finished(const std::shared_ptr<Impl>& self, std::list<Conn
   if (it->rejecting) {
     --self->rejecting;
   } else {
-    --self->sessions;
-    self->count(&ServerMetrics::open_connections, -1);
+    self->release_slot(*it);
   }
   // Erase later: this completion handler runs inside co_spawn's machinery, which still holds the
   // cancellation slot that lives in *it.
@@ -221,8 +238,11 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     // Between requests. A pipelined request may already be in the buffer; otherwise wait for the
     // first byte of the next one.
     conn.busy = false;
+    conn.reading = true;
     if (buffer.size() == 0) {
-      conn.stream.expires_after(first ? limits.read_timeout : limits.idle_keepalive_timeout);
+      auto wait = first ? limits.read_timeout : limits.idle_keepalive_timeout;
+      if (!conn.authenticated) wait = std::min(wait, limits.unauthenticated_timeout);
+      conn.stream.expires_after(wait);
       auto [ec, n] = co_await conn.stream.async_read_some(buffer.prepare(kReadChunkBytes), kAwaitTuple);
       if (ec) {
         // A fresh connection that never speaks counts as a stalled request; an idle keep-alive
@@ -236,8 +256,12 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     conn.busy = true;
 
     // One whole request before its deadline, within the size limits.
-    const auto read_deadline = std::chrono::steady_clock::now() + limits.read_timeout;  // a socket deadline
-    conn.stream.expires_at(read_deadline);
+    // Socket deadlines; an unauthenticated peer has less time for the header.
+    const auto now = std::chrono::steady_clock::now();
+    const auto read_deadline = now + limits.read_timeout;
+    const auto header_deadline =
+        conn.authenticated ? read_deadline : std::min(read_deadline, now + limits.unauthenticated_timeout);
+    conn.stream.expires_at(header_deadline);
     bhttp::request_parser<bhttp::string_body> parser;
     parser.header_limit(limits.max_header_bytes);
     // No body limit while the header is read: Beast would refuse a Content-Length over it when the
@@ -248,6 +272,8 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     std::tie(ec, n) = co_await bhttp::async_read_header(conn.stream, buffer, parser, kAwaitTuple);
     ServerLimits request_limits = limits;  // the body limit as the header check leaves it
     if (!ec) {
+      self->authenticate(conn, parser.get());
+      if (conn.authenticated) conn.stream.expires_at(read_deadline);
       std::optional<Response> early;
       try {
         std::uint64_t body_limit = limits.max_body_bytes;
@@ -277,7 +303,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
         conn.stream.expires_after(limits.write_timeout);
         bhttp::response<bhttp::empty_body> go_on{Status::continue_, parser.get().version()};
         std::tie(ec, n) = co_await bhttp::async_write(conn.stream, go_on, kAwaitTuple);
-        conn.stream.expires_at(read_deadline);
+        conn.stream.expires_at(conn.authenticated ? read_deadline : header_deadline);
       }
       if (!ec) std::tie(ec, n) = co_await bhttp::async_read(conn.stream, buffer, parser, kAwaitTuple);
     }
@@ -291,6 +317,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
       co_return;
     }
 
+    conn.reading = false;
     Request req = parser.release();
     const bool client_keep_alive = req.keep_alive();
     const unsigned version = req.version();
@@ -298,17 +325,68 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     Response res = co_await call_handler(*self, std::move(req));
 
     const bool keep_alive = client_keep_alive && res.keep_alive() && !self->stopping;
+    std::uint64_t held = 0;
+    if (std::optional<Response> refused = self->hold_large_response(res, held)) res = std::move(*refused);
     res.version(version);
     res.keep_alive(keep_alive);
     self->count_response(res.result_int());
     conn.stream.expires_after(limits.write_timeout);
     std::tie(ec, n) = co_await bhttp::async_write(conn.stream, res, kAwaitTuple);
+    res = Response();  // the body is written (or never will be): free it before lingering
+    self->release_held(held);
     if (ec) co_return;
     if (!keep_alive) {
       co_await linger_and_close(conn);
       co_return;
     }
   }
+}
+
+bool Server::Impl::evict_oldest_unauthenticated() {
+  for (Connection& conn : connections) {
+    if (conn.holds_slot && conn.reading && !conn.authenticated && !conn.finished) {
+      release_slot(conn);
+      count(&ServerMetrics::evicted_connections);
+      conn.stream.close();  // its read ends with an error and the session returns
+      return true;
+    }
+  }
+  return false;
+}
+
+void Server::Impl::release_slot(Connection& conn) {
+  if (!conn.holds_slot) return;
+  conn.holds_slot = false;
+  --sessions;
+  count(&ServerMetrics::open_connections, -1);
+}
+
+void Server::Impl::authenticate(Connection& conn, const Request& header) {
+  if (!conn.authenticated && authenticated(header)) conn.authenticated = true;
+}
+
+std::optional<Response> Server::Impl::hold_large_response(const Response& res, std::uint64_t& held) {
+  held = 0;
+  const std::uint64_t size = res.body().size();
+  if (size < kLargeResponseBytes) return std::nullopt;
+  if (held_bytes > 0 && held_bytes + size > limits.max_held_response_bytes) {
+    count(&ServerMetrics::refused_large_responses);
+    Response busy = make_error(Status::service_unavailable,
+                               fmt::format("{} bytes of answers are waiting for slow readers (limit {}); retry later",
+                                           held_bytes, limits.max_held_response_bytes));
+    busy.set(bhttp::field::retry_after, "1");
+    return busy;
+  }
+  held_bytes += size;
+  held = size;
+  count(&ServerMetrics::held_response_bytes, static_cast<std::int64_t>(size));
+  return std::nullopt;
+}
+
+void Server::Impl::release_held(std::uint64_t held) {
+  if (held == 0) return;
+  held_bytes -= held;
+  count(&ServerMetrics::held_response_bytes, -static_cast<std::int64_t>(held));
 }
 
 net::awaitable<void> Server::Impl::reject(std::shared_ptr<Impl> self, Connection& conn) {
@@ -414,12 +492,13 @@ void Server::Impl::count_response(unsigned status) {
 }
 
 Server::Server(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-               Handler handler, HeaderCheck header_check, const util::Clock& clock)
+               Handler handler, HeaderCheck header_check, Authenticated authenticated, const util::Clock& clock)
     : impl_(std::make_shared<Impl>(std::move(executor), address, port, limits, std::move(handler),
-                                   std::move(header_check), clock)) {
+                                   std::move(header_check), std::move(authenticated), clock)) {
   assert(limits.max_header_bytes > 0 && limits.max_body_bytes > 0 && limits.max_connections > 0);
   assert(limits.read_timeout.count() > 0 && limits.write_timeout.count() > 0 &&
-         limits.idle_keepalive_timeout.count() > 0);
+         limits.idle_keepalive_timeout.count() > 0 && limits.unauthenticated_timeout.count() > 0 &&
+         limits.max_held_response_bytes > 0);
 }
 
 Server::~Server() {

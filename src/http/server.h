@@ -10,10 +10,26 @@
 // connection is closed:
 //   malformed request -> 400, body over the limit -> 413, header over the limit -> 431,
 //   handler threw -> 500 (logged; the message does not leak the exception),
-//   max_connections sessions already open -> 503 (with Retry-After).
+//   max_connections sessions already open -> 503 (with Retry-After),
+//   a large answer while others wait for slow readers past max_held_response_bytes -> 503.
 // A request still incomplete at its read deadline is dropped without an answer: its client is
 // gone or hostile. Before closing after a last response the server half-closes and drains what
 // the peer still sends (bounded), so the peer reads the answer instead of a reset.
+//
+// Unauthenticated peers cannot starve authenticated ones. With an `authenticated` predicate, a
+// connection is unauthenticated from accept until a request's header satisfies it; until then it
+// is held to unauthenticated_timeout (for its first request's header and between requests), and
+// when every slot is taken a new connection evicts the oldest unauthenticated one that is waiting
+// for bytes (idle or mid-header: a slowloris) instead of being refused. Authenticated connections
+// are never evicted, so a client with a valid token always finds room unless max_connections
+// authenticated connections are open. There is no per-address cap: farms behind one NAT address
+// (and every test on loopback) would hit it first. Without a predicate every connection counts as
+// authenticated and the cap alone applies.
+//
+// Large answers (kLargeResponseBytes and over) are counted from the handler's return until
+// written or failed; a slow reader holds its answer up to write_timeout. One that would take the
+// total past max_held_response_bytes gets 503 with Retry-After instead (unless none is held, so
+// an answer over the cap alone can still be sent), which bounds the memory slow readers pin.
 //
 // Shutdown is graceful: stop() closes the listener and every idle connection at once, lets
 // requests in flight (being read, handled or written) finish until its deadline, answering them
@@ -58,16 +74,27 @@ struct ServerLimits {
   std::chrono::milliseconds write_timeout{30'000};           // one whole response
   std::chrono::milliseconds idle_keepalive_timeout{30'000};  // between requests on a connection
   std::size_t max_connections = 256;                         // open sessions; more get 503
+  // Until a request authenticates (see the top of this file): the first request's header
+  // deadline and the idle deadline between requests, each capped by the two above.
+  std::chrono::milliseconds unauthenticated_timeout{5'000};
+  std::uint64_t max_held_response_bytes = 256ull << 20;  // large answers waiting to be written
 };
+
+// Answers of this size and over count against ServerLimits::max_held_response_bytes; smaller
+// ones are bounded by max_connections alone.
+inline constexpr std::uint64_t kLargeResponseBytes = 64 * 1024;
 
 // Counters since start(); a snapshot, all fields read together.
 struct ServerMetrics {
   std::uint64_t requests = 0;  // responses sent, the server's own 4xx and 5xx (and 503s) included
   std::uint64_t responses_4xx = 0;
   std::uint64_t responses_5xx = 0;
-  std::uint64_t read_timeouts = 0;         // connections dropped at the read deadline
-  std::uint64_t rejected_connections = 0;  // connections over max_connections
-  std::uint64_t open_connections = 0;      // sessions open now (a gauge)
+  std::uint64_t read_timeouts = 0;            // connections dropped at the read deadline
+  std::uint64_t rejected_connections = 0;     // connections over max_connections
+  std::uint64_t open_connections = 0;         // sessions open now (a gauge)
+  std::uint64_t evicted_connections = 0;      // unauthenticated connections closed to make room
+  std::uint64_t held_response_bytes = 0;      // large answers not yet written (a gauge)
+  std::uint64_t refused_large_responses = 0;  // large answers replaced by 503 over the cap
 };
 
 class Server {
@@ -83,10 +110,15 @@ class Server {
   // own limit, so an oversized body is refused with 413 as it arrives. An exception becomes a 500.
   using HeaderCheck = std::function<std::optional<Response>(const Request& header, std::uint64_t& body_limit)>;
 
+  // Optional; called on the server's executor with each request's header until one returns true
+  // on a connection, which is authenticated from then on (see the top of this file). Must not
+  // throw.
+  using Authenticated = std::function<bool(const Request& header)>;
+
   // Nothing happens until start(). `port` 0 asks the kernel for a free port (see port()).
   // Limits must be positive (asserted).
   Server(boost::asio::any_io_executor executor, boost::asio::ip::address address, std::uint16_t port,
-         ServerLimits limits, Handler handler, HeaderCheck header_check = {},
+         ServerLimits limits, Handler handler, HeaderCheck header_check = {}, Authenticated authenticated = {},
          const util::Clock& clock = util::real_clock());
   ~Server();
   Server(const Server&) = delete;
