@@ -81,3 +81,36 @@ Status write_file_atomic(const std::string& path, std::string_view bytes) {
 }
 
 }  // namespace dtraced::util
+
+namespace dtraced::util {
+
+Result<NewFile> write_file_new(const std::string& path, std::string_view bytes) {
+  // A staging name of the same pattern as write_file_atomic's temporary files, reserved with
+  // mkstemp, filled (atomically, flushed) by write_file_atomic, then linked to `path`.
+  std::string staging = path + ".tmp.XXXXXX";
+  const int fd = ::mkstemp(staging.data());
+  if (fd < 0) {
+    return Error(fmt::format("cannot create a temporary file: {}", std::strerror(errno)), "", path);
+  }
+  ::close(fd);
+  if (Status written = write_file_atomic(staging, bytes); !written) {
+    ::unlink(staging.c_str());
+    return written.error();
+  }
+  const int linked = ::link(staging.c_str(), path.c_str());
+  const int link_errno = errno;
+  ::unlink(staging.c_str());
+  if (linked != 0) {
+    if (link_errno == EEXIST) return NewFile::kExists;
+    return Error(fmt::format("cannot link into place: {}", std::strerror(link_errno)), "", path);
+  }
+  const std::string dir = std::filesystem::path(path).parent_path().string();
+  const int dfd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dfd >= 0) {
+    ::fsync(dfd);
+    ::close(dfd);
+  }
+  return NewFile::kWritten;
+}
+
+}  // namespace dtraced::util

@@ -20,3 +20,19 @@ Result<std::string> read_file_limited(const std::string& path, std::uint64_t max
 Status write_file_atomic(const std::string& path, std::string_view bytes);
 
 }  // namespace dtraced::util
+
+namespace dtraced::util {
+
+// What write_file_new found.
+enum class NewFile {
+  kWritten,  // `path` did not exist and now holds the bytes
+  kExists,   // a file of that name exists: nothing was changed
+};
+
+// Writes `bytes` to `path` only if nothing of that name exists, never replacing a file: the bytes
+// go to a temporary file beside it (written as write_file_atomic writes) which is then link(2)ed
+// into place, and link, unlike rename, fails when the name is taken. So two writers of one name,
+// in one process or two, cannot overwrite each other: one gets kWritten, the other kExists.
+Result<NewFile> write_file_new(const std::string& path, std::string_view bytes);
+
+}  // namespace dtraced::util
