@@ -137,3 +137,22 @@ TEST_CASE("write_file_new writes a new file and leaves an existing one alone", "
   REQUIRE_FALSE(nowhere);
   CHECK(nowhere.error().file == (dir.path() / "no" / "f").string());
 }
+
+TEST_CASE("check_output_path names a missing directory, a file in its place, and a directory as output",
+          "[util][file]") {
+  TempDir dir;
+  CHECK(dtraced::util::check_output_path((dir.path() / "x.png").string()));
+  CHECK(dtraced::util::check_output_path("relative.png"));
+  const auto missing = dtraced::util::check_output_path((dir.path() / "nope" / "x.png").string());
+  REQUIRE_FALSE(missing);
+  CHECK(missing.error().to_string() ==
+        (dir.path() / "nope").string() + ": the output directory does not exist (No such file or directory)");
+  write_text(dir.path() / "file", "");
+  const auto not_dir = dtraced::util::check_output_path((dir.path() / "file" / "x.png").string());
+  REQUIRE_FALSE(not_dir);
+  CHECK(not_dir.error().file == (dir.path() / "file").string());
+  fs::create_directory(dir.path() / "d.png");
+  const auto is_dir = dtraced::util::check_output_path((dir.path() / "d.png").string());
+  REQUIRE_FALSE(is_dir);
+  CHECK(is_dir.error().message == "the output is a directory");
+}

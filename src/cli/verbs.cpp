@@ -25,6 +25,7 @@ namespace {
 
 constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
+constexpr int kExitUsage = 2;
 
 // Whether `r` holds a value; prints its error on stderr when it does not.
 template <typename R>
@@ -70,11 +71,32 @@ image::ImageRGBf spp_image(const scene::RenderSettings& s, const std::vector<std
   return out;
 }
 
+// kExitUsage, with the problem on stderr, when an output file (the image, the --spp-map) has an
+// unknown format or a directory that is missing or not writable; kExitOk otherwise.
+int check_outputs(const RenderArgs& args) {
+  const std::pair<const std::string*, const char*> outputs[] = {{&args.output, "--output"},
+                                                                {&args.spp_map, "--spp-map"}};
+  for (const auto& [path, flag] : outputs) {
+    if (path->empty() && path == &args.spp_map) continue;
+    if (!image::format_from_path(*path)) {
+      fmt::print(stderr, "{}: {}: unsupported format (use {})\n", flag, *path, image::extension_list());
+      return kExitUsage;
+    }
+    if (const util::Status ok = util::check_output_path(*path); !ok) {
+      fmt::print(stderr, "{}: {}\n", flag, ok.error().to_string());
+      return kExitUsage;
+    }
+  }
+  return kExitOk;
+}
+
 }  // namespace
 
 std::string_view version_string() { return DTRACED_VERSION; }
 
 int run_render(const RenderArgs& args) {
+  // The outputs first: a render may take hours, and a typo in a path should not cost them.
+  if (const int usage = check_outputs(args); usage != kExitOk) return usage;
   scene::LoadResult loaded = scene::load_scene_file(args.scene);
   if (!loaded.ok()) {
     print_errors(loaded);
@@ -84,14 +106,6 @@ int run_render(const RenderArgs& args) {
   desc.render = scene::apply(args.overrides, desc.render);
   const scene::RenderSettings& s = desc.render;
   const std::uint32_t tile_size = scene::tile_size_or_default(args.overrides);
-  if (!image::format_from_path(args.output)) {
-    fmt::print(stderr, "{}: unsupported output format (use {})\n", args.output, image::extension_list());
-    return kExitFailed;
-  }
-  if (!args.spp_map.empty() && !image::format_from_path(args.spp_map)) {
-    fmt::print(stderr, "{}: unsupported --spp-map format (use {})\n", args.spp_map, image::extension_list());
-    return kExitFailed;
-  }
 
   const auto build_start = std::chrono::steady_clock::now();
   const render::RenderScene rs = render::RenderScene::build(desc, args.isa);

@@ -113,4 +113,19 @@ Result<NewFile> write_file_new(const std::string& path, std::string_view bytes) 
   return NewFile::kWritten;
 }
 
+Status check_output_path(const std::string& path) {
+  const std::filesystem::path p(path);
+  const std::string dir = p.has_parent_path() ? p.parent_path().string() : std::string(".");
+  struct stat st {};
+  if (::stat(dir.c_str(), &st) != 0) {
+    return Error(fmt::format("the output directory does not exist ({})", std::strerror(errno)), "", dir);
+  }
+  if (!S_ISDIR(st.st_mode)) return Error("the output's directory is not a directory", "", dir);
+  if (::access(dir.c_str(), W_OK | X_OK) != 0) {
+    return Error(fmt::format("the output directory is not writable ({})", std::strerror(errno)), "", dir);
+  }
+  if (::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode)) return Error("the output is a directory", "", path);
+  return {};
+}
+
 }  // namespace dtraced::util

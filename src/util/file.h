@@ -35,4 +35,9 @@ enum class NewFile {
 // in one process or two, cannot overwrite each other: one gets kWritten, the other kExists.
 Result<NewFile> write_file_new(const std::string& path, std::string_view bytes);
 
+// Problems with `path` as a file about to be created or replaced: its directory ("." when it has
+// none) must exist, be a directory and be writable, and `path` itself must not be a directory.
+// The error names the directory or the path. For checks before long work, not a guarantee.
+Status check_output_path(const std::string& path);
+
 }  // namespace dtraced::util
