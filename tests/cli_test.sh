@@ -83,7 +83,7 @@ check "non-finite background is a usage error" 2 "$DTRACED" render "$SCENES/snow
 check "background needs three channels" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/x.png" --background 1,0
 check "compare with threshold fails" 1 "$DTRACED" compare "$work/a.pfm" "$work/c.pfm" --max-rmse 0
 check "compare different sizes" 1 "$DTRACED" compare "$work/a.pfm" "$work/a16.png"
-check "unsupported output extension" 1 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.tiff" -q
+check "unsupported output extension" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.tiff" -q
 check "generate" 0 "$DTRACED" generate --count 500 --seed 3 -o "$work/gen.json"
 check "generated scene validates" 0 "$DTRACED" validate "$work/gen.json"
 
@@ -164,7 +164,7 @@ check "spp maps match across tilings" 0 cmp "$work/spp.pfm" "$work/spp2.pfm"
 check "a 16-bit png spp map" 0 "$DTRACED" render "$SCENES/showcase.json" -o "$work/ad3.png" "${ADAPT[@]}" --spp-map "$work/spp.png" -q
 check "an error target above 1 is a usage error" 2 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --error-target 2
 check "min samples 0 is a usage error" 2 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --min-samples 0
-check "a bad spp map extension" 1 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --width 8 --height 8 --spp-map "$work/x.tiff"
+check "a bad spp map extension" 2 "$DTRACED" render "$SCENES/showcase.json" -o "$work/x.png" --width 8 --height 8 --spp-map "$work/x.tiff"
 check "submit takes adaptive flags" 2 "$DTRACED" submit "$SCENES/showcase.json" --collector http://127.0.0.1:1 --error-target -1
 
 for verb in submit list status fetch cancel; do
@@ -262,6 +262,20 @@ expect_text "validate warns about the missing lights" "$work/validate-warnings" 
 check "render a scene without lights" 0 "$DTRACED" render "$work/nolights.json" -o "$work/nolights.png" --width 8 --height 8 -q
 grep '^warning:' "$work/err" >"$work/render-warnings"
 check "render prints the same warnings as validate" 0 cmp "$work/validate-warnings" "$work/render-warnings"
+
+# Output paths are checked before the render starts (which may take hours): the error names the
+# flag and the directory, the exit code is 2, and nothing is written.
+check "render into a missing directory is a usage error" 2 "$DTRACED" render "$SCENES/showcase.json" -o "$work/missing/x.png" -q
+expect_text "and names the directory" "$work/err" "^--output: $work/missing: the output directory does not exist"
+echo "not a directory" >"$work/plainfile"
+check "render into a file's path is a usage error" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/plainfile/x.png" -q
+expect_text "and names the file in the way" "$work/err" "$work/plainfile: the output's directory is not a directory"
+check "an spp map into a missing directory is a usage error" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/y.png" --spp-map "$work/missing/s.pfm" -q
+expect_text "and names --spp-map" "$work/err" "^--spp-map: $work/missing"
+[ ! -e "$work/y.png" ] && passed=$((passed + 1)) || { failed=$((failed + 1)); echo "FAIL: a refused render wrote its image"; }
+check "a one-shot collector's output in a missing directory is a usage error" 2 "$DTRACED" --role collector --scene "$SCENES/snowman.json" -o "$work/missing/shot.png" --state-dir "$work/s1" --token-file "$work/token" --listen 127.0.0.1:0
+expect_text "and names the directory" "$work/err" "$work/missing: the output directory does not exist"
+[ ! -e "$work/s1" ] && passed=$((passed + 1)) || { failed=$((failed + 1)); echo "FAIL: a refused one-shot collector made its state directory"; }
 
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]

@@ -19,6 +19,7 @@
 #include "collector/config.h"
 #include "collector/service.h"
 #include "image/image_io.h"
+#include "util/file.h"
 #include "util/result.h"
 #include "worker/config.h"
 #include "worker/worker.h"
@@ -79,6 +80,8 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
         return kExitUsage;
       }
       c.output_dir = out.parent_path().string();
+      // A directory the user named must exist (as render's): found now, not after the render.
+      if (const util::Status ok = util::check_output_path(a.output); !ok) return usage_error(ok.error());
     } else if (a.output_dir.empty()) {
       c.output_dir = ".";
     }

@@ -1,15 +1,22 @@
 #include "cli/verbs.h"
 
+#include <pthread.h>
+#include <signal.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
+#include <optional>
 #include <system_error>
+#include <thread>
 
 #include <fmt/format.h>
 
+#include "cli/partial_render.h"
 #include "image/image_io.h"
 #include "image/metrics.h"
 #include "render/local_render.h"
@@ -17,6 +24,7 @@
 #include "scene/digest.h"
 #include "scene/generate.h"
 #include "scene/load.h"
+#include "scene/tiling.h"
 #include "util/file.h"
 
 namespace dtraced::cli {
@@ -25,6 +33,7 @@ namespace {
 
 constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
+constexpr int kExitUsage = 2;
 
 // Whether `r` holds a value; prints its error on stderr when it does not.
 template <typename R>
@@ -76,11 +85,117 @@ image::ImageRGBf spp_image(const scene::RenderSettings& s, const std::vector<std
   return out;
 }
 
+// kExitUsage, with the problem on stderr, when an output file (the image, the --spp-map) has an
+// unknown format or a directory that is missing or not writable; kExitOk otherwise.
+int check_outputs(const RenderArgs& args) {
+  const std::pair<const std::string*, const char*> outputs[] = {{&args.output, "--output"},
+                                                                {&args.spp_map, "--spp-map"}};
+  for (const auto& [path, flag] : outputs) {
+    if (path->empty() && path == &args.spp_map) continue;
+    if (!image::format_from_path(*path)) {
+      fmt::print(stderr, "{}: {}: unsupported format (use {})\n", flag, *path, image::extension_list());
+      return kExitUsage;
+    }
+    if (const util::Status ok = util::check_output_path(*path); !ok) {
+      fmt::print(stderr, "{}: {}\n", flag, ok.error().to_string());
+      return kExitUsage;
+    }
+  }
+  return kExitOk;
+}
+
+// SIGINT and SIGTERM, while one of these lives, set `stop` (and `number`) instead of ending the
+// process: they are blocked in this thread, so in the render threads it starts (which inherit its
+// signal mask), and a watcher thread of its own takes them with sigtimedwait. No handler and no
+// global: the flag belongs to the verb. The mask is restored at the end.
+class StopOnSignals {
+ public:
+  StopOnSignals(std::atomic<bool>& stop, std::atomic<int>& number) {
+    ::sigemptyset(&set_);
+    ::sigaddset(&set_, SIGINT);
+    ::sigaddset(&set_, SIGTERM);
+    ::pthread_sigmask(SIG_BLOCK, &set_, &old_);
+    watcher_ = std::jthread([this, &stop, &number](std::stop_token done) {
+      const timespec tick{0, 100'000'000};  // how soon the watcher sees `done`
+      while (!done.stop_requested()) {
+        const int sig = ::sigtimedwait(&set_, nullptr, &tick);
+        if (sig <= 0) continue;
+        if (!stop.exchange(true)) {
+          number = sig;
+          fmt::print(stderr, "\n{}: stopping once the tiles being rendered are done\n", ::strsignal(sig));
+        }
+      }
+    });
+  }
+  ~StopOnSignals() {
+    watcher_.request_stop();
+    watcher_.join();
+    // A signal that came after the watcher's last look would end the process once unblocked:
+    // the render is over by now, so it is taken here and ignored.
+    const timespec now{0, 0};
+    while (::sigtimedwait(&set_, nullptr, &now) > 0) {
+    }
+    ::pthread_sigmask(SIG_SETMASK, &old_, nullptr);
+  }
+  StopOnSignals(const StopOnSignals&) = delete;
+  StopOnSignals& operator=(const StopOnSignals&) = delete;
+
+ private:
+  sigset_t set_{};
+  sigset_t old_{};
+  std::jthread watcher_;
+};
+
+// A render's partial file: the tiles an earlier, interrupted render kept, and the writer that
+// keeps this render's.
+struct Partial {
+  std::string path;
+  std::vector<render::Tile> resumed;
+  std::vector<bool> skip;  // by tile index: resumed
+  std::optional<PartialWriter> writer;
+};
+
+// OUT.partial continued (--resume) or created; a partial file that is there is never replaced.
+// kExitOk, or the exit code with the problem on stderr.
+int open_partial(const RenderArgs& args, const scene::SceneDesc& desc, std::uint32_t tile_size, Partial& p) {
+  p.path = partial_path(args.output);
+  const std::string key = partial_key(desc, tile_size);
+  std::error_code ec;
+  if (!std::filesystem::exists(p.path, ec)) {
+    if (args.resume) fmt::print(stderr, "{}: no partial render to resume; rendering from the start\n", p.path);
+    util::Result<PartialWriter> made = PartialWriter::create(p.path, key);
+    if (!reported(made)) return kExitFailed;
+    p.writer.emplace(std::move(made).value());
+    return kExitOk;
+  }
+  if (!args.resume) {
+    fmt::print(stderr, "{}: a partial render of this output is there: --resume continues it; delete it to start over\n",
+               p.path);
+    return kExitUsage;
+  }
+  util::Result<PartialContents> read = read_partial(p.path, key, desc.render, tile_size);
+  if (!reported(read)) return kExitFailed;
+  if (read->dropped_bytes > 0) {
+    fmt::print(stderr, "{}: dropped {} bytes of a tile cut short at its end\n", p.path, read->dropped_bytes);
+  }
+  const scene::TileGrid grid(desc.render, tile_size);
+  p.skip.assign(grid.count(), false);
+  for (const render::Tile& t : read->tiles)
+    p.skip[t.rect.y0 / tile_size * grid.columns() + t.rect.x0 / tile_size] = true;
+  p.resumed = std::move(read->tiles);
+  util::Result<PartialWriter> reopened = PartialWriter::reopen(p.path, read->good_bytes);
+  if (!reported(reopened)) return kExitFailed;
+  p.writer.emplace(std::move(reopened).value());
+  return kExitOk;
+}
+
 }  // namespace
 
 std::string_view version_string() { return DTRACED_VERSION; }
 
 int run_render(const RenderArgs& args) {
+  // The outputs first: a render may take hours, and a typo in a path should not cost them.
+  if (const int usage = check_outputs(args); usage != kExitOk) return usage;
   scene::LoadResult loaded = scene::load_scene_file(args.scene);
   if (!loaded.ok()) {
     print_errors(loaded);
@@ -91,14 +206,8 @@ int run_render(const RenderArgs& args) {
   desc.render = scene::apply(args.overrides, desc.render);
   const scene::RenderSettings& s = desc.render;
   const std::uint32_t tile_size = scene::tile_size_or_default(args.overrides);
-  if (!image::format_from_path(args.output)) {
-    fmt::print(stderr, "{}: unsupported output format (use {})\n", args.output, image::extension_list());
-    return kExitFailed;
-  }
-  if (!args.spp_map.empty() && !image::format_from_path(args.spp_map)) {
-    fmt::print(stderr, "{}: unsupported --spp-map format (use {})\n", args.spp_map, image::extension_list());
-    return kExitFailed;
-  }
+  Partial partial;
+  if (const int code = open_partial(args, desc, tile_size, partial); code != kExitOk) return code;
 
   const auto build_start = std::chrono::steady_clock::now();
   const render::RenderScene rs = render::RenderScene::build(desc, args.isa);
@@ -111,7 +220,37 @@ int run_render(const RenderArgs& args) {
   if (!args.quiet && ::isatty(STDERR_FILENO)) {
     opts.progress = [&bar](std::size_t done, std::size_t total) { bar.draw(done, total); };
   }
-  const render::LocalResult result = render::render_local(rs, s, opts);
+  // Every finished tile goes to the partial file, so that an interrupted render keeps it.
+  opts.skip = partial.skip;
+  std::optional<util::Error> partial_failed;  // only tile_done touches it (calls are serialised)
+  opts.tile_done = [&partial, &partial_failed](std::size_t index, const render::Tile& t) {
+    if (partial_failed) return;
+    if (util::Status kept = partial.writer->append(static_cast<std::uint32_t>(index), t); !kept) {
+      partial_failed = kept.error();
+      fmt::print(stderr, "warning: {}; the render goes on, but an interruption would lose its tiles\n",
+                 kept.error().to_string());
+    }
+  };
+  std::atomic<bool> stop{false};
+  std::atomic<int> signal_number{0};
+  opts.stop_requested = [&stop] { return stop.load(); };
+  render::LocalResult result;
+  {
+    const StopOnSignals on_signals(stop, signal_number);
+    result = render::render_local(rs, s, opts);
+  }
+  if (!result.complete) {
+    const util::Status synced = partial.writer->sync();
+    if (!synced || partial_failed) {
+      fmt::print(stderr, "interrupted: {}: the partial file is incomplete (see above)\n",
+                 synced ? partial.path : synced.error().to_string());
+      return 128 + signal_number.load();
+    }
+    fmt::print(stderr, "interrupted: {} of {} tiles are kept in {}; the same command with --resume continues\n",
+               partial.resumed.size() + result.tiles_rendered, scene::TileGrid(s, tile_size).count(), partial.path);
+    return 128 + signal_number.load();
+  }
+  for (const render::Tile& t : partial.resumed) render::paste_tile(t, s.width, result);
 
   image::WriteOptions wopts;
   wopts.png_bit_depth = static_cast<int>(scene::png_bit_depth_or_default(args.overrides));
@@ -120,6 +259,12 @@ int run_render(const RenderArgs& args) {
     wopts.png_bit_depth = 16;
     const image::ImageRGBf map = spp_image(s, result.spp, *image::format_from_path(args.spp_map));
     if (!reported(image::write_image(args.spp_map, map, wopts))) return kExitFailed;
+  }
+  partial.writer.reset();
+  std::error_code removed;
+  std::filesystem::remove(partial.path, removed);  // the image holds it all now
+  if (!args.quiet && !partial.resumed.empty()) {
+    fmt::print(stderr, "resumed {} tiles from {}\n", partial.resumed.size(), partial.path);
   }
   if (!args.quiet) {
     const double mrays = double(result.stats.all_rays()) / 1e6;

@@ -25,6 +25,10 @@ struct RenderArgs {
   std::string spp_map;
   std::uint32_t threads = 0;
   bool quiet = false;
+  // Continue the interrupted render whose finished tiles OUTPUT.partial keeps (refused when they
+  // are of another scene or other settings). Without it, an OUTPUT.partial that is there is an
+  // error, never replaced.
+  bool resume = false;
   accel::Isa isa = accel::Isa::kScalar;  // resolved by main (cli/isa_option.h)
 };
 int run_render(const RenderArgs& args);

@@ -10,6 +10,7 @@
 #include <boost/asio/executor_work_guard.hpp>
 #include <fmt/format.h>
 
+#include "collector/output_files.h"
 #include "collector/stop.h"
 #include "collector/writer_bridge.h"
 #include "image/image_io.h"
@@ -55,7 +56,7 @@ async::Awaitable<> finish_job(Context& c, JobId id) {
   const std::string path = (fs::path(c.output_dir) / job->output).string();
   auto write = [img = image.get(), path, bits = job->png_bit_depth] {
     Written w;
-    const util::Status st = image::write_image(path, *img, {.png_bit_depth = static_cast<int>(bits)});
+    const util::Status st = write_output_image(path, *img, static_cast<int>(bits));
     w.ok = st.ok();
     if (!st) w.error = st.error().to_string();
     return w;

@@ -10,10 +10,31 @@
 
 namespace dtraced::render {
 
+void paste_tile(const Tile& t, std::uint32_t image_width, LocalResult& result) {
+  for (std::uint32_t row = 0; row < t.rect.height; ++row) {
+    const float* src = &t.rgb[std::size_t(row) * t.rect.width * 3];
+    std::copy(src, src + std::size_t(t.rect.width) * 3, result.image.pixel(t.rect.x0, t.rect.y0 + row));
+    if (!t.spp.empty() && !result.spp.empty()) {
+      const std::uint32_t* counts = &t.spp[std::size_t(row) * t.rect.width];
+      std::copy(counts, counts + t.rect.width, &result.spp[std::size_t(t.rect.y0 + row) * image_width + t.rect.x0]);
+    }
+    if (!t.variance.empty() && !result.variance.rgb.empty()) {
+      const float* var = &t.variance[std::size_t(row) * t.rect.width * 3];
+      std::copy(var, var + std::size_t(t.rect.width) * 3, result.variance.pixel(t.rect.x0, t.rect.y0 + row));
+    }
+  }
+}
+
 LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& settings, const LocalOptions& options) {
   LocalResult result;
   result.image = image::ImageRGBf(settings.width, settings.height);
-  const std::vector<TileRect> tiles = scene::TileGrid(settings, std::max(1u, options.tile_size)).all();
+  const std::vector<TileRect> all = scene::TileGrid(settings, std::max(1u, options.tile_size)).all();
+  std::vector<std::size_t> tiles;  // indices of those to render
+  tiles.reserve(all.size());
+  for (std::size_t i = 0; i < all.size(); ++i) {
+    if (i >= options.skip.size() || !options.skip[i]) tiles.push_back(i);
+  }
+  const std::size_t skipped = all.size() - tiles.size();
   std::uint32_t threads = options.threads ? options.threads : std::max(1u, std::thread::hardware_concurrency());
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;
@@ -26,53 +47,53 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   std::atomic<std::size_t> next{0};
   std::mutex mu;
   std::condition_variable cv;
-  std::size_t done = 0;  // guarded by mu
-  TraceStats stats;      // guarded by mu
+  std::size_t done = 0;     // guarded by mu
+  std::uint32_t ended = 0;  // render threads that have returned; guarded by mu
+  TraceStats stats;         // guarded by mu
+  std::mutex tile_done_mu;  // one tile_done call at a time
 
   const auto start = std::chrono::steady_clock::now();
   auto worker = [&] {
     TraceStats local;
     for (std::size_t i = next.fetch_add(1); i < tiles.size(); i = next.fetch_add(1)) {
-      Tile t = render_tile(scene, settings, tiles[i], tile_options);
-      for (std::uint32_t row = 0; row < t.rect.height; ++row) {
-        const float* src = &t.rgb[std::size_t(row) * t.rect.width * 3];
-        std::copy(src, src + std::size_t(t.rect.width) * 3, result.image.pixel(t.rect.x0, t.rect.y0 + row));
-        if (adaptive) {
-          const std::uint32_t* counts = &t.spp[std::size_t(row) * t.rect.width];
-          std::copy(counts, counts + t.rect.width,
-                    &result.spp[std::size_t(t.rect.y0 + row) * settings.width + t.rect.x0]);
-        }
-        if (options.want_variance) {
-          const float* var = &t.variance[std::size_t(row) * t.rect.width * 3];
-          std::copy(var, var + std::size_t(t.rect.width) * 3, result.variance.pixel(t.rect.x0, t.rect.y0 + row));
-        }
-      }
+      if (options.stop_requested && options.stop_requested()) break;
+      Tile t = render_tile(scene, settings, all[tiles[i]], tile_options);
+      paste_tile(t, settings.width, result);
       local.add(t.stats);
+      if (options.tile_done) {
+        std::lock_guard lock(tile_done_mu);
+        options.tile_done(tiles[i], t);
+      }
       std::lock_guard lock(mu);
       ++done;
       cv.notify_one();
     }
     std::lock_guard lock(mu);
     stats.add(local);
+    ++ended;
+    cv.notify_one();
   };
   {
     std::vector<std::jthread> pool;
     pool.reserve(threads);
     for (std::uint32_t i = 0; i < threads; ++i) pool.emplace_back(worker);
     std::unique_lock lock(mu);
-    while (done < tiles.size()) {
+    // Until every thread has returned: all tiles done, or a stop.
+    while (ended < threads) {
       cv.wait_for(lock, std::chrono::milliseconds(200));
       if (options.progress) {
         const std::size_t d = done;
         lock.unlock();
-        options.progress(d, tiles.size());
+        options.progress(skipped + d, all.size());
         lock.lock();
       }
     }
   }  // joins the pool
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   result.stats = stats;
-  if (options.progress) options.progress(tiles.size(), tiles.size());
+  result.tiles_rendered = done;
+  result.complete = done == tiles.size();
+  if (options.progress) options.progress(skipped + done, all.size());
   return result;
 }
 

@@ -135,3 +135,51 @@ TemporaryCleanup remove_stale_temporaries(const std::string& dir,
 }
 
 }  // namespace dtraced::util
+
+namespace dtraced::util {
+
+Result<NewFile> write_file_new(const std::string& path, std::string_view bytes) {
+  // A staging name of the same pattern as write_file_atomic's temporary files, reserved with
+  // mkstemp, filled (atomically, flushed) by write_file_atomic, then linked to `path`.
+  std::string staging = path + ".tmp.XXXXXX";
+  const int fd = ::mkstemp(staging.data());
+  if (fd < 0) {
+    return Error(fmt::format("cannot create a temporary file: {}", std::strerror(errno)), "", path);
+  }
+  ::close(fd);
+  if (Status written = write_file_atomic(staging, bytes); !written) {
+    ::unlink(staging.c_str());
+    return written.error();
+  }
+  const int linked = ::link(staging.c_str(), path.c_str());
+  const int link_errno = errno;
+  ::unlink(staging.c_str());
+  if (linked != 0) {
+    if (link_errno == EEXIST) return NewFile::kExists;
+    return Error(fmt::format("cannot link into place: {}", std::strerror(link_errno)), "", path);
+  }
+  const std::string dir = std::filesystem::path(path).parent_path().string();
+  const int dfd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dfd >= 0) {
+    ::fsync(dfd);
+    ::close(dfd);
+  }
+  return NewFile::kWritten;
+}
+
+Status check_output_path(const std::string& path) {
+  const std::filesystem::path p(path);
+  const std::string dir = p.has_parent_path() ? p.parent_path().string() : std::string(".");
+  struct stat st {};
+  if (::stat(dir.c_str(), &st) != 0) {
+    return Error(fmt::format("the output directory does not exist ({})", std::strerror(errno)), "", dir);
+  }
+  if (!S_ISDIR(st.st_mode)) return Error("the output's directory is not a directory", "", dir);
+  if (::access(dir.c_str(), W_OK | X_OK) != 0) {
+    return Error(fmt::format("the output directory is not writable ({})", std::strerror(errno)), "", dir);
+  }
+  if (::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode)) return Error("the output is a directory", "", path);
+  return {};
+}
+
+}  // namespace dtraced::util

@@ -43,3 +43,24 @@ TemporaryCleanup remove_stale_temporaries(const std::string& dir,
                                           const std::function<bool(std::string_view target)>& ours);
 
 }  // namespace dtraced::util
+
+namespace dtraced::util {
+
+// What write_file_new found.
+enum class NewFile {
+  kWritten,  // `path` did not exist and now holds the bytes
+  kExists,   // a file of that name exists: nothing was changed
+};
+
+// Writes `bytes` to `path` only if nothing of that name exists, never replacing a file: the bytes
+// go to a temporary file beside it (written as write_file_atomic writes) which is then link(2)ed
+// into place, and link, unlike rename, fails when the name is taken. So two writers of one name,
+// in one process or two, cannot overwrite each other: one gets kWritten, the other kExists.
+Result<NewFile> write_file_new(const std::string& path, std::string_view bytes);
+
+// Problems with `path` as a file about to be created or replaced: its directory ("." when it has
+// none) must exist, be a directory and be writable, and `path` itself must not be a directory.
+// The error names the directory or the path. For checks before long work, not a guarantee.
+Status check_output_path(const std::string& path);
+
+}  // namespace dtraced::util

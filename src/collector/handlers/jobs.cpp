@@ -9,6 +9,7 @@
 #include "collector/checks.h"
 #include "collector/handlers.h"
 #include "collector/lifecycle.h"
+#include "collector/output_files.h"
 #include "collector/submission.h"
 #include "collector/writer_bridge.h"
 #include "util/log.h"
@@ -52,6 +53,7 @@ async::Awaitable<http::Response> submit_job(Context& c, http::Request req) {
   if (auto room = check_job_room(p.settings.width, p.settings.height, load_of(c), c.config); !room) {
     co_return respond(room.error());
   }
+  if (auto free = check_output_free(p.submit.output, c.jobs, c.output_dir); !free) co_return respond(free.error());
 
   // Durable first: the job and its scene are stored (one transaction) before the 201.
   store::StoredJob row = job_row(p, c.clock.unix_seconds());
