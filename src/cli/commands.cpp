@@ -116,6 +116,9 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
 
   c.cancel_cmd = add_client_subcommand(app, c.client, "cancel", "Cancel a job");
   c.cancel_cmd->add_option("id", c.cancel_id, "Job id")->required();
+
+  c.workers_cmd = add_client_subcommand(app, c.client, "workers", "List the workers the collector has heard from");
+  c.workers_cmd->add_flag("--json", c.workers_json, "Machine-readable JSON");
 }
 
 std::optional<int> run_client_command(const ClientCommands& c) {
@@ -124,6 +127,7 @@ std::optional<int> run_client_command(const ClientCommands& c) {
   if (c.status_cmd->parsed()) return run_status(c.client, c.status);
   if (c.fetch_cmd->parsed()) return run_fetch(c.client, c.fetch_id, c.fetch_output);
   if (c.cancel_cmd->parsed()) return run_cancel(c.client, c.cancel_id);
+  if (c.workers_cmd->parsed()) return run_workers(c.client, c.workers_json);
   return std::nullopt;
 }
 

@@ -68,9 +68,11 @@ struct ClientCommands {
   CLI::App* status_cmd = nullptr;
   CLI::App* fetch_cmd = nullptr;
   CLI::App* cancel_cmd = nullptr;
+  bool workers_json = false;
+  CLI::App* workers_cmd = nullptr;
 };
 
-// Adds submit, list, status, fetch and cancel to `app`.
+// Adds submit, list, status, fetch, cancel and workers to `app`.
 void add_client_commands(CLI::App& app, ClientCommands& c);
 // Runs the client verb that was parsed; nullopt when none was.
 std::optional<int> run_client_command(const ClientCommands& c);

@@ -68,6 +68,10 @@ MetricsSnapshot Context::metrics() const {
   m.queue = queue.stats();
   if (server) m.http = server->metrics();
   m.store = writer ? writer->stats() : last_writer_stats;
+  m.process = read_process_stats();
+  m.workers = workers.list(clock.now());
+  m.retired_workers = workers.retired();
+  m.workers_evicted = workers.evicted();
   return m;
 }
 

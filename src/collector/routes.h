@@ -10,6 +10,7 @@
 //   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|ppm|pfm]
 //   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
 //   POST /v1/lease                     GET /v1/scenes/{digest}
+//   GET  /v1/workers
 //
 // Targets must be in origin form ("/path?query"). Ids are decimal without sign or leading zeros
 // in [1, protocol::kMaxId]; tile indices decimal in [0, protocol::kMaxTilesPerJob); digests are
@@ -50,6 +51,7 @@ enum class RouteKind {
   kLease,
   kScene,
   kPutTile,
+  kWorkers,
 };
 
 struct Route {

@@ -18,9 +18,10 @@ http::Response retry_after(std::chrono::milliseconds suggested) {
 
 }  // namespace
 
-http::Response lease_tile(Context& c, std::string_view body) {
-  auto request = protocol::decode_lease_request(body);
+http::Response lease_tile(Context& c, const http::Request& req) {
+  auto request = protocol::decode_lease_request(req.body());
   if (!request) return respond(decode_failure(request.error()));
+  note_lease_request(c, req, request.value());
   const TimePoint now = c.clock.now();
   const LeaseResult result = c.queue.lease(now);
   JobRecord* job = result.grant ? c.find_job(result.grant->job) : nullptr;
