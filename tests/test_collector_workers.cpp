@@ -1,6 +1,7 @@
 // The worker registry (collector/workers.h) as a pure structure on a fake time line, the log
 // throttle and histograms, then GET /v1/workers and /metrics through the collector's handler.
 #include <chrono>
+#include <regex>
 #include <string>
 
 #include <catch2/catch.hpp>
@@ -320,4 +321,62 @@ TEST_CASE("the worker list survives a round trip and its decoder names bad field
   CHECK_FALSE(protocol::parse_render_ms_header("-1"));
   CHECK_FALSE(protocol::parse_render_ms_header("1e3"));
   CHECK_FALSE(protocol::parse_render_ms_header("99999999999999"));
+}
+
+TEST_CASE("a job's status says when it has had no worker for a minute", "[collector][workers]") {
+  TempDir dir;
+  Harness h(dir);
+  const std::uint64_t job = h.submit();
+  CHECK_FALSE(h.status(job).no_worker_s);
+  h.clock.advance(59s);
+  CHECK_FALSE(h.status(job).no_worker_s);
+  h.clock.advance(2s);
+  auto gap = h.status(job).no_worker_s;
+  REQUIRE(gap);
+  CHECK(*gap == Approx(61).margin(1));
+
+  // A lease is a worker: the gap starts again from it, and so does a stored tile.
+  const auto l = h.lease();
+  REQUIRE(l);
+  CHECK_FALSE(h.status(job).no_worker_s);
+  h.clock.advance(90s);
+  gap = h.status(job).no_worker_s;
+  REQUIRE(gap);
+  CHECK(*gap == Approx(90).margin(1));
+  CHECK(h.put_ok(*l) == protocol::SubmitResult::kStored);
+  CHECK_FALSE(h.status(job).no_worker_s);
+
+  // The list says it too; a cancelled job does not.
+  h.clock.advance(120s);
+  const Response listed = h.call(Verb::get, "/v1/jobs");
+  auto list = protocol::decode_job_list(listed.body());
+  REQUIRE(list.ok());
+  REQUIRE(list.value().jobs.size() == 1);
+  CHECK(list.value().jobs[0].no_worker_s);
+  REQUIRE(h.call(Verb::post, fmt::format("/v1/jobs/{}/cancel", job)).result() == Status::ok);
+  CHECK_FALSE(h.status(job).no_worker_s);
+}
+
+TEST_CASE("no_worker_s travels in a job status and may be absent or null", "[protocol][workers]") {
+  protocol::JobStatus s;
+  s.id = 3;
+  s.output = "a.png";
+  s.width = s.height = s.samples = 1;
+  s.tiles_total = 1;
+  s.digest = std::string(64, 'a');
+  s.no_worker_s = 75.5;
+  auto back = protocol::decode_job_status(protocol::encode(s));
+  REQUIRE(back.ok());
+  CHECK(back.value() == s);
+  // An older collector's status has no such key.
+  const std::regex field(R"(,"no_worker_s":[^,}]*)");
+  const std::string older = std::regex_replace(protocol::encode(s), field, "");
+  REQUIRE(older.find("no_worker_s") == std::string::npos);
+  back = protocol::decode_job_status(older);
+  REQUIRE(back.ok());
+  CHECK_FALSE(back.value().no_worker_s);
+  const std::string negative = std::regex_replace(protocol::encode(s), field, R"(,"no_worker_s":-1)");
+  auto bad = protocol::decode_job_status(negative);
+  REQUIRE_FALSE(bad.ok());
+  CHECK(bad.error().front().path == "/no_worker_s");
 }

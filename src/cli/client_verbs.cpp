@@ -101,9 +101,10 @@ std::string samples_text(const protocol::JobStatus& s) {
 }
 
 void print_status_line(const protocol::JobStatus& s) {
-  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}\n", s.id,
+  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}{}\n", s.id,
              protocol::to_string(s.state), s.priority, s.width, s.height, samples_text(s), s.tiles_done, s.tiles_total,
-             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output);
+             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output,
+             s.no_worker_s ? fmt::format("  (no worker for {})", format_seconds(*s.no_worker_s)) : std::string());
 }
 
 bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s == protocol::JobState::kCancelled; }

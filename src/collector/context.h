@@ -97,6 +97,10 @@ struct Context {
   // Who has been asking for work (handlers/workers.cpp) and when it was last swept.
   WorkerRegistry workers;
   std::optional<TimePoint> workers_swept;
+  // When a worker last leased or returned a tile of each unfinished job (handlers/workers.cpp),
+  // and when this process started: a job's status says when it has had no worker for a minute.
+  std::map<JobId, TimePoint> job_served;
+  TimePoint started;
   // Refused tokens are logged at most this often (router.cpp).
   LogThrottle auth_failure_log;
 };

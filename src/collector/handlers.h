@@ -57,6 +57,10 @@ WorkerId worker_id(const http::Request& req, std::string name);
 void note_lease_request(Context& c, const http::Request& req, const protocol::LeaseRequest& lease);
 // Counts a tile upload's outcome; `rays` for a stored one. Logs a first request.
 void note_tile_upload(Context& c, const WorkerId& id, TileOutcome outcome, std::uint64_t rays);
+// A worker leased or returned a tile of `job`.
+void note_job_served(Context& c, JobId job);
+// `s` with no_worker_s set when its unfinished job has had no worker for kNoWorkerAfterS.
+protocol::JobStatus with_worker_gap(const Context& c, protocol::JobStatus s);
 // At most every few seconds: marks quiet workers (logging each once) and forgets old ones.
 void sweep_workers(Context& c);
 

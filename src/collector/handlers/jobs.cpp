@@ -78,7 +78,7 @@ http::Response list_jobs(const Context& c) {
   const TimePoint now = c.clock.now();
   // The newest ones when there are more than a list may hold.
   for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < protocol::kMaxListedJobs; ++it) {
-    list.jobs.push_back(job_status(it->second, unix_now, now));
+    list.jobs.push_back(with_worker_gap(c, job_status(it->second, unix_now, now)));
   }
   std::reverse(list.jobs.begin(), list.jobs.end());
   return json_answer(http::Status::ok, protocol::encode(list));
@@ -87,7 +87,8 @@ http::Response list_jobs(const Context& c) {
 http::Response get_job(const Context& c, JobId id) {
   const JobRecord* job = c.find_job(id);
   if (job == nullptr) return respond(job_not_found(id));
-  return json_answer(http::Status::ok, protocol::encode(job_status(*job, c.clock.unix_seconds(), c.clock.now())));
+  return json_answer(http::Status::ok,
+                     protocol::encode(with_worker_gap(c, job_status(*job, c.clock.unix_seconds(), c.clock.now()))));
 }
 
 async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {

@@ -86,6 +86,7 @@ http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload&
     return submit_answer(protocol::SubmitResult::kAlreadyDone);
   }
   note_tile_upload(c, worker, TileOutcome::kStored, tile_rays(payload, job->settings.samples));
+  note_job_served(c, id);
   copy_tile(writable_framebuffer(*job), payload.rect, payload.rgb);
   count_samples(*job, payload.spp);
   ++job->tiles_done;

@@ -1,5 +1,6 @@
 // GET /v1/workers, and what every lease and tile upload tells the worker registry (workers.h):
 // who sent it, the first request of a worker and a worker going quiet (both logged).
+#include <algorithm>
 #include <chrono>
 #include <utility>
 
@@ -56,10 +57,29 @@ void note_tile_upload(Context& c, const WorkerId& id, TileOutcome outcome, std::
   if (c.workers.on_tile(id, outcome, rays, c.clock.now())) log_first(id, {}, 0);
 }
 
+void note_job_served(Context& c, JobId job) { c.job_served[job] = c.clock.now(); }
+
+protocol::JobStatus with_worker_gap(const Context& c, protocol::JobStatus s) {
+  const JobRecord* job = c.find_job(s.id);
+  if (job == nullptr || !job->unfinished()) return s;
+  const TimePoint now = c.clock.now();
+  // Since the later of: this process's start, the job's submission, its last worker.
+  const auto age = std::chrono::seconds(std::max<std::int64_t>(0, c.clock.unix_seconds() - job->created_unix));
+  TimePoint since = std::max(c.started, now - std::chrono::duration_cast<Duration>(age));
+  if (const auto it = c.job_served.find(s.id); it != c.job_served.end()) since = std::max(since, it->second);
+  const double gap = seconds(now - since);
+  if (gap >= protocol::kNoWorkerAfterS) s.no_worker_s = gap;
+  return s;
+}
+
 void sweep_workers(Context& c) {
   const TimePoint now = c.clock.now();
   if (c.workers_swept && now - *c.workers_swept < kSweepInterval) return;
   c.workers_swept = now;
+  std::erase_if(c.job_served, [&c](const auto& entry) {
+    const JobRecord* job = c.find_job(entry.first);
+    return job == nullptr || !job->unfinished();
+  });
   for (const WorkerId& id : c.workers.sweep(now)) {
     util::log_warn("collector: worker '{}' from {} has gone quiet (no request for {:.0f}s)", id.name, peer_text(id),
                    seconds(c.workers.limits().quiet_after));
