@@ -106,10 +106,11 @@ TEST_CASE("without a watchdog the notifier only keeps the status current", "[asy
   CHECK(clock.sleepers() == 0);
 }
 
-TEST_CASE("the collector's status line counts jobs by state and workers once known", "[collector][systemd]") {
+TEST_CASE("the collector's status line counts jobs by state and workers active and quiet", "[collector][systemd]") {
   dtraced::collector::MetricsSnapshot m;
   m.jobs_by_state = {2, 1, 5, 3};
-  CHECK(dtraced::collector::systemd_status(m, std::nullopt) == "jobs: 2 queued, 1 rendering, 5 done, 3 cancelled");
-  CHECK(dtraced::collector::systemd_status(m, 4) ==
-        "jobs: 2 queued, 1 rendering, 5 done, 3 cancelled; workers: 4 seen");
+  CHECK(dtraced::collector::systemd_status(m, {}) ==
+        "jobs: 2 queued, 1 rendering, 5 done, 3 cancelled; workers: 0 active, 0 quiet");
+  CHECK(dtraced::collector::systemd_status(m, {.active = 4, .quiet = 1}) ==
+        "jobs: 2 queued, 1 rendering, 5 done, 3 cancelled; workers: 4 active, 1 quiet");
 }

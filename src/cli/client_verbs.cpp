@@ -15,6 +15,7 @@
 #include "http/client.h"
 #include "image/image_io.h"
 #include "protocol/messages.h"
+#include "protocol/worker_messages.h"
 #include "scene/load.h"
 #include "util/file.h"
 #include "util/token_file.h"
@@ -116,9 +117,10 @@ std::string samples_text(const protocol::JobStatus& s) {
 }
 
 void print_status_line(const protocol::JobStatus& s) {
-  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}\n", s.id,
+  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}{}\n", s.id,
              protocol::to_string(s.state), s.priority, s.width, s.height, samples_text(s), s.tiles_done, s.tiles_total,
-             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output);
+             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output,
+             s.no_worker_s ? fmt::format("  (no worker for {})", format_seconds(*s.no_worker_s)) : std::string());
 }
 
 bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s == protocol::JobState::kCancelled; }
@@ -314,6 +316,47 @@ int run_requeue(const ClientArgs& client, std::uint64_t id) {
   auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
   if (!st) return kExitFailed;
   print_status_line(*st);
+  return kExitOk;
+}
+
+// "1.2M" style counts for the rays column.
+std::string short_count(std::uint64_t n) {
+  if (n < 10'000) return std::to_string(n);
+  if (n < 10'000'000) return fmt::format("{:.1f}k", double(n) / 1e3);
+  if (n < 10'000'000'000ull) return fmt::format("{:.1f}M", double(n) / 1e6);
+  return fmt::format("{:.1f}G", double(n) / 1e9);
+}
+
+int run_workers(const ClientArgs& client, bool json) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  auto resp = session.call(http::Verb::get, "/v1/workers", {}, protocol::kMaxWorkerListBytes);
+  if (!resp) return kExitFailed;
+  auto list = decode_or_report(protocol::decode_worker_list(resp->body()), "GET /v1/workers");
+  if (!list) return kExitFailed;
+  if (json) {
+    fmt::print("{}\n", protocol::encode(*list));
+    return kExitOk;
+  }
+  // Names and addresses vary in width: size those columns to the longest (bounded by the protocol).
+  std::size_t name_width = 4;
+  std::size_t peer_width = 4;
+  for (const auto& w : list->workers) {
+    name_width = std::max(name_width, w.name.size());
+    peer_width = std::max(peer_width, w.peer.size());
+  }
+  const std::string recent = fmt::format("last {}", format_seconds(list->recent_window_s));
+  fmt::print("{:<{}}  {:<{}}  {:<6} {:>7}  {:<6} {:>9}  {:>8} {:>8}  {:>8} {:>6} {:>7}  ({})\n", "name", name_width,
+             "peer", peer_width, "state", "threads", "isa", "last seen", "tiles", "rays", "all", "faulty", "refused",
+             recent);
+  for (const auto& w : list->workers) {
+    fmt::print("{:<{}}  {:<{}}  {:<6} {:>7}  {:<6} {:>9}  {:>8} {:>8}  {:>8} {:>6} {:>7}\n", w.name, name_width,
+               w.peer.empty() ? "-" : w.peer, peer_width, w.quiet ? "quiet" : "active",
+               w.threads == 0 ? std::string("-") : std::to_string(w.threads), w.isa.empty() ? "-" : w.isa,
+               format_seconds(w.last_seen_s) + " ago", w.recent_tiles, short_count(w.recent_rays), w.tiles,
+               w.faulty_duplicates, w.refused);
+  }
+  if (list->workers.empty()) fmt::print(stderr, "no worker has asked this collector for work yet\n");
   return kExitOk;
 }
 

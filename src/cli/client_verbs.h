@@ -1,4 +1,5 @@
-// dtraced::cli client verbs: submit, list, status, fetch, cancel, priority and requeue, spoken to a collector over
+// dtraced::cli client verbs: submit, list, status, fetch, cancel, priority, requeue and workers,
+// spoken to a collector over
 // its HTTP API (one blocking request at a time on a private io_context). Results go to stdout,
 // diagnostics to stderr; each function returns the process exit code (0 ok, 1 failed).
 #pragma once
@@ -54,6 +55,9 @@ int run_priority(const ClientArgs& client, std::uint64_t id, std::int32_t priori
 
 // Puts a cancelled job back in the queue, keeping its stored tiles; prints its status.
 int run_requeue(const ClientArgs& client, std::uint64_t id);
+
+// The collector's workers (GET /v1/workers): aligned columns, or the JSON answer with `json`.
+int run_workers(const ClientArgs& client, bool json);
 
 // Reads a bearer token from a file: the first line, without surrounding whitespace; empty or
 // over 4096 bytes is an error (its message names the file).

@@ -136,6 +136,9 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
   c.requeue_cmd = add_client_subcommand(app, c.client, "requeue",
                                         "Put a cancelled job back in the queue, keeping its stored tiles");
   c.requeue_cmd->add_option("id", c.requeue_id, "Job id")->required();
+
+  c.workers_cmd = add_client_subcommand(app, c.client, "workers", "List the workers the collector has heard from");
+  c.workers_cmd->add_flag("--json", c.workers_json, "Machine-readable JSON");
 }
 
 std::optional<int> run_client_command(const ClientCommands& c) {
@@ -146,6 +149,7 @@ std::optional<int> run_client_command(const ClientCommands& c) {
   if (c.cancel_cmd->parsed()) return run_cancel(c.client, c.cancel_id);
   if (c.priority_cmd->parsed()) return run_priority(c.client, c.priority_id, c.priority_value);
   if (c.requeue_cmd->parsed()) return run_requeue(c.client, c.requeue_id);
+  if (c.workers_cmd->parsed()) return run_workers(c.client, c.workers_json);
   return std::nullopt;
 }
 

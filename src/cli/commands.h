@@ -73,9 +73,11 @@ struct ClientCommands {
   std::uint64_t requeue_id = 0;
   CLI::App* priority_cmd = nullptr;
   CLI::App* requeue_cmd = nullptr;
+  bool workers_json = false;
+  CLI::App* workers_cmd = nullptr;
 };
 
-// Adds submit, list, status, fetch, cancel, priority and requeue to `app`.
+// Adds submit, list, status, fetch, cancel, priority, requeue and workers to `app`.
 void add_client_commands(CLI::App& app, ClientCommands& c);
 // Runs the client verb that was parsed; nullopt when none was.
 std::optional<int> run_client_command(const ClientCommands& c);

@@ -35,4 +35,15 @@ util::Result<void, Refusal> check_body_size(std::uint64_t body_bytes, std::uint6
                  {}};
 }
 
+bool LogThrottle::allow(TimePoint now, std::uint64_t& held_back) {
+  if (last_ && now - *last_ < interval_) {
+    ++held_;
+    return false;
+  }
+  last_ = now;
+  held_back = held_;
+  held_ = 0;
+  return true;
+}
+
 }  // namespace dtraced::collector

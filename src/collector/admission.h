@@ -6,10 +6,14 @@
 // by other paths, such as tests) apply; and the body check the handler adds once the body is in.
 // Pure functions of the request and the immutable token check: tested without sockets.
 //
-// Thread safety: pure functions.
+// Also LogThrottle, which keeps a flood of refused requests from flooding the log.
+//
+// Thread safety: pure functions; a LogThrottle has one owner (the loop).
 #pragma once
 
+#include <chrono>
 #include <cstdint>
+#include <optional>
 
 #include "collector/refusal.h"
 #include "collector/routes.h"
@@ -30,5 +34,20 @@ util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenChec
 
 // 413 when the body is over the admitted limit.
 util::Result<void, Refusal> check_body_size(std::uint64_t body_bytes, std::uint64_t body_limit);
+
+// Lets one log line through per interval and counts the ones it held back, so that a peer
+// hammering the collector with bad tokens costs a line every few seconds, not one per request.
+class LogThrottle {
+ public:
+  explicit LogThrottle(Duration interval = std::chrono::seconds(10)) : interval_(interval) {}
+  // Whether to log the event at `now`; if so, `held_back` is how many were not logged since the
+  // last line.
+  bool allow(TimePoint now, std::uint64_t& held_back);
+
+ private:
+  Duration interval_;
+  std::optional<TimePoint> last_;
+  std::uint64_t held_ = 0;
+};
 
 }  // namespace dtraced::collector

@@ -13,7 +13,8 @@ Context::Context(CollectorConfig config_in, const util::Clock& clock_in)
       pool(std::clamp<std::size_t>(config.cpu_threads, 1, kMaxCpuThreads)),
       stop_begun(std::in_place, ioc->get_executor()),
       reader(config.state_dir),
-      queue(config.queue) {}
+      queue(config.queue),
+      started(clock.now()) {}
 
 Context::~Context() {
   // Order matters: everything that posts into the io_context (the writer's callbacks, the
@@ -68,6 +69,10 @@ MetricsSnapshot Context::metrics() const {
   m.queue = queue.stats();
   if (server) m.http = server->metrics();
   m.store = writer ? writer->stats() : last_writer_stats;
+  m.process = read_process_stats();
+  m.workers = workers.list(clock.now());
+  m.retired_workers = workers.retired();
+  m.workers_evicted = workers.evicted();
   return m;
 }
 

@@ -31,12 +31,14 @@
 #include <boost/asio/thread_pool.hpp>
 
 #include "async/async.h"
+#include "collector/admission.h"
 #include "collector/config.h"
 #include "collector/jobs.h"
 #include "collector/metrics.h"
 #include "collector/queue.h"
 #include "collector/routes.h"
 #include "collector/store_reader.h"
+#include "collector/workers.h"
 #include "http/server.h"
 #include "store/tile_writer.h"
 #include "util/clock.h"
@@ -96,6 +98,16 @@ struct Context {
   bool opened = false;
   bool stopping = false;
   std::optional<int> exit_code;
+
+  // Who has been asking for work (handlers/workers.cpp) and when it was last swept.
+  WorkerRegistry workers;
+  std::optional<TimePoint> workers_swept;
+  // When a worker last leased or returned a tile of each unfinished job (handlers/workers.cpp),
+  // and when this process started: a job's status says when it has had no worker for a minute.
+  std::map<JobId, TimePoint> job_served;
+  TimePoint started;
+  // Refused tokens are logged at most this often (router.cpp).
+  LogThrottle auth_failure_log;
 };
 
 }  // namespace dtraced::collector

@@ -11,6 +11,7 @@
 //   handlers/scenes_images.cpp   GET /v1/scenes/{digest}, GET /v1/jobs/{id}/image
 //   handlers/status.cpp          GET /healthz, GET /metrics
 //   handlers/manage.cpp          POST /v1/jobs/{id}/priority, POST /v1/jobs/{id}/requeue
+//   handlers/workers.cpp         GET /v1/workers, and the registry updates of lease and tiles
 //
 // Thread safety: on the loop only; each may suspend (co_await) while the pool or the store works,
 // and looks its job up again afterwards.
@@ -36,7 +37,7 @@ async::Awaitable<http::Response> cancel_job(Context& c, JobId id);
 
 async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req);
 
-http::Response lease_tile(Context& c, std::string_view body);
+http::Response lease_tile(Context& c, const http::Request& req);
 
 async::Awaitable<http::Response> get_scene(Context& c, std::string digest);
 async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format);
@@ -45,8 +46,30 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
 async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Request req);
 async::Awaitable<http::Response> requeue_job(Context& c, JobId id);
 
+// handlers/workers.cpp
+http::Response list_workers(Context& c);
+
 http::Response get_health();
 http::Response get_metrics(const Context& c);
+
+// ---- the worker registry (handlers/workers.cpp) ----------------------------------------------
+
+// The request's source address as the server stamped it (http::kPeerHeader), "" if none.
+std::string request_peer(const http::Request& req);
+// "192.0.2.7", or "an unknown address".
+std::string peer_text(const WorkerId& id);
+// The sender of `req` under the name it gave.
+WorkerId worker_id(const http::Request& req, std::string name);
+// Counts a lease request in the registry (with the kIsaHeader it carries); logs a first request.
+void note_lease_request(Context& c, const http::Request& req, const protocol::LeaseRequest& lease);
+// Counts a tile upload's outcome; `rays` for a stored one. Logs a first request.
+void note_tile_upload(Context& c, const WorkerId& id, TileOutcome outcome, std::uint64_t rays);
+// A worker leased or returned a tile of `job`.
+void note_job_served(Context& c, JobId job);
+// `s` with no_worker_s set when its unfinished job has had no worker for kNoWorkerAfterS.
+protocol::JobStatus with_worker_gap(const Context& c, protocol::JobStatus s);
+// At most every few seconds: marks quiet workers (logging each once) and forgets old ones.
+void sweep_workers(Context& c);
 
 // ---- answers shared by the handler files ------------------------------------------------------
 

@@ -1,11 +1,28 @@
 #include "collector/metrics.h"
 
+#include <unistd.h>
+
+#include <algorithm>
+#include <cassert>
+#include <filesystem>
+#include <fstream>
 #include <iterator>
+#include <sstream>
 
 #include <fmt/format.h>
 
+#ifndef DTRACED_VERSION
+#define DTRACED_VERSION "unknown"
+#endif
+#ifndef DTRACED_BUILD_ISA
+#define DTRACED_BUILD_ISA "unknown"
+#endif
+
 namespace dtraced::collector {
 namespace {
+
+// Open descriptors are counted up to this (a runaway leak still reads as "at least this many").
+constexpr std::size_t kMaxCountedFds = 1 << 20;
 
 class Writer {
  public:
@@ -21,13 +38,161 @@ class Writer {
   void labelled(std::string_view name, std::string_view label, std::string_view label_value, T value) {
     fmt::format_to(std::back_inserter(out_), "{}{{{}=\"{}\"}} {}\n", name, label, label_value, value);
   }
+  // One series with any labels, already formatted as `a="x",b="y"`.
+  template <typename T>
+  void series(std::string_view name, std::string_view labels, T value) {
+    fmt::format_to(std::back_inserter(out_), "{}{{{}}} {}\n", name, labels, value);
+  }
+  void histogram(std::string_view name, std::string_view help, const Histogram& h) {
+    header(name, "histogram", help);
+    for (std::size_t i = 0; i < h.buckets(); ++i) {
+      fmt::format_to(std::back_inserter(out_), "{}_bucket{{le=\"{}\"}} {}\n", name, h.bound(i), h.cumulative(i));
+    }
+    fmt::format_to(std::back_inserter(out_), "{}_bucket{{le=\"+Inf\"}} {}\n{}_sum {}\n{}_count {}\n", name, h.count(),
+                   name, h.sum(), name, h.count());
+  }
   std::string take() { return std::move(out_); }
 
  private:
   std::string out_;
 };
 
+// A label value as the exposition format wants it: backslash, quote and newline escaped.
+std::string label_value(std::string_view v) {
+  std::string out;
+  out.reserve(v.size());
+  for (const char c : v) {
+    if (c == '\\' || c == '"') out += '\\';
+    if (c == '\n') {
+      out += "\\n";
+      continue;
+    }
+    out += c;
+  }
+  return out;
+}
+
+std::string read_small_file(const char* path) {
+  std::ifstream in(path);
+  std::string text;
+  std::getline(in, text, '\0');
+  return text.substr(0, 64 << 10);
+}
+
+// The per-worker counters: the kMetricsWorkers most recently seen by "name@peer", the rest summed
+// as worker="other" (with the forgotten ones, so that "other" never goes down).
+void write_workers(Writer& w, const MetricsSnapshot& m) {
+  std::size_t active = 0;
+  for (const WorkerView& v : m.workers) active += v.quiet ? 0 : 1;
+  w.header("dtraced_workers", "gauge", "Workers the collector remembers, by state (quiet: unseen for a while).");
+  w.labelled("dtraced_workers", "state", "active", active);
+  w.labelled("dtraced_workers", "state", "quiet", m.workers.size() - active);
+  w.one("dtraced_workers_evicted_total", "counter", "Workers forgotten early to keep the registry under its cap.",
+        m.workers_evicted);
+
+  struct Family {
+    std::string_view name;
+    std::string_view help;
+    std::uint64_t WorkerView::*field;
+  };
+  constexpr Family kFamilies[] = {
+      {"dtraced_worker_leases_total", "Leases given to each worker (the most recent ones; the rest as other).",
+       &WorkerView::leases},
+      {"dtraced_worker_tiles_total", "Tiles stored from each worker (the most recent ones; the rest as other).",
+       &WorkerView::tiles},
+      {"dtraced_worker_faulty_duplicates_total",
+       "Duplicate tiles from each worker whose pixels differed (the most recent ones; the rest as other).",
+       &WorkerView::faulty_duplicates},
+  };
+  const std::size_t named = std::min(m.workers.size(), kMetricsWorkers);
+  for (const Family& f : kFamilies) {
+    w.header(f.name, "counter", f.help);
+    for (std::size_t i = 0; i < named; ++i) {
+      const WorkerView& v = m.workers[i];
+      w.series(f.name, fmt::format("worker=\"{}\"", label_value(v.id.name + "@" + v.id.peer)), v.*f.field);
+    }
+    std::uint64_t other = m.retired_workers.*f.field;
+    for (std::size_t i = named; i < m.workers.size(); ++i) other += m.workers[i].*f.field;
+    w.series(f.name, "worker=\"other\"", other);
+  }
+}
+
+void write_process(Writer& w, const MetricsSnapshot& m) {
+  w.series("dtraced_build_info",
+           fmt::format("version=\"{}\",isa=\"{}\"", label_value(build_version()), label_value(build_isa())), 1);
+  const ProcessStats& p = m.process;
+  if (p.start_time_seconds >= 0) {
+    w.one("process_start_time_seconds", "gauge", "Start time of the process since the Unix epoch in seconds.",
+          p.start_time_seconds);
+  }
+  if (p.resident_bytes >= 0) {
+    w.one("process_resident_memory_bytes", "gauge", "Resident memory size in bytes.", p.resident_bytes);
+  }
+  if (p.open_fds >= 0) w.one("process_open_fds", "gauge", "Number of open file descriptors.", p.open_fds);
+}
+
 }  // namespace
+
+Histogram::Histogram(std::initializer_list<double> bounds) {
+  assert(bounds.size() <= kMaxBuckets && std::is_sorted(bounds.begin(), bounds.end()));
+  size_ = std::min(bounds.size(), kMaxBuckets);
+  std::copy_n(bounds.begin(), size_, bounds_.begin());
+}
+
+void Histogram::observe(double value) {
+  ++count_;
+  sum_ += value;
+  const auto it = std::lower_bound(bounds_.begin(), bounds_.begin() + size_, value);  // first bound >= value
+  if (it != bounds_.begin() + size_) ++counts_[static_cast<std::size_t>(it - bounds_.begin())];
+}
+
+std::uint64_t Histogram::cumulative(std::size_t i) const {
+  std::uint64_t sum = 0;
+  for (std::size_t j = 0; j <= i && j < size_; ++j) sum += counts_[j];
+  return sum;
+}
+
+std::string_view build_version() { return DTRACED_VERSION; }
+std::string_view build_isa() { return DTRACED_BUILD_ISA; }
+
+ProcessStats read_process_stats() {
+  ProcessStats p;
+  const long ticks = ::sysconf(_SC_CLK_TCK);
+  const long page = ::sysconf(_SC_PAGESIZE);
+  // /proc/self/stat: the command name (field 2) may hold spaces and parentheses; fields resume
+  // after the last ')'. starttime is field 22: clock ticks after boot.
+  const std::string stat = read_small_file("/proc/self/stat");
+  const std::size_t close = stat.rfind(')');
+  std::uint64_t boot = 0;
+  {
+    std::istringstream in(read_small_file("/proc/stat"));
+    for (std::string key; in >> key;) {
+      if (key == "btime") {
+        in >> boot;
+        break;
+      }
+    }
+  }
+  if (close != std::string::npos && ticks > 0 && boot > 0) {
+    std::istringstream in(stat.substr(close + 1));
+    std::string field;
+    for (int i = 3; i <= 22 && in >> field; ++i) {
+      if (i == 22) p.start_time_seconds = double(boot) + std::strtod(field.c_str(), nullptr) / double(ticks);
+    }
+  }
+  std::istringstream statm(read_small_file("/proc/self/statm"));
+  std::uint64_t size = 0;
+  std::uint64_t resident = 0;
+  if (page > 0 && statm >> size >> resident) p.resident_bytes = double(resident) * double(page);
+  std::error_code ec;
+  std::size_t fds = 0;
+  for (std::filesystem::directory_iterator it("/proc/self/fd", ec), end; !ec && it != end && fds < kMaxCountedFds;
+       it.increment(ec)) {
+    ++fds;
+  }
+  if (!ec) p.open_fds = double(fds);
+  return p;
+}
 
 std::string format_metrics(const MetricsSnapshot& m) {
   Writer w;
@@ -64,8 +229,11 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_lease_retry_total", "counter", "Lease requests answered with retry_after_ms.", c.lease_retries);
   w.one("dtraced_active_jobs", "gauge", "Jobs with tiles left to lease or store.", m.queue.active_jobs);
 
-  w.one("dtraced_http_requests_total", "counter", "HTTP responses sent.", m.http.requests);
-  w.header("dtraced_http_responses_total", "counter", "HTTP error responses, by class.");
+  // One family for every response: the server counts all of them and the 4xx and 5xx among them,
+  // and sends no 1xx final answers or 3xx, so the rest are 2xx.
+  w.header("dtraced_http_responses_total", "counter", "HTTP responses sent, by status class.");
+  const std::uint64_t errors = m.http.responses_4xx + m.http.responses_5xx;
+  w.labelled("dtraced_http_responses_total", "class", "2xx", m.http.requests >= errors ? m.http.requests - errors : 0);
   w.labelled("dtraced_http_responses_total", "class", "4xx", m.http.responses_4xx);
   w.labelled("dtraced_http_responses_total", "class", "5xx", m.http.responses_5xx);
   w.one("dtraced_http_read_timeouts_total", "counter", "Connections dropped at the read deadline.",
@@ -90,6 +258,14 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_store_busy_total", "counter", "Requests answered 503 because the store was busy or failing.",
         c.store_busy);
   w.one("dtraced_store_pending_tiles", "gauge", "Tiles waiting for the store writer.", m.store.pending_tiles);
+
+  w.histogram("dtraced_lease_duration_seconds", "Time the collector took to answer a lease request, in seconds.",
+              c.lease_seconds);
+  w.histogram("dtraced_tile_upload_bytes", "Size of tile uploads (request bodies), in bytes.", c.tile_upload_bytes);
+  w.histogram("dtraced_tile_render_seconds", "Time a tile took to render, as its worker reports it, in seconds.",
+              c.tile_render_seconds);
+  write_workers(w, m);
+  write_process(w, m);
   return w.take();
 }
 

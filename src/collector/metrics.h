@@ -12,18 +12,50 @@
 //                                      whose acknowledgement the crash swallowed): answered
 //                                      "already_done", nothing rendered
 //
-// Thread safety: plain values and a pure function.
+// Also: dtraced_build_info, process metrics read from /proc/self (process_start_time_seconds,
+// process_resident_memory_bytes, process_open_fds, under the names Prometheus' client libraries
+// use), histograms (lease handling time, tile upload size, tile render time as the workers report
+// it), and per-worker counters whose label set is bounded: the kMetricsWorkers most recently seen
+// workers by name, the rest (and every forgotten one) summed as worker="other".
+//
+// Thread safety: plain values and pure functions (read_process_stats reads /proc/self).
 #pragma once
 
 #include <array>
+#include <cstddef>
 #include <cstdint>
+#include <initializer_list>
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include "collector/queue.h"
+#include "collector/workers.h"
 #include "http/server.h"
 #include "store/tile_writer.h"
 
 namespace dtraced::collector {
+
+// A Prometheus histogram with fixed upper bounds (at most kMaxBuckets, ascending; +Inf implied).
+class Histogram {
+ public:
+  static constexpr std::size_t kMaxBuckets = 16;
+  Histogram(std::initializer_list<double> bounds);
+  void observe(double value);
+  std::size_t buckets() const { return size_; }
+  double bound(std::size_t i) const { return bounds_[i]; }
+  // Observations <= bound(i), cumulative as Prometheus writes them.
+  std::uint64_t cumulative(std::size_t i) const;
+  std::uint64_t count() const { return count_; }
+  double sum() const { return sum_; }
+
+ private:
+  std::array<double, kMaxBuckets> bounds_{};
+  std::array<std::uint64_t, kMaxBuckets> counts_{};  // per bucket; above the last: count_ - sum
+  std::size_t size_ = 0;
+  std::uint64_t count_ = 0;
+  double sum_ = 0;
+};
 
 // Owned and updated by the collector's event loop.
 struct CollectorCounters {
@@ -41,7 +73,25 @@ struct CollectorCounters {
   std::uint64_t store_busy = 0;     // 503 because the store's queue was full or a write failed
   std::uint64_t images_written = 0;
   std::uint64_t image_write_failures = 0;
+  Histogram lease_seconds{0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1};
+  Histogram tile_upload_bytes{1 << 10, 4 << 10, 16 << 10, 64 << 10, 256 << 10, 1 << 20, 4 << 20, 16 << 20, 64 << 20};
+  Histogram tile_render_seconds{0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 300, 1800};
 };
+
+// Per-worker series are written for this many workers at most (the most recently seen).
+inline constexpr std::size_t kMetricsWorkers = 20;
+
+// What /proc/self says of this process; -1 where it could not be read.
+struct ProcessStats {
+  double start_time_seconds = -1;  // since the Unix epoch
+  double resident_bytes = -1;
+  double open_fds = -1;
+};
+ProcessStats read_process_stats();
+
+// The binary's version and the architecture it was built for.
+std::string_view build_version();
+std::string_view build_isa();
 
 struct MetricsSnapshot {
   std::int64_t epoch = 0;
@@ -52,6 +102,10 @@ struct MetricsSnapshot {
   QueueStats queue;
   http::ServerMetrics http;
   store::WriterStats store;
+  ProcessStats process;
+  std::vector<WorkerView> workers;  // most recently seen first
+  WorkerView retired_workers;       // counts of forgotten workers
+  std::uint64_t workers_evicted = 0;
 };
 
 // Prometheus text exposition format 0.0.4, every metric with HELP and TYPE lines.

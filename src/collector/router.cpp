@@ -1,18 +1,45 @@
 #include "collector/router.h"
 
 #include <algorithm>
+#include <chrono>
+#include <string>
+#include <string_view>
 #include <utility>
+
+#include <fmt/format.h>
 
 #include "collector/admission.h"
 #include "collector/handlers.h"
+#include "util/log.h"
 
 namespace dtraced::collector {
 namespace {
 
+// Logs a refused token with the peer's address, at most once per LogThrottle interval.
+void note_auth_failure(Context& c, const http::Request& head) {
+  ++c.counters.auth_failures;
+  std::uint64_t held_back = 0;
+  if (!c.auth_failure_log.allow(c.clock.now(), held_back)) return;
+  const std::string peer = request_peer(head);
+  const auto target = head.target();
+  util::log_warn(
+      "collector: refused a request for {} from {}: missing or wrong bearer token{}",
+      std::string_view(target.data(), std::min<std::size_t>(target.size(), 128)),
+      peer.empty() ? "an unknown address" : peer,
+      held_back == 0 ? std::string() : fmt::format(" ({} more refused since the last such line)", held_back));
+}
+
 util::Result<Admitted, Refusal> admit_counted(Context& c, const http::Request& head) {
   auto admitted = admit(head, c.token, c.config.limits.max_body_bytes);
-  if (!admitted && admitted.error().status == http::Status::unauthorized) ++c.counters.auth_failures;
+  if (!admitted && admitted.error().status == http::Status::unauthorized) note_auth_failure(c, head);
   return admitted;
+}
+
+http::Response timed_lease(Context& c, const http::Request& req) {
+  const TimePoint start = c.clock.now();
+  http::Response res = lease_tile(c, req);
+  c.counters.lease_seconds.observe(std::chrono::duration<double>(c.clock.now() - start).count());
+  return res;
 }
 
 }  // namespace
@@ -33,6 +60,7 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
   if (route.kind == RouteKind::kHealthz) co_return get_health();
   if (auto sized = check_body_size(req.body().size(), admitted->body_limit); !sized) co_return respond(sized.error());
   if (!c.opened) co_return respond(busy("the collector is starting"));
+  sweep_workers(c);
 
   switch (route.kind) {
     case RouteKind::kHealthz:
@@ -50,7 +78,7 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
     case RouteKind::kCancelJob:
       co_return co_await cancel_job(c, route.job);
     case RouteKind::kLease:
-      co_return lease_tile(c, req.body());
+      co_return timed_lease(c, req);
     case RouteKind::kScene:
       co_return co_await get_scene(c, std::move(route.digest));
     case RouteKind::kPutTile:
@@ -59,6 +87,8 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
       co_return co_await set_job_priority(c, route.job, std::move(req));
     case RouteKind::kRequeueJob:
       co_return co_await requeue_job(c, route.job);
+    case RouteKind::kWorkers:
+      co_return list_workers(c);
   }
   co_return http::make_error(http::Status::internal_server_error, "unhandled route");
 }

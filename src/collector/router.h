@@ -4,7 +4,8 @@
 // request's head before its body is read (a wrong token or an unknown route costs no body buffer;
 // the body gets the route's own limit); handle_request admits again (for requests that reach it by
 // other paths, such as tests), checks the body's size, and calls the route's handler (handlers.h).
-// Counts the refused tokens.
+// Counts the refused tokens and logs them (rate-limited, with the peer address); times leases;
+// sweeps the worker registry (workers.h) as requests arrive.
 //
 // Thread safety: on the loop only.
 #pragma once

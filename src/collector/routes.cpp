@@ -152,6 +152,9 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
       return wrong_method("GET, POST");
     }
     allow = method == http::Verb::post ? "POST" : "GET";
+  } else if (is({"v1", "workers"})) {
+    route.kind = RouteKind::kWorkers;
+    allow = "GET";
   } else if (is({"v1", "lease"})) {
     route.kind = RouteKind::kLease;
     allow = "POST";

@@ -11,6 +11,7 @@
 //   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
 //   POST /v1/lease                     GET /v1/scenes/{digest}
 //   POST /v1/jobs/{id}/priority        POST /v1/jobs/{id}/requeue
+//   GET  /v1/workers
 //   GET /v1/jobs takes ?state=S&limit=N (each at most once)
 //
 // Targets must be in origin form ("/path?query"). Ids are decimal without sign or leading zeros
@@ -55,6 +56,7 @@ enum class RouteKind {
   kPutTile,
   kJobPriority,  // POST /v1/jobs/{id}/priority
   kRequeueJob,   // POST /v1/jobs/{id}/requeue
+  kWorkers,
 };
 
 struct Route {

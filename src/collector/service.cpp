@@ -54,7 +54,9 @@ util::Status Collector::listen() {
   util::sd_notify_state("READY=1");
   // Under systemd: WATCHDOG=1 and STATUS= from this loop until the stop begins.
   async::start_systemd_notifier(c.ioc->get_executor(), c.clock, *c.stop_begun, [&c] {
-    return systemd_status(c.metrics(), /* workers_seen = */ std::nullopt);  // the worker registry's count, once kept
+    WorkerCounts workers;
+    for (const WorkerView& w : c.workers.list(c.clock.now())) ++(w.quiet ? workers.quiet : workers.active);
+    return systemd_status(c.metrics(), workers);
   });
   return {};
 }

@@ -3,15 +3,19 @@
 #pragma once
 
 #include <cstddef>
-#include <optional>
 #include <string>
 
 #include "collector/metrics.h"
 
 namespace dtraced::collector {
 
-// "jobs: 2 queued, 1 rendering, 5 done, 0 cancelled", then "; workers: N seen" when the worker
-// count is known (nullopt until the collector keeps a worker registry).
-std::string systemd_status(const MetricsSnapshot& m, std::optional<std::size_t> workers_seen);
+// The workers the registry knows (collector/workers.h): active ones asked within its quiet time.
+struct WorkerCounts {
+  std::size_t active = 0;
+  std::size_t quiet = 0;
+};
+
+// "jobs: 2 queued, 1 rendering, 5 done, 0 cancelled; workers: 3 active, 1 quiet".
+std::string systemd_status(const MetricsSnapshot& m, WorkerCounts workers);
 
 }  // namespace dtraced::collector

@@ -106,6 +106,16 @@ struct Connection {
   net::cancellation_signal cancel;  // cancels the coroutine (and the handler) when stop() gives up
 };
 
+// Replaces any kPeerHeader the client sent with the connection's real source address, so the
+// header check and the handler can name the peer (logs, the collector's worker registry).
+void stamp_peer(Request& req, const beast::tcp_stream& stream) {
+  error_code ec;
+  const tcp::endpoint peer = stream.socket().remote_endpoint(ec);
+  const beast::string_view name(kPeerHeader.data(), kPeerHeader.size());
+  req.erase(name);
+  if (!ec) req.set(name, peer.address().to_string());
+}
+
 }  // namespace
 
 struct Server::Impl {
@@ -272,6 +282,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     std::tie(ec, n) = co_await bhttp::async_read_header(conn.stream, buffer, parser, kAwaitTuple);
     ServerLimits request_limits = limits;  // the body limit as the header check leaves it
     if (!ec) {
+      stamp_peer(parser.get(), conn.stream);
       self->authenticate(conn, parser.get());
       if (conn.authenticated) conn.stream.expires_at(read_deadline);
       std::optional<Response> early;

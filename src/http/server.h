@@ -56,6 +56,7 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <string_view>
 
 #include <boost/asio/any_io_executor.hpp>
 #include <boost/asio/awaitable.hpp>
@@ -66,6 +67,10 @@
 #include "util/clock.h"
 
 namespace dtraced::http {
+
+// Set by the server on every request it hands to the header check and the handler: the peer's
+// address (e.g. "192.0.2.7", "::1"); a value the client sent under this name is replaced.
+inline constexpr std::string_view kPeerHeader = "X-Dtraced-Peer";
 
 struct ServerLimits {
   std::uint32_t max_header_bytes = 8 * 1024;  // request line and header fields together

@@ -28,9 +28,9 @@ constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "
 constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
                                                std::array<std::string_view, 1>{"png_bit_depth"});
 constexpr std::array<std::string_view, 2> kJobCreatedKeys = {"id", "digest"};
-constexpr std::array<std::string_view, 13> kJobStatusKeys = {
-    "id",         "state",       "output",    "priority", "width",  "height",  "samples",
-    "tiles_done", "tiles_total", "elapsed_s", "eta_s",    "digest", "mean_spp"};
+constexpr std::array<std::string_view, 14> kJobStatusKeys = {
+    "id",         "state",       "output",    "priority", "width",  "height",   "samples",
+    "tiles_done", "tiles_total", "elapsed_s", "eta_s",    "digest", "mean_spp", "no_worker_s"};
 constexpr std::array<std::string_view, 1> kJobListKeys = {"jobs"};
 constexpr std::array<std::string_view, 1> kJobPriorityKeys = {"priority"};
 
@@ -110,6 +110,7 @@ void read_job_status(Fields& f, JobStatus& s) {
   read_digest(f, s.digest);
   // Optional, so that an older collector's answer still reads.
   read_nullable_number(f, "mean_spp", s.mean_spp, 1, scene::kMaxSamples, Need::kOptional);
+  read_nullable_number(f, "no_worker_s", s.no_worker_s, 0, DBL_MAX, Need::kOptional);
   if (r.error_count() == before && s.tiles_done > s.tiles_total) {
     r.error(f.path("tiles_done"), fmt::format("must be <= tiles_total (got {} > {})", s.tiles_done, s.tiles_total));
   }
@@ -130,6 +131,7 @@ json::object job_status_object(const JobStatus& s) {
   o["eta_s"] = s.eta_s ? jsonio::exact_number(*s.eta_s) : json::value(nullptr);
   o["digest"] = s.digest;
   o["mean_spp"] = s.mean_spp ? jsonio::exact_number(*s.mean_spp) : json::value(nullptr);
+  o["no_worker_s"] = s.no_worker_s ? jsonio::exact_number(*s.no_worker_s) : json::value(nullptr);
   return o;
 }
 

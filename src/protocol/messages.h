@@ -123,6 +123,9 @@ enum class JobState { kQueued, kRendering, kDone, kCancelled };
 std::string_view to_string(JobState state);
 std::optional<JobState> job_state_from_string(std::string_view text);
 
+// A job unserved this long is reported by its status (JobStatus::no_worker_s).
+inline constexpr double kNoWorkerAfterS = 60;
+
 struct JobStatus {
   std::uint64_t id = 0;  // [1, kMaxId]
   JobState state = JobState::kQueued;
@@ -138,6 +141,9 @@ struct JobStatus {
   // no tile is stored yet or the collector cannot tell (an adaptive job finished before its last
   // restart). Optional when decoding, so that an older collector's answer still reads.
   std::optional<double> mean_spp;
+  // Seconds since a worker last leased or returned a tile of this unfinished job, once that is at
+  // least a minute (kNoWorkerAfterS); null otherwise. Optional when decoding, like mean_spp.
+  std::optional<double> no_worker_s;
   bool operator==(const JobStatus&) const = default;
 };
 std::string encode(const JobStatus& m);

@@ -1,6 +1,8 @@
 // A render slot's pipeline: lease a tile, make sure its scene is built (by digest, fetched once
 // however many slots need it), render it on the pool, and hand the pixels to submission.
 
+#include <algorithm>
+#include <chrono>
 #include <exception>
 #include <memory>
 #include <optional>
@@ -13,6 +15,7 @@
 #include <fmt/format.h>
 
 #include "protocol/tile_payload.h"
+#include "protocol/worker_messages.h"
 #include "render/tile.h"
 #include "scene/load.h"
 #include "util/log.h"
@@ -99,6 +102,7 @@ async::Awaitable<std::optional<LeaseAnswer>> Worker::Impl::request_lease() {
   http::Request request = authorized(http::make_request(
       http::Verb::post, "/v1/lease", protocol::encode(protocol::LeaseRequest{config.name, config.threads}),
       http::kJsonContentType));
+  request.set(protocol::kIsaHeader, accel::isa_name(config.isa));
   auto raced =
       co_await (http::request(url, std::move(request), config.timeouts, protocol::kMaxMessageBytes) || stop.wait());
   if (raced.index() == 1 || stop.is_set()) co_return std::nullopt;
@@ -171,14 +175,18 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
 async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
   const protocol::Lease& lease = work.lease;
   // The pool reads the lease and the scene while this coroutine waits: both outlive the wait.
-  auto render = [&lease, &scene = *work.scene] {
+  // Timed on the render thread itself, so that waiting for a free thread does not count.
+  auto render = [&lease, &scene = *work.scene, &clock = clock] {
+    const util::TimePoint start = clock.now();
     render::Tile tile = render::render_tile(scene, lease.settings, lease.rect);
+    const auto took = std::chrono::duration_cast<std::chrono::milliseconds>(clock.now() - start);
     // With adaptive sampling the counts travel too (flag bit 0): the collector checks them and
     // keeps them with the pixels.
-    return protocol::encode_tile_payload(
-        protocol::TilePayload{lease.job, lease.tile, lease.rect, std::move(tile.rgb), std::move(tile.spp)});
+    return std::pair(protocol::encode_tile_payload(protocol::TilePayload{lease.job, lease.tile, lease.rect,
+                                                                         std::move(tile.rgb), std::move(tile.spp)}),
+                     static_cast<std::uint64_t>(std::max<std::int64_t>(took.count(), 0)));
   };
-  std::string payload = co_await async::on_pool(pool, std::move(render));
+  auto [payload, render_ms] = co_await async::on_pool(pool, std::move(render));
   tiles_rendered.add();
   if (abandon.is_set()) {
     tiles_abandoned.add();
@@ -189,12 +197,13 @@ async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
     co_return;
   }
   tiles_held.add();
-  async::net::co_spawn(io, submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation)}),
-                       [this](std::exception_ptr e) {
-                         async::log_exception("submitting a tile", e);
-                         tiles_held.remove();
-                         in_hand.changed().notify_all();
-                       });
+  async::net::co_spawn(
+      io, submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation), render_ms}),
+      [this](std::exception_ptr e) {
+        async::log_exception("submitting a tile", e);
+        tiles_held.remove();
+        in_hand.changed().notify_all();
+      });
 }
 
 }  // namespace dtraced::worker

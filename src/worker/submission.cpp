@@ -7,6 +7,7 @@
 #include <boost/asio/experimental/awaitable_operators.hpp>
 #include <fmt/format.h>
 
+#include "protocol/worker_messages.h"
 #include "util/log.h"
 #include "worker/log_limiter.h"
 #include "worker/worker_impl.h"
@@ -36,6 +37,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
     http::Request request =
         authorized(http::make_request(http::Verb::put, target, tile.payload, http::kBinaryContentType));
     request.set(protocol::kWorkerHeader, config.name);
+    request.set(protocol::kRenderMsHeader, std::to_string(tile.render_ms));
     auto raced = co_await (http::request(url, std::move(request), config.timeouts, protocol::kMaxMessageBytes) ||
                            abandon.wait());
     if (raced.index() == 1 || abandon.is_set()) {

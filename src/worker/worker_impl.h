@@ -52,6 +52,7 @@ struct HeldTile {
   std::uint32_t tile = 0;
   std::string payload;  // protocol::encode_tile_payload
   InHand::Reservation reservation;
+  std::uint64_t render_ms = 0;  // sent as protocol::kRenderMsHeader
 };
 
 struct SceneOutcome {

@@ -83,7 +83,7 @@ http::Response list_jobs(const Context& c, const Route& route) {
   for (auto it = c.jobs.rbegin(); it != c.jobs.rend() && list.jobs.size() < limit; ++it) {
     protocol::JobStatus status = job_status(it->second, unix_now, now);
     if (route.list_state && status.state != *route.list_state) continue;
-    list.jobs.push_back(std::move(status));
+    list.jobs.push_back(with_worker_gap(c, std::move(status)));
   }
   std::reverse(list.jobs.begin(), list.jobs.end());
   return json_answer(http::Status::ok, protocol::encode(list));
@@ -92,7 +92,8 @@ http::Response list_jobs(const Context& c, const Route& route) {
 http::Response get_job(const Context& c, JobId id) {
   const JobRecord* job = c.find_job(id);
   if (job == nullptr) return respond(job_not_found(id));
-  return json_answer(http::Status::ok, protocol::encode(job_status(*job, c.clock.unix_seconds(), c.clock.now())));
+  return json_answer(http::Status::ok,
+                     protocol::encode(with_worker_gap(c, job_status(*job, c.clock.unix_seconds(), c.clock.now()))));
 }
 
 async::Awaitable<http::Response> cancel_job(Context& c, JobId id) {

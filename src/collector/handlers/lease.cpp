@@ -18,9 +18,10 @@ http::Response retry_after(std::chrono::milliseconds suggested) {
 
 }  // namespace
 
-http::Response lease_tile(Context& c, std::string_view body) {
-  auto request = protocol::decode_lease_request(body);
+http::Response lease_tile(Context& c, const http::Request& req) {
+  auto request = protocol::decode_lease_request(req.body());
   if (!request) return respond(decode_failure(request.error()));
+  note_lease_request(c, req, request.value());
   const TimePoint now = c.clock.now();
   const LeaseResult result = c.queue.lease(now);
   JobRecord* job = result.grant ? c.find_job(result.grant->job) : nullptr;
@@ -40,6 +41,7 @@ http::Response lease_tile(Context& c, std::string_view body) {
                     job->id);
   }
   if (!job->first_lease) job->first_lease = now;
+  note_job_served(c, job->id);
   if (job->state == protocol::JobState::kQueued) job->state = protocol::JobState::kRendering;
   protocol::Lease lease;
   lease.job = job->id;

@@ -10,6 +10,7 @@
 #include "collector/handlers.h"
 #include "collector/lifecycle.h"
 #include "collector/writer_bridge.h"
+#include "protocol/worker_messages.h"
 #include "util/log.h"
 
 namespace dtraced::collector {
@@ -40,30 +41,52 @@ async::Awaitable<util::Result<protocol::TilePayload, Refusal>> checked_payload(C
   co_return *co_await async::on_pool(c.pool, std::move(check));
 }
 
-http::Response duplicate(Context& c, bool identical, JobId job, TileIndex tile, const std::string& worker) {
+http::Response duplicate(Context& c, bool identical, JobId job, TileIndex tile, const WorkerId& worker) {
   ++c.counters.tile_duplicates;
+  note_tile_upload(c, worker, identical ? TileOutcome::kDuplicate : TileOutcome::kFaultyDuplicate, 0);
   if (!identical) {
     ++c.counters.faulty_results;
-    util::log_warn("collector: tile {} of job {} from worker '{}' differs from the stored result: faulty worker?", tile,
-                   job, worker);
+    util::log_warn("collector: tile {} of job {} from worker '{}' ({}) differs from the stored result: faulty worker?",
+                   tile, job, worker.name, peer_text(worker));
   }
   return submit_answer(protocol::SubmitResult::kAlreadyDone);
 }
 
+// Camera rays (one per sample) of a stored tile, for the registry's recent counts.
+std::uint64_t tile_rays(const protocol::TilePayload& p, std::uint32_t samples) {
+  if (p.spp.empty()) return std::uint64_t{p.rect.width} * p.rect.height * samples;
+  std::uint64_t sum = 0;
+  for (const std::uint32_t n : p.spp) sum += n;
+  return sum;
+}
+
+// What the worker says the tile took to render (protocol::kRenderMsHeader), into the histogram.
+void observe_render_time(Context& c, const http::Request& req) {
+  const auto it =
+      req.find(boost::beast::string_view(protocol::kRenderMsHeader.data(), protocol::kRenderMsHeader.size()));
+  if (it == req.end()) return;
+  const auto ms = protocol::parse_render_ms_header(std::string_view(it->value().data(), it->value().size()));
+  if (ms) c.counters.tile_render_seconds.observe(double(*ms) / 1000.0);
+}
+
 // The store committed the tile: it leaves the queue and enters the framebuffer.
-http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payload) {
+http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payload, const WorkerId& worker) {
   const CompleteResult completed = c.queue.complete(id, payload.tile, c.clock.now());
   JobRecord* job = c.find_job(id);
   if (completed == CompleteResult::kJobGone || job == nullptr || !job->unfinished()) {
     // Cancelled while the store wrote: the pixels are stored, and nobody wants them.
     ++c.counters.tiles_job_gone;
+    note_tile_upload(c, worker, TileOutcome::kJobGone, 0);
     return submit_answer(protocol::SubmitResult::kJobGone);
   }
   if (completed == CompleteResult::kAlreadyDone) {
     util::log_error("collector: the store stored tile {} of job {}, which the queue had as done", payload.tile, id);
     ++c.counters.tile_duplicates;
+    note_tile_upload(c, worker, TileOutcome::kDuplicate, 0);
     return submit_answer(protocol::SubmitResult::kAlreadyDone);
   }
+  note_tile_upload(c, worker, TileOutcome::kStored, tile_rays(payload, job->settings.samples));
+  note_job_served(c, id);
   copy_tile(writable_framebuffer(*job), payload.rect, payload.rgb);
   count_samples(*job, payload.spp);
   ++job->tiles_done;
@@ -77,12 +100,12 @@ http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload&
 
 // The store decides (INSERT OR IGNORE: the first result wins, and a duplicate is compared with it).
 async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol::TilePayload& p,
-                                            const std::string& worker) {
+                                            const WorkerId& worker) {
   store::TileWrite write;
   write.job = static_cast<std::int64_t>(id);
   write.tile = p.tile;
   write.pixels = pixels_to_blob(p.rgb, p.spp);
-  write.worker = fmt::format("epoch={} worker={}", c.epoch, worker);
+  write.worker = fmt::format("epoch={} worker={}", c.epoch, worker.name);
   write.stored_unix = c.clock.unix_seconds();
   auto reply = co_await commit_tile(*c.writer, std::move(write));
   if (reply.status != store::SubmitStatus::kAccepted) {
@@ -92,7 +115,7 @@ async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol
   const store::CommitResult& result = *reply.value;
   switch (result.outcome) {
     case store::TileOutcome::kStored:
-      co_return on_tile_stored(c, id, p);
+      co_return on_tile_stored(c, id, p, worker);
     case store::TileOutcome::kAlreadyPresent:
       co_return duplicate(c, result.identical, id, p.tile, worker);
     case store::TileOutcome::kRejected:
@@ -109,10 +132,13 @@ async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol
 }  // namespace
 
 async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req) {
-  const std::string worker = worker_name(req);
+  const WorkerId worker = worker_id(req, worker_name(req));
+  c.counters.tile_upload_bytes.observe(double(req.body().size()));
+  observe_render_time(c, req);
   const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req));
   if (!checked) {
     ++c.counters.tiles_refused;
+    note_tile_upload(c, worker, TileOutcome::kRefused, 0);
     co_return respond(checked.error());
   }
   const protocol::TilePayload& p = checked.value();
@@ -120,10 +146,12 @@ async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request
   const auto action = check_tile(route, job, p);
   if (!action) {
     ++c.counters.tiles_refused;
+    note_tile_upload(c, worker, TileOutcome::kRefused, 0);
     co_return respond(action.error());
   }
   if (action.value() == TileAction::kJobGone) {
     ++c.counters.tiles_job_gone;
+    note_tile_upload(c, worker, TileOutcome::kJobGone, 0);
     co_return submit_answer(protocol::SubmitResult::kJobGone);
   }
   if (!job->restored.empty() && job->restored[p.tile]) ++c.counters.restored_tile_submissions;

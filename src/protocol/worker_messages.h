@@ -1,0 +1,70 @@
+// dtraced::protocol worker messages: GET /v1/workers, and the headers a worker describes itself
+// with.
+//
+// Owns: the wire form of the collector's worker registry (collector/workers.h) and its limits.
+// A worker names itself in kWorkerHeader (messages.h) and the lease request; it also sends its
+// instruction set in kIsaHeader on lease requests and the time a tile took to render in
+// kRenderMsHeader on tile uploads. Headers rather than body fields, so that a collector that does
+// not know them ignores them (an unknown body key is refused) and mixed versions keep working.
+//
+// Stateless functions: thread-safe.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "protocol/messages.h"
+
+namespace dtraced::protocol {
+
+// On POST /v1/lease: the worker's instruction set (accel::isa_name), 1..kMaxIsaHeaderBytes of
+// [a-z0-9_]. Anything else is ignored by the collector.
+inline constexpr std::string_view kIsaHeader = "X-Dtraced-Isa";
+inline constexpr std::size_t kMaxIsaHeaderBytes = 16;
+// On PUT /v1/jobs/{id}/tiles/{tile}: milliseconds the tile took to render, a decimal integer in
+// [0, kMaxRenderMs]. Anything else is ignored by the collector.
+inline constexpr std::string_view kRenderMsHeader = "X-Dtraced-Render-Ms";
+inline constexpr std::uint64_t kMaxRenderMs = 24ull * 3600 * 1000;
+// GET /v1/workers lists at most this many (the collector's registry cap is below it).
+inline constexpr std::size_t kMaxListedWorkers = 10'000;
+inline constexpr std::size_t kMaxWorkerListBytes = 16 << 20;
+// Longest peer address shown (an IPv6 address with scope is under 64).
+inline constexpr std::size_t kMaxPeerBytes = 64;
+
+// The instruction set named by a kIsaHeader value, or nullopt when it is not one.
+std::optional<std::string> parse_isa_header(std::string_view value);
+// The render time named by a kRenderMsHeader value, or nullopt when it is not one.
+std::optional<std::uint64_t> parse_render_ms_header(std::string_view value);
+
+struct WorkerInfo {
+  std::string name;           // as in LeaseRequest::worker
+  std::string peer;           // source address of its requests; "" when unknown
+  std::string isa;            // "" when it never sent one
+  std::uint32_t threads = 0;  // 0 when it never leased
+  bool quiet = false;         // unseen for the collector's quiet interval
+  double last_seen_s = 0;     // seconds since its last request
+  double first_seen_s = 0;    // seconds since its first request (as far as the collector remembers)
+  std::uint64_t leases = 0;
+  std::uint64_t tiles = 0;  // stored
+  std::uint64_t duplicates = 0;
+  std::uint64_t faulty_duplicates = 0;  // duplicates whose pixels differed from the stored ones
+  std::uint64_t refused = 0;            // tiles refused with 400
+  std::uint64_t recent_tiles = 0;       // stored in the last recent_window_s
+  std::uint64_t recent_rays = 0;        // camera rays (samples) of those tiles
+  bool operator==(const WorkerInfo&) const = default;
+};
+
+struct WorkerList {
+  double recent_window_s = 0;
+  double quiet_after_s = 0;
+  std::vector<WorkerInfo> workers;  // most recently seen first; at most kMaxListedWorkers
+  bool operator==(const WorkerList&) const = default;
+};
+std::string encode(const WorkerList& m);
+Decoded<WorkerList> decode_worker_list(std::string_view body);
+
+}  // namespace dtraced::protocol
