@@ -229,7 +229,7 @@ image="$root/var/lib/dtraced/output/farm.png"
 client fetch "$id" -o "$root/fetched.png" || die "fetch failed"
 cmp -s "$image" "$root/fetched.png" || die "the fetched image differs from the collector's file"
 echo "ok: the worker, as uid $uid_worker, rendered job $id; the image is in the state directory"
-wait_notify collector "STATUS=jobs: 0 queued, 0 rendering, 1 done"
+wait_notify collector "STATUS=jobs: 0 queued, 0 rendering, 1 done, 0 cancelled; workers: 1 active"
 wait_notify worker "STATUS=[1-9][0-9]* tiles rendered, [1-9][0-9]* submitted"
 
 stop_unit worker "$worker_pid"
