@@ -1,0 +1,227 @@
+// Scenes, jobs and tiles: the row accessors of Store (store.h), on the connection and statement
+// cache of store_impl.h. Opening, the schema, transactions and checkpoints are in store.cpp.
+#include <sqlite3.h>
+
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <fmt/format.h>
+
+#include "store/store.h"
+#include "store/store_impl.h"
+
+namespace dtraced::store {
+
+Status Store::put_scene(std::string_view digest, std::string_view json) {
+  constexpr std::string_view kSql = "INSERT INTO scenes(digest, json) VALUES (?1, ?2) ON CONFLICT DO NOTHING";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(digest).bind(json).step();
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("storing scene {}", digest), rc);
+  return {};
+}
+
+Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
+  constexpr std::string_view kSql = "SELECT json FROM scenes WHERE digest = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(digest).step();
+  if (rc == SQLITE_DONE) return std::optional<std::string>();
+  if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading scene {}", digest), rc);
+  return std::optional<std::string>(column_text(q.value().get(), 0));
+}
+
+Result<std::int64_t> Store::insert_job(const StoredJob& job) {
+  constexpr std::string_view kSql =
+      "INSERT INTO jobs(digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
+      "client_key) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value()
+                     .bind(job.digest)
+                     .bind(job.settings_json)
+                     .bind(job.output)
+                     .bind(std::int64_t{job.priority})
+                     .bind(std::int64_t{job.tile_size})
+                     .bind(job.state)
+                     .bind(job.created_unix)
+                     .bind(job.finished_unix)
+                     .bind_optional(job.client_key)
+                     .step();
+  if (rc != SQLITE_DONE) return impl_->error("inserting a job", rc);
+  return std::int64_t{sqlite3_last_insert_rowid(impl_->db)};
+}
+
+Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix) {
+  constexpr std::string_view kSql = "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(id).bind(state).bind(finished_unix).step();
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the state of job {}", id), rc);
+  if (sqlite3_changes64(impl_->db) != 1) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+  return {};
+}
+
+Result<StateChange> Store::change_job_state(std::int64_t id, std::span<const std::string_view> from,
+                                            std::string_view to, std::int64_t finished_unix) {
+  if (from.empty() || from.size() > kMaxStateChangeSources) {
+    return Error{fmt::format("{}: changing the state of job {}: {} source states (1 to {})", impl_->path, id,
+                             from.size(), kMaxStateChangeSources)};
+  }
+  {
+    // Fixed text (the statement cache is keyed by it): unused slots repeat the first state.
+    constexpr std::string_view kSql =
+        "UPDATE jobs SET state = ?2, finished_unix = ?3 WHERE id = ?1 AND state IN (?4, ?5, ?6, ?7)";
+    auto q = impl_->query(kSql);
+    if (!q) return q.error();
+    q.value().bind(id).bind(to).bind(finished_unix);
+    for (std::size_t i = 0; i < kMaxStateChangeSources; ++i) q.value().bind(from[i < from.size() ? i : 0]);
+    const int rc = q.value().step();
+    if (rc != SQLITE_DONE) return impl_->error(fmt::format("changing the state of job {}", id), rc);
+    if (sqlite3_changes64(impl_->db) == 1) return StateChange{true, std::string(to)};
+  }
+  constexpr std::string_view kSql = "SELECT state FROM jobs WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(id).step();
+  if (rc == SQLITE_DONE) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+  if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading the state of job {}", id), rc);
+  return StateChange{false, column_text(q.value().get(), 0)};
+}
+
+Status Store::set_job_priority(std::int64_t id, std::int32_t priority) {
+  constexpr std::string_view kSql = "UPDATE jobs SET priority = ?2 WHERE id = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(id).bind(std::int64_t{priority}).step();
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("setting the priority of job {}", id), rc);
+  if (sqlite3_changes64(impl_->db) != 1) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+  return {};
+}
+
+Result<std::vector<StoredJob>> Store::list_jobs() {
+  static const std::string kSql = std::string(kSelectJobs) + "ORDER BY id";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  std::vector<StoredJob> jobs;
+  int rc;
+  while ((rc = q.value().step()) == SQLITE_ROW) jobs.push_back(read_job(q.value().get()));
+  if (rc != SQLITE_DONE) return impl_->error("listing jobs", rc);
+  return jobs;
+}
+
+Result<std::optional<StoredJob>> Store::get_job(std::int64_t id) {
+  static const std::string kSql = std::string(kSelectJobs) + "WHERE id = ?1";
+  return impl_->select_job(kSql, id, fmt::format("reading job {}", id));
+}
+
+Result<std::optional<StoredJob>> Store::find_job_by_key(std::string_view client_key) {
+  static const std::string kSql = std::string(kSelectJobs) + "WHERE client_key = ?1";
+  return impl_->select_job(kSql, client_key, "looking up a job by client key");
+}
+
+Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
+  {
+    constexpr std::string_view kSql =
+        "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
+    auto q = query(kSql);
+    if (!q) return q.error();
+    const int rc =
+        q.value().bind(w.job).bind(std::int64_t{w.tile}).bind_blob(w.pixels).bind(w.worker).bind(w.stored_unix).step();
+    if (rc == SQLITE_DONE) {
+      if (sqlite3_changes64(db) == 1) return CommitResult{TileOutcome::kStored, false, {}};
+    } else if ((rc & 0xff) == SQLITE_CONSTRAINT && sqlite3_get_autocommit(db) == 0) {
+      // OR IGNORE covers the primary key; a missing job (foreign key) fails this statement only.
+      return CommitResult{TileOutcome::kRejected, false,
+                          error(fmt::format("storing tile {} of job {}", w.tile, w.job), rc).message};
+    } else {
+      return error(fmt::format("storing tile {} of job {}", w.tile, w.job), rc);
+    }
+  }
+  // Already present: compare the bytes (duplicates are rare, so the extra read is cheap overall).
+  constexpr std::string_view kSql = "SELECT pixels FROM tiles WHERE job = ?1 AND tile = ?2";
+  auto q = query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(w.job).bind(std::int64_t{w.tile}).step();
+  if (rc != SQLITE_ROW) return error(fmt::format("reading back tile {} of job {}", w.tile, w.job), rc);
+  sqlite3_stmt* s = q.value().get();
+  const void* stored = sqlite3_column_blob(s, 0);
+  const auto n = static_cast<std::size_t>(sqlite3_column_bytes(s, 0));
+  const bool identical = n == w.pixels.size() && (n == 0 || std::memcmp(stored, w.pixels.data(), n) == 0);
+  return CommitResult{TileOutcome::kAlreadyPresent, identical, {}};
+}
+
+Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite> writes) {
+  const bool own_transaction = sqlite3_get_autocommit(impl_->db) != 0;
+  if (own_transaction) {
+    if (auto st = impl_->exec(kSqlBegin); !st) return st.error();
+  }
+  std::vector<CommitResult> results;
+  results.reserve(writes.size());
+  for (const TileWrite& w : writes) {
+    auto r = impl_->insert_tile(w);
+    if (!r) {
+      if (own_transaction) impl_->rollback();
+      return r.error();
+    }
+    results.push_back(std::move(r).value());
+  }
+  if (own_transaction) {
+    if (auto st = impl_->exec(kSqlCommit); !st) {
+      impl_->rollback();
+      return st.error();
+    }
+  }
+  return results;
+}
+
+Result<std::vector<std::uint32_t>> Store::stored_tiles(std::int64_t job) {
+  constexpr std::string_view kSql = "SELECT tile FROM tiles WHERE job = ?1 ORDER BY tile";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  q.value().bind(job);
+  std::vector<std::uint32_t> tiles;
+  int rc;
+  while ((rc = q.value().step()) == SQLITE_ROW) {
+    tiles.push_back(static_cast<std::uint32_t>(sqlite3_column_int64(q.value().get(), 0)));
+  }
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("listing the tiles of job {}", job), rc);
+  return tiles;
+}
+
+Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
+  constexpr std::string_view kSql = "SELECT count(*) FROM tiles WHERE job = ?1";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(job).step();
+  if (rc != SQLITE_ROW) return impl_->error(fmt::format("counting the tiles of job {}", job), rc);
+  return static_cast<std::uint64_t>(sqlite3_column_int64(q.value().get(), 0));
+}
+
+Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_t tile) {
+  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 AND tile = ?2";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(job).bind(std::int64_t{tile}).step();
+  if (rc == SQLITE_DONE) return std::optional<StoredTile>();
+  if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading tile {} of job {}", tile, job), rc);
+  return std::optional<StoredTile>(read_tile(q.value().get()));
+}
+
+Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
+  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 ORDER BY tile";
+  auto q = impl_->query(kSql);
+  if (!q) return q.error();
+  q.value().bind(job);
+  std::vector<StoredTile> tiles;
+  int rc;
+  while ((rc = q.value().step()) == SQLITE_ROW) tiles.push_back(read_tile(q.value().get()));
+  if (rc != SQLITE_DONE) return impl_->error(fmt::format("reading the tiles of job {}", job), rc);
+  return tiles;
+}
+
+// A clean close would otherwise delete the -wal and -shm files, and the next open would have to
+// create them again: on a full disk, the -shm file's allocation fails and the collector could not
+// start until space frees. Kept, they cost a few kilobytes (the WAL is emptied by checkpoints).
+}  // namespace dtraced::store
