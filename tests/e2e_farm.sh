@@ -8,30 +8,7 @@ set -uo pipefail
 : "${DTRACED:?set DTRACED to the dtraced binary}"
 : "${SCENES:?set SCENES to the scenes folder}"
 DEADLINE=${DEADLINE:-240}
-work=$(mktemp -d)
-pids=()
-cleanup() {
-  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null; done
-  wait 2>/dev/null
-  rm -rf "$work"
-}
-trap cleanup EXIT
-
-passed=0
-failed=0
-ok() { passed=$((passed + 1)); echo "ok: $*"; }
-fail() {
-  failed=$((failed + 1))
-  echo "FAIL: $*"
-}
-die() {
-  fail "$*"
-  for f in "$work"/*.log; do
-    [ -f "$f" ] && { echo "--- $f (last 30 lines)"; tail -n 30 "$f"; }
-  done
-  echo "$passed passed, $failed failed"
-  exit 1
-}
+source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 
 printf 'e2e-%s-token\n' "$$" >"$work/token"
 TOKEN=$(head -n1 "$work/token")

@@ -9,24 +9,8 @@ set -uo pipefail
 : "${DTRACED:?set DTRACED to the dtraced binary}"
 : "${SCENES:?set SCENES to the scenes folder}"
 DEADLINE=${DEADLINE:-120}
-work=$(mktemp -d)
-pids=()
-cleanup() {
-  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null; done
-  wait 2>/dev/null
-  rm -rf "$work"
-}
-trap cleanup EXIT
+source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 
-passed=0
-failed=0
-ok() { passed=$((passed + 1)); echo "ok: $*"; }
-fail() { failed=$((failed + 1)); echo "FAIL: $*"; }
-die() {
-  fail "$*"
-  for f in "$work"/*.log; do [ -f "$f" ] && { echo "--- $f (last 20 lines)"; tail -n 20 "$f"; }; done
-  exit 1
-}
 # until SECONDS COMMAND...: polls COMMAND every 0.1 s until it succeeds or SECONDS pass.
 until_ok() {
   local n=$(($1 * 10))

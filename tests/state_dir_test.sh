@@ -10,32 +10,10 @@ set -uo pipefail
 
 : "${DTRACED:?set DTRACED to the dtraced binary}"
 DEADLINE=${DEADLINE:-60}
-work=$(mktemp -d)
-pids=()
-cleanup() {
-  for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null; done
-  wait 2>/dev/null
-  rm -rf "$work"
-}
-trap cleanup EXIT
+source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 
-passed=0
-failed=0
-ok() { passed=$((passed + 1)); echo "ok: $*"; }
-fail() {
-  failed=$((failed + 1))
-  echo "FAIL: $*"
-}
 check() {  # check DESCRIPTION: the last command's status decides
   if [ "$?" -eq 0 ]; then ok "$1"; else fail "$1"; fi
-}
-die() {
-  fail "$*"
-  for f in "$work"/*.log; do
-    [ -f "$f" ] && { echo "--- $f (last 30 lines)"; tail -n 30 "$f"; }
-  done
-  echo "$passed passed, $failed failed"
-  exit 1
 }
 
 printf 'state-%s-token\n' "$$" >"$work/token"
