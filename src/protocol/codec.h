@@ -14,7 +14,10 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <utility>
+#include <vector>
 
+#include <boost/json/array.hpp>
 #include <boost/json/object.hpp>
 #include <boost/json/value.hpp>
 
@@ -43,6 +46,29 @@ Decoded<T> decode_object(std::string_view text, std::size_t max_bytes, std::size
   read(f, message);
   if (r.failed()) return r.take_errors();
   return message;
+}
+
+// The object's required array `key` of at most `max_items` objects, each with keys among `keys`
+// and read by `read(Fields&, T&)`, appended to `out` when it read without error.
+template <typename T, typename Read>
+void read_object_array(Fields& f, std::string_view key, std::size_t max_items, std::span<const std::string_view> keys,
+                       std::vector<T>& out, Read read) {
+  Reader& r = f.reader();
+  const boost::json::value* v = f.get(key, Need::kRequired);
+  const Path at = f.path(key);
+  const boost::json::array* a = v != nullptr ? r.array(*v, at, max_items, key) : nullptr;
+  if (a == nullptr) return;
+  out.reserve(a->size());
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const Path element_at = at.index(i);
+    const boost::json::object* o = r.object((*a)[i], element_at);
+    if (o == nullptr) continue;
+    const std::size_t before = r.error_count();
+    Fields element(r, *o, element_at, keys);
+    T item{};
+    read(element, item);
+    if (r.error_count() == before) out.push_back(std::move(item));
+  }
 }
 
 // The object's required "digest": is_digest.

@@ -210,22 +210,7 @@ std::string encode(const JobList& m) {
 
 Decoded<JobList> decode_job_list(std::string_view text) {
   return decode_object<JobList>(text, kMaxJobListBytes, kMaxMessageDepth, kJobListKeys, [](Fields& f, JobList& m) {
-    Reader& r = f.reader();
-    const json::value* v = f.get("jobs", Need::kRequired);
-    const Path at = f.path("jobs");
-    const json::array* a = v != nullptr ? r.array(*v, at, kMaxListedJobs, "jobs") : nullptr;
-    if (a == nullptr) return;
-    m.jobs.reserve(a->size());
-    for (std::size_t i = 0; i < a->size(); ++i) {
-      const Path element_at = at.index(i);
-      const json::object* o = r.object((*a)[i], element_at);
-      if (o == nullptr) continue;
-      const std::size_t before = r.error_count();
-      Fields element(r, *o, element_at, kJobStatusKeys);
-      JobStatus s;
-      read_job_status(element, s);
-      if (r.error_count() == before) m.jobs.push_back(std::move(s));
-    }
+    read_object_array(f, "jobs", kMaxListedJobs, kJobStatusKeys, m.jobs, read_job_status);
   });
 }
 

@@ -94,23 +94,9 @@ std::string encode(const WorkerList& m) {
 Decoded<WorkerList> decode_worker_list(std::string_view text) {
   return decode_object<WorkerList>(
       text, kMaxWorkerListBytes, kMaxMessageDepth, kWorkerListKeys, [](Fields& f, WorkerList& m) {
-        Reader& r = f.reader();
         f.number("recent_window_s", m.recent_window_s, 0, DBL_MAX);
         f.number("quiet_after_s", m.quiet_after_s, 0, DBL_MAX);
-        const json::value* v = f.get("workers", Need::kRequired);
-        const Path at = f.path("workers");
-        const json::array* a = v != nullptr ? r.array(*v, at, kMaxListedWorkers, "workers") : nullptr;
-        if (a == nullptr) return;
-        m.workers.reserve(a->size());
-        for (std::size_t i = 0; i < a->size(); ++i) {
-          const Path element_at = at.index(i);
-          const json::object* o = r.object((*a)[i], element_at);
-          if (o == nullptr) continue;
-          Fields element(r, *o, element_at, kWorkerInfoKeys);
-          WorkerInfo w;
-          read_worker(element, w);
-          m.workers.push_back(std::move(w));
-        }
+        read_object_array(f, "workers", kMaxListedWorkers, kWorkerInfoKeys, m.workers, read_worker);
       });
 }
 
