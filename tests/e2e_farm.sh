@@ -13,26 +13,11 @@ source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 printf 'e2e-%s-token\n' "$$" >"$work/token"
 TOKEN=$(head -n1 "$work/token")
 
-# start_collector NAME STATE_DIR [LISTEN] [extra flags...]: sets COLLECTOR_PID and PORT.
-start_collector() {
+# Every collector here re-offers a lease after half a second (the default waits longer).
+start_farm_collector() {
   local name=$1 state=$2 listen=${3:-127.0.0.1:0}
   shift 3 || shift $#
-  : >"$work/$name.log"
-  "$DTRACED" --role collector --listen "$listen" --state-dir "$state" --token-file "$work/token" \
-    --reoffer-floor-ms 500 "$@" 2>>"$work/$name.log" &
-  COLLECTOR_PID=$!
-  pids+=("$COLLECTOR_PID")
-  local t=0
-  PORT=
-  while [ $t -lt $((DEADLINE * 10)) ]; do
-    PORT=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/$name.log" | tail -n1)
-    [ -n "$PORT" ] && break
-    kill -0 "$COLLECTOR_PID" 2>/dev/null || die "collector $name exited at start"
-    sleep 0.1
-    t=$((t + 1))
-  done
-  [ -n "$PORT" ] || die "collector $name did not listen within ${DEADLINE}s"
-  URL="http://127.0.0.1:$PORT"
+  start_collector "$name" "$state" "$listen" --reoffer-floor-ms 500 "$@"
 }
 
 # start_worker NAME URL [extra flags...]: appends to WORKER_PIDS.
@@ -85,7 +70,7 @@ JOB_ARGS=(--width 192 --height 108 -s 4 --tile-size 16)
 "$DTRACED" render "$SCENE" -o "$work/ref.pfm" --width 192 --height 108 -s 4 -q || die "reference render failed"
 
 # ---- 1. a collector and two workers ----------------------------------------------------------
-start_collector c1 "$work/state1"
+start_farm_collector c1 "$work/state1"
 start_worker w1a "$URL"
 start_worker w1b "$URL"
 id=$(client submit "$SCENE" -o one.pfm "${JOB_ARGS[@]}") || die "submit failed"
@@ -136,7 +121,7 @@ WORKER_PIDS=()
 # A longer job (336 tiles, a few seconds on one thread), so that each kill lands mid-job.
 LONG_ARGS=(--width 384 --height 216 -s 24 --tile-size 16)
 "$DTRACED" render "$SCENE" -o "$work/ref3.pfm" --width 384 --height 216 -s 24 -q || die "reference render failed"
-start_collector c3 "$work/state3"
+start_farm_collector c3 "$work/state3"
 port3=$PORT
 id=$(client submit "$SCENE" -o three.pfm "${LONG_ARGS[@]}") || die "submit failed"
 total=$(job_field "$id" tiles_total)
@@ -154,7 +139,7 @@ for frac in 10 50 80; do
   kill -9 "$COLLECTOR_PID"
   wait "$COLLECTOR_PID" 2>/dev/null
   # Restart on the same state directory and port: the worker keeps retrying across the gap.
-  start_collector "c3-$frac" "$work/state3" "127.0.0.1:$port3"
+  start_farm_collector "c3-$frac" "$work/state3" "127.0.0.1:$port3"
   restored=$(metric dtraced_restored_tiles)
   [ -n "$restored" ] && [ "$restored" -ge "$acked" ] &&
     ok "kill at ${frac}%: all $acked acknowledged tiles survived ($restored restored)" ||
@@ -175,7 +160,7 @@ wait 2>/dev/null
 WORKER_PIDS=()
 start_worker w4 "http://127.0.0.1:$port3"
 sleep 1  # the worker is now retrying against a closed port; nothing depends on how long
-start_collector c4 "$work/state3" "127.0.0.1:$port3"
+start_farm_collector c4 "$work/state3" "127.0.0.1:$port3"
 id4=$(client submit "$SCENE" -o four.pfm "${JOB_ARGS[@]}") || die "submit failed"
 wait_done "$id4"
 client fetch "$id4" -o "$work/four.pfm" || die "fetch failed"
@@ -222,7 +207,7 @@ WORKER_PIDS=()
 mkdir -p "$work/out6"
 ONESHOT=(--scene "$SCENE" --output "$work/out6/six.pfm" --width 384 --height 216 --samples 24 --tile-size 16
   --exit-when-done)
-start_collector c6 "$work/state6" 127.0.0.1:0 "${ONESHOT[@]}"
+start_farm_collector c6 "$work/state6" 127.0.0.1:0 "${ONESHOT[@]}"
 port6=$PORT
 start_worker w6 "$URL"
 id6=$(client list --json | sed -n 's/.*"id":\([0-9]*\).*/\1/p' | head -n1)
@@ -233,7 +218,7 @@ kill -STOP "${WORKER_PIDS[0]}"  # frozen until the restart: the job cannot finis
 [ "$(job_field "$id6" tiles_done)" -lt "$total6" ] || die "the one-shot job finished before the kill; make it longer"
 kill -9 "$COLLECTOR_PID"
 wait "$COLLECTOR_PID" 2>/dev/null
-start_collector c6b "$work/state6" "127.0.0.1:$port6" "${ONESHOT[@]}"
+start_farm_collector c6b "$work/state6" "127.0.0.1:$port6" "${ONESHOT[@]}"
 kill -CONT "${WORKER_PIDS[0]}"
 [ "$(client list --json | grep -o '"id":' | wc -l)" = 1 ] && ok "one-shot restart resumes the job instead of enqueuing a copy" ||
   fail "one-shot restart enqueued another job"

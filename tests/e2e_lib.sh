@@ -1,7 +1,7 @@
 # Shared by the end-to-end scripts that start dtraced processes (sourced, never run on its own):
 # a temporary work directory, the list of processes started (killed with SIGKILL and waited for
-# on exit, whatever the outcome), the pass/fail counters, and die, which shows the tail of every
-# log in the work directory before it gives up.
+# on exit, whatever the outcome), the pass/fail counters, die, which shows the tail of every
+# log in the work directory before it gives up, and start_collector. Needs DTRACED and DEADLINE.
 work=$(mktemp -d)
 pids=()
 cleanup() {
@@ -25,4 +25,28 @@ die() {
   done
   echo "$passed passed, $failed failed"
   exit 1
+}
+
+# start_collector NAME STATE_DIR [LISTEN] [extra flags...]: starts a collector with the token in
+# $work/token, logging to $work/NAME.log, and waits until it listens; sets COLLECTOR_PID, PORT
+# and URL.
+start_collector() {
+  local name=$1 state=$2 listen=${3:-127.0.0.1:0}
+  shift 3 || shift $#
+  : >"$work/$name.log"
+  "$DTRACED" --role collector --listen "$listen" --state-dir "$state" --token-file "$work/token" \
+    "$@" 2>>"$work/$name.log" &
+  COLLECTOR_PID=$!
+  pids+=("$COLLECTOR_PID")
+  local t=0
+  PORT=
+  while [ $t -lt $((DEADLINE * 10)) ]; do
+    PORT=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/$name.log" | tail -n1)
+    [ -n "$PORT" ] && break
+    kill -0 "$COLLECTOR_PID" 2>/dev/null || die "collector $name exited at start"
+    sleep 0.1
+    t=$((t + 1))
+  done
+  [ -n "$PORT" ] || die "collector $name did not listen within ${DEADLINE}s"
+  URL="http://127.0.0.1:$PORT"
 }

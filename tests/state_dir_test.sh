@@ -18,26 +18,6 @@ check() {  # check DESCRIPTION: the last command's status decides
 
 printf 'state-%s-token\n' "$$" >"$work/token"
 
-# start_collector NAME STATE_DIR [LISTEN]: waits until it listens; sets COLLECTOR_PID and PORT.
-start_collector() {
-  local name=$1 state=$2 listen=${3:-127.0.0.1:0}
-  : >"$work/$name.log"
-  "$DTRACED" --role collector --listen "$listen" --state-dir "$state" --token-file "$work/token" \
-    2>>"$work/$name.log" &
-  COLLECTOR_PID=$!
-  pids+=("$COLLECTOR_PID")
-  local t=0
-  PORT=
-  while [ $t -lt $((DEADLINE * 10)) ]; do
-    PORT=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/$name.log" | tail -n1)
-    [ -n "$PORT" ] && break
-    kill -0 "$COLLECTOR_PID" 2>/dev/null || die "collector $name exited at start"
-    sleep 0.1
-    t=$((t + 1))
-  done
-  [ -n "$PORT" ] || die "collector $name did not listen within ${DEADLINE}s"
-}
-
 # run_collector NAME STATE_DIR LISTEN: a collector expected to exit at start; sets STATUS.
 run_collector() {
   local name=$1 state=$2 listen=$3
