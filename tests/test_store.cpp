@@ -19,7 +19,7 @@ using namespace dtraced::testing;
 
 // ---------------------------------------------------------------------------------------------
 
-TEST_CASE("open creates the state directory and a WAL database with schema version 1", "[store]") {
+TEST_CASE("open creates the state directory and a WAL database with schema version 2", "[store]") {
   StoreDir tmp;
   const std::string dir = tmp.path() + "/nested/state";
   {
@@ -31,7 +31,8 @@ TEST_CASE("open creates the state directory and a WAL database with schema versi
   }
   CHECK(fs::is_regular_file(dir + "/dtraced.db"));
   CHECK(raw_query_text(dir + "/dtraced.db", "PRAGMA journal_mode") == "wal");
-  CHECK(raw_query_text(dir + "/dtraced.db", "SELECT value FROM meta WHERE key = 'schema_version'") == "1");
+  CHECK(raw_query_text(dir + "/dtraced.db", "SELECT value FROM meta WHERE key = 'schema_version'") == "2");
+  CHECK(raw_query_text(dir + "/dtraced.db", "PRAGMA auto_vacuum") == "2");  // incremental
   // A second open of the same, now non-empty, file accepts it.
   Store again = open_ok(dir);
 }
@@ -106,12 +107,12 @@ TEST_CASE("jobs: insert, get, list, state changes, lookup by client key, constra
   }
   SECTION("unknown states and zero tile sizes are refused") {
     StoredJob c = sample_job();
-    c.state = "paused";
+    c.state = "suspended";
     CHECK_FALSE(store.insert_job(c).ok());
     c.state = "queued";
     c.tile_size = 0;
     CHECK_FALSE(store.insert_job(c).ok());
-    Status st = store.set_job_state(id_a.value(), "paused", 0);
+    Status st = store.set_job_state(id_a.value(), "suspended", 0);
     REQUIRE_FALSE(st.ok());
     CHECK_THAT(st.error().message, Contains("CHECK"));
   }

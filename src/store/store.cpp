@@ -47,7 +47,7 @@ CREATE TABLE jobs(
   output TEXT NOT NULL,
   priority INTEGER NOT NULL CHECK (priority BETWEEN -2147483648 AND 2147483647),
   tile_size INTEGER NOT NULL CHECK (tile_size BETWEEN 1 AND 4294967295),
-  state TEXT NOT NULL CHECK (state IN ('queued', 'rendering', 'done', 'cancelled')),
+  state TEXT NOT NULL CHECK (state IN ('queued', 'rendering', 'done', 'cancelled', 'paused')),
   created_unix INTEGER NOT NULL,
   finished_unix INTEGER NOT NULL,
   client_key TEXT UNIQUE
@@ -60,7 +60,33 @@ CREATE TABLE tiles(
   stored_unix INTEGER NOT NULL,
   PRIMARY KEY (job, tile)
 ) STRICT;
-INSERT INTO meta(key, value) VALUES ('schema_version', 1);
+INSERT INTO meta(key, value) VALUES ('schema_version', 2);
+INSERT INTO meta(key, value) VALUES ('last_job_id', 0);
+)sql";
+
+// Version 1 -> 2: the jobs table gains the state 'paused' (its CHECK changes, so the table is
+// rebuilt, the way SQLite's documentation describes for any change ALTER TABLE cannot make), and
+// meta records the highest job id ever given, so ids of deleted jobs are never handed out again.
+// Runs in one transaction with foreign keys off (dropping the old table must not touch tiles).
+constexpr const char* kMigrateV1Sql = R"sql(
+CREATE TABLE jobs_v2(
+  id INTEGER PRIMARY KEY,
+  digest TEXT NOT NULL REFERENCES scenes(digest),
+  settings_json TEXT NOT NULL,
+  output TEXT NOT NULL,
+  priority INTEGER NOT NULL CHECK (priority BETWEEN -2147483648 AND 2147483647),
+  tile_size INTEGER NOT NULL CHECK (tile_size BETWEEN 1 AND 4294967295),
+  state TEXT NOT NULL CHECK (state IN ('queued', 'rendering', 'done', 'cancelled', 'paused')),
+  created_unix INTEGER NOT NULL,
+  finished_unix INTEGER NOT NULL,
+  client_key TEXT UNIQUE
+) STRICT;
+INSERT INTO jobs_v2 SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix,
+  finished_unix, client_key FROM jobs;
+DROP TABLE jobs;
+ALTER TABLE jobs_v2 RENAME TO jobs;
+INSERT INTO meta(key, value) VALUES ('last_job_id', (SELECT coalesce(max(id), 0) FROM jobs));
+UPDATE meta SET value = 2 WHERE key = 'schema_version';
 )sql";
 
 // What check_schema expects of an existing file: each table and its columns, in order.
@@ -149,15 +175,16 @@ Status Store::Impl::check_schema() {
       return Error{fmt::format("{}: schema_version is not an integer ('{}'); {}", path, column_text(s, 0), kRefuse)};
     }
     const std::int64_t version = sqlite3_column_int64(s, 0);
-    if (version != kSchemaVersion) {
-      return Error{fmt::format("{}: schema version {} is not the version this dtraced uses ({}); {}", path, version,
-                               kSchemaVersion, kRefuse)};
+    if (version != kSchemaVersion && version != kOldestMigratedVersion) {
+      return Error{fmt::format("{}: schema version {} is not a version this dtraced uses ({}) or upgrades ({}); {}",
+                               path, version, kSchemaVersion, kOldestMigratedVersion, kRefuse)};
     }
+    found_version = version;
   }
   for (const TableSpec& spec : kTables) {
     if (!has_table(spec.name)) {
       return Error{
-          fmt::format("{}: schema version {} but table '{}' is missing; {}", path, kSchemaVersion, spec.name, kRefuse)};
+          fmt::format("{}: schema version {} but table '{}' is missing; {}", path, found_version, spec.name, kRefuse)};
     }
     constexpr std::string_view kSql = "SELECT name FROM pragma_table_info(?1) ORDER BY cid";
     auto q = query(kSql);
@@ -172,7 +199,7 @@ Status Store::Impl::check_schema() {
     if (rc != SQLITE_DONE) return error(fmt::format("reading the columns of table '{}'", spec.name), rc);
     if (columns != spec.columns) {
       return Error{fmt::format("{}: table '{}' has columns ({}) where schema version {} has ({}); {}", path, spec.name,
-                               columns, kSchemaVersion, spec.columns, kRefuse)};
+                               columns, found_version, spec.columns, kRefuse)};
     }
   }
   return {};
@@ -191,6 +218,49 @@ Status Store::Impl::create_schema() {
   if (auto st = exec(kSqlCommit); !st) {
     rollback();
     return st;
+  }
+  return {};
+}
+
+Status Store::Impl::migrate_v1() {
+  // Outside any transaction (SQLite ignores the pragma inside one); back on at the end, whatever
+  // happened.
+  if (auto st = exec_rows("PRAGMA foreign_keys = OFF"); !st) return st.error();
+  Status result = [&]() -> Status {
+    if (auto st = exec(kSqlBegin); !st) return st;
+    char* message = nullptr;
+    const int rc = sqlite3_exec(db, kMigrateV1Sql, nullptr, nullptr, &message);
+    if (rc != SQLITE_OK) {
+      Error e{fmt::format("{}: upgrading the schema from version 1 to 2: {} (code {}); the database is unchanged", path,
+                          message != nullptr ? message : "?", rc)};
+      sqlite3_free(message);
+      rollback();
+      return e;
+    }
+    auto fk = exec_rows("PRAGMA foreign_key_check", kMaxIntegrityLinesReported);
+    if (!fk || !fk.value().empty()) {
+      rollback();
+      return Error{
+          fmt::format("{}: upgrading the schema from version 1 to 2 broke a reference; the database is "
+                      "unchanged",
+                      path)};
+    }
+    if (auto st = exec(kSqlCommit); !st) {
+      rollback();
+      return st;
+    }
+    return {};
+  }();
+  if (auto st = exec_rows("PRAGMA foreign_keys = ON"); !st && result) return st.error();
+  if (!result) return result;
+  util::log_info("{}: upgraded the schema from version 1 to 2 (jobs may be paused; ids are never reused)", path);
+  // Space of deleted jobs goes back to the file system only with incremental auto-vacuum, which an
+  // existing file gets by a VACUUM (a copy of the whole file: it needs that much free space). When
+  // that fails the database works as before and reuses freed pages for new tiles instead.
+  if (auto st = exec_rows("PRAGMA auto_vacuum = INCREMENTAL"); !st) return st.error();
+  if (auto st = exec_rows("VACUUM"); !st) {
+    util::log_warn("{}: could not switch to incremental vacuum ({}); space of deleted jobs is reused, not released",
+                   path, detail(st.error().message));
   }
   return {};
 }
@@ -264,8 +334,11 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
     if (auto st = impl->exec_rows(pragma); !st) return st.error();
   }
   if (fresh) {
-    // The page size only takes effect before the first table exists and before WAL mode.
+    // The page size and auto-vacuum mode only take effect before the first table exists (and the
+    // page size before WAL mode). Incremental auto-vacuum lets delete_job return space to the file
+    // system.
     if (auto st = impl->exec_rows(fmt::format("PRAGMA page_size = {}", kPageSizeBytes)); !st) return st.error();
+    if (auto st = impl->exec_rows("PRAGMA auto_vacuum = INCREMENTAL"); !st) return st.error();
   }
   auto mode = impl->exec_rows("PRAGMA journal_mode = WAL");
   if (!mode) return mode.error();
@@ -280,6 +353,8 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   if (fresh) {
     if (auto st = impl->create_schema(); !st) return st.error();
     util::log_info("{}: created a new database (schema version {})", path, kSchemaVersion);
+  } else if (impl->found_version == kOldestMigratedVersion) {
+    if (auto st = impl->migrate_v1(); !st) return st.error();
   }
   if (options.max_database_bytes > 0) {
     auto page = impl->exec_rows("PRAGMA page_size");

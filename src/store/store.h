@@ -4,11 +4,11 @@
 //
 // Owns: opening the database (and refusing a bad one), the schema, and every query.
 //
-// Schema (version 1, STRICT tables, documented in README too):
-//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 1)
+// Schema (version 2, STRICT tables, documented in docs/http-api.md too):
+//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 2), ('last_job_id', N)
 //   scenes(digest TEXT PRIMARY KEY, json TEXT)       -- immutable, content-addressed
 //   jobs(id INTEGER PRIMARY KEY, digest -> scenes, settings_json, output, priority, tile_size,
-//        state IN ('queued','rendering','done','cancelled'), created_unix, finished_unix,
+//        state IN ('queued','rendering','done','cancelled','paused'), created_unix, finished_unix,
 //        client_key TEXT UNIQUE NULL)
 //   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
 //   (what a pixels blob holds is the collector's business: collector/jobs.h, pixels_to_blob)
@@ -26,6 +26,10 @@
 // the last connection closes, emptied), so opening the database again needs no new disk space;
 // on a full disk, start-up and reads work, and writes fail with a message until space frees.
 // checkpoint() keeps the WAL short.
+//
+// Version 1 (no 'paused' state, no last_job_id) is upgraded in place, in one transaction, when
+// opened; the upgrade also switches the file to incremental auto-vacuum when there is room for
+// the VACUUM that takes (new files have it from the start), so delete_job returns space.
 //
 // Opening never replaces, truncates or deletes an existing file. A file that is not an SQLite
 // database, fails PRAGMA quick_check, has another schema version, or lacks tables or columns is
@@ -57,7 +61,8 @@
 
 namespace dtraced::store {
 
-inline constexpr std::int64_t kSchemaVersion = 1;
+inline constexpr std::int64_t kSchemaVersion = 2;
+inline constexpr std::int64_t kOldestMigratedVersion = 1;  // opened and upgraded to kSchemaVersion
 inline constexpr std::string_view kDatabaseFileName = "dtraced.db";
 // How long a statement waits for another connection's lock before failing with SQLITE_BUSY.
 inline constexpr std::chrono::milliseconds kBusyTimeout{5000};
@@ -74,6 +79,7 @@ inline constexpr std::string_view kJobQueued = "queued";
 inline constexpr std::string_view kJobRendering = "rendering";
 inline constexpr std::string_view kJobDone = "done";
 inline constexpr std::string_view kJobCancelled = "cancelled";
+inline constexpr std::string_view kJobPaused = "paused";
 
 struct StoredJob {
   std::int64_t id = 0;  // assigned by insert_job; ignored on input
@@ -134,6 +140,22 @@ struct CheckpointResult {
   bool truncated = false;
 };
 
+// What delete_job did: deleted (with how many tiles and whether the job's scene went with it),
+// or refused because the job is in `state`, which was not one of the states allowed.
+struct Deletion {
+  bool deleted = false;
+  std::string state;
+  std::uint64_t tiles = 0;
+  bool scene_deleted = false;
+};
+
+// The database file's pages: in use, free (reusable, or released by reclaim_space).
+struct SpaceUse {
+  std::uint64_t page_size = 0;
+  std::uint64_t pages = 0;
+  std::uint64_t free_pages = 0;
+};
+
 // What change_job_state did: changed, or left the job in `state` (not one of `from`).
 struct StateChange {
   bool changed = false;
@@ -175,7 +197,8 @@ class Store {
   util::Status put_scene(std::string_view digest, std::string_view json);
   util::Result<std::optional<std::string>> get_scene(std::string_view digest);
 
-  // Inserts a job (job.id is ignored) and returns its id. Fails when the scene is missing, the
+  // Inserts a job (job.id is ignored) and returns its id: one more than any id this database
+  // ever gave, so the id of a deleted job is never reused. Fails when the scene is missing, the
   // client_key is taken, the state is unknown or tile_size is 0.
   util::Result<std::int64_t> insert_job(const StoredJob& job);
   // Fails when there is no such job or the state is unknown. Unconditional: the collector moves
@@ -187,6 +210,15 @@ class Store {
   // Fails when there is no such job or `to` is unknown.
   util::Result<StateChange> change_job_state(std::int64_t id, std::span<const std::string_view> from,
                                              std::string_view to, std::int64_t finished_unix);
+  // In one transaction: when job `id` is in one of `allowed` states (1 to kMaxStateChangeSources),
+  // deletes its tiles, the job, and its scene if no other job uses it. Fails when there is no such
+  // job. The space goes to the free list; reclaim_space() gives it back to the file system.
+  util::Result<Deletion> delete_job(std::int64_t id, std::span<const std::string_view> allowed);
+  // Releases free pages to the file system (PRAGMA incremental_vacuum, then a checkpoint so the
+  // WAL does not keep them), as far as the file's auto-vacuum mode allows; returns the pages
+  // afterwards.
+  util::Result<SpaceUse> reclaim_space();
+  util::Result<SpaceUse> space_use();
   // Fails when there is no such job or the priority is out of the int32 range.
   util::Status set_job_priority(std::int64_t id, std::int32_t priority);
   util::Result<std::vector<StoredJob>> list_jobs();  // ascending id

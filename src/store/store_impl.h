@@ -118,7 +118,8 @@ struct Store::Impl {
   sqlite3* db = nullptr;
   std::string path;
   std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the statements' text
-  int busy_timeout_ms = 0;  // OpenOptions::busy_timeout, restored after a checkpoint
+  int busy_timeout_ms = 0;                      // OpenOptions::busy_timeout, restored after a checkpoint
+  std::int64_t found_version = kSchemaVersion;  // of an existing file, read by check_schema
 
   Impl() = default;
   Impl(const Impl&) = delete;
@@ -218,6 +219,7 @@ struct Store::Impl {
   Status check_schema();
   Status verify_integrity();
   Status create_schema();
+  Status migrate_v1();  // schema version 1 -> 2, on a verified file of version 1
 };
 
 }  // namespace dtraced::store

@@ -2,6 +2,7 @@
 // cache of store_impl.h. Opening, the schema, transactions and checkpoints are in store.cpp.
 #include <sqlite3.h>
 
+#include <algorithm>
 #include <string>
 #include <utility>
 #include <vector>
@@ -33,24 +34,37 @@ Result<std::optional<std::string>> Store::get_scene(std::string_view digest) {
 }
 
 Result<std::int64_t> Store::insert_job(const StoredJob& job) {
+  // The id is one more than both the highest id present and the highest ever given (meta), so a
+  // client holding the id of a deleted job never reaches another job with it.
   constexpr std::string_view kSql =
-      "INSERT INTO jobs(digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
-      "client_key) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
-  auto q = impl_->query(kSql);
+      "INSERT INTO jobs(id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, "
+      "client_key) VALUES (1 + max(coalesce((SELECT max(id) FROM jobs), 0), "
+      "coalesce((SELECT value FROM meta WHERE key = 'last_job_id'), 0)), ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9)";
+  {
+    auto q = impl_->query(kSql);
+    if (!q) return q.error();
+    const int rc = q.value()
+                       .bind(job.digest)
+                       .bind(job.settings_json)
+                       .bind(job.output)
+                       .bind(std::int64_t{job.priority})
+                       .bind(std::int64_t{job.tile_size})
+                       .bind(job.state)
+                       .bind(job.created_unix)
+                       .bind(job.finished_unix)
+                       .bind_optional(job.client_key)
+                       .step();
+    if (rc != SQLITE_DONE) return impl_->error("inserting a job", rc);
+  }
+  const std::int64_t id = sqlite3_last_insert_rowid(impl_->db);
+  // Not in the insert's transaction unless the caller has one: a crash between the two leaves the
+  // job itself as the highest id, which the insert above also looks at.
+  constexpr std::string_view kRemember =
+      "INSERT INTO meta(key, value) VALUES ('last_job_id', ?1) ON CONFLICT(key) DO UPDATE SET value = excluded.value";
+  auto q = impl_->query(kRemember);
   if (!q) return q.error();
-  const int rc = q.value()
-                     .bind(job.digest)
-                     .bind(job.settings_json)
-                     .bind(job.output)
-                     .bind(std::int64_t{job.priority})
-                     .bind(std::int64_t{job.tile_size})
-                     .bind(job.state)
-                     .bind(job.created_unix)
-                     .bind(job.finished_unix)
-                     .bind_optional(job.client_key)
-                     .step();
-  if (rc != SQLITE_DONE) return impl_->error("inserting a job", rc);
-  return std::int64_t{sqlite3_last_insert_rowid(impl_->db)};
+  if (const int rc = q.value().bind(id).step(); rc != SQLITE_DONE) return impl_->error("recording the last job id", rc);
+  return id;
 }
 
 Status Store::set_job_state(std::int64_t id, std::string_view state, std::int64_t finished_unix) {
@@ -119,6 +133,71 @@ Result<std::optional<StoredJob>> Store::get_job(std::int64_t id) {
 Result<std::optional<StoredJob>> Store::find_job_by_key(std::string_view client_key) {
   static const std::string kSql = std::string(kSelectJobs) + "WHERE client_key = ?1";
   return impl_->select_job(kSql, client_key, "looking up a job by client key");
+}
+
+Result<Deletion> Store::delete_job(std::int64_t id, std::span<const std::string_view> allowed) {
+  if (allowed.empty() || allowed.size() > kMaxStateChangeSources) {
+    return Error{fmt::format("{}: deleting job {}: {} allowed states (1 to {})", impl_->path, id, allowed.size(),
+                             kMaxStateChangeSources)};
+  }
+  Deletion out;
+  Status st = transaction([&]() -> Status {
+    auto job = get_job(id);
+    if (!job) return job.error();
+    if (!job.value()) return Error{fmt::format("{}: no job {}", impl_->path, id)};
+    out.state = job.value()->state;
+    if (std::find(allowed.begin(), allowed.end(), std::string_view(out.state)) == allowed.end()) return {};
+    {
+      constexpr std::string_view kSql = "DELETE FROM tiles WHERE job = ?1";
+      auto q = impl_->query(kSql);
+      if (!q) return q.error();
+      if (const int rc = q.value().bind(id).step(); rc != SQLITE_DONE) {
+        return impl_->error(fmt::format("deleting the tiles of job {}", id), rc);
+      }
+      out.tiles = static_cast<std::uint64_t>(sqlite3_changes64(impl_->db));
+    }
+    {
+      constexpr std::string_view kSql = "DELETE FROM jobs WHERE id = ?1";
+      auto q = impl_->query(kSql);
+      if (!q) return q.error();
+      if (const int rc = q.value().bind(id).step(); rc != SQLITE_DONE) {
+        return impl_->error(fmt::format("deleting job {}", id), rc);
+      }
+    }
+    constexpr std::string_view kSql =
+        "DELETE FROM scenes WHERE digest = ?1 AND NOT EXISTS (SELECT 1 FROM jobs WHERE digest = ?1)";
+    auto q = impl_->query(kSql);
+    if (!q) return q.error();
+    if (const int rc = q.value().bind(job.value()->digest).step(); rc != SQLITE_DONE) {
+      return impl_->error(fmt::format("deleting the scene of job {}", id), rc);
+    }
+    out.scene_deleted = sqlite3_changes64(impl_->db) == 1;
+    out.deleted = true;
+    return {};
+  });
+  if (!st) return st.error();
+  return out;
+}
+
+Result<SpaceUse> Store::space_use() {
+  SpaceUse use;
+  for (auto [pragma, field] :
+       {std::pair{"PRAGMA page_size", &use.page_size}, std::pair{"PRAGMA page_count", &use.pages},
+        std::pair{"PRAGMA freelist_count", &use.free_pages}}) {
+    auto rows = impl_->exec_rows(pragma);
+    if (!rows) return rows.error();
+    if (rows.value().size() != 1) return Error{fmt::format("{}: {} returned no value", impl_->path, pragma)};
+    *field = std::stoull(rows.value()[0]);
+  }
+  return use;
+}
+
+Result<SpaceUse> Store::reclaim_space() {
+  // Without incremental auto-vacuum (a version 1 file that could not be converted) this does
+  // nothing, and the free pages are reused by later tiles.
+  if (auto st = impl_->exec_rows("PRAGMA incremental_vacuum"); !st) return st.error();
+  if (auto cp = checkpoint(); !cp) return cp.error();
+  return space_use();
 }
 
 Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
