@@ -54,9 +54,9 @@ rows=$(client list --state queued | tail -n +2 | awk '{print $1}' | tr '\n' ' ')
 [ "$rows" = "$a $c " ] && ok "list --state queued lists jobs $a and $c" || fail "list --state queued: '$rows'"
 rows=$(client list --limit 1 | tail -n +2 | awk '{print $1}' | tr '\n' ' ')
 [ "$rows" = "$c " ] && ok "list --limit 1 lists the newest job" || fail "list --limit 1: '$rows'"
-client list --state paused 2>"$work/err.txt" && fail "list --state paused succeeded" ||
-  { grep -q -- "--state" "$work/err.txt" && ok "list --state paused is refused naming --state" ||
-    fail "list --state paused: $(cat "$work/err.txt")"; }
+client list --state suspended 2>"$work/err.txt" && fail "list --state suspended succeeded" ||
+  { grep -q -- "--state" "$work/err.txt" && ok "list --state suspended is refused naming --state" ||
+    fail "list --state suspended: $(cat "$work/err.txt")"; }
 client list --limit 0 2>"$work/err.txt" && fail "list --limit 0 succeeded" ||
   { grep -q -- "--limit" "$work/err.txt" && ok "list --limit 0 is refused naming --limit" ||
     fail "list --limit 0: $(cat "$work/err.txt")"; }

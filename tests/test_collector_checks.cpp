@@ -119,9 +119,19 @@ TEST_CASE("routes map method and target to an endpoint", "[collector][routes]") 
   CHECK(error(Verb::put, "/v1/jobs/1/tiles/262144").status == Status::not_found);
   CHECK(error(Verb::get, "/v1/scenes/" + std::string(64, 'A')).status == Status::not_found);
   CHECK(error(Verb::get, "/a/b/c/d/e/f/g/h").status == Status::not_found);
-  const Refusal wrong = error(Verb::delete_, "/v1/jobs/1");
+  const Refusal wrong = error(Verb::put, "/v1/jobs/1");
   CHECK(wrong.status == Status::method_not_allowed);
-  CHECK(wrong.allow == "GET");
+  CHECK(wrong.allow == "GET, DELETE");
+  CHECK(kind(Verb::delete_, "/v1/jobs/1").kind == RouteKind::kDeleteJob);
+  CHECK_FALSE(kind(Verb::delete_, "/v1/jobs/1").delete_image);
+  CHECK_FALSE(kind(Verb::delete_, "/v1/jobs/1?image=keep").delete_image);
+  CHECK(kind(Verb::delete_, "/v1/jobs/1?image=delete").delete_image);
+  CHECK(error(Verb::delete_, "/v1/jobs/1?image=yes").error.path == "/image");
+  CHECK(error(Verb::delete_, "/v1/jobs/1/cancel").allow == "POST");
+  CHECK(kind(Verb::post, "/v1/jobs/3/pause").kind == RouteKind::kPauseJob);
+  CHECK(kind(Verb::post, "/v1/jobs/3/resume").job == 3);
+  CHECK(kind(Verb::post, "/v1/jobs/3/resume").kind == RouteKind::kResumeJob);
+  CHECK(error(Verb::get, "/v1/jobs/3/resume").allow == "POST");
   CHECK(error(Verb::get, "/v1/lease").allow == "POST");
   CHECK(error(Verb::get, "/v1/jobs/1/image?format=jpg").status == Status::bad_request);
   CHECK(error(Verb::get, "/v1/jobs/1/image?size=2").error.path == "/format");
@@ -381,8 +391,8 @@ TEST_CASE("a submission becomes a queued row, and a stored row a record, and bad
   CHECK(rec->tiles_total == 12);
   CHECK(rec->state == protocol::JobState::kQueued);
 
-  stored.state = "paused";
-  CHECK(coll::record_from_row(stored).error().message == "job 7: unknown state 'paused'");
+  stored.state = "suspended";
+  CHECK(coll::record_from_row(stored).error().message == "job 7: unknown state 'suspended'");
   stored = row;
   stored.id = 7;
   stored.tile_size = 0;

@@ -227,7 +227,7 @@ TEST_CASE("the job list filters by state and keeps the newest N", "[collector][m
     std::string query;
     std::string field;
   };
-  for (const Case& bad : {Case{"?state=paused", "/state"}, Case{"?limit=0", "/limit"}, Case{"?limit=-1", "/limit"},
+  for (const Case& bad : {Case{"?state=suspended", "/state"}, Case{"?limit=0", "/limit"}, Case{"?limit=-1", "/limit"},
                           Case{"?limit=10001", "/limit"}, Case{"?limit=1.5", "/limit"}, Case{"?limit=", "/limit"},
                           Case{"?state=done&state=queued", "/state"}, Case{"?sort=id", "/sort"}}) {
     INFO(bad.query);

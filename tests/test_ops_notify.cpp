@@ -113,4 +113,7 @@ TEST_CASE("the collector's status line counts jobs by state and workers active a
         "jobs: 2 queued, 1 rendering, 5 done, 3 cancelled; workers: 0 active, 0 quiet");
   CHECK(dtraced::collector::systemd_status(m, {.active = 4, .quiet = 1}) ==
         "jobs: 2 queued, 1 rendering, 5 done, 3 cancelled; workers: 4 active, 1 quiet");
+  m.jobs_by_state[4] = 6;  // protocol::JobState::kPaused
+  CHECK(dtraced::collector::systemd_status(m, {}) ==
+        "jobs: 2 queued, 1 rendering, 6 paused, 5 done, 3 cancelled; workers: 0 active, 0 quiet");
 }

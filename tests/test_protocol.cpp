@@ -407,7 +407,7 @@ TEST_CASE("malformed answers and worker messages are refused with the JSON path 
        "lower-case hex"},
       {"digest missing", created, R"({"id": 1})", "/digest", "required key is missing"},
       // status and list
-      {"unknown state", status, status_body("state", "\"paused\""), "/state", "unknown state \"paused\""},
+      {"unknown state", status, status_body("state", "\"suspended\""), "/state", "unknown state \"suspended\""},
       {"eta as a string", status, status_body("eta_s", "\"soon\""), "/eta_s", "expected a number, got a string"},
       {"negative elapsed", status, status_body("elapsed_s", "-1"), "/elapsed_s", "(got -1)"},
       {"more tiles done than total", status, status_body("tiles_done", "301"), "/tiles_done",

@@ -286,6 +286,47 @@ TEST_CASE("cancel removes a job's work", "[queue]") {
   CHECK(q.is_done(2));
 }
 
+TEST_CASE("a paused job hands out nothing, accepts results, and resumes where it was", "[queue]") {
+  WorkQueue q;
+  REQUIRE(q.add_job(1, 5, 3));
+  REQUIRE(q.add_job(2, 0, 2));
+  CHECK(must_lease(q, t0) == LeaseGrant{1, 0});
+  REQUIRE(q.set_paused(1, true));
+  CHECK_FALSE(q.set_paused(1, true));  // already paused
+  CHECK(q.stats().active_jobs == 1);
+  // The lower-priority job gets the work now.
+  CHECK(must_lease(q, t0) == LeaseGrant{2, 0});
+  CHECK(must_lease(q, t0) == LeaseGrant{2, 1});
+  CHECK(q.complete(2, 0, t0 + 500ms) == CompleteResult::kStored);
+  CHECK(q.complete(2, 1, t0 + 500ms) == CompleteResult::kStored);
+  must_not_lease(q, t0 + 1h);  // job 1's tile out is not re-offered either
+  // The tile out before the pause still completes.
+  CHECK(q.complete(1, 0, t0 + 1s) == CompleteResult::kStored);
+  CHECK(q.tile_status(1, 0) == TileStatus::kStored);
+  CHECK_FALSE(q.is_done(1));
+  REQUIRE(q.set_paused(1, false));
+  CHECK(must_lease(q, t0 + 2h) == LeaseGrant{1, 1});
+  CHECK(must_lease(q, t0 + 2h) == LeaseGrant{1, 2});
+  // A paused job can be cancelled; a cancelled one is not paused or resumed.
+  REQUIRE(q.add_job(3, 0, 2));
+  REQUIRE(q.set_paused(3, true));
+  REQUIRE(q.cancel(3));
+  CHECK_FALSE(q.set_paused(3, false));
+  CHECK_FALSE(q.set_paused(99, true));
+}
+
+TEST_CASE("the last tile out when a job was paused completes it", "[queue]") {
+  WorkQueue q;
+  REQUIRE(q.add_job(1, 0, 1));
+  CHECK(must_lease(q, t0) == LeaseGrant{1, 0});
+  REQUIRE(q.set_paused(1, true));
+  CHECK(q.complete(1, 0, t0 + 1s) == CompleteResult::kStored);
+  CHECK(q.is_done(1));
+  REQUIRE(q.set_paused(1, false));  // resuming a done job puts nothing back in the order
+  CHECK(q.stats().active_jobs == 0);
+  must_not_lease(q, t0 + 2s);
+}
+
 TEST_CASE("restoring a job skips its stored tiles", "[queue]") {
   WorkQueue q;
   const std::vector<TileIndex> stored = {4, 0, 2, 2};

@@ -186,7 +186,7 @@ int run_list(const ClientArgs& client, const ListArgs& args) {
   char sep = '?';
   if (!args.state.empty()) {
     if (!protocol::job_state_from_string(args.state)) {
-      fmt::print(stderr, "--state: '{}' is not a job state (queued, rendering, done, cancelled)\n", args.state);
+      fmt::print(stderr, "--state: '{}' is not a job state (queued, rendering, paused, done, cancelled)\n", args.state);
       return kExitFailed;
     }
     target += fmt::format("{}state={}", sep, args.state);
@@ -357,6 +357,34 @@ int run_workers(const ClientArgs& client, bool json) {
                w.faulty_duplicates, w.refused);
   }
   if (list->workers.empty()) fmt::print(stderr, "no worker has asked this collector for work yet\n");
+  return kExitOk;
+}
+
+int run_pause(const ClientArgs& client, std::uint64_t id, bool pause) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  const std::string target = fmt::format("/v1/jobs/{}/{}", id, pause ? "pause" : "resume");
+  auto resp = session.call(http::Verb::post, target);
+  if (!resp) return kExitFailed;
+  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
+  if (!st) return kExitFailed;
+  print_status_line(*st);
+  return kExitOk;
+}
+
+int run_delete(const ClientArgs& client, std::uint64_t id, bool delete_image) {
+  Session session;
+  if (!session.init(client)) return kExitFailed;
+  const std::string target = fmt::format("/v1/jobs/{}{}", id, delete_image ? "?image=delete" : "");
+  auto resp = session.call(http::Verb::delete_, target);
+  if (!resp) return kExitFailed;
+  auto deleted = decode_or_report(protocol::decode_job_deleted(resp->body()), "DELETE " + target);
+  if (!deleted) return kExitFailed;
+  fmt::print("job {} deleted with {} stored tile(s); image {}\n", deleted->id, deleted->tiles, deleted->image);
+  if (!deleted->image_error.empty()) {
+    fmt::print(stderr, "the image file was not removed: {}\n", deleted->image_error);
+    return kExitFailed;
+  }
   return kExitOk;
 }
 

@@ -30,7 +30,7 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args);
 
 struct ListArgs {
   bool json = false;
-  std::string state;        // empty: every state; else queued, rendering, done or cancelled
+  std::string state;        // empty: every state; else queued, rendering, paused, done or cancelled
   std::uint32_t limit = 0;  // 0: as many as the collector lists; else the newest `limit`
 };
 int run_list(const ClientArgs& client, const ListArgs& args);
@@ -58,6 +58,13 @@ int run_requeue(const ClientArgs& client, std::uint64_t id);
 
 // The collector's workers (GET /v1/workers): aligned columns, or the JSON answer with `json`.
 int run_workers(const ClientArgs& client, bool json);
+
+// Pauses (or with pause = false resumes) a job; prints its status.
+int run_pause(const ClientArgs& client, std::uint64_t id, bool pause);
+
+// Deletes a done or cancelled job and its stored tiles, and with `delete_image` its image file;
+// prints what was removed. Exit 1 when the image could not be removed (the job is gone anyway).
+int run_delete(const ClientArgs& client, std::uint64_t id, bool delete_image);
 
 // Reads a bearer token from a file: the first line, without surrounding whitespace; empty or
 // over 4096 bytes is an error (its message names the file).

@@ -103,8 +103,9 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
 
   c.list_cmd = add_client_subcommand(app, c.client, "list", "List the collector's jobs");
   c.list_cmd->add_flag("--json", c.list.json, "Machine-readable JSON");
-  c.list_cmd->add_option("--state", c.list.state, "Only jobs in this state: queued, rendering, done or cancelled")
-      ->check(CLI::IsMember({"queued", "rendering", "done", "cancelled"}));
+  c.list_cmd
+      ->add_option("--state", c.list.state, "Only jobs in this state: queued, rendering, paused, done or cancelled")
+      ->check(CLI::IsMember({"queued", "rendering", "paused", "done", "cancelled"}));
   c.list_cmd->add_option("--limit", c.list.limit, "Only the newest N jobs")
       ->check(CLI::Range(std::uint32_t{1}, static_cast<std::uint32_t>(protocol::kMaxListedJobs)));
 
@@ -139,6 +140,16 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
 
   c.workers_cmd = add_client_subcommand(app, c.client, "workers", "List the workers the collector has heard from");
   c.workers_cmd->add_flag("--json", c.workers_json, "Machine-readable JSON");
+
+  c.pause_cmd =
+      add_client_subcommand(app, c.client, "pause", "Stop handing out a job's tiles (tiles out are still accepted)");
+  c.pause_cmd->add_option("id", c.pause_id, "Job id")->required();
+  c.resume_cmd = add_client_subcommand(app, c.client, "resume", "Hand out a paused job's tiles again");
+  c.resume_cmd->add_option("id", c.resume_id, "Job id")->required();
+  c.delete_cmd = add_client_subcommand(app, c.client, "delete",
+                                       "Delete a done or cancelled job and its stored tiles (the image file stays)");
+  c.delete_cmd->add_option("id", c.delete_id, "Job id")->required();
+  c.delete_cmd->add_flag("--delete-image", c.delete_image, "Also delete the job's finished image file");
 }
 
 std::optional<int> run_client_command(const ClientCommands& c) {
@@ -150,6 +161,9 @@ std::optional<int> run_client_command(const ClientCommands& c) {
   if (c.priority_cmd->parsed()) return run_priority(c.client, c.priority_id, c.priority_value);
   if (c.requeue_cmd->parsed()) return run_requeue(c.client, c.requeue_id);
   if (c.workers_cmd->parsed()) return run_workers(c.client, c.workers_json);
+  if (c.pause_cmd->parsed()) return run_pause(c.client, c.pause_id, /*pause=*/true);
+  if (c.resume_cmd->parsed()) return run_pause(c.client, c.resume_id, /*pause=*/false);
+  if (c.delete_cmd->parsed()) return run_delete(c.client, c.delete_id, c.delete_image);
   return std::nullopt;
 }
 

@@ -75,9 +75,17 @@ struct ClientCommands {
   CLI::App* requeue_cmd = nullptr;
   bool workers_json = false;
   CLI::App* workers_cmd = nullptr;
+  std::uint64_t pause_id = 0;
+  std::uint64_t resume_id = 0;
+  std::uint64_t delete_id = 0;
+  bool delete_image = false;
+  CLI::App* pause_cmd = nullptr;
+  CLI::App* resume_cmd = nullptr;
+  CLI::App* delete_cmd = nullptr;
 };
 
-// Adds submit, list, status, fetch, cancel, priority, requeue and workers to `app`.
+// Adds submit, list, status, fetch, cancel, priority, requeue, workers, pause, resume and delete
+// to `app`.
 void add_client_commands(CLI::App& app, ClientCommands& c);
 // Runs the client verb that was parsed; nullopt when none was.
 std::optional<int> run_client_command(const ClientCommands& c);

@@ -10,7 +10,8 @@
 //   handlers/lease.cpp           POST /v1/lease
 //   handlers/scenes_images.cpp   GET /v1/scenes/{digest}, GET /v1/jobs/{id}/image
 //   handlers/status.cpp          GET /healthz, GET /metrics
-//   handlers/manage.cpp          POST /v1/jobs/{id}/priority, POST /v1/jobs/{id}/requeue
+//   handlers/manage.cpp          POST /v1/jobs/{id}/priority, .../requeue, .../pause, .../resume
+//   handlers/delete.cpp          DELETE /v1/jobs/{id}
 //   handlers/workers.cpp         GET /v1/workers, and the registry updates of lease and tiles
 //
 // Thread safety: on the loop only; each may suspend (co_await) while the pool or the store works,
@@ -45,6 +46,11 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
 // handlers/manage.cpp
 async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Request req);
 async::Awaitable<http::Response> requeue_job(Context& c, JobId id);
+async::Awaitable<http::Response> pause_job(Context& c, JobId id);
+async::Awaitable<http::Response> resume_job(Context& c, JobId id);
+
+// handlers/delete.cpp
+async::Awaitable<http::Response> delete_job(Context& c, JobId id, bool delete_image);
 
 // handlers/workers.cpp
 http::Response list_workers(Context& c);

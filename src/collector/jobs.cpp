@@ -122,7 +122,8 @@ protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, Time
   s.elapsed_s = static_cast<double>(std::max<std::int64_t>(0, end - job.created_unix));
   if (job.state == protocol::JobState::kDone) {
     s.eta_s = 0.0;
-  } else if (job.unfinished() && job.stored_this_run > 0 && job.first_lease) {
+  } else if (job.unfinished() && job.state != protocol::JobState::kPaused && job.stored_this_run > 0 &&
+             job.first_lease) {
     const double seconds = std::chrono::duration<double>(now - *job.first_lease).count();
     if (seconds > 0) {
       const double rate = job.stored_this_run / seconds;  // tiles per second

@@ -82,7 +82,10 @@ struct JobRecord {
   std::optional<TimePoint> first_lease;
   TileIndex stored_this_run = 0;
 
-  bool unfinished() const { return state == protocol::JobState::kQueued || state == protocol::JobState::kRendering; }
+  bool unfinished() const {
+    return state == protocol::JobState::kQueued || state == protocol::JobState::kRendering ||
+           state == protocol::JobState::kPaused;
+  }
 };
 
 // "job-<id>.png".

@@ -112,17 +112,22 @@ std::string_view target_state(StateWrite write) {
     case StateWrite::kDone:
       return store::kJobDone;
     case StateWrite::kRequeued:
+    case StateWrite::kResumed:
       return store::kJobQueued;
+    case StateWrite::kPaused:
+      return store::kJobPaused;
   }
   return store::kJobQueued;
 }
 
 std::span<const std::string_view> source_states(StateWrite write) {
   static constexpr std::string_view kFromQueued[] = {store::kJobQueued};
-  static constexpr std::string_view kFromUnfinished[] = {store::kJobQueued, store::kJobRendering};
+  static constexpr std::string_view kFromRunnable[] = {store::kJobQueued, store::kJobRendering};
+  static constexpr std::string_view kFromUnfinished[] = {store::kJobQueued, store::kJobRendering, store::kJobPaused};
   static constexpr std::string_view kFromUnfinishedOrCancelled[] = {store::kJobQueued, store::kJobRendering,
-                                                                    store::kJobCancelled};
+                                                                    store::kJobPaused, store::kJobCancelled};
   static constexpr std::string_view kFromCancelled[] = {store::kJobCancelled};
+  static constexpr std::string_view kFromPaused[] = {store::kJobPaused};
   switch (write) {
     case StateWrite::kRendering:
       return kFromQueued;
@@ -132,6 +137,10 @@ std::span<const std::string_view> source_states(StateWrite write) {
       return kFromUnfinishedOrCancelled;
     case StateWrite::kRequeued:
       return kFromCancelled;
+    case StateWrite::kPaused:
+      return kFromRunnable;
+    case StateWrite::kResumed:
+      return kFromPaused;
   }
   return {};
 }

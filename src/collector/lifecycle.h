@@ -28,14 +28,19 @@ inline constexpr std::chrono::seconds kFinishRetryDelay{5};
 // The job-state changes the collector writes to the store. Each is a compare-and-set from the
 // states it may follow (store::Store::change_job_state), and all go through the one store writer
 // in the order they were posted, so a later write never undoes an answered one: "rendering" only
-// follows "queued"; "cancelled" follows an unfinished state; "done" also follows "cancelled" (a
-// cancellation that arrived while the last tile was being stored, answered as not applied: see
-// cancel_job); nothing but a requeue leaves "cancelled", and nothing leaves "done".
+// follows "queued" (so it never undoes a pause); "paused" follows "queued" or "rendering", and only
+// a resume leaves it (to "queued": a restart derives "rendering" from the stored tiles);
+// "cancelled" follows an unfinished state; "done" also follows "cancelled" (a cancellation that
+// arrived while the last tile was being stored, answered as not applied: see cancel_job) and
+// "paused" (the tiles out when it was paused completed the image); nothing but a requeue leaves
+// "cancelled", and nothing leaves "done".
 enum class StateWrite {
   kRendering,
   kCancelled,
   kDone,
   kRequeued,  // cancelled -> queued
+  kPaused,    // queued or rendering -> paused
+  kResumed,   // paused -> queued
 };
 
 // The store state a write sets, and the states it may replace.

@@ -1,5 +1,5 @@
 // dtraced::collector management checks: the refusals of the job-management endpoints (priority,
-// requeue), as pure functions of (what the collector knows, what the request carries), like
+// requeue, pause, resume, delete), as pure functions of (what the collector knows, what the request carries), like
 // checks.h for the others.
 //
 // Owns: the state rules of docs/http-api.md's "Managing jobs": which job states each change
@@ -26,6 +26,20 @@ util::Result<void, Refusal> check_priority(JobId id, const JobRecord* job, bool 
 // collector is stopping, 413 for an image over every limit).
 util::Result<void, Refusal> check_requeue(JobId id, const JobRecord* job, const Load& load,
                                           const CollectorConfig& config);
+
+// What a pause or resume request does to a job already in the state it asks for: nothing, and
+// the answer is its status (so a retried request is harmless).
+enum class ChangeAction { kChange, kAlready };
+
+// 404 for an unknown job; kAlready for a paused one; 409 for a done (or finishing) or cancelled
+// one; 503 when the collector is stopping.
+util::Result<ChangeAction, Refusal> check_pause(JobId id, const JobRecord* job, bool accepting_writes);
+// 404 for an unknown job; kAlready for a queued or rendering one; 409 for a done (or finishing)
+// or cancelled one; 503 when the collector is stopping.
+util::Result<ChangeAction, Refusal> check_resume(JobId id, const JobRecord* job, bool accepting_writes);
+// 404 for an unknown job; 409 unless it is done (its image written) or cancelled; 503 when the
+// collector is stopping.
+util::Result<void, Refusal> check_delete(JobId id, const JobRecord* job, bool accepting_writes);
 
 // 409 "job N is STATE; WHAT", the refusal of a change the job's state does not allow.
 Refusal wrong_state(JobId id, std::string_view state, std::string_view what);

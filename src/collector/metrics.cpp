@@ -11,6 +11,8 @@
 
 #include <fmt/format.h>
 
+#include "protocol/messages.h"
+
 #ifndef DTRACED_VERSION
 #define DTRACED_VERSION "unknown"
 #endif
@@ -206,9 +208,9 @@ std::string format_metrics(const MetricsSnapshot& m) {
         "Uploads of tiles that were already stored at start (answered already_done).", c.restored_tile_submissions);
 
   w.header("dtraced_jobs", "gauge", "Jobs known to the collector, by state.");
-  constexpr std::string_view kStates[] = {"queued", "rendering", "done", "cancelled"};
-  for (std::size_t i = 0; i < m.jobs_by_state.size(); ++i)
-    w.labelled("dtraced_jobs", "state", kStates[i], m.jobs_by_state[i]);
+  for (std::size_t i = 0; i < m.jobs_by_state.size(); ++i) {
+    w.labelled("dtraced_jobs", "state", protocol::to_string(static_cast<protocol::JobState>(i)), m.jobs_by_state[i]);
+  }
   w.one("dtraced_jobs_submitted_total", "counter", "Jobs accepted by POST /v1/jobs.", c.jobs_submitted);
   w.one("dtraced_jobs_cancelled_total", "counter", "Jobs cancelled.", c.jobs_cancelled);
   w.one("dtraced_images_written_total", "counter", "Finished images written to the output directory.",

@@ -96,8 +96,8 @@ std::string_view build_isa();
 struct MetricsSnapshot {
   std::int64_t epoch = 0;
   std::uint64_t restored_tiles = 0;
-  // Jobs by protocol::JobState, in enum order (queued, rendering, done, cancelled).
-  std::array<std::uint64_t, 4> jobs_by_state{};
+  // Jobs by protocol::JobState, in enum order (queued, rendering, done, cancelled, paused).
+  std::array<std::uint64_t, 5> jobs_by_state{};
   CollectorCounters counters;
   QueueStats queue;
   http::ServerMetrics http;

@@ -153,6 +153,19 @@ bool WorkQueue::cancel(JobId id) {
   return true;
 }
 
+bool WorkQueue::set_paused(JobId id, bool paused) {
+  auto it = jobs_.find(id);
+  if (it == jobs_.end() || it->second.cancelled || it->second.paused == paused) return false;
+  Job& job = it->second;
+  job.paused = paused;
+  if (paused) {
+    active_.erase(order_key(id, job));
+  } else if (!job.done()) {
+    active_.insert(order_key(id, job));
+  }
+  return true;
+}
+
 bool WorkQueue::set_priority(JobId id, std::int32_t priority) {
   auto it = jobs_.find(id);
   if (it == jobs_.end()) return false;

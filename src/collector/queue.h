@@ -123,7 +123,7 @@ struct QueueStats {
   std::uint64_t reoffers = 0;    // grants of a tile that had been leased before
   std::uint64_t stored = 0;      // kStored completions
   std::uint64_t duplicates = 0;  // kAlreadyDone completions
-  std::size_t active_jobs = 0;   // jobs with unfinished tiles, not cancelled
+  std::size_t active_jobs = 0;   // jobs with unfinished tiles, not cancelled, not paused
 };
 
 class WorkQueue {
@@ -153,6 +153,12 @@ class WorkQueue {
   // unknown, already cancelled or done.
   bool cancel(JobId job);
 
+  // Pausing stops handing out the job's tiles; leases already out stay outstanding, and their
+  // results complete tiles as usual (the last one completes the job). Resuming puts it back in the
+  // order, its leases and re-offer bound as they were. False when the job is unknown, cancelled
+  // or already in that state; a done job may be paused (it has nothing left to hand out anyway).
+  bool set_paused(JobId job, bool paused);
+
   // Changes a job's priority; an active job moves to its new place in the order at once. False
   // when the job is unknown.
   bool set_priority(JobId job, std::int32_t priority);
@@ -179,6 +185,7 @@ class WorkQueue {
     TileIndex tiles_total = 0;
     TileIndex tiles_done = 0;
     bool cancelled = false;
+    bool paused = false;
     std::vector<Tile> tiles;  // empty once done or cancelled
     // Unfinished tiles in lease order. A stored tile is dropped when it next reaches the front,
     // not searched for at completion.
@@ -204,7 +211,7 @@ class WorkQueue {
 
   QueueConfig config_;
   std::map<JobId, Job> jobs_;
-  std::set<OrderKey> active_;  // jobs with unfinished tiles, not cancelled
+  std::set<OrderKey> active_;  // jobs with unfinished tiles, not cancelled, not paused
   QueueStats stats_;
 };
 

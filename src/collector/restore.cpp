@@ -112,10 +112,16 @@ util::Status restore_active(Context& c, store::Store& s, const store::StoredJob&
   rec.tiles_done = static_cast<TileIndex>(stored.size());
   c.restored_tiles += stored.size();
   rec.state = rec.tiles_done > 0 ? JobState::kRendering : JobState::kQueued;
+  if (row.state == store::kJobPaused) {
+    // Stays paused across the restart; if every tile is stored it is finished all the same.
+    rec.state = JobState::kPaused;
+    c.queue.set_paused(rec.id, true);
+  }
   rec.rendering_persisted = row.state == store::kJobRendering;
   rec.scene_json = c.intern_scene(row.digest, std::move(*scene_json.value()));
   if (rec.tiles_done == rec.tiles_total) c.to_finish.push_back(rec.id);
-  util::log_info("collector: job {} restored: {}/{} tiles stored", rec.id, rec.tiles_done, rec.tiles_total);
+  util::log_info("collector: job {} restored{}: {}/{} tiles stored", rec.id,
+                 rec.state == JobState::kPaused ? " (paused)" : "", rec.tiles_done, rec.tiles_total);
   return {};
 }
 

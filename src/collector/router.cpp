@@ -87,6 +87,12 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
       co_return co_await set_job_priority(c, route.job, std::move(req));
     case RouteKind::kRequeueJob:
       co_return co_await requeue_job(c, route.job);
+    case RouteKind::kPauseJob:
+      co_return co_await pause_job(c, route.job);
+    case RouteKind::kResumeJob:
+      co_return co_await resume_job(c, route.job);
+    case RouteKind::kDeleteJob:
+      co_return co_await delete_job(c, route.job, route.delete_image);
     case RouteKind::kWorkers:
       co_return list_workers(c);
   }

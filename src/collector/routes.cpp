@@ -95,7 +95,7 @@ util::Status parse_list_query(std::string_view query, Route& route) {
       if (seen_state) return util::Error("state given twice", "/state");
       seen_state = true;
       route.list_state = protocol::job_state_from_string(value);
-      if (!route.list_state) return util::Error("state must be queued, rendering, done or cancelled", "/state");
+      if (!route.list_state) return util::Error("state must be queued, rendering, paused, done or cancelled", "/state");
     } else if (key == "limit") {
       if (seen_limit) return util::Error("limit given twice", "/limit");
       seen_limit = true;
@@ -110,6 +110,22 @@ util::Status parse_list_query(std::string_view query, Route& route) {
           fmt::format("unknown query parameter '{}' (this endpoint takes state and limit)", key.substr(0, 64)),
           fmt::format("/{}", key.substr(0, 64)));
     }
+  }
+  return {};
+}
+
+// DELETE /v1/jobs/{id}: image=keep (the default) or image=delete, at most once.
+util::Status parse_delete_query(std::string_view query, Route& route) {
+  bool seen = false;
+  for (const auto& [key, value] : query_items(query)) {
+    if (key != "image") {
+      return util::Error(fmt::format("unknown query parameter '{}' (this endpoint takes image)", key.substr(0, 64)),
+                         fmt::format("/{}", key.substr(0, 64)));
+    }
+    if (seen) return util::Error("image given twice", "/image");
+    seen = true;
+    if (value != "keep" && value != "delete") return util::Error("image must be keep or delete", "/image");
+    route.delete_image = value == "delete";
   }
   return {};
 }
@@ -168,8 +184,15 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
     if (!id) return not_found();
     route.job = *id;
     if (is({"v1", "jobs", ""})) {
-      route.kind = RouteKind::kJobStatus;
-      allow = "GET";
+      if (method == http::Verb::delete_) {
+        route.kind = RouteKind::kDeleteJob;
+        allow = "DELETE";
+      } else if (method == http::Verb::get) {
+        route.kind = RouteKind::kJobStatus;
+        allow = "GET";
+      } else {
+        return wrong_method("GET, DELETE");
+      }
     } else if (is({"v1", "jobs", "", "image"})) {
       route.kind = RouteKind::kJobImage;
       allow = "GET";
@@ -181,6 +204,12 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
       allow = "POST";
     } else if (is({"v1", "jobs", "", "requeue"})) {
       route.kind = RouteKind::kRequeueJob;
+      allow = "POST";
+    } else if (is({"v1", "jobs", "", "pause"})) {
+      route.kind = RouteKind::kPauseJob;
+      allow = "POST";
+    } else if (is({"v1", "jobs", "", "resume"})) {
+      route.kind = RouteKind::kResumeJob;
       allow = "POST";
     } else if (is({"v1", "jobs", "", "tiles", ""})) {
       const auto tile = parse_decimal(seg[4], protocol::kMaxTilesPerJob - 1);
@@ -195,9 +224,9 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
     return not_found();
   }
 
-  const bool method_ok = (allow == "GET" && method == http::Verb::get) ||
-                         (allow == "POST" && method == http::Verb::post) ||
-                         (allow == "PUT" && method == http::Verb::put);
+  const bool method_ok =
+      (allow == "GET" && method == http::Verb::get) || (allow == "POST" && method == http::Verb::post) ||
+      (allow == "PUT" && method == http::Verb::put) || (allow == "DELETE" && method == http::Verb::delete_);
   if (!method_ok) return wrong_method(allow);
 
   if (route.kind == RouteKind::kJobImage) {
@@ -206,6 +235,10 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
     route.image_format = format.value();
   } else if (route.kind == RouteKind::kListJobs) {
     if (util::Status parsed = parse_list_query(query, route); !parsed) {
+      return bad_request(parsed.error().message, parsed.error().path);
+    }
+  } else if (route.kind == RouteKind::kDeleteJob) {
+    if (util::Status parsed = parse_delete_query(query, route); !parsed) {
       return bad_request(parsed.error().message, parsed.error().path);
     }
   } else if (!query.empty() && route.kind != RouteKind::kHealthz) {

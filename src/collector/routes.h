@@ -11,6 +11,8 @@
 //   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
 //   POST /v1/lease                     GET /v1/scenes/{digest}
 //   POST /v1/jobs/{id}/priority        POST /v1/jobs/{id}/requeue
+//   POST /v1/jobs/{id}/pause           POST /v1/jobs/{id}/resume
+//   DELETE /v1/jobs/{id}[?image=keep|delete]
 //   GET  /v1/workers
 //   GET /v1/jobs takes ?state=S&limit=N (each at most once)
 //
@@ -56,6 +58,9 @@ enum class RouteKind {
   kPutTile,
   kJobPriority,  // POST /v1/jobs/{id}/priority
   kRequeueJob,   // POST /v1/jobs/{id}/requeue
+  kPauseJob,     // POST /v1/jobs/{id}/pause
+  kResumeJob,    // POST /v1/jobs/{id}/resume
+  kDeleteJob,    // DELETE /v1/jobs/{id}
   kWorkers,
 };
 
@@ -67,6 +72,7 @@ struct Route {
   image::ImageFormat image_format = image::ImageFormat::kPng;  // kJobImage
   std::optional<protocol::JobState> list_state;                // kListJobs: ?state=S
   std::size_t list_limit = protocol::kMaxListedJobs;           // kListJobs: ?limit=N, [1, kMaxListedJobs]
+  bool delete_image = false;                                   // kDeleteJob: ?image=delete
   bool operator==(const Route&) const = default;
 };
 

@@ -22,7 +22,7 @@ namespace json = boost::json;
 using namespace detail;
 
 // Indexed by JobState.
-constexpr std::array<std::string_view, 4> kJobStateNames = {"queued", "rendering", "done", "cancelled"};
+constexpr std::array<std::string_view, 5> kJobStateNames = {"queued", "rendering", "done", "cancelled", "paused"};
 
 constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size"};
 constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
@@ -33,6 +33,8 @@ constexpr std::array<std::string_view, 14> kJobStatusKeys = {
     "tiles_done", "tiles_total", "elapsed_s", "eta_s",    "digest", "mean_spp", "no_worker_s"};
 constexpr std::array<std::string_view, 1> kJobListKeys = {"jobs"};
 constexpr std::array<std::string_view, 1> kJobPriorityKeys = {"priority"};
+constexpr std::array<std::string_view, 4> kJobDeletedKeys = {"id", "tiles", "image", "image_error"};
+constexpr std::array<std::string_view, 4> kImageFates = {"kept", "deleted", "none", "failed"};
 
 // The scene of a submission: loaded from the embedded object, with paths under "/scene".
 void read_submitted_scene(Fields& f, scene::SceneDesc& out) {
@@ -222,6 +224,27 @@ Decoded<JobPriority> decode_job_priority(std::string_view text) {
   return decode_object<JobPriority>(
       text, kMaxMessageBytes, kMaxMessageDepth, kJobPriorityKeys,
       [](Fields& f, JobPriority& m) { f.integer("priority", m.priority, kMinPriority, kMaxPriority); });
+}
+
+// ---- JobDeleted ----------------------------------------------------------------------------
+
+std::string encode(const JobDeleted& m) {
+  json::object o{{"id", m.id}, {"tiles", m.tiles}, {"image", m.image}};
+  if (!m.image_error.empty()) o["image_error"] = m.image_error;
+  return json::serialize(o);
+}
+
+Decoded<JobDeleted> decode_job_deleted(std::string_view text) {
+  return decode_object<JobDeleted>(
+      text, kMaxMessageBytes, kMaxMessageDepth, kJobDeletedKeys, [](Fields& f, JobDeleted& m) {
+        f.integer("id", m.id, 1, kMaxId);
+        f.integer("tiles", m.tiles, 0, kMaxTilesPerJob);
+        f.read("image", m.image, Need::kRequired, [&f](const json::value& v, const Path& at) {
+          const auto i = f.reader().choice(v, at, kImageFates, "image", "fates");
+          return i ? std::optional<std::string>(kImageFates[*i]) : std::nullopt;
+        });
+        f.string("image_error", m.image_error, kMaxErrorMessageBytes, Need::kOptional);
+      });
 }
 
 }  // namespace dtraced::protocol

@@ -117,9 +117,10 @@ Decoded<JobCreated> decode_job_created(std::string_view body);
 
 // ---- GET /v1/jobs, GET /v1/jobs/{id}, POST /v1/jobs/{id}/cancel ----------------------------
 
-enum class JobState { kQueued, kRendering, kDone, kCancelled };
+enum class JobState { kQueued, kRendering, kDone, kCancelled, kPaused };
 
-// "queued", "rendering", "done", "cancelled".
+// "queued", "rendering", "done", "cancelled", "paused". A paused job is unfinished: no tile of it
+// is leased until it is resumed, and tiles already out are still accepted.
 std::string_view to_string(JobState state);
 std::optional<JobState> job_state_from_string(std::string_view text);
 
@@ -165,6 +166,21 @@ struct JobPriority {
 };
 std::string encode(const JobPriority& m);
 Decoded<JobPriority> decode_job_priority(std::string_view body);
+
+// ---- DELETE /v1/jobs/{id} ----------------------------------------------------------------------
+
+// What a deletion removed: the job and its `tiles` stored tiles, and what became of its image
+// file: "kept" (the default), "deleted", "none" (no file: a cancelled job, or already gone), or
+// "failed" with `image_error` saying why (the job is deleted all the same).
+struct JobDeleted {
+  std::uint64_t id = 0;
+  std::uint64_t tiles = 0;
+  std::string image = "kept";
+  std::string image_error;  // empty unless image == "failed"
+  bool operator==(const JobDeleted&) const = default;
+};
+std::string encode(const JobDeleted& m);
+Decoded<JobDeleted> decode_job_deleted(std::string_view body);
 
 // ---- POST /v1/lease ------------------------------------------------------------------------
 

@@ -1,4 +1,5 @@
-// POST /v1/jobs/{id}/priority, POST /v1/jobs/{id}/requeue: changing a job after its submission.
+// POST /v1/jobs/{id}/priority, .../requeue, .../pause, .../resume: changing a job after its
+// submission.
 // Each change is stored (through the store writer, in order with every other write) before it is
 // applied in memory and answered, so an answered change survives a restart.
 #include <memory>
@@ -60,6 +61,27 @@ Requeued requeue_in_store(store::Store& s, JobRecord rec) {
 
 Load load_now(const Context& c) { return Load{c.unfinished_jobs(), c.unfinished_pixels(), c.accepting_writes()}; }
 
+// Records a pause or resume (a compare-and-set in the store, through the writer) and answers with
+// the store's state when it was not changed; nullopt when it was.
+async::Awaitable<std::optional<http::Response>> record_pause(Context& c, JobId id, StateWrite write) {
+  auto record = [id, write](store::Store& s) { return record_state(s, id, write, /*when=*/0); };
+  auto reply = co_await on_writer(*c.writer, std::move(record));
+  const bool pause = write == StateWrite::kPaused;
+  if (!reply.ok() || !reply.value->ok()) {
+    ++c.counters.store_busy;
+    if (reply.value && !reply.value->ok()) {
+      util::log_error("collector: job {}: cannot record the {}: {}", id, pause ? "pause" : "resumption",
+                      reply.value->error().message);
+    }
+    co_return respond(busy(fmt::format("the {} could not be stored; retry later", pause ? "pause" : "resumption")));
+  }
+  const store::StateChange& change = reply.value->value();
+  if (change.changed || change.state == target_state(write)) co_return std::nullopt;
+  // Finished while the store worked (the last tiles out were stored): the store's state wins.
+  co_return respond(wrong_state(
+      id, change.state, pause ? "only a queued or rendering job can be paused" : "only a paused job can be resumed"));
+}
+
 }  // namespace
 
 async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Request req) {
@@ -79,6 +101,7 @@ async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Re
     co_return respond(busy("the priority could not be stored; retry later"));
   }
   JobRecord* job = c.find_job(id);
+  if (job == nullptr) co_return respond(job_not_found(id));
   job->priority = priority;
   c.queue.set_priority(id, priority);  // a finished or cancelled job is out of the order anyway
   util::log_info("collector: job {}: priority {}", id, priority);
@@ -107,6 +130,7 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
     co_return respond(wrong_state(id, *done.refused_state, "only a cancelled job can be requeued"));
 
   JobRecord* rec = c.find_job(id);
+  if (rec == nullptr) co_return respond(job_not_found(id));
   const std::int32_t priority = rec->priority;  // a priority set while the store worked wins
   *rec = std::move(done.record);
   rec->priority = priority;
@@ -123,6 +147,44 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
   }
   util::log_info("collector: job {} requeued: {}/{} tiles stored", id, rec->tiles_done, rec->tiles_total);
   if (c.queue.is_done(id)) start_finish(c, id);
+  co_return get_job(c, id);
+}
+
+async::Awaitable<http::Response> pause_job(Context& c, JobId id) {
+  auto checked = check_pause(id, c.find_job(id), c.accepting_writes());
+  if (!checked) co_return respond(checked.error());
+  if (checked.value() == ChangeAction::kAlready) co_return get_job(c, id);
+  if (auto refused = co_await record_pause(c, id, StateWrite::kPaused)) co_return std::move(*refused);
+  JobRecord* job = c.find_job(id);
+  if (job == nullptr) co_return respond(job_not_found(id));
+  // Tiles out now are still accepted, and may finish the job: then it is done, not paused.
+  if (job->unfinished() && !job->finishing && job->state != protocol::JobState::kPaused) {
+    job->state = protocol::JobState::kPaused;
+    c.queue.set_paused(id, true);
+    const auto out = c.queue.progress(id, c.clock.now());
+    util::log_info("collector: job {} paused at {}/{} tiles; {} lease(s) still out are accepted", id, job->tiles_done,
+                   job->tiles_total, out ? out->leases_outstanding : 0);
+  }
+  co_return get_job(c, id);
+}
+
+async::Awaitable<http::Response> resume_job(Context& c, JobId id) {
+  auto checked = check_resume(id, c.find_job(id), c.accepting_writes());
+  if (!checked) co_return respond(checked.error());
+  if (checked.value() == ChangeAction::kAlready) co_return get_job(c, id);
+  if (auto refused = co_await record_pause(c, id, StateWrite::kResumed)) co_return std::move(*refused);
+  JobRecord* job = c.find_job(id);
+  if (job == nullptr) co_return respond(job_not_found(id));
+  if (job->state == protocol::JobState::kPaused && !job->finishing) {
+    job->state = job->tiles_done > 0 ? protocol::JobState::kRendering : protocol::JobState::kQueued;
+    job->rendering_persisted = false;  // the store says "queued" now
+    // The ETA and the no-worker gap count from now, not across the pause.
+    job->first_lease.reset();
+    job->stored_this_run = 0;
+    note_job_served(c, id);
+    c.queue.set_paused(id, false);
+    util::log_info("collector: job {} resumed at {}/{} tiles", id, job->tiles_done, job->tiles_total);
+  }
   co_return get_job(c, id);
 }
 

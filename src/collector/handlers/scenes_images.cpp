@@ -49,6 +49,8 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
       return std::optional(reader.encode_image(id, settings, tile_size, options, format));
     };
     encoded = co_await async::on_pool(c.pool, std::move(assemble));
+    // Deleted while its tiles were read: what was read may be incomplete.
+    if (c.find_job(id) == nullptr) co_return respond(job_not_found(id));
   }
   if (!encoded->ok()) {
     const std::string why = encoded->error().to_string();

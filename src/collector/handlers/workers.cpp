@@ -61,7 +61,8 @@ void note_job_served(Context& c, JobId job) { c.job_served[job] = c.clock.now();
 
 protocol::JobStatus with_worker_gap(const Context& c, protocol::JobStatus s) {
   const JobRecord* job = c.find_job(s.id);
-  if (job == nullptr || !job->unfinished()) return s;
+  // A paused job has no worker on purpose.
+  if (job == nullptr || !job->unfinished() || job->state == protocol::JobState::kPaused) return s;
   const TimePoint now = c.clock.now();
   // Since the later of: this process's start, the job's submission, its last worker.
   const auto age = std::chrono::seconds(std::max<std::int64_t>(0, c.clock.unix_seconds() - job->created_unix));
