@@ -11,18 +11,6 @@ set -uo pipefail
 DEADLINE=${DEADLINE:-120}
 source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 
-# until_ok SECONDS COMMAND...: polls COMMAND every 0.1 s until it succeeds or SECONDS pass.
-until_ok() {
-  local n=$(($1 * 10))
-  shift
-  while [ $n -gt 0 ]; do
-    "$@" && return 0
-    sleep 0.1
-    n=$((n - 1))
-  done
-  return 1
-}
-
 printf 'retry-%s-token\n' "$$" >"$work/token"
 start_collector collector "$work/state" 127.0.0.1:0 --max-connections 1 --idle-timeout-ms 600000
 
