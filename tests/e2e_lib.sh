@@ -1,7 +1,8 @@
 # Shared by the end-to-end scripts that start dtraced processes (sourced, never run on its own):
 # a temporary work directory, the list of processes started (killed with SIGKILL and waited for
 # on exit, whatever the outcome), the pass/fail counters, die, which shows the tail of every
-# log in the work directory before it gives up, and start_collector. Needs DTRACED and DEADLINE.
+# log in the work directory before it gives up, start_collector and until_ok. Needs DTRACED and
+# DEADLINE.
 work=$(mktemp -d)
 pids=()
 cleanup() {
@@ -49,4 +50,16 @@ start_collector() {
   done
   [ -n "$PORT" ] || die "collector $name did not listen within ${DEADLINE}s"
   URL="http://127.0.0.1:$PORT"
+}
+
+# until_ok SECONDS COMMAND...: polls COMMAND every 0.1 s until it succeeds or SECONDS pass.
+until_ok() {
+  local n=$(($1 * 10))
+  shift
+  while [ $n -gt 0 ]; do
+    "$@" && return 0
+    sleep 0.1
+    n=$((n - 1))
+  done
+  return 1
 }

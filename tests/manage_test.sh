@@ -11,18 +11,6 @@ set -uo pipefail
 DEADLINE=${DEADLINE:-120}
 source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 
-# until SECONDS COMMAND...: polls COMMAND every 0.1 s until it succeeds or SECONDS pass.
-until_ok() {
-  local n=$(($1 * 10))
-  shift
-  while [ $n -gt 0 ]; do
-    "$@" && return 0
-    sleep 0.1
-    n=$((n - 1))
-  done
-  return 1
-}
-
 printf 'manage-%s-token\n' "$$" >"$work/token"
 # start_collector LISTEN: sets COLLECTOR_PID, PORT and URL.
 start_collector() {

@@ -572,3 +572,18 @@ TEST_CASE("adaptive settings out of range are refused by name", "[protocol][json
     CHECK_THAT(errors.front().message, Catch::Matchers::Contains(c.fragment));
   }
 }
+
+TEST_CASE("a job status is encoded with plain decimals, not Boost's exponent form", "[protocol][json]") {
+  protocol::JobStatus s = test_status();
+  s.mean_spp = 21.5;
+  s.no_worker_s = 1e-7;  // tiny: an exponent, but a valid JSON one
+  const std::string text = protocol::encode(s);
+  CHECK_THAT(text, Catch::Matchers::Contains(R"("elapsed_s":12.345678901234567,"eta_s":0.1,)"));
+  CHECK_THAT(text, Catch::Matchers::Contains(R"("mean_spp":21.5,"no_worker_s":1e-07})"));
+  CHECK(text.find('E') == std::string::npos);
+  const auto back = protocol::decode_job_status(text);
+  REQUIRE(back.ok());
+  CHECK(back.value().elapsed_s == s.elapsed_s);
+  CHECK(back.value().mean_spp == s.mean_spp);
+  CHECK(back.value().no_worker_s == s.no_worker_s);
+}

@@ -48,11 +48,11 @@
 #include <boost/asio/this_coro.hpp>
 #include <boost/asio/use_awaitable.hpp>
 #include <boost/json/object.hpp>
-#include <boost/json/serialize.hpp>
 #include <fmt/format.h>
 
 #include "http/client.h"
 #include "http/types.h"
+#include "jsonio/write.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
 #include "util/file.h"
@@ -334,7 +334,7 @@ void report(const Options& o, const Run& run, double elapsed_s, double cpu_s) {
     j["generator_cpu"] = elapsed_s > 0 ? cpu_s / elapsed_s : 0;
     j["stopped"] = run.reason;
     j["first_problem"] = t.first_problem;
-    fmt::print("{}\n", boost::json::serialize(j));
+    fmt::print("{}\n", jsonio::to_text(j));
     return;
   }
   fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} (job {}){}\n", o.workers, elapsed_s,

@@ -12,6 +12,7 @@
 
 #include <fmt/format.h>
 
+#include "cli/retry.h"
 #include "http/client.h"
 #include "image/image_io.h"
 #include "protocol/messages.h"
@@ -19,7 +20,6 @@
 #include "scene/load.h"
 #include "util/file.h"
 #include "util/token_file.h"
-#include "worker/backoff.h"
 
 namespace dtraced::cli {
 
@@ -29,13 +29,16 @@ constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
 // An image response can be a 16384^2 PFM.
 constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + (1 << 20);
-// status --wait against an unreachable collector: the workers' backoff (worker/backoff.h), from
-// half a second doubling to five, never sooner than kMinWaitRetry.
-constexpr std::chrono::milliseconds kWaitRetryInitial{500};
-constexpr std::chrono::milliseconds kWaitRetryMax{5000};
-constexpr std::chrono::milliseconds kMinWaitRetry{100};
 
-// One connection's worth of state for a verb: where, with which token, how patient.
+std::string format_seconds(double s) {
+  if (s < 60) return fmt::format("{:.1f}s", s);
+  if (s < 3600) return fmt::format("{}m{:02}s", int(s) / 60, int(s) % 60);
+  return fmt::format("{}h{:02}m", int(s) / 3600, (int(s) % 3600) / 60);
+}
+
+// One connection's worth of state for a verb: where, with which token, how patient. Every call
+// rides out a busy collector (and, for a GET, one that does not answer) for up to --timeout-ms,
+// or what retry_for sets (cli/retry.h says what is retried and why that is safe).
 class Session {
  public:
   bool init(const ClientArgs& args) {
@@ -54,47 +57,52 @@ class Session {
       token_ = std::move(token).value();
     }
     timeouts_.read = timeouts_.write = std::chrono::milliseconds(args.timeout_ms);
+    retry_for(std::chrono::milliseconds(args.timeout_ms), fmt::format("--timeout-ms {}", args.timeout_ms));
     return true;
   }
 
-  // Sends one request; on a network failure or a non-2xx answer prints the reason and returns
-  // nullopt.
-  std::optional<http::Response> call(http::Verb verb, const std::string& target, std::string body = {},
-                                     std::uint64_t max_body = protocol::kMaxJobListBytes) {
-    http::Request req = http::make_request(verb, target, std::move(body),
-                                           verb == http::Verb::post ? http::kJsonContentType : std::string_view{});
-    if (!token_.empty()) req.set(boost::beast::http::field::authorization, "Bearer " + token_);
-    http::ClientResult r = http::request_sync(url_, std::move(req), timeouts_, max_body);
-    last_failure_transient_ = false;
-    if (!r.ok()) {
-      // No answer: the collector may be restarting.
-      last_failure_transient_ = true;
-      fmt::print(stderr, "{}\n", r.message);
-      return std::nullopt;
-    }
-    const unsigned code = r.response.result_int();
-    if (code < 200 || code >= 300) {
-      last_failure_transient_ = code == 503;  // starting, stopping or busy
-      const auto err = protocol::decode_error_body(r.response.body());
-      if (err.ok()) {
-        const auto& e = err.value();
-        fmt::print(stderr, "{} {}: {}{}{}\n", code, target, e.field, e.field.empty() ? "" : ": ", e.error);
-      } else {
-        fmt::print(stderr, "{} {}: HTTP {}\n", code, target, code);
-      }
-      return std::nullopt;
-    }
-    return std::move(r.response);
+  // How long a run of failures is retried, and the flag that set it (named when giving up).
+  void retry_for(std::chrono::milliseconds budget, std::string flag) {
+    retry_ = RetryPolicy(budget, std::random_device{}());
+    retry_flag_ = std::move(flag);
   }
 
-  // Whether the last failed call() may succeed later: no answer at all, or 503.
-  bool last_failure_transient() const { return last_failure_transient_; }
+  // Sends one request, again after each retryable failure (one line on stderr per wait) until it
+  // succeeds or the retry budget is spent; on a final failure prints the reason and returns
+  // nullopt.
+  std::optional<http::Response> call(http::Verb verb, const std::string& target, const std::string& body = {},
+                                     std::uint64_t max_body = protocol::kMaxJobListBytes) {
+    while (true) {
+      http::Request req = http::make_request(verb, target, body,
+                                             verb == http::Verb::post ? http::kJsonContentType : std::string_view{});
+      if (!token_.empty()) req.set(boost::beast::http::field::authorization, "Bearer " + token_);
+      http::ClientResult r = http::request_sync(url_, std::move(req), timeouts_, max_body);
+      if (r.ok() && r.response.result_int() >= 200 && r.response.result_int() < 300) {
+        retry_.succeeded();
+        return std::move(r.response);
+      }
+      const Failure failure = classify(r, verb, target);
+      const auto now = std::chrono::steady_clock::now();
+      const std::optional<std::chrono::milliseconds> wait = retry_.next_wait(failure, now);
+      if (!wait) {
+        fmt::print(stderr, "{}\n", failure.reason);
+        if (failure.retryable && retry_.failures() > 1) {
+          fmt::print(stderr, "giving up on {} after {} of retries ({})\n", target,
+                     format_seconds(retry_.spent(now).count() / 1000.0), retry_flag_);
+        }
+        return std::nullopt;
+      }
+      fmt::print(stderr, "{}, retrying in {} ms\n", failure.reason, wait->count());
+      std::this_thread::sleep_for(*wait);
+    }
+  }
 
  private:
-  bool last_failure_transient_ = false;
   http::Url url_;
   std::string token_;
   http::ClientTimeouts timeouts_;
+  RetryPolicy retry_{std::chrono::milliseconds(0), 0};
+  std::string retry_flag_;
 };
 
 template <typename T>
@@ -102,12 +110,6 @@ std::optional<T> decode_or_report(const protocol::Decoded<T>& d, std::string_vie
   if (d.ok()) return d.value();
   fmt::print(stderr, "unexpected answer to {}: {}\n", what, d.error().front().to_string());
   return std::nullopt;
-}
-
-std::string format_seconds(double s) {
-  if (s < 60) return fmt::format("{:.1f}s", s);
-  if (s < 3600) return fmt::format("{}m{:02}s", int(s) / 60, int(s) % 60);
-  return fmt::format("{}h{:02}m", int(s) / 3600, (int(s) % 3600) / 60);
 }
 
 // "64 spp", or with adaptive sampling the mean over the stored tiles and the cap: "21.3/64 spp".
@@ -214,33 +216,13 @@ int run_status(const ClientArgs& client, const StatusArgs& args) {
   if (!session.init(client)) return kExitFailed;
   const std::string target = fmt::format("/v1/jobs/{}", args.id);
   const bool bar = args.wait && !args.json && ::isatty(STDERR_FILENO);
-  // With --wait, a collector restart is ridden out like the workers do: retries with backoff.
-  const worker::Backoff backoff(kWaitRetryInitial, kWaitRetryMax);
-  std::mt19937_64 rng(std::random_device{}());
-  std::uint32_t failures = 0;
-  std::chrono::steady_clock::time_point outage_start;  // of the current run of failures
-  const std::chrono::milliseconds retry_budget = std::chrono::seconds(args.retry_for_s);
+  // With --wait, a collector restart is ridden out like the workers do, for --retry-for-s.
+  if (args.wait) {
+    session.retry_for(std::chrono::seconds(args.retry_for_s), fmt::format("--retry-for-s {}", args.retry_for_s));
+  }
   while (true) {
     auto resp = session.call(http::Verb::get, target);
-    if (!resp) {
-      const auto now = std::chrono::steady_clock::now();
-      if (failures == 0) outage_start = now;
-      const auto spent = std::chrono::duration_cast<std::chrono::milliseconds>(now - outage_start);
-      if (!args.wait || !session.last_failure_transient() || spent >= retry_budget) {
-        if (args.wait && failures > 0) {
-          fmt::print(stderr, "giving up on {} after {} of retries (--retry-for-s {})\n", target,
-                     format_seconds(spent.count() / 1000.0), args.retry_for_s);
-        }
-        return kExitFailed;
-      }
-      const auto delay = std::min(std::max(backoff.delay(failures, rng), kMinWaitRetry), retry_budget - spent);
-      fmt::print(stderr, "retrying in {} ({} failed attempt{} in a row)\n", format_seconds(delay.count() / 1000.0),
-                 failures + 1, failures == 0 ? "" : "s");
-      std::this_thread::sleep_for(delay);
-      ++failures;
-      continue;
-    }
-    failures = 0;
+    if (!resp) return kExitFailed;
     auto st = decode_or_report(protocol::decode_job_status(resp->body()), "GET " + target);
     if (!st) return kExitFailed;
     const bool done = finished(st->state);

@@ -47,7 +47,9 @@ void add_connection_options(CLI::App* sub, ClientArgs& client) {
       ->envname("DTRACED_COLLECTOR")
       ->capture_default_str();
   sub->add_option("--token-file", client.token_file, "File holding the bearer token")->envname("DTRACED_TOKEN_FILE");
-  sub->add_option("--timeout-ms", client.timeout_ms, "Per-request read/write timeout")
+  sub->add_option("--timeout-ms", client.timeout_ms,
+                  "Per-request read/write timeout; also how long a busy collector (503), or for a "
+                  "read one that does not answer, is retried with backoff")
       ->check(CLI::Range(100u, 3600000u))
       ->capture_default_str();
 }

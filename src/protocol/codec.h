@@ -22,6 +22,7 @@
 #include <boost/json/value.hpp>
 
 #include "jsonio/reader.h"
+#include "jsonio/write.h"  // jsonio::to_text, the one writer of every encode()
 #include "protocol/messages.h"
 
 namespace dtraced::protocol::detail {

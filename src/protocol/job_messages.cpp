@@ -165,7 +165,7 @@ std::string encode(const JobSubmit& m) {
   if (v.error_target) o["error_target"] = jsonio::exact_number(*v.error_target);
   if (v.min_samples) o["min_samples"] = *v.min_samples;
   if (v.png_bit_depth) o["png_bit_depth"] = *v.png_bit_depth;
-  return json::serialize(o);
+  return jsonio::to_text(o);
 }
 
 Decoded<JobSubmit> decode_job_submit(std::string_view text) {
@@ -174,7 +174,7 @@ Decoded<JobSubmit> decode_job_submit(std::string_view text) {
 
 // ---- JobCreated ----------------------------------------------------------------------------
 
-std::string encode(const JobCreated& m) { return json::serialize(json::object{{"id", m.id}, {"digest", m.digest}}); }
+std::string encode(const JobCreated& m) { return jsonio::to_text(json::object{{"id", m.id}, {"digest", m.digest}}); }
 
 Decoded<JobCreated> decode_job_created(std::string_view text) {
   return decode_object<JobCreated>(text, kMaxMessageBytes, kMaxMessageDepth, kJobCreatedKeys,
@@ -195,7 +195,7 @@ std::optional<JobState> job_state_from_string(std::string_view text) {
   return std::nullopt;
 }
 
-std::string encode(const JobStatus& m) { return json::serialize(job_status_object(m)); }
+std::string encode(const JobStatus& m) { return jsonio::to_text(job_status_object(m)); }
 
 Decoded<JobStatus> decode_job_status(std::string_view text) {
   return decode_object<JobStatus>(text, kMaxMessageBytes, kMaxMessageDepth, kJobStatusKeys, read_job_status);
@@ -207,7 +207,7 @@ std::string encode(const JobList& m) {
   for (const JobStatus& s : m.jobs) jobs.push_back(job_status_object(s));
   json::object o;
   o["jobs"] = std::move(jobs);
-  return json::serialize(o);
+  return jsonio::to_text(o);
 }
 
 Decoded<JobList> decode_job_list(std::string_view text) {
@@ -218,7 +218,7 @@ Decoded<JobList> decode_job_list(std::string_view text) {
 
 // ---- JobPriority ---------------------------------------------------------------------------
 
-std::string encode(const JobPriority& m) { return json::serialize(json::object{{"priority", m.priority}}); }
+std::string encode(const JobPriority& m) { return jsonio::to_text(json::object{{"priority", m.priority}}); }
 
 Decoded<JobPriority> decode_job_priority(std::string_view text) {
   return decode_object<JobPriority>(

@@ -144,7 +144,7 @@ bool is_digest(std::string_view text) {
 // ---- LeaseRequest --------------------------------------------------------------------------
 
 std::string encode(const LeaseRequest& m) {
-  return json::serialize(json::object{{"worker", m.worker}, {"threads", m.threads}});
+  return jsonio::to_text(json::object{{"worker", m.worker}, {"threads", m.threads}});
 }
 
 Decoded<LeaseRequest> decode_lease_request(std::string_view text) {
@@ -182,7 +182,7 @@ std::string encode(const LeaseReply& m) {
   } else {
     o["retry_after_ms"] = std::get<RetryAfter>(m).ms;
   }
-  return json::serialize(o);
+  return jsonio::to_text(o);
 }
 
 Decoded<LeaseReply> decode_lease_reply(std::string_view text) {
@@ -207,7 +207,7 @@ Decoded<LeaseReply> decode_lease_reply(std::string_view text) {
 
 std::string_view to_string(SubmitResult result) { return kSubmitResultNames[static_cast<std::size_t>(result)]; }
 
-std::string encode(SubmitResult m) { return json::serialize(json::object{{"result", to_string(m)}}); }
+std::string encode(SubmitResult m) { return jsonio::to_text(json::object{{"result", to_string(m)}}); }
 
 Decoded<SubmitResult> decode_submit_result(std::string_view text) {
   return decode_object<SubmitResult>(
@@ -237,7 +237,7 @@ ErrorBody error_body(const util::Errors& errors) {
   return body;
 }
 
-std::string encode(const ErrorBody& m) { return json::serialize(json::object{{"error", m.error}, {"field", m.field}}); }
+std::string encode(const ErrorBody& m) { return jsonio::to_text(json::object{{"error", m.error}, {"field", m.field}}); }
 
 Decoded<ErrorBody> decode_error_body(std::string_view text) {
   return decode_object<ErrorBody>(
@@ -255,6 +255,8 @@ Decoded<ErrorBody> decode_error_body(std::string_view text) {
 std::string encode_settings(const JobSettings& settings) {
   json::object o = scene::render_settings_object(settings.render);
   if (settings.png_bit_depth != scene::kDefaultPngBitDepth) o["png_bit_depth"] = settings.png_bit_depth;
+  // Boost's own form, not jsonio::to_text: this text is hashed into the client key that a one-shot
+  // collector stores with its job (collector/jobs.h), so new bytes would lose stored jobs.
   return json::serialize(o);
 }
 

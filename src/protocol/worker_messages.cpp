@@ -88,7 +88,7 @@ std::string encode(const WorkerList& m) {
   o["recent_window_s"] = jsonio::exact_number(m.recent_window_s);
   o["quiet_after_s"] = jsonio::exact_number(m.quiet_after_s);
   o["workers"] = std::move(workers);
-  return json::serialize(o);
+  return jsonio::to_text(o);
 }
 
 Decoded<WorkerList> decode_worker_list(std::string_view text) {

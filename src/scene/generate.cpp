@@ -8,9 +8,9 @@
 
 #include <boost/json/array.hpp>
 #include <boost/json/object.hpp>
-#include <boost/json/serialize.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/write.h"
 #include "math/rng.h"
 #include "scene/load.h"
 
@@ -307,7 +307,7 @@ GeneratedMeshScene generate_mesh_scene(std::uint32_t triangles, std::uint64_t se
     m.color = {0.55, 0.52, 0.47};
     m.specular = 0.05;
     ground["material"] = material(m);
-    objects.push_back(json::serialize(ground));
+    objects.push_back(jsonio::to_text(ground));
   }
   for (int k = 0; k < instances; ++k) {
     const int row = k / columns, column = k % columns;
@@ -338,7 +338,7 @@ GeneratedMeshScene generate_mesh_scene(std::uint32_t triangles, std::uint64_t se
       out.triangles += torus_tris;
     }
     o["material"] = material(m);
-    objects.push_back(json::serialize(o));
+    objects.push_back(jsonio::to_text(o));
   }
 
   const double extent = 0.5 * kSpacing * std::max(columns, rows);
@@ -368,10 +368,10 @@ GeneratedMeshScene generate_mesh_scene(std::uint32_t triangles, std::uint64_t se
   fill["intensity"] = tidy(0.9 * r2);
 
   std::string& s = out.scene_json;
-  s = "{\n  \"camera\": " + json::serialize(camera) + ",\n  \"render\": " + json::serialize(render) +
+  s = "{\n  \"camera\": " + jsonio::to_text(camera) + ",\n  \"render\": " + jsonio::to_text(render) +
       ",\n  \"scene_objects\": [\n";
   for (std::size_t i = 0; i < objects.size(); ++i) s += "    " + objects[i] + (i + 1 < objects.size() ? ",\n" : "\n");
-  s += "  ],\n  \"scene_lights\": [\n    " + json::serialize(key) + ",\n    " + json::serialize(fill) + "\n  ]\n}\n";
+  s += "  ],\n  \"scene_lights\": [\n    " + jsonio::to_text(key) + ",\n    " + jsonio::to_text(fill) + "\n  ]\n}\n";
   return out;
 }
 
