@@ -231,7 +231,7 @@ Decoded<JobPriority> decode_job_priority(std::string_view text) {
 std::string encode(const JobDeleted& m) {
   json::object o{{"id", m.id}, {"tiles", m.tiles}, {"image", m.image}};
   if (!m.image_error.empty()) o["image_error"] = m.image_error;
-  return json::serialize(o);
+  return jsonio::to_text(o);
 }
 
 Decoded<JobDeleted> decode_job_deleted(std::string_view text) {
