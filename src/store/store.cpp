@@ -255,8 +255,20 @@ Status Store::Impl::migrate_v1() {
   if (!result) return result;
   util::log_info("{}: upgraded the schema from version 1 to 2 (jobs may be paused; ids are never reused)", path);
   // Space of deleted jobs goes back to the file system only with incremental auto-vacuum, which an
-  // existing file gets by a VACUUM (a copy of the whole file: it needs that much free space). When
-  // that fails the database works as before and reuses freed pages for new tiles instead.
+  // existing file gets by a VACUUM (a copy of the whole file: it needs that much free space, and
+  // time). A large file is left as it is, so that start-up stays within a service manager's start
+  // timeout; then, and when the VACUUM fails, freed pages are reused for new tiles instead.
+  const auto size = exec_rows("SELECT page_count * page_size FROM pragma_page_count, pragma_page_size");
+  if (!size) return size.error();
+  const std::uint64_t bytes = size.value().empty() ? 0 : std::stoull(size.value()[0]);
+  if (bytes > kMaxUpgradeVacuumBytes) {
+    util::log_warn(
+        "{}: {} MiB is too large to convert to incremental vacuum at start-up; space of deleted jobs is "
+        "reused, not released (with the collector stopped, sqlite3 {} 'PRAGMA auto_vacuum = 2; VACUUM' "
+        "converts it)",
+        path, bytes >> 20, path);
+    return {};
+  }
   if (auto st = exec_rows("PRAGMA auto_vacuum = INCREMENTAL"); !st) return st.error();
   if (auto st = exec_rows("VACUUM"); !st) {
     util::log_warn("{}: could not switch to incremental vacuum ({}); space of deleted jobs is reused, not released",
