@@ -40,6 +40,7 @@
 #include "http/types.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
+#include "protocol/worker_messages.h"
 #include "scene/digest.h"
 #include "scene/tiling.h"
 #include "util/clock.h"
@@ -72,11 +73,15 @@ struct FakeRules {
   // A tile leased but not stored is offered again after this many "retry after" answers (the
   // fake's stand-in for the real queue's re-offer bound; the worker drops leases it cannot use).
   std::uint32_t reoffer_after = 3;
+  // "Retry after" answers carry protocol::kFinishedHeader with this value ("": no header), as a
+  // one-shot collector going away sends "1".
+  std::string_view finished_header = {};
 };
 
 struct FakeCounts {
   std::uint64_t lease_requests = 0;
   std::uint64_t leases = 0;
+  std::uint64_t retry_answers = 0;  // lease requests answered "retry after"
   std::uint64_t scene_requests = 0;
   std::uint64_t unauthorized = 0;
   std::uint64_t acknowledged = 0;  // 200 stored or already_done
@@ -226,7 +231,10 @@ class FakeCollector {
     }
     if (!tile) {
       for (std::uint32_t t = 0; t < rects_.size(); ++t) ++idle_since_lease_[t];
-      return json(http::Status::ok, protocol::encode(protocol::LeaseReply{protocol::RetryAfter{5}}));
+      ++counts_.retry_answers;
+      http::Response res = json(http::Status::ok, protocol::encode(protocol::LeaseReply{protocol::RetryAfter{5}}));
+      if (!rules_.finished_header.empty()) res.set(protocol::kFinishedHeader, rules_.finished_header);
+      return res;
     }
     leased_[*tile] = true;
     idle_since_lease_[*tile] = 0;

@@ -14,6 +14,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <set>
 #include <sstream>
 #include <string>
@@ -24,8 +25,10 @@
 #include <fmt/format.h>
 
 #include "child_process.h"
+#include "collector/linger.h"
 #include "collector/restore.h"
 #include "collector_testing.h"
+#include "eventually.h"
 #include "util/file.h"
 
 using namespace dtraced::testing;
@@ -293,10 +296,15 @@ TEST_CASE("the one-shot job is enqueued once and resumed after a restart", "[col
     auto leases = h.lease_all();
     CHECK(leases.size() == 5);
     for (const auto& l : leases) CHECK_FALSE(first.contains(l.tile));
+    h.start_loop();  // the collector lingers on its clock for the workers it knows (stop.h)
     for (const auto& l : leases) h.put_ok(l);
-    // The image is written and the collector stops itself.
+    // The image is written and the collector stops itself (once its linger is over).
+    REQUIRE(eventually([&] {
+      h.clock.advance(coll::linger_bound(config.queue));
+      return h.loop.wait_for(0s) == std::future_status::ready;
+    }));
+    CHECK(h.loop.get() == 0);
     CHECK(fs::exists(dir.path() / "out" / "shot.png"));
-    CHECK(h.collector.run() == 0);
   }
   {
     // Once more with the same arguments: nothing to do, exit 0 at once.

@@ -556,3 +556,41 @@ TEST_CASE("a worker leased again and again a job the collector says is gone back
   CHECK(run.stats.tiles_dropped >= 10);
   CHECK(run.stats.tiles_submitted == 0);
 }
+
+TEST_CASE("with exit_when_done a worker submits what it has and exits when its collector says it has finished",
+          "[worker][end_to_end][exit_when_done]") {
+  Farm farm({}, [](worker::WorkerConfig& c) { c.exit_when_done = true; });
+  RunningWorker& worker = farm.worker;
+  REQUIRE(worker.until([&] { return farm.fake.all_stored(); }));
+  CHECK_FALSE(worker.stats().stopping);  // "retry after" alone is no reason to leave
+  // The job is over and the collector is going away: the next lease answer says so.
+  farm.fake.set_rules([](FakeRules& r) { r.finished_header = "1"; });
+  REQUIRE(worker.wait(util::TimePoint::max()) == std::optional<bool>(true));
+
+  const WorkerStats s = worker.stats();
+  check_stopped_cleanly(s);
+  CHECK(s.collector_finished);
+  CHECK(s.tiles_abandoned == 0);
+  CHECK(s.tiles_submitted == farm.fake.counts().acknowledged);
+  check_pixels(farm.fake);
+}
+
+TEST_CASE("without exit_when_done, or with a garbled header, a finished answer is only a retry-after",
+          "[worker][end_to_end][exit_when_done]") {
+  struct Case {
+    bool exit_when_done;
+    std::string_view header;
+  };
+  for (const Case& c : {Case{false, "1"}, Case{true, "yes"}}) {
+    INFO("exit_when_done " << c.exit_when_done << ", header '" << c.header << "'");
+    Farm farm({.finished_header = c.header}, [&c](worker::WorkerConfig& w) { w.exit_when_done = c.exit_when_done; });
+    RunningWorker& worker = farm.worker;
+    // The worker keeps asking, through many such answers after its last tile.
+    REQUIRE(worker.until([&] { return farm.fake.all_stored() && farm.fake.counts().retry_answers >= 20; }));
+    CHECK_FALSE(worker.stats().stopping);
+    CHECK_FALSE(worker.stats().collector_finished);
+    const WorkerStats s = worker.stop_cleanly();
+    CHECK_FALSE(s.collector_finished);
+    check_pixels(farm.fake);
+  }
+}

@@ -24,6 +24,7 @@
 #include "http/client.h"
 #include "http/types.h"
 #include "protocol/messages.h"
+#include "protocol/worker_messages.h"
 #include "render/tile.h"
 #include "scene/digest.h"
 #include "util/clock.h"
@@ -642,4 +643,41 @@ TEST_CASE("an unexpected answer is quoted short and printable in the logs", "[wo
   CHECK_FALSE(worker::should_log_failure(0));
   CHECK_FALSE(worker::should_log_failure(2));
   CHECK(worker::should_log_failure(worker::kLogEveryNthFailure));
+}
+
+TEST_CASE("a retry-after says the collector has finished only when its header is exactly 1", "[worker][answers]") {
+  using worker::classify_lease;
+  auto idle = [](std::optional<std::string_view> header) {
+    http::Response res = http::make_text_response(
+        http::Status::ok, protocol::encode(protocol::LeaseReply{protocol::RetryAfter{250}}), http::kJsonContentType);
+    if (header) res.set(protocol::kFinishedHeader, *header);
+    return classify_lease(answer(std::move(res)));
+  };
+  const auto finished = idle("1");
+  CHECK(finished.error.empty());
+  CHECK(finished.retry_after == 250ms);
+  CHECK(finished.collector_finished);
+  // Not finished, and still an ordinary retry-after: no header (an older collector), "0", or any
+  // value that is not exactly "1" (a garbled header never ends a worker).
+  for (const std::optional<std::string_view> value :
+       {std::optional<std::string_view>{}, std::optional<std::string_view>{"0"},
+        std::optional<std::string_view>{"true"}, std::optional<std::string_view>{""},
+        std::optional<std::string_view>{"01"}}) {
+    INFO(value.value_or("(none)"));
+    const auto other = idle(value);
+    CHECK(other.error.empty());
+    CHECK(other.retry_after == 250ms);
+    CHECK_FALSE(other.collector_finished);
+  }
+  // A lease is a lease, whatever headers come with it.
+  const scene::SceneDesc desc = load_tiny_scene();
+  http::Response leased =
+      http::make_text_response(http::Status::ok,
+                               protocol::encode(protocol::LeaseReply{protocol::Lease{
+                                   kJob, scene::scene_digest(desc), 0, scene::TileRect{0, 0, 16, 16}, desc.render}}),
+                               http::kJsonContentType);
+  leased.set(protocol::kFinishedHeader, "1");
+  const auto lease = classify_lease(answer(std::move(leased)));
+  CHECK(lease.lease);
+  CHECK_FALSE(lease.collector_finished);
 }

@@ -119,6 +119,7 @@ int run_worker_role(const CLI::App& app, const RoleArgs& a) {
     w.timeouts.read = w.timeouts.write = std::chrono::milliseconds(*a.request_timeout_ms);
   }
   if (a.max_unacknowledged) w.max_unacknowledged = *a.max_unacknowledged;
+  w.exit_when_done = a.exit_when_done;
   const auto problems = worker::validate(w);
   if (!problems.empty()) {
     fmt::print(stderr, "{}\n", located_errors_text(app, problems));
@@ -215,8 +216,10 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   one_shot.group = kCollectorGroup;
   one_shot.help_prefix = "One-shot: ";
   add_override_flags(app, a.overrides, one_shot);
-  app.add_flag("--exit-when-done", a.exit_when_done, "One-shot: exit 0 once the image is written")
-      ->group(kCollectorGroup);
+  // Both roles (so in neither group): one flag name, one meaning, "exit once the one-shot job is over".
+  app.add_flag("--exit-when-done", a.exit_when_done,
+               "One-shot collector: exit 0 once the image is written. Worker: exit 0 when its collector says it "
+               "has finished (a one-shot collector with this flag)");
 
   app.add_option("--collector", a.collector, "Collector base URL, http://HOST:PORT")->group(kWorkerGroup);
   app.add_option("--name", a.name, "Worker name in the collector's logs (default HOST-PID)")->group(kWorkerGroup);

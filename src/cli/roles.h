@@ -30,6 +30,7 @@ struct RoleArgs {
   std::string scene;           // one-shot job
   std::string output;          // one-shot job's image path
   scene::Overrides overrides;  // one-shot job's overrides (the flags of cli/overrides_flags.h)
+  // Both roles: the one-shot collector exits when its job is over, and so do its workers.
   bool exit_when_done = false;
   // worker
   std::string collector;

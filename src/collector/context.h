@@ -34,6 +34,7 @@
 #include "collector/admission.h"
 #include "collector/config.h"
 #include "collector/jobs.h"
+#include "collector/linger.h"
 #include "collector/metrics.h"
 #include "collector/queue.h"
 #include "collector/routes.h"
@@ -98,6 +99,10 @@ struct Context {
   bool opened = false;
   bool stopping = false;
   std::optional<int> exit_code;
+  // A finished one-shot collector telling its workers before it stops (stop.h, begin_linger), and
+  // what ends its wait early (everyone told, or a stop begun).
+  std::optional<FinishedLinger> linger;
+  std::optional<async::Event> linger_wake;
 
   // Who has been asking for work (handlers/workers.cpp) and when it was last swept.
   WorkerRegistry workers;

@@ -98,7 +98,7 @@ async::Awaitable<> finish_job(Context& c, JobId id) {
   c.queue.remove_job(id);
   util::log_info("collector: job {} done: {} written", id, path);
   finish_ended(c);
-  if (c.one_shot_id == id && c.config.exit_when_done) begin_stop(c, 0);
+  if (c.one_shot_id == id && c.config.exit_when_done) begin_linger(c, 0);
 }
 
 }  // namespace
@@ -182,7 +182,7 @@ void apply_cancel(Context& c, JobRecord& job, std::int64_t when) {
   release(job);
   ++c.counters.jobs_cancelled;
   util::log_info("collector: job {} cancelled", job.id);
-  if (c.one_shot_id == job.id && c.config.exit_when_done) begin_stop(c, 1);
+  if (c.one_shot_id == job.id && c.config.exit_when_done) begin_linger(c, 1);
 }
 
 void release(JobRecord& job) {

@@ -16,4 +16,12 @@ namespace dtraced::collector {
 // Begins the stop sequence once; `exit_code` is what run() returns (the first one given wins).
 void begin_stop(Context& c, int exit_code);
 
+// The end of an exit_when_done one-shot collector's job (done: 0, cancelled: 1): lingers
+// (linger.h) while lease requests are answered "finished", then begins the stop with
+// `exit_code`. With no recent worker to tell, the stop begins at once.
+void begin_linger(Context& c, int exit_code);
+
+// While lingering: `id` was answered "finished"; the stop begins once every worker was told.
+void linger_told(Context& c, const WorkerId& id);
+
 }  // namespace dtraced::collector

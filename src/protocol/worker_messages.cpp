@@ -80,6 +80,12 @@ std::optional<std::uint64_t> parse_render_ms_header(std::string_view value) {
   return ms;
 }
 
+std::optional<bool> parse_finished_header(std::string_view value) {
+  if (value == "1") return true;
+  if (value == "0") return false;
+  return std::nullopt;
+}
+
 std::string encode(const WorkerList& m) {
   json::array workers;
   workers.reserve(m.workers.size());

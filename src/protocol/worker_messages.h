@@ -4,8 +4,9 @@
 // Owns: the wire form of the collector's worker registry (collector/workers.h) and its limits.
 // A worker names itself in kWorkerHeader (messages.h) and the lease request; it also sends its
 // instruction set in kIsaHeader on lease requests and the time a tile took to render in
-// kRenderMsHeader on tile uploads. Headers rather than body fields, so that a collector that does
-// not know them ignores them (an unknown body key is refused) and mixed versions keep working.
+// kRenderMsHeader on tile uploads. The collector, going away, says so in kFinishedHeader on its
+// lease answers. Headers rather than body fields, so that a peer that does not know them ignores
+// them (an unknown body key is refused) and mixed versions keep working.
 //
 // Stateless functions: thread-safe.
 #pragma once
@@ -29,6 +30,11 @@ inline constexpr std::size_t kMaxIsaHeaderBytes = 16;
 // [0, kMaxRenderMs]. Anything else is ignored by the collector.
 inline constexpr std::string_view kRenderMsHeader = "X-Dtraced-Render-Ms";
 inline constexpr std::uint64_t kMaxRenderMs = 24ull * 3600 * 1000;
+// On a "retry after" answer to POST /v1/lease: "1" when the collector has finished all its work
+// and is going away (a one-shot collector with exit_when_done whose job has ended); a worker
+// started with exit_when_done then stops. "0" or no header: it has not. Any other value is
+// ignored (read as "0"), so a garbled header never ends a worker.
+inline constexpr std::string_view kFinishedHeader = "X-Dtraced-Collector-Finished";
 // GET /v1/workers lists at most this many (the collector's registry cap is below it).
 inline constexpr std::size_t kMaxListedWorkers = 10'000;
 inline constexpr std::size_t kMaxWorkerListBytes = 16 << 20;
@@ -39,6 +45,8 @@ inline constexpr std::size_t kMaxPeerBytes = 64;
 std::optional<std::string> parse_isa_header(std::string_view value);
 // The render time named by a kRenderMsHeader value, or nullopt when it is not one.
 std::optional<std::uint64_t> parse_render_ms_header(std::string_view value);
+// Whether a kFinishedHeader value says "finished" ("1") or not ("0"); nullopt for anything else.
+std::optional<bool> parse_finished_header(std::string_view value);
 
 struct WorkerInfo {
   std::string name;           // as in LeaseRequest::worker

@@ -1,9 +1,13 @@
 #include "worker/answers.h"
 
+#include <string_view>
 #include <utility>
 #include <variant>
 
+#include <boost/beast/core/string.hpp>
 #include <fmt/format.h>
+
+#include "protocol/worker_messages.h"
 
 namespace dtraced::worker {
 
@@ -51,6 +55,12 @@ LeaseAnswer classify_lease(const http::ClientResult& result) {
     answer.lease = std::move(*lease);
   } else {
     answer.retry_after = std::chrono::milliseconds{std::get<protocol::RetryAfter>(reply.value()).ms};
+    const auto it = result.response.find(
+        boost::beast::string_view(protocol::kFinishedHeader.data(), protocol::kFinishedHeader.size()));
+    if (it != result.response.end()) {
+      const std::string_view value(it->value().data(), it->value().size());
+      answer.collector_finished = protocol::parse_finished_header(value).value_or(false);
+    }
   }
   return answer;
 }

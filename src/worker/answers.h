@@ -39,6 +39,9 @@ std::string describe_answer(const http::Response& response);
 struct LeaseAnswer {
   std::optional<protocol::Lease> lease;
   std::optional<std::chrono::milliseconds> retry_after;
+  // With retry_after: the collector has finished all its work and is going away
+  // (protocol::kFinishedHeader is "1"; any other value is read as "not finished").
+  bool collector_finished = false;
   std::string error;  // a failure, to retry with backoff
   bool token_rejected = false;
 };

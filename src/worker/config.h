@@ -57,6 +57,11 @@ struct WorkerConfig {
   // Seed of the retry jitter; 0: drawn from std::random_device (so that workers started together
   // do not retry together). Tests fix it.
   std::uint64_t jitter_seed = 0;
+  // Stop (submitting what is in hand, then exiting 0) when the collector answers a lease request
+  // "finished" (protocol::kFinishedHeader: a one-shot collector whose job has ended, going away).
+  // Off: such an answer is a "retry after" like any other, and the worker waits for a collector
+  // at that address for as long as it runs.
+  bool exit_when_done = false;
 };
 
 // "hostname-pid", reduced to printable ASCII and to the protocol's name length.

@@ -60,6 +60,7 @@ async::Awaitable<std::optional<Work>> Worker::Impl::acquire() {
     }
     if (answer.retry_after) {
       note_lease_success(*attempt);
+      if (answer.collector_finished && note_collector_finished()) co_return std::nullopt;
       lease_gate.idle_for(jittered_retry_after(*answer.retry_after, rng));
       continue;
     }
@@ -96,6 +97,26 @@ void Worker::Impl::note_lease_success(RetryGate::Attempt& attempt) {
   if (const std::uint32_t ended = lease_gate.succeeded(attempt); ended > 0) {
     util::log_info("the collector {} answers leases again after {} failures", url.to_string(), ended);
   }
+}
+
+bool Worker::Impl::note_collector_finished() {
+  if (!config.exit_when_done) {
+    if (!told_finished) {
+      util::log_info(
+          "the collector {} says it has finished all its work and is going away; without --exit-when-done this "
+          "worker keeps asking for work at that address",
+          url.to_string());
+    }
+    told_finished = true;
+    return false;
+  }
+  if (!stop.is_set()) {
+    util::log_info("the collector {} has finished all its work and is going away: stopping (--exit-when-done)",
+                   url.to_string());
+    collector_finished = true;
+    begin_stop();
+  }
+  return true;
 }
 
 async::Awaitable<std::optional<LeaseAnswer>> Worker::Impl::request_lease() {

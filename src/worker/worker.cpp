@@ -98,6 +98,7 @@ WorkerStats Worker::stats() const {
   WorkerStats stats;
   stats.started = s.started.load();
   stats.stopping = s.stopping.load();
+  stats.collector_finished = s.collector_finished.load();
   stats.tiles_rendered = s.tiles_rendered.get();
   stats.tiles_submitted = s.tiles_submitted.get();
   stats.tiles_dropped = s.tiles_dropped.get();

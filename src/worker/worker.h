@@ -24,6 +24,10 @@
 //    but not started are dropped (the collector re-offers them); tiles rendering are finished;
 //    everything rendered is submitted within the grace period, after which what is left is
 //    abandoned and logged. A second signal abandons at once. Counters are logged at exit.
+//  - Finished collector. With exit_when_done, a lease answer saying the collector has finished all
+//    its work and is going away (protocol::kFinishedHeader) is a stop like request_stop: what is
+//    in hand is finished and submitted, then run() returns (exit code 0). Without it, that answer
+//    is a "retry after" like any other.
 //
 // Time: the worker reads time only through the util::Clock it is given, and sleeps only through
 // async::sleep_until on it: backoff delays, "retry after" waits, the grace period after a stop.
@@ -49,6 +53,8 @@ namespace dtraced::worker {
 struct WorkerStats {
   bool started = false;   // run() is under way: signal handling installed, READY=1 sent
   bool stopping = false;  // a stop was requested
+  // The stop came from the collector's "finished" answer (exit_when_done).
+  bool collector_finished = false;
   std::uint64_t tiles_rendered = 0;
   std::uint64_t tiles_submitted = 0;  // acknowledged: "stored" or "already done"
   std::uint64_t tiles_dropped = 0;    // their job is gone (410, or known gone before submission)
@@ -103,8 +109,9 @@ class Worker {
 
 // The daemon: validates `config` (each problem logged), then runs a Worker with SIGTERM/SIGINT
 // handling and systemd notification until it stops. Blocks. Returns the process exit code: 0
-// after a stop (even if the grace period ran out and tiles were abandoned), 2 when the
-// configuration is invalid, 1 after an internal error.
+// after a stop (a signal, or a finished collector with exit_when_done; even if the grace period
+// ran out and tiles were abandoned), 2 when the configuration is invalid, 1 after an internal
+// error.
 int run_worker(const WorkerConfig& config);
 
 }  // namespace dtraced::worker

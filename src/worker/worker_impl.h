@@ -102,6 +102,9 @@ struct Worker::Impl {
   async::Awaitable<> render_and_hand_off(Work work);
   void note_lease_failure(RetryGate::Attempt& attempt, const std::string& message, bool token_rejected);
   void note_lease_success(RetryGate::Attempt& attempt);
+  // A lease answer said the collector has finished and is going away: with exit_when_done, begins
+  // the stop (once) and returns true; otherwise logs it once and returns false (a retry-after).
+  bool note_collector_finished();
 
   // ---- submission.cpp ----
 
@@ -136,11 +139,13 @@ struct Worker::Impl {
   util::TimePoint stop_requested_at;
   std::uint32_t slots_live = 0;
   bool notify_systemd = false;
+  bool told_finished = false;  // a "finished" answer was logged (without exit_when_done)
   bool ran = false;
   bool failed = false;
 
   std::atomic<bool> started{false};
   std::atomic<bool> stopping{false};
+  std::atomic<bool> collector_finished{false};
   Counter tiles_rendered;
   Counter tiles_submitted;
   Counter tiles_dropped;

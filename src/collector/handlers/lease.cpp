@@ -1,9 +1,13 @@
 // POST /v1/lease: the next tile to render, or when to ask again.
 #include <algorithm>
+#include <chrono>
 #include <cstdint>
+#include <string>
 #include <utility>
 
 #include "collector/handlers.h"
+#include "collector/stop.h"
+#include "protocol/worker_messages.h"
 #include "util/log.h"
 
 namespace dtraced::collector {
@@ -16,12 +20,26 @@ http::Response retry_after(std::chrono::milliseconds suggested) {
                      protocol::encode(protocol::LeaseReply{protocol::RetryAfter{static_cast<std::uint32_t>(ms)}}));
 }
 
+// A finished collector's answer: "retry after" (all an older worker reads) with kFinishedHeader.
+// The longest retry-after, so that a worker without exit_when_done does not hurry back to a
+// collector that is going away.
+http::Response finished(Context& c, const http::Request& req, std::string name) {
+  linger_told(c, worker_id(req, std::move(name)));
+  http::Response res =
+      retry_after(std::chrono::duration_cast<std::chrono::milliseconds>(c.config.queue.max_retry_after));
+  res.set(protocol::kFinishedHeader, "1");
+  return res;
+}
+
 }  // namespace
 
 http::Response lease_tile(Context& c, const http::Request& req) {
   auto request = protocol::decode_lease_request(req.body());
   if (!request) return respond(decode_failure(request.error()));
   note_lease_request(c, req, request.value());
+  // Lingering before the stop: nothing is leased any more (whatever else is queued resumes after
+  // a restart), and every worker hears that this collector is going away.
+  if (c.linger) return finished(c, req, request.value().worker);
   const TimePoint now = c.clock.now();
   const LeaseResult result = c.queue.lease(now);
   JobRecord* job = result.grant ? c.find_job(result.grant->job) : nullptr;
