@@ -58,7 +58,8 @@ void persist_rendering(Context& c, JobRecord& job);
 void start_finish(Context& c, JobId id);
 
 // Applies a cancellation the store has recorded at `when`: no more leases, the job's memory
-// released, and an exit_when_done one-shot collector stopping with exit code 1.
+// released, and an exit_when_done one-shot collector stopping with exit code 1 (once its workers
+// have been told, linger.h).
 void apply_cancel(Context& c, JobRecord& job, std::int64_t when);
 
 // Frees what only an unfinished job needs.
