@@ -266,40 +266,31 @@ int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& out
   return kExitOk;
 }
 
-int run_cancel(const ClientArgs& client, std::uint64_t id) {
+namespace {
+
+// POSTs to one of a job's change endpoints (cancel, priority, requeue, pause, resume) and prints
+// the job's status from the answer.
+int change_job(const ClientArgs& client, std::uint64_t id, std::string_view change, std::string body = {}) {
   Session session;
   if (!session.init(client)) return kExitFailed;
-  auto resp = session.call(http::Verb::post, fmt::format("/v1/jobs/{}/cancel", id));
+  const std::string target = fmt::format("/v1/jobs/{}/{}", id, change);
+  auto resp = session.call(http::Verb::post, target, std::move(body));
   if (!resp) return kExitFailed;
-  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "cancel");
+  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
   if (!st) return kExitFailed;
   print_status_line(*st);
   return kExitOk;
 }
+
+}  // namespace
+
+int run_cancel(const ClientArgs& client, std::uint64_t id) { return change_job(client, id, "cancel"); }
 
 int run_priority(const ClientArgs& client, std::uint64_t id, std::int32_t priority) {
-  Session session;
-  if (!session.init(client)) return kExitFailed;
-  const std::string target = fmt::format("/v1/jobs/{}/priority", id);
-  auto resp = session.call(http::Verb::post, target, protocol::encode(protocol::JobPriority{priority}));
-  if (!resp) return kExitFailed;
-  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
-  if (!st) return kExitFailed;
-  print_status_line(*st);
-  return kExitOk;
+  return change_job(client, id, "priority", protocol::encode(protocol::JobPriority{priority}));
 }
 
-int run_requeue(const ClientArgs& client, std::uint64_t id) {
-  Session session;
-  if (!session.init(client)) return kExitFailed;
-  const std::string target = fmt::format("/v1/jobs/{}/requeue", id);
-  auto resp = session.call(http::Verb::post, target);
-  if (!resp) return kExitFailed;
-  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
-  if (!st) return kExitFailed;
-  print_status_line(*st);
-  return kExitOk;
-}
+int run_requeue(const ClientArgs& client, std::uint64_t id) { return change_job(client, id, "requeue"); }
 
 // "1.2M" style counts for the rays column.
 std::string short_count(std::uint64_t n) {
@@ -343,15 +334,7 @@ int run_workers(const ClientArgs& client, bool json) {
 }
 
 int run_pause(const ClientArgs& client, std::uint64_t id, bool pause) {
-  Session session;
-  if (!session.init(client)) return kExitFailed;
-  const std::string target = fmt::format("/v1/jobs/{}/{}", id, pause ? "pause" : "resume");
-  auto resp = session.call(http::Verb::post, target);
-  if (!resp) return kExitFailed;
-  auto st = decode_or_report(protocol::decode_job_status(resp->body()), "POST " + target);
-  if (!st) return kExitFailed;
-  print_status_line(*st);
-  return kExitOk;
+  return change_job(client, id, pause ? "pause" : "resume");
 }
 
 int run_delete(const ClientArgs& client, std::uint64_t id, bool delete_image) {

@@ -29,18 +29,8 @@ namespace fs = std::filesystem;
 // to the WAL fsync and the checkpoint copy, not to per-page overhead), and small rows stay compact.
 constexpr int kPageSizeBytes = 4096;
 
-// Every table is STRICT so a wrong type is an error instead of a silent conversion. The CHECKs
-// keep the values in the ranges of the C++ types that read them back.
-constexpr const char* kCreateSchemaSql = R"sql(
-CREATE TABLE meta(
-  key TEXT PRIMARY KEY NOT NULL,
-  value ANY
-) STRICT;
-CREATE TABLE scenes(
-  digest TEXT PRIMARY KEY NOT NULL,
-  json TEXT NOT NULL
-) STRICT;
-CREATE TABLE jobs(
+// The jobs table's columns, shared by the schema and the upgrade that rebuilds the table.
+constexpr std::string_view kJobsColumnsSql = R"sql(
   id INTEGER PRIMARY KEY,
   digest TEXT NOT NULL REFERENCES scenes(digest),
   settings_json TEXT NOT NULL,
@@ -51,7 +41,20 @@ CREATE TABLE jobs(
   created_unix INTEGER NOT NULL,
   finished_unix INTEGER NOT NULL,
   client_key TEXT UNIQUE
+)sql";
+
+// Every table is STRICT so a wrong type is an error instead of a silent conversion. The CHECKs
+// keep the values in the ranges of the C++ types that read them back.
+constexpr std::string_view kCreateSchemaSql = R"sql(
+CREATE TABLE meta(
+  key TEXT PRIMARY KEY NOT NULL,
+  value ANY
 ) STRICT;
+CREATE TABLE scenes(
+  digest TEXT PRIMARY KEY NOT NULL,
+  json TEXT NOT NULL
+) STRICT;
+CREATE TABLE jobs({}) STRICT;
 CREATE TABLE tiles(
   job INTEGER NOT NULL REFERENCES jobs(id),
   tile INTEGER NOT NULL CHECK (tile BETWEEN 0 AND 4294967295),
@@ -68,19 +71,8 @@ INSERT INTO meta(key, value) VALUES ('last_job_id', 0);
 // rebuilt, the way SQLite's documentation describes for any change ALTER TABLE cannot make), and
 // meta records the highest job id ever given, so ids of deleted jobs are never handed out again.
 // Runs in one transaction with foreign keys off (dropping the old table must not touch tiles).
-constexpr const char* kMigrateV1Sql = R"sql(
-CREATE TABLE jobs_v2(
-  id INTEGER PRIMARY KEY,
-  digest TEXT NOT NULL REFERENCES scenes(digest),
-  settings_json TEXT NOT NULL,
-  output TEXT NOT NULL,
-  priority INTEGER NOT NULL CHECK (priority BETWEEN -2147483648 AND 2147483647),
-  tile_size INTEGER NOT NULL CHECK (tile_size BETWEEN 1 AND 4294967295),
-  state TEXT NOT NULL CHECK (state IN ('queued', 'rendering', 'done', 'cancelled', 'paused')),
-  created_unix INTEGER NOT NULL,
-  finished_unix INTEGER NOT NULL,
-  client_key TEXT UNIQUE
-) STRICT;
+constexpr std::string_view kMigrateV1Sql = R"sql(
+CREATE TABLE jobs_v2({}) STRICT;
 INSERT INTO jobs_v2 SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix,
   finished_unix, client_key FROM jobs;
 DROP TABLE jobs;
@@ -208,7 +200,8 @@ Status Store::Impl::check_schema() {
 Status Store::Impl::create_schema() {
   if (auto st = exec(kSqlBegin); !st) return st;
   char* message = nullptr;
-  const int rc = sqlite3_exec(db, kCreateSchemaSql, nullptr, nullptr, &message);
+  const std::string sql = fmt::format(fmt::runtime(kCreateSchemaSql), kJobsColumnsSql);
+  const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
   if (rc != SQLITE_OK) {
     Error e{fmt::format("{}: creating the schema: {} (code {})", path, message != nullptr ? message : "?", rc)};
     sqlite3_free(message);
@@ -229,7 +222,8 @@ Status Store::Impl::migrate_v1() {
   Status result = [&]() -> Status {
     if (auto st = exec(kSqlBegin); !st) return st;
     char* message = nullptr;
-    const int rc = sqlite3_exec(db, kMigrateV1Sql, nullptr, nullptr, &message);
+    const std::string sql = fmt::format(fmt::runtime(kMigrateV1Sql), kJobsColumnsSql);
+    const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
     if (rc != SQLITE_OK) {
       Error e{fmt::format("{}: upgrading the schema from version 1 to 2: {} (code {}); the database is unchanged", path,
                           message != nullptr ? message : "?", rc)};
