@@ -23,7 +23,9 @@ Context::~Context() {
   if (writer) writer->stop();
   pool.join();
   server.reset();
+  // Timers of the loop go before it: an Event destroyed after its io_context touches freed memory.
   stop_begun.reset();
+  linger_wake.reset();
   ioc.reset();
 }
 
