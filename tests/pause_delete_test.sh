@@ -24,7 +24,8 @@ client pause "$a" | grep -q "paused" && ok "pause $a prints the job as paused" |
 client list --state paused | grep -q "^ *$a " && ok "list --state paused lists job $a" || fail "list --state paused"
 
 "$DTRACED" --role worker --collector "$URL" --token-file "$work/token" --threads 1 --name w1 2>"$work/worker.log" &
-pids+=($!)
+WORKER_PID=$!
+pids+=("$WORKER_PID")
 b=$(client submit "$SCENE" --width 16 --height 16 -s 1 --tile-size 8 -o b.png) || die "submit failed"
 wait_done "$b" || die "job $b did not finish"
 ok "job $b finished while $a was paused"
@@ -44,6 +45,9 @@ cmp -s "$work/state/output/a.png" "$work/local.png" &&
   ok "the paused and resumed job's image is bit-identical to a local render" || fail "images differ"
 
 # ---- delete -------------------------------------------------------------------------------------
+# No worker from here on, so a job submitted now stays queued until this script changes it.
+kill -TERM "$WORKER_PID"
+wait "$WORKER_PID" 2>/dev/null
 c=$(client submit "$SCENE" "${JOB[@]}" -o c.png --priority -5) || die "submit failed"
 client pause "$c" >/dev/null || die "pause $c failed"
 client delete "$c" 2>"$work/err.txt" && fail "delete of a paused job succeeded" ||
