@@ -86,6 +86,11 @@ check "compare different sizes" 1 "$DTRACED" compare "$work/a.pfm" "$work/a16.pn
 check "unsupported output extension" 2 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.tiff" -q
 check "generate" 0 "$DTRACED" generate --count 500 --seed 3 -o "$work/gen.json"
 check "generated scene validates" 0 "$DTRACED" validate "$work/gen.json"
+check "generated scene writes plain decimals, no exponents" 1 grep -Eq '[0-9][eE][-+]?[0-9]' "$work/gen.json"
+"$DTRACED" generate --count 50 --seed 4 -o "$work/gen2.json" 2>"$work/gen2.err"
+"$DTRACED" validate "$work/gen2.json" >"$work/gen2.out" 2>&1
+gen_digest=$(sed -n 's/.*digest \([0-9a-f]\{64\}\).*/\1/p' "$work/gen2.err")
+check "a generated scene reads back to the digest generate printed" 0 grep -q "digest ${gen_digest:-missing}" "$work/gen2.out"
 
 # Mesh scenes: generated with their OBJ files, validated, rendered; the scene names its files
 # relative to itself, so it works from any directory.

@@ -19,6 +19,8 @@
 #include "cli/partial_render.h"
 #include "image/image_io.h"
 #include "image/metrics.h"
+#include "jsonio/parse.h"
+#include "jsonio/write.h"
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "scene/digest.h"
@@ -370,12 +372,19 @@ int generate_mesh(const GenerateArgs& args) {
   return kExitOk;
 }
 
+// The canonical text with plain decimals (2.2, not Boost's 2.2E0) for people to read: the same
+// doubles (both forms are shortest round-trip), so the same scene and digest.
+std::string readable_json(const std::string& canonical) {
+  jsonio::Document doc = jsonio::parse_strict(canonical, scene::kMaxJsonDepth, 1);
+  return doc.parsed ? jsonio::to_text(doc.value) + "\n" : canonical;
+}
+
 }  // namespace
 
 int run_generate(const GenerateArgs& args) {
   if (args.mesh_triangles) return generate_mesh(args);
   const scene::SceneDesc desc = scene::generate_sphere_field(args.count, args.seed);
-  if (!reported(util::write_file_atomic(args.output, scene::canonical_json(desc)))) return kExitFailed;
+  if (!reported(util::write_file_atomic(args.output, readable_json(scene::canonical_json(desc))))) return kExitFailed;
   fmt::print(stderr, "wrote {} ({} objects, digest {})\n", args.output, desc.objects.size(), scene::scene_digest(desc));
   return kExitOk;
 }
