@@ -61,12 +61,17 @@ Requeued requeue_in_store(store::Store& s, JobRecord rec) {
 
 Load load_now(const Context& c) { return Load{c.unfinished_jobs(), c.unfinished_pixels(), c.accepting_writes()}; }
 
-// Records a pause or resume (a compare-and-set in the store, through the writer) and answers with
-// the store's state when it was not changed; nullopt when it was.
+// What pause and resume share: the check (a repeat is answered with the job's status), the
+// compare-and-set in the store through the writer, and the store's state when it was not changed.
+// nullopt when the change is recorded and the job still known: the caller applies it in memory.
 async::Awaitable<std::optional<http::Response>> record_pause(Context& c, JobId id, StateWrite write) {
+  const bool pause = write == StateWrite::kPaused;
+  auto checked = pause ? check_pause(id, c.find_job(id), c.accepting_writes())
+                       : check_resume(id, c.find_job(id), c.accepting_writes());
+  if (!checked) co_return respond(checked.error());
+  if (checked.value() == ChangeAction::kAlready) co_return get_job(c, id);
   auto record = [id, write](store::Store& s) { return record_state(s, id, write, /*when=*/0); };
   auto reply = co_await on_writer(*c.writer, std::move(record));
-  const bool pause = write == StateWrite::kPaused;
   if (!reply.ok() || !reply.value->ok()) {
     ++c.counters.store_busy;
     if (reply.value && !reply.value->ok()) {
@@ -76,7 +81,10 @@ async::Awaitable<std::optional<http::Response>> record_pause(Context& c, JobId i
     co_return respond(busy(fmt::format("the {} could not be stored; retry later", pause ? "pause" : "resumption")));
   }
   const store::StateChange& change = reply.value->value();
-  if (change.changed || change.state == target_state(write)) co_return std::nullopt;
+  if (change.changed || change.state == target_state(write)) {
+    if (c.find_job(id) == nullptr) co_return respond(job_not_found(id));
+    co_return std::nullopt;
+  }
   // Finished while the store worked (the last tiles out were stored): the store's state wins.
   co_return respond(wrong_state(
       id, change.state, pause ? "only a queued or rendering job can be paused" : "only a paused job can be resumed"));
@@ -151,12 +159,8 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
 }
 
 async::Awaitable<http::Response> pause_job(Context& c, JobId id) {
-  auto checked = check_pause(id, c.find_job(id), c.accepting_writes());
-  if (!checked) co_return respond(checked.error());
-  if (checked.value() == ChangeAction::kAlready) co_return get_job(c, id);
-  if (auto refused = co_await record_pause(c, id, StateWrite::kPaused)) co_return std::move(*refused);
+  if (auto answered = co_await record_pause(c, id, StateWrite::kPaused)) co_return std::move(*answered);
   JobRecord* job = c.find_job(id);
-  if (job == nullptr) co_return respond(job_not_found(id));
   // Tiles out now are still accepted, and may finish the job: then it is done, not paused.
   if (job->unfinished() && !job->finishing && job->state != protocol::JobState::kPaused) {
     job->state = protocol::JobState::kPaused;
@@ -169,12 +173,8 @@ async::Awaitable<http::Response> pause_job(Context& c, JobId id) {
 }
 
 async::Awaitable<http::Response> resume_job(Context& c, JobId id) {
-  auto checked = check_resume(id, c.find_job(id), c.accepting_writes());
-  if (!checked) co_return respond(checked.error());
-  if (checked.value() == ChangeAction::kAlready) co_return get_job(c, id);
-  if (auto refused = co_await record_pause(c, id, StateWrite::kResumed)) co_return std::move(*refused);
+  if (auto answered = co_await record_pause(c, id, StateWrite::kResumed)) co_return std::move(*answered);
   JobRecord* job = c.find_job(id);
-  if (job == nullptr) co_return respond(job_not_found(id));
   if (job->state == protocol::JobState::kPaused && !job->finishing) {
     job->state = job->tiles_done > 0 ? protocol::JobState::kRendering : protocol::JobState::kQueued;
     job->rendering_persisted = false;  // the store says "queued" now
