@@ -7,10 +7,12 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
 
+#include "image/display.h"
 #include "image/image.h"
 #include "math/vec.h"
 
@@ -168,6 +170,17 @@ struct Camera {
   bool operator==(const Camera&) const = default;
 };
 
+// An inclusive range of frame numbers, every `step`-th: first, first + step, ... <= last.
+struct FrameRange {
+  std::uint32_t first = 0;
+  std::uint32_t last = 0;  // >= first
+  std::uint32_t step = 1;  // >= 1
+  std::uint32_t count() const { return (last - first) / step + 1; }
+  // The i-th frame number of the range, i < count().
+  std::uint32_t at(std::uint32_t i) const { return first + i * step; }
+  bool operator==(const FrameRange&) const = default;
+};
+
 // Render settings. The scene file gives defaults; every field can be overridden by a flag.
 struct RenderSettings {
   std::uint32_t width = 640;    // [1, kMaxImageSide]
@@ -182,6 +195,14 @@ struct RenderSettings {
   // standard error is below error_target; otherwise it takes all `samples`. [0, kMaxErrorTarget]
   double error_target = 0.0;
   std::uint32_t min_samples = 16;  // [1, kMaxSamples]; the first checkpoint
+  // Animation: frame n shows the scene at time n / fps seconds (and `frame` also seeds the noise,
+  // math/rng.h). `frames` is the range a sequence renders when no flag names one; unset, a render
+  // is the single frame `frame`. (0, kMaxFps]; frames.count() <= kMaxFrames.
+  double fps = 24;
+  std::optional<FrameRange> frames{};
+  // How 8- and 16-bit outputs show the linear pixels (image/display.h); the pixels themselves, and
+  // PFM and EXR files, are the same whatever this says.
+  image::DisplayTransform display{};
   bool operator==(const RenderSettings&) const = default;
 };
 
@@ -192,13 +213,21 @@ inline constexpr std::uint32_t kMaxSamples = 65536;
 inline constexpr std::uint32_t kMaxDepth = 64;
 inline constexpr double kMaxErrorTarget = 1.0;
 inline constexpr std::uint64_t kMaxSeed = (1ull << 53) - 1;  // seeds survive a trip through a JS double
+inline constexpr double kMaxFps = 1000;
+inline constexpr std::uint32_t kMaxFrames = 100'000;  // frames in one range
+
+// Keyframed values of an animated scene (scene/animation.h): null for a static scene.
+struct Animation;
 
 struct SceneDesc {
   std::vector<Object> objects;
   std::vector<Light> lights;
   Camera camera;
   RenderSettings render;
-  bool operator==(const SceneDesc&) const = default;
+  // Null for a static scene. Shared and immutable, like a mesh: a SceneDesc is copied per frame.
+  std::shared_ptr<const Animation> animation;
+  // Compares animations by value (scene/animation.cpp).
+  bool operator==(const SceneDesc&) const;
 };
 
 }  // namespace dtraced::scene

@@ -18,6 +18,7 @@
 #include <optional>
 
 #include "scene/description.h"
+#include "scene/tiling.h"
 
 namespace dtraced::scene {
 
@@ -35,9 +36,18 @@ struct Overrides {
   std::optional<Color> background;             // each channel finite, >= 0, within the float range
   std::optional<double> error_target;          // [0, kMaxErrorTarget]; 0 turns adaptive sampling off
   std::optional<std::uint32_t> min_samples;    // [1, kMaxSamples]
+  // Animation: the range of a sequence (count() <= kMaxFrames) and the frame rate, (0, kMaxFps].
+  std::optional<FrameRange> frames;
+  std::optional<double> fps;
+  // Display transform of 8- and 16-bit outputs (image/display.h).
+  std::optional<double> exposure;  // [-kMaxExposureStops, kMaxExposureStops]
+  std::optional<image::ToneCurve> tone;
   // How it is cut and written; the pixels are the same bits whatever these say.
   std::optional<std::uint32_t> tile_size;      // [kMinTileSize, kMaxTileSize]
   std::optional<std::uint32_t> png_bit_depth;  // is_png_bit_depth
+  // Only these pixels are rendered and written (an image of crop.width x crop.height); each has
+  // the same bits as in the full render. Inside the image, not empty.
+  std::optional<TileRect> crop;
 
   bool operator==(const Overrides&) const = default;
 };
