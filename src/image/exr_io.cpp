@@ -10,10 +10,12 @@
 #include <ImfIO.h>
 #include <ImfInputFile.h>
 #include <ImfOutputFile.h>
+#include <half.h>
 
 #include <cstring>
 #include <exception>
 #include <string>
+#include <vector>
 
 #include <fmt/format.h>
 
@@ -135,14 +137,22 @@ std::optional<std::string> encode_exr(const ImageRGBf& img, const WriteOptions& 
     header.compression() = Imf::ZIP_COMPRESSION;
     const Imf::PixelType type = opts.exr_float ? Imf::FLOAT : Imf::HALF;
     Imf::FrameBuffer frame;
-    // OpenEXR converts the float slices to the file's half channels (rounding to nearest) itself.
-    // It only reads from the slices when writing, hence the const_casts.
+    // OpenEXR converts types when reading but not when writing: a half file needs half slices,
+    // converted here (Imath rounds to nearest). OpenEXR only reads from the slices when writing,
+    // hence the const_casts.
+    std::vector<Imath::half> halves;
     char* base = reinterpret_cast<char*>(const_cast<float*>(img.rgb.data()));
-    const std::size_t row = std::size_t{img.width} * 3 * sizeof(float);
+    std::size_t sample = sizeof(float);
+    if (!opts.exr_float) {
+      halves.assign(img.rgb.begin(), img.rgb.end());
+      base = reinterpret_cast<char*>(halves.data());
+      sample = sizeof(Imath::half);
+    }
+    const std::size_t row = std::size_t{img.width} * 3 * sample;
     const char* names[] = {"R", "G", "B"};
     for (int c = 0; c < 3; ++c) {
       header.channels().insert(names[c], Imf::Channel(type));
-      frame.insert(names[c], Imf::Slice(Imf::FLOAT, base + c * sizeof(float), 3 * sizeof(float), row));
+      frame.insert(names[c], Imf::Slice(type, base + c * sample, 3 * sample, row));
     }
     if (!opts.sample_counts.empty()) {
       header.channels().insert("spp", Imf::Channel(Imf::FLOAT));
