@@ -1,5 +1,6 @@
 // The command line's pure pieces, without running a verb or a daemon: did-you-mean for unknown
-// verbs and flags, on the real command line main builds; --listen addresses and host names.
+// verbs and flags, on the real command line main builds; --listen addresses and host names; the
+// override flags that are parsed by hand (--frames, --crop).
 #include <chrono>
 #include <string>
 #include <utility>
@@ -11,6 +12,7 @@
 #include "cli/commands.h"
 #include "cli/config_errors.h"
 #include "cli/listen_address.h"
+#include "cli/overrides_flags.h"
 #include "cli/roles.h"
 #include "cli/suggest.h"
 #include "collector/config.h"
@@ -150,4 +152,43 @@ TEST_CASE("Configuration problems of either role are named by a flag dtraced has
     // Nothing came from a config file here: the problem is named by the flag.
     CHECK(cli::locate_role_error(app, e).path == flag);
   }
+}
+
+TEST_CASE("--frames reads A-B, A-B:STEP and a single frame, and says what is wrong otherwise") {
+  using dtraced::scene::FrameRange;
+  CHECK(*cli::parse_frame_range("1-24") == FrameRange{1, 24, 1});
+  CHECK(*cli::parse_frame_range("0-47:2") == FrameRange{0, 47, 2});
+  CHECK(cli::parse_frame_range("0-47:2")->count() == 24);
+  CHECK(*cli::parse_frame_range("7") == FrameRange{7, 7, 1});
+  CHECK(*cli::parse_frame_range("0-4294967295:4294967295") == FrameRange{0, 4294967295u, 4294967295u});
+  const auto why = [](std::string_view text) { return cli::parse_frame_range(text).error().message; };
+  CHECK_THAT(why("5-3"), Catch::Contains("the last frame comes before the first"));
+  CHECK_THAT(why("1-24:0"), Catch::Contains("the step must be an integer >= 1"));
+  CHECK_THAT(why("a-b"), Catch::Contains("'a-b' is not a frame range"));
+  CHECK_THAT(why("-3"), Catch::Contains("frame numbers are integers"));
+  CHECK_THAT(why("1-"), Catch::Contains("frame numbers are integers"));
+  CHECK_THAT(why(""), Catch::Contains("frame numbers are integers"));
+  CHECK_THAT(why("0-4294967296"), Catch::Contains("frame numbers are integers"));
+  CHECK_THAT(why("0-100000"), Catch::Contains("more than 100000 frames"));
+}
+
+TEST_CASE("--crop reads X0,Y0,X1,Y1 as a half-open rectangle that must lie in the image") {
+  using dtraced::scene::TileRect;
+  CHECK(*cli::parse_crop("3,2,13,9") == TileRect{3, 2, 10, 7});
+  CHECK_THAT(cli::parse_crop("3,2,3,9").error().message, Catch::Contains("empty crop"));
+  CHECK_THAT(cli::parse_crop("3,2,13").error().message, Catch::Contains("four pixel coordinates"));
+  CHECK_THAT(cli::parse_crop("3,2,13,9,1").error().message, Catch::Contains("four pixel coordinates"));
+  CHECK_THAT(cli::parse_crop("-1,2,13,9").error().message, Catch::Contains("four pixel coordinates"));
+  CHECK(cli::check_crop({3, 2, 10, 7}, 13, 9).ok());
+  CHECK_THAT(cli::check_crop({3, 2, 10, 7}, 12, 9).error().message,
+             Catch::Contains("--crop 3,2,13,9 reaches outside the 12x9 image"));
+}
+
+TEST_CASE("The render verb takes the sequence, display and crop flags") {
+  CHECK(parse_failure({"render", "s.json", "-o", "o-%04d.png", "--frames", "1-24:2", "--fps", "12", "--exposure",
+                       "-0.5", "--tone", "filmic", "--crop", "0,0,8,8", "--gif-dither"}) == "");
+  CHECK_THAT(parse_failure({"render", "s.json", "-o", "o.png", "--tone", "aces"}), Catch::Contains("--tone"));
+  CHECK_THAT(parse_failure({"render", "s.json", "-o", "o.png", "--frames", "9-1"}),
+             Catch::Contains("the last frame comes before the first"));
+  CHECK_THAT(parse_failure({"render", "s.json", "-o", "o.png", "--exposure", "40"}), Catch::Contains("--exposure"));
 }

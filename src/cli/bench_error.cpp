@@ -305,8 +305,8 @@ CLI::App* add_bench_error_verb(CLI::App& app, BenchErrorArgs& args, std::optiona
       ->check(CLI::Range(1u, scene::kMaxSamples));
   e->add_option("-t,--threads", args.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
   OverrideFlagOptions overrides;
-  overrides.fields =
-      kAllOverrides & ~(kOverrideSamples | kOverrideErrorTarget | kOverrideMinSamples | kOverridePngBitDepth);
+  overrides.fields = kAllOverrides & ~(kOverrideSamples | kOverrideErrorTarget | kOverrideMinSamples |
+                                       kOverridePngBitDepth | kOverrideFrames | kOverrideDisplay | kOverrideCrop);
   add_override_flags(*e, args.overrides, overrides);
   e->add_option("--isa", isa_flag, kIsaHelp);
   return e;

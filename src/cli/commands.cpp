@@ -13,14 +13,18 @@ void add_render(CLI::App& app, LocalCommands& c, std::optional<std::string>& isa
   RenderArgs& render = c.render;
   CLI::App* r = app.add_subcommand("render", "Render a scene on this machine to an image file");
   r->add_option("scene", render.scene, "Scene file (JSON)")->required();
-  r->add_option("-o,--output", render.output, "Output image: " + image::extension_list() + " (by extension)")
+  r->add_option("-o,--output", render.output,
+                "Output image: " + image::extension_list() +
+                    " (by extension); a sequence names its frames with %04d (snow-%04d.png), or is one .gif")
       ->required();
   add_override_flags(*r, render.overrides);
   r->add_option("--spp-map", render.spp_map,
                 "Also write the samples each pixel took: .pfm raw counts, .png/.ppm grey (white = --samples)");
   r->add_option("-t,--threads", render.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
   r->add_flag("-q,--quiet", render.quiet, "No progress bar and no summary line");
-  r->add_flag("--resume", render.resume, "Continue the interrupted render kept in OUTPUT.partial");
+  r->add_flag("--resume", render.resume,
+              "Continue the interrupted render kept in OUTPUT.partial (a sequence: skip the frames already written)");
+  r->add_flag("--gif-dither", render.gif_dither, "A .gif output: Floyd-Steinberg dithering of each frame's palette");
   r->add_option("--isa", isa_flag, kIsaHelp);
   c.render_cmd = r;
 }

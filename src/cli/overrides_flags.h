@@ -1,7 +1,8 @@
 // dtraced::cli override flags: the one place the command line spells scene::Overrides.
 //
 // Owns the flags of every render-setting override (--width, --height, -s/--samples, --max-depth,
-// --seed, --frame, --background R,G,B, --error-target, --min-samples, --tile-size, --bit-depth),
+// --seed, --frame, --background R,G,B, --error-target, --min-samples, --tile-size, --bit-depth,
+// --frames A-B[:STEP], --fps, --exposure, --tone, --crop X0,Y0,X1,Y1),
 // their help texts and their checks, which are the limits of scene/ (description.h, tiling.h,
 // overrides.h): the same a scene file, a request body or a config file is checked against. The
 // render verb, submit, the one-shot collector and bench error all add them through here, so an
@@ -11,11 +12,13 @@
 #pragma once
 
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include <CLI/CLI.hpp>
 
 #include "scene/overrides.h"
+#include "util/result.h"
 
 namespace dtraced::cli {
 
@@ -32,7 +35,10 @@ enum OverrideField : unsigned {
   kOverrideMinSamples = 1u << 8,
   kOverrideTileSize = 1u << 9,
   kOverridePngBitDepth = 1u << 10,
-  kAllOverrides = (1u << 11) - 1,
+  kOverrideFrames = 1u << 11,   // --frames and --fps
+  kOverrideDisplay = 1u << 12,  // --exposure and --tone
+  kOverrideCrop = 1u << 13,
+  kAllOverrides = (1u << 14) - 1,
 };
 
 struct OverrideFlagOptions {
@@ -40,6 +46,16 @@ struct OverrideFlagOptions {
   std::string group;        // CLI11 help group ("" = the app's default)
   std::string help_prefix;  // put before every help text ("One-shot: ")
 };
+
+// "A-B" or "A-B:STEP" (or a single "A"), A <= B, STEP >= 1, at most scene::kMaxFrames frames;
+// the error says what is wrong with `text`.
+util::Result<scene::FrameRange> parse_frame_range(std::string_view text);
+
+// "X0,Y0,X1,Y1": the pixels x in [X0, X1), y in [Y0, Y1), not empty. Whether it lies inside the
+// image is checked once the image size is known (check_crop).
+util::Result<scene::TileRect> parse_crop(std::string_view text);
+// Whether `crop` lies inside a width x height image; the error names --crop.
+util::Status check_crop(const scene::TileRect& crop, std::uint32_t width, std::uint32_t height);
 
 // Adds the selected flags to `app`, each filling its field of `overrides` when given.
 void add_override_flags(CLI::App& app, scene::Overrides& overrides, const OverrideFlagOptions& options = {});

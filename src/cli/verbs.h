@@ -29,6 +29,7 @@ struct RenderArgs {
   // are of another scene or other settings). Without it, an OUTPUT.partial that is there is an
   // error, never replaced.
   bool resume = false;
+  bool gif_dither = false;               // Floyd-Steinberg dithering of a .gif output's palette
   accel::Isa isa = accel::Isa::kScalar;  // resolved by main (cli/isa_option.h)
 };
 int run_render(const RenderArgs& args);

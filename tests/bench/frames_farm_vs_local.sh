@@ -1,0 +1,125 @@
+#!/usr/bin/env bash
+# A sequence on the farm against the same sequence rendered locally: is per-frame overhead small
+# enough that a farm of small frames is not slower than one machine? A benchmark, not a test: it
+# prints figures (target farm/local <= 1.1) and fails only when it cannot run or when a farm frame
+# is not bitwise identical to the local one.
+#
+# The job is scenes/snowfall.json at WIDTH x HEIGHT (320x240) over FRAMES (0-47): locally one
+# `dtraced render --frames` with -t 2 (every core of the 2-core machine this was written for);
+# on the farm a collector and WORKERS (2) workers of one thread each, already running and idle.
+# Runs alternate local, farm, local, farm, ... so a change of background load touches both; the
+# table gives medians.
+#
+# What is timed:
+#   local  the whole `dtraced render --frames` process, PFM frames written.
+#   farm   from just before `dtraced submit` until `dtraced status` says done (every frame written
+#          by the collector), polled every 50 ms.
+#
+# Usage, after the README's build:
+#   tests/bench/frames_farm_vs_local.sh
+# Environment: DTRACED (default build/src/cli/dtraced), SCENE (scenes/snowfall.json), WIDTH (320),
+# HEIGHT (240), SAMPLES (4), FRAMES (0-47), WORKERS (2), RUNS (3), KEEP_LOGS=1 keeps the logs.
+# Needs bash 5 (EPOCHREALTIME), curl, cmp.
+set -uo pipefail
+export LC_ALL=C
+
+root=$(cd "$(dirname "$0")/../.." && pwd)
+DTRACED=${DTRACED:-$root/build/src/cli/dtraced}
+SCENE=${SCENE:-$root/scenes/snowfall.json}
+WIDTH=${WIDTH:-320}
+HEIGHT=${HEIGHT:-240}
+SAMPLES=${SAMPLES:-4}
+FRAMES=${FRAMES:-0-47}
+WORKERS=${WORKERS:-2}
+RUNS=${RUNS:-3}
+DEADLINE=600 # seconds a farm run may take
+
+[ -x "$DTRACED" ] || { echo "not found: $DTRACED (build first, or set DTRACED)" >&2; exit 1; }
+[ -f "$SCENE" ] || { echo "not found: $SCENE (set SCENE)" >&2; exit 1; }
+[ -n "${EPOCHREALTIME:-}" ] || { echo "needs bash 5 (EPOCHREALTIME)" >&2; exit 1; }
+
+work=$(mktemp -d)
+pids=()
+stop_pid() {
+  kill -TERM "$1" 2>/dev/null || return 0
+  for _ in $(seq 100); do kill -0 "$1" 2>/dev/null || break; sleep 0.1; done
+  kill -9 "$1" 2>/dev/null
+  wait "$1" 2>/dev/null
+}
+cleanup() {
+  for p in "${pids[@]}"; do stop_pid "$p"; done
+  if [ "${KEEP_LOGS:-0}" = 1 ]; then echo "logs kept in $work"; else rm -rf "$work"; fi
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+fail() {
+  echo "frames_farm_vs_local: $*" >&2
+  for f in "$work"/*.log; do [ -f "$f" ] && { echo "--- $f" >&2; tail -n 20 "$f" >&2; }; done
+  exit 1
+}
+
+printf 'frames-%s-token\n' "$$" >"$work/token"
+"$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$work/state" --token-file "$work/token" \
+  2>"$work/collector.log" &
+pids+=($!)
+port=
+for _ in $(seq 300); do
+  port=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/collector.log" | tail -n1)
+  [ -n "$port" ] && break
+  sleep 0.1
+done
+[ -n "$port" ] || fail "the collector did not start"
+url="http://127.0.0.1:$port"
+for w in $(seq "$WORKERS"); do
+  "$DTRACED" --role worker --collector "$url" --token-file "$work/token" --threads 1 --name "bench-$w" \
+    2>"$work/worker-$w.log" &
+  pids+=($!)
+done
+sleep 1 # the workers find nothing and go idle, as in a waiting farm
+
+exec {never_fd}<> <(:)
+pause() { read -r -t "$1" -u "$never_fd" _; }
+elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.3f", b - a }'; }
+median() { printf '%s\n' "$@" | sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2 }'; }
+
+first=${FRAMES%%-*}
+rest=${FRAMES#*-}
+last=${rest%%:*}
+job=(--width "$WIDTH" --height "$HEIGHT" -s "$SAMPLES" --frames "$FRAMES")
+locals=() farms=()
+identical=yes
+echo "sequence: $(basename "$SCENE") ${WIDTH}x${HEIGHT}, $SAMPLES spp, frames $FRAMES; local -t 2 vs $WORKERS workers x 1 thread"
+for run in $(seq "$RUNS"); do
+  mkdir -p "$work/local-$run"
+  t0=$EPOCHREALTIME
+  "$DTRACED" render "$SCENE" "${job[@]}" -t 2 -q -o "$work/local-$run/f-%04d.pfm" || fail "the local render failed"
+  t1=$EPOCHREALTIME
+  locals+=("$(elapsed "$t0" "$t1")")
+
+  t0=$EPOCHREALTIME
+  id=$("$DTRACED" submit "$SCENE" "${job[@]}" -o "run$run-%04d.pfm" --collector "$url" --token-file "$work/token") ||
+    fail "submit failed"
+  until "$DTRACED" status "$id" --collector "$url" --token-file "$work/token" --json 2>/dev/null |
+    grep -q '"state":"done"'; do
+    [ "$(elapsed "$t0" "$EPOCHREALTIME" | cut -d. -f1)" -lt "$DEADLINE" ] || fail "job $id not done in ${DEADLINE}s"
+    pause 0.05
+  done
+  t1=$EPOCHREALTIME
+  farms+=("$(elapsed "$t0" "$t1")")
+  same=yes
+  for f in $(seq "$first" "$last"); do
+    name=$(printf 'f-%04d.pfm' "$f")
+    cmp -s "$work/local-$run/$name" "$work/state/output/$(printf "run$run-%04d.pfm" "$f")" || same=no
+  done
+  [ "$same" = yes ] || identical=no
+  echo "run $run: local ${locals[-1]} s, farm ${farms[-1]} s, identical: $same"
+done
+lm=$(median "${locals[@]}")
+fm=$(median "${farms[@]}")
+echo
+echo "| frames | size | spp | local s | farm s | farm/local | identical |"
+echo "|--|--|--:|--:|--:|--:|:-:|"
+echo "| $FRAMES | ${WIDTH}x${HEIGHT} | $SAMPLES | $lm | $fm | $(awk -v a="$lm" -v b="$fm" 'BEGIN { printf "%.3f", b / a }') | $identical |"
+echo
+echo "target: farm/local <= 1.1 (medians of $RUNS runs)"
+[ "$identical" = yes ]

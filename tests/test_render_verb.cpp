@@ -1,0 +1,87 @@
+// The render verb in-process: --crop renders the same bits as the full image's pixels there, and
+// the display transform changes 8-bit outputs only (PFM stays linear).
+#include <filesystem>
+#include <string>
+
+#include <catch2/catch.hpp>
+
+#include "cli/verbs.h"
+#include "image/image_io.h"
+#include "temp_dir.h"
+#include "util/file.h"
+
+namespace {
+
+namespace cli = dtraced::cli;
+namespace image = dtraced::image;
+
+cli::RenderArgs small_render(const std::string& output) {
+  cli::RenderArgs a;
+  a.scene = std::string(DTRACED_SOURCE_DIR) + "/scenes/soft_shadows.json";
+  a.output = output;
+  a.overrides.width = 40;
+  a.overrides.height = 30;
+  a.overrides.samples = 2;
+  a.overrides.tile_size = 8;
+  a.quiet = true;
+  return a;
+}
+
+std::string bytes_of(const std::string& path) {
+  auto r = dtraced::util::read_file_limited(path, 1 << 24);
+  REQUIRE(r.ok());
+  return *r;
+}
+
+}  // namespace
+
+TEST_CASE("A cropped render has the full render's bits in the crop") {
+  const dtraced::testing::TempDir dir;
+  const std::string full = dir.str() + "/full.pfm", crop = dir.str() + "/crop.pfm";
+  REQUIRE(cli::run_render(small_render(full)) == 0);
+  cli::RenderArgs c = small_render(crop);
+  c.overrides.crop = dtraced::scene::TileRect{5, 3, 12, 17};  // crosses tile borders on every side
+  REQUIRE(cli::run_render(c) == 0);
+  const auto a = image::read_image(full);
+  const auto b = image::read_image(crop);
+  REQUIRE(a.ok());
+  REQUIRE(b.ok());
+  REQUIRE(b->width == 12);
+  REQUIRE(b->height == 17);
+  bool any_lit = false;
+  for (std::uint32_t y = 0; y < b->height; ++y) {
+    for (std::uint32_t x = 0; x < b->width; ++x) {
+      for (int ch = 0; ch < 3; ++ch) {
+        const float want = a->rgb[((std::size_t{y} + 3) * a->width + x + 5) * 3 + ch];
+        const float got = b->rgb[(std::size_t{y} * b->width + x) * 3 + ch];
+        REQUIRE(got == want);
+        any_lit = any_lit || got > 0;
+      }
+    }
+  }
+  CHECK(any_lit);
+}
+
+TEST_CASE("A crop outside the image is a usage error and writes nothing") {
+  const dtraced::testing::TempDir dir;
+  cli::RenderArgs c = small_render(dir.str() + "/crop.pfm");
+  c.overrides.crop = dtraced::scene::TileRect{30, 0, 11, 5};  // x1 = 41 > 40
+  CHECK(cli::run_render(c) == 2);
+  CHECK_FALSE(std::filesystem::exists(c.output));
+}
+
+TEST_CASE("Exposure and tone change an 8-bit output and leave a PFM's linear pixels alone") {
+  const dtraced::testing::TempDir dir;
+  const std::string png0 = dir.str() + "/e0.png", png1 = dir.str() + "/e1.png";
+  const std::string pfm0 = dir.str() + "/e0.pfm", pfm1 = dir.str() + "/e1.pfm";
+  REQUIRE(cli::run_render(small_render(png0)) == 0);
+  REQUIRE(cli::run_render(small_render(pfm0)) == 0);
+  for (const std::string* out : {&png1, &pfm1}) {
+    cli::RenderArgs a = small_render(*out);
+    a.overrides.exposure = -1.5;
+    a.overrides.tone = image::ToneCurve::kFilmic;
+    REQUIRE(cli::run_render(a) == 0);
+  }
+  CHECK(bytes_of(png0) != bytes_of(png1));
+  CHECK(bytes_of(pfm0) == bytes_of(pfm1));
+}
