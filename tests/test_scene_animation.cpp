@@ -1,6 +1,7 @@
 // Tests for dtraced::scene animation: tracks in scene files (interpolation against closed forms,
 // repeat and offset, validation located at the key), the render block's animation and display
 // keys, scene_at / scene_at_frame / moving_objects, and the canonical form of animated scenes.
+#include <algorithm>
 #include <cmath>
 #include <string>
 #include <string_view>
@@ -379,4 +380,22 @@ TEST_CASE("between checked times a degenerate camera falls back to the t = 0 vie
   const SceneDesc e = load_ok(p.json());
   CHECK(camera_problem(animated_camera(e, 1)).has_value());  // (0, 0, 1): parallel to the view
   CHECK(scene_at(e, 1).camera.up == Vec3d{0, 1, 0});
+}
+
+TEST_CASE("the shipped snowfall loops seamlessly over its 48 frames, every flake moving", "[scene][animation][files]") {
+  const LoadResult r = load_scene_file(source_path("scenes/snowfall.json"));
+  INFO(format_errors(r.errors));
+  REQUIRE(r.ok());
+  const SceneDesc& d = *r.scene;
+  REQUIRE(d.render.frames.has_value());
+  CHECK(d.render.frames->count() == 48);
+  CHECK(d.render.fps == 24);
+  CHECK(d.render.width == 320);
+  CHECK(d.render.height == 240);
+  // Frame 48 (one past the range) is frame 0 again, bit for bit; frame 12 is not.
+  CHECK(scene_at_frame(d, 48).objects == scene_at_frame(d, 0).objects);
+  CHECK(scene_at_frame(d, 12).objects != scene_at_frame(d, 0).objects);
+  const std::vector<bool> moving = moving_objects(d);
+  CHECK(std::count(moving.begin(), moving.end(), true) == 100);
+  CHECK(std::count(moving.begin(), moving.begin() + 10, true) == 0);  // the snowman stands still
 }
