@@ -191,6 +191,13 @@ TEST_CASE("every key is validated like a static value, and the error names the k
                                      "translate": {"keys": [{"t": 0, "value": [0, 0, 0]}, {"t": 1, "value": [3.4e38, 0, 0]}]},
                                      "scale": 1e38})"),
                      "/scene_objects/0/obj", "beyond the float range");
+  check_refused_once(with_object(R"({"type": "sphere", "radius": 1e38,
+                                     "loc": {"keys": [{"t": 0, "value": [0, 0, 0]}, {"t": 1, "value": [3e38, 0, 0]}]}})"),
+                     "/scene_objects/0/radius", "sphere extends beyond the float range");
+  // A unit box moved to 1e17, where doubles are 16 apart, would collapse to a point on the way.
+  check_refused_once(with_object(R"({"type": "box", "size": [1, 1, 1],
+                                     "loc": {"keys": [{"t": 0, "value": [0, 0, 0]}, {"t": 1, "value": [1e17, 0, 0]}]}})"),
+                     "/scene_objects/0/size/0", "too small to be represented");
   // A camera that passes through its look_at at a frame of the scene's own range.
   SceneParts p;
   p.camera =

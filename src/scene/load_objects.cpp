@@ -291,7 +291,8 @@ class ObjectReader {
         return;
       }
     }
-    if (math::max_component(math::max(math::max(math::abs(box.min), math::abs(box.max)), far)) > kFloatMax) {
+    const Vec3d reach = math::max(math::abs(box.min), math::abs(box.max));
+    if (math::max_component(track == nullptr ? reach : math::max(reach, far)) > kFloatMax) {
       r_.error(f.at(), "box extends beyond the float range");
     }
   }
