@@ -313,7 +313,8 @@ TEST_CASE("an animated scene's canonical form reloads to the same scene and name
   CHECK(scene_digest(load_ok(moved)) != scene_digest(d));
 }
 
-TEST_CASE("scene_at evaluates every animated value; the description holds the values at t = 0", "[scene][animation]") {
+TEST_CASE("scene_at evaluates every animated value, and the description holds the values at t = 0",
+          "[scene][animation]") {
   const SceneDesc d = load_ok(kAnimated);
   // The description itself is the scene at t = 0.
   CHECK(d.objects[1].sphere.center == evaluate(d.animation->tracks[2], 0));
@@ -343,7 +344,7 @@ TEST_CASE("scene_at evaluates every animated value; the description holds the va
   CHECK(d.objects[4].mesh->vertices[1].x == 1);
 }
 
-TEST_CASE("scene_at_frame takes the time frame / fps and sets the frame; a static scene only changes frame",
+TEST_CASE("scene_at_frame takes the time frame / fps and sets the frame, and a static scene only changes frame",
           "[scene][animation]") {
   const SceneDesc d = load_ok(kAnimated);
   const SceneDesc f12 = scene_at_frame(d, 12);
