@@ -3,6 +3,7 @@
 // keys, scene_at / scene_at_frame / moving_objects, and the canonical form of animated scenes.
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -406,4 +407,21 @@ TEST_CASE("the shipped snowfall loops seamlessly over its 48 frames, every flake
   const std::vector<bool> moving = moving_objects(d);
   CHECK(std::count(moving.begin(), moving.end(), true) == 100);
   CHECK(std::count(moving.begin(), moving.begin() + 10, true) == 0);  // the snowman stands still
+}
+
+TEST_CASE("a hand-made animation whose tracks name no such object or light changes nothing", "[scene][animation]") {
+  SceneDesc d = load_ok(with_render("{}"));  // one sphere, one light
+  auto animation = std::make_shared<Animation>();
+  for (const Target target : {Target::kObjectLoc, Target::kMeshScale, Target::kLightIntensity}) {
+    Track track;
+    track.target = target;
+    track.index = target == Target::kMeshScale ? 0 : 5;  // object 0 is a sphere, not a mesh
+    track.keys = {Key{0, Vec3d{3, 3, 3}}};
+    animation->tracks.push_back(track);
+  }
+  sort_tracks(*animation);
+  d.animation = animation;
+  const SceneDesc s = scene_at(d, 1);
+  CHECK(s.objects == d.objects);
+  CHECK(s.lights == d.lights);
 }

@@ -1,6 +1,7 @@
 #include "scene/animation.h"
 
 #include <algorithm>
+#include <cassert>
 #include <cmath>
 #include <memory>
 #include <tuple>
@@ -86,6 +87,7 @@ Mesh& own_mesh(Object& object, std::shared_ptr<Mesh>& own) {
 }
 
 void apply_object_track(const Track& track, const Vec3d& v, Object& object, std::shared_ptr<Mesh>& own) {
+  const bool is_mesh = object.type == ObjectType::kMesh && object.mesh != nullptr;
   switch (track.target) {
     case Target::kObjectLoc:
       if (object.type == ObjectType::kSphere) object.sphere.center = v;
@@ -99,13 +101,13 @@ void apply_object_track(const Track& track, const Vec3d& v, Object& object, std:
       object.sphere.radius = v.x;
       break;
     case Target::kMeshTranslate:
-      own_mesh(object, own).translate = v;
+      if (is_mesh) own_mesh(object, own).translate = v;
       break;
     case Target::kMeshRotate:
-      own_mesh(object, own).rotate_deg = v;
+      if (is_mesh) own_mesh(object, own).rotate_deg = v;
       break;
     case Target::kMeshScale:
-      own_mesh(object, own).scale = v;
+      if (is_mesh) own_mesh(object, own).scale = v;
       break;
     case Target::kMaterialColor:
       object.material.color = v;
@@ -116,6 +118,9 @@ void apply_object_track(const Track& track, const Vec3d& v, Object& object, std:
 }
 
 void apply_track(const Track& track, double t, SceneDesc& out, std::vector<std::shared_ptr<Mesh>>& own_meshes) {
+  // The loader makes every track's owner exist; a hand-made Animation that names none changes nothing.
+  const int owner = owner_rank(track.target);
+  if ((owner == 1 && track.index >= out.objects.size()) || (owner == 2 && track.index >= out.lights.size())) return;
   const Vec3d v = evaluate(track, t);
   switch (track.target) {
     case Target::kCameraPosition:
@@ -158,6 +163,7 @@ bool is_scalar(Target target) {
 
 Vec3d evaluate(const Track& track, double t) {
   const std::vector<Key>& keys = track.keys;
+  assert(!keys.empty());
   const double u = local_time(track, t);
   if (u <= keys.front().t) return keys.front().value;
   if (u >= keys.back().t) return keys.back().value;
