@@ -9,6 +9,7 @@
 #include <boost/json/value.hpp>
 
 #include "jsonio/parse.h"
+#include "scene/animation.h"
 #include "scene/scene_json.h"
 #include "util/sha256.h"
 
@@ -23,9 +24,47 @@ using jsonio::exact_number;
 // is copied, and a 100k-object tree built on the heap costs more than its serialisation. Numbers
 // are jsonio::exact_number: the loader has already turned -0 into +0, so dropping the sign there
 // loses nothing.
-json::value material(const Material& m, const json::storage_ptr& sp) {
+// A track in full: every key, then interpolation, repeat and offset, defaults included.
+json::value track_value(const Track& track, const json::storage_ptr& sp) {
+  json::array keys(sp);
+  keys.reserve(track.keys.size());
+  for (const Key& key : track.keys) {
+    json::object k(2, sp);
+    k["t"] = exact_number(key.t, sp);
+    k["value"] = is_scalar(track.target) ? exact_number(key.value.x, sp) : vec3_value(key.value, sp);
+    keys.push_back(json::value(std::move(k)));
+  }
+  json::object o(4, sp);
+  o["keys"] = std::move(keys);
+  o["interpolation"] = kInterpolationNames[static_cast<std::size_t>(track.interpolation)];
+  o["repeat"] = track.repeat;
+  o["offset"] = exact_number(track.offset, sp);
+  return json::value(std::move(o));
+}
+
+// Writes the values that may be animated: a value's track when it has one, else the value.
+class Writer {
+ public:
+  Writer(const Animation* animation, std::uint32_t index, const json::storage_ptr& sp)
+      : animation_(animation), index_(index), sp_(sp) {}
+  json::value vec3(Target target, const Vec3d& v) const {
+    const Track* t = find_track(animation_, target, index_);
+    return t != nullptr ? track_value(*t, sp_) : vec3_value(v, sp_);
+  }
+  json::value number(Target target, double d) const {
+    const Track* t = find_track(animation_, target, index_);
+    return t != nullptr ? track_value(*t, sp_) : exact_number(d, sp_);
+  }
+
+ private:
+  const Animation* animation_;
+  std::uint32_t index_;
+  const json::storage_ptr& sp_;
+};
+
+json::value material(const Material& m, const Writer& w, const json::storage_ptr& sp) {
   json::object o(7, sp);
-  o["color"] = vec3_value(m.color, sp);
+  o["color"] = w.vec3(Target::kMaterialColor, m.color);
   o["diffuse"] = exact_number(m.diffuse, sp);
   o["specular"] = exact_number(m.specular, sp);
   o["shininess"] = exact_number(m.shininess, sp);
@@ -35,21 +74,26 @@ json::value material(const Material& m, const json::storage_ptr& sp) {
   return json::value(std::move(o));
 }
 
-json::value scene_object(const Object& object, const json::storage_ptr& sp) {
+json::value scene_object(const Object& object, const Writer& w, const Track* box_track, const json::storage_ptr& sp) {
   json::object o(6, sp);
   o["type"] = type_name(object.type);
   switch (object.type) {
     case ObjectType::kSphere:
-      o["loc"] = vec3_value(object.sphere.center, sp);
-      o["radius"] = exact_number(object.sphere.radius, sp);
+      o["loc"] = w.vec3(Target::kObjectLoc, object.sphere.center);
+      o["radius"] = w.number(Target::kSphereRadius, object.sphere.radius);
       break;
     case ObjectType::kBox:
+      if (box_track != nullptr) {  // a moving box: its centre's track and its size, as read
+        o["loc"] = track_value(*box_track, sp);
+        o["size"] = vec3_value(box_track->box_size, sp);
+        break;
+      }
       // Corners, not centre and size: min -> centre/size -> min does not round-trip in double.
       o["min"] = vec3_value(object.box.min, sp);
       o["max"] = vec3_value(object.box.max, sp);
       break;
     case ObjectType::kPlane:
-      o["loc"] = vec3_value(object.plane.point, sp);
+      o["loc"] = w.vec3(Target::kObjectLoc, object.plane.point);
       o["normal"] = vec3_value(object.plane.normal, sp);
       break;
     case ObjectType::kMesh:
@@ -57,19 +101,19 @@ json::value scene_object(const Object& object, const json::storage_ptr& sp) {
       // host that has no such file, and a mesh means its text, not where the text was kept. The
       // scale is written per axis (a number and [s, s, s] mean the same).
       o["obj"] = json::string(object.mesh->obj, sp);
-      o["translate"] = vec3_value(object.mesh->translate, sp);
-      o["rotate"] = vec3_value(object.mesh->rotate_deg, sp);
-      o["scale"] = vec3_value(object.mesh->scale, sp);
+      o["translate"] = w.vec3(Target::kMeshTranslate, object.mesh->translate);
+      o["rotate"] = w.vec3(Target::kMeshRotate, object.mesh->rotate_deg);
+      o["scale"] = w.vec3(Target::kMeshScale, object.mesh->scale);
       break;
   }
-  o["material"] = material(object.material, sp);
+  o["material"] = material(object.material, w, sp);
   return json::value(std::move(o));
 }
 
-json::value scene_light(const Light& light, const json::storage_ptr& sp) {
+json::value scene_light(const Light& light, const Writer& w, const json::storage_ptr& sp) {
   json::object o(9, sp);
   o["type"] = type_name(light.type);
-  o["loc"] = vec3_value(light.position, sp);
+  o["loc"] = w.vec3(Target::kLightPosition, light.position);
   if (light.type == LightType::kSphere || light.type == LightType::kDisk) {
     o["radius"] = exact_number(light.radius, sp);
   }
@@ -78,8 +122,8 @@ json::value scene_light(const Light& light, const json::storage_ptr& sp) {
     o["u"] = vec3_value(light.edge_u, sp);
     o["v"] = vec3_value(light.edge_v, sp);
   }
-  o["color"] = vec3_value(light.color, sp);
-  o["intensity"] = exact_number(light.intensity, sp);
+  o["color"] = w.vec3(Target::kLightColor, light.color);
+  o["intensity"] = w.number(Target::kLightIntensity, light.intensity);
   if (light.is_area()) {
     o["samples"] = light.samples;
     o["cast_shadows"] = light.cast_shadows;
@@ -94,22 +138,30 @@ std::string canonical_json(const SceneDesc& desc) {
   const json::storage_ptr sp(&arena);
   json::object root(4, sp);
 
+  const Animation* animation = desc.animation.get();
+  const Writer w(animation, 0, sp);
   json::object camera(4, sp);
-  camera["position"] = vec3_value(desc.camera.position, sp);
-  camera["look_at"] = vec3_value(desc.camera.look_at, sp);
-  camera["up"] = vec3_value(desc.camera.up, sp);
-  camera["fov"] = exact_number(desc.camera.fov_deg, sp);
+  camera["position"] = w.vec3(Target::kCameraPosition, desc.camera.position);
+  camera["look_at"] = w.vec3(Target::kCameraLookAt, desc.camera.look_at);
+  camera["up"] = w.vec3(Target::kCameraUp, desc.camera.up);
+  camera["fov"] = w.number(Target::kCameraFov, desc.camera.fov_deg);
   root["camera"] = std::move(camera);
   root["render"] = render_settings_object(desc.render, sp);
 
   json::array objects(sp);
   objects.reserve(desc.objects.size());
-  for (const Object& object : desc.objects) objects.push_back(scene_object(object, sp));
+  for (std::uint32_t i = 0; i < desc.objects.size(); ++i) {
+    const Object& object = desc.objects[i];
+    const Track* box_track = object.type == ObjectType::kBox ? find_track(animation, Target::kObjectLoc, i) : nullptr;
+    objects.push_back(scene_object(object, Writer(animation, i, sp), box_track, sp));
+  }
   root["scene_objects"] = std::move(objects);
 
   json::array lights(sp);
   lights.reserve(desc.lights.size());
-  for (const Light& light : desc.lights) lights.push_back(scene_light(light, sp));
+  for (std::uint32_t i = 0; i < desc.lights.size(); ++i) {
+    lights.push_back(scene_light(desc.lights[i], Writer(animation, i, sp), sp));
+  }
   root["scene_lights"] = std::move(lights);
 
   return json::serialize(root);

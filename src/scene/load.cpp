@@ -5,7 +5,9 @@
 #include <array>
 #include <cmath>
 #include <filesystem>
+#include <memory>
 #include <utility>
+#include <vector>
 
 #include <boost/json/monotonic_resource.hpp>
 #include <boost/json/object.hpp>
@@ -13,6 +15,8 @@
 #include <fmt/format.h>
 
 #include "math/vec.h"
+#include "scene/animation.h"
+#include "scene/load_animation.h"
 #include "scene/load_objects.h"
 #include "scene/scene_json.h"
 #include "util/file.h"
@@ -25,10 +29,6 @@ using detail::kKeyAliases;
 using detail::SceneReader;
 using jsonio::Need;
 using jsonio::Path;
-using math::Vec3f;
-
-// `up` counts as parallel to the view direction when |up x dir| < kParallelTolerance |up| |dir|.
-constexpr double kParallelTolerance = 1e-6;
 
 constexpr std::array<std::string_view, 4> kTopKeys = {"camera", "render", "scene_objects", "scene_lights"};
 constexpr std::array<std::string_view, 4> kCameraKeys = {"position", "look_at", "up", "fov"};
@@ -40,34 +40,44 @@ void read_camera(SceneReader& s, const json::value& v, const Path& at, Camera& c
   jsonio::Fields f(r, *o, at, kCameraKeys, kKeyAliases);
   const std::size_t errors_before = r.error_count();
   const auto vec3 = [&r](const json::value& value, const Path& p) { return read_vec3(r, value, p); };
-  f.read("position", camera.position, Need::kOptional, vec3);
-  f.read("look_at", camera.look_at, Need::kOptional, vec3);
-  f.read("up", camera.up, Need::kOptional, vec3);
-  f.read("fov", camera.fov_deg, Need::kOptional, [&r](const json::value& value, const Path& p) {
-    const auto d = read_float(r, value, p);
-    if (d && !(*d > 0 && *d < 180)) {
-      r.error(p, fmt::format("must be in the open interval (0, 180) (got {})", *d));
-      return std::optional<double>();
-    }
-    return d;
-  });
+  s.index = 0;
+  detail::read_animatable(s, f, "position", camera.position, Need::kOptional, Target::kCameraPosition, vec3);
+  detail::read_animatable(s, f, "look_at", camera.look_at, Need::kOptional, Target::kCameraLookAt, vec3);
+  detail::read_animatable(s, f, "up", camera.up, Need::kOptional, Target::kCameraUp, vec3);
+  detail::read_animatable(s, f, "fov", camera.fov_deg, Need::kOptional, Target::kCameraFov,
+                          [&r](const json::value& value, const Path& p) {
+                            const auto d = read_float(r, value, p);
+                            if (d && !(*d > 0 && *d < 180)) {
+                              r.error(p, fmt::format("must be in the open interval (0, 180) (got {})", *d));
+                              return std::optional<double>();
+                            }
+                            return d;
+                          });
   if (r.error_count() != errors_before) return;  // the geometry checks need every vector
+  // The camera at t = 0 (an animated camera is checked at its other times by check_camera_times).
+  if (const auto problem = camera_problem(camera)) r.error(f.path(problem->key), std::string(problem->message));
+}
 
-  // Compared as floats because the renderer builds its camera from floats.
-  if (Vec3f(camera.position) == Vec3f(camera.look_at)) {
-    r.error(f.path("look_at"), "must differ from the camera position");
-    return;
+// An animated camera, at every key time of its tracks and at every frame of the scene's own range
+// (render.frames, or the one frame render.frame): other times fall back (animation.h).
+void check_camera_times(SceneReader& s, const SceneDesc& scene) {
+  std::vector<double> times;
+  for (const Track& track : scene.animation->tracks) {
+    if (track.target > Target::kCameraFov) break;  // sorted: the camera's tracks come first
+    for (const Key& key : track.keys) times.push_back(key.t + track.offset);
   }
-  const double up_scale = math::max_component(math::abs(camera.up));
-  if (up_scale == 0) {
-    r.error(f.path("up"), "must not be the zero vector");
-    return;
-  }
-  const Vec3d dir = camera.look_at - camera.position;
-  const Vec3d u = camera.up / up_scale;
-  const Vec3d d = dir / math::max_component(math::abs(dir));
-  if (math::length(math::cross(u, d)) < kParallelTolerance * math::length(u) * math::length(d)) {
-    r.error(f.path("up"), "must not be parallel to the view direction (look_at - position)");
+  if (times.empty()) return;
+  const FrameRange frames = scene.render.frames.value_or(FrameRange{scene.render.frame, scene.render.frame, 1});
+  for (std::uint32_t i = 0; i < frames.count(); ++i) times.push_back(frames.at(i) / scene.render.fps);
+  for (const double t : times) {
+    const Camera camera = animated_camera(scene, t);
+    if (const auto problem = camera_problem(camera)) {
+      const Path root;
+      const Path camera_at = root.key("camera");
+      s.r.error(camera_at.key(problem->key),
+                fmt::format("at t = {} s (frame {}): {}", t, t * scene.render.fps, problem->message));
+      return;
+    }
   }
 }
 
@@ -98,6 +108,7 @@ void read_list(SceneReader& s, jsonio::Fields& root, std::string_view key, std::
   if (list == nullptr) return;
   out.reserve(list->size());
   for (std::size_t i = 0; i < list->size(); ++i) {
+    s.index = static_cast<std::uint32_t>(i);  // the owner of the element's tracks
     if (auto element = read(s, (*list)[i], at.index(i))) out.push_back(std::move(*element));
   }
   if (list->empty()) s.warning(at, std::string(when_empty));
@@ -117,6 +128,12 @@ std::optional<SceneDesc> read_scene(SceneReader& s, const json::value& root_valu
   read_list(s, f, "scene_lights", kMaxLights, "lights", scene.lights, detail::read_light,
             "the scene has no lights: only reflections of the background will show");
   if (s.r.failed()) return std::nullopt;
+  if (!s.animation.tracks.empty()) {
+    sort_tracks(s.animation);
+    scene.animation = std::make_shared<const Animation>(std::move(s.animation));
+    check_camera_times(s, scene);
+    if (s.r.failed()) return std::nullopt;
+  }
   return scene;
 }
 

@@ -15,6 +15,7 @@
 
 #include "jsonio/utf8.h"
 #include "math/vec.h"
+#include "scene/load_animation.h"
 #include "scene/obj_mesh.h"
 #include "scene/scene_json.h"
 #include "util/file.h"
@@ -186,6 +187,13 @@ class ObjectReader {
     };
   }
 
+  // A value that may be animated (load_animation.h).
+  template <typename T, typename Read>
+  bool animatable(jsonio::Fields& f, std::string_view key, T& out, Need need, Target target, Read read,
+                  Span* span = nullptr, Track** track = nullptr) {
+    return read_animatable(s_, f, key, out, need, target, read, span, track);
+  }
+
   void check_keys(const json::object& o, const Path& at, Keys known) { r_.check_keys(o, at, known, kKeyAliases); }
 
   // The index in `names` of the required "type", or nullopt after reporting why there is none.
@@ -201,7 +209,7 @@ class ObjectReader {
     if (o == nullptr) return;
     jsonio::Fields f(r_, *o, at, kMaterialKeys, kKeyAliases);
     const std::size_t errors_before = r_.error_count();
-    f.read("color", m.color, Need::kOptional, albedo());
+    animatable(f, "color", m.color, Need::kOptional, Target::kMaterialColor, albedo());
     f.read("diffuse", m.diffuse, Need::kOptional, float_in(0, 1));
     f.read("specular", m.specular, Need::kOptional, float_in(0, 1));
     f.read("shininess", m.shininess, Need::kOptional, float_in(0, kMaxShininess));
@@ -218,12 +226,14 @@ class ObjectReader {
   void read_sphere(jsonio::Fields& f, Sphere& sphere) {
     const std::size_t errors_before = r_.error_count();
     check_keys(f.object(), f.at(), kSphereKeys);
-    f.read("loc", sphere.center, Need::kRequired, vec3());
-    f.read("radius", sphere.radius, Need::kRequired, positive_float());
+    Span centre, radius;
+    animatable(f, "loc", sphere.center, Need::kRequired, Target::kObjectLoc, vec3(), &centre);
+    animatable(f, "radius", sphere.radius, Need::kRequired, Target::kSphereRadius, positive_float(), &radius);
     // The renderer skips a sphere whose bounds are not finite floats: say so rather than lose it.
+    // Checked at the largest centre and radius the keys reach, so it holds at every time.
     if (r_.error_count() != errors_before) return;
     for (std::size_t i = 0; i < 3; ++i) {
-      if (!std::isfinite(static_cast<float>(std::abs(sphere.center[i]) + sphere.radius))) {
+      if (!std::isfinite(static_cast<float>(centre.max_abs()[i] + radius.hi.x))) {
         r_.error(f.path("radius"), "sphere extends beyond the float range");
         return;
       }
@@ -254,32 +264,41 @@ class ObjectReader {
       box = Box{*lo, *hi};
       return;
     }
-    std::optional<Vec3d> centre, size;
-    f.read("loc", centre, Need::kRequired, vec3());
+    Vec3d centre;
+    Span span;
+    Track* track = nullptr;
+    std::optional<Vec3d> size;
+    bool ok = animatable(f, "loc", centre, Need::kRequired, Target::kObjectLoc, vec3(), &span, &track);
     f.read("size", size, Need::kRequired, vec3());
     const Path size_at = f.path("size");
-    bool ok = centre && size;
+    ok = ok && size;
     if (size) {
       for (std::size_t i = 0; i < 3; ++i) ok = r_.positive((*size)[i], size_at.index(i)) && ok;
     }
     if (!ok) return;
     const Vec3d half = *size * 0.5;
-    box = Box{*centre - half, *centre + half};
+    box = Box{centre - half, centre + half};
+    if (track != nullptr) track->box_size = *size;  // the box at time t is loc(t) -+ size / 2
+    // A moving box keeps min < max wherever its centre goes within the keys' range: the two
+    // roundings of c -+ half err by at most one spacing of doubles at |c| + half, together.
+    const Vec3d far = span.max_abs() + half;
     for (std::size_t i = 0; i < 3; ++i) {
-      if (!(box.min[i] < box.max[i])) {
+      const bool collapses =
+          track == nullptr ? !(box.min[i] < box.max[i]) : !(2 * half[i] > std::nextafter(far[i], kInfinity) - far[i]);
+      if (collapses) {
         r_.error(size_at.index(i),
                  "too small to be represented at this location (min and max round to the same value)");
         return;
       }
     }
-    if (math::max_component(math::max(math::abs(box.min), math::abs(box.max))) > kFloatMax) {
+    if (math::max_component(math::max(math::max(math::abs(box.min), math::abs(box.max)), far)) > kFloatMax) {
       r_.error(f.at(), "box extends beyond the float range");
     }
   }
 
   void read_plane(jsonio::Fields& f, Plane& plane) {
     check_keys(f.object(), f.at(), kPlaneKeys);
-    f.read("loc", plane.point, Need::kRequired, vec3());
+    animatable(f, "loc", plane.point, Need::kRequired, Target::kObjectLoc, vec3());
     f.read("normal", plane.normal, Need::kRequired, unit_vector());
   }
 
@@ -307,10 +326,16 @@ class ObjectReader {
     check_keys(f.object(), f.at(), kMeshKeys);
     const std::size_t errors_before = r_.error_count();
     auto mesh = std::make_shared<Mesh>();
-    f.read("translate", mesh->translate, Need::kOptional, vec3());
-    f.read("rotate", mesh->rotate_deg, Need::kOptional, vec3());
-    f.read("scale", mesh->scale, Need::kOptional,
-           [this](const json::value& v, const Path& at) { return scale(v, at); });
+    Span translate, scale_span;
+    Track* scale_track = nullptr;
+    const std::size_t tracks_before = s_.animation.tracks.size();
+    animatable(f, "translate", mesh->translate, Need::kOptional, Target::kMeshTranslate, vec3(), &translate);
+    animatable(f, "rotate", mesh->rotate_deg, Need::kOptional, Target::kMeshRotate, vec3());
+    animatable(
+        f, "scale", mesh->scale, Need::kOptional, Target::kMeshScale,
+        [this](const json::value& v, const Path& at) { return scale(v, at); }, &scale_span, &scale_track);
+    if (scale_track != nullptr) check_scale_signs(*scale_track, f.path("scale"));
+    const bool moves = s_.animation.tracks.size() != tracks_before;
 
     const bool from_file = f.has("file");
     if (from_file && f.has("obj")) {
@@ -340,9 +365,50 @@ class ObjectReader {
       for (const util::Error& e : built.error()) r_.error(source_at, prefix + jsonio::printable(e.message));
       return;
     }
+    if (moves && !stays_in_float_range(*mesh, translate, scale_span, source_at)) return;
     s_.triangles += mesh->triangle_count();
     if (mesh->triangle_count() == 0) s_.warning(source_at, prefix + "the OBJ has no faces: the mesh is invisible");
     out.mesh = std::move(mesh);
+  }
+
+  // Between two keys of opposite sign a scale would pass through zero (a flat mesh, or a mirrored
+  // one: neither is a motion anyone means).
+  void check_scale_signs(const Track& track, const Path& at) {
+    const Path keys_at = at.key("keys");
+    const Vec3d first = track.keys.front().value;
+    for (std::size_t k = 1; k < track.keys.size(); ++k) {
+      for (std::size_t c = 0; c < 3; ++c) {
+        if ((track.keys[k].value[c] > 0) != (first[c] > 0)) {
+          const Path key_at = keys_at.index(k);
+          r_.error(key_at.key("value"),
+                   fmt::format("component {} must have the sign of the first key's ({}): between them the scale "
+                               "would pass through zero (got {})",
+                               c, first[c], track.keys[k].value[c]));
+          return;
+        }
+      }
+    }
+  }
+
+  // A moving mesh stays within the float range at every time: each vertex p lands within
+  // |translate| + max|scale| |p| of the origin per axis (a rotation keeps lengths), and both are
+  // bounded by the keys.
+  bool stays_in_float_range(const Mesh& mesh, const Span& translate, const Span& scale, const Path& at) {
+    Mesh probe;  // the OBJ's own coordinates (already checked to parse)
+    probe.obj = mesh.obj;
+    if (!build_obj_mesh(probe, mesh.triangle_count())) return true;
+    double radius = 0;
+    for (const math::Vec3f& v : probe.vertices) radius = std::max(radius, math::length(Vec3d(v)));
+    radius *= 1 + 0x1p-23;  // the probe's coordinates were rounded to float
+    const double reach = math::max_component(scale.max_abs()) * radius;
+    for (std::size_t c = 0; c < 3; ++c) {
+      if (!(translate.max_abs()[c] + reach <= kFloatMax)) {
+        r_.error(at, fmt::format("the mesh's keys move or scale it beyond the float range (up to {:g} along axis {})",
+                                 translate.max_abs()[c] + reach, c));
+        return false;
+      }
+    }
+    return true;
   }
 
   bool read_mesh_file(Mesh& mesh, const Path& at) {
@@ -454,9 +520,11 @@ class ObjectReader {
     const std::optional<std::size_t> type = type_of(*o, at, kLightTypeNames, "light type");
     check_keys(*o, at, type ? kLightKeys[*type] : Keys(kAnyLightKeys));
     jsonio::Fields f(r_, *o, at);
-    f.read("loc", light.position, Need::kRequired, vec3());
-    f.read("color", light.color, Need::kOptional, color());
-    f.read("intensity", light.intensity, Need::kOptional, float_in(0, kInfinity));
+    Span color_span, intensity_span;
+    animatable(f, "loc", light.position, Need::kRequired, Target::kLightPosition, vec3());
+    animatable(f, "color", light.color, Need::kOptional, Target::kLightColor, color(), &color_span);
+    animatable(f, "intensity", light.intensity, Need::kOptional, Target::kLightIntensity, float_in(0, kInfinity),
+               &intensity_span);
     if (!type) return std::nullopt;
     light.type = kLightTypes[*type];
     if (light.is_area()) {
@@ -470,12 +538,14 @@ class ObjectReader {
     if (light.type == LightType::kDisk) f.read("normal", light.normal, Need::kRequired, unit_vector());
     if (light.type == LightType::kRect) read_rect_light(f, light);
     if (r_.error_count() != errors_before) return std::nullopt;
+    // At the largest colour and intensity the keys reach, so it holds at every time.
     for (std::size_t i = 0; i < 3; ++i) {
-      if (light.color[i] * light.intensity > kMaxRadiance) {
+      const double emitted = color_span.hi[i] * intensity_span.hi.x;
+      if (emitted > kMaxRadiance) {
         r_.error(f.has("intensity") ? f.path("intensity") : f.path("color"),
                  fmt::format("color x intensity must be at most 2^120 ({:g}) per channel, or shading overflows "
                              "(got {} in channel {})",
-                             kMaxRadiance, light.color[i] * light.intensity, i));
+                             kMaxRadiance, emitted, i));
         return std::nullopt;
       }
     }

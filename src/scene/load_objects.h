@@ -14,6 +14,7 @@
 #include <boost/json/value.hpp>
 
 #include "jsonio/reader.h"
+#include "scene/animation.h"
 #include "scene/description.h"
 #include "scene/load.h"
 
@@ -32,8 +33,9 @@ inline constexpr std::array<jsonio::KeyAlias, 9> kKeyAliases = {{
     {"eye", "position"},
 }};
 
-// The state of one load: the located reader, the options, the meshes' triangle budget and the
-// warnings (legal but probably unintended; they never stop a load).
+// The state of one load: the located reader, the options, the meshes' triangle budget, the tracks
+// of animated values read so far and the warnings (legal but probably unintended; they never stop
+// a load).
 struct SceneReader {
   SceneReader(std::string file, const LoadOptions& options_)
       : r(std::move(file), options_.max_errors), options(options_) {}
@@ -45,6 +47,8 @@ struct SceneReader {
   jsonio::Reader r;
   const LoadOptions& options;
   std::size_t triangles = 0;  // of the meshes read so far, against options.max_triangles
+  Animation animation;        // every track read so far, in file order
+  std::uint32_t index = 0;    // the object or light being read: the owner of its tracks
   util::Errors warnings;
 };
 

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 #include <utility>
 
 #include <boost/json/array.hpp>
@@ -19,6 +20,28 @@ using jsonio::Need;
 using jsonio::Path;
 
 constexpr double kFloatMax = FLT_MAX;
+constexpr std::array<std::string_view, 3> kFramesKeys = {"first", "last", "step"};
+
+std::optional<FrameRange> read_frames(jsonio::Reader& r, const json::value& v, const Path& at) {
+  const json::object* o = r.object(v, at);
+  if (o == nullptr) return std::nullopt;
+  jsonio::Fields f(r, *o, at, kFramesKeys);
+  FrameRange range;
+  constexpr std::int64_t kMaxFrame = std::numeric_limits<std::uint32_t>::max();
+  bool ok = f.integer("first", range.first, 0, kMaxFrame);
+  ok = f.integer("last", range.last, 0, kMaxFrame) && ok;
+  ok = f.integer("step", range.step, 1, kMaxFrame, Need::kOptional) && ok;
+  if (!ok) return std::nullopt;
+  if (range.last < range.first) {
+    r.error(f.path("last"), fmt::format("must be >= first ({}) (got {})", range.first, range.last));
+    return std::nullopt;
+  }
+  if (range.count() > kMaxFrames) {
+    r.error(at, fmt::format("{} frames, more than the limit of {} in one range", range.count(), kMaxFrames));
+    return std::nullopt;
+  }
+  return range;
+}
 
 }  // namespace
 
@@ -68,6 +91,37 @@ void read_render_settings(jsonio::Fields& f, Settings& s, Need need) {
   f.integer("frame", s.frame, 0, std::numeric_limits<std::uint32_t>::max(), need);
   f.number("error_target", s.error_target, 0, kMaxErrorTarget, Need::kOptional);
   f.integer("min_samples", s.min_samples, 1, kMaxSamples, Need::kOptional);
+  f.read("fps", s.fps, Need::kOptional, [&r](const json::value& v, const Path& at) -> std::optional<double> {
+    const auto d = r.number(v, at);
+    if (d && !(*d > 0 && *d <= kMaxFps)) {
+      r.error(at, fmt::format("must be in (0, {}] frames per second (got {})", kMaxFps, *d));
+      return std::nullopt;
+    }
+    return d;
+  });
+  f.read("frames", s.frames, Need::kOptional,
+         [&r](const json::value& v, const Path& at) { return read_frames(r, v, at); });
+  auto& exposure = [&s]() -> auto& {
+    if constexpr (std::is_same_v<Settings, Overrides>) {
+      return s.exposure;
+    } else {
+      return s.display.exposure;
+    }
+  }
+  ();
+  auto& tone = [&s]() -> auto& {
+    if constexpr (std::is_same_v<Settings, Overrides>) {
+      return s.tone;
+    } else {
+      return s.display.tone;
+    }
+  }
+  ();
+  f.number("exposure", exposure, -image::kMaxExposureStops, image::kMaxExposureStops, Need::kOptional);
+  f.read("tone", tone, Need::kOptional, [&r](const json::value& v, const Path& at) {
+    const auto i = r.choice(v, at, image::kToneCurveNames, "tone curve", "tone curves");
+    return i ? std::optional<image::ToneCurve>(static_cast<image::ToneCurve>(*i)) : std::nullopt;
+  });
 }
 template void read_render_settings<RenderSettings>(jsonio::Fields&, RenderSettings&, Need);
 template void read_render_settings<Overrides>(jsonio::Fields&, Overrides&, Need);
@@ -94,6 +148,17 @@ json::object render_settings_object(const RenderSettings& s, const json::storage
     o["error_target"] = jsonio::exact_number(s.error_target, sp);
     o["min_samples"] = s.min_samples;
   }
+  const RenderSettings defaults;
+  if (s.fps != defaults.fps) o["fps"] = jsonio::exact_number(s.fps, sp);
+  if (s.frames) {
+    json::object frames(3, sp);
+    frames["first"] = s.frames->first;
+    frames["last"] = s.frames->last;
+    frames["step"] = s.frames->step;
+    o["frames"] = std::move(frames);
+  }
+  if (s.display.exposure != defaults.display.exposure) o["exposure"] = jsonio::exact_number(s.display.exposure, sp);
+  if (s.display.tone != defaults.display.tone) o["tone"] = image::to_string(s.display.tone);
   return o;
 }
 
