@@ -263,6 +263,41 @@ TEST_CASE("a static scene keeps its one Geometry and renders as before", "[rende
   require_identical(render_tiled(built, d.render, 16, 16, true), render_tiled(*f3, d.render, 16, 16, true));
 }
 
+TEST_CASE("an animated scene moves its tracked objects and shares the layer of the others", "[render][layers]") {
+  // Loc tracks on every tenth of the small spheres: they fly 2 units along x over one second.
+  scene::SceneDesc d = busy_scene();
+  auto animation = std::make_shared<scene::Animation>();
+  const std::size_t first_small = d.objects.size() - 71;
+  std::vector<bool> want(d.objects.size(), false);
+  for (std::size_t i = first_small; i < d.objects.size() - 1; i += 10) {
+    scene::Track track;
+    track.target = scene::Target::kObjectLoc;
+    track.index = static_cast<std::uint32_t>(i);
+    const math::Vec3d c = d.objects[i].sphere.center;
+    track.keys = {{0.0, c}, {1.0, c + math::Vec3d{2, 0, 0}}};
+    animation->tracks.push_back(track);
+    want[i] = true;
+  }
+  d.animation = animation;
+  REQUIRE(scene::moving_objects(d) == want);
+  const render::AnimatedScene prepared = render::AnimatedScene::prepare(d);
+  REQUIRE(prepared.animated());
+  CHECK(prepared.static_part()->moving == want);
+  for (const std::uint32_t k : {12u, 0u, 24u}) {
+    CAPTURE(k);
+    const std::shared_ptr<const render::RenderScene> f = prepared.frame(k);
+    CHECK(f->geometry().fixed() == prepared.static_part()->layer.get());
+    CHECK(f->geometry().moving()->geometry.shapes().size() == 7);
+    const scene::SceneDesc at = scene::scene_at_frame(d, k);
+    require_identical(render_tiled(render::RenderScene::build(at), at.render, 16, 16, true),
+                      render_tiled(*f, at.render, 16, 16, true));
+  }
+  // The spheres do move: frame 24's sphere is 2 units from frame 0's.
+  const math::Vec3d c0 = scene::scene_at_frame(d, 0).objects[first_small].sphere.center;
+  const math::Vec3d c24 = scene::scene_at_frame(d, 24).objects[first_small].sphere.center;
+  CHECK(c24.x - c0.x == Approx(2.0));
+}
+
 TEST_CASE("an animated scene's frame n is scene_at_frame(n) with the static layer shared", "[render][layers]") {
   scene::SceneDesc d = busy_scene();
   d.animation = std::make_shared<const scene::Animation>();

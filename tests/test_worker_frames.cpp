@@ -14,6 +14,7 @@
 #include "render/tile.h"
 #include "scene/animation.h"
 #include "scene/digest.h"
+#include "scene/load.h"
 #include "scene_builders.h"
 #include "worker/scene_cache.h"
 
@@ -65,6 +66,42 @@ TEST_CASE("a worker's tile of frame k is the tile of scene_at_frame(k) rendered 
   // Frames differ (the noise at least), so the comparison above can tell them apart.
   const scene::SceneDesc f0 = scene::scene_at_frame(desc, 0), f2 = scene::scene_at_frame(desc, 2);
   CHECK_FALSE(same_bits(frames.render(f0.render, rect).rgb, frames.render(f2.render, rect).rgb));
+}
+
+TEST_CASE("an animated scene's body: the worker's tile of frame k is the local tile of scene_at_frame(k)",
+          "[worker][frames]") {
+  // A sphere flying across a ground plane, a box rising, a still sphere; 24 frames a second.
+  const std::string json = R"({
+    "camera": {"position": [0, 2, 8], "look_at": [0, 1, 0], "up": [0, 1, 0], "fov": 50},
+    "render": {"width": 32, "height": 24, "samples": 2},
+    "scene_objects": [
+      {"type": "plane", "loc": [0, 0, 0], "normal": [0, 1, 0], "material": {"color": [0.8, 0.8, 0.8]}},
+      {"type": "sphere", "loc": {"keys": [{"t": 0, "value": [-3, 1, 0]}, {"t": 1, "value": [3, 1, 0]}]},
+       "radius": 0.8, "material": {"color": [0.9, 0.3, 0.2]}},
+      {"type": "box", "min": [-0.5, 0, -2], "max": [0.5, 1, -1], "material": {"color": [0.2, 0.8, 0.3]}},
+      {"type": "sphere", "loc": [1.5, 0.5, 1], "radius": 0.5, "material": {"color": [0.3, 0.3, 0.9]}}
+    ],
+    "scene_lights": [{"type": "point", "loc": [2, 6, 4], "intensity": 60}]
+  })";
+  const scene::LoadResult loaded = scene::load_scene_string(json, "flying");
+  REQUIRE(loaded.ok());
+  const scene::SceneDesc& desc = *loaded.scene;
+  REQUIRE(scene::is_animated(desc));
+  const worker::PreparedScene prepared =
+      worker::prepare_scene(scene::canonical_json(desc), scene::scene_digest(desc), accel::best_isa());
+  REQUIRE(prepared.scene != nullptr);
+  REQUIRE(prepared.scene->scene().animated());
+  CHECK(prepared.scene->scene().static_part()->moving == std::vector<bool>{false, true, false, false});
+  const render::TileRect rect{0, 0, 32, 24};
+  std::vector<std::vector<float>> images;
+  for (const std::uint32_t k : {12u, 0u, 24u}) {
+    CAPTURE(k);
+    const scene::SceneDesc at = scene::scene_at_frame(desc, k);
+    const render::Tile worker_tile = prepared.scene->render(at.render, rect);
+    CHECK(same_bits(worker_tile.rgb, render::render_tile(render::RenderScene::build(at), at.render, rect).rgb));
+    images.push_back(worker_tile.rgb);
+  }
+  CHECK_FALSE(same_bits(images[1], images[2]));
 }
 
 TEST_CASE("a static scene from a body renders frame k as scene_at_frame(k), one scene for all", "[worker][frames]") {
