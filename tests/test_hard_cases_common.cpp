@@ -161,14 +161,15 @@ constexpr LD kSelf = 1e-10;
 
 DielectricReference::DielectricReference(const render::RenderScene& rs, std::uint32_t max_depth)
     : max_depth_(max_depth) {
-  const std::vector<accel::Shape>& shapes = rs.geometry().shapes();
-  for (std::uint32_t i = 0; i < shapes.size(); ++i) {
+  const accel::LayeredGeometry& geometry = rs.geometry();
+  for (std::uint32_t i = 0; i < geometry.shape_count(); ++i) {
+    const accel::Shape& shape = geometry.shape(i);
     const render::MaterialF& m = rs.material(i);
     // Only clear dielectrics: anything else would need lights and local shading.
     REQUIRE(m.transparency == 1.0f);
     REQUIRE(m.reflectivity == 0.0f);
-    REQUIRE(shapes[i].type != accel::ShapeType::kPlane);
-    shapes_.push_back(shapes[i]);
+    REQUIRE(shape.type != accel::ShapeType::kPlane);
+    shapes_.push_back(shape);
     iors_.push_back(m.ior);
   }
 }

@@ -67,7 +67,7 @@ TEST_CASE("glass cube: total internal reflection and energy conservation", "[har
       const render::Tile tile = render_image(rs, desc.render);
       CHECK(tile.stats.nan_samples == 0);
       CHECK(tile.stats.inf_samples == 0);
-      const accel::BoxShape& cube = rs.geometry().shapes()[0].box;
+      const accel::BoxShape& cube = rs.geometry().shape(0).box;
       std::uint32_t top = 0, red = 0, gain = 0;
       for (std::uint32_t y = 0; y < 64; ++y) {
         for (std::uint32_t x = 0; x < 64; ++x) {
@@ -355,7 +355,7 @@ void check_camera_inside_sphere(const scene::SceneDesc& desc, std::uint32_t inne
   CHECK(tile.stats.nan_samples == 0);
   CHECK(tile.stats.inf_samples == 0);
 
-  const accel::SphereShape& s = rs.geometry().shapes()[inner].sphere;
+  const accel::SphereShape& s = rs.geometry().shape(inner).sphere;
   const LD critical_h = LD(s.radius) * LD(float(n_out)) / LD(rs.material(inner).ior);
   const DielectricReference reference(rs, desc.render.max_depth);
   const double background = desc.render.background.z;

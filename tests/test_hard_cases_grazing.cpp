@@ -112,8 +112,8 @@ TEST_CASE("grazing rays at a sphere's silhouette: monotone hit/miss and finite r
                                 &diffuse_scene = scenes.diffuse;
       const render::TraceLimits limits{Vec3f(background), 64};
 
-      const accel::Geometry& geometry = glass_scene.geometry();
-      const accel::SphereShape& s = geometry.shapes()[0].sphere;
+      const accel::LayeredGeometry& geometry = glass_scene.geometry();
+      const accel::SphereShape& s = geometry.shape(0).sphere;
       const V3L c = ld(s.center);
       const LD r = s.radius;
       const LD a = fam.angle_deg * kPi / 180;

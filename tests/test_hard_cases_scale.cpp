@@ -49,7 +49,7 @@ LitSphere render_lit_sphere(const scene::SceneDesc& desc) {
   out.tile = render_image(out.rs, desc.render);
   CHECK(out.tile.stats.nan_samples == 0);
   CHECK(out.tile.stats.inf_samples == 0);
-  out.shape = out.rs.geometry().shapes()[0].sphere;
+  out.shape = out.rs.geometry().shape(0).sphere;
   out.center = ld(out.shape.center);
   out.radius = out.shape.radius;
   out.light = ld(out.rs.lights()[0].position);
@@ -176,8 +176,8 @@ TEST_CASE("sphere on a plane under grazing light: no shadow acne at any scale", 
       CHECK(tile.stats.nan_samples == 0);
       CHECK(tile.stats.inf_samples == 0);
 
-      const accel::PlaneShape& pl = rs.geometry().shapes()[0].plane;
-      const accel::SphereShape& sp = rs.geometry().shapes()[1].sphere;
+      const accel::PlaneShape& pl = rs.geometry().shape(0).plane;
+      const accel::SphereShape& sp = rs.geometry().shape(1).sphere;
       const V3L plane_point = ld(pl.point), plane_normal = ld(pl.normal);
       const V3L center = ld(sp.center);
       const LD radius = sp.radius;

@@ -42,7 +42,6 @@ using namespace dtraced;
 using namespace dtraced::testing;
 using worker::Backoff;
 using worker::SceneCache;
-using worker::ScenePtr;
 using worker::WorkerConfig;
 
 // ---- backoff -------------------------------------------------------------------------------------
@@ -161,9 +160,18 @@ TEST_CASE("the log limiter remembers a bounded number of keys, forgetting the ol
 
 // ---- scene cache -------------------------------------------------------------------------------
 
+namespace {
+
+worker::FramesPtr prepared(const scene::SceneDesc& desc) {
+  return std::make_shared<const worker::SceneFrames>(render::AnimatedScene::prepare(desc));
+}
+
+}  // namespace
+
 TEST_CASE("the scene cache is bounded and evicts the least recently used scene", "[worker][scene_cache]") {
   SceneCache cache(2);
-  const ScenePtr a = build(other_scene(0.5)), b = build(other_scene(0.6)), c = build(other_scene(0.7));
+  const worker::FramesPtr a = prepared(other_scene(0.5)), b = prepared(other_scene(0.6)),
+                          c = prepared(other_scene(0.7));
   cache.insert("a", a);
   cache.insert("b", b);
   CHECK(cache.size() == 2);
@@ -193,10 +201,10 @@ TEST_CASE("the scene cache is bounded and evicts the least recently used scene",
 
 TEST_CASE("an evicted scene stays alive while a render still uses it", "[worker][scene_cache]") {
   SceneCache cache(1);
-  ScenePtr in_use = build(other_scene(0.5));
-  std::weak_ptr<const render::RenderScene> watch = in_use;
+  worker::FramesPtr in_use = prepared(other_scene(0.5));
+  std::weak_ptr<const worker::SceneFrames> watch = in_use;
   cache.insert("a", in_use);
-  cache.insert("b", build(other_scene(0.6)));
+  cache.insert("b", prepared(other_scene(0.6)));
   CHECK_FALSE(cache.contains("a"));
   CHECK_FALSE(watch.expired());
   in_use.reset();
@@ -213,7 +221,7 @@ TEST_CASE("prepare_scene builds a scene whose body matches its digest and refuse
     REQUIRE(prepared.scene != nullptr);
     CHECK(prepared.error.empty());
     const scene::TileRect rect{16, 0, 16, 16};
-    CHECK(same_bits(render::render_tile(*prepared.scene, desc.render, rect).rgb,
+    CHECK(same_bits(prepared.scene->render(desc.render, rect).rgb,
                     render::render_tile(*build(desc), desc.render, rect).rgb));
   }
   SECTION("a body with other whitespace but the same scene is accepted") {

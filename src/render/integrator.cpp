@@ -409,7 +409,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
   using T = Tracer<kF>;
   constexpr int kN = accel::kPacketSize;
   T tracer{scene, limits, stats};
-  const accel::Geometry& geometry = scene.geometry();
+  const accel::LayeredGeometry& geometry = scene.geometry();
   const MediumStack camera_media = tracer.camera_media();
 
   accel::Hit hits[kN];

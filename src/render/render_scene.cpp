@@ -6,6 +6,8 @@
 #include <limits>
 #include <numbers>
 
+#include "scene/animation.h"
+
 namespace dtraced::render {
 
 namespace {
@@ -63,6 +65,10 @@ void append_shapes(const scene::Object& o, std::vector<accel::Shape>& shapes) {
     s.triangle = {v[i], v[i + 1], v[i + 2]};
     shapes.push_back(s);
   }
+}
+
+std::size_t shape_count_of(const scene::Object& o) {
+  return o.type == scene::ObjectType::kMesh ? o.mesh->triangle_count() : 1;
 }
 
 // A unit vector perpendicular to unit n (any one: the disk is symmetric about its normal).
@@ -124,7 +130,8 @@ bool solid_contains(const accel::Shape& s, const Vec3f& o) {
 }
 
 // See RenderScene::camera_media(). `first_shape[i]`: the first shape of object i.
-std::vector<std::uint32_t> find_camera_media(const accel::Geometry& geometry, const std::vector<scene::Object>& objects,
+std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geometry,
+                                             const std::vector<scene::Object>& objects,
                                              const std::vector<std::uint32_t>& shape_object,
                                              const std::vector<std::uint32_t>& first_shape, const Vec3f& camera) {
   // Any direction serves closed shapes; this one lies off every axis and diagonal, so a probe from
@@ -161,7 +168,7 @@ std::vector<std::uint32_t> find_camera_media(const accel::Geometry& geometry, co
       if (crossings[i] % 2 == 1) media.push_back({last_t[i], i});
       continue;
     }
-    const accel::Shape& shape = geometry.shapes()[first_shape[i]];
+    const accel::Shape& shape = geometry.shape(first_shape[i]);
     if (!solid_contains(shape, camera)) continue;
     accel::Hit exit;
     const bool found = accel::intersect_shape(shape, first_shape[i], probe, exit);
@@ -203,31 +210,70 @@ math::Ray CameraF::generate(double fx, double fy, std::uint32_t width, std::uint
   return ray;
 }
 
-RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
+std::shared_ptr<const StaticPart> StaticPart::build(const scene::SceneDesc& desc, std::vector<bool> moving,
+                                                    accel::Isa isa) {
+  assert(moving.size() == desc.objects.size());
+  auto part = std::make_shared<StaticPart>();
+  std::vector<accel::Shape> shapes;
+  std::vector<std::uint32_t> ids;
+  for (std::size_t i = 0; i < desc.objects.size(); ++i) {
+    const std::size_t first = part->shape_count;
+    part->shape_count += shape_count_of(desc.objects[i]);
+    if (moving[i]) continue;
+    append_shapes(desc.objects[i], shapes);
+    for (std::size_t id = first; id < part->shape_count; ++id) ids.push_back(static_cast<std::uint32_t>(id));
+  }
+  assert(part->shape_count <= std::numeric_limits<std::uint32_t>::max());
+  part->layer = accel::Layer::build(std::move(shapes), std::move(ids), isa);
+  part->moving = std::move(moving);
+  part->isa = isa;
+  return part;
+}
+
+RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) { return assemble(desc, nullptr, isa); }
+
+RenderScene RenderScene::build_frame(const scene::SceneDesc& frame, const StaticPart& part) {
+  return assemble(frame, &part, part.isa);
+}
+
+// Without `part`, every shape goes into one Geometry (a static scene: today's single BVH); with
+// it, only the shapes of moving objects are built, into the frame's own layer.
+RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa) {
+  assert(part == nullptr || part->moving.size() == desc.objects.size());
   RenderScene rs;
   std::size_t shape_count = 0;
-  for (const scene::Object& o : desc.objects) {
-    shape_count += o.type == scene::ObjectType::kMesh ? o.mesh->triangle_count() : 1;
-  }
+  for (const scene::Object& o : desc.objects) shape_count += shape_count_of(o);
   // Shape ids are 32-bit (accel::Hit::shape); the loader's limits keep far below that.
   assert(shape_count <= std::numeric_limits<std::uint32_t>::max());
-  std::vector<accel::Shape> shapes;
-  shapes.reserve(shape_count);
+  assert(part == nullptr || part->shape_count == shape_count);
+  std::vector<accel::Shape> shapes;  // all of them, or the moving ones
+  std::vector<std::uint32_t> ids;    // with a part: the scene-wide id of each of `shapes`
+  if (part == nullptr) shapes.reserve(shape_count);
   rs.shape_object_.reserve(shape_count);
   rs.materials_.reserve(desc.objects.size());
   std::vector<std::uint32_t> first_shape(desc.objects.size());
   for (std::size_t i = 0; i < desc.objects.size(); ++i) {
     const scene::Object& o = desc.objects[i];
-    first_shape[i] = static_cast<std::uint32_t>(shapes.size());
-    append_shapes(o, shapes);
-    rs.shape_object_.resize(shapes.size(), static_cast<std::uint32_t>(i));
+    const std::size_t first = rs.shape_object_.size();
+    first_shape[i] = static_cast<std::uint32_t>(first);
+    const std::size_t end = first + shape_count_of(o);
+    if (part == nullptr || part->moving[i]) append_shapes(o, shapes);
+    if (part != nullptr && part->moving[i]) {
+      for (std::size_t id = first; id < end; ++id) ids.push_back(static_cast<std::uint32_t>(id));
+    }
+    rs.shape_object_.resize(end, static_cast<std::uint32_t>(i));
     rs.materials_.push_back(to_material(o.material));
     rs.has_transparency_ = rs.has_transparency_ || o.material.transparency > 0.0;
     rs.features_.reflection = rs.features_.reflection || o.material.reflectivity > 0.0;
     rs.features_.specular = rs.features_.specular || o.material.specular > 0.0;
   }
   rs.features_.refraction = rs.has_transparency_;
-  rs.geometry_ = accel::Geometry::build(std::move(shapes), isa);
+  if (part == nullptr) {
+    rs.geometry_ = accel::LayeredGeometry(accel::Geometry::build(std::move(shapes), isa));
+  } else {
+    rs.geometry_ =
+        accel::LayeredGeometry(part->layer, accel::Layer::build(std::move(shapes), std::move(ids), isa), shape_count);
+  }
   for (const scene::Light& l : desc.lights) {
     if (l.is_area()) {
       rs.area_lights_.push_back(to_area_light(l));
@@ -252,6 +298,28 @@ RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) {
     rs.camera_media_ = find_camera_media(rs.geometry_, desc.objects, rs.shape_object_, first_shape, origin);
   }
   return rs;
+}
+
+AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, accel::Isa isa) {
+  if (!scene::is_animated(desc)) {
+    AnimatedScene out;
+    out.still_ = std::make_shared<const RenderScene>(RenderScene::build(desc, isa));
+    return out;
+  }
+  return prepare(desc, scene::moving_objects(desc), isa);
+}
+
+AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, std::vector<bool> moving, accel::Isa isa) {
+  AnimatedScene out;
+  out.desc_ = std::make_shared<const scene::SceneDesc>(desc);
+  // Objects that do not move are the same at every time; time 0 is as good as any.
+  out.part_ = StaticPart::build(scene::scene_at(desc, 0.0), std::move(moving), isa);
+  return out;
+}
+
+std::shared_ptr<const RenderScene> AnimatedScene::frame(std::uint32_t n) const {
+  if (still_) return still_;
+  return std::make_shared<const RenderScene>(RenderScene::build_frame(scene::scene_at_frame(*desc_, n), *part_));
 }
 
 }  // namespace dtraced::render

@@ -1,16 +1,20 @@
 // dtraced::render render-ready scene: float materials, lights, camera and the acceleration
 // structure, built once from a scene::SceneDesc, and the scene's feature set (what the integrator
-// needs to model; see SceneFeatures).
+// needs to model; see SceneFeatures). For an animated scene, AnimatedScene: the shapes that do
+// not move are built once (StaticPart) and every frame adds only the layer of those that move.
 //
-// Thread-safety: immutable after build(); shared read-only by every render thread.
+// Thread-safety: immutable after build(); shared read-only by every render thread. AnimatedScene
+// is immutable too; frame() builds a new RenderScene per call and may run on any thread.
 #pragma once
 
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "accel/geometry.h"
+#include "accel/layered.h"
 #include "math/ray.h"
 #include "math/vec.h"
 #include "scene/description.h"
@@ -81,13 +85,34 @@ struct CameraF {
   math::Ray generate(double fx, double fy, std::uint32_t width, std::uint32_t height) const;
 };
 
+// The shapes of an animation's objects that do not move, built once: one accel::Layer shared by
+// every frame's RenderScene.
+struct StaticPart {
+  std::vector<bool> moving;                   // per object of the description: its shapes are built per frame
+  std::shared_ptr<const accel::Layer> layer;  // the shapes of the other objects
+  std::size_t shape_count = 0;                // of the whole scene
+  accel::Isa isa = accel::Isa::kScalar;
+
+  // `moving` has one flag per object of `desc` (asserted); `desc` is any frame of the animation:
+  // the objects that do not move are the same in all.
+  static std::shared_ptr<const StaticPart> build(const scene::SceneDesc& desc, std::vector<bool> moving,
+                                                 accel::Isa isa);
+};
+
 class RenderScene {
  public:
   // The description must have passed validation (scene::load_*); build asserts its invariants.
   // `isa` picks the traversal kernels (accel/isa.h); every choice renders the same bits.
   static RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa());
 
-  const accel::Geometry& geometry() const { return geometry_; }
+  // One frame of an animation (`frame`: scene::scene_at_frame of the description `part` was built
+  // from): the shapes of moving objects are built now, the others are part's shared layer.
+  // Renders the same bits as build(frame, part.isa): shape ids stay the description's.
+  static RenderScene build_frame(const scene::SceneDesc& frame, const StaticPart& part);
+
+  // Ray queries over the scene's shapes, one layer or two (accel/layered.h); shape ids are
+  // scene-wide either way.
+  const accel::LayeredGeometry& geometry() const { return geometry_; }
   // The material of the object a shape belongs to.
   const MaterialF& material(std::uint32_t shape) const { return materials_[shape_object_[shape]]; }
   // The scene object (index into SceneDesc::objects) a shape belongs to: one shape per sphere,
@@ -111,7 +136,9 @@ class RenderScene {
   const std::vector<std::uint32_t>& camera_media() const { return camera_media_; }
 
  private:
-  accel::Geometry geometry_;
+  static RenderScene assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa);
+
+  accel::LayeredGeometry geometry_;
   std::vector<MaterialF> materials_;         // one per scene object
   std::vector<std::uint32_t> shape_object_;  // shape id -> object index: 4 bytes per triangle
   std::vector<PointLightF> lights_;
@@ -120,6 +147,31 @@ class RenderScene {
   CameraF camera_;
   bool has_transparency_ = false;
   std::vector<std::uint32_t> camera_media_;  // object indices, outermost first
+};
+
+// A scene description prepared for rendering any of its frames. Built once per description.
+class AnimatedScene {
+ public:
+  // A static scene (scene::is_animated false) is built once, as RenderScene::build; an animated
+  // one gets its StaticPart from scene::moving_objects.
+  static AnimatedScene prepare(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa());
+  // An animated scene split by an explicit mask (one flag per object), whatever is_animated says.
+  static AnimatedScene prepare(const scene::SceneDesc& desc, std::vector<bool> moving,
+                               accel::Isa isa = accel::best_isa());
+
+  // The render-ready scene of frame n: scene::scene_at_frame, then the frame's moving layer (the
+  // static layer shared). For a static scene, the one prepared RenderScene, whatever n. Render
+  // with the settings of scene::scene_at_frame(desc, n).render (the frame also seeds the noise).
+  std::shared_ptr<const RenderScene> frame(std::uint32_t n) const;
+
+  bool animated() const { return still_ == nullptr; }
+  // The shared part of an animated scene; null for a static one.
+  const StaticPart* static_part() const { return part_.get(); }
+
+ private:
+  std::shared_ptr<const scene::SceneDesc> desc_;  // animated: the description frames come from
+  std::shared_ptr<const StaticPart> part_;        // animated
+  std::shared_ptr<const RenderScene> still_;      // static
 };
 
 }  // namespace dtraced::render

@@ -132,7 +132,7 @@ async::Awaitable<std::optional<LeaseAnswer>> Worker::Impl::request_lease() {
 
 // The scene named `digest`, from the cache, or fetched once however many slots need it at once.
 async::Awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
-  if (ScenePtr cached = scenes.find(digest)) co_return SceneOutcome{std::move(cached), /*stopped=*/false, {}};
+  if (FramesPtr cached = scenes.find(digest)) co_return SceneOutcome{std::move(cached), /*stopped=*/false, {}};
   if (const auto it = fetching.find(digest); it != fetching.end()) {
     const std::shared_ptr<PendingScene> pending = it->second;
     while (!pending->finished && !stop.is_set()) co_await (pending->done.wait() || stop.wait());
@@ -188,7 +188,8 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
     co_return outcome;
   }
   scenes_fetched.add();
-  util::log_info("scene {} fetched ({} bytes), verified and built", digest, bytes);
+  util::log_info("scene {} fetched ({} bytes), verified and {}", digest, bytes,
+                 prepared.scene->scene().animated() ? "its static part built" : "built");
   outcome.scene = std::move(prepared.scene);
   co_return outcome;
 }
@@ -196,10 +197,12 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
 async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
   const protocol::Lease& lease = work.lease;
   // The pool reads the lease and the scene while this coroutine waits: both outlive the wait.
-  // Timed on the render thread itself, so that waiting for a free thread does not count.
+  // Timed on the render thread itself, so that waiting for a free thread does not count. The
+  // lease's settings.frame picks the frame of an animated scene (built here, on the render
+  // thread, by the first tile of that frame; the scene keeps the latest few).
   auto render = [&lease, &scene = *work.scene, &clock = clock] {
     const util::TimePoint start = clock.now();
-    render::Tile tile = render::render_tile(scene, lease.settings, lease.rect);
+    render::Tile tile = scene.render(lease.settings, lease.rect);
     const auto took = std::chrono::duration_cast<std::chrono::milliseconds>(clock.now() - start);
     // With adaptive sampling the counts travel too (flag bit 0): the collector checks them and
     // keeps them with the pixels.

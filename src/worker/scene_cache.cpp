@@ -1,5 +1,6 @@
 #include "worker/scene_cache.h"
 
+#include <algorithm>
 #include <cassert>
 #include <utility>
 
@@ -16,16 +17,62 @@ constexpr std::size_t kMaxQuotedErrors = 3;
 
 }  // namespace
 
+SceneFrames::SceneFrames(render::AnimatedScene scene, std::size_t keep) : scene_(std::move(scene)), keep_(keep) {
+  assert(keep >= 1);
+}
+
+ScenePtr SceneFrames::frame(std::uint32_t n) const {
+  if (!scene_.animated()) return scene_.frame(n);
+  std::shared_future<ScenePtr> kept;
+  std::promise<ScenePtr> building;
+  {
+    std::lock_guard lock(mu_);
+    const auto it = std::find_if(recent_.begin(), recent_.end(), [n](const auto& entry) { return entry.first == n; });
+    if (it != recent_.end()) {
+      recent_.splice(recent_.begin(), recent_, it);
+      kept = it->second;
+    } else {
+      recent_.emplace_front(n, building.get_future().share());
+      // A frame evicted while it builds stays alive for the threads waiting for it.
+      while (recent_.size() > keep_) recent_.pop_back();
+    }
+  }
+  if (kept.valid()) return kept.get();  // built, or being built by another thread: waited for
+  try {
+    ScenePtr scene = scene_.frame(n);
+    building.set_value(scene);
+    return scene;
+  } catch (...) {
+    // Not kept: the next lease of this frame tries again.
+    {
+      std::lock_guard lock(mu_);
+      std::erase_if(recent_, [n](const auto& entry) { return entry.first == n; });
+    }
+    building.set_exception(std::current_exception());
+    throw;
+  }
+}
+
+render::Tile SceneFrames::render(const scene::RenderSettings& settings, const render::TileRect& rect) const {
+  const ScenePtr scene = frame(settings.frame);
+  return render::render_tile(*scene, settings, rect);
+}
+
+std::size_t SceneFrames::kept() const {
+  std::lock_guard lock(mu_);
+  return recent_.size();
+}
+
 SceneCache::SceneCache(std::size_t capacity) : capacity_(capacity) { assert(capacity >= 1); }
 
-ScenePtr SceneCache::find(std::string_view digest) {
+FramesPtr SceneCache::find(std::string_view digest) {
   const auto it = index_.find(digest);
   if (it == index_.end()) return nullptr;
   entries_.splice(entries_.begin(), entries_, it->second);
   return it->second->second;
 }
 
-void SceneCache::insert(const std::string& digest, ScenePtr scene) {
+void SceneCache::insert(const std::string& digest, FramesPtr scene) {
   assert(scene != nullptr);
   if (const auto it = index_.find(digest); it != index_.end()) {
     it->second->second = std::move(scene);
@@ -64,7 +111,7 @@ PreparedScene prepare_scene(std::string_view body, std::string_view digest, acce
     prepared.error = fmt::format("the body sent as {} is another scene (its digest is {})", label, actual);
     return prepared;
   }
-  prepared.scene = std::make_shared<const render::RenderScene>(render::RenderScene::build(*loaded.scene, isa));
+  prepared.scene = std::make_shared<const SceneFrames>(render::AnimatedScene::prepare(*loaded.scene, isa));
   return prepared;
 }
 

@@ -1,28 +1,68 @@
-// dtraced::worker scene cache: render-ready scenes by content digest, bounded, least recently used
-// evicted; and the one step that turns a fetched scene body into a verified, built scene.
+// dtraced::worker scene cache: prepared scenes by content digest, bounded, least recently used
+// evicted; the frames of an animated scene built lately (SceneFrames); and the one step that turns
+// a fetched scene body into a verified, prepared scene.
 //
 // Scenes are immutable and named by the SHA-256 of their canonical form (scene/digest.h), so a
 // cached scene never goes stale and a body can be checked against the digest that names it. A
 // scene evicted while tiles still render from it stays alive until they finish (shared_ptr); the
 // cache bounds what is kept for later, not what is in use.
 //
-// Thread-safety: SceneCache has none; one owner (the worker's event loop) calls it.
+// Thread-safety: SceneCache has none; one owner (the worker's event loop) calls it. SceneFrames is
+// thread-safe: the render threads ask it for frames at once.
 // prepare_scene is a pure function, thread-safe, and meant for the render pool: parsing a large
 // scene and building its BVH take too long for an event loop.
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
+#include <future>
 #include <list>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <string_view>
 #include <unordered_map>
+#include <utility>
 
 #include "render/render_scene.h"
+#include "render/tile.h"
 
 namespace dtraced::worker {
 
 using ScenePtr = std::shared_ptr<const render::RenderScene>;
+
+// A prepared scene and the render-ready frames built from it lately. The leases of a sequence
+// come frame after frame, a few frames in flight at once (one per render thread at worst): those
+// are kept, so a frame's moving layer is built once per worker, not once per tile. A static scene
+// has one RenderScene for every frame and keeps nothing more.
+class SceneFrames {
+ public:
+  // Frames kept per scene (least recently asked for evicted).
+  static constexpr std::size_t kKeptFrames = 4;
+
+  // keep >= 1 (asserted).
+  explicit SceneFrames(render::AnimatedScene scene, std::size_t keep = kKeptFrames);
+
+  // Frame n (render::AnimatedScene::frame), built at most once while kept: a thread asking for a
+  // frame another is building waits for it. Builds on the calling thread (a render thread).
+  ScenePtr frame(std::uint32_t n) const;
+
+  // A lease's tile: `rect` of frame settings.frame, rendered with `settings` (the lease's).
+  render::Tile render(const scene::RenderSettings& settings, const render::TileRect& rect) const;
+
+  // How many frames are kept now (built or being built).
+  std::size_t kept() const;
+  const render::AnimatedScene& scene() const { return scene_; }
+
+ private:
+  render::AnimatedScene scene_;
+  std::size_t keep_;
+  mutable std::mutex mu_;
+  // Most recently asked for first; guarded by mu_.
+  mutable std::list<std::pair<std::uint32_t, std::shared_future<ScenePtr>>> recent_;
+};
+
+using FramesPtr = std::shared_ptr<const SceneFrames>;
 
 class SceneCache {
  public:
@@ -30,11 +70,11 @@ class SceneCache {
   explicit SceneCache(std::size_t capacity);
 
   // The scene named `digest`, which becomes the most recently used; null when not cached.
-  ScenePtr find(std::string_view digest);
+  FramesPtr find(std::string_view digest);
 
   // Adds (or replaces) `digest` as the most recently used, evicting the least recently used
   // scenes beyond the capacity. `scene` is not null (asserted).
-  void insert(const std::string& digest, ScenePtr scene);
+  void insert(const std::string& digest, FramesPtr scene);
 
   // Whether `digest` is cached, without marking it used.
   bool contains(std::string_view digest) const;
@@ -43,7 +83,7 @@ class SceneCache {
   std::size_t capacity() const { return capacity_; }
 
  private:
-  using Entry = std::pair<std::string, ScenePtr>;
+  using Entry = std::pair<std::string, FramesPtr>;
 
   std::size_t capacity_;
   std::list<Entry> entries_;  // most recently used first
@@ -51,15 +91,16 @@ class SceneCache {
   std::unordered_map<std::string_view, std::list<Entry>::iterator> index_;
 };
 
-// A verified, built scene, or why the body was refused.
+// A verified, prepared scene, or why the body was refused.
 struct PreparedScene {
-  ScenePtr scene;     // set on success
+  FramesPtr scene;    // set on success
   std::string error;  // set on failure
 };
 
 // Loads `body` (scene JSON as GET /v1/scenes/{digest} answers it), checks that the scene it
 // describes has the digest `digest` (scene_digest of the loaded scene, i.e. the SHA-256 of its
-// canonical form), and builds the render-ready scene with the kernels of `isa`. A body that does
+// canonical form), and prepares it with the kernels of `isa` (render::AnimatedScene::prepare: a
+// static scene is built whole, an animated one its static layer). A body that does
 // not load, or that names another scene (tampered, truncated, or from a collector of another
 // version), is refused; so is one with a mesh "file": a worker reads nothing from its own disk
 // on a scene's behalf (canonical scenes carry their meshes inline).

@@ -42,7 +42,7 @@ namespace dtraced::worker {
 // A lease ready to render: its scene is built.
 struct Work {
   protocol::Lease lease;
-  ScenePtr scene;
+  FramesPtr scene;
   InHand::Reservation reservation;
 };
 
@@ -56,7 +56,7 @@ struct HeldTile {
 };
 
 struct SceneOutcome {
-  ScenePtr scene;        // set on success
+  FramesPtr scene;       // set on success
   bool stopped = false;  // the worker is stopping; nobody needs the scene now
   std::string error;     // why not, otherwise
 };

@@ -1,0 +1,158 @@
+// dtraced-bench-frames: what a frame of an animation costs when only a few objects move. The scene
+// is scene::generate_sphere_field (a large field of spheres that stays still) plus a few spheres
+// that fly across it; each frame moves those. Per frame it times
+//   (a) full rebuild: RenderScene::build of the frame's description (one BVH over everything),
+//   (b) static shared: RenderScene::build_frame on the StaticPart built once (the moving layer only),
+// and the render of the frame from each (render::render_local): the first render (what a frame
+// pays: a freshly built BVH is cold in the caches) and a second one (the two-level traversal's own
+// cost, both warm). Refit of the moving layer is not offered: the table times the moving layer's
+// build alone, the most a refit could save, and it is a small part of (b).
+// A benchmark, not a test: it prints a table of medians over the frames and judges nothing.
+//
+// Threading: main's thread builds; renders use --threads threads (render_local).
+#include <algorithm>
+#include <chrono>
+#include <cstdint>
+#include <cstdio>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+#include <fmt/format.h>
+
+#include "accel/isa.h"
+#include "accel/layered.h"
+#include "render/local_render.h"
+#include "render/render_scene.h"
+#include "scene/generate.h"
+
+namespace {
+
+using namespace dtraced;
+using Clock = std::chrono::steady_clock;
+
+struct Options {
+  std::uint32_t statics = 100'000;
+  std::uint32_t moving = 8;
+  std::uint32_t frames = 9;
+  std::uint32_t width = 320;
+  std::uint32_t height = 240;
+  std::uint32_t threads = 0;
+  std::string isa = "best";
+};
+
+double seconds_since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  const std::size_t n = v.size();
+  return n % 2 == 1 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+// Frame k: the flying spheres (the last `moving` objects) moved along x, each at its own speed.
+scene::SceneDesc frame_of(const scene::SceneDesc& base, std::uint32_t moving, std::uint32_t k) {
+  scene::SceneDesc f = base;
+  f.render.frame = k;
+  for (std::uint32_t i = 0; i < moving; ++i) {
+    scene::Object& o = f.objects[f.objects.size() - moving + i];
+    o.sphere.center.x += 0.5 * (1 + i % 3) * k;
+  }
+  return f;
+}
+
+struct Row {
+  std::string name;
+  std::vector<double> build, render, again;
+};
+
+// The moving layer alone, as build_frame builds it: the frame's flying spheres, ids after the rest.
+double moving_layer_seconds(const scene::SceneDesc& f, std::uint32_t moving, accel::Isa isa) {
+  std::vector<accel::Shape> shapes;
+  std::vector<std::uint32_t> ids;
+  for (std::size_t i = f.objects.size() - moving; i < f.objects.size(); ++i) {
+    accel::Shape s;
+    s.type = accel::ShapeType::kSphere;
+    s.sphere = {math::Vec3f(f.objects[i].sphere.center), float(f.objects[i].sphere.radius)};
+    shapes.push_back(s);
+    ids.push_back(static_cast<std::uint32_t>(i));
+  }
+  const Clock::time_point t = Clock::now();
+  const std::shared_ptr<const accel::Layer> layer = accel::Layer::build(std::move(shapes), std::move(ids), isa);
+  return seconds_since(t);
+}
+
+int run(const Options& opt) {
+  const std::optional<accel::Isa> isa = accel::parse_isa(opt.isa);
+  if (!isa) {
+    std::fprintf(stderr, "dtraced-bench-frames: --isa %s: not an instruction set this build knows\n", opt.isa.c_str());
+    return 2;
+  }
+  scene::SceneDesc base = scene::generate_sphere_field(opt.statics, 7);
+  base.render.width = opt.width;
+  base.render.height = opt.height;
+  base.render.samples = 1;
+  const math::Vec3d at = base.camera.look_at;
+  for (std::uint32_t i = 0; i < opt.moving; ++i) {
+    scene::Object o;
+    o.type = scene::ObjectType::kSphere;
+    o.sphere = {at + math::Vec3d{-4.0 + i, 1.5 + 0.3 * (i % 4), 2.0 - 0.5 * i}, 0.4};
+    o.material.color = {0.9, 0.9, 0.95};
+    base.objects.push_back(o);
+  }
+  std::vector<bool> mask(base.objects.size(), false);
+  std::fill(mask.end() - opt.moving, mask.end(), true);
+
+  const Clock::time_point part_start = Clock::now();
+  const std::shared_ptr<const render::StaticPart> part = render::StaticPart::build(base, mask, *isa);
+  const double part_seconds = seconds_since(part_start);
+
+  render::LocalOptions lo;
+  lo.threads = opt.threads;
+  Row full{"(a) full rebuild", {}, {}, {}}, shared{"(b) static shared + rebuild moving", {}, {}, {}};
+  std::vector<double> moving_layer;
+  for (std::uint32_t k = 0; k < opt.frames; ++k) {
+    const scene::SceneDesc f = frame_of(base, opt.moving, k);
+    Clock::time_point t = Clock::now();
+    const render::RenderScene whole = render::RenderScene::build(f, *isa);
+    full.build.push_back(seconds_since(t));
+    t = Clock::now();
+    const render::RenderScene layered = render::RenderScene::build_frame(f, *part);
+    shared.build.push_back(seconds_since(t));
+    moving_layer.push_back(moving_layer_seconds(f, opt.moving, *isa));
+    full.render.push_back(render::render_local(whole, f.render, lo).seconds);
+    shared.render.push_back(render::render_local(layered, f.render, lo).seconds);
+    full.again.push_back(render::render_local(whole, f.render, lo).seconds);
+    shared.again.push_back(render::render_local(layered, f.render, lo).seconds);
+  }
+
+  fmt::print("dtraced-bench-frames: {} static spheres + {} moving, {}x{} 1 spp, isa {}, {} frames (medians)\n",
+             opt.statics, opt.moving, opt.width, opt.height, accel::isa_name(*isa), opt.frames);
+  fmt::print("static part, built once: {:.2f} ms\n", part_seconds * 1e3);
+  fmt::print("{:<36} {:>10} {:>10} {:>10} {:>12}\n", "per frame", "build ms", "render ms", "total ms", "re-render ms");
+  for (const Row& r : {full, shared}) {
+    const double b = median(r.build), re = median(r.render);
+    fmt::print("{:<36} {:>10.3f} {:>10.2f} {:>10.2f} {:>12.2f}\n", r.name, b * 1e3, re * 1e3, (b + re) * 1e3,
+               median(r.again) * 1e3);
+  }
+  fmt::print("moving layer alone (the most a refit could save): {:.3f} ms\n", median(moving_layer) * 1e3);
+  fmt::print("build speed-up (a)/(b): {:.0f}x; frame speed-up: {:.1f}x\n", median(full.build) / median(shared.build),
+             (median(full.build) + median(full.render)) / (median(shared.build) + median(shared.render)));
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Options opt;
+  CLI::App app{"dtraced-bench-frames: per-frame cost of an animation whose large static part is built once"};
+  app.add_option("--static", opt.statics, "Spheres that stay still")->check(CLI::Range(1u, 1'000'000u));
+  app.add_option("--moving", opt.moving, "Spheres that move")->check(CLI::Range(1u, 1000u));
+  app.add_option("--frames", opt.frames, "Frames timed")->check(CLI::Range(1u, 1000u));
+  app.add_option("--width", opt.width, "Image width")->check(CLI::Range(1u, 4096u));
+  app.add_option("--height", opt.height, "Image height")->check(CLI::Range(1u, 4096u));
+  app.add_option("--threads", opt.threads, "Render threads (0 = every hardware thread)")->check(CLI::Range(0u, 1024u));
+  app.add_option("--isa", opt.isa, "Traversal kernels: scalar, sse4, avx2, avx512 or best");
+  CLI11_PARSE(app, argc, argv);
+  return run(opt);
+}

@@ -1,0 +1,315 @@
+// Tests of the two-level geometry of animated scenes (accel/layered.h, render::StaticPart,
+// render::AnimatedScene): over random splits of random scenes, two layers answer every query
+// (single rays and 8-ray packets, every instruction set this machine has) exactly as a brute-force
+// search over all the shapes does; a frame built on a shared static layer renders the same bits as
+// the same frame built whole, alone or after other frames; a static scene keeps its one Geometry.
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include <catch2/catch.hpp>
+
+#include "accel/geometry.h"
+#include "accel/isa.h"
+#include "accel/layered.h"
+#include "render/render_scene.h"
+#include "render_checks.h"
+#include "scene/animation.h"
+#include "scene_builders.h"
+#include "shape_builders.h"
+
+using namespace dtraced;
+using namespace dtraced::testing;
+using accel::Hit;
+using accel::Isa;
+using accel::Layer;
+using accel::LayeredGeometry;
+using accel::Shape;
+
+namespace {
+
+// Spheres, boxes, triangles and a plane in a cube of side 20, with exact copies of some shapes
+// (ties in t between the layers, which the smaller id must win).
+std::vector<Shape> mixed_shapes(std::uint64_t seed, int count) {
+  TestRng rng{seed};
+  std::vector<Shape> out;
+  out.push_back(testing::plane({0, -10, 0}, {0, 1, 0}));
+  while (int(out.size()) < count) {
+    const int kind = rng.index(4);
+    const Vec3f c = to_f(rng.in_cube(10));
+    if (kind == 0) {
+      const float r = float(rng.uniform(0.1, 1.5));
+      out.push_back(testing::sphere(c, r));
+    } else if (kind == 1) {
+      const Vec3f h = to_f(Vec3d{rng.uniform(0.1, 1), rng.uniform(0.1, 1), rng.uniform(0.1, 1)});
+      out.push_back(testing::box(c - h, c + h));
+    } else if (kind == 2) {
+      const Vec3f a = c + to_f(rng.unit());
+      const Vec3f b = c + to_f(rng.unit());
+      out.push_back(testing::triangle(c, a, b));
+    } else {
+      out.push_back(out[std::size_t(rng.index(int(out.size())))]);  // a copy: same t, another id
+    }
+  }
+  return out;
+}
+
+struct Split {
+  std::shared_ptr<const Layer> fixed, moving;
+};
+
+// The shapes flagged in `moving` go to one layer, the others to the other, ids kept.
+Split split(const std::vector<Shape>& shapes, const std::vector<bool>& moving, Isa isa) {
+  std::vector<Shape> a, b;
+  std::vector<std::uint32_t> ia, ib;
+  for (std::uint32_t i = 0; i < shapes.size(); ++i) {
+    (moving[i] ? b : a).push_back(shapes[i]);
+    (moving[i] ? ib : ia).push_back(i);
+  }
+  return {Layer::build(std::move(a), std::move(ia), isa), Layer::build(std::move(b), std::move(ib), isa)};
+}
+
+Ray random_ray(TestRng& rng) {
+  const Vec3f o = to_f(rng.in_cube(12));
+  const Vec3f d = unit_f(rng.unit());
+  // Now and then a bounded ray (a shadow ray towards a light) or one starting past its origin.
+  const float t_max = rng.index(4) == 0 ? float(rng.uniform(0.5, 20)) : kInf;
+  const float t_min = rng.index(4) == 0 ? float(rng.uniform(0, 2)) : 0.0f;
+  return make_ray(o, d, t_min, t_max);
+}
+
+// Every query of `g` on `rays` random rays equals the brute-force answer over `shapes`.
+void check_against_brute_force(const LayeredGeometry& g, const std::vector<Shape>& shapes, std::uint64_t seed,
+                               int rays) {
+  TestRng rng{seed};
+  int hits = 0;
+  for (int n = 0; n < rays; n += accel::kPacketSize) {
+    Ray packet[accel::kPacketSize];
+    Hit want[accel::kPacketSize];
+    bool found[accel::kPacketSize];
+    for (int i = 0; i < accel::kPacketSize; ++i) {
+      packet[i] = random_ray(rng);
+      found[i] = brute_force(shapes, packet[i], want[i]);
+      Hit got;
+      INFO(describe(packet[i]));
+      REQUIRE(g.intersect(packet[i], got) == found[i]);
+      if (found[i]) REQUIRE(same_hit(got, want[i]));
+      REQUIRE(g.occluded(packet[i]) == found[i]);
+      hits += found[i] ? 1 : 0;
+    }
+    const std::uint32_t valid = rng.index(3) == 0 ? std::uint32_t(rng.next() & 0xffu) : 0xffu;
+    Hit got[accel::kPacketSize];
+    const std::uint32_t hit_mask = g.intersect8(packet, valid, got) & valid;
+    const std::uint32_t blocked = g.occluded8(packet, valid);
+    for (int i = 0; i < accel::kPacketSize; ++i) {
+      if (!(valid >> i & 1u)) continue;
+      INFO("lane " << i << ": " << describe(packet[i]));
+      REQUIRE(bool(hit_mask >> i & 1u) == found[i]);
+      if (found[i]) REQUIRE(same_hit(got[i], want[i]));
+      REQUIRE(bool(blocked >> i & 1u) == found[i]);
+    }
+  }
+  // The rays must meet the shapes often enough for the comparison to mean something.
+  CHECK(hits > rays / 4);
+}
+
+}  // namespace
+
+TEST_CASE("two layers answer every ray as a brute-force search over all the shapes", "[accel][layers]") {
+  // 400 shapes: both layers large enough for the 8-wide BVH in some splits, small in others.
+  const std::vector<Shape> shapes = mixed_shapes(11, 400);
+  for (const Isa isa : accel::supported_isas()) {
+    for (const int every : {2, 7, 50}) {
+      CAPTURE(accel::isa_name(isa), every);
+      std::vector<bool> moving(shapes.size());
+      TestRng rng{std::uint64_t(every)};
+      for (std::size_t i = 0; i < shapes.size(); ++i) moving[i] = rng.index(every) == 0;
+      const Split s = split(shapes, moving, isa);
+      const LayeredGeometry g(s.fixed, s.moving, shapes.size());
+      REQUIRE(g.fixed() != nullptr);
+      REQUIRE(g.moving() != nullptr);
+      for (std::uint32_t id = 0; id < shapes.size(); ++id) {
+        REQUIRE(g.shape(id).type == shapes[id].type);
+      }
+      check_against_brute_force(g, shapes, 100 + std::uint64_t(every), 4000);
+    }
+  }
+}
+
+TEST_CASE("a hit at the same t in both layers goes to the smaller scene-wide id", "[accel][layers]") {
+  const std::vector<Shape> shapes = {testing::sphere({0, 0, 5}, 1), testing::sphere({0, 0, 5}, 1)};
+  for (const bool first_moves : {false, true}) {
+    const Split s = split(shapes, {first_moves, !first_moves}, Isa::kScalar);
+    const LayeredGeometry g(s.fixed, s.moving, shapes.size());
+    Hit hit;
+    REQUIRE(g.intersect(make_ray({0, 0, 0}, {0, 0, 1}), hit));
+    CHECK(hit.shape == 0);
+    Ray rays[accel::kPacketSize];
+    for (Ray& r : rays) r = make_ray({0, 0, 0}, {0, 0, 1});
+    Hit hits[accel::kPacketSize];
+    REQUIRE(g.intersect8(rays, 0xffu, hits) == 0xffu);
+    for (const Hit& h : hits) CHECK(h.shape == 0);
+  }
+}
+
+TEST_CASE("a layered geometry with one empty layer answers as the other alone", "[accel][layers]") {
+  const std::vector<Shape> shapes = mixed_shapes(5, 120);
+  for (const Isa isa : accel::supported_isas()) {
+    for (const bool all_moving : {false, true}) {
+      CAPTURE(accel::isa_name(isa), all_moving);
+      const Split s = split(shapes, std::vector<bool>(shapes.size(), all_moving), isa);
+      const LayeredGeometry g(s.fixed, s.moving, shapes.size());
+      check_against_brute_force(g, shapes, 7, 800);
+    }
+  }
+}
+
+// ---- render scenes ---------------------------------------------------------------------------
+
+namespace {
+
+// A scene of every kind of object: the bundled mesh scene (a triangle mesh, boxes, spheres, a
+// plane), plus 70 small spheres (so the static layer gets the 8-wide BVH) and a glass sphere
+// around the camera (so camera_media walks the layers).
+scene::SceneDesc busy_scene() {
+  scene::SceneDesc d = bundled_scene("mesh", 40, 30);
+  d.render.samples = 2;
+  TestRng rng{3};
+  for (int i = 0; i < 70; ++i) {
+    d.objects.push_back(testing::sphere(rng.in_cube(3) + d.camera.look_at, 0.15, diffuse({0.3, 0.6, 0.9})));
+  }
+  d.objects.push_back(testing::sphere(d.camera.position, 0.5, glass(1.3)));
+  return d;
+}
+
+// Which objects move: every third one that is not a mesh (the test moves them itself).
+std::vector<bool> every_third(const scene::SceneDesc& d) {
+  std::vector<bool> moving(d.objects.size());
+  for (std::size_t i = 0; i < d.objects.size(); ++i) {
+    moving[i] = i % 3 == 1 && d.objects[i].type != scene::ObjectType::kMesh;
+  }
+  return moving;
+}
+
+// Frame k by hand (until scenes animate): the moving spheres and boxes shifted by k / 4 along x.
+scene::SceneDesc frame_of(const scene::SceneDesc& d, const std::vector<bool>& moving, std::uint32_t k) {
+  scene::SceneDesc f = d;
+  f.render.frame = k;
+  const math::Vec3d shift{0.25 * k, 0, 0};
+  for (std::size_t i = 0; i < f.objects.size(); ++i) {
+    if (!moving[i]) continue;
+    scene::Object& o = f.objects[i];
+    if (o.type == scene::ObjectType::kSphere) o.sphere.center = o.sphere.center + shift;
+    if (o.type == scene::ObjectType::kBox) {
+      o.box.min = o.box.min + shift;
+      o.box.max = o.box.max + shift;
+    }
+  }
+  return f;
+}
+
+}  // namespace
+
+TEST_CASE("a frame built on a shared static layer renders the bits of the frame built whole", "[render][layers]") {
+  const scene::SceneDesc base = busy_scene();
+  const std::vector<bool> moving = every_third(base);
+  for (const Isa isa : accel::supported_isas()) {
+    CAPTURE(accel::isa_name(isa));
+    const std::shared_ptr<const render::StaticPart> part = render::StaticPart::build(base, moving, isa);
+    for (const std::uint32_t k : {0u, 3u, 7u}) {
+      CAPTURE(k);
+      const scene::SceneDesc f = frame_of(base, moving, k);
+      const render::RenderScene layered = render::RenderScene::build_frame(f, *part);
+      const render::RenderScene whole = render::RenderScene::build(f, isa);
+      REQUIRE(layered.geometry().moving() != nullptr);
+      REQUIRE(layered.geometry().fixed() == part->layer.get());  // shared, not rebuilt
+      REQUIRE(layered.camera_media() == whole.camera_media());
+      REQUIRE_FALSE(whole.camera_media().empty());
+      require_identical(render_tiled(whole, f.render, 16, 8, true), render_tiled(layered, f.render, 16, 8, true));
+      require_identical(render_tiled(whole, f.render, 7, 5, false), render_tiled(layered, f.render, 7, 5, false));
+    }
+  }
+}
+
+TEST_CASE("frame k built alone renders the bits of frame k built after other frames", "[render][layers]") {
+  const scene::SceneDesc base = busy_scene();
+  const std::vector<bool> moving = every_third(base);
+  const scene::SceneDesc f5 = frame_of(base, moving, 5);
+  const auto alone_part = render::StaticPart::build(base, moving, accel::best_isa());
+  const render::RenderScene alone = render::RenderScene::build_frame(f5, *alone_part);
+
+  const auto part = render::StaticPart::build(base, moving, accel::best_isa());
+  for (const std::uint32_t k : {0u, 1u, 2u, 9u})
+    (void)render::RenderScene::build_frame(frame_of(base, moving, k), *part);
+  const render::RenderScene after = render::RenderScene::build_frame(f5, *part);
+  require_identical(render_tiled(alone, f5.render, 16, 16, true), render_tiled(after, f5.render, 16, 16, true));
+  // And the motion shows: frame 0 is another image.
+  const scene::SceneDesc f0 = frame_of(base, moving, 0);
+  const render::RenderScene zero = render::RenderScene::build_frame(f0, *part);
+  CHECK(render_tiled(zero, f5.render, 16, 16, true).rgb != render_tiled(after, f5.render, 16, 16, true).rgb);
+}
+
+TEST_CASE("a static scene keeps its one Geometry and renders as before", "[render][layers]") {
+  const scene::SceneDesc d = busy_scene();
+  REQUIRE_FALSE(scene::is_animated(d));
+  const render::AnimatedScene prepared = render::AnimatedScene::prepare(d);
+  CHECK_FALSE(prepared.animated());
+  const std::shared_ptr<const render::RenderScene> f0 = prepared.frame(0), f3 = prepared.frame(3);
+  CHECK(f0 == f3);  // one RenderScene for every frame
+  CHECK(f0->geometry().moving() == nullptr);
+  CHECK(f0->geometry().fixed()->ids.empty());  // ids as given: the one Geometry of today
+  CHECK(f0->geometry().shape_count() == f0->geometry().fixed()->geometry.shapes().size());
+  const render::RenderScene built = render::RenderScene::build(d);
+  require_identical(render_tiled(built, d.render, 16, 16, true), render_tiled(*f3, d.render, 16, 16, true));
+}
+
+TEST_CASE("an animated scene moves its tracked objects and shares the layer of the others", "[render][layers]") {
+  // Loc tracks on every tenth of the small spheres: they fly 2 units along x over one second.
+  scene::SceneDesc d = busy_scene();
+  auto animation = std::make_shared<scene::Animation>();
+  const std::size_t first_small = d.objects.size() - 71;
+  std::vector<bool> want(d.objects.size(), false);
+  for (std::size_t i = first_small; i < d.objects.size() - 1; i += 10) {
+    scene::Track track;
+    track.target = scene::Target::kObjectLoc;
+    track.index = static_cast<std::uint32_t>(i);
+    const math::Vec3d c = d.objects[i].sphere.center;
+    track.keys = {{0.0, c}, {1.0, c + math::Vec3d{2, 0, 0}}};
+    animation->tracks.push_back(track);
+    want[i] = true;
+  }
+  d.animation = animation;
+  REQUIRE(scene::moving_objects(d) == want);
+  const render::AnimatedScene prepared = render::AnimatedScene::prepare(d);
+  REQUIRE(prepared.animated());
+  CHECK(prepared.static_part()->moving == want);
+  for (const std::uint32_t k : {12u, 0u, 24u}) {
+    CAPTURE(k);
+    const std::shared_ptr<const render::RenderScene> f = prepared.frame(k);
+    CHECK(f->geometry().fixed() == prepared.static_part()->layer.get());
+    CHECK(f->geometry().moving()->geometry.shapes().size() == 7);
+    const scene::SceneDesc at = scene::scene_at_frame(d, k);
+    require_identical(render_tiled(render::RenderScene::build(at), at.render, 16, 16, true),
+                      render_tiled(*f, at.render, 16, 16, true));
+  }
+  // The spheres do move: frame 24's sphere is 2 units from frame 0's.
+  const math::Vec3d c0 = scene::scene_at_frame(d, 0).objects[first_small].sphere.center;
+  const math::Vec3d c24 = scene::scene_at_frame(d, 24).objects[first_small].sphere.center;
+  CHECK(c24.x - c0.x == Approx(2.0));
+}
+
+TEST_CASE("an animated scene's frame n is scene_at_frame(n) with the static layer shared", "[render][layers]") {
+  scene::SceneDesc d = busy_scene();
+  d.animation = std::make_shared<const scene::Animation>();
+  const std::vector<bool> moving = every_third(d);
+  const render::AnimatedScene prepared = render::AnimatedScene::prepare(d, moving);
+  REQUIRE(prepared.animated());
+  REQUIRE(prepared.static_part() != nullptr);
+  const std::shared_ptr<const render::RenderScene> a = prepared.frame(4), b = prepared.frame(6);
+  CHECK(a != b);
+  CHECK(a->geometry().fixed() == prepared.static_part()->layer.get());
+  CHECK(b->geometry().fixed() == prepared.static_part()->layer.get());
+  const scene::SceneDesc f4 = scene::scene_at_frame(d, 4);
+  require_identical(render_tiled(render::RenderScene::build(f4), f4.render, 16, 16, true),
+                    render_tiled(*a, f4.render, 16, 16, true));
+}
