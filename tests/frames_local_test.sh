@@ -67,7 +67,7 @@ for k in 2 3; do cmp -s "$work/seq-0$k.pfm" "$work/one-$k.pfm" || fail "resumed 
 ok
 
 # Ctrl-C in the middle of frame 1 of 3: frame 0 stays, frame 1's tiles are kept, --resume finishes.
-slow=(--width 96 --height 72 -s 8 --tile-size 8 -t 1 -q --frames 0-2)
+slow=(--width 320 --height 240 -s 48 --tile-size 8 -t 1 -q --frames 0-2)
 "$DTRACED" render "$scene" "${slow[@]}" -o "$work/straight-%d.pfm" 2>"$work/straight.err" || fail "straight"
 "$DTRACED" render "$scene" "${slow[@]}" -o "$work/cut-%d.pfm" 2>"$work/cut.err" &
 pid=$!

@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <optional>
 #include <string>
 #include <system_error>
@@ -230,7 +231,9 @@ struct Run {
   std::optional<ProgressBar> bar{};
   std::atomic<bool> stop{false};
   std::atomic<int> signal_number{0};
-  bool features_printed = false;  // the scene's features are printed once, with the first frame
+  bool features_printed = false;                    // the scene's features are printed once, with the first frame
+  std::optional<render::AnimatedScene> prepared{};  // every frame's render-ready scene comes from here
+  double prepare_s = 0;                             // its build time, not yet reported
 };
 
 // Renders one frame (`desc` is that frame's static scene) to `image_path` (and `spp_path`, if
@@ -244,9 +247,14 @@ int render_frame(Run& run, const scene::SceneDesc& desc, const std::string& imag
       code != kExitOk) {
     return code;
   }
+  // A static scene was built once (prepare); an animated one builds only this frame's moving
+  // layer here, the static layer shared.
   const auto build_start = std::chrono::steady_clock::now();
-  const render::RenderScene rs = render::RenderScene::build(desc, args.isa);
-  const double build_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+  const std::shared_ptr<const render::RenderScene> scene_of_frame = run.prepared->frame(s.frame);
+  const render::RenderScene& rs = *scene_of_frame;
+  const double build_s =
+      run.prepare_s + std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+  run.prepare_s = 0;  // counted once, with the first frame rendered
 
   render::LocalOptions opts;
   opts.threads = args.threads;
@@ -429,6 +437,10 @@ int run_render(const RenderArgs& args) {
     }
   }
 
+  const auto prepare_start = std::chrono::steady_clock::now();
+  run.prepared.emplace(render::AnimatedScene::prepare(desc, args.isa));
+  run.prepare_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - prepare_start).count();
+
   std::vector<std::string> gif_frames;
   std::uint32_t skipped = 0;
   const StopOnSignals on_signals(run.stop, run.signal_number);
@@ -456,7 +468,7 @@ int run_render(const RenderArgs& args) {
       return code;
     }
   }
-  if (skipped > 0 && !args.quiet) fmt::print(stderr, "resumed: {} frames were already complete\n", skipped);
+  if (skipped > 0) fmt::print(stderr, "resumed: {} frames were already complete\n", skipped);
   if (run.bar) run.bar->draw(run.tiles_per_frame * run.frame_count, run.tiles_per_frame * run.frame_count, "");
   if (gif) return write_gif(args, desc.render, gif_frames);
   return kExitOk;
