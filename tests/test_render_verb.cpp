@@ -85,3 +85,18 @@ TEST_CASE("Exposure and tone change an 8-bit output and leave a PFM's linear pix
   CHECK(bytes_of(png0) != bytes_of(png1));
   CHECK(bytes_of(pfm0) == bytes_of(pfm1));
 }
+
+TEST_CASE("A float EXR holds the same linear pixels as the PFM of the same render") {
+  const dtraced::testing::TempDir dir;
+  const std::string pfm = dir.str() + "/r.pfm", exr = dir.str() + "/r.exr";
+  REQUIRE(cli::run_render(small_render(pfm)) == 0);
+  cli::RenderArgs a = small_render(exr);
+  a.exr_float = true;
+  REQUIRE(cli::run_render(a) == 0);
+  const auto p = image::read_image(pfm);
+  const auto e = image::read_image(exr);
+  REQUIRE(p.ok());
+  REQUIRE(e.ok());
+  CHECK(p->width == e->width);
+  CHECK(p->rgb == e->rgb);
+}

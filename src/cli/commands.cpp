@@ -25,6 +25,7 @@ void add_render(CLI::App& app, LocalCommands& c, std::optional<std::string>& isa
   r->add_flag("--resume", render.resume,
               "Continue the interrupted render kept in OUTPUT.partial (a sequence: skip the frames already written)");
   r->add_flag("--gif-dither", render.gif_dither, "A .gif output: Floyd-Steinberg dithering of each frame's palette");
+  r->add_flag("--exr-float", render.exr_float, "A .exr output: float32 channels instead of half");
   r->add_option("--isa", isa_flag, kIsaHelp);
   c.render_cmd = r;
 }

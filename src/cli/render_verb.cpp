@@ -301,6 +301,7 @@ int render_frame(Run& run, const scene::SceneDesc& desc, const std::string& imag
   image::WriteOptions wopts;
   wopts.png_bit_depth = static_cast<int>(scene::png_bit_depth_or_default(args.overrides));
   wopts.display = s.display;
+  wopts.exr_float = args.exr_float;
   std::vector<float> spp_channel;  // an adaptive render's counts travel with an EXR image
   if (!result.spp.empty() && image::format_from_path(image_path) == image::ImageFormat::kExr) {
     spp_channel.assign(result.spp.begin(), result.spp.end());

@@ -30,6 +30,7 @@ struct RenderArgs {
   // error, never replaced.
   bool resume = false;
   bool gif_dither = false;               // Floyd-Steinberg dithering of a .gif output's palette
+  bool exr_float = false;                // a .exr output in float32 channels instead of half
   accel::Isa isa = accel::Isa::kScalar;  // resolved by main (cli/isa_option.h)
 };
 int run_render(const RenderArgs& args);
