@@ -56,8 +56,7 @@ LayeredGeometry::LayeredGeometry(std::shared_ptr<const Layer> fixed, std::shared
   isa_ = first_->geometry.isa();
 }
 
-bool LayeredGeometry::intersect(const Ray& ray, Hit& hit) const {
-  if (!second_) return first_->geometry.intersect(ray, hit);
+bool LayeredGeometry::intersect_layers(const Ray& ray, Hit& hit) const {
   const bool found = first_->geometry.intersect(ray, hit);
   Ray rest = ray;
   if (found) {
@@ -73,13 +72,11 @@ bool LayeredGeometry::intersect(const Ray& ray, Hit& hit) const {
   return true;
 }
 
-bool LayeredGeometry::occluded(const Ray& ray) const {
-  if (first_->geometry.occluded(ray)) return true;
-  return second_ != nullptr && second_->geometry.occluded(ray);
+bool LayeredGeometry::occluded_layers(const Ray& ray) const {
+  return first_->geometry.occluded(ray) || second_->geometry.occluded(ray);
 }
 
-std::uint32_t LayeredGeometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const {
-  if (!second_) return first_->geometry.intersect8(rays, valid, hits);
+std::uint32_t LayeredGeometry::intersect8_layers(const Ray* rays, std::uint32_t valid, Hit* hits) const {
   const std::uint32_t found = first_->geometry.intersect8(rays, valid, hits) & valid;
   Ray rest[kPacketSize];
   for (int i = 0; i < kPacketSize; ++i) {
@@ -99,9 +96,9 @@ std::uint32_t LayeredGeometry::intersect8(const Ray* rays, std::uint32_t valid, 
   return found | more;
 }
 
-std::uint32_t LayeredGeometry::occluded8(const Ray* rays, std::uint32_t valid) const {
+std::uint32_t LayeredGeometry::occluded8_layers(const Ray* rays, std::uint32_t valid) const {
   std::uint32_t blocked = first_->geometry.occluded8(rays, valid) & valid;
-  if (second_ != nullptr && (valid & ~blocked) != 0) blocked |= second_->geometry.occluded8(rays, valid & ~blocked);
+  if ((valid & ~blocked) != 0) blocked |= second_->geometry.occluded8(rays, valid & ~blocked);
   return blocked;
 }
 

@@ -38,7 +38,8 @@ struct Layer {
 
 class LayeredGeometry {
  public:
-  LayeredGeometry() = default;
+  // No shapes: every query misses.
+  LayeredGeometry() : LayeredGeometry(Geometry{}) {}
   // A static scene: one Geometry over every shape, ids as given to it.
   explicit LayeredGeometry(Geometry whole);
   // A frame of an animated scene: the layer shared by every frame and the frame's own (either may
@@ -46,10 +47,19 @@ class LayeredGeometry {
   LayeredGeometry(std::shared_ptr<const Layer> fixed, std::shared_ptr<const Layer> moving, std::size_t shape_count);
 
   // Geometry's queries (see accel/geometry.h), over every layer; hit.shape is the scene-wide id.
-  bool intersect(const Ray& ray, Hit& hit) const;
-  bool occluded(const Ray& ray) const;
-  std::uint32_t intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const;
-  std::uint32_t occluded8(const Ray* rays, std::uint32_t valid) const;
+  // Inline so that one layer costs a static scene one branch over calling its Geometry.
+  bool intersect(const Ray& ray, Hit& hit) const {
+    return second_ == nullptr ? first_->geometry.intersect(ray, hit) : intersect_layers(ray, hit);
+  }
+  bool occluded(const Ray& ray) const {
+    return second_ == nullptr ? first_->geometry.occluded(ray) : occluded_layers(ray);
+  }
+  std::uint32_t intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const {
+    return second_ == nullptr ? first_->geometry.intersect8(rays, valid, hits) : intersect8_layers(rays, valid, hits);
+  }
+  std::uint32_t occluded8(const Ray* rays, std::uint32_t valid) const {
+    return second_ == nullptr ? first_->geometry.occluded8(rays, valid) : occluded8_layers(rays, valid);
+  }
 
   // The shape with scene-wide id `id` < shape_count().
   const Shape& shape(std::uint32_t id) const;
@@ -61,6 +71,12 @@ class LayeredGeometry {
   const Layer* moving() const { return moving_.get(); }
 
  private:
+  // The queries over two layers.
+  bool intersect_layers(const Ray& ray, Hit& hit) const;
+  bool occluded_layers(const Ray& ray) const;
+  std::uint32_t intersect8_layers(const Ray* rays, std::uint32_t valid, Hit* hits) const;
+  std::uint32_t occluded8_layers(const Ray* rays, std::uint32_t valid) const;
+
   // With one layer, first_ holds it and second_ is null; otherwise both are set.
   const Layer* first_ = nullptr;
   const Layer* second_ = nullptr;
