@@ -154,7 +154,7 @@ TEST_CASE("Configuration problems of either role are named by a flag dtraced has
   }
 }
 
-TEST_CASE("--frames reads A-B, A-B:STEP and a single frame, and says what is wrong otherwise") {
+TEST_CASE("The --frames flag reads A-B, A-B:STEP and a single frame, and says what is wrong otherwise") {
   using dtraced::scene::FrameRange;
   CHECK(*cli::parse_frame_range("1-24") == FrameRange{1, 24, 1});
   CHECK(*cli::parse_frame_range("0-47:2") == FrameRange{0, 47, 2});
@@ -172,7 +172,7 @@ TEST_CASE("--frames reads A-B, A-B:STEP and a single frame, and says what is wro
   CHECK_THAT(why("0-100000"), Catch::Contains("more than 100000 frames"));
 }
 
-TEST_CASE("--crop reads X0,Y0,X1,Y1 as a half-open rectangle that must lie in the image") {
+TEST_CASE("The --crop flag reads X0,Y0,X1,Y1 as a half-open rectangle that must lie in the image") {
   using dtraced::scene::TileRect;
   CHECK(*cli::parse_crop("3,2,13,9") == TileRect{3, 2, 10, 7});
   CHECK_THAT(cli::parse_crop("3,2,3,9").error().message, Catch::Contains("empty crop"));
