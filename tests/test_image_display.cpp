@@ -89,7 +89,7 @@ TEST_CASE("The filmic curve is monotone, within [0, 1], and follows Narkowicz's 
   CHECK(display_value(filmic, -1.0f) == 0.0f);
 }
 
-TEST_CASE("PNG, PPM and GIF writers apply the display transform; PFM ignores it", "[image][display]") {
+TEST_CASE("PNG, PPM and GIF writers apply the display transform and PFM ignores it", "[image][display]") {
   dtraced::image::ImageRGBf img(1, 1);
   img.rgb = {0.25f, 2.0f, kNaN};
   dtraced::image::WriteOptions plain, brighter;

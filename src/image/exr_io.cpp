@@ -2,8 +2,8 @@
 // stand in for files, so a server can answer with an EXR without touching the disk.
 //
 // OpenEXR reports errors by exceptions; they are caught here and become `problem`. Files are read
-// with numThreads 0 (no global thread pool), and a hostile header's data window is checked by a
-// small scan of the header before OpenEXR allocates anything from it.
+// with numThreads 0 (no global thread pool), and a hostile header's data window and tile size are
+// checked by a small scan of the header before OpenEXR allocates anything from them.
 #include <ImfChannelList.h>
 #include <ImfFrameBuffer.h>
 #include <ImfHeader.h>
@@ -69,14 +69,29 @@ std::int32_t read_le32(const char* p) {
   return static_cast<std::int32_t>(v);
 }
 
-// The first header's dataWindow (a box2i attribute), found by walking the attribute list:
-// name\0 type\0 size value. Checked before OpenEXR sizes tables from it. Returns false with
-// `problem` set when the header is malformed or the window is outside 1..kMaxImageSide.
-bool check_data_window(std::string_view bytes, std::string& problem) {
+// What check_header reads from the first header before OpenEXR sees the file.
+struct HeaderScan {
+  std::int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;  // dataWindow
+  bool has_window = false;
+  std::uint32_t tile_x = 0, tile_y = 0;  // tiles (tiledesc), 0 when the file has scanlines
+};
+
+// Bounds what OpenEXR would allocate from a header alone: it sizes its chunk offset tables from the
+// data window and the tile size, so a small hostile file could ask for gigabytes. Walks the first
+// header's attribute list (name\0 type\0 size value) for dataWindow and tiles; refuses deep and
+// multi-part files (never written by us, and each part would have tables of its own). Returns false
+// with `problem` set for a malformed header, a window outside 1..kMaxImageSide, or too many tiles.
+bool check_header(std::string_view bytes, std::string& problem) {
   if (bytes.size() < 8 || read_le32(bytes.data()) != 20000630) {
     problem = "not an OpenEXR file: the magic number 76 2f 31 01 is missing";
     return false;
   }
+  constexpr std::int32_t kDeep = 0x800, kMultiPart = 0x1000;
+  if (read_le32(bytes.data() + 4) & (kDeep | kMultiPart)) {
+    problem = "deep and multi-part OpenEXR files are not supported (only one part of flat R, G, B)";
+    return false;
+  }
+  HeaderScan scan;
   std::size_t pos = 8;
   auto read_name = [&](std::string_view& name) {
     const std::size_t end = bytes.find('\0', pos);
@@ -87,30 +102,54 @@ bool check_data_window(std::string_view bytes, std::string& problem) {
   };
   for (;;) {
     std::string_view name, type;
-    if (!read_name(name)) break;
-    if (name.empty()) {
-      problem = "header: no dataWindow attribute";
+    if (!read_name(name)) {
+      problem = "header: truncated or malformed attribute list";
       return false;
     }
-    if (!read_name(type) || bytes.size() - pos < 4) break;
+    if (name.empty()) break;  // end of the header
+    if (!read_name(type) || bytes.size() - pos < 4) {
+      problem = "header: truncated or malformed attribute list";
+      return false;
+    }
     const std::int32_t size = read_le32(bytes.data() + pos);
     pos += 4;
-    if (size < 0 || std::size_t(size) > bytes.size() - pos) break;
+    if (size < 0 || std::size_t(size) > bytes.size() - pos) {
+      problem = fmt::format("header: attribute '{}' of {} bytes runs past the end of the file", name, size);
+      return false;
+    }
+    const char* value = bytes.data() + pos;
     if (name == "dataWindow" && type == "box2i" && size == 16) {
-      const std::int64_t x0 = read_le32(bytes.data() + pos), y0 = read_le32(bytes.data() + pos + 4);
-      const std::int64_t x1 = read_le32(bytes.data() + pos + 8), y1 = read_le32(bytes.data() + pos + 12);
-      const std::int64_t w = x1 - x0 + 1, h = y1 - y0 + 1;
-      if (w < 1 || h < 1 || w > kMaxImageSide || h > kMaxImageSide) {
-        problem = fmt::format("data window ({}, {})-({}, {}) is {}x{}, outside the supported range 1..{}", x0, y0, x1,
-                              y1, w, h, kMaxImageSide);
-        return false;
-      }
-      return true;
+      scan.x0 = read_le32(value);
+      scan.y0 = read_le32(value + 4);
+      scan.x1 = read_le32(value + 8);
+      scan.y1 = read_le32(value + 12);
+      scan.has_window = true;
+    } else if (name == "tiles" && type == "tiledesc" && size == 9) {
+      scan.tile_x = static_cast<std::uint32_t>(read_le32(value));
+      scan.tile_y = static_cast<std::uint32_t>(read_le32(value + 4));
     }
     pos += std::size_t(size);
   }
-  problem = "header: truncated or malformed attribute list";
-  return false;
+  const std::int64_t w = scan.x1 - scan.x0 + 1, h = scan.y1 - scan.y0 + 1;
+  if (!scan.has_window) {
+    problem = "header: no dataWindow attribute";
+    return false;
+  }
+  if (w < 1 || h < 1 || w > kMaxImageSide || h > kMaxImageSide) {
+    problem = fmt::format("data window ({}, {})-({}, {}) is {}x{}, outside the supported range 1..{}", scan.x0, scan.y0,
+                          scan.x1, scan.y1, w, h, kMaxImageSide);
+    return false;
+  }
+  // Tiles of at least 16x16 on average over a 16384^2 image: 2^20 tiles, 8 MiB of offsets per level.
+  constexpr std::int64_t kMaxTiles = std::int64_t{1} << 20;
+  if (scan.tile_x != 0 || scan.tile_y != 0) {
+    const std::int64_t tx = scan.tile_x, ty = scan.tile_y;
+    if (tx < 1 || ty < 1 || ((w + tx - 1) / tx) * ((h + ty - 1) / ty) > kMaxTiles) {
+      problem = fmt::format("{}x{} tiles over a {}x{} image: more than {} tiles", tx, ty, w, h, kMaxTiles);
+      return false;
+    }
+  }
+  return true;
 }
 
 std::string channel_names(const Imf::ChannelList& channels) {
@@ -171,7 +210,7 @@ std::optional<std::string> encode_exr(const ImageRGBf& img, const WriteOptions& 
 }
 
 std::optional<ImageRGBf> decode_exr(std::string_view bytes, std::string& problem) {
-  if (!check_data_window(bytes, problem)) return std::nullopt;
+  if (!check_header(bytes, problem)) return std::nullopt;
   try {
     MemoryIStream stream(bytes);
     Imf::InputFile file(stream, /* numThreads = */ 0);
