@@ -382,12 +382,12 @@ TEST_CASE("Unknown extensions are errors naming the path and the choices", "[ima
   std::string error;
   CHECK_FALSE(get(dtraced::image::write_image(path, ImageRGBf(2, 2), {}), error));
   CHECK(contains(error, path));
-  CHECK(contains(error, ".png, .ppm or .pfm"));
+  CHECK(contains(error, ".png, .ppm, .pfm, .exr or .gif"));
   CHECK_FALSE(fs::exists(path));
   error.clear();
   CHECK_FALSE(get(dtraced::image::read_image(path), error));
   CHECK(contains(error, path));
-  CHECK(contains(error, ".png, .ppm or .pfm"));
+  CHECK(contains(error, ".png, .ppm, .pfm, .exr or .gif"));
 }
 
 TEST_CASE("Malformed files give errors naming the file and the problem", "[image][errors]") {
@@ -570,12 +570,12 @@ TEST_CASE("One table names every image format", "[image][formats]") {
     CHECK(f.extension.front() == '.');
     CHECK_FALSE(f.content_type.empty());
   }
-  CHECK(n == 3);
+  CHECK(n == 5);
   CHECK(dtraced::image::format_info(ImageFormat::kPfm).content_type == "image/x-portable-floatmap");
   CHECK(dtraced::image::format_info(ImageFormat::kPng).content_type == "image/png");
   CHECK_FALSE(dtraced::image::format_from_name("PNG"));
   CHECK_FALSE(dtraced::image::format_from_name("jpg"));
   CHECK_FALSE(dtraced::image::format_from_name(""));
-  CHECK(dtraced::image::extension_list() == ".png, .ppm or .pfm");
-  CHECK(dtraced::image::name_list() == "png, ppm or pfm");
+  CHECK(dtraced::image::extension_list() == ".png, .ppm, .pfm, .exr or .gif");
+  CHECK(dtraced::image::name_list() == "png, ppm, pfm, exr or gif");
 }

@@ -375,7 +375,7 @@ TEST_CASE("malformed submissions are refused with the JSON path of the problem",
       {"output with a backslash", submit, submit_body(kSceneJson, R"("output": "a\\b.png")"), "/output",
        "without '/' or '\\'"},
       {"output of the wrong type", submit, submit_body(kSceneJson, R"("output": "x.exe")"), "/output",
-       "must end in .png, .ppm or .pfm"},
+       "must end in .png, .ppm, .pfm, .exr or .gif"},
       {"output upper-case extension", submit, submit_body(kSceneJson, R"("output": "x.PNG")"), "/output",
        "must end in .png"},
       {"output only an extension", submit, submit_body(kSceneJson, R"("output": ".png")"), "/output",
@@ -484,7 +484,8 @@ TEST_CASE("output names", "[protocol]") {
   }
   CHECK(protocol::check_output_name(std::string(251, 'x') + ".png").ok());
   CHECK_FALSE(protocol::check_output_name(std::string(252, 'x') + ".png").ok());
-  CHECK(protocol::check_output_name("a.jpg").error().message == "output name must end in .png, .ppm or .pfm");
+  CHECK(protocol::check_output_name("a.jpg").error().message ==
+        "output name must end in .png, .ppm, .pfm, .exr or .gif");
 }
 
 TEST_CASE("adaptive settings travel in submissions, leases and stored settings", "[protocol][json][adaptive]") {

@@ -34,4 +34,11 @@ struct DisplayTransform {
   bool is_identity() const { return exposure == 0 && tone == ToneCurve::kClamp; }
 };
 
+// The displayed value in [0, 1] of one linear channel value, before the sRGB curve: the value times
+// 2^exposure, then the tone curve. clamp: min(max(x, 0), 1); reinhard: x / (1 + x) for x > 0;
+// filmic: x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14) clipped to [0, 1] (Narkowicz's ACES fit,
+// reaching 1 near x = 7.2). Every curve sends NaN and x <= 0 to 0 and +infinity to 1. The identity
+// transform returns exactly what the 8-bit writers clipped to before transforms existed.
+float display_value(const DisplayTransform& display, float linear);
+
 }  // namespace dtraced::image

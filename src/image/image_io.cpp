@@ -1,50 +1,37 @@
 #include "image/image_io.h"
 
-#include <png.h>
-
 #include <algorithm>
 #include <array>
 #include <bit>
 #include <cassert>
 #include <charconv>
 #include <cmath>
-#include <csetjmp>
-#include <cstdio>
-#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <vector>
 
 #include <fmt/format.h>
 
+#include "image/codec.h"
 #include "util/file.h"
 
 namespace dtraced::image {
-namespace {
+namespace detail {
 
 // ---------------------------------------------------------------------------------------------
-// Transfer functions and quantisation.
+// Transfer functions and quantisation, shared by every 8- and 16-bit codec.
 
 double srgb_encode(double v) { return v <= 0.0031308 ? 12.92 * v : 1.055 * std::pow(v, 1.0 / 2.4) - 0.055; }
 double srgb_decode(double v) { return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4); }
 
-// linear -> clamp to [0, 1] -> sRGB -> nearest integer code in [0, max_code].
-std::uint32_t quantize(float linear, std::uint32_t max_code) {
+std::uint32_t quantize(float display01, std::uint32_t max_code) {
   // The negated test also sends NaN to black: it has no brightness, and the cast below would be UB.
-  if (!(linear > 0.0f)) return 0;
-  if (linear >= 1.0f) return max_code;
-  const double code = std::round(srgb_encode(linear) * max_code);
+  if (!(display01 > 0.0f)) return 0;
+  if (display01 >= 1.0f) return max_code;
+  const double code = std::round(srgb_encode(display01) * max_code);
   return static_cast<std::uint32_t>(std::clamp(code, 0.0, static_cast<double>(max_code)));
 }
 
-// How integer samples map back to light.
-struct Transfer {
-  bool srgb = true;
-  double exponent = 1.0;  // used when !srgb: linear = (code / max) ^ exponent
-};
-
-// One float per possible code, so decoding costs a lookup instead of a pow() per sample. Built
-// per call (at most 65536 entries), never cached globally.
 std::vector<float> decode_table(std::uint32_t max_code, const Transfer& transfer) {
   std::vector<float> table(std::size_t{max_code} + 1);
   for (std::uint32_t i = 0; i <= max_code; ++i) {
@@ -53,6 +40,13 @@ std::vector<float> decode_table(std::uint32_t max_code, const Transfer& transfer
   }
   return table;
 }
+
+}  // namespace detail
+
+namespace {
+
+using detail::decode_table;
+using detail::Transfer;
 
 bool check_encodable(const ImageRGBf& img, std::string& problem) {
   if (!img.is_consistent()) {
@@ -181,12 +175,12 @@ bool check_payload_size(std::string_view format, std::uint64_t available, std::u
 // ---------------------------------------------------------------------------------------------
 // PPM (P6).
 
-std::string encode_ppm(const ImageRGBf& img) {
+std::string encode_ppm(const ImageRGBf& img, const DisplayTransform& display) {
   std::string out = fmt::format("P6\n{} {}\n255\n", img.width, img.height);
   const std::size_t header = out.size();
   out.resize(header + img.rgb.size());
   for (std::size_t i = 0; i < img.rgb.size(); ++i) {
-    out[header + i] = static_cast<char>(quantize(img.rgb[i], 255));
+    out[header + i] = static_cast<char>(detail::encode_sample(img.rgb[i], display, 255));
   }
   return out;
 }
@@ -330,241 +324,17 @@ std::optional<ImageRGBf> decode_pfm(std::string_view bytes, std::string& problem
   return img;
 }
 
-// ---------------------------------------------------------------------------------------------
-// PNG through libpng's classic API.
-//
-// libpng reports errors by longjmp. To keep that well-defined in C++, every libpng call happens
-// inside one of the small guarded_png_* functions below, which call setjmp first and hold only
-// trivially destructible locals; the callbacks libpng calls into do the same. C++ objects (the
-// pixel buffers, the output string) are created by the callers before and used after. A longjmp
-// therefore never skips a destructor.
-
-struct PngIo {
-  const unsigned char* data = nullptr;  // reading: the whole file
-  std::size_t size = 0;
-  std::size_t offset = 0;
-  std::string* out = nullptr;  // writing: bytes are appended here
-  char message[256] = {};      // libpng's error message, for the caller
-};
-
-void on_png_error(png_structp png, png_const_charp message) {
-  auto* io = static_cast<PngIo*>(png_get_error_ptr(png));
-  std::snprintf(io->message, sizeof io->message, "%s", message);
-  png_longjmp(png, 1);
-}
-
-// Warnings (an odd ICC profile, a bad CRC in an ancillary chunk) do not fail the read, and libpng
-// would otherwise print them to stderr behind the logger's back.
-void on_png_warning(png_structp, png_const_charp) {}
-
-void on_png_read(png_structp png, png_bytep dst, std::size_t n) {
-  auto* io = static_cast<PngIo*>(png_get_io_ptr(png));
-  if (n > io->size - io->offset) png_error(png, "unexpected end of data (file truncated)");
-  std::memcpy(dst, io->data + io->offset, n);
-  io->offset += n;
-}
-
-void on_png_write(png_structp png, png_bytep src, std::size_t n) {
-  auto* io = static_cast<PngIo*>(png_get_io_ptr(png));
-  bool ok = true;
-  try {
-    io->out->append(reinterpret_cast<const char*>(src), n);
-  } catch (...) {
-    ok = false;
-  }
-  // Outside the catch block, so the exception object is gone before we longjmp.
-  if (!ok) png_error(png, "out of memory while encoding");
-}
-
-void on_png_flush(png_structp) {}
-
-// Owns a libpng read (kWrite false) or write struct and its info struct.
-template <bool kWrite>
-class PngHandle {
- public:
-  explicit PngHandle(PngIo* io)
-      : png_(kWrite ? png_create_write_struct(PNG_LIBPNG_VER_STRING, io, on_png_error, on_png_warning)
-                    : png_create_read_struct(PNG_LIBPNG_VER_STRING, io, on_png_error, on_png_warning)),
-        info_(png_ ? png_create_info_struct(png_) : nullptr) {}
-  ~PngHandle() {
-    if (!png_) return;
-    if constexpr (kWrite) {
-      png_destroy_write_struct(&png_, info_ ? &info_ : nullptr);
-    } else {
-      png_destroy_read_struct(&png_, info_ ? &info_ : nullptr, nullptr);
-    }
-  }
-  PngHandle(const PngHandle&) = delete;
-  PngHandle& operator=(const PngHandle&) = delete;
-
-  bool ok() const { return png_ && info_; }
-  png_structp png() const { return png_; }
-  png_infop info() const { return info_; }
-
- private:
-  png_structp png_;
-  png_infop info_;
-};
-using PngReader = PngHandle<false>;
-using PngWriter = PngHandle<true>;
-
-// What guarded_png_read_header learned, after libpng's transformations to 8- or 16-bit RGB.
-struct PngHeader {
-  png_uint_32 width = 0, height = 0;
-  int bit_depth = 0;
-  int channels = 0;
-  std::size_t row_bytes = 0;
-  bool has_srgb = false;
-  bool has_gamma = false;
-  png_fixed_point gamma = 0;  // file gamma times 100000
-};
-
-bool guarded_png_read_header(png_structp png, png_infop info, PngIo* io, PngHeader* header) {
-  if (setjmp(png_jmpbuf(png))) return false;
-  // libpng rejects larger IHDRs itself, before anything is allocated.
-  png_set_user_limits(png, kMaxImageSide, kMaxImageSide);
-  png_set_chunk_malloc_max(png, 8u << 20);  // bounds text and ICC chunks
-  png_set_read_fn(png, io, on_png_read);
-  png_read_info(png, info);
-  header->has_srgb = png_get_valid(png, info, PNG_INFO_sRGB) != 0;
-  header->has_gamma = png_get_gAMA_fixed(png, info, &header->gamma) != 0;
-  // Palette to RGB, grey below 8 bits to 8, tRNS to alpha; then alpha dropped and grey widened,
-  // so every file arrives as 3 samples of 8 or 16 bits. 16-bit samples stay big-endian.
-  png_set_expand(png);
-  png_set_strip_alpha(png);
-  png_set_gray_to_rgb(png);
-  png_set_interlace_handling(png);
-  png_read_update_info(png, info);
-  header->width = png_get_image_width(png, info);
-  header->height = png_get_image_height(png, info);
-  header->bit_depth = png_get_bit_depth(png, info);
-  header->channels = png_get_channels(png, info);
-  header->row_bytes = png_get_rowbytes(png, info);
-  return true;
-}
-
-bool guarded_png_read_pixels(png_structp png, png_bytepp rows) {
-  if (setjmp(png_jmpbuf(png))) return false;
-  png_read_image(png, rows);
-  png_read_end(png, nullptr);  // checks the remaining chunks through IEND: a cut file fails here
-  return true;
-}
-
-bool guarded_png_write(png_structp png, png_infop info, PngIo* io, png_uint_32 width, png_uint_32 height, int bit_depth,
-                       png_bytepp rows) {
-  if (setjmp(png_jmpbuf(png))) return false;
-  png_set_write_fn(png, io, on_png_write, on_png_flush);
-  png_set_IHDR(png, info, width, height, bit_depth, PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE,
-               PNG_COMPRESSION_TYPE_DEFAULT, PNG_FILTER_TYPE_DEFAULT);
-  // The sRGB chunk, plus gAMA and cHRM for readers that predate it (PNG spec, section 11.3.3.5).
-  png_set_sRGB_gAMA_and_cHRM(png, info, PNG_sRGB_INTENT_PERCEPTUAL);
-  png_write_info(png, info);
-  png_write_image(png, rows);
-  png_write_end(png, nullptr);
-  return true;
-}
-
-std::optional<std::string> encode_png(const ImageRGBf& img, int bit_depth, std::string& problem) {
-  const std::uint32_t max_code = bit_depth == 16 ? 65535 : 255;
-  const std::size_t bytes_per_sample = bit_depth == 16 ? 2 : 1;
-  const std::size_t row_bytes = std::size_t{img.width} * 3 * bytes_per_sample;
-  std::vector<unsigned char> pixels(row_bytes * img.height);
-  for (std::size_t i = 0; i < img.rgb.size(); ++i) {
-    const std::uint32_t code = quantize(img.rgb[i], max_code);
-    if (bytes_per_sample == 1) {
-      pixels[i] = static_cast<unsigned char>(code);
-    } else {  // PNG samples are big-endian
-      pixels[2 * i] = static_cast<unsigned char>(code >> 8);
-      pixels[2 * i + 1] = static_cast<unsigned char>(code & 0xff);
-    }
-  }
-  std::vector<png_bytep> rows(img.height);
-  for (std::uint32_t y = 0; y < img.height; ++y) rows[y] = pixels.data() + y * row_bytes;
-
-  std::string out;
-  PngIo io;
-  io.out = &out;
-  PngWriter writer(&io);
-  if (!writer.ok()) {
-    problem = "PNG: cannot allocate the libpng encoder";
-    return std::nullopt;
-  }
-  if (!guarded_png_write(writer.png(), writer.info(), &io, img.width, img.height, bit_depth, rows.data())) {
-    problem = fmt::format("PNG encoding failed: {}", io.message);
-    return std::nullopt;
-  }
-  return out;
-}
-
-std::optional<ImageRGBf> decode_png(std::string_view bytes, std::string& problem) {
-  constexpr std::size_t kSignatureSize = 8;
-  if (bytes.size() < kSignatureSize ||
-      png_sig_cmp(reinterpret_cast<png_const_bytep>(bytes.data()), 0, kSignatureSize) != 0) {
-    problem = "not a PNG file: the 8-byte PNG signature is missing";
-    return std::nullopt;
-  }
-  PngIo io;
-  io.data = reinterpret_cast<const unsigned char*>(bytes.data());
-  io.size = bytes.size();
-  PngReader reader(&io);
-  if (!reader.ok()) {
-    problem = "PNG: cannot allocate the libpng decoder";
-    return std::nullopt;
-  }
-  PngHeader header;
-  if (!guarded_png_read_header(reader.png(), reader.info(), &io, &header)) {
-    problem = fmt::format("invalid PNG: {}", io.message);
-    return std::nullopt;
-  }
-  // libpng enforces the user limits; checking again keeps this function honest on its own.
-  if (header.width == 0 || header.height == 0 || header.width > kMaxImageSide || header.height > kMaxImageSide) {
-    problem =
-        fmt::format("PNG size {}x{} is outside the supported range 1..{}", header.width, header.height, kMaxImageSide);
-    return std::nullopt;
-  }
-  const std::size_t bytes_per_sample = header.bit_depth == 16 ? 2 : 1;
-  if (header.channels != 3 || (header.bit_depth != 8 && header.bit_depth != 16) ||
-      header.row_bytes != std::size_t{header.width} * 3 * bytes_per_sample) {
-    problem = fmt::format("PNG: unexpected layout after conversion ({} channels of {} bits)", header.channels,
-                          header.bit_depth);
-    return std::nullopt;
-  }
-
-  std::vector<unsigned char> pixels(header.row_bytes * header.height);
-  std::vector<png_bytep> rows(header.height);
-  for (png_uint_32 y = 0; y < header.height; ++y) rows[y] = pixels.data() + y * header.row_bytes;
-  if (!guarded_png_read_pixels(reader.png(), rows.data())) {
-    problem = fmt::format("invalid PNG: {}", io.message);
-    return std::nullopt;
-  }
-
-  Transfer transfer;  // sRGB unless the file says otherwise
-  if (!header.has_srgb && header.has_gamma && header.gamma > 0) {
-    // Writers that mean sRGB store gAMA 1/2.2 (45455) or near it (Adobe's 0.45); like libpng,
-    // treat anything within 5% as sRGB. Anything else, notably 1.0 for linear data, is a power law.
-    constexpr double kSrgbGamma = 45455.0;
-    if (std::abs(header.gamma / kSrgbGamma - 1.0) > 0.05) {
-      transfer.srgb = false;
-      transfer.exponent = 100000.0 / header.gamma;
-    }
-  }
-  const std::vector<float> table = decode_table(bytes_per_sample == 2 ? 65535 : 255, transfer);
-  ImageRGBf img(header.width, header.height);
-  for (std::size_t i = 0; i < img.rgb.size(); ++i) {
-    const std::uint32_t code =
-        bytes_per_sample == 1 ? pixels[i] : (std::uint32_t{pixels[2 * i]} << 8) | pixels[2 * i + 1];
-    img.rgb[i] = table[code];
-  }
-  return img;
-}
-
 std::string_view format_name(ImageFormat format) { return format_info(format).label; }
 
-constexpr std::array<FormatInfo, 3> kFormats = {{
+constexpr std::array<FormatInfo, 5> kFormats = {{
     {ImageFormat::kPng, "png", ".png", "image/png", "PNG"},
     {ImageFormat::kPpm, "ppm", ".ppm", "image/x-portable-pixmap", "PPM"},
     {ImageFormat::kPfm, "pfm", ".pfm", "image/x-portable-floatmap", "PFM"},
+    {ImageFormat::kExr, "exr", ".exr", "image/x-exr", "EXR"},
+    {ImageFormat::kGif, "gif", ".gif", "image/gif", "GIF"},
 }};
+// Other spellings of an extension: the seed wrote its PPM files as .pnm.
+constexpr std::array<std::pair<std::string_view, ImageFormat>, 1> kExtensionAliases = {{{".pnm", ImageFormat::kPpm}}};
 
 // "a, b or c" from the formats' `field`.
 std::string list_of(std::string_view FormatInfo::*field) {
@@ -578,8 +348,8 @@ std::string list_of(std::string_view FormatInfo::*field) {
 
 }  // namespace
 
-float linear_to_srgb(float linear) { return static_cast<float>(srgb_encode(linear)); }
-float srgb_to_linear(float encoded) { return static_cast<float>(srgb_decode(encoded)); }
+float linear_to_srgb(float linear) { return static_cast<float>(detail::srgb_encode(linear)); }
+float srgb_to_linear(float encoded) { return static_cast<float>(detail::srgb_decode(encoded)); }
 
 std::span<const FormatInfo> image_formats() { return kFormats; }
 
@@ -598,6 +368,9 @@ std::optional<ImageFormat> format_from_path(const std::string& path) {
   for (const FormatInfo& f : kFormats) {
     if (ext == f.extension) return f.format;
   }
+  for (const auto& [alias, format] : kExtensionAliases) {
+    if (ext == alias) return format;
+  }
   return std::nullopt;
 }
 
@@ -614,19 +387,26 @@ std::string name_list() { return list_of(&FormatInfo::name); }
 util::Result<std::string> encode_image(ImageFormat format, const ImageRGBf& img, const WriteOptions& opts) {
   std::string problem;
   if (!check_encodable(img, problem)) return util::Error(problem, "", std::string(format_name(format)));
+  std::optional<std::string> out;
   switch (format) {
     case ImageFormat::kPpm:
-      return encode_ppm(img);
+      return encode_ppm(img, opts.display);
     case ImageFormat::kPfm:
       return encode_pfm(img);
     case ImageFormat::kPng:
+      if (opts.png_bit_depth != 8 && opts.png_bit_depth != 16) {
+        return util::Error(fmt::format("unsupported bit depth {} (8 or 16)", opts.png_bit_depth), "", "PNG");
+      }
+      out = detail::encode_png(img, opts.png_bit_depth, opts.display, problem);
+      break;
+    case ImageFormat::kExr:
+      out = detail::encode_exr(img, opts, problem);
+      break;
+    case ImageFormat::kGif:
+      out = detail::encode_gif(img, opts.display, problem);
       break;
   }
-  if (opts.png_bit_depth != 8 && opts.png_bit_depth != 16) {
-    return util::Error(fmt::format("unsupported bit depth {} (8 or 16)", opts.png_bit_depth), "", "PNG");
-  }
-  std::optional<std::string> out = encode_png(img, opts.png_bit_depth, problem);
-  if (!out) return util::Error(problem);
+  if (!out) return util::Error(problem, "", std::string(format_name(format)));
   return std::move(*out);
 }
 
@@ -635,7 +415,13 @@ util::Result<ImageRGBf> decode_image(ImageFormat format, std::string_view bytes,
   std::optional<ImageRGBf> img;
   switch (format) {
     case ImageFormat::kPng:
-      img = decode_png(bytes, problem);
+      img = detail::decode_png(bytes, problem);
+      break;
+    case ImageFormat::kExr:
+      img = detail::decode_exr(bytes, problem);
+      break;
+    case ImageFormat::kGif:
+      problem = "reading GIF files is not supported (write them only)";
       break;
     case ImageFormat::kPpm:
       img = decode_ppm(bytes, problem);

@@ -1,7 +1,8 @@
-// dtraced::image file formats: PNG, binary PPM (P6) and PFM, read and written.
+// dtraced::image file formats: PNG, binary PPM (P6), PFM, OpenEXR and GIF.
 //
-// Owns: the mapping between ImageRGBf (linear float RGB) and the three on-disk encodings, and the
-// sRGB transfer functions used for the 8- and 16-bit ones.
+// Owns: the mapping between ImageRGBf (linear float RGB) and the on-disk encodings, the one table
+// of formats (name, extension, content type), and the sRGB transfer functions used for the 8- and
+// 16-bit ones.
 //
 //   PNG  written as 8- or 16-bit RGB, sRGB-encoded at both depths (so every viewer shows the same
 //        picture), with an sRGB chunk plus the gAMA/cHRM fallbacks the PNG spec recommends.
@@ -13,18 +14,24 @@
 //        ICC profiles are ignored.
 //   PPM  written as P6 with maxval 255, sRGB-encoded. Read: P6 with maxval 1..65535 (two bytes
 //        big-endian per sample above 255), '#' comments in the header, sRGB-decoded. A file
-//        must hold exactly one image: trailing bytes are an error.
+//        must hold exactly one image: trailing bytes are an error. ".pnm" (the seed's spelling)
+//        names the same format.
 //   PFM  written as "PF" (colour), linear float32, little-endian (scale -1), rows bottom to top
 //        as the format specifies, so floats round-trip bit for bit. Read: "PF" and greyscale
 //        "Pf" (replicated to RGB), either endianness by the sign of the scale; a scale whose
 //        magnitude is not 1 multiplies the data, as pbrt does.
+//   EXR  (exr_io.cpp) written as linear R, G, B, half by default or float (WriteOptions), ZIP
+//        compressed, with an optional "spp" float channel; read: R, G, B of any pixel type.
+//   GIF  (gif_io.h) one frame here; an animation goes through GifEncoder. Not read.
 //
-// Encoding to 8/16 bits: linear -> clamp to [0, 1] (NaN becomes 0) -> sRGB curve -> round to
-// nearest code. Readers bound everything by kMaxImageSide, check the file size against the
-// header exactly, and name the file and the problem in every error.
+// Encoding to 8/16 bits: linear -> display transform (display.h; identity: clamp to [0, 1], NaN
+// becomes 0) -> sRGB curve -> round to nearest code. PFM and EXR ignore the display transform.
+// Readers bound everything by kMaxImageSide, check the file size against the header exactly, and
+// name the file and the problem in every error.
 //
 // Thread safety: every function is stateless and may be called from any thread. libpng is used
 // with per-call state only; its error longjmp never crosses a C++ frame with live destructors.
+// OpenEXR is used with per-call streams and no global thread pool.
 #pragma once
 
 #include <cstdint>
@@ -33,12 +40,13 @@
 #include <string>
 #include <string_view>
 
+#include "image/display.h"
 #include "image/image.h"
 #include "util/result.h"
 
 namespace dtraced::image {
 
-enum class ImageFormat { kPng, kPpm, kPfm };
+enum class ImageFormat { kPng, kPpm, kPfm, kExr, kGif };
 
 // Everything the program says about an image format, in one table: every reader, writer,
 // HTTP content type, `?format=` value, file-name check and message takes it from here.
@@ -50,21 +58,28 @@ struct FormatInfo {
   std::string_view label;         // "PNG", for messages
 };
 
-// Every format, in the order messages list them (PNG, PPM, PFM).
+// Every format, in the order messages list them (PNG, PPM, PFM, EXR, GIF).
 std::span<const FormatInfo> image_formats();
 const FormatInfo& format_info(ImageFormat format);
 
-// The format named by the path's extension (.png, .ppm, .pfm, any letter case); nullopt for
-// anything else, including no extension.
+// The format named by the path's extension (.png, .ppm or .pnm, .pfm, .exr, .gif, any letter
+// case); nullopt for anything else, including no extension.
 std::optional<ImageFormat> format_from_path(const std::string& path);
-// The format of a `?format=` value ("png", "ppm", "pfm": exactly, lower case).
+// The format of a `?format=` value ("png", "ppm", "pfm", "exr", "gif": exactly, lower case).
 std::optional<ImageFormat> format_from_name(std::string_view name);
-// ".png, .ppm or .pfm" and "png, ppm or pfm", for messages and help texts.
+// ".png, .ppm, .pfm, .exr or .gif" and "png, ppm, pfm, exr or gif", for messages and help texts.
 std::string extension_list();
 std::string name_list();
 
 struct WriteOptions {
-  int png_bit_depth = 8;  // 8 or 16; PPM is always 8-bit and PFM always float, whatever this says
+  int png_bit_depth = 8;  // 8 or 16; PPM and GIF are always 8-bit and PFM always float
+  // How PNG, PPM and GIF show the linear pixels; PFM and EXR stay linear.
+  DisplayTransform display{};
+  // EXR: float32 channels instead of half (which holds 11 significant bits, up to 65504).
+  bool exr_float = false;
+  // EXR: when not empty, width * height values (row 0 at the top) written as the float channel
+  // "spp", the samples each pixel took. Ignored by the other formats. The span must outlive the call.
+  std::span<const float> sample_counts{};
 };
 
 // Largest file read_image accepts: a 16384^2 colour PFM plus room for headers. Every valid
