@@ -10,6 +10,7 @@
 #include <boost/json/value.hpp>
 #include <fmt/format.h>
 
+#include "image/sequence.h"
 #include "protocol/codec.h"
 #include "protocol/messages.h"
 #include "scene/digest.h"
@@ -88,6 +89,12 @@ void read_job_submit(Fields& f, JobSubmit& m) {
     f.reader().error(f.path(frames > 1 && !f.has("tile_size") ? "frames" : "tile_size"),
                      fmt::format("a {}x{} image in tiles of {} is {} tiles{}, more than the limit of {}", s.width,
                                  s.height, tile_size, per_frame, times, kMaxTilesPerJob));
+  }
+  // A sequence's output is a pattern with the frame number (or a GIF, one file for all frames).
+  if (frames > 1 && !m.output.empty()) {
+    if (util::Status pattern = image::check_sequence_path(m.output, static_cast<std::uint32_t>(frames)); !pattern) {
+      f.reader().error(f.path("output"), pattern.error().message);
+    }
   }
 }
 
