@@ -17,19 +17,6 @@ source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 printf 'e2e-%s-token\n' "$$" >"$work/token"
 TOKEN=$(head -n1 "$work/token")
 
-WORKER_PIDS=()
-start_worker() {
-  local name=$1 url=$2
-  shift 2
-  "$DTRACED" --role worker --collector "$url" --token-file "$work/token" --threads 1 --name "$name" \
-    --grace-seconds 5 "$@" 2>>"$work/$name.log" &
-  WORKER_PIDS+=($!)
-  pids+=($!)
-}
-client() { "$DTRACED" "$@" --collector "$URL" --token-file "$work/token"; }
-job_field() {
-  client status "$1" --json 2>/dev/null | sed -n "s/.*\"$2\":\([^,}]*\).*/\1/p" | tr -d '"'
-}
 metric() { curl -sf -H "Authorization: Bearer $TOKEN" "$URL/metrics" | sed -n "s/^$1 //p"; }
 # wait_field ID FIELD N: until the job's FIELD is at least N.
 wait_field() {
