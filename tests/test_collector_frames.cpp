@@ -197,7 +197,7 @@ TEST_CASE("a sequence needs a frame number in its output name", "[collector][fra
 
 // tests/data/state_v2.db: made by the release before frame ranges (schema version 2), with job 1
 // done (32x24 in tiles of 16: 4 tiles) and job 2 rendering (64x48, frame 3: 4 of 12 tiles stored).
-TEST_CASE("a state directory of the release before frame ranges opens; its jobs read as single frames",
+TEST_CASE("a state directory of the release before frame ranges opens, its jobs read as single frames",
           "[collector][frames][store]") {
   TempDir dir;
   const coll::CollectorConfig config = make_config(dir);
