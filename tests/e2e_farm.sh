@@ -20,24 +20,6 @@ start_farm_collector() {
   start_collector "$name" "$state" "$listen" --reoffer-floor-ms 500 "$@"
 }
 
-# start_worker NAME URL [extra flags...]: appends to WORKER_PIDS.
-WORKER_PIDS=()
-start_worker() {
-  local name=$1 url=$2
-  shift 2
-  "$DTRACED" --role worker --collector "$url" --token-file "$work/token" --threads 1 --name "$name" \
-    --grace-seconds 5 "$@" 2>>"$work/$name.log" &
-  WORKER_PIDS+=($!)
-  pids+=($!)
-}
-
-client() { "$DTRACED" "$@" --collector "$URL" --token-file "$work/token"; }
-
-# job_field ID FIELD: one field of the job's JSON status (empty if the collector is unreachable).
-job_field() {
-  client status "$1" --json 2>/dev/null | sed -n "s/.*\"$2\":\([^,}]*\).*/\1/p" | tr -d '"'
-}
-
 # wait_tiles ID N: until the job has at least N tiles stored.
 wait_tiles() {
   local t=0 done_

@@ -1,8 +1,8 @@
 # Shared by the end-to-end scripts that start dtraced processes (sourced, never run on its own):
 # a temporary work directory, the list of processes started (killed with SIGKILL and waited for
 # on exit, whatever the outcome), the pass/fail counters, die, which shows the tail of every
-# log in the work directory before it gives up, start_collector and until_ok. Needs DTRACED and
-# DEADLINE.
+# log in the work directory before it gives up, start_collector, start_worker, client, job_field
+# and until_ok. Needs DTRACED and DEADLINE.
 work=$(mktemp -d)
 pids=()
 cleanup() {
@@ -62,4 +62,24 @@ until_ok() {
     n=$((n - 1))
   done
   return 1
+}
+
+# start_worker NAME URL [extra flags...]: a one-thread worker of the collector at URL, logging to
+# $work/NAME.log; appends to WORKER_PIDS.
+WORKER_PIDS=()
+start_worker() {
+  local name=$1 url=$2
+  shift 2
+  "$DTRACED" --role worker --collector "$url" --token-file "$work/token" --threads 1 --name "$name" \
+    --grace-seconds 5 "$@" 2>>"$work/$name.log" &
+  WORKER_PIDS+=($!)
+  pids+=($!)
+}
+
+# client VERB ARGS...: a client verb against the collector at $URL.
+client() { "$DTRACED" "$@" --collector "$URL" --token-file "$work/token"; }
+
+# job_field ID FIELD: one field of the job's JSON status (empty if the collector is unreachable).
+job_field() {
+  client status "$1" --json 2>/dev/null | sed -n "s/.*\"$2\":\([^,}]*\).*/\1/p" | tr -d '"'
 }

@@ -118,10 +118,18 @@ std::string samples_text(const protocol::JobStatus& s) {
   return fmt::format("{} spp", s.samples);
 }
 
+// A sequence's frames: "  frames 2/4, frame 8: 5/12 tiles"; nothing for a single frame.
+std::string frames_text(const protocol::JobStatus& s) {
+  if (!s.frames) return {};
+  const protocol::FrameProgress& f = *s.frames;
+  return fmt::format("  frames {}/{}, frame {}: {}/{} tiles", f.frames_done, f.frames_total, f.frame,
+                     f.frame_tiles_done, f.frame_tiles_total);
+}
+
 void print_status_line(const protocol::JobStatus& s) {
-  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}{}\n", s.id,
+  fmt::print("{:>6}  {:<10} {:>4}  {:>5}x{:<5} {:>16}  {:>6}/{:<6} tiles  {:>8}  eta {:>8}  {}{}{}\n", s.id,
              protocol::to_string(s.state), s.priority, s.width, s.height, samples_text(s), s.tiles_done, s.tiles_total,
-             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output,
+             format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output, frames_text(s),
              s.no_worker_s ? fmt::format("  (no worker for {})", format_seconds(*s.no_worker_s)) : std::string());
 }
 
@@ -230,9 +238,11 @@ int run_status(const ClientArgs& client, const StatusArgs& args) {
       constexpr int kWidth = 40;
       const double frac = st->tiles_total ? double(st->tiles_done) / st->tiles_total : 0.0;
       const int filled = int(frac * kWidth);
-      fmt::print(stderr, "\rjob {} [{:#<{}}{:-<{}}] {:3d}% {}/{} tiles, eta {}   ", st->id, "", filled, "",
-                 kWidth - filled, int(frac * 100), st->tiles_done, st->tiles_total,
-                 st->eta_s ? format_seconds(*st->eta_s) : "-");
+      fmt::print(
+          stderr, "\rjob {} [{:#<{}}{:-<{}}] {:3d}% {}/{} tiles{}, eta {}   ", st->id, "", filled, "", kWidth - filled,
+          int(frac * 100), st->tiles_done, st->tiles_total,
+          st->frames ? fmt::format(", frame {}/{}", st->frames->frames_done, st->frames->frames_total) : std::string(),
+          st->eta_s ? format_seconds(*st->eta_s) : "-");
       if (done) fmt::print(stderr, "\n");
     }
     if (!args.wait || done) {
@@ -247,7 +257,8 @@ int run_status(const ClientArgs& client, const StatusArgs& args) {
   }
 }
 
-int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output) {
+int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output,
+              std::optional<std::uint32_t> frame) {
   const auto format = image::format_from_path(output);
   if (!format) {
     fmt::print(stderr, "{}: unsupported output format (use {})\n", output, image::extension_list());
@@ -255,9 +266,10 @@ int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& out
   }
   Session session;
   if (!session.init(client)) return kExitFailed;
-  auto resp =
-      session.call(http::Verb::get, fmt::format("/v1/jobs/{}/image?format={}", id, image::format_info(*format).name),
-                   {}, kMaxImageResponse);
+  auto resp = session.call(http::Verb::get,
+                           fmt::format("/v1/jobs/{}/image?format={}{}", id, image::format_info(*format).name,
+                                       frame ? fmt::format("&frame={}", *frame) : std::string()),
+                           {}, kMaxImageResponse);
   if (!resp) return kExitFailed;
   if (util::Status written = util::write_file_atomic(output, resp->body()); !written) {
     fmt::print(stderr, "{}\n", written.error().to_string());

@@ -46,7 +46,10 @@ struct StatusArgs {
 };
 int run_status(const ClientArgs& client, const StatusArgs& args);
 
-int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output);
+// The job's image (partial while it renders) into `output`; with `frame`, that frame of a
+// sequence (without it, the frame being rendered).
+int run_fetch(const ClientArgs& client, std::uint64_t id, const std::string& output,
+              std::optional<std::uint32_t> frame = std::nullopt);
 
 int run_cancel(const ClientArgs& client, std::uint64_t id);
 

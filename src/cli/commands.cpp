@@ -131,6 +131,7 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
   c.fetch_cmd = add_client_subcommand(app, c.client, "fetch", "Fetch a job's image (partial while it renders)");
   c.fetch_cmd->add_option("id", c.fetch_id, "Job id")->required();
   c.fetch_cmd->add_option("-o,--output", c.fetch_output, "Image file (" + image::extension_list() + ")")->required();
+  c.fetch_cmd->add_option("--frame", c.fetch_frame, "Frame number of a sequence (default: the frame rendering)");
 
   c.cancel_cmd = add_client_subcommand(app, c.client, "cancel", "Cancel a job");
   c.cancel_cmd->add_option("id", c.cancel_id, "Job id")->required();
@@ -163,7 +164,7 @@ std::optional<int> run_client_command(const ClientCommands& c) {
   if (c.submit_cmd->parsed()) return run_submit(c.client, c.submit);
   if (c.list_cmd->parsed()) return run_list(c.client, c.list);
   if (c.status_cmd->parsed()) return run_status(c.client, c.status);
-  if (c.fetch_cmd->parsed()) return run_fetch(c.client, c.fetch_id, c.fetch_output);
+  if (c.fetch_cmd->parsed()) return run_fetch(c.client, c.fetch_id, c.fetch_output, c.fetch_frame);
   if (c.cancel_cmd->parsed()) return run_cancel(c.client, c.cancel_id);
   if (c.priority_cmd->parsed()) return run_priority(c.client, c.priority_id, c.priority_value);
   if (c.requeue_cmd->parsed()) return run_requeue(c.client, c.requeue_id);

@@ -62,6 +62,7 @@ struct ClientCommands {
   StatusArgs status;
   std::uint64_t fetch_id = 0;
   std::string fetch_output;
+  std::optional<std::uint32_t> fetch_frame;
   std::uint64_t cancel_id = 0;
   CLI::App* submit_cmd = nullptr;
   CLI::App* list_cmd = nullptr;

@@ -74,7 +74,7 @@ util::Result<TileAction, Refusal> check_tile(const Route& route, const JobRecord
     return bad_request(fmt::format("job {} has {} tiles; there is no tile {}", job->id, job->tiles_total, p.tile),
                        "/tile");
   }
-  const scene::TileRect expected = scene::TileGrid(job->settings, job->tile_size).rect(p.tile);
+  const scene::TileRect expected = tile_place(*job, p.tile).rect;
   if (p.rect != expected) {
     return bad_request(
         fmt::format("the payload's rectangle {}x{} at ({}, {}) is not tile {} of job {}: {}x{} at ({}, {})",

@@ -41,7 +41,10 @@ async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request
 http::Response lease_tile(Context& c, const http::Request& req);
 
 async::Awaitable<http::Response> get_scene(Context& c, std::string digest);
-async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format);
+// `frame`: a frame number of the job (404 when it renders no such frame); without it, the frame
+// being rendered.
+async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format,
+                                               std::optional<std::uint32_t> frame);
 
 // handlers/manage.cpp
 async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Request req);

@@ -7,6 +7,7 @@
 
 #include <fmt/format.h>
 
+#include "image/sequence.h"
 #include "util/sha256.h"
 
 namespace dtraced::collector {
@@ -14,7 +15,51 @@ namespace dtraced::collector {
 static_assert(std::endian::native == std::endian::little,
               "tile blobs and payloads carry little-endian floats; a big-endian collector would need byte swaps");
 
-std::string default_output_name(JobId id) { return fmt::format("job-{}.png", id); }
+std::string default_output_name(JobId id, std::uint32_t frames) {
+  return frames > 1 ? fmt::format("job-{}-%04d.png", id) : fmt::format("job-{}.png", id);
+}
+
+TilePlace tile_place(const JobRecord& job, TileIndex tile) {
+  // From the grid itself (a few multiplications), so that it holds for any record.
+  const scene::TileGrid grid(job.settings, job.tile_size);
+  const auto per_frame = static_cast<TileIndex>(grid.count());
+  return {tile / per_frame, grid.rect(tile % per_frame)};
+}
+
+scene::RenderSettings frame_settings(const scene::RenderSettings& job_settings, std::uint32_t frame_index) {
+  scene::RenderSettings s = job_settings;
+  s.frame = protocol::frame_number(job_settings, frame_index);
+  s.frames.reset();
+  return s;
+}
+
+std::optional<std::uint32_t> frame_index_of(const scene::RenderSettings& s, std::uint32_t frame) {
+  if (!s.frames) return frame == s.frame ? std::optional<std::uint32_t>(0) : std::nullopt;
+  if (frame < s.frames->first || frame > s.frames->last || (frame - s.frames->first) % s.frames->step != 0) {
+    return std::nullopt;
+  }
+  return (frame - s.frames->first) / s.frames->step;
+}
+
+std::string frame_output_name(const JobRecord& job, std::uint32_t frame_index) {
+  // A name without a frame number is taken as it is (so a single-frame job keeps any name it
+  // could always have, "100%.png" included). A sequence's name was checked at submission.
+  const auto pattern = image::parse_sequence_pattern(job.output);
+  if (!pattern || !pattern->has_number) return job.output;
+  return image::frame_path(*pattern, protocol::frame_number(job.settings, frame_index));
+}
+
+bool init_frames(JobRecord& job) {
+  const std::uint64_t per_frame = scene::TileGrid(job.settings, job.tile_size).count();
+  const std::uint64_t frames = protocol::frame_count(job.settings);
+  const std::uint64_t total = per_frame * frames;
+  if (per_frame == 0 || total > protocol::kMaxTilesPerJob) return false;
+  job.frames_total = static_cast<std::uint32_t>(frames);
+  job.tiles_per_frame = static_cast<TileIndex>(per_frame);
+  job.tiles_total = static_cast<TileIndex>(total);
+  job.frame_tiles_done.assign(frames, 0);
+  return true;
+}
 
 store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp) {
   assert(spp.empty() || spp.size() * 3 == rgb.size());
@@ -89,14 +134,24 @@ bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, st
   return true;
 }
 
-image::ImageRGBf& writable_framebuffer(JobRecord& job) {
-  if (!job.framebuffer) {
-    job.framebuffer = std::make_shared<image::ImageRGBf>(job.settings.width, job.settings.height);
-  } else if (job.framebuffer.use_count() > 1) {
+image::ImageRGBf& writable_framebuffer(JobRecord& job, std::uint32_t frame_index) {
+  std::shared_ptr<image::ImageRGBf>& fb = job.framebuffers[frame_index];
+  if (!fb) {
+    fb = std::make_shared<image::ImageRGBf>(job.settings.width, job.settings.height);
+  } else if (fb.use_count() > 1) {
     // A reader (an image being encoded) holds the current one: it keeps its snapshot.
-    job.framebuffer = std::make_shared<image::ImageRGBf>(*job.framebuffer);
+    fb = std::make_shared<image::ImageRGBf>(*fb);
   }
-  return *job.framebuffer;
+  return *fb;
+}
+
+std::shared_ptr<const image::ImageRGBf> frame_snapshot(const JobRecord& job, std::uint32_t frame_index) {
+  const auto it = job.framebuffers.find(frame_index);
+  return it == job.framebuffers.end() ? nullptr : it->second;
+}
+
+bool frame_complete(const JobRecord& job, std::uint32_t frame_index) {
+  return frame_index < job.frame_tiles_done.size() && job.frame_tiles_done[frame_index] == job.tiles_per_frame;
 }
 
 protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, TimePoint now) {
@@ -111,6 +166,18 @@ protocol::JobStatus job_status(const JobRecord& job, std::int64_t now_unix, Time
   s.tiles_done = job.tiles_done;
   s.tiles_total = job.tiles_total;
   s.digest = job.digest;
+  if (job.frames_total > 1) {
+    protocol::FrameProgress f;
+    f.frames_total = job.frames_total;
+    const bool done = job.state == protocol::JobState::kDone;
+    f.frames_done = done ? job.frames_total : job.frames_written;
+    const std::uint32_t current = std::min(f.frames_done, job.frames_total - 1);
+    f.frame = protocol::frame_number(job.settings, current);
+    f.frame_tiles_total = job.tiles_per_frame;
+    f.frame_tiles_done =
+        done || current >= job.frame_tiles_done.size() ? job.tiles_per_frame : job.frame_tiles_done[current];
+    s.frames = f;
+  }
   if (job.tiles_done > 0) {
     if (job.settings.error_target <= 0) {
       s.mean_spp = static_cast<double>(job.settings.samples);
@@ -147,13 +214,14 @@ util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecor
   if (!tiles) return std::move(tiles).error();
   std::vector<TileIndex> stored;
   rec.restored.assign(rec.tiles_total, false);
-  const scene::TileGrid grid(rec.settings, rec.tile_size);
+  rec.frame_tiles_done.assign(rec.frames_total, 0);
   for (store::StoredTile& t : tiles.value()) {
     if (t.tile >= rec.tiles_total) {
       return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
                                      rec.tiles_total));
     }
-    const scene::TileRect rect = grid.rect(t.tile);
+    const TilePlace place = tile_place(rec, t.tile);
+    const scene::TileRect& rect = place.rect;
     const std::size_t pixels = std::size_t{rect.width} * rect.height;
     auto stored_tile = blob_to_tile(t.pixels, pixels);
     if (!stored_tile) {
@@ -161,7 +229,8 @@ util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecor
           "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample counts)",
           s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16));
     }
-    copy_tile(writable_framebuffer(rec), rect, stored_tile->rgb);
+    copy_tile(writable_framebuffer(rec, place.frame_index), rect, stored_tile->rgb);
+    ++rec.frame_tiles_done[place.frame_index];
     count_samples(rec, stored_tile->spp);
     t.pixels = {};  // free as we go: the framebuffer holds them now
     stored.push_back(t.tile);

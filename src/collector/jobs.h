@@ -1,7 +1,9 @@
 // dtraced::collector jobs: what the collector knows about each job, and the pure operations on it.
 //
 // Owns: JobRecord (a job's effective settings, output name, tiles, state, and while it is
-// unfinished its in-memory framebuffer and scene text), and the small pure functions around it:
+// unfinished its in-memory framebuffers and scene text), and the small pure functions around it:
+// where each tile of a frame range lies (tile index = frame index x tiles per frame + tile in
+// the frame, so the queue's lowest indices are the lowest frames and frames complete in order),
 // tile pixels to and from the store's blobs, copying and comparing a tile against a framebuffer,
 // the status a client sees, a job's default output name and the one-shot job key.
 //
@@ -14,6 +16,7 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <optional>
 #include <span>
@@ -70,12 +73,24 @@ struct JobRecord {
   SampleTally spp;
   bool spp_pending = false;  // a finished job's counts are still being read after start-up
 
+  // Frames of the job (1 for a single frame; settings.frames->count() for a sequence) and tiles
+  // per frame (tiles_total = frames x tiles_per_frame).
+  std::uint32_t frames_total = 1;
+  TileIndex tiles_per_frame = 0;
+  // Frames whose image this process has written, in order: frames [0, frames_written) are on
+  // disk. The job is done when all are.
+  std::uint32_t frames_written = 0;
+
   // Unfinished jobs only (released once done or cancelled).
-  std::shared_ptr<image::ImageRGBf> framebuffer;  // null until the first tile arrives
+  // By frame index: the frames with stored tiles whose image is not written yet (a frame is
+  // absent until its first tile arrives, and dropped once written).
+  std::map<std::uint32_t, std::shared_ptr<image::ImageRGBf>> framebuffers;
+  std::vector<TileIndex> frame_tiles_done;        // by frame index: tiles stored
   std::shared_ptr<const std::string> scene_json;  // canonical scene text, served to workers
   std::vector<bool> restored;                     // tiles already stored when this process started
-  bool finishing = false;                         // every tile is stored; the image is being written
-  bool finish_failed = false;                     // writing the image failed; retried later
+  bool writing = false;                           // frame images are being written (finish_job runs)
+  bool finishing = false;                         // every tile is stored; the last image is being written
+  bool finish_failed = false;                     // writing an image failed; retried later
   bool rendering_persisted = false;               // the store has been told the job is rendering
 
   // Progress of this process, for the ETA.
@@ -88,8 +103,25 @@ struct JobRecord {
   }
 };
 
-// "job-<id>.png".
-std::string default_output_name(JobId id);
+// "job-<id>.png"; "job-<id>-%04d.png" for a job of several frames.
+std::string default_output_name(JobId id, std::uint32_t frames = 1);
+
+// Where a tile of a job lies: its frame index and its rectangle in that frame.
+struct TilePlace {
+  std::uint32_t frame_index = 0;
+  scene::TileRect rect;
+};
+TilePlace tile_place(const JobRecord& job, TileIndex tile);
+// The settings a worker renders frame `frame_index` with: that frame's number, no range.
+scene::RenderSettings frame_settings(const scene::RenderSettings& job_settings, std::uint32_t frame_index);
+// The frame index of frame number `frame`, or nullopt when the job does not render it.
+std::optional<std::uint32_t> frame_index_of(const scene::RenderSettings& job_settings, std::uint32_t frame);
+// The file name of frame `frame_index`'s image: the output's sequence pattern (image/sequence.h)
+// at that frame's number, or the output as it is when it holds no frame number.
+std::string frame_output_name(const JobRecord& job, std::uint32_t frame_index);
+// Sets frames_total, tiles_per_frame, tiles_total and frame_tiles_done from the settings and tile
+// size; false when the job has no tile or more than protocol::kMaxTilesPerJob.
+bool init_frames(JobRecord& job);
 
 // Tile pixels as the store keeps them (tiles.pixels): the float32 values' bytes in host order
 // (the collector only runs on little-endian hosts, asserted at compile time, so this is the
@@ -119,12 +151,16 @@ void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<c
 // Whether `image` holds exactly these bits at `rect`.
 bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
 
-// The job's framebuffer, allocated (black) if missing and cloned if a reader shares it. Call on
-// the event loop only.
-image::ImageRGBf& writable_framebuffer(JobRecord& job);
+// The framebuffer of the job's frame `frame_index`, allocated (black) if missing and cloned if a
+// reader shares it. Call on the event loop only.
+image::ImageRGBf& writable_framebuffer(JobRecord& job, std::uint32_t frame_index);
+// The frame's framebuffer as it is now, or null (no tile of it stored in memory).
+std::shared_ptr<const image::ImageRGBf> frame_snapshot(const JobRecord& job, std::uint32_t frame_index);
+// Whether every tile of the frame is stored.
+bool frame_complete(const JobRecord& job, std::uint32_t frame_index);
 
-// Reads the job's stored tiles from `s` into `rec`: its framebuffer (black where no tile is
-// stored), its sample tally and its `restored` flags; returns their indices, ascending. Fails,
+// Reads the job's stored tiles from `s` into `rec`: its frames' framebuffers (black where no tile
+// is stored), the per-frame counts, its sample tally and its `restored` flags; returns their indices, ascending. Fails,
 // naming the database, on a tile out of range or a blob of the wrong size. Runs wherever `s` may be
 // used (start-up; the store writer's thread for a requeue) on a record no other thread touches.
 util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec);

@@ -34,7 +34,7 @@ async::Awaitable<> retry_finishes(Context& c) {
   c.retry_armed = false;
   if (c.stopping) co_return;
   for (auto& [id, job] : c.jobs) {
-    if (job.unfinished() && job.finish_failed && !job.finishing) start_finish(c, id);
+    if (job.unfinished() && job.finish_failed && !job.writing) start_finish(c, id);
   }
 }
 
@@ -49,32 +49,105 @@ struct Written {
   std::string error;
 };
 
-async::Awaitable<> finish_job(Context& c, JobId id) {
+// After a write on the pool: the job, or null when it was cancelled or deleted meanwhile (then
+// nothing more is written, and the run ends).
+JobRecord* still_unfinished(Context& c, JobId id) {
   JobRecord* job = c.find_job(id);
-  std::shared_ptr<const image::ImageRGBf> image = job->framebuffer;
-  if (!image) image = std::make_shared<const image::ImageRGBf>(job->settings.width, job->settings.height);
+  if (job != nullptr && job->unfinished()) return job;
+  if (job != nullptr) job->writing = job->finishing = false;
+  finish_ended(c);
+  return nullptr;
+}
+
+// A failed write: logged, and tried again after kFinishRetryDelay; the run ends.
+void write_failed(Context& c, JobRecord& job, const std::string& error) {
+  ++c.counters.image_write_failures;
+  util::log_error("collector: job {}: cannot write its image: {}; trying again in {} s", job.id, error,
+                  kFinishRetryDelay.count());
+  job.writing = job.finishing = false;
+  job.finish_failed = true;
+  finish_ended(c);
+  arm_finish_retry(c);
+}
+
+// Writes the frame's image under its file name (a GIF sequence's frames have none: they are
+// only counted, the pixels being in the store); false when the run must end.
+async::Awaitable<bool> write_frame(Context& c, JobId id, std::uint32_t frame_index) {
+  JobRecord* job = c.find_job(id);
+  if (!is_gif_sequence(*job)) {
+    std::shared_ptr<const image::ImageRGBf> image = frame_snapshot(*job, frame_index);
+    if (!image) image = std::make_shared<const image::ImageRGBf>(job->settings.width, job->settings.height);
+    const std::string path = (fs::path(c.output_dir) / frame_output_name(*job, frame_index)).string();
+    const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth),
+                                      .display = job->settings.display};
+    auto write = [img = image.get(), path, options] {
+      Written w;
+      const util::Status st = write_output_image(path, *img, options);
+      w.ok = st.ok();
+      if (!st) w.error = st.error().to_string();
+      return w;
+    };
+    const Written written = co_await async::on_pool(c.pool, std::move(write));
+    image.reset();
+    job = still_unfinished(c, id);
+    if (job == nullptr) co_return false;
+    if (!written.ok) {
+      write_failed(c, *job, written.error);
+      co_return false;
+    }
+    ++c.counters.images_written;
+    if (job->frames_total > 1) {
+      util::log_info("collector: job {}: frame {} written ({}/{}): {}", id,
+                     protocol::frame_number(job->settings, frame_index), frame_index + 1, job->frames_total, path);
+    }
+  }
+  ++job->frames_written;
+  job->framebuffers.erase(frame_index);
+  co_return true;
+}
+
+// A GIF sequence's file, once every frame is complete: assembled from the store on the pool.
+async::Awaitable<bool> write_gif(Context& c, JobId id) {
+  const JobRecord* job = c.find_job(id);
+  const GifJob gif{id, job->settings, job->tile_size, job->frames_total};
   const std::string path = (fs::path(c.output_dir) / job->output).string();
-  auto write = [img = image.get(), path, bits = job->png_bit_depth] {
+  auto write = [&reader = c.reader, gif, path] {
     Written w;
-    const util::Status st = write_output_image(path, *img, static_cast<int>(bits));
+    util::Result<std::string> bytes = sequence_gif(reader, gif);
+    const util::Status st = bytes ? write_output_file(path, *bytes) : util::Status(bytes.error());
     w.ok = st.ok();
     if (!st) w.error = st.error().to_string();
     return w;
   };
   const Written written = co_await async::on_pool(c.pool, std::move(write));
-  image.reset();
-  job = c.find_job(id);
+  JobRecord* rec = still_unfinished(c, id);
+  if (rec == nullptr) co_return false;
   if (!written.ok) {
-    ++c.counters.image_write_failures;
-    util::log_error("collector: job {}: cannot write its image: {}; trying again in {} s", id, written.error,
-                    kFinishRetryDelay.count());
-    job->finishing = false;
-    job->finish_failed = true;
-    finish_ended(c);
-    arm_finish_retry(c);
-    co_return;
+    write_failed(c, *rec, written.error);
+    co_return false;
   }
   ++c.counters.images_written;
+  co_return true;
+}
+
+// Writes every complete frame in order, from the first one not written; the job is done once
+// the last one is. Tiles stored meanwhile complete later frames, which this loop picks up.
+async::Awaitable<> finish_job(Context& c, JobId id) {
+  for (;;) {
+    JobRecord* job = c.find_job(id);
+    if (job->frames_written == job->frames_total) break;
+    if (!frame_complete(*job, job->frames_written)) {
+      job->writing = job->finishing = false;
+      finish_ended(c);
+      co_return;
+    }
+    // Writing the last frame finishes the job: from here on it counts as done (no cancel).
+    job->finishing = job->frames_written + 1 == job->frames_total;
+    if (!co_await write_frame(c, id, job->frames_written)) co_return;
+  }
+  if (is_gif_sequence(*c.find_job(id)) && !co_await write_gif(c, id)) co_return;
+  JobRecord* job = c.find_job(id);
+  const std::string path = (fs::path(c.output_dir) / job->output).string();
   const std::int64_t when = c.clock.unix_seconds();
   if (c.writer) {
     auto mark_done = [id, when](store::Store& s) { return record_state(s, id, StateWrite::kDone, when); };
@@ -92,11 +165,15 @@ async::Awaitable<> finish_job(Context& c, JobId id) {
   job = c.find_job(id);
   job->state = protocol::JobState::kDone;
   job->finished_unix = when;
-  job->finishing = false;
+  job->writing = job->finishing = false;
   job->tiles_done = job->tiles_total;
   release(*job);
   c.queue.remove_job(id);
-  util::log_info("collector: job {} done: {} written", id, path);
+  if (job->frames_total > 1) {
+    util::log_info("collector: job {} done: {} frames written as {}", id, job->frames_total, path);
+  } else {
+    util::log_info("collector: job {} done: {} written", id, path);
+  }
   finish_ended(c);
   if (c.one_shot_id == id && c.config.exit_when_done) begin_linger(c, 0);
 }
@@ -167,8 +244,11 @@ void persist_rendering(Context& c, JobRecord& job) {
 
 void start_finish(Context& c, JobId id) {
   JobRecord* job = c.find_job(id);
-  assert(job != nullptr && job->unfinished());
-  job->finishing = true;
+  assert(job != nullptr && job->unfinished() && !job->writing);
+  job->writing = true;
+  // Finishing: the last frame's write (or, for a GIF sequence, the file's) is what runs now.
+  job->finishing = job->frames_written == job->frames_total ||
+                   (job->frames_written + 1 == job->frames_total && frame_complete(*job, job->frames_written));
   job->finish_failed = false;
   ++c.finishes_in_flight;
   net::co_spawn(*c.ioc, finish_job(c, id),
@@ -186,7 +266,7 @@ void apply_cancel(Context& c, JobRecord& job, std::int64_t when) {
 }
 
 void release(JobRecord& job) {
-  job.framebuffer.reset();
+  job.framebuffers.clear();
   job.scene_json.reset();
   job.restored = {};
 }

@@ -54,7 +54,9 @@ util::Result<store::StateChange> record_state(store::Store& s, JobId id, StateWr
 // the stored tiles), without waiting for it.
 void persist_rendering(Context& c, JobRecord& job);
 
-// Starts writing the image of an unfinished job whose every tile is stored.
+// Starts writing the images of an unfinished job's complete frames, in order from the first one not
+// written (its next frame must be complete, and no write of the job running); the job is marked
+// done once its last frame is written. Frames completed meanwhile are written by the same run.
 void start_finish(Context& c, JobId id);
 
 // Applies a cancellation the store has recorded at `when`: no more leases, the job's memory

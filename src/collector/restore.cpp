@@ -119,7 +119,10 @@ util::Status restore_active(Context& c, store::Store& s, const store::StoredJob&
   }
   rec.rendering_persisted = row.state == store::kJobRendering;
   rec.scene_json = c.intern_scene(row.digest, std::move(*scene_json.value()));
-  if (rec.tiles_done == rec.tiles_total) c.to_finish.push_back(rec.id);
+  // Frames complete before the restart are written (again: a file already there with the same
+  // bytes counts as written), in order, and the job resumes with the first unfinished one.
+  rec.frames_written = 0;
+  if (frame_complete(rec, 0)) c.to_finish.push_back(rec.id);
   util::log_info("collector: job {} restored{}: {}/{} tiles stored", rec.id,
                  rec.state == JobState::kPaused ? " (paused)" : "", rec.tiles_done, rec.tiles_total);
   return {};
@@ -163,9 +166,15 @@ util::Status resume_one_shot(Context& c, store::Store& s, const store::StoredJob
     util::log_error("collector: one-shot job {} was cancelled; nothing to do", id);
     if (c.config.exit_when_done) begin_stop(c, 1);
   } else {
-    const fs::path path = fs::path(c.output_dir) / rec->output;
+    // A sequence is whole when its every frame is (bounded: at most kMaxFrames names).
+    fs::path path;
     std::error_code ec;
-    if (fs::exists(path, ec)) {
+    bool present = true;
+    for (std::uint32_t f = 0; f < rec->frames_total && present; ++f) {
+      path = fs::path(c.output_dir) / frame_output_name(*rec, f);
+      present = fs::exists(path, ec);
+    }
+    if (present) {
       util::log_info("collector: one-shot job {} is done; {} is written", id, path.string());
       if (c.config.exit_when_done) begin_stop(c, 0);
     } else {

@@ -74,7 +74,7 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
     case RouteKind::kJobStatus:
       co_return get_job(c, route.job);
     case RouteKind::kJobImage:
-      co_return co_await get_job_image(c, route.job, route.image_format);
+      co_return co_await get_job_image(c, route.job, route.image_format, route.image_frame);
     case RouteKind::kCancelJob:
       co_return co_await cancel_job(c, route.job);
     case RouteKind::kLease:

@@ -71,19 +71,34 @@ std::vector<std::pair<std::string_view, std::string_view>> query_items(std::stri
   return items;
 }
 
-// Only the image route takes a query: format=NAME (image::format_from_name), once.
-util::Result<image::ImageFormat, Refusal> parse_image_query(std::string_view query) {
-  image::ImageFormat format = image::ImageFormat::kPng;
-  bool seen = false;
+// The image route's query: format=NAME (image::format_from_name) and frame=N (a frame number),
+// each at most once.
+util::Result<void, Refusal> parse_image_query(std::string_view query, Route& route) {
+  bool format_seen = false, frame_seen = false;
   for (const auto& [key, value] : query_items(query)) {
-    if (key != "format") return bad_request(fmt::format("unknown query parameter '{}'", key.substr(0, 64)), "/format");
-    if (seen) return bad_request("format given twice", "/format");
-    seen = true;
-    const std::optional<image::ImageFormat> named = image::format_from_name(value);
-    if (!named) return bad_request(fmt::format("format must be {}", image::name_list()), "/format");
-    format = *named;
+    if (key == "format") {
+      if (format_seen) return bad_request("format given twice", "/format");
+      format_seen = true;
+      const std::optional<image::ImageFormat> named = image::format_from_name(value);
+      if (!named) return bad_request(fmt::format("format must be {}", image::name_list()), "/format");
+      route.image_format = *named;
+    } else if (key == "frame") {
+      if (frame_seen) return bad_request("frame given twice", "/frame");
+      frame_seen = true;
+      std::uint32_t frame = 0;
+      const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), frame);
+      if (ec != std::errc() || end != value.data() + value.size() || value.empty() ||
+          (value.size() > 1 && value.front() == '0')) {
+        return bad_request("frame must be a frame number (decimal, 0 to 4294967295)", "/frame");
+      }
+      route.image_frame = frame;
+    } else {
+      return bad_request(
+          fmt::format("unknown query parameter '{}' (this endpoint takes format and frame)", key.substr(0, 64)),
+          "/format");
+    }
   }
-  return format;
+  return {};
 }
 
 // GET /v1/jobs: state=NAME (protocol::job_state_from_string) and limit=N, each at most once.
@@ -230,9 +245,7 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
   if (!method_ok) return wrong_method(allow);
 
   if (route.kind == RouteKind::kJobImage) {
-    auto format = parse_image_query(query);
-    if (!format) return std::move(format).error();
-    route.image_format = format.value();
+    if (auto parsed = parse_image_query(query, route); !parsed) return std::move(parsed).error();
   } else if (route.kind == RouteKind::kListJobs) {
     if (util::Status parsed = parse_list_query(query, route); !parsed) {
       return bad_request(parsed.error().message, parsed.error().path);

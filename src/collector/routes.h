@@ -7,7 +7,7 @@
 //   GET  /healthz                      no token
 //   GET  /metrics
 //   POST /v1/jobs                      GET /v1/jobs
-//   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|ppm|pfm]
+//   GET  /v1/jobs/{id}                 GET /v1/jobs/{id}/image[?format=png|ppm|pfm][&frame=N]
 //   POST /v1/jobs/{id}/cancel          PUT /v1/jobs/{id}/tiles/{tile}
 //   POST /v1/lease                     GET /v1/scenes/{digest}
 //   POST /v1/jobs/{id}/priority        POST /v1/jobs/{id}/requeue
@@ -73,6 +73,7 @@ struct Route {
   std::optional<protocol::JobState> list_state;                // kListJobs: ?state=S
   std::size_t list_limit = protocol::kMaxListedJobs;           // kListJobs: ?limit=N, [1, kMaxListedJobs]
   bool delete_image = false;                                   // kDeleteJob: ?image=delete
+  std::optional<std::uint32_t> image_frame = std::nullopt;     // kJobImage: ?frame=N, a frame number
   bool operator==(const Route&) const = default;
 };
 

@@ -24,8 +24,8 @@ util::Result<store::Store*> StoreReader::store_locked() {
 }
 
 util::Result<std::string> StoreReader::encode_image(JobId id, const scene::RenderSettings& settings,
-                                                    std::uint32_t tile_size, const image::WriteOptions& options,
-                                                    image::ImageFormat format) {
+                                                    std::uint32_t tile_size, std::uint32_t frame_index,
+                                                    const image::WriteOptions& options, image::ImageFormat format) {
   image::ImageRGBf image(settings.width, settings.height);
   {
     std::lock_guard lock(mu_);
@@ -34,15 +34,42 @@ util::Result<std::string> StoreReader::encode_image(JobId id, const scene::Rende
     auto tiles = s.value()->get_all_tiles(static_cast<std::int64_t>(id));
     if (!tiles) return std::move(tiles).error();
     const scene::TileGrid grid(settings, tile_size);
+    // Frame k's tiles are k x tiles-per-frame onwards (collector/jobs.h).
+    const std::uint64_t first = std::uint64_t{frame_index} * grid.count();
     for (const store::StoredTile& t : tiles.value()) {
-      if (t.tile >= grid.count()) continue;
-      const scene::TileRect rect = grid.rect(t.tile);
+      if (t.tile < first || t.tile - first >= grid.count()) continue;
+      const scene::TileRect rect = grid.rect(static_cast<TileIndex>(t.tile - first));
       auto stored_tile = blob_to_tile(t.pixels, std::size_t{rect.width} * rect.height);
       if (!stored_tile) return util::Error(fmt::format("stored tile {} has the wrong size", t.tile));
       copy_tile(image, rect, stored_tile->rgb);
     }
   }
   return image::encode_image(format, image, options);
+}
+
+util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::RenderSettings& settings,
+                                                        std::uint32_t tile_size, std::uint32_t frame_index) {
+  image::ImageRGBf image(settings.width, settings.height);
+  const scene::TileGrid grid(settings, tile_size);
+  const TileIndex first = frame_index * static_cast<TileIndex>(grid.count());
+  for (TileIndex t = 0; t < grid.count(); ++t) {
+    std::optional<store::StoredTile> stored;
+    {
+      // One tile per lock, so that other reads go on in between.
+      std::lock_guard lock(mu_);
+      auto s = store_locked();
+      if (!s) return std::move(s).error();
+      auto tile = s.value()->get_tile(static_cast<std::int64_t>(id), first + t);
+      if (!tile) return std::move(tile).error();
+      stored = std::move(tile).value();
+    }
+    if (!stored) continue;
+    const scene::TileRect rect = grid.rect(t);
+    auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
+    if (!parsed) return util::Error(fmt::format("stored tile {} has the wrong size", first + t));
+    copy_tile(image, rect, parsed->rgb);
+  }
+  return image;
 }
 
 util::Result<std::optional<std::string>> StoreReader::scene(const std::string& digest) {
@@ -77,7 +104,7 @@ util::Result<SampleTally> StoreReader::sample_counts(JobId id, const scene::Rend
       stored = std::move(tile).value();
     }
     if (!stored) continue;
-    const scene::TileRect rect = grid.rect(index);
+    const scene::TileRect rect = grid.rect(index % grid.count());
     auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
     if (!parsed) {
       tally.known = false;  // the image itself is checked when it is served

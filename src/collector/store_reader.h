@@ -2,8 +2,8 @@
 // for the event loop.
 //
 // Owns: a Store opened on first use (without the integrity check: the first connection ran it at
-// start-up) and the reads that go through it: a finished or cancelled job's image, assembled from
-// its stored tiles and encoded; a scene by digest; a finished adaptive job's sample counts. The
+// start-up) and the reads that go through it: a finished or cancelled job's image (or one frame
+// of it), assembled from its stored tiles and encoded; a scene by digest; a finished adaptive job's sample counts. The
 // store writer (store/tile_writer.h) has the other connection; WAL lets the two work at once.
 //
 // Thread safety: every member function may be called from any thread (the thread pool's); the
@@ -28,10 +28,16 @@ class StoreReader {
  public:
   explicit StoreReader(std::string state_dir);
 
-  // The image of a job whose pixels live in the store only (done or cancelled), black where no
-  // tile is stored, encoded in `format`.
+  // The image of frame `frame_index` (0 for a single frame) of a job whose pixels live in the
+  // store, black where no tile is stored, encoded in `format`.
   util::Result<std::string> encode_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
-                                         const image::WriteOptions& options, image::ImageFormat format);
+                                         std::uint32_t frame_index, const image::WriteOptions& options,
+                                         image::ImageFormat format);
+
+  // Frame `frame_index` of a job from its stored tiles, black where none is stored; read one tile
+  // at a time (a sequence's GIF is assembled from these, one frame in memory at a time).
+  util::Result<image::ImageRGBf> frame_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
+                                             std::uint32_t frame_index);
 
   // A scene's canonical text; nullopt when no scene has this digest.
   util::Result<std::optional<std::string>> scene(const std::string& digest);

@@ -61,10 +61,6 @@ util::Result<JobRecord> record_from_row(const store::StoredJob& row) {
   if (row.tile_size < scene::kMinTileSize || row.tile_size > scene::kMaxTileSize) {
     return util::Error(fmt::format("job {}: tile size {} is out of range", row.id, row.tile_size));
   }
-  const std::uint64_t tiles = scene::TileGrid(settings.value().render, row.tile_size).count();
-  if (tiles == 0 || tiles > protocol::kMaxTilesPerJob) {
-    return util::Error(fmt::format("job {}: {} tiles, outside [1, {}]", row.id, tiles, protocol::kMaxTilesPerJob));
-  }
   if (row.id <= 0 || static_cast<std::uint64_t>(row.id) > protocol::kMaxId) {
     return util::Error(fmt::format("job id {} is out of range", row.id));
   }
@@ -73,14 +69,19 @@ util::Result<JobRecord> record_from_row(const store::StoredJob& row) {
   rec.digest = row.digest;
   rec.settings = settings.value().render;
   rec.png_bit_depth = settings.value().png_bit_depth;
-  rec.output = row.output.empty() ? default_output_name(rec.id) : row.output;
   rec.priority = row.priority;
   rec.tile_size = row.tile_size;
+  if (!init_frames(rec)) {
+    const std::uint64_t per_frame = scene::TileGrid(rec.settings, row.tile_size).count();
+    return util::Error(fmt::format("job {}: {} tiles x {} frames, outside [1, {}] tiles", row.id, per_frame,
+                                   protocol::frame_count(rec.settings), protocol::kMaxTilesPerJob));
+  }
+  rec.output = row.output.empty() ? default_output_name(rec.id, rec.frames_total) : row.output;
   rec.state = *state;
   rec.created_unix = row.created_unix;
   rec.finished_unix = row.finished_unix;
-  rec.tiles_total = static_cast<TileIndex>(tiles);
   rec.tiles_done = rec.state == protocol::JobState::kDone ? rec.tiles_total : 0;
+  if (rec.state == protocol::JobState::kDone) rec.frames_written = rec.frames_total;
   return rec;
 }
 

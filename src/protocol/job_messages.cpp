@@ -10,6 +10,7 @@
 #include <boost/json/value.hpp>
 #include <fmt/format.h>
 
+#include "image/sequence.h"
 #include "protocol/codec.h"
 #include "protocol/messages.h"
 #include "scene/digest.h"
@@ -25,12 +26,15 @@ using namespace detail;
 constexpr std::array<std::string_view, 5> kJobStateNames = {"queued", "rendering", "done", "cancelled", "paused"};
 
 constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size"};
-constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
-                                               std::array<std::string_view, 1>{"png_bit_depth"});
+constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
+                                                                 std::array<std::string_view, 1>{"png_bit_depth"}),
+                                               kAnimationKeys);
 constexpr std::array<std::string_view, 2> kJobCreatedKeys = {"id", "digest"};
-constexpr std::array<std::string_view, 14> kJobStatusKeys = {
-    "id",         "state",       "output",    "priority", "width",  "height",   "samples",
-    "tiles_done", "tiles_total", "elapsed_s", "eta_s",    "digest", "mean_spp", "no_worker_s"};
+constexpr std::array<std::string_view, 19> kJobStatusKeys = {
+    "id",          "state",   "output",           "priority",         "width",
+    "height",      "samples", "tiles_done",       "tiles_total",      "elapsed_s",
+    "eta_s",       "digest",  "mean_spp",         "no_worker_s",      "frames_total",
+    "frames_done", "frame",   "frame_tiles_done", "frame_tiles_total"};
 constexpr std::array<std::string_view, 1> kJobListKeys = {"jobs"};
 constexpr std::array<std::string_view, 1> kJobPriorityKeys = {"priority"};
 constexpr std::array<std::string_view, 4> kJobDeletedKeys = {"id", "tiles", "image", "image_error"};
@@ -62,6 +66,7 @@ void read_submitted_scene(Fields& f, scene::SceneDesc& out) {
 void read_overrides(Fields& f, scene::Overrides& o) {
   f.integer("tile_size", o.tile_size, scene::kMinTileSize, scene::kMaxTileSize);
   scene::read_render_settings(f, o, Need::kOptional);
+  read_animation_settings(f, o);
   if (f.has("png_bit_depth")) {
     std::uint32_t bits = scene::kDefaultPngBitDepth;
     if (read_bit_depth(f, bits)) o.png_bit_depth = bits;
@@ -77,11 +82,42 @@ void read_job_submit(Fields& f, JobSubmit& m) {
 
   const scene::RenderSettings s = effective_settings(m);
   const std::uint32_t tile_size = scene::tile_size_or_default(m.overrides);
-  const std::uint64_t tiles = scene::TileGrid(s, tile_size).count();
-  if (tiles > kMaxTilesPerJob) {
-    f.reader().error(f.path("tile_size"),
-                     fmt::format("a {}x{} image in tiles of {} is {} tiles, more than the limit of {}", s.width,
-                                 s.height, tile_size, tiles, kMaxTilesPerJob));
+  const std::uint64_t per_frame = scene::TileGrid(s, tile_size).count();
+  const std::uint64_t frames = frame_count(s);
+  if (per_frame * frames > kMaxTilesPerJob) {
+    const std::string times = frames > 1 ? fmt::format(" x {} frames", frames) : std::string();
+    f.reader().error(f.path(frames > 1 && !f.has("tile_size") ? "frames" : "tile_size"),
+                     fmt::format("a {}x{} image in tiles of {} is {} tiles{}, more than the limit of {}", s.width,
+                                 s.height, tile_size, per_frame, times, kMaxTilesPerJob));
+  }
+  // A sequence's output is a pattern with the frame number (or a GIF, one file for all frames).
+  if (frames > 1 && !m.output.empty()) {
+    if (util::Status pattern = image::check_sequence_path(m.output, static_cast<std::uint32_t>(frames)); !pattern) {
+      f.reader().error(f.path("output"), pattern.error().message);
+    }
+  }
+}
+
+// The frame progress of a sequence's status: every key or none.
+void read_frame_progress(Fields& f, JobStatus& s) {
+  if (!f.has("frames_total")) return;
+  FrameProgress p;
+  Reader& r = f.reader();
+  const std::size_t before = r.error_count();
+  const std::int64_t max_frame = std::numeric_limits<std::uint32_t>::max();
+  f.integer("frames_total", p.frames_total, 1, scene::kMaxFrames);
+  f.integer("frames_done", p.frames_done, 0, scene::kMaxFrames);
+  f.integer("frame", p.frame, 0, max_frame);
+  f.integer("frame_tiles_done", p.frame_tiles_done, 0, kMaxTilesPerJob);
+  f.integer("frame_tiles_total", p.frame_tiles_total, 1, kMaxTilesPerJob);
+  if (r.error_count() != before) return;
+  if (p.frames_done > p.frames_total) {
+    r.error(f.path("frames_done"), fmt::format("must be <= frames_total (got {} > {})", p.frames_done, p.frames_total));
+  } else if (p.frame_tiles_done > p.frame_tiles_total) {
+    r.error(f.path("frame_tiles_done"),
+            fmt::format("must be <= frame_tiles_total (got {} > {})", p.frame_tiles_done, p.frame_tiles_total));
+  } else {
+    s.frames = p;
   }
 }
 
@@ -113,6 +149,7 @@ void read_job_status(Fields& f, JobStatus& s) {
   // Optional, so that an older collector's answer still reads.
   read_nullable_number(f, "mean_spp", s.mean_spp, 1, scene::kMaxSamples, Need::kOptional);
   read_nullable_number(f, "no_worker_s", s.no_worker_s, 0, DBL_MAX, Need::kOptional);
+  read_frame_progress(f, s);
   if (r.error_count() == before && s.tiles_done > s.tiles_total) {
     r.error(f.path("tiles_done"), fmt::format("must be <= tiles_total (got {} > {})", s.tiles_done, s.tiles_total));
   }
@@ -134,6 +171,13 @@ json::object job_status_object(const JobStatus& s) {
   o["digest"] = s.digest;
   o["mean_spp"] = s.mean_spp ? jsonio::exact_number(*s.mean_spp) : json::value(nullptr);
   o["no_worker_s"] = s.no_worker_s ? jsonio::exact_number(*s.no_worker_s) : json::value(nullptr);
+  if (s.frames) {
+    o["frames_total"] = s.frames->frames_total;
+    o["frames_done"] = s.frames->frames_done;
+    o["frame"] = s.frames->frame;
+    o["frame_tiles_done"] = s.frames->frame_tiles_done;
+    o["frame_tiles_total"] = s.frames->frame_tiles_total;
+  }
   return o;
 }
 
@@ -142,7 +186,20 @@ json::object job_status_object(const JobStatus& s) {
 // ---- JobSubmit -----------------------------------------------------------------------------
 
 scene::RenderSettings effective_settings(const JobSubmit& submit) {
-  return scene::apply(submit.overrides, submit.scene.render);
+  scene::RenderSettings s = scene::apply(submit.overrides, submit.scene.render);
+  // An explicit single frame wins over the scene's range; a range of one frame is that frame.
+  if (submit.overrides.frame && !submit.overrides.frames) s.frames.reset();
+  if (s.frames && s.frames->count() == 1) {
+    s.frame = s.frames->first;
+    s.frames.reset();
+  }
+  return s;
+}
+
+std::uint32_t frame_count(const scene::RenderSettings& s) { return s.frames ? s.frames->count() : 1; }
+
+std::uint32_t frame_number(const scene::RenderSettings& s, std::uint32_t index) {
+  return s.frames ? s.frames->at(index) : s.frame;
 }
 
 std::string encode(const JobSubmit& m) {
@@ -165,6 +222,10 @@ std::string encode(const JobSubmit& m) {
   if (v.error_target) o["error_target"] = jsonio::exact_number(*v.error_target);
   if (v.min_samples) o["min_samples"] = *v.min_samples;
   if (v.png_bit_depth) o["png_bit_depth"] = *v.png_bit_depth;
+  if (v.frames) o["frames"] = frame_range_value(*v.frames);
+  if (v.fps) o["fps"] = jsonio::exact_number(*v.fps);
+  if (v.exposure) o["exposure"] = jsonio::exact_number(*v.exposure);
+  if (v.tone) o["tone"] = image::to_string(*v.tone);
   return jsonio::to_text(o);
 }
 

@@ -98,12 +98,21 @@ struct JobSubmit {
   bool operator==(const JobSubmit&) const = default;
 };
 
-// The scene's render settings with the submission's overrides applied.
+// The scene's render settings with the submission's overrides applied. The frame range is the
+// override's, else the scene's render.frames, else the single frame render.frame; an explicit
+// "frame" without "frames" is that single frame, and a range of one frame is stored as that
+// single frame (frames unset), so that a single-frame job keeps the settings text it always had.
 scene::RenderSettings effective_settings(const JobSubmit& submit);
 
+// A job's frames: frames->count(), or 1 without a range; and the number of its index-th frame.
+std::uint32_t frame_count(const scene::RenderSettings& s);
+std::uint32_t frame_number(const scene::RenderSettings& s, std::uint32_t index);
+
 std::string encode(const JobSubmit& m);
-// Also rejects a submission whose effective image has more than kMaxTilesPerJob tiles (at
-// "/tile_size"). Scene problems come back with paths under "/scene".
+// Also rejects a submission whose effective image has more than kMaxTilesPerJob tiles over all
+// its frames (at "/tile_size", or "/frames" for a sequence without a tile size). "frames" is
+// {"first", "last", "step"} ("step" optional, 1 by default), as in a scene's render block. Scene problems come back
+// with paths under "/scene".
 Decoded<JobSubmit> decode_job_submit(std::string_view body);
 
 // 201 answer to POST /v1/jobs.
@@ -127,6 +136,17 @@ std::optional<JobState> job_state_from_string(std::string_view text);
 // A job unserved this long is reported by its status (JobStatus::no_worker_s).
 inline constexpr double kNoWorkerAfterS = 60;
 
+// A sequence's progress: frames written, and the frame being rendered (the lowest one not written
+// yet; the last frame once all are written) with its tiles stored.
+struct FrameProgress {
+  std::uint32_t frames_total = 1;  // [1, scene::kMaxFrames]
+  std::uint32_t frames_done = 0;   // <= frames_total
+  std::uint32_t frame = 0;         // a frame number
+  std::uint32_t frame_tiles_done = 0;
+  std::uint32_t frame_tiles_total = 1;  // >= frame_tiles_done
+  bool operator==(const FrameProgress&) const = default;
+};
+
 struct JobStatus {
   std::uint64_t id = 0;  // [1, kMaxId]
   JobState state = JobState::kQueued;
@@ -145,6 +165,9 @@ struct JobStatus {
   // Seconds since a worker last leased or returned a tile of this unfinished job, once that is at
   // least a minute (kNoWorkerAfterS); null otherwise. Optional when decoding, like mean_spp.
   std::optional<double> no_worker_s;
+  // A job of several frames only: "frames_total", "frames_done", "frame", "frame_tiles_done" and
+  // "frame_tiles_total" on the wire, all or none. Optional when decoding, like mean_spp.
+  std::optional<FrameProgress> frames;
   bool operator==(const JobStatus&) const = default;
 };
 std::string encode(const JobStatus& m);
@@ -248,7 +271,9 @@ struct JobSettings {
 // {"width", "height", "samples", "max_depth", "background": [r, g, b], "seed", "frame"}, every key
 // required, plus "error_target" and "min_samples", written when either differs from its default
 // and optional when read (absent: uniform sampling): the same object a Lease carries as
-// "settings". Then "png_bit_depth", written when it is not 8 and optional when read. A job stored
+// "settings". Then "png_bit_depth", written when it is not 8 and optional when read; and "frames",
+// "fps", "exposure" and "tone", written when they differ from a static single frame's and
+// optional when read (a lease's settings carry them too; a lease is one frame, without "frames"). A job stored
 // before a field existed reads as it always did, and an 8-bit uniform job keeps its text (and so
 // its one-shot key).
 std::string encode_settings(const JobSettings& settings);

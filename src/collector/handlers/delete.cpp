@@ -9,6 +9,7 @@
 #include <string>
 #include <system_error>
 #include <utility>
+#include <vector>
 
 #include <fmt/format.h>
 
@@ -44,17 +45,20 @@ Deleted delete_in_store(store::Store& s, JobId id) {
   return out;
 }
 
-// Removes the finished image file of a deleted job: "deleted", "none" when it was not there, or
-// "failed" with the reason.
-protocol::JobDeleted remove_image(const std::string& path, protocol::JobDeleted answer) {
-  std::error_code ec;
-  const bool removed = fs::remove(path, ec);
-  if (ec) {
-    answer.image = "failed";
-    answer.image_error = fmt::format("{}: {}", path, ec.message());
-  } else {
-    answer.image = removed ? "deleted" : "none";
+// Removes the finished image files of a deleted job (one, or a sequence's every frame): "deleted"
+// when any was there, "none" when none was, or "failed" with the first reason.
+protocol::JobDeleted remove_images(const std::vector<std::string>& paths, protocol::JobDeleted answer) {
+  bool removed = false;
+  for (const std::string& path : paths) {
+    std::error_code ec;
+    removed = fs::remove(path, ec) || removed;
+    if (ec) {
+      answer.image = "failed";
+      answer.image_error = fmt::format("{}: {}", path, ec.message());
+      return answer;
+    }
   }
+  answer.image = removed ? "deleted" : "none";
   return answer;
 }
 
@@ -64,7 +68,12 @@ async::Awaitable<http::Response> delete_job(Context& c, JobId id, bool delete_im
   const JobRecord* job = c.find_job(id);
   if (auto checked = check_delete(id, job, c.accepting_writes()); !checked) co_return respond(checked.error());
   const bool had_image = job->state == protocol::JobState::kDone;
-  const std::string image_path = (fs::path(c.output_dir) / job->output).string();
+  // A GIF sequence has one file; any other sequence a file per frame (at most scene::kMaxFrames).
+  std::vector<std::string> image_paths;
+  for (std::uint32_t f = 0; f < job->frames_total; ++f) {
+    std::string path = (fs::path(c.output_dir) / frame_output_name(*job, f)).string();
+    if (image_paths.empty() || image_paths.back() != path) image_paths.push_back(std::move(path));
+  }
 
   auto remove = [id](store::Store& s) { return delete_in_store(s, id); };
   auto reply = co_await on_writer(*c.writer, std::move(remove));
@@ -89,7 +98,7 @@ async::Awaitable<http::Response> delete_job(Context& c, JobId id, bool delete_im
   answer.tiles = deletion.tiles;
   answer.image = had_image ? "kept" : "none";
   if (delete_image && had_image) {
-    auto unlink = [image_path, answer] { return remove_image(image_path, answer); };
+    auto unlink = [paths = std::move(image_paths), answer] { return remove_images(paths, answer); };
     answer = co_await async::on_pool(c.pool, std::move(unlink));
   }
   const auto& space = reply.value->space;

@@ -65,8 +65,10 @@ http::Response lease_tile(Context& c, const http::Request& req) {
   lease.job = job->id;
   lease.digest = job->digest;
   lease.tile = tile;
-  lease.rect = scene::TileGrid(job->settings, job->tile_size).rect(tile);
-  lease.settings = job->settings;
+  // One frame of the job's range: its number in the settings, its tile's rectangle.
+  const TilePlace place = tile_place(*job, tile);
+  lease.rect = place.rect;
+  lease.settings = frame_settings(job->settings, place.frame_index);
   return json_answer(http::Status::ok, protocol::encode(protocol::LeaseReply{std::move(lease)}));
 }
 

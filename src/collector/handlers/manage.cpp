@@ -24,7 +24,7 @@ struct Requeued {
   util::Status status;                       // the change and the reads; an error is logged, answered 503
   std::optional<std::string> refused_state;  // the job's stored state when the change was refused
   std::optional<std::string> scene_json;
-  JobRecord record;  // the framebuffer, sample tally and restored flags from the stored tiles
+  JobRecord record;  // the framebuffers, sample tally and restored flags from the stored tiles
   std::vector<TileIndex> stored;
 };
 
@@ -119,9 +119,11 @@ async::Awaitable<http::Response> set_job_priority(Context& c, JobId id, http::Re
 async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
   const JobRecord* job = c.find_job(id);
   if (auto checked = check_requeue(id, job, load_now(c), c.config); !checked) co_return respond(checked.error());
+  // Cancelled while a frame of it was being written: that write ends first.
+  if (job->writing) co_return respond(busy("a frame of the job is still being written; retry shortly"));
   // A copy without the pixels (a cancelled job has released them): the writer fills it in.
   JobRecord copy = *job;
-  copy.framebuffer.reset();
+  copy.framebuffers.clear();
   copy.spp = {};  // counted again from the stored tiles
   copy.spp_pending = false;
   auto requeue = [copy = std::move(copy)](store::Store& s) mutable { return requeue_in_store(s, std::move(copy)); };
@@ -146,6 +148,8 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
   rec->state = rec->tiles_done > 0 ? protocol::JobState::kRendering : protocol::JobState::kQueued;
   rec->finished_unix = 0;
   rec->finish_failed = false;
+  rec->writing = rec->finishing = false;
+  rec->frames_written = 0;           // complete frames are written again (same bytes: already written)
   rec->rendering_persisted = false;  // the store says "queued" now
   rec->scene_json = c.intern_scene(rec->digest, std::move(*done.scene_json));
   c.queue.remove_job(id);
@@ -154,7 +158,7 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
     co_return http::make_error(http::Status::internal_server_error, "the job could not be queued");
   }
   util::log_info("collector: job {} requeued: {}/{} tiles stored", id, rec->tiles_done, rec->tiles_total);
-  if (c.queue.is_done(id)) start_finish(c, id);
+  if (frame_complete(*rec, 0)) start_finish(c, id);
   co_return get_job(c, id);
 }
 

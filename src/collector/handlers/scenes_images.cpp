@@ -1,4 +1,5 @@
 // GET /v1/scenes/{digest} and GET /v1/jobs/{id}/image: reads, from memory or, off the loop, the store.
+#include <algorithm>
 #include <memory>
 #include <optional>
 #include <string>
@@ -27,16 +28,34 @@ async::Awaitable<http::Response> get_scene(Context& c, std::string digest) {
   co_return json_answer(http::Status::ok, std::move(*json));
 }
 
-async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format) {
+async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::ImageFormat format,
+                                               std::optional<std::uint32_t> frame) {
   const JobRecord* job = c.find_job(id);
   if (job == nullptr) co_return respond(job_not_found(id));
-  // PNG at the job's bit depth, as its output file is written.
-  const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth)};
+  // Without ?frame, a sequence shows the frame being rendered (the last once all are written).
+  std::uint32_t frame_index = std::min(job->frames_written, job->frames_total - 1);
+  if (frame) {
+    const std::optional<std::uint32_t> index = frame_index_of(job->settings, *frame);
+    if (!index) {
+      co_return http::make_error(
+          http::Status::not_found,
+          job->frames_total > 1
+              ? fmt::format("job {} renders frames {} to {} every {}; not frame {}", id, job->settings.frames->first,
+                            job->settings.frames->last, job->settings.frames->step, *frame)
+              : fmt::format("job {} renders frame {} only; not frame {}", id, job->settings.frame, *frame));
+    }
+    frame_index = *index;
+  }
+  // PNG at the job's bit depth and display transform, as its output files are written.
+  const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth),
+                                    .display = job->settings.display};
   std::optional<util::Result<std::string>> encoded;  // optional: on_pool needs a default-constructible result
-  if (job->unfinished()) {
+  // A frame not written yet is in memory (black before its first tile); a written one, and every
+  // frame of a done or cancelled job, in the store only.
+  if (job->unfinished() && frame_index >= job->frames_written) {
     // The framebuffer as it is now. The snapshot is held (and released) here, on the loop; the
     // pool only reads through a plain pointer, so copy-on-write stays exact.
-    std::shared_ptr<const image::ImageRGBf> snapshot = job->framebuffer;
+    std::shared_ptr<const image::ImageRGBf> snapshot = frame_snapshot(*job, frame_index);
     const std::uint32_t w = job->settings.width, h = job->settings.height;
     auto encode = [image = snapshot.get(), w, h, format, options] {
       return std::optional(image != nullptr ? image::encode_image(format, *image, options)
@@ -44,9 +63,9 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
     };
     encoded = co_await async::on_pool(c.pool, std::move(encode));
   } else {
-    // Done or cancelled: the pixels live in the store only.
-    auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, options, format] {
-      return std::optional(reader.encode_image(id, settings, tile_size, options, format));
+    auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, frame_index, options,
+                     format] {
+      return std::optional(reader.encode_image(id, settings, tile_size, frame_index, options, format));
     };
     encoded = co_await async::on_pool(c.pool, std::move(assemble));
     // Deleted while its tiles were read: what was read may be incomplete.

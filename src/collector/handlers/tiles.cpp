@@ -87,14 +87,18 @@ http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload&
   }
   note_tile_upload(c, worker, TileOutcome::kStored, tile_rays(payload, job->settings.samples));
   note_job_served(c, id);
-  copy_tile(writable_framebuffer(*job), payload.rect, payload.rgb);
+  const std::uint32_t frame_index = tile_place(*job, payload.tile).frame_index;
+  copy_tile(writable_framebuffer(*job, frame_index), payload.rect, payload.rgb);
+  ++job->frame_tiles_done[frame_index];
   count_samples(*job, payload.spp);
   ++job->tiles_done;
   ++job->stored_this_run;
   ++c.counters.tiles_stored;
   if (job->state == protocol::JobState::kQueued) job->state = protocol::JobState::kRendering;
   persist_rendering(c, *job);
-  if (c.queue.is_done(id)) start_finish(c, id);
+  // The next frame to write may be complete now (frames are written in order, each as soon as it
+  // and those before it are).
+  if (!job->writing && frame_complete(*job, job->frames_written)) start_finish(c, id);
   return submit_answer(protocol::SubmitResult::kStored);
 }
 
@@ -156,8 +160,10 @@ async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request
   }
   if (!job->restored.empty() && job->restored[p.tile]) ++c.counters.restored_tile_submissions;
   if (job->unfinished() && c.queue.tile_status(job->id, p.tile) == TileStatus::kStored) {
-    // The framebuffer holds the stored pixels: compare here, no store round trip.
-    const bool identical = job->framebuffer && tile_matches(*job->framebuffer, p.rect, p.rgb);
+    // The frame's framebuffer holds the stored pixels (until the frame is written): compare here,
+    // no store round trip. A frame already written counts as a plain duplicate.
+    const auto frame = frame_snapshot(*job, tile_place(*job, p.tile).frame_index);
+    const bool identical = !frame || tile_matches(*frame, p.rect, p.rgb);
     co_return duplicate(c, identical, job->id, p.tile, worker);
   }
   // Not stored yet, or the job is done and its pixels are only in the store.

@@ -1,0 +1,93 @@
+#!/usr/bin/env bash
+# End-to-end test of a frame range on a render farm: a collector and two workers on 127.0.0.1
+# (ephemeral ports) render a 4-frame job; every frame's file equals `dtraced render --frame k` of
+# the same settings (PFM bytes), across a collector SIGKILLed mid-sequence and restarted; a frame
+# is fetched with `fetch --frame`. Every wait is bounded (DEADLINE seconds); every process
+# started here is killed on exit. Needs DTRACED (the binary), SCENES (the scenes folder) and curl.
+#
+# The scene is static: frames differ by their noise seed only (area lights, several samples),
+# which is enough to catch a frame written under another frame's name.
+set -uo pipefail
+
+: "${DTRACED:?set DTRACED to the dtraced binary}"
+: "${SCENES:?set SCENES to the scenes folder}"
+DEADLINE=${DEADLINE:-240}
+source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
+
+printf 'e2e-%s-token\n' "$$" >"$work/token"
+TOKEN=$(head -n1 "$work/token")
+
+metric() { curl -sf -H "Authorization: Bearer $TOKEN" "$URL/metrics" | sed -n "s/^$1 //p"; }
+# wait_field ID FIELD N: until the job's FIELD is at least N.
+wait_field() {
+  local t=0 v
+  while [ $t -lt $((DEADLINE * 10)) ]; do
+    v=$(job_field "$1" "$2")
+    [ -n "$v" ] && [ "$v" -ge "$3" ] && return 0
+    sleep 0.1
+    t=$((t + 1))
+  done
+  die "job $1: $2 did not reach $3 within ${DEADLINE}s (at ${v:-?})"
+}
+
+SCENE="$SCENES/soft_shadows.json"
+FIRST=10
+LAST=13
+W=128
+H=96
+S=48
+for k in $(seq $FIRST $LAST); do
+  "$DTRACED" render "$SCENE" -o "$work/ref-$k.pfm" --width $W --height $H -s $S --frame "$k" -q ||
+    die "reference render of frame $k failed"
+done
+cmp -s "$work/ref-$FIRST.pfm" "$work/ref-$LAST.pfm" && die "frames $FIRST and $LAST render alike: the test sees no mix-up"
+
+start_collector c1 "$work/state" 127.0.0.1:0 --reoffer-floor-ms 500
+port=$PORT
+# A frame range is a top-level key of the submission (docs/http-api.md).
+body="{\"scene\": $(cat "$SCENE"), \"output\": \"snow-%04d.pfm\", \"width\": $W, \"height\": $H, \"samples\": $S,
+  \"tile_size\": 16, \"frames\": {\"first\": $FIRST, \"last\": $LAST}}"
+id=$(curl -sf -H "Authorization: Bearer $TOKEN" -X POST --data-binary "$body" "$URL/v1/jobs" |
+  sed -n 's/.*"id":\([0-9]*\).*/\1/p')
+[ -n "$id" ] || die "submitting the frame range failed"
+[ "$(job_field "$id" frames_total)" = 4 ] && ok "the job holds 4 frames" || fail "frames_total is not 4"
+total=$(job_field "$id" tiles_total)
+[ "$total" = 192 ] && ok "one queue of 4 x 48 tiles" || fail "tiles_total is ${total:-?}, not 192"
+
+start_worker w1 "$URL"
+start_worker w2 "$URL"
+wait_field "$id" frames_done 1
+# Frozen the moment the first frame is written: the kill lands mid-sequence.
+kill -STOP "${WORKER_PIDS[@]}"
+acked=$(job_field "$id" tiles_done)
+[ "$acked" -lt "$total" ] || die "the job finished before the kill; make it longer"
+[ -f "$work/state/output/snow-00$FIRST.pfm" ] && ok "frame $FIRST is written while the others render" ||
+  fail "frame $FIRST is not written after its tiles"
+client status "$id" | grep -Eq "frames [1-3]/4, frame 1[1-3]: [0-9]+/48 tiles" && ok "dtraced status shows the frames done" ||
+  fail "dtraced status does not show frames: $(client status "$id")"
+kill -9 "$COLLECTOR_PID"
+wait "$COLLECTOR_PID" 2>/dev/null
+start_collector c2 "$work/state" "127.0.0.1:$port" --reoffer-floor-ms 500
+restored=$(metric dtraced_restored_tiles)
+[ -n "$restored" ] && [ "$restored" -ge "$acked" ] &&
+  ok "collector killed mid-sequence: all $acked acknowledged tiles survived ($restored restored)" ||
+  fail "$acked tiles were acknowledged but ${restored:-?} restored"
+kill -CONT "${WORKER_PIDS[@]}"
+wait_field "$id" frames_done 4
+[ "$(job_field "$id" state)" = done ] || until_ok "$DEADLINE" test "$(job_field "$id" state)" = done ||
+  die "job $id not done"
+for k in $(seq $FIRST $LAST); do
+  cmp -s "$work/ref-$k.pfm" "$work/state/output/snow-00$k.pfm" &&
+    ok "frame $k equals dtraced render --frame $k" || fail "frame $k differs from dtraced render --frame $k"
+done
+[ "$(metric dtraced_restored_tile_leases_total)" = 0 ] &&
+  ok "no tile acknowledged before the kill was leased again" ||
+  fail "restored tiles were leased again: $(metric dtraced_restored_tile_leases_total)"
+client fetch "$id" --frame 12 -o "$work/fetched-12.pfm" || die "fetch --frame failed"
+cmp -s "$work/ref-12.pfm" "$work/fetched-12.pfm" && ok "fetch --frame 12 gives frame 12" ||
+  fail "fetch --frame 12 differs"
+client fetch "$id" --frame 9 -o "$work/none.pfm" 2>/dev/null && fail "fetch of a frame outside the range succeeded" ||
+  ok "fetch of a frame outside the range fails"
+
+echo "$passed passed, $failed failed"
+[ "$failed" = 0 ]
