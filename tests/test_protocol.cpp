@@ -485,7 +485,9 @@ TEST_CASE("output names", "[protocol]") {
   CHECK(protocol::check_output_name(std::string(251, 'x') + ".png").ok());
   CHECK_FALSE(protocol::check_output_name(std::string(252, 'x') + ".png").ok());
   CHECK(protocol::check_output_name("a.jpg").error().message ==
-        "output name must end in .png, .ppm, .pfm, .exr or .gif");
+        "output name must end in .png, .ppm, .pfm, .exr or .gif (lower case)");
+  CHECK(protocol::check_output_name("seed.pnm").ok());  // the seed's spelling of PPM
+  CHECK_FALSE(protocol::check_output_name("seed.PNM").ok());
 }
 
 TEST_CASE("adaptive settings travel in submissions, leases and stored settings", "[protocol][json][adaptive]") {

@@ -80,20 +80,4 @@ void read_output(Fields& f, std::string& out, Need need);
 // The object's optional "png_bit_depth" (8 or 16) into `out`; false after an error.
 bool read_bit_depth(Fields& f, std::uint32_t& out);
 
-// The animation keys of a render block: "frames" ({"first", "last", "step"}, step optional and 1
-// by default, last >= first, at most scene::kMaxFrames frames), "fps", "exposure" and "tone".
-inline constexpr std::array<std::string_view, 4> kAnimationKeys = {"frames", "fps", "exposure", "tone"};
-// Whether scene::read_render_settings and scene::render_settings_object already handle them (the
-// scene module owns the render block); until they do, the protocol reads and writes them itself,
-// so that a job and a stored job carry its frame range and display settings.
-bool render_block_has_animation();
-boost::json::value frame_range_value(const scene::FrameRange& range);
-// The optional animation keys of `f` into `s` (RenderSettings or scene::Overrides), when the
-// render block does not read them; the same limits as scene files.
-template <typename Settings>
-void read_animation_settings(Fields& f, Settings& s);
-// Writes the settings' animation keys that differ from a static single frame's, when the render
-// block does not write them.
-void write_animation_settings(boost::json::object& o, const scene::RenderSettings& s);
-
 }  // namespace dtraced::protocol::detail

@@ -26,9 +26,8 @@ using namespace detail;
 constexpr std::array<std::string_view, 5> kJobStateNames = {"queued", "rendering", "done", "cancelled", "paused"};
 
 constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size"};
-constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
-                                                                 std::array<std::string_view, 1>{"png_bit_depth"}),
-                                               kAnimationKeys);
+constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
+                                               std::array<std::string_view, 1>{"png_bit_depth"});
 constexpr std::array<std::string_view, 2> kJobCreatedKeys = {"id", "digest"};
 constexpr std::array<std::string_view, 19> kJobStatusKeys = {
     "id",          "state",   "output",           "priority",         "width",
@@ -66,7 +65,6 @@ void read_submitted_scene(Fields& f, scene::SceneDesc& out) {
 void read_overrides(Fields& f, scene::Overrides& o) {
   f.integer("tile_size", o.tile_size, scene::kMinTileSize, scene::kMaxTileSize);
   scene::read_render_settings(f, o, Need::kOptional);
-  read_animation_settings(f, o);
   if (f.has("png_bit_depth")) {
     std::uint32_t bits = scene::kDefaultPngBitDepth;
     if (read_bit_depth(f, bits)) o.png_bit_depth = bits;
@@ -222,7 +220,7 @@ std::string encode(const JobSubmit& m) {
   if (v.error_target) o["error_target"] = jsonio::exact_number(*v.error_target);
   if (v.min_samples) o["min_samples"] = *v.min_samples;
   if (v.png_bit_depth) o["png_bit_depth"] = *v.png_bit_depth;
-  if (v.frames) o["frames"] = frame_range_value(*v.frames);
+  if (v.frames) o["frames"] = scene::frame_range_value(*v.frames);
   if (v.fps) o["fps"] = jsonio::exact_number(*v.fps);
   if (v.exposure) o["exposure"] = jsonio::exact_number(*v.exposure);
   if (v.tone) o["tone"] = image::to_string(*v.tone);

@@ -31,32 +31,9 @@ constexpr std::array<std::string_view, 8> kLeaseKeys = {"job", "digest", "tile",
                                                         "y",   "width",  "height", "settings"};
 constexpr std::array<std::string_view, 1> kSubmitResultKeys = {"result"};
 constexpr std::array<std::string_view, 2> kErrorBodyKeys = {"error", "field"};
-constexpr auto kStoredSettingsKeys = jsonio::join_keys(
-    jsonio::join_keys(scene::kRenderKeys, std::array<std::string_view, 1>{"png_bit_depth"}), kAnimationKeys);
-constexpr auto kLeaseSettingsKeys = jsonio::join_keys(scene::kRenderKeys, kAnimationKeys);
-constexpr std::array<std::string_view, 3> kFrameRangeKeys = {"first", "last", "step"};
-
-std::optional<scene::FrameRange> read_frame_range(Reader& r, const json::value& v, const Path& at) {
-  const json::object* o = r.object(v, at);
-  if (o == nullptr) return std::nullopt;
-  const std::size_t before = r.error_count();
-  Fields f(r, *o, at, kFrameRangeKeys);
-  scene::FrameRange range;
-  const std::int64_t max_frame = std::numeric_limits<std::uint32_t>::max();
-  f.integer("first", range.first, 0, max_frame);
-  f.integer("last", range.last, 0, max_frame);
-  f.integer("step", range.step, 1, max_frame, Need::kOptional);
-  if (r.error_count() != before) return std::nullopt;
-  if (range.last < range.first) {
-    r.error(f.path("last"), fmt::format("must be >= first (got {} < {})", range.last, range.first));
-    return std::nullopt;
-  }
-  if (range.count() > scene::kMaxFrames) {
-    r.error(at, fmt::format("{} frames, more than the limit of {}", range.count(), scene::kMaxFrames));
-    return std::nullopt;
-  }
-  return range;
-}
+constexpr auto kStoredSettingsKeys =
+    jsonio::join_keys(scene::kRenderKeys, std::array<std::string_view, 1>{"png_bit_depth"});
+constexpr auto& kLeaseSettingsKeys = scene::kRenderKeys;
 
 // Cuts `text` to at most `max_bytes` without splitting a UTF-8 sequence.
 void truncate_utf8(std::string& text, std::size_t max_bytes) {
@@ -83,7 +60,6 @@ void read_lease(Reader& r, const json::value& v, const Path& at, Lease& lease) {
     if (const json::object* so = r.object(*s, settings_at)) {
       Fields sf(r, *so, settings_at, kLeaseSettingsKeys);
       scene::read_render_settings(sf, lease.settings, Need::kRequired);
-      read_animation_settings(sf, lease.settings);
     }
   }
   if (r.failed()) return;
@@ -129,53 +105,6 @@ bool detail::read_bit_depth(Fields& f, std::uint32_t& out) {
   return true;
 }
 
-bool detail::render_block_has_animation() {
-  return std::find(scene::kRenderKeys.begin(), scene::kRenderKeys.end(), "frames") != scene::kRenderKeys.end();
-}
-
-json::value detail::frame_range_value(const scene::FrameRange& range) {
-  return json::object{{"first", range.first}, {"last", range.last}, {"step", range.step}};
-}
-
-template <typename Settings>
-void detail::read_animation_settings(Fields& f, Settings& s) {
-  if (render_block_has_animation()) return;
-  Reader& r = f.reader();
-  f.read("frames", s.frames, Need::kOptional, [&r](const json::value& v, const Path& at) {
-    const auto range = read_frame_range(r, v, at);
-    return range ? std::optional<std::optional<scene::FrameRange>>(range) : std::nullopt;
-  });
-  f.read("fps", s.fps, Need::kOptional, [&r](const json::value& v, const Path& at) {
-    const auto fps = r.number(v, at, 0, scene::kMaxFps);
-    if (fps && *fps == 0) r.error(at, fmt::format("must be > 0 and at most {}", scene::kMaxFps));
-    return fps && *fps > 0 ? fps : std::nullopt;
-  });
-  if constexpr (std::is_same_v<Settings, scene::RenderSettings>) {
-    f.number("exposure", s.display.exposure, -image::kMaxExposureStops, image::kMaxExposureStops, Need::kOptional);
-    f.read("tone", s.display.tone, Need::kOptional, [&r](const json::value& v, const Path& at) {
-      const auto i = r.choice(v, at, image::kToneCurveNames, "tone", "tone curves");
-      return i ? std::optional<image::ToneCurve>(static_cast<image::ToneCurve>(*i)) : std::nullopt;
-    });
-  } else {
-    f.number("exposure", s.exposure, -image::kMaxExposureStops, image::kMaxExposureStops, Need::kOptional);
-    f.read("tone", s.tone, Need::kOptional, [&r](const json::value& v, const Path& at) {
-      const auto i = r.choice(v, at, image::kToneCurveNames, "tone", "tone curves");
-      return i ? std::optional<std::optional<image::ToneCurve>>(static_cast<image::ToneCurve>(*i)) : std::nullopt;
-    });
-  }
-}
-template void detail::read_animation_settings<scene::RenderSettings>(Fields&, scene::RenderSettings&);
-template void detail::read_animation_settings<scene::Overrides>(Fields&, scene::Overrides&);
-
-void detail::write_animation_settings(json::object& o, const scene::RenderSettings& s) {
-  if (render_block_has_animation()) return;
-  const scene::RenderSettings defaults;
-  if (s.frames) o["frames"] = frame_range_value(*s.frames);
-  if (s.fps != defaults.fps) o["fps"] = jsonio::exact_number(s.fps);
-  if (s.display.exposure != 0) o["exposure"] = jsonio::exact_number(s.display.exposure);
-  if (s.display.tone != defaults.display.tone) o["tone"] = image::to_string(s.display.tone);
-}
-
 // ---- shared validation ---------------------------------------------------------------------
 
 namespace {
@@ -195,10 +124,15 @@ std::optional<std::string> output_name_problem(std::string_view name) {
     const auto u = static_cast<unsigned char>(c);
     if (u < 0x20 || u == 0x7f) return "must not contain control characters";
   }
-  for (const image::FormatInfo& f : image::image_formats()) {
-    if (name.size() > f.extension.size() && name.ends_with(f.extension)) return std::nullopt;
+  // Any extension image::format_from_path knows (".pnm" too, the seed's spelling of PPM), in lower
+  // case, after a non-empty stem.
+  const std::size_t dot = name.rfind('.');
+  const bool lower = dot != std::string_view::npos &&
+                     std::none_of(name.begin() + dot, name.end(), [](char c) { return c >= 'A' && c <= 'Z'; });
+  if (dot != std::string_view::npos && dot > 0 && lower && image::format_from_path(std::string(name))) {
+    return std::nullopt;
   }
-  return fmt::format("must end in {}", image::extension_list());
+  return fmt::format("must end in {} (lower case)", image::extension_list());
 }
 
 }  // namespace
@@ -249,9 +183,7 @@ std::string encode(const LeaseReply& m) {
     l["y"] = lease->rect.y0;
     l["width"] = lease->rect.width;
     l["height"] = lease->rect.height;
-    json::object settings = scene::render_settings_object(lease->settings);
-    write_animation_settings(settings, lease->settings);
-    l["settings"] = std::move(settings);
+    l["settings"] = scene::render_settings_object(lease->settings);
     o["lease"] = std::move(l);
   } else {
     o["retry_after_ms"] = std::get<RetryAfter>(m).ms;
@@ -328,7 +260,6 @@ Decoded<ErrorBody> decode_error_body(std::string_view text) {
 
 std::string encode_settings(const JobSettings& settings) {
   json::object o = scene::render_settings_object(settings.render);
-  write_animation_settings(o, settings.render);
   if (settings.png_bit_depth != scene::kDefaultPngBitDepth) o["png_bit_depth"] = settings.png_bit_depth;
   // Boost's own form, not jsonio::to_text: this text is hashed into the client key that a one-shot
   // collector stores with its job (collector/jobs.h), so new bytes would lose stored jobs.
@@ -339,7 +270,6 @@ Decoded<JobSettings> decode_settings(std::string_view text) {
   return decode_object<JobSettings>(text, kMaxMessageBytes, kMaxMessageDepth, kStoredSettingsKeys,
                                     [](Fields& f, JobSettings& m) {
                                       scene::read_render_settings(f, m.render, Need::kRequired);
-                                      read_animation_settings(f, m.render);
                                       read_bit_depth(f, m.png_bit_depth);
                                     });
 }

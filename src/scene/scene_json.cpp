@@ -135,6 +135,14 @@ json::value vec3_value(const Vec3d& v, const json::storage_ptr& sp) {
   return json::value(std::move(a));
 }
 
+json::value frame_range_value(const FrameRange& range, const json::storage_ptr& sp) {
+  json::object frames(3, sp);
+  frames["first"] = range.first;
+  frames["last"] = range.last;
+  frames["step"] = range.step;
+  return frames;
+}
+
 json::object render_settings_object(const RenderSettings& s, const json::storage_ptr& sp) {
   json::object o(kRenderKeys.size(), sp);
   o["width"] = s.width;
@@ -150,13 +158,7 @@ json::object render_settings_object(const RenderSettings& s, const json::storage
   }
   const RenderSettings defaults;
   if (s.fps != defaults.fps) o["fps"] = jsonio::exact_number(s.fps, sp);
-  if (s.frames) {
-    json::object frames(3, sp);
-    frames["first"] = s.frames->first;
-    frames["last"] = s.frames->last;
-    frames["step"] = s.frames->step;
-    o["frames"] = std::move(frames);
-  }
+  if (s.frames) o["frames"] = frame_range_value(*s.frames, sp);
   if (s.display.exposure != defaults.display.exposure) o["exposure"] = jsonio::exact_number(s.display.exposure, sp);
   if (s.display.tone != defaults.display.tone) o["tone"] = image::to_string(s.display.tone);
   return o;

@@ -49,6 +49,8 @@ void read_render_settings(jsonio::Fields& f, Settings& s, jsonio::Need need);
 // when they differ from their defaults (so that scenes and stored jobs without them keep the text,
 // and the digests, they always had).
 boost::json::object render_settings_object(const RenderSettings& s, const boost::json::storage_ptr& sp = {});
+// {"first", "last", "step"}: how a render block (and a job submission) writes a frame range.
+boost::json::value frame_range_value(const FrameRange& range, const boost::json::storage_ptr& sp = {});
 // [x, y, z] with jsonio::exact_number.
 boost::json::value vec3_value(const Vec3d& v, const boost::json::storage_ptr& sp = {});
 
