@@ -18,7 +18,8 @@
 # Usage, after the README's build:
 #   tests/bench/frames_farm_vs_local.sh
 # Environment: DTRACED (default build/src/cli/dtraced), SCENE (scenes/snowfall.json), WIDTH (320),
-# HEIGHT (240), SAMPLES (4), FRAMES (0-47), WORKERS (2), RUNS (3), KEEP_LOGS=1 keeps the logs.
+# HEIGHT (240), SAMPLES (4), FRAMES (0-47), TILE_SIZES ("32 80": one table row each), WORKERS (2),
+# RUNS (3), KEEP_LOGS=1 keeps the logs.
 # Needs bash 5 (EPOCHREALTIME), curl, cmp.
 set -uo pipefail
 export LC_ALL=C
@@ -30,6 +31,7 @@ WIDTH=${WIDTH:-320}
 HEIGHT=${HEIGHT:-240}
 SAMPLES=${SAMPLES:-4}
 FRAMES=${FRAMES:-0-47}
+TILE_SIZES=${TILE_SIZES:-"32 80"}
 WORKERS=${WORKERS:-2}
 RUNS=${RUNS:-3}
 DEADLINE=600 # seconds a farm run may take
@@ -62,6 +64,7 @@ printf 'frames-%s-token\n' "$$" >"$work/token"
 "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$work/state" --token-file "$work/token" \
   2>"$work/collector.log" &
 pids+=($!)
+collector_pid=$!
 port=
 for _ in $(seq 300); do
   port=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/collector.log" | tail -n1)
@@ -79,47 +82,62 @@ sleep 1 # the workers find nothing and go idle, as in a waiting farm
 
 exec {never_fd}<> <(:)
 pause() { read -r -t "$1" -u "$never_fd" _; }
+# CPU seconds (user + system) a process has used so far.
+cpu_of() { awk -v t="$(getconf CLK_TCK)" '{ printf "%.3f", ($14 + $15) / t }' "/proc/$1/stat"; }
 elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.3f", b - a }'; }
 median() { printf '%s\n' "$@" | sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2 }'; }
 
 first=${FRAMES%%-*}
 rest=${FRAMES#*-}
 last=${rest%%:*}
-job=(--width "$WIDTH" --height "$HEIGHT" -s "$SAMPLES" --frames "$FRAMES")
-locals=() farms=()
+rows=()
 identical=yes
 echo "sequence: $(basename "$SCENE") ${WIDTH}x${HEIGHT}, $SAMPLES spp, frames $FRAMES; local -t 2 vs $WORKERS workers x 1 thread"
-for run in $(seq "$RUNS"); do
-  mkdir -p "$work/local-$run"
-  t0=$EPOCHREALTIME
-  "$DTRACED" render "$SCENE" "${job[@]}" -t 2 -q -o "$work/local-$run/f-%04d.pfm" || fail "the local render failed"
-  t1=$EPOCHREALTIME
-  locals+=("$(elapsed "$t0" "$t1")")
+for tile in $TILE_SIZES; do
+  job=(--width "$WIDTH" --height "$HEIGHT" -s "$SAMPLES" --frames "$FRAMES" --tile-size "$tile")
+  locals=() farms=() ccpu=() wcpu=()
+  same_all=yes
+  for run in $(seq "$RUNS"); do
+    mkdir -p "$work/local-$tile-$run"
+    t0=$EPOCHREALTIME
+    "$DTRACED" render "$SCENE" "${job[@]}" -t 2 -q -o "$work/local-$tile-$run/f-%04d.pfm" || fail "the local render failed"
+    t1=$EPOCHREALTIME
+    locals+=("$(elapsed "$t0" "$t1")")
 
-  t0=$EPOCHREALTIME
-  id=$("$DTRACED" submit "$SCENE" "${job[@]}" -o "run$run-%04d.pfm" --collector "$url" --token-file "$work/token") ||
-    fail "submit failed"
-  until "$DTRACED" status "$id" --collector "$url" --token-file "$work/token" --json 2>/dev/null |
-    grep -q '"state":"done"'; do
-    [ "$(elapsed "$t0" "$EPOCHREALTIME" | cut -d. -f1)" -lt "$DEADLINE" ] || fail "job $id not done in ${DEADLINE}s"
-    pause 0.05
+    c0=$(cpu_of "$collector_pid")
+    w0=0
+    for p in "${pids[@]:1}"; do w0=$(awk -v a="$w0" -v b="$(cpu_of "$p")" 'BEGIN { print a + b }'); done
+    t0=$EPOCHREALTIME
+    id=$("$DTRACED" submit "$SCENE" "${job[@]}" -o "t$tile-run$run-%04d.pfm" --collector "$url" \
+      --token-file "$work/token") || fail "submit failed"
+    until "$DTRACED" status "$id" --collector "$url" --token-file "$work/token" --json 2>/dev/null |
+      grep -q '"state":"done"'; do
+      [ "$(elapsed "$t0" "$EPOCHREALTIME" | cut -d. -f1)" -lt "$DEADLINE" ] || fail "job $id not done in ${DEADLINE}s"
+      pause 0.05
+    done
+    t1=$EPOCHREALTIME
+    farms+=("$(elapsed "$t0" "$t1")")
+    ccpu+=("$(elapsed "$c0" "$(cpu_of "$collector_pid")")")
+    w1=0
+    for p in "${pids[@]:1}"; do w1=$(awk -v a="$w1" -v b="$(cpu_of "$p")" 'BEGIN { print a + b }'); done
+    wcpu+=("$(elapsed "$w0" "$w1")")
+    same=yes
+    for f in $(seq "$first" "$last"); do
+      cmp -s "$work/local-$tile-$run/$(printf 'f-%04d.pfm' "$f")" \
+        "$work/state/output/$(printf "t$tile-run$run-%04d.pfm" "$f")" || same=no
+    done
+    [ "$same" = yes ] || same_all=no identical=no
+    echo "tile $tile run $run: local ${locals[-1]} s, farm ${farms[-1]} s (CPU: collector ${ccpu[-1]} s, workers ${wcpu[-1]} s), identical: $same"
   done
-  t1=$EPOCHREALTIME
-  farms+=("$(elapsed "$t0" "$t1")")
-  same=yes
-  for f in $(seq "$first" "$last"); do
-    name=$(printf 'f-%04d.pfm' "$f")
-    cmp -s "$work/local-$run/$name" "$work/state/output/$(printf "run$run-%04d.pfm" "$f")" || same=no
-  done
-  [ "$same" = yes ] || identical=no
-  echo "run $run: local ${locals[-1]} s, farm ${farms[-1]} s, identical: $same"
+  lm=$(median "${locals[@]}")
+  fm=$(median "${farms[@]}")
+  tiles=$(( ((WIDTH + tile - 1) / tile) * ((HEIGHT + tile - 1) / tile) ))
+  rows+=("| $FRAMES | ${WIDTH}x${HEIGHT} | $SAMPLES | $tile ($tiles a frame) | $lm | $fm | $(awk -v a="$lm" -v b="$fm" 'BEGIN { printf "%.3f", b / a }') | $(median "${ccpu[@]}") | $(median "${wcpu[@]}") | $same_all |")
 done
-lm=$(median "${locals[@]}")
-fm=$(median "${farms[@]}")
 echo
-echo "| frames | size | spp | local s | farm s | farm/local | identical |"
-echo "|--|--|--:|--:|--:|--:|:-:|"
-echo "| $FRAMES | ${WIDTH}x${HEIGHT} | $SAMPLES | $lm | $fm | $(awk -v a="$lm" -v b="$fm" 'BEGIN { printf "%.3f", b / a }') | $identical |"
+echo "| frames | size | spp | tile px (tiles) | local s | farm s | farm/local | collector CPU s | workers CPU s | identical |"
+echo "|--|--|--:|--|--:|--:|--:|--:|--:|:-:|"
+for row in "${rows[@]}"; do echo "$row"; done
 echo
 echo "target: farm/local <= 1.1 (medians of $RUNS runs)"
 [ "$identical" = yes ]
