@@ -87,6 +87,12 @@ pid=
 [ -e "$work/cut-0.pfm" ] && [ ! -e "$work/cut-1.pfm" ] && [ ! -e "$work/cut-2.pfm" ] ||
   fail "after the interruption frame 0 should be written and frames 1 and 2 not"
 grep -q "1 of 3 frames are complete" "$work/cut.err" || fail "no sequence summary"
+# Without --resume the frame's partial file is refused before any frame is rendered again.
+before=$(stat -c %y "$work/cut-0.pfm")
+"$DTRACED" render "$scene" "${slow[@]}" -o "$work/cut-%d.pfm" 2>"$work/nores.err"
+[ $? = 2 ] || fail "a sequence over a frame's partial file without --resume must be a usage error"
+grep -q "cut-1.pfm.partial: a partial render of this output is there" "$work/nores.err" || fail "no reason given"
+[ "$(stat -c %y "$work/cut-0.pfm")" = "$before" ] || fail "the refused run wrote frame 0 again"
 "$DTRACED" render "$scene" "${slow[@]}" -o "$work/cut-%d.pfm" --resume 2>"$work/cut2.err" || fail "resume"
 for k in 0 1 2; do cmp -s "$work/cut-$k.pfm" "$work/straight-$k.pfm" || fail "frame $k differs after the resume"; done
 [ ! -e "$work/cut-1.pfm.partial" ] || fail "frame 1's partial file outlived the frame"

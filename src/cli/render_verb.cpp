@@ -438,6 +438,21 @@ int run_render(const RenderArgs& args) {
     }
   }
 
+  // Without --resume, a partial file of any frame is refused now, not after the frames before it.
+  if (!gif && !args.resume && range.count() > 1) {
+    for (std::uint32_t i = 0; i < range.count(); ++i) {
+      const std::string partial = partial_path(image::frame_path(*pattern, range.at(i)));
+      std::error_code ec;
+      if (std::filesystem::exists(partial, ec)) {
+        fmt::print(stderr,
+                   "{}: a partial render of this output is there: --resume continues it; delete it to start "
+                   "over\n",
+                   partial);
+        return kExitUsage;
+      }
+    }
+  }
+
   const auto prepare_start = std::chrono::steady_clock::now();
   run.prepared.emplace(render::AnimatedScene::prepare(desc, args.isa));
   run.prepare_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - prepare_start).count();
