@@ -346,14 +346,6 @@ int render_frame(Run& run, const scene::SceneDesc& desc, const std::string& imag
   return kExitOk;
 }
 
-// The frames a render covers: --frames, else --frame, else the scene's "frames", else its frame.
-scene::FrameRange frames_of(const RenderArgs& args, const scene::RenderSettings& s) {
-  if (args.overrides.frames) return *args.overrides.frames;
-  if (args.overrides.frame) return {*args.overrides.frame, *args.overrides.frame, 1};
-  if (s.frames) return *s.frames;
-  return {s.frame, s.frame, 1};
-}
-
 // Where the frames of a GIF are kept until it is written: linear PFM files in OUT.frames/, which
 // a --resume finds like any sequence's frames.
 std::string gif_frames_dir(const std::string& gif) { return gif + ".frames"; }
@@ -399,7 +391,7 @@ int run_render(const RenderArgs& args) {
   report::print_warnings(loaded);
   scene::SceneDesc& desc = *loaded.scene;
   desc.render = scene::apply(args.overrides, desc.render);
-  const scene::FrameRange range = frames_of(args, desc.render);
+  const scene::FrameRange range = scene::frame_range(desc.render);
   // The outputs first: a render may take hours, and a typo in a path should not cost them.
   if (const int usage = check_outputs(args, range.count()); usage != kExitOk) return usage;
   Run run{.args = args};

@@ -184,20 +184,13 @@ json::object job_status_object(const JobStatus& s) {
 // ---- JobSubmit -----------------------------------------------------------------------------
 
 scene::RenderSettings effective_settings(const JobSubmit& submit) {
-  scene::RenderSettings s = scene::apply(submit.overrides, submit.scene.render);
-  // An explicit single frame wins over the scene's range; a range of one frame is that frame.
-  if (submit.overrides.frame && !submit.overrides.frames) s.frames.reset();
-  if (s.frames && s.frames->count() == 1) {
-    s.frame = s.frames->first;
-    s.frames.reset();
-  }
-  return s;
+  return scene::apply(submit.overrides, submit.scene.render);
 }
 
-std::uint32_t frame_count(const scene::RenderSettings& s) { return s.frames ? s.frames->count() : 1; }
+std::uint32_t frame_count(const scene::RenderSettings& s) { return scene::frame_range(s).count(); }
 
 std::uint32_t frame_number(const scene::RenderSettings& s, std::uint32_t index) {
-  return s.frames ? s.frames->at(index) : s.frame;
+  return scene::frame_range(s).at(index);
 }
 
 std::string encode(const JobSubmit& m) {

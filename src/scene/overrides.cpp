@@ -18,6 +18,11 @@ RenderSettings apply(const Overrides& o, RenderSettings s) {
   if (o.fps) s.fps = *o.fps;
   if (o.exposure) s.display.exposure = *o.exposure;
   if (o.tone) s.display.tone = *o.tone;
+  if (o.frame && !o.frames) s.frames.reset();
+  if (s.frames && s.frames->count() == 1) {
+    s.frame = s.frames->first;
+    s.frames.reset();
+  }
   return s;
 }
 

@@ -52,8 +52,15 @@ struct Overrides {
   bool operator==(const Overrides&) const = default;
 };
 
-// `settings` with every set field of `overrides` applied.
+// `settings` with every set field of `overrides` applied. An explicit `frame` without `frames`
+// wins over the scene's range, and a range of one frame becomes that single frame (frames unset),
+// so that a single-frame render keeps the settings, and digest, it always had.
 RenderSettings apply(const Overrides& overrides, RenderSettings settings);
+
+// The frames the settings render: `frames`, or the single frame `frame`.
+inline FrameRange frame_range(const RenderSettings& s) {
+  return s.frames ? *s.frames : FrameRange{s.frame, s.frame, 1};
+}
 
 // tile_size, or kDefaultTileSize; png_bit_depth, or kDefaultPngBitDepth.
 std::uint32_t tile_size_or_default(const Overrides& overrides);
