@@ -3,6 +3,7 @@
 # (ephemeral ports) render a 4-frame job of the animated snowfall; every frame's file equals the
 # same frame of the local `dtraced render --frames` and of `dtraced render --frame k` (PFM bytes),
 # across a collector SIGKILLed mid-sequence and restarted; a frame is fetched with `fetch --frame`.
+# Then a cropped job and a cropped range (submit --crop) equal `render --crop` (PNG bytes).
 # Every wait is bounded (DEADLINE seconds); every process started here is killed on exit. Needs
 # DTRACED (the binary), SCENES (the scenes folder) and curl.
 set -uo pipefail
@@ -88,6 +89,39 @@ cmp -s "$work/ref-12.pfm" "$work/fetched-12.pfm" && ok "fetch --frame 12 gives f
   fail "fetch --frame 12 differs"
 client fetch "$id" --frame 9 -o "$work/none.pfm" 2>/dev/null && fail "fetch of a frame outside the range succeeded" ||
   ok "fetch of a frame outside the range fails"
+
+# Issue 13: a cropped job (submit --crop) renders only the tiles that overlap its crop, and its
+# image, each frame's of a range and a fetch are the crop's pixels, the bits of `render --crop`.
+# 96x64 in tiles of 16 is 6 x 4 tiles; columns [20, 70) and rows [20, 50) touch 4 x 3 of them.
+CROP=20,20,70,50
+CW=96
+CH=64
+"$DTRACED" render "$SCENES/snowman.json" -o "$work/crop-ref.png" --width $CW --height $CH -s 2 --tile-size 16 \
+  --crop $CROP -q || die "the local render --crop failed"
+"$DTRACED" render "$SCENE" -o "$work/cropseq-ref-%04d.png" --width $CW --height $CH -s 2 --tile-size 16 \
+  --frames 20-22 --crop $CROP -q || die "the local render --crop of frames 20-22 failed"
+cid=$(client submit "$SCENES/snowman.json" -o crop.png --width $CW --height $CH -s 2 --tile-size 16 --crop $CROP) ||
+  die "submit --crop failed"
+sid=$(client submit "$SCENE" -o cropseq-%04d.png --width $CW --height $CH -s 2 --tile-size 16 --frames 20-22 \
+  --crop $CROP) || die "submit --crop of a frame range failed"
+[ "$(job_field "$cid" tiles_total)" = 12 ] && ok "a cropped job counts the 12 tiles of its crop" ||
+  fail "the cropped job's tiles_total is $(job_field "$cid" tiles_total), not 12"
+[ "$(job_field "$sid" tiles_total)" = 36 ] && ok "a cropped range counts 3 x 12 tiles" ||
+  fail "the cropped range's tiles_total is $(job_field "$sid" tiles_total), not 36"
+job_done() { [ "$(job_field "$1" state)" = done ]; }
+until_ok "$DEADLINE" job_done "$cid" || die "cropped job $cid not done"
+until_ok "$DEADLINE" job_done "$sid" || die "cropped range $sid not done"
+cmp -s "$work/crop-ref.png" "$work/state/output/crop.png" && ok "the cropped job's image equals render --crop" ||
+  fail "the cropped job's image differs from render --crop"
+client fetch "$cid" -o "$work/crop-fetched.png" || die "fetch of the cropped job failed"
+cmp -s "$work/crop-ref.png" "$work/crop-fetched.png" && ok "fetch gives the crop" || fail "fetch of the crop differs"
+for k in 20 21 22; do
+  cmp -s "$work/cropseq-ref-00$k.png" "$work/state/output/cropseq-00$k.png" &&
+    ok "cropped frame $k equals render --crop --frames" || fail "cropped frame $k differs from the local render"
+done
+client fetch "$sid" --frame 21 -o "$work/cropseq-fetched.png" || die "fetch --frame of the cropped range failed"
+cmp -s "$work/cropseq-ref-0021.png" "$work/cropseq-fetched.png" && ok "fetch --frame 21 gives the cropped frame" ||
+  fail "fetch --frame 21 of the cropped range differs"
 
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]

@@ -54,7 +54,7 @@ coll::JobRecord job_record() {
   job.settings.height = 24;
   job.settings.samples = 4;
   job.tile_size = 8;
-  job.tiles_total = 12;
+  REQUIRE(coll::init_frames(job));  // tiles_total and tile_indices: 12
   job.state = protocol::JobState::kRendering;
   return job;
 }

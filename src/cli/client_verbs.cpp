@@ -12,6 +12,7 @@
 
 #include <fmt/format.h>
 
+#include "cli/overrides_flags.h"
 #include "cli/retry.h"
 #include "http/client.h"
 #include "image/image_io.h"
@@ -27,6 +28,7 @@ namespace {
 
 constexpr int kExitOk = 0;
 constexpr int kExitFailed = 1;
+constexpr int kExitUsage = 2;
 // An image response can be a 16384^2 PFM.
 constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + (1 << 20);
 
@@ -169,6 +171,14 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
   submit.output = args.output;
   submit.priority = args.priority;
   submit.overrides = args.overrides;
+  if (submit.overrides.crop) {
+    // Refused here as `render --crop` refuses it, rather than by the collector.
+    const scene::RenderSettings effective = protocol::effective_settings(submit);
+    if (util::Status inside = check_crop(*submit.overrides.crop, effective.width, effective.height); !inside) {
+      fmt::print(stderr, "{}\n", inside.error().to_string());
+      return kExitUsage;
+    }
+  }
   std::string body = protocol::encode(submit);
   // Refused here with the reason, rather than by the collector as a bare 413.
   if (body.size() > protocol::kMaxJobSubmitBytes) {

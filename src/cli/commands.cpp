@@ -105,9 +105,7 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
                      "Output file name on the collector (" + image::extension_list() + ")");
   submit->add_option("--priority", c.submit.priority, "Higher runs first")
       ->check(CLI::Range(protocol::kMinPriority, protocol::kMaxPriority));
-  OverrideFlagOptions submit_overrides;
-  submit_overrides.fields = kAllOverrides & ~kOverrideCrop;  // a farm job renders whole frames
-  add_override_flags(*submit, c.submit.overrides, submit_overrides);
+  add_override_flags(*submit, c.submit.overrides);
   c.submit_cmd = submit;
 
   c.list_cmd = add_client_subcommand(app, c.client, "list", "List the collector's jobs");

@@ -215,7 +215,6 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   OverrideFlagOptions one_shot;
   one_shot.group = kCollectorGroup;
   one_shot.help_prefix = "One-shot: ";
-  one_shot.fields = kAllOverrides & ~kOverrideCrop;  // a farm job renders whole frames
   add_override_flags(app, a.overrides, one_shot);
   // Both roles (so in neither group): one flag name, one meaning, "exit once the one-shot job is over".
   app.add_flag("--exit-when-done", a.exit_when_done,

@@ -70,9 +70,13 @@ util::Result<TileAction, Refusal> check_tile(const Route& route, const JobRecord
     return bad_request(fmt::format("the payload is tile {} but the URL names tile {}", p.tile, route.tile), "/tile");
   }
   if (job == nullptr || job->state == protocol::JobState::kCancelled) return TileAction::kJobGone;
-  if (p.tile >= job->tiles_total) {
-    return bad_request(fmt::format("job {} has {} tiles; there is no tile {}", job->id, job->tiles_total, p.tile),
+  if (p.tile >= job->tile_indices) {
+    return bad_request(fmt::format("job {} has {} tiles; there is no tile {}", job->id, job->tile_indices, p.tile),
                        "/tile");
+  }
+  if (!tile_of_job(*job, p.tile)) {
+    return bad_request(
+        fmt::format("tile {} of job {} lies outside the job's crop; it is not rendered", p.tile, job->id), "/tile");
   }
   const scene::TileRect expected = tile_place(*job, p.tile).rect;
   if (p.rect != expected) {

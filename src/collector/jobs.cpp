@@ -50,15 +50,71 @@ std::string frame_output_name(const JobRecord& job, std::uint32_t frame_index) {
 }
 
 bool init_frames(JobRecord& job) {
-  const std::uint64_t per_frame = scene::TileGrid(job.settings, job.tile_size).count();
+  const scene::TileGrid grid(job.settings, job.tile_size);
+  const std::uint64_t per_frame = grid.count();
   const std::uint64_t frames = protocol::frame_count(job.settings);
-  const std::uint64_t total = per_frame * frames;
-  if (per_frame == 0 || total > protocol::kMaxTilesPerJob) return false;
+  const std::uint64_t indices = per_frame * frames;
+  if (per_frame == 0 || indices > protocol::kMaxTilesPerJob) return false;
+  std::uint64_t wanted = per_frame;
+  if (job.crop) {
+    const scene::TileRect& c = *job.crop;
+    if (c.width == 0 || c.height == 0 || std::uint64_t{c.x0} + c.width > job.settings.width ||
+        std::uint64_t{c.y0} + c.height > job.settings.height) {
+      return false;
+    }
+    // The columns and rows of tiles that hold a pixel of the crop.
+    const std::uint64_t columns = (c.x0 + c.width - 1) / job.tile_size - c.x0 / job.tile_size + 1;
+    const std::uint64_t rows = (c.y0 + c.height - 1) / job.tile_size - c.y0 / job.tile_size + 1;
+    wanted = columns * rows;
+  }
   job.frames_total = static_cast<std::uint32_t>(frames);
-  job.tiles_per_frame = static_cast<TileIndex>(per_frame);
-  job.tiles_total = static_cast<TileIndex>(total);
+  job.tiles_per_frame = static_cast<TileIndex>(wanted);
+  job.tile_indices = static_cast<TileIndex>(indices);
+  job.tiles_total = static_cast<TileIndex>(wanted * frames);
   job.frame_tiles_done.assign(frames, 0);
   return true;
+}
+
+bool overlaps_crop(const scene::TileRect& r, const std::optional<scene::TileRect>& crop) {
+  if (!crop) return true;
+  const scene::TileRect& c = *crop;
+  return r.x0 < c.x0 + c.width && c.x0 < r.x0 + r.width && r.y0 < c.y0 + c.height && c.y0 < r.y0 + r.height;
+}
+
+bool tile_of_job(const JobRecord& job, TileIndex tile) {
+  return tile < job.tile_indices && (!job.crop || overlaps_crop(tile_place(job, tile).rect, job.crop));
+}
+
+std::vector<TileIndex> skipped_tiles(const JobRecord& job) {
+  std::vector<TileIndex> skipped;
+  if (!job.crop) return skipped;
+  const scene::TileGrid grid(job.settings, job.tile_size);
+  const auto per_frame = static_cast<TileIndex>(grid.count());
+  std::vector<TileIndex> in_frame;
+  for (TileIndex t = 0; t < per_frame; ++t) {
+    if (!overlaps_crop(grid.rect(t), job.crop)) in_frame.push_back(t);
+  }
+  skipped.reserve(in_frame.size() * job.frames_total);
+  for (std::uint32_t f = 0; f < job.frames_total; ++f) {
+    for (const TileIndex t : in_frame) skipped.push_back(f * per_frame + t);
+  }
+  return skipped;
+}
+
+bool queue_job(WorkQueue& queue, const JobRecord& job, std::span<const TileIndex> stored) {
+  return queue.add_job(job.id, job.priority, job.tile_indices, stored, skipped_tiles(job));
+}
+
+const image::ImageRGBf& output_pixels(const image::ImageRGBf& full, const std::optional<scene::TileRect>& crop,
+                                      image::ImageRGBf& holder) {
+  if (!crop) return full;
+  const scene::TileRect& c = *crop;
+  assert(c.x0 + c.width <= full.width && c.y0 + c.height <= full.height);
+  holder = image::ImageRGBf(c.width, c.height);
+  for (std::uint32_t y = 0; y < c.height; ++y) {
+    std::memcpy(holder.pixel(0, y), full.pixel(c.x0, c.y0 + y), std::size_t{c.width} * 3 * sizeof(float));
+  }
+  return holder;
 }
 
 store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp) {
@@ -213,12 +269,16 @@ util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecor
   auto tiles = s.get_all_tiles(static_cast<std::int64_t>(rec.id));
   if (!tiles) return std::move(tiles).error();
   std::vector<TileIndex> stored;
-  rec.restored.assign(rec.tiles_total, false);
+  rec.restored.assign(rec.tile_indices, false);
   rec.frame_tiles_done.assign(rec.frames_total, 0);
   for (store::StoredTile& t : tiles.value()) {
-    if (t.tile >= rec.tiles_total) {
+    if (t.tile >= rec.tile_indices) {
       return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
-                                     rec.tiles_total));
+                                     rec.tile_indices));
+    }
+    if (!tile_of_job(rec, t.tile)) {
+      return util::Error(
+          fmt::format("{}: job {}: stored tile {} lies outside the job's crop", s.path(), rec.id, t.tile));
     }
     const TilePlace place = tile_place(rec, t.tile);
     const scene::TileRect& rect = place.rect;

@@ -73,10 +73,17 @@ struct JobRecord {
   SampleTally spp;
   bool spp_pending = false;  // a finished job's counts are still being read after start-up
 
+  // Only these pixels of each frame are rendered and written (protocol::JobSettings::crop), or
+  // whole frames when unset. A tile of the grid without a pixel in it is no part of the job: it
+  // is never queued, leased, stored or counted, and the others keep their index in the full grid.
+  std::optional<scene::TileRect> crop;
+
   // Frames of the job (1 for a single frame; settings.frames->count() for a sequence) and tiles
-  // per frame (tiles_total = frames x tiles_per_frame).
+  // it renders per frame (tiles_total = frames x tiles_per_frame). Tile indices run over the
+  // whole grid of every frame, [0, tile_indices): tile_indices = tiles_total without a crop.
   std::uint32_t frames_total = 1;
   TileIndex tiles_per_frame = 0;
+  TileIndex tile_indices = 0;
   // Frames whose image this process has written, in order: frames [0, frames_written) are on
   // disk. The job is done when all are.
   std::uint32_t frames_written = 0;
@@ -119,9 +126,24 @@ std::optional<std::uint32_t> frame_index_of(const scene::RenderSettings& job_set
 // The file name of frame `frame_index`'s image: the output's sequence pattern (image/sequence.h)
 // at that frame's number, or the output as it is when it holds no frame number.
 std::string frame_output_name(const JobRecord& job, std::uint32_t frame_index);
-// Sets frames_total, tiles_per_frame, tiles_total and frame_tiles_done from the settings and tile
-// size; false when the job has no tile or more than protocol::kMaxTilesPerJob.
+// Sets frames_total, tiles_per_frame, tile_indices, tiles_total and frame_tiles_done from the
+// settings, crop and tile size; false when the job has no tile, more than
+// protocol::kMaxTilesPerJob tile indices, or a crop outside its image.
 bool init_frames(JobRecord& job);
+
+// Whether tile `tile` has a pixel inside `crop` (every tile does without a crop).
+bool overlaps_crop(const scene::TileRect& tile, const std::optional<scene::TileRect>& crop);
+// Whether `tile` is one of the job's: an index below tile_indices whose rectangle overlaps the crop.
+bool tile_of_job(const JobRecord& job, TileIndex tile);
+// The indices below tile_indices that are not the job's (none without a crop), ascending.
+std::vector<TileIndex> skipped_tiles(const JobRecord& job);
+// Adds the job to the queue (WorkQueue::add_job) with its skipped tiles and `stored` tiles.
+bool queue_job(WorkQueue& queue, const JobRecord& job, std::span<const TileIndex> stored = {});
+
+// The pixels an output shows of a full frame: `full` itself without a crop, else the crop's
+// pixels, copied into `holder`.
+const image::ImageRGBf& output_pixels(const image::ImageRGBf& full, const std::optional<scene::TileRect>& crop,
+                                      image::ImageRGBf& holder);
 
 // Tile pixels as the store keeps them (tiles.pixels): the float32 values' bytes in host order
 // (the collector only runs on little-endian hosts, asserted at compile time, so this is the

@@ -80,9 +80,10 @@ async::Awaitable<bool> write_frame(Context& c, JobId id, std::uint32_t frame_ind
     const std::string path = (fs::path(c.output_dir) / frame_output_name(*job, frame_index)).string();
     const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth),
                                       .display = job->settings.display};
-    auto write = [img = image.get(), path, options] {
+    auto write = [img = image.get(), crop = job->crop, path, options] {
       Written w;
-      const util::Status st = write_output_image(path, *img, options);
+      image::ImageRGBf cropped;
+      const util::Status st = write_output_image(path, output_pixels(*img, crop, cropped), options);
       w.ok = st.ok();
       if (!st) w.error = st.error().to_string();
       return w;
@@ -109,7 +110,7 @@ async::Awaitable<bool> write_frame(Context& c, JobId id, std::uint32_t frame_ind
 // A GIF sequence's file, once every frame is complete: assembled from the store on the pool.
 async::Awaitable<bool> write_gif(Context& c, JobId id) {
   const JobRecord* job = c.find_job(id);
-  const GifJob gif{id, job->settings, job->tile_size, job->frames_total};
+  const GifJob gif{id, job->settings, job->tile_size, job->frames_total, job->crop};
   const std::string path = (fs::path(c.output_dir) / job->output).string();
   auto write = [&reader = c.reader, gif, path] {
     Written w;

@@ -70,10 +70,12 @@ util::Result<std::string> sequence_gif(StoreReader& reader, const GifJob& job) {
   image::GifOptions options;
   options.fps = job.settings.fps;
   options.display = job.settings.display;
-  auto encoder = image::GifEncoder::create(job.settings.width, job.settings.height, options);
+  const std::uint32_t width = job.crop ? job.crop->width : job.settings.width;
+  const std::uint32_t height = job.crop ? job.crop->height : job.settings.height;
+  auto encoder = image::GifEncoder::create(width, height, options);
   if (!encoder) return std::move(encoder).error();
   for (std::uint32_t f = 0; f < job.frames; ++f) {
-    auto frame = reader.frame_image(job.id, job.settings, job.tile_size, f);
+    auto frame = reader.frame_image(job.id, job.settings, job.tile_size, job.crop, f);
     if (!frame) return std::move(frame).error();
     if (util::Status added = encoder->add_frame(*frame); !added) return added.error();
   }

@@ -15,6 +15,7 @@
 #pragma once
 
 #include <map>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -53,6 +54,7 @@ struct GifJob {
   scene::RenderSettings settings;  // fps and display transform included
   std::uint32_t tile_size = 0;
   std::uint32_t frames = 0;
+  std::optional<scene::TileRect> crop{};  // the pixels each frame shows, or whole frames
 };
 // The animated GIF of a job's frames, assembled from the store one frame at a time (in memory:
 // one float frame and the compressed bytes so far).

@@ -51,25 +51,34 @@ util::Errors check_queue_config(const QueueConfig& c) {
 WorkQueue::WorkQueue(QueueConfig config) : config_(config) { assert(check_queue_config(config_).empty()); }
 
 bool WorkQueue::add_job(JobId id, std::int32_t priority, TileIndex tile_count,
-                        std::span<const TileIndex> already_stored) {
+                        std::span<const TileIndex> already_stored, std::span<const TileIndex> skipped) {
   if (tile_count == 0 || tile_count > kMaxQueueTiles || jobs_.contains(id)) return false;
-  if (std::any_of(already_stored.begin(), already_stored.end(), [&](TileIndex t) { return t >= tile_count; })) {
+  const auto out_of_range = [&](TileIndex t) { return t >= tile_count; };
+  if (std::any_of(already_stored.begin(), already_stored.end(), out_of_range) ||
+      std::any_of(skipped.begin(), skipped.end(), out_of_range)) {
     return false;
   }
   Job job;
   job.priority = priority;
+  job.tile_count = tile_count;
   job.tiles_total = tile_count;
   job.bound = config_.reoffer_floor;
   job.tiles.resize(tile_count);
+  for (const TileIndex t : skipped) {
+    if (!job.tiles[t].skipped) --job.tiles_total;
+    job.tiles[t].skipped = true;
+  }
   for (const TileIndex t : already_stored) {
+    if (job.tiles[t].skipped) return false;
     if (!job.tiles[t].stored) ++job.tiles_done;
     job.tiles[t].stored = true;
   }
+  if (job.tiles_total == 0) return false;
   if (job.done()) {
     release_tiles(job);
   } else {
     for (TileIndex t = 0; t < tile_count; ++t) {
-      if (!job.tiles[t].stored) job.ring.push_back(t);
+      if (!job.tiles[t].stored && !job.tiles[t].skipped) job.ring.push_back(t);
     }
     active_.insert(order_key(id, job));
   }
@@ -105,8 +114,9 @@ LeaseResult WorkQueue::lease(TimePoint now) {
 
 CompleteResult WorkQueue::complete(JobId id, TileIndex t, TimePoint now) {
   const auto it = jobs_.find(id);
-  if (it == jobs_.end() || it->second.cancelled || t >= it->second.tiles_total) return CompleteResult::kJobGone;
+  if (it == jobs_.end() || it->second.cancelled || t >= it->second.tile_count) return CompleteResult::kJobGone;
   Job& job = it->second;
+  if (!job.done() && job.tiles[t].skipped) return CompleteResult::kJobGone;
   if (job.done() || job.tiles[t].stored) {
     ++stats_.duplicates;
     return CompleteResult::kAlreadyDone;
@@ -134,7 +144,8 @@ TileStatus WorkQueue::tile_status(JobId id, TileIndex t) const {
   const auto it = jobs_.find(id);
   if (it == jobs_.end() || it->second.cancelled) return TileStatus::kJobGone;
   const Job& job = it->second;
-  if (t >= job.tiles_total) return TileStatus::kNoSuchTile;
+  if (t >= job.tile_count) return TileStatus::kNoSuchTile;
+  if (!job.done() && job.tiles[t].skipped) return TileStatus::kNoSuchTile;
   if (job.done() || job.tiles[t].stored) return TileStatus::kStored;
   return TileStatus::kPending;
 }

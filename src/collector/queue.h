@@ -131,9 +131,14 @@ class WorkQueue {
   explicit WorkQueue(QueueConfig config = {});  // asserts check_queue_config(config) is empty
 
   // Adds a job of `tile_count` tiles, or restores one after a restart: `already_stored` tiles
-  // (from the store) count as done and are never leased. False, changing nothing, when the id is
-  // in use, tile_count is 0 or above kMaxQueueTiles, or an index is out of range.
-  bool add_job(JobId job, std::int32_t priority, TileIndex tile_count, std::span<const TileIndex> already_stored = {});
+  // (from the store) count as done and are never leased. `skipped` tiles (those outside a
+  // cropped job's region) are no part of the job: never leased, not counted in its progress, and
+  // tile_status says kNoSuchTile and complete() kJobGone for them while the job runs; the other
+  // tiles keep their indices. False, changing nothing, when the id is in use, tile_count is 0 or
+  // above kMaxQueueTiles, an index is out of range, a tile is both stored and skipped, or every
+  // tile is skipped.
+  bool add_job(JobId job, std::int32_t priority, TileIndex tile_count, std::span<const TileIndex> already_stored = {},
+               std::span<const TileIndex> skipped = {});
 
   // The next tile to render, or nothing and when to ask again.
   LeaseResult lease(TimePoint now);
@@ -178,11 +183,13 @@ class WorkQueue {
     std::vector<TimePoint> leases;  // outstanding (unexpired) leases, at most max_copies
     bool stored = false;
     bool ever_leased = false;
+    bool skipped = false;  // no part of the job (add_job's `skipped`)
   };
 
   struct Job {
     std::int32_t priority = 0;
-    TileIndex tiles_total = 0;
+    TileIndex tile_count = 0;   // indices [0, tile_count), skipped ones included
+    TileIndex tiles_total = 0;  // tiles of the job: tile_count less the skipped ones
     TileIndex tiles_done = 0;
     bool cancelled = false;
     bool paused = false;

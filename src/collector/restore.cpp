@@ -106,7 +106,7 @@ util::Status restore_active(Context& c, store::Store& s, const store::StoredJob&
   auto loaded = load_stored_tiles(s, rec);
   if (!loaded) return std::move(loaded).error();
   const std::vector<TileIndex>& stored = loaded.value();
-  if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total, stored)) {
+  if (!queue_job(c.queue, rec, stored)) {
     return util::Error(fmt::format("{}: job {}: cannot be queued (duplicate tiles?)", s.path(), rec.id));
   }
   rec.tiles_done = static_cast<TileIndex>(stored.size());
@@ -207,7 +207,7 @@ util::Status enqueue_one_shot(Context& c, store::Store& s) {
   }
   PreparedJob& p = prepared.value();
 
-  const std::string key = one_shot_client_key(p.digest, {p.settings, p.png_bit_depth}, p.tile_size, p.submit.output);
+  const std::string key = one_shot_client_key(p.digest, job_settings(p), p.tile_size, p.submit.output);
   auto found = s.find_job_by_key(key);
   if (!found) return std::move(found).error();
   if (found.value()) return resume_one_shot(c, s, *found.value());
@@ -221,7 +221,7 @@ util::Status enqueue_one_shot(Context& c, store::Store& s) {
   if (!made) return std::move(made).error();
   JobRecord rec = std::move(made).value();
   rec.scene_json = c.intern_scene(p.digest, std::move(p.scene_json));
-  if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total)) {
+  if (!queue_job(c.queue, rec)) {
     return util::Error(fmt::format("job {}: cannot be queued", rec.id));
   }
   c.one_shot_id = rec.id;
@@ -237,7 +237,8 @@ async::Awaitable<> restore_sample_counts(Context& c, JobId id) {
   const JobRecord* job = c.find_job(id);
   if (job == nullptr || c.stopping) co_return;
   // In an optional: on_pool needs a default-constructible result.
-  auto read = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, total = job->tiles_total] {
+  auto read = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size,
+               total = job->tile_indices] {
     return std::optional(reader.sample_counts(id, settings, tile_size, total));
   };
   const std::optional<util::Result<SampleTally>> counted = co_await async::on_pool(c.pool, std::move(read));

@@ -24,8 +24,9 @@ util::Result<store::Store*> StoreReader::store_locked() {
 }
 
 util::Result<std::string> StoreReader::encode_image(JobId id, const scene::RenderSettings& settings,
-                                                    std::uint32_t tile_size, std::uint32_t frame_index,
-                                                    const image::WriteOptions& options, image::ImageFormat format) {
+                                                    std::uint32_t tile_size, const std::optional<scene::TileRect>& crop,
+                                                    std::uint32_t frame_index, const image::WriteOptions& options,
+                                                    image::ImageFormat format) {
   image::ImageRGBf image(settings.width, settings.height);
   {
     std::lock_guard lock(mu_);
@@ -44,15 +45,19 @@ util::Result<std::string> StoreReader::encode_image(JobId id, const scene::Rende
       copy_tile(image, rect, stored_tile->rgb);
     }
   }
-  return image::encode_image(format, image, options);
+  image::ImageRGBf holder;
+  return image::encode_image(format, output_pixels(image, crop, holder), options);
 }
 
 util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::RenderSettings& settings,
-                                                        std::uint32_t tile_size, std::uint32_t frame_index) {
+                                                        std::uint32_t tile_size,
+                                                        const std::optional<scene::TileRect>& crop,
+                                                        std::uint32_t frame_index) {
   image::ImageRGBf image(settings.width, settings.height);
   const scene::TileGrid grid(settings, tile_size);
   const TileIndex first = frame_index * static_cast<TileIndex>(grid.count());
   for (TileIndex t = 0; t < grid.count(); ++t) {
+    if (!overlaps_crop(grid.rect(t), crop)) continue;  // no part of the job
     std::optional<store::StoredTile> stored;
     {
       // One tile per lock, so that other reads go on in between.
@@ -69,7 +74,10 @@ util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::R
     if (!parsed) return util::Error(fmt::format("stored tile {} has the wrong size", first + t));
     copy_tile(image, rect, parsed->rgb);
   }
-  return image;
+  if (!crop) return image;
+  image::ImageRGBf cropped;
+  output_pixels(image, crop, cropped);
+  return cropped;
 }
 
 util::Result<std::optional<std::string>> StoreReader::scene(const std::string& digest) {
@@ -80,7 +88,7 @@ util::Result<std::optional<std::string>> StoreReader::scene(const std::string& d
 }
 
 util::Result<SampleTally> StoreReader::sample_counts(JobId id, const scene::RenderSettings& settings,
-                                                     std::uint32_t tile_size, TileIndex tiles_total) {
+                                                     std::uint32_t tile_size, TileIndex tile_indices) {
   std::vector<std::uint32_t> indices;
   {
     std::lock_guard lock(mu_);
@@ -93,7 +101,7 @@ util::Result<SampleTally> StoreReader::sample_counts(JobId id, const scene::Rend
   SampleTally tally;
   const scene::TileGrid grid(settings, tile_size);
   for (const std::uint32_t index : indices) {
-    if (index >= tiles_total) continue;
+    if (index >= tile_indices) continue;
     std::optional<store::StoredTile> stored;
     {
       std::lock_guard lock(mu_);

@@ -29,23 +29,26 @@ class StoreReader {
   explicit StoreReader(std::string state_dir);
 
   // The image of frame `frame_index` (0 for a single frame) of a job whose pixels live in the
-  // store, black where no tile is stored, encoded in `format`.
+  // store, black where no tile is stored, encoded in `format`: the whole frame, or only the
+  // `crop` pixels of a cropped job (output_pixels).
   util::Result<std::string> encode_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
-                                         std::uint32_t frame_index, const image::WriteOptions& options,
-                                         image::ImageFormat format);
+                                         const std::optional<scene::TileRect>& crop, std::uint32_t frame_index,
+                                         const image::WriteOptions& options, image::ImageFormat format);
 
-  // Frame `frame_index` of a job from its stored tiles, black where none is stored; read one tile
-  // at a time (a sequence's GIF is assembled from these, one frame in memory at a time).
+  // Frame `frame_index` of a job from its stored tiles, black where none is stored, cut to `crop`
+  // when set; read one tile at a time (a sequence's GIF is assembled from these, one frame in
+  // memory at a time).
   util::Result<image::ImageRGBf> frame_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
-                                             std::uint32_t frame_index);
+                                             const std::optional<scene::TileRect>& crop, std::uint32_t frame_index);
 
   // A scene's canonical text; nullopt when no scene has this digest.
   util::Result<std::optional<std::string>> scene(const std::string& digest);
 
-  // The sample counts of a finished adaptive job's stored tiles. A tile whose blob holds no
-  // readable counts makes the tally unknown (its image is checked when it is served).
+  // The sample counts of a finished adaptive job's stored tiles (indices below `tile_indices`).
+  // A tile whose blob holds no readable counts makes the tally unknown (its image is checked when
+  // it is served).
   util::Result<SampleTally> sample_counts(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
-                                          TileIndex tiles_total);
+                                          TileIndex tile_indices);
 
   // Closes the connection for good: reads after this fail ("the collector is stopping").
   void close();

@@ -18,16 +18,19 @@ util::Result<PreparedJob, util::Errors> prepare_job(std::string_view body) {
   p.settings = protocol::effective_settings(p.submit);
   p.tile_size = scene::tile_size_or_default(p.submit.overrides);
   p.png_bit_depth = scene::png_bit_depth_or_default(p.submit.overrides);
+  p.crop = p.submit.overrides.crop;
   p.scene_json = scene::canonical_json(p.submit.scene);
   p.digest = util::sha256_hex(p.scene_json);  // = scene::scene_digest, without a second serialisation
   p.submit.scene = {};
   return p;
 }
 
+protocol::JobSettings job_settings(const PreparedJob& job) { return {job.settings, job.png_bit_depth, job.crop}; }
+
 store::StoredJob job_row(const PreparedJob& job, std::int64_t created_unix) {
   store::StoredJob row;
   row.digest = job.digest;
-  row.settings_json = protocol::encode_settings({job.settings, job.png_bit_depth});
+  row.settings_json = protocol::encode_settings(job_settings(job));
   row.output = job.submit.output;  // "" stands for job-<id>.png
   row.priority = job.submit.priority;
   row.tile_size = job.tile_size;
@@ -69,6 +72,7 @@ util::Result<JobRecord> record_from_row(const store::StoredJob& row) {
   rec.digest = row.digest;
   rec.settings = settings.value().render;
   rec.png_bit_depth = settings.value().png_bit_depth;
+  rec.crop = settings.value().crop;  // inside the image: decode_settings checked it
   rec.priority = row.priority;
   rec.tile_size = row.tile_size;
   if (!init_frames(rec)) {

@@ -10,6 +10,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -27,12 +28,16 @@ struct PreparedJob {
   scene::RenderSettings settings;
   std::uint32_t tile_size = 0;
   std::uint32_t png_bit_depth = 0;
-  std::string scene_json;  // canonical
-  std::string digest;      // SHA-256 of scene_json, = scene::scene_digest
+  std::optional<scene::TileRect> crop;  // inside settings' image (checked by the decoder)
+  std::string scene_json;               // canonical
+  std::string digest;                   // SHA-256 of scene_json, = scene::scene_digest
 };
 
 // The decoder's errors when the body is refused.
 util::Result<PreparedJob, util::Errors> prepare_job(std::string_view body);
+
+// The settings a prepared job is stored with (and its one-shot key made of).
+protocol::JobSettings job_settings(const PreparedJob& job);
 
 // The row a prepared job is stored as, queued, created at `created_unix`.
 store::StoredJob job_row(const PreparedJob& job, std::int64_t created_unix);

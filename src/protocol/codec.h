@@ -79,5 +79,13 @@ void read_digest(Fields& f, std::string& out);
 void read_output(Fields& f, std::string& out, Need need);
 // The object's optional "png_bit_depth" (8 or 16) into `out`; false after an error.
 bool read_bit_depth(Fields& f, std::uint32_t& out);
+// The object's optional "crop", {"x", "y", "width", "height"} (not empty), into `out`; false
+// after an error.
+bool read_crop(Fields& f, std::optional<scene::TileRect>& out);
+// Whether `crop` (read at f.path("crop")) lies inside a width x height image; the error names
+// the member that reaches outside.
+void check_crop_inside(Fields& f, const scene::TileRect& crop, std::uint32_t width, std::uint32_t height);
+// {"x", "y", "width", "height"}: how a submission and stored settings write a crop.
+boost::json::object crop_object(const scene::TileRect& crop);
 
 }  // namespace dtraced::protocol::detail

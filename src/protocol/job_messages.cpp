@@ -27,7 +27,7 @@ constexpr std::array<std::string_view, 5> kJobStateNames = {"queued", "rendering
 
 constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size"};
 constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
-                                               std::array<std::string_view, 1>{"png_bit_depth"});
+                                               std::array<std::string_view, 2>{"png_bit_depth", "crop"});
 constexpr std::array<std::string_view, 2> kJobCreatedKeys = {"id", "digest"};
 constexpr std::array<std::string_view, 19> kJobStatusKeys = {
     "id",          "state",   "output",           "priority",         "width",
@@ -69,6 +69,7 @@ void read_overrides(Fields& f, scene::Overrides& o) {
     std::uint32_t bits = scene::kDefaultPngBitDepth;
     if (read_bit_depth(f, bits)) o.png_bit_depth = bits;
   }
+  read_crop(f, o.crop);
 }
 
 void read_job_submit(Fields& f, JobSubmit& m) {
@@ -79,6 +80,8 @@ void read_job_submit(Fields& f, JobSubmit& m) {
   if (f.reader().failed()) return;
 
   const scene::RenderSettings s = effective_settings(m);
+  // Against the image the overrides make: "--width 64 --crop ..." is checked at width 64.
+  if (m.overrides.crop) check_crop_inside(f, *m.overrides.crop, s.width, s.height);
   const std::uint32_t tile_size = scene::tile_size_or_default(m.overrides);
   const std::uint64_t per_frame = scene::TileGrid(s, tile_size).count();
   const std::uint64_t frames = frame_count(s);
@@ -217,6 +220,7 @@ std::string encode(const JobSubmit& m) {
   if (v.fps) o["fps"] = jsonio::exact_number(*v.fps);
   if (v.exposure) o["exposure"] = jsonio::exact_number(*v.exposure);
   if (v.tone) o["tone"] = image::to_string(*v.tone);
+  if (v.crop) o["crop"] = crop_object(*v.crop);
   return jsonio::to_text(o);
 }
 

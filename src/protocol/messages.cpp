@@ -32,7 +32,8 @@ constexpr std::array<std::string_view, 8> kLeaseKeys = {"job", "digest", "tile",
 constexpr std::array<std::string_view, 1> kSubmitResultKeys = {"result"};
 constexpr std::array<std::string_view, 2> kErrorBodyKeys = {"error", "field"};
 constexpr auto kStoredSettingsKeys =
-    jsonio::join_keys(scene::kRenderKeys, std::array<std::string_view, 1>{"png_bit_depth"});
+    jsonio::join_keys(scene::kRenderKeys, std::array<std::string_view, 2>{"png_bit_depth", "crop"});
+constexpr std::array<std::string_view, 4> kCropKeys = {"x", "y", "width", "height"};
 constexpr auto& kLeaseSettingsKeys = scene::kRenderKeys;
 
 // Cuts `text` to at most `max_bytes` without splitting a UTF-8 sequence.
@@ -103,6 +104,42 @@ bool detail::read_bit_depth(Fields& f, std::uint32_t& out) {
   }
   out = bits;
   return true;
+}
+
+bool detail::read_crop(Fields& f, std::optional<scene::TileRect>& out) {
+  const json::value* v = f.get("crop", Need::kOptional);
+  if (v == nullptr) return true;
+  Reader& r = f.reader();
+  const Path at = f.path("crop");
+  const json::object* o = r.object(*v, at);
+  if (o == nullptr) return false;
+  const std::size_t before = r.error_count();
+  Fields cf(r, *o, at, kCropKeys);
+  scene::TileRect crop;
+  cf.integer("x", crop.x0, 0, scene::kMaxImageSide - 1);
+  cf.integer("y", crop.y0, 0, scene::kMaxImageSide - 1);
+  cf.integer("width", crop.width, 1, scene::kMaxImageSide);
+  cf.integer("height", crop.height, 1, scene::kMaxImageSide);
+  if (r.error_count() != before) return false;
+  out = crop;
+  return true;
+}
+
+void detail::check_crop_inside(Fields& f, const scene::TileRect& crop, std::uint32_t width, std::uint32_t height) {
+  const Path at = f.path("crop");
+  // 64 bits: x + width of two u32 near their limits must not wrap.
+  if (std::uint64_t{crop.x0} + crop.width > width) {
+    f.reader().error(at.key("width"), fmt::format("crop columns [{}, {}) extend past the image width {}", crop.x0,
+                                                  std::uint64_t{crop.x0} + crop.width, width));
+  }
+  if (std::uint64_t{crop.y0} + crop.height > height) {
+    f.reader().error(at.key("height"), fmt::format("crop rows [{}, {}) extend past the image height {}", crop.y0,
+                                                   std::uint64_t{crop.y0} + crop.height, height));
+  }
+}
+
+json::object detail::crop_object(const scene::TileRect& crop) {
+  return json::object{{"x", crop.x0}, {"y", crop.y0}, {"width", crop.width}, {"height", crop.height}};
 }
 
 // ---- shared validation ---------------------------------------------------------------------
@@ -261,6 +298,7 @@ Decoded<ErrorBody> decode_error_body(std::string_view text) {
 std::string encode_settings(const JobSettings& settings) {
   json::object o = scene::render_settings_object(settings.render);
   if (settings.png_bit_depth != scene::kDefaultPngBitDepth) o["png_bit_depth"] = settings.png_bit_depth;
+  if (settings.crop) o["crop"] = crop_object(*settings.crop);
   // Boost's own form, not jsonio::to_text: this text is hashed into the client key that a one-shot
   // collector stores with its job (collector/jobs.h), so new bytes would lose stored jobs.
   return json::serialize(o);
@@ -271,6 +309,9 @@ Decoded<JobSettings> decode_settings(std::string_view text) {
                                     [](Fields& f, JobSettings& m) {
                                       scene::read_render_settings(f, m.render, Need::kRequired);
                                       read_bit_depth(f, m.png_bit_depth);
+                                      if (read_crop(f, m.crop) && m.crop && !f.reader().failed()) {
+                                        check_crop_inside(f, *m.crop, m.render.width, m.render.height);
+                                      }
                                     });
 }
 

@@ -91,9 +91,10 @@ struct JobSubmit {
   // then absent on the wire; an explicit "" is an error).
   std::string output;
   std::int32_t priority = 0;
-  // Overrides of the scene's render block, the tile size (scene::kDefaultTileSize when unset) and
-  // the PNG bit depth of the output; each a top-level key of its own, absent when unset, checked
-  // against the limits of scene files.
+  // Overrides of the scene's render block, the tile size (scene::kDefaultTileSize when unset),
+  // the PNG bit depth of the output and the crop ("crop": {"x", "y", "width", "height"}, checked
+  // against the effective image size); each a top-level key of its own, absent when unset,
+  // checked against the limits of scene files.
   scene::Overrides overrides;
   bool operator==(const JobSubmit&) const = default;
 };
@@ -265,6 +266,9 @@ Decoded<ErrorBody> decode_error_body(std::string_view body);
 struct JobSettings {
   scene::RenderSettings render;
   std::uint32_t png_bit_depth = scene::kDefaultPngBitDepth;  // of a .png output
+  // Only these pixels of each frame are rendered and written (scene::Overrides::crop): inside
+  // render.width x render.height, not empty.
+  std::optional<scene::TileRect> crop{};
   bool operator==(const JobSettings&) const = default;
 };
 
@@ -273,9 +277,11 @@ struct JobSettings {
 // and optional when read (absent: uniform sampling): the same object a Lease carries as
 // "settings". Then "png_bit_depth", written when it is not 8 and optional when read; and "frames",
 // "fps", "exposure" and "tone", written when they differ from a static single frame's and
-// optional when read (a lease's settings carry them too; a lease is one frame, without "frames"). A job stored
-// before a field existed reads as it always did, and an 8-bit uniform job keeps its text (and so
-// its one-shot key).
+// optional when read (a lease's settings carry them too; a lease is one frame, without "frames").
+// Last "crop", {"x", "y", "width", "height"}, written only when set and optional when read; on
+// reading it must lie inside the image (the error names "/crop/width" or "/crop/height"). A job
+// stored before a field existed reads as it always did, and an 8-bit uniform job keeps its text
+// (and so its one-shot key).
 std::string encode_settings(const JobSettings& settings);
 Decoded<JobSettings> decode_settings(std::string_view body);
 

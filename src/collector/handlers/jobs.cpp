@@ -26,13 +26,16 @@ http::Response enqueue_submitted(Context& c, store::StoredJob row, std::shared_p
   }
   JobRecord rec = std::move(made).value();
   rec.scene_json = std::move(scene_json);
-  if (!c.queue.add_job(rec.id, rec.priority, rec.tiles_total)) {
+  if (!queue_job(c.queue, rec)) {
     util::log_error("collector: job {} could not be queued", rec.id);
     return http::make_error(http::Status::internal_server_error, "the job could not be queued");
   }
   ++c.counters.jobs_submitted;
-  util::log_info("collector: job {} submitted: {}x{}, {} samples, {} tiles of {}, priority {}, -> {}", rec.id,
-                 rec.settings.width, rec.settings.height, rec.settings.samples, rec.tiles_total, rec.tile_size,
+  const std::string crop =
+      rec.crop ? fmt::format(" (crop {}x{} at {},{})", rec.crop->width, rec.crop->height, rec.crop->x0, rec.crop->y0)
+               : std::string();
+  util::log_info("collector: job {} submitted: {}x{}{}, {} samples, {} tiles of {}, priority {}, -> {}", rec.id,
+                 rec.settings.width, rec.settings.height, crop, rec.settings.samples, rec.tiles_total, rec.tile_size,
                  rec.priority, rec.output);
   const protocol::JobCreated created{rec.id, rec.digest};
   c.jobs.emplace(rec.id, std::move(rec));

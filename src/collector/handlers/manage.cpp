@@ -153,7 +153,7 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
   rec->rendering_persisted = false;  // the store says "queued" now
   rec->scene_json = c.intern_scene(rec->digest, std::move(*done.scene_json));
   c.queue.remove_job(id);
-  if (!c.queue.add_job(id, priority, rec->tiles_total, done.stored)) {
+  if (!queue_job(c.queue, *rec, done.stored)) {
     util::log_error("collector: job {} could not be queued again", id);
     co_return http::make_error(http::Status::internal_server_error, "the job could not be queued");
   }

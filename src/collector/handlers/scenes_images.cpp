@@ -56,16 +56,19 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
     // The framebuffer as it is now. The snapshot is held (and released) here, on the loop; the
     // pool only reads through a plain pointer, so copy-on-write stays exact.
     std::shared_ptr<const image::ImageRGBf> snapshot = frame_snapshot(*job, frame_index);
-    const std::uint32_t w = job->settings.width, h = job->settings.height;
-    auto encode = [image = snapshot.get(), w, h, format, options] {
-      return std::optional(image != nullptr ? image::encode_image(format, *image, options)
+    // A cropped job shows its crop only, as its output files do.
+    const std::uint32_t w = job->crop ? job->crop->width : job->settings.width;
+    const std::uint32_t h = job->crop ? job->crop->height : job->settings.height;
+    auto encode = [image = snapshot.get(), crop = job->crop, w, h, format, options] {
+      image::ImageRGBf cropped;
+      return std::optional(image != nullptr ? image::encode_image(format, output_pixels(*image, crop, cropped), options)
                                             : image::encode_image(format, image::ImageRGBf(w, h), options));
     };
     encoded = co_await async::on_pool(c.pool, std::move(encode));
   } else {
-    auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, frame_index, options,
-                     format] {
-      return std::optional(reader.encode_image(id, settings, tile_size, frame_index, options, format));
+    auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, crop = job->crop,
+                     frame_index, options, format] {
+      return std::optional(reader.encode_image(id, settings, tile_size, crop, frame_index, options, format));
     };
     encoded = co_await async::on_pool(c.pool, std::move(assemble));
     // Deleted while its tiles were read: what was read may be incomplete.
