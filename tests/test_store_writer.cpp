@@ -167,6 +167,31 @@ TEST_CASE("the WAL stays a few batches long over many commits and is emptied whe
   CHECK(check.count_tiles(job).value() == kTiles);
 }
 
+TEST_CASE("a trickle of tiles is not checkpointed after every batch, and a stop checkpoints what is left",
+          "[store][writer][wal]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  const std::string wal = setup.path() + "-wal";
+  // Idle for a minute before a checkpoint: the test never waits that long between tiles.
+  constexpr WriterLimits kLimits{.checkpoint_every_batches = 16, .checkpoint_when_idle = std::chrono::minutes(1)};
+  TileWriter writer(std::move(setup), kLimits);
+  Callbacks callbacks;
+  // One tile at a time, each acknowledged before the next is sent: the queue runs empty after
+  // every batch, as with a few workers sending small tiles.
+  for (std::uint32_t t = 0; t < 10; ++t) {
+    REQUIRE(writer.submit(tile_write(job, t, 1000), callbacks.done(t)) == SubmitStatus::kAccepted);
+    REQUIRE(callbacks.wait_for(t + 1));
+  }
+  CHECK(writer.stats().batches == 10);
+  CHECK(writer.stats().checkpoints == 0);
+  CHECK(std::filesystem::file_size(wal) > 0);
+  writer.stop();
+  CHECK(writer.stats().checkpoints == 1);
+  CHECK(std::filesystem::file_size(wal) == 0);
+  Store check = open_ok(tmp.path());
+  CHECK(check.count_tiles(job).value() == 10);
+}
+
 TEST_CASE("a rejected tile does not fail the rest of its batch", "[store][writer]") {
   StoreDir tmp;
   auto [setup, job] = seeded(tmp);

@@ -31,6 +31,7 @@
 #include "worker/answers.h"
 #include "worker/backoff.h"
 #include "worker/config.h"
+#include "worker/in_hand.h"
 #include "worker/log_limiter.h"
 #include "worker/retry_gate.h"
 #include "worker/scene_cache.h"
@@ -327,6 +328,36 @@ TEST_CASE("worker defaults are resolved from the host", "[worker][config]") {
   CHECK(resolved.name.size() <= protocol::kMaxWorkerNameBytes);
   CHECK(resolved.name.ends_with(fmt::format("-{}", ::getpid())));
   CHECK(worker::validate(resolved).empty());
+}
+
+// ---- tiles in hand -------------------------------------------------------------------------------
+
+TEST_CASE("the tiles in hand are bounded by count, and the rendered ones also by bytes", "[worker][in_hand]") {
+  net::io_context io;
+  worker::InHand in_hand(io.get_executor(), /*limit=*/3, /*byte_limit=*/1000);
+  worker::InHand::Reservation a = in_hand.reserve();
+  worker::InHand::Reservation b = in_hand.reserve();
+  CHECK_FALSE(in_hand.full());
+  a.hold(600);  // rendered: its bytes count until it is released
+  CHECK(in_hand.bytes() == 600);
+  CHECK_FALSE(in_hand.full());
+  b.hold(400);  // 1000 bytes awaiting acknowledgement: full with 2 of 3 tiles
+  CHECK(in_hand.full());
+  worker::InHand::Reservation moved = std::move(a);  // the bytes move with the reservation
+  CHECK(in_hand.bytes() == 1000);
+  moved.reset();
+  CHECK(in_hand.count() == 1);
+  CHECK(in_hand.bytes() == 400);
+  CHECK_FALSE(in_hand.full());
+  worker::InHand::Reservation c = in_hand.reserve();
+  worker::InHand::Reservation d = in_hand.reserve();
+  CHECK(in_hand.full());  // 3 tiles, 400 bytes: the count bound
+  CHECK(in_hand.peak() == 3);
+  b.reset();
+  c.reset();
+  d.reset();
+  CHECK(in_hand.count() == 0);
+  CHECK(in_hand.bytes() == 0);
 }
 
 // ---- the retry gate, on a ManualClock ------------------------------------------------------------

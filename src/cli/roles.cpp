@@ -165,7 +165,7 @@ const NumberFlag kNumberFlags[] = {
     {kWorkerGroup, "--request-timeout-ms", &RoleArgs::request_timeout_ms, 1, 600000,
      "Read and write timeout of each request"},
     {kWorkerGroup, "--max-unacknowledged", &RoleArgs::max_unacknowledged, 0, 65536,
-     "Tiles in hand at most (0: 4 per thread)"},
+     "Tiles in hand at most (0: 16 per thread)"},
 };
 
 template <typename T>

@@ -256,6 +256,8 @@ std::string format_metrics(const MetricsSnapshot& m) {
         m.store.batches);
   w.one("dtraced_store_largest_batch", "gauge", "Most tiles committed in one transaction.", m.store.largest_batch);
   w.one("dtraced_store_write_seconds_total", "counter", "Time spent inside tile transactions.", m.store.write_seconds);
+  w.one("dtraced_store_checkpoints_total", "counter",
+        "WAL checkpoints attempted by the store writer (each a few fsyncs besides the commits').", m.store.checkpoints);
   w.one("dtraced_store_tiles_failed_total", "counter", "Tiles whose transaction failed.", m.store.tiles_failed);
   w.one("dtraced_store_busy_total", "counter", "Requests answered 503 because the store was busy or failing.",
         c.store_busy);

@@ -95,19 +95,19 @@ WriterStats TileWriter::stats() const {
 
 void TileWriter::run() {
   std::vector<Item> batch;
+  const auto has_work = [this] { return stopping_ || !queue_.empty(); };
   for (;;) {
-    bool idle = false;
-    {
-      std::lock_guard lock(mu_);
-      idle = queue_.empty();
-    }
-    if (writes_since_checkpoint_ > 0 &&
-        (idle || writes_since_checkpoint_ >= std::max<std::size_t>(limits_.checkpoint_every_batches, 1))) {
-      checkpoint();
+    if (writes_since_checkpoint_ >= std::max<std::size_t>(limits_.checkpoint_every_batches, 1)) checkpoint();
+    if (writes_since_checkpoint_ > 0) {
+      std::unique_lock lock(mu_);
+      // The queue stayed empty for checkpoint_when_idle, or a stop left nothing to write.
+      const bool idle = !wake_.wait_for(lock, limits_.checkpoint_when_idle, has_work) || queue_.empty();
+      lock.unlock();
+      if (idle) checkpoint();
     }
     {
       std::unique_lock lock(mu_);
-      wake_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      wake_.wait(lock, has_work);
       if (queue_.empty()) return;  // stopping, and everything accepted has been handled
       // Everything pending, up to max_batch_tiles tiles (tasks come along in their places).
       std::size_t tiles = 0;

@@ -26,8 +26,16 @@ inline constexpr std::chrono::seconds kMaxGrace{3600};
 inline constexpr std::chrono::milliseconds kMaxClientTimeout{10 * 60 * 1000};
 inline constexpr std::chrono::milliseconds kMaxBackoff{10 * 60 * 1000};
 // A slot holds up to two tiles (one rendering, the next leased), so the default leaves room for
-// two more per thread waiting for their acknowledgement before leasing pauses.
-inline constexpr std::uint32_t kInHandPerThread = 4;
+// 14 more per thread waiting for their acknowledgement before leasing pauses. Small tiles need
+// that many: a 32-px tile of a small frame renders in 1-2 ms, while its acknowledgement waits for
+// a durable commit (an fsync, 4-10 ms on a VM's disk) plus a round trip; with 4 per thread the
+// threads of a farm on one 2-core machine sat idle a third of the time
+// (tests/bench/frames_farm_vs_local.sh).
+inline constexpr std::uint32_t kInHandPerThread = 16;
+// Whatever max_unacknowledged says, leasing also pauses while the rendered tiles awaiting their
+// acknowledgement hold this many bytes of payload per render thread: about four of the largest
+// tiles (protocol::kMaxTilePayloadBytes), what the earlier default of 4 tiles per thread allowed.
+inline constexpr std::uint64_t kHeldBytesPerThread = std::uint64_t{64} << 20;
 inline constexpr std::uint32_t kMaxUnacknowledged = 1u << 16;
 
 // ---- configuration -------------------------------------------------------------------------
@@ -51,7 +59,8 @@ struct WorkerConfig {
   std::chrono::milliseconds backoff_max{10'000};   // [backoff_initial, kMaxBackoff]
   // Tiles in hand at once: lease requests in flight, leases held, tiles rendering, and rendered
   // tiles not yet acknowledged. At the bound the worker stops leasing until acknowledgements come
-  // in; so it is also the bound on the pixels held in memory. 0: kInHandPerThread x threads.
+  // in; so it is also a bound on the pixels held in memory (kHeldBytesPerThread is the other).
+  // 0: kInHandPerThread x threads.
   // Below 2 x threads some render threads wait while the collector is slow. [0, kMaxUnacknowledged]
   std::uint32_t max_unacknowledged = 0;
   // Seed of the retry jitter; 0: drawn from std::random_device (so that workers started together

@@ -21,18 +21,21 @@ namespace dtraced::worker {
 inline constexpr std::size_t kMaxGoneJobs = 1024;
 
 // The tiles in hand (config.h, max_unacknowledged), counted by reservations that release
-// themselves when the lease, the tile or the coroutine holding them goes away. The event loop
-// changes the counts; other threads may read them.
+// themselves when the lease, the tile or the coroutine holding them goes away; and the bytes of
+// the rendered tiles among them (config.h, kHeldBytesPerThread), which a reservation holds from
+// hold() on. Full at either bound. The event loop changes the counts; other threads may read them.
 class InHand {
  public:
   class Reservation {
    public:
     Reservation() = default;
-    Reservation(Reservation&& other) noexcept : owner_(std::exchange(other.owner_, nullptr)) {}
+    Reservation(Reservation&& other) noexcept
+        : owner_(std::exchange(other.owner_, nullptr)), bytes_(std::exchange(other.bytes_, 0)) {}
     Reservation& operator=(Reservation&& other) noexcept {
       if (this != &other) {
         reset();
         owner_ = std::exchange(other.owner_, nullptr);
+        bytes_ = std::exchange(other.bytes_, 0);
       }
       return *this;
     }
@@ -41,19 +44,32 @@ class InHand {
     ~Reservation() { reset(); }
 
     void reset() {
-      if (owner_ != nullptr) std::exchange(owner_, nullptr)->release();
+      if (owner_ != nullptr) std::exchange(owner_, nullptr)->release(std::exchange(bytes_, 0));
+    }
+
+    // The tile is rendered: its `bytes` count toward the byte bound until the release.
+    void hold(std::uint64_t bytes) {
+      if (owner_ == nullptr) return;
+      owner_->bytes_.store(owner_->bytes_.load(std::memory_order_relaxed) + bytes, std::memory_order_relaxed);
+      bytes_ += bytes;
     }
 
    private:
     friend class InHand;
     explicit Reservation(InHand* owner) : owner_(owner) {}
     InHand* owner_ = nullptr;
+    std::uint64_t bytes_ = 0;
   };
 
-  InHand(const async::Executor& executor, std::uint64_t limit) : limit_(limit), changed_(executor) {}
+  // At most `limit` tiles, and no new reservation once the held bytes reach `byte_limit`.
+  InHand(const async::Executor& executor, std::uint64_t limit, std::uint64_t byte_limit)
+      : limit_(limit), byte_limit_(byte_limit), changed_(executor) {}
 
-  bool full() const { return count_.load(std::memory_order_relaxed) >= limit_; }
+  bool full() const {
+    return count_.load(std::memory_order_relaxed) >= limit_ || bytes_.load(std::memory_order_relaxed) >= byte_limit_;
+  }
   std::uint64_t count() const { return count_.load(std::memory_order_relaxed); }
+  std::uint64_t bytes() const { return bytes_.load(std::memory_order_relaxed); }
   std::uint64_t peak() const { return peak_.load(std::memory_order_relaxed); }
 
   // Notified whenever a reservation is released.
@@ -67,13 +83,16 @@ class InHand {
   }
 
  private:
-  void release() {
+  void release(std::uint64_t bytes) {
     count_.store(count_.load(std::memory_order_relaxed) - 1, std::memory_order_relaxed);
+    bytes_.store(bytes_.load(std::memory_order_relaxed) - bytes, std::memory_order_relaxed);
     changed_.notify_all();
   }
 
   std::uint64_t limit_;
+  std::uint64_t byte_limit_;
   std::atomic<std::uint64_t> count_{0};
+  std::atomic<std::uint64_t> bytes_{0};
   std::atomic<std::uint64_t> peak_{0};
   async::Signal changed_;
 };

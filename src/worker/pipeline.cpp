@@ -45,7 +45,11 @@ async::Awaitable<> Worker::Impl::slot() {
 
 async::Awaitable<std::optional<Work>> Worker::Impl::acquire() {
   for (;;) {
-    while (in_hand.full() && !stop.is_set()) co_await (in_hand.changed().wait() || stop.wait());
+    if (in_hand.full() && !stop.is_set()) {
+      const util::TimePoint from = clock.now();
+      while (in_hand.full() && !stop.is_set()) co_await (in_hand.changed().wait() || stop.wait());
+      in_hand_wait_ms.add(ms_between(from, clock.now()));
+    }
     std::optional<RetryGate::Attempt> attempt = co_await lease_gate.enter(stop);
     if (!attempt) co_return std::nullopt;
     if (in_hand.full()) continue;  // others filled it while this one waited at the gate
@@ -221,8 +225,10 @@ async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
     co_return;
   }
   tiles_held.add();
+  work.reservation.hold(payload.size());
   async::net::co_spawn(
-      io, submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation), render_ms}),
+      io,
+      submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation), render_ms, clock.now()}),
       [this](std::exception_ptr e) {
         async::log_exception("submitting a tile", e);
         tiles_held.remove();

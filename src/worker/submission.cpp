@@ -53,6 +53,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
     switch (answer.verdict) {
       case SubmitVerdict::kAcknowledged:
         tiles_submitted.add();
+        ack_ms.add(ms_between(tile.rendered_at, clock.now()));
         if (const std::uint32_t ended = lease_gate.accepted(); ended > 0) {
           util::log_info("the collector {} takes tiles again after {} refused in a row", url.to_string(), ended);
         }

@@ -47,7 +47,7 @@ Worker::Impl::Impl(WorkerConfig resolved, const util::Clock& clock)
       submit_gate(io.get_executor(), clock, Backoff(config.backoff_initial, config.backoff_max), rng),
       stop(io.get_executor()),
       abandon(io.get_executor()),
-      in_hand(io.get_executor(), config.max_unacknowledged) {}
+      in_hand(io.get_executor(), config.max_unacknowledged, kHeldBytesPerThread * config.threads) {}
 
 util::Result<std::unique_ptr<Worker>, util::Errors> Worker::create(const WorkerConfig& config,
                                                                    const util::Clock& clock) {
@@ -112,6 +112,8 @@ WorkerStats Worker::stats() const {
   stats.tiles_held = s.tiles_held.get();
   stats.tiles_in_hand = s.in_hand.count();
   stats.tiles_in_hand_peak = s.in_hand.peak();
+  stats.ack_ms = s.ack_ms.get();
+  stats.in_hand_wait_ms = s.in_hand_wait_ms.get();
   return stats;
 }
 

@@ -14,8 +14,9 @@
 //    as the bug it is and dropped. Network errors, 5xx, 401, 408 and 429 are retried with
 //    exponential backoff and full jitter, across collector restarts, for as long as it takes.
 //  - Back-pressure. At most max_unacknowledged tiles are in hand (lease requests in flight,
-//    leases held, tiles rendering, tiles awaiting acknowledgement); at the bound the worker stops
-//    leasing until acknowledgements come in.
+//    leases held, tiles rendering, tiles awaiting acknowledgement), and at most
+//    kHeldBytesPerThread x threads bytes of rendered tiles await acknowledgement; at either bound
+//    the worker stops leasing until acknowledgements come in.
 //  - Failures. A collector that is not there yet, restarting, refusing the token (401) or
 //    answering 5xx is retried with backoff; while it fails, one request at a time probes it (one
 //    for leases, one for submissions), so a farm of waiting workers stays quiet. A worker started
@@ -68,6 +69,14 @@ struct WorkerStats {
   std::uint64_t tiles_held = 0;       // now: rendered, awaiting acknowledgement
   std::uint64_t tiles_in_hand = 0;    // now: see max_unacknowledged in config.h
   std::uint64_t tiles_in_hand_peak = 0;
+  // Where a tile's time goes besides rendering: the sum over acknowledged tiles of the time from
+  // the end of the render to the acknowledgement (so ack_ms / tiles_submitted is the mean submit
+  // round trip, durable commit included), and the time render slots waited for room in hand
+  // (max_unacknowledged, or kHeldBytesPerThread), summed over slots. A large wait means the
+  // threads idle while tiles await acknowledgement: a higher max_unacknowledged would keep them
+  // busy.
+  std::uint64_t ack_ms = 0;
+  std::uint64_t in_hand_wait_ms = 0;
 };
 
 struct RunOptions {

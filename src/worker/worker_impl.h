@@ -12,6 +12,7 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -53,6 +54,7 @@ struct HeldTile {
   std::string payload;  // protocol::encode_tile_payload
   InHand::Reservation reservation;
   std::uint64_t render_ms = 0;  // sent as protocol::kRenderMsHeader
+  util::TimePoint rendered_at;  // when its render ended: the acknowledgement's latency counts from here
 };
 
 struct SceneOutcome {
@@ -72,7 +74,7 @@ struct PendingScene {
 // A count the event loop changes and stats() reads from any thread.
 class Counter {
  public:
-  void add() { n_.fetch_add(1, std::memory_order_relaxed); }
+  void add(std::uint64_t n = 1) { n_.fetch_add(n, std::memory_order_relaxed); }
   void remove() { n_.fetch_sub(1, std::memory_order_relaxed); }
   std::uint64_t get() const { return n_.load(std::memory_order_relaxed); }
 
@@ -157,6 +159,14 @@ struct Worker::Impl {
   Counter scenes_fetched;
   Counter scenes_rejected;
   Counter tiles_held;
+  Counter ack_ms;           // WorkerStats::ack_ms
+  Counter in_hand_wait_ms;  // WorkerStats::in_hand_wait_ms
 };
+
+// Whole milliseconds from `from` to `to`, 0 if the clock went backwards (it does not: steady).
+inline std::uint64_t ms_between(util::TimePoint from, util::TimePoint to) {
+  const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(to - from).count();
+  return ms > 0 ? static_cast<std::uint64_t>(ms) : 0;
+}
 
 }  // namespace dtraced::worker

@@ -12,17 +12,22 @@
 #
 # What is timed:
 #   local  the whole `dtraced render --frames` process, PFM frames written.
-#   farm   from just before `dtraced submit` until `dtraced status` says done (every frame written
-#          by the collector), polled every 50 ms.
+#   farm   from just before `dtraced submit` until `dtraced status --wait` says done (every frame
+#          written by the collector), polled every 50 ms by that one process.
+# CPU seconds (user + system) are printed too: of the local render, and of the collector and the
+# workers during the farm run. "CPU farm/local" is (collector + workers) / local: the farm's
+# work over the local render's, which is what farm/local tends to when every process keeps the
+# shared cores busy, and so a floor for it on one machine.
 #
 # Usage, after the README's build:
 #   tests/bench/frames_farm_vs_local.sh
 # Environment: DTRACED (default build/src/cli/dtraced), SCENE (scenes/snowfall.json), WIDTH (320),
 # HEIGHT (240), SAMPLES (4), FRAMES (0-47), TILE_SIZES ("32 80": one table row each), WORKERS (2),
 # RUNS (3), KEEP_LOGS=1 keeps the logs.
-# Needs bash 5 (EPOCHREALTIME), curl, cmp.
+# Needs bash 5 (EPOCHREALTIME), curl, cmp, timeout.
 set -uo pipefail
 export LC_ALL=C
+TIMEFORMAT='%3U %3S' # `time`: user and system CPU seconds of the local render
 
 root=$(cd "$(dirname "$0")/../.." && pwd)
 DTRACED=${DTRACED:-$root/build/src/cli/dtraced}
@@ -80,8 +85,6 @@ for w in $(seq "$WORKERS"); do
 done
 sleep 1 # the workers find nothing and go idle, as in a waiting farm
 
-exec {never_fd}<> <(:)
-pause() { read -r -t "$1" -u "$never_fd" _; }
 # CPU seconds (user + system) a process has used so far.
 cpu_of() { awk -v t="$(getconf CLK_TCK)" '{ printf "%.3f", ($14 + $15) / t }' "/proc/$1/stat"; }
 elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.3f", b - a }'; }
@@ -95,14 +98,16 @@ identical=yes
 echo "sequence: $(basename "$SCENE") ${WIDTH}x${HEIGHT}, $SAMPLES spp, frames $FRAMES; local -t 2 vs $WORKERS workers x 1 thread"
 for tile in $TILE_SIZES; do
   job=(--width "$WIDTH" --height "$HEIGHT" -s "$SAMPLES" --frames "$FRAMES" --tile-size "$tile")
-  locals=() farms=() ccpu=() wcpu=()
+  locals=() lcpu=() farms=() ccpu=() wcpu=()
   same_all=yes
   for run in $(seq "$RUNS"); do
     mkdir -p "$work/local-$tile-$run"
     t0=$EPOCHREALTIME
-    "$DTRACED" render "$SCENE" "${job[@]}" -t 2 -q -o "$work/local-$tile-$run/f-%04d.pfm" || fail "the local render failed"
+    { time "$DTRACED" render "$SCENE" "${job[@]}" -t 2 -q -o "$work/local-$tile-$run/f-%04d.pfm" 2>"$work/local.err"; } \
+      2>"$work/local.time" || fail "the local render failed: $(cat "$work/local.err")"
     t1=$EPOCHREALTIME
     locals+=("$(elapsed "$t0" "$t1")")
+    lcpu+=("$(awk '{ printf "%.3f", $1 + $2 }' "$work/local.time")")
 
     c0=$(cpu_of "$collector_pid")
     w0=0
@@ -110,11 +115,10 @@ for tile in $TILE_SIZES; do
     t0=$EPOCHREALTIME
     id=$("$DTRACED" submit "$SCENE" "${job[@]}" -o "t$tile-run$run-%04d.pfm" --collector "$url" \
       --token-file "$work/token") || fail "submit failed"
-    until "$DTRACED" status "$id" --collector "$url" --token-file "$work/token" --json 2>/dev/null |
-      grep -q '"state":"done"'; do
-      [ "$(elapsed "$t0" "$EPOCHREALTIME" | cut -d. -f1)" -lt "$DEADLINE" ] || fail "job $id not done in ${DEADLINE}s"
-      pause 0.05
-    done
+    # One process polling every 50 ms: a new `dtraced status` process per poll would cost the
+    # farm's shared cores more than the poll itself.
+    timeout "$DEADLINE" "$DTRACED" status "$id" --wait --poll-ms 50 --json --collector "$url" \
+      --token-file "$work/token" 2>/dev/null | grep -q '"state":"done"' || fail "job $id not done in ${DEADLINE}s"
     t1=$EPOCHREALTIME
     farms+=("$(elapsed "$t0" "$t1")")
     ccpu+=("$(elapsed "$c0" "$(cpu_of "$collector_pid")")")
@@ -127,16 +131,21 @@ for tile in $TILE_SIZES; do
         "$work/state/output/$(printf "t$tile-run$run-%04d.pfm" "$f")" || same=no
     done
     [ "$same" = yes ] || same_all=no identical=no
-    echo "tile $tile run $run: local ${locals[-1]} s, farm ${farms[-1]} s (CPU: collector ${ccpu[-1]} s, workers ${wcpu[-1]} s), identical: $same"
+    echo "tile $tile run $run: local ${locals[-1]} s (CPU ${lcpu[-1]} s), farm ${farms[-1]} s (CPU: collector ${ccpu[-1]} s, workers ${wcpu[-1]} s), identical: $same"
   done
   lm=$(median "${locals[@]}")
   fm=$(median "${farms[@]}")
   tiles=$(( ((WIDTH + tile - 1) / tile) * ((HEIGHT + tile - 1) / tile) ))
-  rows+=("| $FRAMES | ${WIDTH}x${HEIGHT} | $SAMPLES | $tile ($tiles a frame) | $lm | $fm | $(awk -v a="$lm" -v b="$fm" 'BEGIN { printf "%.3f", b / a }') | $(median "${ccpu[@]}") | $(median "${wcpu[@]}") | $same_all |")
+  lc=$(median "${lcpu[@]}")
+  cc=$(median "${ccpu[@]}")
+  wc=$(median "${wcpu[@]}")
+  # The farm's CPU over the local render's: what the farm would take on the local render's two
+  # cores if it used them as fully, so a floor for farm/local on one machine.
+  rows+=("| $FRAMES | ${WIDTH}x${HEIGHT} | $SAMPLES | $tile ($tiles a frame) | $lm | $fm | $(awk -v a="$lm" -v b="$fm" 'BEGIN { printf "%.3f", b / a }') | $lc | $cc | $wc | $(awk -v l="$lc" -v c="$cc" -v w="$wc" 'BEGIN { printf "%.2f", (c + w) / l }') | $same_all |")
 done
 echo
-echo "| frames | size | spp | tile px (tiles) | local s | farm s | farm/local | collector CPU s | workers CPU s | identical |"
-echo "|--|--|--:|--|--:|--:|--:|--:|--:|:-:|"
+echo "| frames | size | spp | tile px (tiles) | local s | farm s | farm/local | local CPU s | collector CPU s | workers CPU s | CPU farm/local | identical |"
+echo "|--|--|--:|--|--:|--:|--:|--:|--:|--:|--:|:-:|"
 for row in "${rows[@]}"; do echo "$row"; done
 echo
 echo "target: farm/local <= 1.1 (medians of $RUNS runs)"
