@@ -75,8 +75,8 @@ restored=$(metric dtraced_restored_tiles)
   fail "$acked tiles were acknowledged but ${restored:-?} restored"
 kill -CONT "${WORKER_PIDS[@]}"
 wait_field "$id" frames_done 4
-[ "$(job_field "$id" state)" = done ] || until_ok "$DEADLINE" test "$(job_field "$id" state)" = done ||
-  die "job $id not done"
+job_done() { [ "$(job_field "$1" state)" = done ]; }
+until_ok "$DEADLINE" job_done "$id" || die "job $id not done"
 for k in $(seq $FIRST $LAST); do
   cmp -s "$work/ref-$k.pfm" "$work/state/output/snow-00$k.pfm" &&
     ok "frame $k equals frame $k of the local render --frames" || fail "frame $k differs from the local render"
@@ -108,7 +108,6 @@ sid=$(client submit "$SCENE" -o cropseq-%04d.png --width $CW --height $CH -s 2 -
   fail "the cropped job's tiles_total is $(job_field "$cid" tiles_total), not 12"
 [ "$(job_field "$sid" tiles_total)" = 36 ] && ok "a cropped range counts 3 x 12 tiles" ||
   fail "the cropped range's tiles_total is $(job_field "$sid" tiles_total), not 36"
-job_done() { [ "$(job_field "$1" state)" = done ]; }
 until_ok "$DEADLINE" job_done "$cid" || die "cropped job $cid not done"
 until_ok "$DEADLINE" job_done "$sid" || die "cropped range $sid not done"
 cmp -s "$work/crop-ref.png" "$work/state/output/crop.png" && ok "the cropped job's image equals render --crop" ||
