@@ -49,24 +49,35 @@ std::string frame_output_name(const JobRecord& job, std::uint32_t frame_index) {
   return image::frame_path(*pattern, protocol::frame_number(job.settings, frame_index));
 }
 
+namespace {
+
+// The tiles of one frame's grid without a pixel in `crop` (none without a crop), ascending: one
+// rule for the count init_frames gives the job and the tiles skipped_tiles leaves out of the queue.
+std::vector<TileIndex> skipped_in_frame(const scene::TileGrid& grid, const std::optional<scene::TileRect>& crop) {
+  std::vector<TileIndex> out;
+  if (!crop) return out;
+  for (TileIndex t = 0; t < grid.count(); ++t) {
+    if (!overlaps_crop(grid.rect(t), crop)) out.push_back(t);
+  }
+  return out;
+}
+
+}  // namespace
+
 bool init_frames(JobRecord& job) {
   const scene::TileGrid grid(job.settings, job.tile_size);
   const std::uint64_t per_frame = grid.count();
   const std::uint64_t frames = protocol::frame_count(job.settings);
   const std::uint64_t indices = per_frame * frames;
   if (per_frame == 0 || indices > protocol::kMaxTilesPerJob) return false;
-  std::uint64_t wanted = per_frame;
   if (job.crop) {
     const scene::TileRect& c = *job.crop;
     if (c.width == 0 || c.height == 0 || std::uint64_t{c.x0} + c.width > job.settings.width ||
         std::uint64_t{c.y0} + c.height > job.settings.height) {
       return false;
     }
-    // The columns and rows of tiles that hold a pixel of the crop.
-    const std::uint64_t columns = (c.x0 + c.width - 1) / job.tile_size - c.x0 / job.tile_size + 1;
-    const std::uint64_t rows = (c.y0 + c.height - 1) / job.tile_size - c.y0 / job.tile_size + 1;
-    wanted = columns * rows;
   }
+  const std::uint64_t wanted = per_frame - skipped_in_frame(grid, job.crop).size();
   job.frames_total = static_cast<std::uint32_t>(frames);
   job.tiles_per_frame = static_cast<TileIndex>(wanted);
   job.tile_indices = static_cast<TileIndex>(indices);
@@ -90,10 +101,7 @@ std::vector<TileIndex> skipped_tiles(const JobRecord& job) {
   if (!job.crop) return skipped;
   const scene::TileGrid grid(job.settings, job.tile_size);
   const auto per_frame = static_cast<TileIndex>(grid.count());
-  std::vector<TileIndex> in_frame;
-  for (TileIndex t = 0; t < per_frame; ++t) {
-    if (!overlaps_crop(grid.rect(t), job.crop)) in_frame.push_back(t);
-  }
+  const std::vector<TileIndex> in_frame = skipped_in_frame(grid, job.crop);
   skipped.reserve(in_frame.size() * job.frames_total);
   for (std::uint32_t f = 0; f < job.frames_total; ++f) {
     for (const TileIndex t : in_frame) skipped.push_back(f * per_frame + t);
