@@ -38,15 +38,16 @@ const std::map<std::string, std::set<std::string>>& allowed() {
       {"async", {"util"}},
       {"http", {"async", "util"}},
       {"store", {"util"}},
-      {"collector", {"protocol", "http", "async", "store", "scene", "jsonio", "image", "math", "util"}},
+      {"web", {}},  // the web page's files, embedded: data only
+      {"collector", {"web", "protocol", "http", "async", "store", "scene", "jsonio", "image", "math", "util"}},
       {"worker", {"protocol", "http", "async", "render", "accel", "scene", "jsonio", "image", "math", "util"}},
       {"cli",
-       {"collector", "worker", "protocol", "http", "async", "store", "render", "accel", "scene", "jsonio", "image",
-        "math", "util"}},
+       {"collector", "web", "worker", "protocol", "http", "async", "store", "render", "accel", "scene", "jsonio",
+        "image", "math", "util"}},
       // Benchmark tools, not the product: they may measure anything.
       {"bench",
-       {"collector", "worker", "protocol", "http", "async", "store", "render", "accel", "scene", "jsonio", "image",
-        "math", "util"}},
+       {"collector", "web", "worker", "protocol", "http", "async", "store", "render", "accel", "scene", "jsonio",
+        "image", "math", "util"}},
   };
   return table;
 }
