@@ -24,9 +24,12 @@
   const durFmt = typeof Intl.DurationFormat === 'function'
     ? new Intl.DurationFormat(undefined, {style: 'narrow'}) : null;
 
+  const zeroFmt = new Intl.NumberFormat(undefined, {style: 'unit', unit: 'second', unitDisplay: 'narrow'});
+
   function duration(s) {
     if (s === null || s === undefined || !Number.isFinite(s)) return '–';
     let t = Math.max(0, Math.round(s));
+    if (t === 0) return zeroFmt.format(0);
     const h = Math.floor(t / 3600);
     t -= h * 3600;
     const m = Math.floor(t / 60);
@@ -274,7 +277,7 @@
     r.elapsed = el('td', 'opt num');
     r.eta = el('td', 'num');
     r.spp = el('td', 'opt num');
-    r.prio = el('td', 'num');
+    r.prio = el('td', 'num opt-narrow');
     r.prioForm = el('form', 'prio-form');
     r.prioInput = el('input');
     r.prioInput.type = 'number';
@@ -331,16 +334,16 @@
       setText(r.frames, `${numFmt.format(j.frames_done || 0)}/${numFmt.format(j.frames_total)}`);
     else
       setText(r.frames, '1');
+    const finished = j.state === 'done' || j.state === 'cancelled';
     setText(r.elapsed, duration(j.elapsed_s));
     const noWorker = j.no_worker_s !== undefined && j.no_worker_s !== null;
-    setText(r.eta, noWorker ? 'no worker' : duration(j.eta_s));
+    setText(r.eta, noWorker ? 'no worker' : finished ? '–' : duration(j.eta_s));
     setTitle(r.eta, noWorker ? `no worker for ${duration(j.no_worker_s)}` : '');
     const spp = j.mean_spp !== undefined && j.mean_spp !== null
       ? `${oneFmt.format(j.mean_spp)}/${numFmt.format(j.samples)}` : numFmt.format(j.samples);
     setText(r.spp, spp);
     if (document.activeElement !== r.prioInput && r.prioInput.value !== String(j.priority))
       r.prioInput.value = String(j.priority);
-    const finished = j.state === 'done' || j.state === 'cancelled';
     r.prioInput.disabled = j.state === 'done';
     r.prioSet.disabled = j.state === 'done';
     r.pause.hidden = !(j.state === 'queued' || j.state === 'rendering');
