@@ -73,7 +73,7 @@ if not DTRACED or not SCENES:
     sys.exit(1)
 
 DEADLINE = float(os.environ.get("DEADLINE", "60"))  # the longest any one wait may take
-WIDTH, HEIGHT, TILE, SAMPLES = 128, 96, 16, 96
+WIDTH, HEIGHT, TILE, SAMPLES = 128, 96, 16, 256
 
 passed = 0
 
