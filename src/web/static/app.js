@@ -61,6 +61,12 @@
   let signedIn = false;
 
   class Unauthorized extends Error {}
+  class HttpError extends Error {
+    constructor(status, message) {
+      super(message);
+      this.status = status;
+    }
+  }
 
   function showSignedOut(message) {
     signedIn = false;
@@ -124,7 +130,7 @@
       throw new Unauthorized();
     }
     if (res.status === 304) return {status: 304};
-    if (!res.ok) throw new Error(await errorText(res));
+    if (!res.ok) throw new HttpError(res.status, await errorText(res));
     return {status: 200, etag: res.headers.get('ETag'), res};
   }
 
@@ -292,6 +298,10 @@
     r.prioForm.addEventListener('submit', (ev) => {
       ev.preventDefault();
       const p = Number(r.prioInput.value);
+      if (r.prioInput.value === '' || !Number.isInteger(p) || p < -1000 || p > 1000) {
+        setText($('jobs-note'), `job ${id}: a priority is a whole number from -1000 to 1000`);
+        return;
+      }
       jobAction(id, 'priority', {priority: p}, r.prioInput);
     });
     r.prio.append(r.prioForm);
@@ -587,8 +597,18 @@
   async function pollTiles() {
     const id = preview.job;
     if (id === null) return POLL_MS;
-    let path = `/ui/api/jobs/${id}/tiles?since=${preview.seq}`;
-    const g = await get(path, preview.etag);
+    const path = `/ui/api/jobs/${id}/tiles?since=${preview.seq}`;
+    let g;
+    try {
+      g = await get(path, preview.etag);
+    } catch (e) {
+      if (e instanceof HttpError && e.status === 404 && preview.job === id) {
+        setText($('preview-info'), `job ${id} is gone`);
+        tilesPoller.stop();
+        return POLL_MS;
+      }
+      throw e;
+    }
     if (preview.job !== id) return 0;
     if (g.status === 304) return POLL_MS;
     const d = await g.res.json();
