@@ -225,6 +225,8 @@ class Session:
             jar.load(value)
         if "dtraced_session" not in jar:
             raise Failure("POST /ui/session set no dtraced_session cookie")
+        morsel = jar["dtraced_session"]
+        self.cookie_flags = (bool(morsel["httponly"]), morsel["samesite"], morsel["path"])
         self.cookie = f"dtraced_session={jar['dtraced_session'].value}"
 
     def get(self, path):
@@ -261,6 +263,8 @@ def check_access(farm, job_id):
     check(status == 401, "sign-in with a wrong token is 401")
 
     s = Session(farm)
+    check(s.cookie_flags == (True, "Strict", "/ui"),
+          f"the session cookie is HttpOnly, SameSite=Strict, Path=/ui ({s.cookie_flags})")
     cookie = {"Cookie": s.cookie}
     check(s.get("/ui/api/jobs")[0] == 200, "GET /ui/api/jobs with the cookie is 200")
     check(farm.request("GET", "/v1/jobs", headers=cookie)[0] == 401, "GET /v1/jobs with only the cookie is 401")
@@ -394,8 +398,8 @@ def run(farm, driver):
     ok("signed in with the farm token")
     check(driver.execute_script("return window.localStorage.length + window.sessionStorage.length") == 0,
           "nothing is kept in the browser's storage")
-    check(not any(c["name"] == "dtraced_session" and not c.get("httpOnly") for c in driver.get_cookies()),
-          "the session cookie is HttpOnly")
+    check("dtraced_session" not in driver.execute_script("return document.cookie"),
+          "document.cookie does not hold the session cookie")
 
     # Both jobs appear.
     wait_for("job A's row appears", lambda: row(driver, job_a))

@@ -638,7 +638,8 @@
 
     if (d.written) {
       if (!preview.imageShown) {
-        const img = await get(`/ui/api/jobs/${id}/image?frame=${d.frame}`, null);
+        const frameQuery = d.frames_total > 1 ? `?frame=${d.frame}` : '';
+        const img = await get(`/ui/api/jobs/${id}/image${frameQuery}`, null);
         if (preview.job !== id) return 0;
         const bitmap = await createImageBitmap(await img.res.blob(), bitmapOptions);
         if (preview.job !== id) return 0;
