@@ -64,6 +64,9 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   if (a.max_copies) c.queue.max_copies = *a.max_copies;
   if (a.shutdown_grace_ms) c.shutdown_grace = std::chrono::milliseconds(*a.shutdown_grace_ms);
   if (a.cpu_threads) c.cpu_threads = *a.cpu_threads;
+  if (a.worker_quiet_after_s) c.workers.quiet_after = std::chrono::seconds(*a.worker_quiet_after_s);
+  if (a.worker_forget_after_s) c.workers.forget_after = std::chrono::seconds(*a.worker_forget_after_s);
+  c.web_ui = !a.no_web_ui;
   if (!a.scene.empty()) {
     if (a.output.empty()) {
       fmt::print(stderr, "--scene needs --output (the image to write)\n");
@@ -157,6 +160,10 @@ const NumberFlag kNumberFlags[] = {
     {kCollectorGroup, "--shutdown-grace-ms", &RoleArgs::shutdown_grace_ms, 0, 600000,
      "On SIGTERM, time for requests in flight"},
     {kCollectorGroup, "--cpu-threads", &RoleArgs::cpu_threads, 1, 256, "Threads for image encoding and payload checks"},
+    {kCollectorGroup, "--worker-quiet-after-s", &RoleArgs::worker_quiet_after_s, 1, 86400,
+     "A worker unseen this long shows as quiet (default 60)"},
+    {kCollectorGroup, "--worker-forget-after-s", &RoleArgs::worker_forget_after_s, 1, 2592000,
+     "A worker unseen this long leaves the worker list (default 3600)"},
     {kWorkerGroup, "-t,--threads", &RoleArgs::threads, 0, 4096, "Render threads (0: every core)"},
     {kWorkerGroup, "--scene-cache", &RoleArgs::scene_cache, 1, 1024, "Scenes kept built in memory"},
     {kWorkerGroup, "--grace-seconds", &RoleArgs::grace_seconds, 0, 3600,
@@ -216,6 +223,7 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   one_shot.group = kCollectorGroup;
   one_shot.help_prefix = "One-shot: ";
   add_override_flags(app, a.overrides, one_shot);
+  app.add_flag("--no-web-ui", a.no_web_ui, "Serve no web page: `/` and `/ui/...` answer 404")->group(kCollectorGroup);
   // Both roles (so in neither group): one flag name, one meaning, "exit once the one-shot job is over".
   app.add_flag("--exit-when-done", a.exit_when_done,
                "One-shot collector: exit 0 once the image is written. Worker: exit 0 when its collector says it "

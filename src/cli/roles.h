@@ -24,7 +24,8 @@ struct RoleArgs {
   std::string state_dir;
   std::string output_dir;
   std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, idle_timeout_ms, reoffer_floor_ms,
-      max_copies, shutdown_grace_ms, cpu_threads;
+      max_copies, shutdown_grace_ms, cpu_threads, worker_quiet_after_s, worker_forget_after_s;
+  bool no_web_ui = false;  // --no-web-ui: `/` and `/ui/...` are 404
   std::optional<std::uint64_t> max_body_bytes;
   std::optional<double> reoffer_factor;
   std::string scene;           // one-shot job

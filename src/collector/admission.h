@@ -17,6 +17,7 @@
 
 #include "collector/refusal.h"
 #include "collector/routes.h"
+#include "collector/web_session.h"
 #include "http/types.h"
 #include "util/result.h"
 
@@ -29,8 +30,23 @@ struct Admitted {
   std::uint64_t body_limit = 0;
 };
 
-// The health check (no token), else the token (401), else the route (404, 405, 400).
+// The health check (no token), else the token (401), else the route (404, 405, 400). The page's
+// targets (web_access.h) are 404 here: this is admission without the web page.
 util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes);
+
+// What admission needs to know of the web page: whether it is served, its sessions, the time.
+struct PageAccess {
+  bool enabled = false;
+  const SessionStore* sessions = nullptr;  // required when enabled
+  TimePoint now{};
+};
+
+// As above, and the page's targets (docs/web-access.md): 404 unless enabled; static files need
+// nothing; POST/DELETE /ui/session must be same-origin (403); /ui/api/... needs a live session
+// cookie and no bearer header (401), then a route, and when it changes state, same origin and
+// the session's CSRF header (403). A page route's body limit is kMaxPageBodyBytes.
+util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes,
+                                      const PageAccess& page);
 
 // 413 when the body is over the admitted limit.
 util::Result<void, Refusal> check_body_size(std::uint64_t body_bytes, std::uint64_t body_limit);

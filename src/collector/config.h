@@ -12,6 +12,7 @@
 #include <string_view>
 
 #include "collector/queue.h"
+#include "collector/workers.h"
 #include "http/server.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
@@ -60,6 +61,11 @@ struct CollectorConfig {
   std::size_t cpu_threads = 2;                      // image encoding, scene parsing, large payloads
   std::size_t max_unfinished_jobs = kDefaultMaxUnfinishedJobs;
   std::uint64_t max_unfinished_pixels = kDefaultMaxUnfinishedPixels;
+
+  // The worker registry's limits (a stopped worker shows quiet, then leaves the list).
+  WorkerLimits workers;
+  // Serve the web page (`/` and `/ui/...`); --no-web-ui turns them all into 404.
+  bool web_ui = true;
 
   std::optional<OneShotJob> one_shot;
   // With one_shot: stop and exit 0 once that job's image is written (at once if it already was).

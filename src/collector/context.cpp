@@ -14,6 +14,7 @@ Context::Context(CollectorConfig config_in, const util::Clock& clock_in)
       stop_begun(std::in_place, ioc->get_executor()),
       reader(config.state_dir),
       queue(config.queue),
+      workers(config.workers),
       started(clock.now()) {}
 
 Context::~Context() {

@@ -113,6 +113,9 @@ struct Context {
   TimePoint started;
   // Refused tokens are logged at most this often (router.cpp).
   LogThrottle auth_failure_log;
+  // The web page's sessions and its failed sign-ins (web_session.h).
+  SessionStore sessions;
+  SignInLimiter sign_ins;
 };
 
 }  // namespace dtraced::collector

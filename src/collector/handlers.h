@@ -13,6 +13,8 @@
 //   handlers/manage.cpp          POST /v1/jobs/{id}/priority, .../requeue, .../pause, .../resume
 //   handlers/delete.cpp          DELETE /v1/jobs/{id}
 //   handlers/workers.cpp         GET /v1/workers, and the registry updates of lease and tiles
+//   handlers/web.cpp             GET /, /ui/<file>, /ui/session (POST, GET, DELETE),
+//                                GET /ui/api/jobs/{id}/tiles, POST /ui/api/jobs/{id}/focus
 //
 // Thread safety: on the loop only; each may suspend (co_await) while the pool or the store works,
 // and looks its job up again afterwards.
@@ -57,6 +59,22 @@ async::Awaitable<http::Response> delete_job(Context& c, JobId id, bool delete_im
 
 // handlers/workers.cpp
 http::Response list_workers(Context& c);
+
+// handlers/web.cpp: the web page (docs/web-access.md)
+// GET / and GET /ui/<file>: an embedded file, with its ETag (304 on If-None-Match).
+http::Response get_page_asset(const std::string& path, const http::Request& req);
+// POST /ui/session, GET /ui/session, DELETE /ui/session.
+http::Response sign_in(Context& c, const http::Request& req);
+http::Response get_session(Context& c, const http::Request& req);
+http::Response sign_out(Context& c, const http::Request& req);
+// GET /ui/api/jobs/{id}/tiles?since=SEQ[&frame=N]: the tiles stored since SEQ, as an atlas PNG.
+async::Awaitable<http::Response> get_job_tiles(Context& c, const Route& route, const http::Request& req);
+// POST /ui/api/jobs/{id}/focus: the region's unfinished tiles to the front of the job's queue.
+http::Response focus_job(Context& c, JobId id, const http::Request& req);
+// The page's view of a job (JobRecord::tile_seq, leased_by): a tile leased to `worker`, and a
+// tile stored from `worker`.
+void note_page_lease(JobRecord& job, TileIndex tile, std::string_view worker);
+void note_page_stored(JobRecord& job, TileIndex tile, std::string_view worker);
 
 http::Response get_health();
 http::Response get_metrics(const Context& c);

@@ -100,6 +100,18 @@ struct JobRecord {
   bool finish_failed = false;                     // writing an image failed; retried later
   bool rendering_persisted = false;               // the store has been told the job is rendering
 
+  // The web page's view (handlers/web.cpp), of this process only; released with the framebuffers.
+  // By tile index: the sequence number of each tile stored in memory (0: none), assigned as a
+  // tile is stored and, for the tiles restored at start-up, when first needed (ascending index).
+  // last_seq only grows, so a client's `since` stays meaningful.
+  std::vector<std::uint32_t> tile_seq;
+  std::uint32_t last_seq = 0;
+  // By tile index: who stored it, 1 + an index into worker_names (0: unknown, e.g. restored).
+  std::vector<std::uint16_t> tile_worker;
+  std::vector<std::string> worker_names;  // at most kMaxJobWorkerNames
+  // Who holds each outstanding lease (the latest holder), at most kMaxLeaseHolders tiles.
+  std::map<TileIndex, std::string> leased_by;
+
   // Progress of this process, for the ETA.
   std::optional<TimePoint> first_lease;
   TileIndex stored_this_run = 0;
@@ -109,6 +121,10 @@ struct JobRecord {
            state == protocol::JobState::kPaused;
   }
 };
+
+// Bounds of the web page's view of a job (JobRecord::worker_names, leased_by).
+inline constexpr std::size_t kMaxJobWorkerNames = 1024;
+inline constexpr std::size_t kMaxLeaseHolders = 65536;
 
 // "job-<id>.png"; "job-<id>-%04d.png" for a job of several frames.
 std::string default_output_name(JobId id, std::uint32_t frames = 1);

@@ -270,6 +270,10 @@ void release(JobRecord& job) {
   job.framebuffers.clear();
   job.scene_json.reset();
   job.restored = {};
+  job.tile_seq = {};
+  job.tile_worker = {};
+  job.worker_names = {};
+  job.leased_by = {};
 }
 
 }  // namespace dtraced::collector

@@ -251,6 +251,12 @@ std::string format_metrics(const MetricsSnapshot& m) {
         "Large answers replaced by 503 because too many bytes were waiting for slow readers.",
         m.http.refused_large_responses);
   w.one("dtraced_auth_failures_total", "counter", "Requests refused for a missing or wrong token.", c.auth_failures);
+  w.one("dtraced_web_sign_in_failures_total", "counter", "Web page sign-ins refused (wrong token or too many).",
+        c.sign_in_failures);
+  w.one("dtraced_focus_requests_total", "counter", "Web page requests to render a region of a job first.",
+        c.focus_requests);
+  w.one("dtraced_focus_tiles_total", "counter", "Tiles moved to the front of their job's queue by those requests.",
+        c.focus_tiles);
 
   w.one("dtraced_store_commit_batches_total", "counter", "Tile transactions attempted by the store writer.",
         m.store.batches);

@@ -69,8 +69,11 @@ struct CollectorCounters {
   std::uint64_t lease_retries = 0;    // "retry after" answers
   std::uint64_t restored_tile_leases = 0;
   std::uint64_t restored_tile_submissions = 0;
-  std::uint64_t auth_failures = 0;  // 401
-  std::uint64_t store_busy = 0;     // 503 because the store's queue was full or a write failed
+  std::uint64_t auth_failures = 0;     // 401
+  std::uint64_t sign_in_failures = 0;  // POST /ui/session with a wrong token, or refused (429)
+  std::uint64_t focus_requests = 0;    // POST /ui/api/jobs/{id}/focus answered 200
+  std::uint64_t focus_tiles = 0;       // tiles those requests moved to the front
+  std::uint64_t store_busy = 0;        // 503 because the store's queue was full or a write failed
   std::uint64_t images_written = 0;
   std::uint64_t image_write_failures = 0;
   Histogram lease_seconds{0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1};

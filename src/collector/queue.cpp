@@ -214,6 +214,38 @@ std::optional<JobProgress> WorkQueue::progress(JobId id, TimePoint now) const {
   return p;
 }
 
+std::size_t WorkQueue::focus(JobId id, std::span<const TileIndex> tiles) {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end() || it->second.cancelled || it->second.done()) return 0;
+  Job& job = it->second;
+  std::vector<bool> chosen(job.tile_count, false);
+  std::deque<TileIndex> ring;
+  for (const TileIndex t : tiles) {
+    if (t >= job.tile_count || chosen[t]) continue;
+    const Tile& tile = job.tiles[t];
+    if (tile.stored || tile.skipped || !tile.leases.empty()) continue;
+    chosen[t] = true;
+    ring.push_back(t);
+  }
+  const std::size_t moved = ring.size();
+  if (moved == 0) return 0;
+  for (const TileIndex t : job.ring) {
+    if (!chosen[t]) ring.push_back(t);
+  }
+  job.ring = std::move(ring);
+  return moved;
+}
+
+bool WorkQueue::has_lease(JobId id, TileIndex t, TimePoint now) const {
+  const auto it = jobs_.find(id);
+  if (it == jobs_.end() || it->second.cancelled || it->second.done() || t >= it->second.tile_count) return false;
+  const Job& job = it->second;
+  const Tile& tile = job.tiles[t];
+  if (tile.stored) return false;
+  const Duration lifetime = lease_lifetime(job);
+  return std::any_of(tile.leases.begin(), tile.leases.end(), [&](TimePoint l) { return now - l < lifetime; });
+}
+
 Duration WorkQueue::reoffer_bound(JobId id) const {
   const auto it = jobs_.find(id);
   return it == jobs_.end() ? config_.reoffer_floor : it->second.bound;

@@ -167,6 +167,15 @@ class WorkQueue {
   // Changes a job's priority; an active job moves to its new place in the order at once. False
   // when the job is unknown.
   bool set_priority(JobId job, std::int32_t priority);
+  // Moves those of `tiles` that are unfinished, have no lease outstanding and are part of the job
+  // to the front of the job's queue, in the order given (a tile named twice counts once), so the
+  // job's next leases are exactly those tiles in that order. Changes order only; other jobs are
+  // untouched. Returns how many moved (0 for an unknown, cancelled or done job). O(queue length).
+  std::size_t focus(JobId job, std::span<const TileIndex> tiles);
+
+  // Whether the tile of an unfinished job has a lease outstanding (unexpired) at `now`.
+  bool has_lease(JobId job, TileIndex tile, TimePoint now) const;
+
   // Forgets the job entirely (done and written, or cancelled). False when unknown.
   bool remove_job(JobId job);
 

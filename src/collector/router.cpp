@@ -10,7 +10,9 @@
 
 #include "collector/admission.h"
 #include "collector/handlers.h"
+#include "collector/web_access.h"
 #include "util/log.h"
+#include "web/assets.h"
 
 namespace dtraced::collector {
 namespace {
@@ -29,11 +31,28 @@ void note_auth_failure(Context& c, const http::Request& head) {
       held_back == 0 ? std::string() : fmt::format(" ({} more refused since the last such line)", held_back));
 }
 
+bool is_page_request(const http::Request& head) {
+  return is_page_path(target_path(std::string_view(head.target().data(), head.target().size())));
+}
+
 util::Result<Admitted, Refusal> admit_counted(Context& c, const http::Request& head) {
-  auto admitted = admit(head, c.token, c.config.limits.max_body_bytes);
-  if (!admitted && admitted.error().status == http::Status::unauthorized) note_auth_failure(c, head);
+  const PageAccess page{c.config.web_ui, &c.sessions, c.clock.now()};
+  auto admitted = admit(head, c.token, c.config.limits.max_body_bytes, page);
+  // A page request without a session is no refused token (the page asks before it signs in).
+  if (!admitted && admitted.error().status == http::Status::unauthorized && !is_page_request(head)) {
+    note_auth_failure(c, head);
+  }
   return admitted;
 }
+
+// Every answer of the page's targets carries its security headers (errors too); everything but
+// the static files is no-store.
+http::Response with_page_headers(const http::Request& head, http::Response res, bool is_asset) {
+  if (is_page_request(head)) add_page_headers(res, !is_asset);
+  return res;
+}
+
+async::Awaitable<http::Response> dispatch(Context& c, http::Request req);
 
 http::Response timed_lease(Context& c, const http::Request& req) {
   const TimePoint start = c.clock.now();
@@ -46,14 +65,36 @@ http::Response timed_lease(Context& c, const http::Request& req) {
 
 std::optional<http::Response> check_request_header(Context& c, const http::Request& head, std::uint64_t& body_limit) {
   auto admitted = admit_counted(c, head);
-  if (!admitted) return respond(admitted.error());
+  if (!admitted) return with_page_headers(head, respond(admitted.error()), false);
   body_limit = std::min(body_limit, admitted->body_limit);
   return std::nullopt;
 }
 
-bool is_authenticated(const Context& c, const http::Request& head) { return c.token.accepts(head); }
+bool is_authenticated(const Context& c, const http::Request& head) {
+  if (c.config.web_ui && is_page_request(head)) {
+    const std::string cookie = session_cookie(head);
+    return !cookie.empty() && c.sessions.find(cookie, c.clock.now()).has_value();
+  }
+  return c.token.accepts(head);
+}
 
 async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
+  const bool page = is_page_request(req);
+  if (!page) co_return co_await dispatch(c, std::move(req));
+  http::Request head;
+  head.method(req.method());
+  head.target(req.target());
+  const bool asset =
+      req.method() == http::Verb::get &&
+      web::find_asset(target_path(std::string_view(req.target().data(), req.target().size()))) != nullptr;
+  http::Response res = co_await dispatch(c, std::move(req));
+  const bool served_file = asset && res.result() != http::Status::not_found;
+  co_return with_page_headers(head, std::move(res), served_file);
+}
+
+namespace {
+
+async::Awaitable<http::Response> dispatch(Context& c, http::Request req) {
   auto admitted = admit_counted(c, req);
   if (!admitted) co_return respond(admitted.error());
   Route route = std::move(admitted->route);
@@ -95,8 +136,22 @@ async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
       co_return co_await delete_job(c, route.job, route.delete_image);
     case RouteKind::kWorkers:
       co_return list_workers(c);
+    case RouteKind::kPageAsset:
+      co_return get_page_asset(route.asset, req);
+    case RouteKind::kSessionCreate:
+      co_return sign_in(c, req);
+    case RouteKind::kSessionGet:
+      co_return get_session(c, req);
+    case RouteKind::kSessionDelete:
+      co_return sign_out(c, req);
+    case RouteKind::kJobTiles:
+      co_return co_await get_job_tiles(c, route, req);
+    case RouteKind::kJobFocus:
+      co_return focus_job(c, route.job, req);
   }
   co_return http::make_error(http::Status::internal_server_error, "unhandled route");
 }
+
+}  // namespace
 
 }  // namespace dtraced::collector

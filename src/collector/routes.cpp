@@ -10,8 +10,10 @@
 #include <fmt/format.h>
 #include <openssl/crypto.h>
 
+#include "collector/web_access.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
+#include "web/assets.h"
 
 namespace dtraced::collector {
 namespace {
@@ -145,13 +147,127 @@ util::Status parse_delete_query(std::string_view query, Route& route) {
   return {};
 }
 
+// GET /ui/api/jobs/{id}/tiles: since=SEQ and frame=N, each at most once.
+util::Result<void, Refusal> parse_tiles_query(std::string_view query, Route& route) {
+  bool since_seen = false, frame_seen = false;
+  for (const auto& [key, value] : query_items(query)) {
+    if (key == "since") {
+      if (since_seen) return bad_request("since given twice", "/since");
+      since_seen = true;
+      const auto since = parse_decimal(value, std::uint64_t{1} << 53);
+      if (!since && value != "0") return bad_request("since must be a sequence number (decimal, from 0)", "/since");
+      route.since = since.value_or(0);
+    } else if (key == "frame") {
+      if (frame_seen) return bad_request("frame given twice", "/frame");
+      frame_seen = true;
+      const auto frame = parse_decimal(value, 0xffffffffu);
+      if (!frame && value != "0") {
+        return bad_request("frame must be a frame number (decimal, 0 to 4294967295)", "/frame");
+      }
+      route.image_frame = static_cast<std::uint32_t>(frame.value_or(0));
+    } else {
+      return bad_request(
+          fmt::format("unknown query parameter '{}' (this endpoint takes since and frame)", key.substr(0, 64)),
+          fmt::format("/{}", key.substr(0, 64)));
+    }
+  }
+  return {};
+}
+
+// "/", "/ui/<file>", "/ui/session" and "/ui/api/...".
+util::Result<Route, Refusal> match_page_route(http::Verb method, std::string_view path, std::string_view query) {
+  Route route;
+  const auto only = [&](http::Verb verb, std::string_view allow) -> util::Result<void, Refusal> {
+    if (method != verb) return wrong_method(allow);
+    return {};
+  };
+  if (is_page_api_path(path)) {
+    // The /v1 route of the same name, if the page may call it; and the page's own two.
+    const std::string_view rest = path.substr(std::string_view("/ui/api").size());
+    auto split = split_path(rest.empty() ? std::string_view("/") : rest);
+    if (split && split->size() == 3 && (*split)[0] == "jobs" && ((*split)[2] == "tiles" || (*split)[2] == "focus")) {
+      const auto id = parse_job_id((*split)[1]);
+      if (!id) return not_found();
+      route.job = *id;
+      route.page = true;
+      if ((*split)[2] == "tiles") {
+        if (auto ok = only(http::Verb::get, "GET"); !ok) return std::move(ok).error();
+        route.kind = RouteKind::kJobTiles;
+        if (auto parsed = parse_tiles_query(query, route); !parsed) return std::move(parsed).error();
+      } else {
+        if (auto ok = only(http::Verb::post, "POST"); !ok) return std::move(ok).error();
+        route.kind = RouteKind::kJobFocus;
+        if (!query.empty()) return bad_request("this endpoint takes no query parameters");
+      }
+      return route;
+    }
+    std::string v1 = fmt::format("/v1{}", rest);
+    if (!query.empty()) v1 += fmt::format("?{}", query);
+    auto matched = match_route(method, v1);
+    if (matched && page_may_call(matched->kind)) {
+      route = std::move(matched).value();
+      route.page = true;
+      return route;
+    }
+    if (!matched && matched.error().status != http::Status::method_not_allowed) return std::move(matched).error();
+    // The methods the page may use on this path: none makes it a path the page does not have.
+    std::string allow;
+    for (const auto& [verb, name] : {std::pair{http::Verb::get, "GET"}, std::pair{http::Verb::post, "POST"}}) {
+      auto other = match_route(verb, v1);
+      if (other && page_may_call(other->kind)) allow += allow.empty() ? name : fmt::format(", {}", name);
+    }
+    if (allow.empty()) return not_found();
+    return Refusal{http::Status::method_not_allowed, util::Error(fmt::format("method not allowed here; use {}", allow)),
+                   allow};
+  }
+  if (path == "/ui/session") {
+    if (method == http::Verb::post) {
+      route.kind = RouteKind::kSessionCreate;
+    } else if (method == http::Verb::get) {
+      route.kind = RouteKind::kSessionGet;
+    } else if (method == http::Verb::delete_) {
+      route.kind = RouteKind::kSessionDelete;
+    } else {
+      return wrong_method("GET, POST, DELETE");
+    }
+    if (!query.empty()) return bad_request("this endpoint takes no query parameters");
+    return route;
+  }
+  if (web::find_asset(path) == nullptr) return not_found();
+  if (auto ok = only(http::Verb::get, "GET"); !ok) return std::move(ok).error();
+  if (!query.empty()) return bad_request("this endpoint takes no query parameters");
+  route.kind = RouteKind::kPageAsset;
+  route.asset = std::string(path);
+  return route;
+}
+
 }  // namespace
+
+bool page_may_call(RouteKind kind) {
+  switch (kind) {
+    case RouteKind::kListJobs:
+    case RouteKind::kJobStatus:
+    case RouteKind::kJobImage:
+    case RouteKind::kWorkers:
+    case RouteKind::kCancelJob:
+    case RouteKind::kPauseJob:
+    case RouteKind::kResumeJob:
+    case RouteKind::kRequeueJob:
+    case RouteKind::kJobPriority:
+    case RouteKind::kJobTiles:
+    case RouteKind::kJobFocus:
+      return true;
+    default:
+      return false;
+  }
+}
 
 util::Result<Route, Refusal> match_route(http::Verb method, std::string_view target) {
   if (target.empty() || target[0] != '/') return bad_request("request target must be a path starting with '/'");
   const std::size_t qmark = target.find('?');
   const std::string_view path = target.substr(0, qmark);
   const std::string_view query = qmark == std::string_view::npos ? std::string_view() : target.substr(qmark + 1);
+  if (is_page_path(path)) return match_page_route(method, path, query);
   auto split = split_path(path);
   if (!split) return not_found();
   const std::vector<std::string_view>& seg = *split;
@@ -271,6 +387,18 @@ std::uint64_t route_body_limit(RouteKind kind) {
   }
 }
 
+std::uint64_t route_body_limit(const Route& route) {
+  switch (route.kind) {
+    case RouteKind::kPageAsset:
+    case RouteKind::kSessionCreate:
+    case RouteKind::kSessionGet:
+    case RouteKind::kSessionDelete:
+      return kMaxPageBodyBytes;
+    default:
+      return route.page ? kMaxPageBodyBytes : route_body_limit(route.kind);
+  }
+}
+
 bool is_health_check(http::Verb method, std::string_view target) {
   return method == http::Verb::get && target.substr(0, target.find('?')) == "/healthz";
 }
@@ -295,6 +423,12 @@ bool TokenCheck::accepts(const http::Request& req) const {
   const util::Sha256Digest digest = util::sha256_bytes(presented);
   const bool equal = CRYPTO_memcmp(digest.data(), expected_.data(), digest.size()) == 0;
   return well_formed && equal;
+}
+
+bool TokenCheck::accepts_token(std::string_view presented) const {
+  const util::Sha256Digest digest = util::sha256_bytes(presented);
+  const bool equal = CRYPTO_memcmp(digest.data(), expected_.data(), digest.size()) == 0;
+  return !presented.empty() && equal;
 }
 
 }  // namespace dtraced::collector

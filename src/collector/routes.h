@@ -16,6 +16,16 @@
 //   GET  /v1/workers
 //   GET /v1/jobs takes ?state=S&limit=N (each at most once)
 //
+// The web page (docs/web-access.md; off with --no-web-ui, then all of these are 404):
+//   GET  /                             GET /ui/app.js, /ui/app.css, /ui/favicon.svg   no credentials
+//   POST /ui/session                   GET /ui/session            DELETE /ui/session
+//   GET  /ui/api/jobs[?state=S&limit=N]                     GET /ui/api/jobs/{id}
+//   GET  /ui/api/jobs/{id}/image[?frame=N]                  GET /ui/api/workers
+//   POST /ui/api/jobs/{id}/cancel|pause|resume|requeue|priority
+//   GET  /ui/api/jobs/{id}/tiles?since=SEQ[&frame=N]        POST /ui/api/jobs/{id}/focus
+// /ui/api/... names the /v1 route of the same name (page_may_call lists which) and takes the
+// session cookie only; /v1/... takes the bearer token only.
+//
 // Targets must be in origin form ("/path?query"). Ids are decimal without sign or leading zeros
 // in [1, protocol::kMaxId]; tile indices decimal in [0, protocol::kMaxTilesPerJob); digests are
 // protocol::is_digest. No percent-decoding is done: none of these segments needs it, and an
@@ -62,6 +72,13 @@ enum class RouteKind {
   kResumeJob,    // POST /v1/jobs/{id}/resume
   kDeleteJob,    // DELETE /v1/jobs/{id}
   kWorkers,
+  // The web page (web_access.h, docs/web-access.md).
+  kPageAsset,      // GET / and GET /ui/<file>: an embedded file (web/assets.h)
+  kSessionCreate,  // POST /ui/session: sign in
+  kSessionGet,     // GET /ui/session
+  kSessionDelete,  // DELETE /ui/session: sign out
+  kJobTiles,       // GET /ui/api/jobs/{id}/tiles?since=SEQ[&frame=N]: the tile delta
+  kJobFocus,       // POST /ui/api/jobs/{id}/focus: render a region first
 };
 
 struct Route {
@@ -73,7 +90,11 @@ struct Route {
   std::optional<protocol::JobState> list_state;                // kListJobs: ?state=S
   std::size_t list_limit = protocol::kMaxListedJobs;           // kListJobs: ?limit=N, [1, kMaxListedJobs]
   bool delete_image = false;                                   // kDeleteJob: ?image=delete
-  std::optional<std::uint32_t> image_frame = std::nullopt;     // kJobImage: ?frame=N, a frame number
+  std::optional<std::uint32_t> image_frame = std::nullopt;     // kJobImage, kJobTiles: ?frame=N, a frame number
+  std::string asset = {};                                      // kPageAsset: its URL path
+  std::uint64_t since = 0;                                     // kJobTiles: ?since=SEQ
+  // Reached through the page (/ui/api/...): the session cookie, not the bearer token, admitted it.
+  bool page = false;
   bool operator==(const Route&) const = default;
 };
 
@@ -82,8 +103,14 @@ struct Route {
 util::Result<Route, Refusal> match_route(http::Verb method, std::string_view target);
 
 // The largest request body the route accepts: protocol::kMaxTilePayloadBytes for tiles,
-// kMaxJobSubmitBytes for submissions, kMaxMessageBytes for everything else.
+// kMaxJobSubmitBytes for submissions, kMaxMessageBytes for everything else; kMaxPageBodyBytes
+// (web_access.h) for every route of the page.
 std::uint64_t route_body_limit(RouteKind kind);
+std::uint64_t route_body_limit(const Route& route);
+
+// Whether the page may call this kind through /ui/api/... (the reads and the job verbs the page
+// offers; never a worker's route, a submission or a delete).
+bool page_may_call(RouteKind kind);
 
 // Everything but the health check needs the token.
 inline bool route_needs_token(RouteKind kind) { return kind != RouteKind::kHealthz; }
@@ -98,6 +125,8 @@ class TokenCheck {
  public:
   explicit TokenCheck(std::string_view token);
   bool accepts(const http::Request& req) const;
+  // Whether `presented` is the token (the web page's sign-in), compared the same way.
+  bool accepts_token(std::string_view presented) const;
 
  private:
   util::Sha256Digest expected_;

@@ -59,6 +59,7 @@ http::Response lease_tile(Context& c, const http::Request& req) {
                     job->id);
   }
   if (!job->first_lease) job->first_lease = now;
+  note_page_lease(*job, tile, request.value().worker);
   note_job_served(c, job->id);
   if (job->state == protocol::JobState::kQueued) job->state = protocol::JobState::kRendering;
   protocol::Lease lease;

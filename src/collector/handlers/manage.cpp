@@ -124,7 +124,8 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
   // A copy without the pixels (a cancelled job has released them): the writer fills it in.
   JobRecord copy = *job;
   copy.framebuffers.clear();
-  copy.spp = {};  // counted again from the stored tiles
+  copy.tile_seq = {};  // given again to the stored tiles, after last_seq
+  copy.spp = {};       // counted again from the stored tiles
   copy.spp_pending = false;
   auto requeue = [copy = std::move(copy)](store::Store& s) mutable { return requeue_in_store(s, std::move(copy)); };
   auto reply = co_await on_writer(*c.writer, std::move(requeue));

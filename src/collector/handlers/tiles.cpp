@@ -89,6 +89,7 @@ http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload&
   note_job_served(c, id);
   const std::uint32_t frame_index = tile_place(*job, payload.tile).frame_index;
   copy_tile(writable_framebuffer(*job, frame_index), payload.rect, payload.rgb);
+  note_page_stored(*job, payload.tile, worker.name);
   ++job->frame_tiles_done[frame_index];
   count_samples(*job, payload.spp);
   ++job->tiles_done;
