@@ -293,14 +293,17 @@ def make_driver(user_data):
     return webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
 
 
-# Reads the preview canvas, and decodes a PNG given in base64 into a second canvas: answers
+# Reads the preview canvas (through a copy: Chromium warns about repeated readbacks of one
+# canvas), and decodes a PNG given in base64 into a second canvas: answers
 # {width, height, same, differing, nonblack_canvas, nonblack_png} (RGB compared, alpha ignored).
 COMPARE_JS = """
 const [b64, done] = [arguments[0], arguments[arguments.length - 1]];
 (async () => {
   const canvas = document.getElementById('preview');
   const w = canvas.width, h = canvas.height;
-  const a = canvas.getContext('2d').getImageData(0, 0, w, h).data;
+  const copy = new OffscreenCanvas(w, h).getContext('2d');  // one readback per canvas: no
+  copy.drawImage(canvas, 0, 0);                               // willReadFrequently warning
+  const a = copy.getImageData(0, 0, w, h).data;
   const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
   const bmp = await createImageBitmap(new Blob([bytes], {type: 'image/png'}),
                                       {colorSpaceConversion: 'none', premultiplyAlpha: 'none'});
@@ -327,7 +330,9 @@ const [b64, done] = [arguments[0], arguments[arguments.length - 1]];
 
 NONBLACK_JS = """
 const c = document.getElementById('preview');
-const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+const copy = new OffscreenCanvas(c.width, c.height).getContext('2d');
+copy.drawImage(c, 0, 0);
+const d = copy.getImageData(0, 0, c.width, c.height).data;
 let n = 0;
 for (let i = 0; i < d.length; i += 4) if (d[i] | d[i + 1] | d[i + 2]) ++n;
 return n;
