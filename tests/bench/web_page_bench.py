@@ -40,6 +40,7 @@ os.environ["SCENES"] = os.path.join(ROOT, "scenes")
 sys.path.insert(0, os.path.join(ROOT, "tests", "browser"))
 
 import web_page_test as w  # noqa: E402  (after the environment it reads)
+from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.common.keys import Keys  # noqa: E402
 
@@ -60,10 +61,14 @@ def cpu_over(pid, seconds):
 
 
 def sign_in(driver, farm):
+    """Opens the page, and signs in unless the browser's session cookie is still live."""
     driver.get(farm.url + "/")
-    w.wait_for("the sign-in form", lambda: driver.find_element(By.ID, "signin-view").is_displayed())
     driver.execute_script("performance.setResourceTimingBufferSize(100000)")
-    driver.find_element(By.ID, "token").send_keys(farm.token + Keys.RETURN)
+    w.wait_for("the sign-in form or the page",
+               lambda: driver.find_element(By.ID, "signin-view").is_displayed() or
+               driver.find_element(By.ID, "app-view").is_displayed())
+    if driver.find_element(By.ID, "signin-view").is_displayed():
+        driver.find_element(By.ID, "token").send_keys(farm.token + Keys.RETURN)
     w.wait_for("signed in", lambda: driver.find_element(By.ID, "app-view").is_displayed())
 
 
@@ -155,6 +160,7 @@ def main():
         sign_in(open_page, farm)
         open_preview(open_page, job)
         overlay = open_page.find_element(By.ID, "overlay")
+        open_page.execute_script("arguments[0].scrollIntoView({block: 'center'})", overlay)
         times = []
         d = session.json(f"/ui/api/jobs/{job}/tiles?since=0")
         seq = d["seq"]
@@ -170,7 +176,6 @@ def main():
             b = open_page.execute_script(
                 "const b = arguments[0].getBoundingClientRect(); return [b.width, b.height];", overlay)
             ox, oy = round((px + 0.5) * b[0] / W - b[0] / 2), round((py + 0.5) * b[1] / H - b[1] / 2)
-            from selenium.webdriver.common.action_chains import ActionChains
             t0 = time.monotonic()
             ActionChains(open_page).move_to_element_with_offset(overlay, ox, oy).click().perform()
             found = None
@@ -187,6 +192,8 @@ def main():
         progress = farm.job(job)
         for p in workers:
             p.send_signal(signal.SIGSTOP)
+        time.sleep(1.5)  # the tiles in flight stay out; nothing changes from here on
+        still = per_poll(open_page, args.interval)
 
         doc = loaded.get("document", 0)
         assets = sum(loaded.get(k, 0) for k in ("/ui/app.js", "/ui/app.css", "/ui/favicon.svg"))
@@ -199,6 +206,10 @@ def main():
         for k in sorted(polls):
             sizes = polls[k]
             rows.append((f"per poll: {k} ({len(sizes)} in {args.interval:.0f} s)",
+                         f"mean {statistics.mean(sizes):.0f} B, max {max(sizes)} B"))
+        for k in sorted(still):
+            sizes = still[k]
+            rows.append((f"per poll, workers stopped: {k} ({len(sizes)} in {args.interval:.0f} s)",
                          f"mean {statistics.mean(sizes):.0f} B, max {max(sizes)} B"))
         rows.append(("collector CPU, no page", f"{100 * idle / args.interval:.1f} % of a core"))
         rows.append(("collector CPU, 5 pages polling", f"{100 * busy / args.interval:.1f} % of a core"
@@ -228,30 +239,26 @@ def screenshot(farm, path):
     """A 1280-px-wide page with a job in progress: some tiles stored, some being rendered."""
     scene = os.path.join(w.SCENES, "showcase.json")
     job = int(farm.client("submit", scene, "-o", "shot.png", "--width", "960", "--height", "540",
-                          "--tile-size", "48", "-s", "16", "--priority", "10").strip())
+                          "--tile-size", "48", "-s", "64", "--priority", "10").strip())
     farm.client("submit", scene, "-o", "shot-next.png", "--width", "640", "--height", "360", "-s", "64")
-    workers = [farm.worker(f"render-{i}", "-t", "1", "--max-unacknowledged", "1") for i in (3, 4)]
+    workers = [farm.worker(f"render-{i}", "-t", "1") for i in (3, 4)]
     total = farm.job(job)["tiles_total"]
-    w.wait_for("the showcase is half done", lambda: farm.job(job)["tiles_done"] >= total * 0.45, step=0.05)
-    for p in workers:
-        p.send_signal(signal.SIGSTOP)
     driver = w.make_driver(tempfile.mkdtemp(prefix="dtraced-shot-"))
     try:
         sign_in(driver, farm)
         w.wait_for("the job's row", lambda: w.row(driver, job))
         w.row(driver, job).find_element(By.CSS_SELECTOR, f'button[aria-label="Preview job {job}"]').click()
         canvas = driver.find_element(By.ID, "preview")
-        w.wait_for("the preview", lambda: canvas.get_attribute("data-ready") == "true" and
-                   canvas.get_attribute("width") == "960")
-        time.sleep(1.5)
+        w.wait_for("the preview", lambda: canvas.get_attribute("width") == "960")
         h = driver.execute_script("return document.documentElement.scrollHeight")
         driver.set_window_size(1280, h + 140)
-        time.sleep(1.5)
+        w.wait_for("the showcase is half done", lambda: farm.job(job)["tiles_done"] >= total * 0.45, step=0.05)
+        time.sleep(1.2)  # one more poll of every table
         driver.save_screenshot(path)
     finally:
         driver.quit()
         for p in workers:
-            p.send_signal(signal.SIGCONT)
+            p.kill()
     print(f"screenshot: {path}")
 
 

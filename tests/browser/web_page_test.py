@@ -422,6 +422,7 @@ def run(farm, driver):
 
     # Drag a rectangle over the 2x2 tiles at tile (2, 2)..(3, 3): it goes to the collector.
     overlay = driver.find_element(By.ID, "overlay")
+    driver.execute_script("arguments[0].scrollIntoView({block: 'center'})", overlay)
     x0, y0, x1, y1 = 2 * TILE + 3, 2 * TILE + 3, 4 * TILE - 4, 4 * TILE - 4
     ox0, oy0 = css_point(driver, overlay, x0, y0)
     ox1, oy1 = css_point(driver, overlay, x1, y1)
