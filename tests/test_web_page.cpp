@@ -566,3 +566,37 @@ TEST_CASE("web page: a focus changes the order of tiles, never the image", "[web
   REQUIRE_FALSE(plain.empty());
   CHECK(plain == focused);
 }
+
+TEST_CASE("web page: tiles restored at start-up get sequence numbers and a new generation", "[web][delta]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  std::vector<std::uint32_t> stored;
+  std::int64_t generation = 0;
+  std::uint64_t job = 0;
+  {
+    Harness h(config);
+    job = h.submit();
+    for (int i = 0; i < 2; ++i) {
+      const protocol::Lease l = *h.lease();
+      h.put_ok(l);
+      stored.push_back(l.tile);
+    }
+    const json::value before = get_delta(h, sign_in(h), job, 0);
+    generation = before.at("generation").as_int64();
+    CHECK(tile_ids(before) == stored);
+  }
+  Harness h(config);
+  const Session s = sign_in(h);  // the restart signed everyone out: a new session
+  const json::value after = get_delta(h, s, job, 0);
+  CHECK(after.at("generation").as_int64() != generation);
+  CHECK(tile_ids(after) == stored);
+  for (const json::value& t : after.at("tiles").as_array()) CHECK(t.at("worker").as_string() == "");
+  const std::int64_t seq = after.at("seq").as_int64();
+  CHECK(seq == 2);
+  // A tile stored now comes after them.
+  const protocol::Lease l = *h.lease();
+  h.put_ok(l);
+  const json::value next = get_delta(h, s, job, static_cast<std::uint64_t>(seq));
+  CHECK(tile_ids(next) == std::vector<std::uint32_t>{l.tile});
+  CHECK(next.at("seq").as_int64() == 3);
+}
