@@ -11,7 +11,7 @@
   - the time from a click on the preview to the first stored tile of the clicked region, with
     2 workers (median of several clicks, each on a region not rendered yet).
 
-Usage: tests/bench/web_page_bench.py [--dtraced build/src/cli/dtraced] [--samples 128]
+Usage: tests/bench/web_page_bench.py [--dtraced build/src/cli/dtraced] [--samples 256]
        [--interval 10] [--clicks 5] [--screenshot docs/images/web-page.png]
 Needs chromium, chromium-driver and python3-selenium (Debian: apt-get install chromium
 chromium-driver python3-selenium). Uses the helpers of tests/browser/web_page_test.py.
@@ -30,7 +30,7 @@ ROOT = os.path.dirname(os.path.dirname(HERE))
 
 parser = argparse.ArgumentParser(description="figures of the collector's web page")
 parser.add_argument("--dtraced", default=os.path.join(ROOT, "build", "src", "cli", "dtraced"))
-parser.add_argument("--samples", type=int, default=128, help="samples per pixel of the 1920x1080 job")
+parser.add_argument("--samples", type=int, default=256, help="samples per pixel of the 1920x1080 job")
 parser.add_argument("--interval", type=float, default=10.0, help="seconds of each CPU and polling measurement")
 parser.add_argument("--clicks", type=int, default=5)
 parser.add_argument("--screenshot", help="also write a 1280-px-wide screenshot of a job in progress here")

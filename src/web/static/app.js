@@ -349,7 +349,8 @@
     const noWorker = j.no_worker_s !== undefined && j.no_worker_s !== null;
     setText(r.eta, noWorker ? 'no worker' : finished ? '–' : duration(j.eta_s));
     setTitle(r.eta, noWorker ? `no worker for ${duration(j.no_worker_s)}` : '');
-    const spp = j.mean_spp !== undefined && j.mean_spp !== null
+    // Adaptive jobs: the mean so far over the most; a uniform job's mean is its samples.
+    const spp = j.mean_spp !== undefined && j.mean_spp !== null && j.mean_spp !== j.samples
       ? `${oneFmt.format(j.mean_spp)}/${numFmt.format(j.samples)}` : numFmt.format(j.samples);
     setText(r.spp, spp);
     if (document.activeElement !== r.prioInput && r.prioInput.value !== String(j.priority))
