@@ -8,9 +8,10 @@ token) and drives headless Chromium through Selenium. It checks, in order:
     sign-in), one without the CSRF header is 403, and /v1 with only the cookie is 401;
   - the page at / shows the sign-in form, and signs in with the farm token;
   - two submitted jobs appear in the jobs table;
-  - the preview of a job with no worker yet is black; a rectangle dragged on it is sent as a
-    focus request, and once a one-tile-at-a-time worker starts, the region's tiles are the
-    first ones stored (their seq order in the tile delta);
+  - the preview of a job with no worker yet is black; a region typed in the keyboard form, then
+    a rectangle dragged on the preview, are sent as focus requests, and once a
+    one-tile-at-a-time worker starts, the dragged region's tiles are the first ones stored and
+    the typed region's next (their seq order in the tile delta);
   - the worker appears in the workers list as active, the preview changed as tiles landed, and
     with the worker stopped (SIGSTOP) the canvas equals the collector's partial PNG pixel for
     pixel; hovering a stored tile names its worker;
@@ -420,7 +421,17 @@ def run(farm, driver):
              and canvas.get_attribute("data-ready") == "true")
     check(driver.execute_script(NONBLACK_JS) == 0, "the preview of a job with no tile stored is black")
 
-    # Drag a rectangle over the 2x2 tiles at tile (2, 2)..(3, 3): it goes to the collector.
+    # The keyboard way first: the form's pixel (120, 90), in the last tile, goes to the front...
+    for field, value in (("focus-x", 120), ("focus-y", 90), ("focus-w", 1), ("focus-h", 1)):
+        box = driver.find_element(By.ID, field)
+        box.clear()
+        box.send_keys(str(value))
+    driver.find_element(By.ID, "focus-h").send_keys(Keys.RETURN)
+    wait_for("the page reports the keyboard focus request",
+             lambda: re.search(r"^1 tiles .* at \(120, 90\) moved to the front", text_of(driver, "focus-result")))
+    ok("the keyboard form sends a region (1 tile moved)")
+
+    # ...then a rectangle dragged over the 2x2 tiles at tile (2, 2)..(3, 3) goes before it.
     overlay = driver.find_element(By.ID, "overlay")
     driver.execute_script("arguments[0].scrollIntoView({block: 'center'})", overlay)
     x0, y0, x1, y1 = 2 * TILE + 3, 2 * TILE + 3, 4 * TILE - 4, 4 * TILE - 4
@@ -431,7 +442,8 @@ def run(farm, driver):
                                                                            oy1 - oy0 - (oy1 - oy0) // 2) \
         .release().perform()
     result = wait_for("the page reports the focus request",
-                      lambda: re.search(r"(\d+) tiles .* moved to the front", text_of(driver, "focus-result")))
+                      lambda: re.search(r"^(\d+) tiles .* at \((?!120, 90\)).* moved to the front",
+                                        text_of(driver, "focus-result")))
     moved = int(result.group(1))
     fx, fy, fw, fh = (int(driver.find_element(By.ID, i).get_attribute("value"))
                       for i in ("focus-x", "focus-y", "focus-w", "focus-h"))
@@ -441,19 +453,23 @@ def run(farm, driver):
 
     # One worker, one tile at a time: the region's tiles are stored first.
     worker = farm.worker("web-w1", "-t", "1", "--max-unacknowledged", "1")
-    wait_for("the worker stores the region's tiles", lambda: farm.job(job_a)["tiles_done"] >= moved, step=0.01)
+    wait_for("the worker stores the regions' tiles", lambda: farm.job(job_a)["tiles_done"] >= moved + 1, step=0.01)
     worker.send_signal(signal.SIGSTOP)
     done_at_stop = farm.job(job_a)["tiles_done"]
     total = farm.job(job_a)["tiles_total"]
     check(done_at_stop < total, f"the worker was stopped mid-job ({done_at_stop} of {total} tiles)")
     delta = session.json(f"/ui/api/jobs/{job_a}/tiles?since=0")
-    first = sorted(delta["tiles"], key=lambda t: t["seq"])[:moved]
+    by_seq = sorted(delta["tiles"], key=lambda t: t["seq"])
+    first = by_seq[:moved]
 
     def in_region(t):
         return t["x"] < fx + fw and fx < t["x"] + t["width"] and t["y"] < fy + fh and fy < t["y"] + t["height"]
 
     check(len(first) == moved and all(in_region(t) for t in first),
           f"the first {moved} tiles stored are the region's: {[(t['x'], t['y'], t['seq']) for t in first]}")
+    nxt = by_seq[moved]
+    check(nxt["x"] <= 120 < nxt["x"] + nxt["width"] and nxt["y"] <= 90 < nxt["y"] + nxt["height"],
+          f"the next tile stored is the keyboard region's (it is at ({nxt['x']}, {nxt['y']}))")
     check(all(t["worker"] == "web-w1" for t in delta["tiles"]), "each stored tile names its worker")
 
     # The worker shows as active; the preview caught up with what is stored.
