@@ -56,6 +56,7 @@ try:
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
+    from selenium.common.exceptions import WebDriverException
 except ImportError:
     reexec_with_system_python()
     print("SKIP: python3-selenium is not installed (apt-get install python3-selenium)")
@@ -291,7 +292,16 @@ def make_driver(user_data):
               "--disable-extensions", "--disable-background-networking", "--password-store=basic"):
         opts.add_argument(a)
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    return webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+    # Chromium's start can fail on a loaded machine ("DevToolsActivePort file doesn't exist"):
+    # one more try, then the error.
+    for attempt in (1, 2):
+        try:
+            return webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+        except WebDriverException as e:
+            if attempt == 2:
+                raise
+            print(f"chromium did not start ({str(e).splitlines()[0]}); trying again", flush=True)
+            time.sleep(1)
 
 
 # Reads the preview canvas (through a copy: Chromium warns about repeated readbacks of one
