@@ -18,6 +18,7 @@ token) and drives headless Chromium through Selenium. It checks, in order:
   - cancelling the other job from the page (through the confirmation dialog) cancels it;
   - once the job is done the canvas equals the final PNG pixel for pixel;
   - the stopped worker is marked quiet, then leaves the list;
+  - a hidden tab sends no request, and polls again once shown;
   - sign-out shows the sign-in form again;
   - the browser logged no JavaScript error or warning.
 Exits 77 (ctest: skipped) only when chromium, chromedriver or python3-selenium is missing.
@@ -403,6 +404,7 @@ def run(farm, driver):
     # Sign in.
     console_at_load = []
     driver.get(farm.url + "/")
+    driver.execute_script("performance.setResourceTimingBufferSize(100000)")  # (250 by default)
     wait_for("the sign-in form shows", lambda: driver.find_element(By.ID, "signin-view").is_displayed())
     console_at_load = console_problems(driver, signed_out_load=True)
     token = driver.find_element(By.ID, "token")
@@ -537,6 +539,31 @@ def run(farm, driver):
     check(worker_row(driver, "web-w1") is not None, "the stopped worker was marked quiet before it left")
     wait_for("the stopped worker leaves the list", lambda: worker_row(driver, "web-w1") is None, step=0.2)
     ok("the stopped worker leaves the workers list")
+
+    # A hidden tab does not poll, and polls again once shown.
+    page = driver.current_window_handle
+    driver.execute_script("""window.__vis = [];
+        document.addEventListener('visibilitychange',
+          () => window.__vis.push([document.visibilityState, performance.now()]));""")
+    driver.switch_to.new_window("tab")
+    driver.get("about:blank")
+    time.sleep(3)  # three polling periods
+    driver.close()
+    driver.switch_to.window(page)
+    vis = wait_for("the page is shown again",
+                   lambda: (lambda v: v if len(v) >= 2 and v[-1][0] == "visible" else None)(
+                       driver.execute_script("return window.__vis")))
+    hidden_at = next(t for state, t in vis if state == "hidden")
+    shown_at = vis[-1][1]
+    check(shown_at - hidden_at > 2000, f"the page's tab was hidden for {shown_at - hidden_at:.0f} ms")
+    during = driver.execute_script(
+        "return performance.getEntriesByType('resource').filter((e) => e.startTime > arguments[0] &&"
+        " e.startTime < arguments[1]).map((e) => e.name)", hidden_at, shown_at)
+    check(during == [], f"no request while the tab was hidden ({during})")
+    wait_for("polling resumes once shown", lambda: driver.execute_script(
+        "return performance.getEntriesByType('resource').filter((e) => e.startTime >= arguments[0] &&"
+        " e.name.includes('/ui/api/jobs')).length", shown_at) > 0)
+    ok("polling resumes once the tab is shown")
 
     # Sign out.
     driver.find_element(By.ID, "signout").click()
