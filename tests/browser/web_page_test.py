@@ -16,7 +16,9 @@ token) and drives headless Chromium through Selenium. It checks, in order:
     with the worker stopped (SIGSTOP) the canvas equals the collector's partial PNG pixel for
     pixel; hovering a stored tile names its worker;
   - cancelling the other job from the page (through the confirmation dialog) cancels it;
-  - once the job is done the canvas equals the final PNG pixel for pixel;
+  - once the job is done the canvas equals the final PNG pixel for pixel, and nothing on the
+    page moved while it polled;
+  - at 390 px wide the page does not scroll sideways and the jobs' buttons are on screen;
   - the stopped worker is marked quiet, then leaves the list;
   - a hidden tab sends no request, and polls again once shown;
   - sign-out shows the sign-in form again;
@@ -518,9 +520,21 @@ def run(farm, driver):
     wait_for("job B's row shows it", lambda: "cancelled" in row(driver, job_b).text)
     ok("the jobs table shows the cancellation")
 
-    # Let the worker finish job A: the canvas ends equal to the final PNG.
+    # Let the worker finish job A: the canvas ends equal to the final PNG. Meanwhile the page's
+    # layout stays put: its sections and the jobs' rows neither move nor change height.
+    layout_js = """return [...['preview-title', 'focus-form', 'workers-title'].map((id) =>
+        document.getElementById(id).getBoundingClientRect().top + window.scrollY),
+      ...[...document.querySelectorAll('#jobs tbody tr')].map((tr) => tr.getBoundingClientRect().height)]
+      .map((v) => Math.round(v * 10) / 10);"""
+    layouts = [driver.execute_script(layout_js)]
     worker.send_signal(signal.SIGCONT)
-    wait_for("job A is done", lambda: farm.job(job_a)["state"] == "done", step=0.2)
+    while farm.job(job_a)["state"] != "done":
+        layouts.append(driver.execute_script(layout_js))
+        time.sleep(0.1)
+    time.sleep(1.2)  # the page's next poll shows the job done
+    layouts.append(driver.execute_script(layout_js))
+    check(len(layouts) >= 3 and all(l == layouts[0] for l in layouts),
+          f"nothing moved while the page polled ({len(layouts)} samples; {sorted(set(map(tuple, layouts)))})")
     wait_for("the preview shows the finished image",
              lambda: canvas.get_attribute("data-written") == "true" or
              canvas.get_attribute("data-seq") == str(session.json(f"/ui/api/jobs/{job_a}/tiles?since=0")["seq"]) and
@@ -539,6 +553,19 @@ def run(farm, driver):
     check(worker_row(driver, "web-w1") is not None, "the stopped worker was marked quiet before it left")
     wait_for("the stopped worker leaves the list", lambda: worker_row(driver, "web-w1") is None, step=0.2)
     ok("the stopped worker leaves the workers list")
+
+    # At a phone's width the page does not scroll sideways (a table may, inside its box), and
+    # every job's actions stay inside the screen.
+    driver.set_window_size(390, 844)
+    width = wait_for("the page at 390 px", lambda: driver.execute_script(
+        "return innerWidth <= 420 ? document.documentElement.clientWidth : 0"))
+    check(driver.execute_script("return document.documentElement.scrollWidth") <= width,
+          f"at {width} px the page does not scroll sideways")
+    right = driver.execute_script(
+        "return Math.max(...[...document.querySelectorAll('#jobs td.actions button')]"
+        ".filter((b) => b.offsetParent !== null).map((b) => b.getBoundingClientRect().right))")
+    check(right <= width, f"at {width} px the jobs' buttons are on screen (rightmost at {right:.0f})")
+    driver.set_window_size(1280, 1000)
 
     # A hidden tab does not poll, and polls again once shown.
     page = driver.current_window_handle
