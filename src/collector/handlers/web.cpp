@@ -189,8 +189,11 @@ http::Response sign_in(Context& c, const http::Request& req) {
 
 http::Response get_session(Context& c, const http::Request& req) {
   const std::optional<SessionStore::Live> live = c.sessions.find(session_cookie(req), c.clock.now());
-  if (!live) return http::make_error(http::Status::unauthorized, "not signed in, or the session expired");
-  return json_object(http::Status::ok, {{"csrf", live->csrf}, {"expires_in_s", whole_seconds(live->remaining)}});
+  // Not signed in is an answer, not a failure: the page asks this at every load, and a 401 here
+  // would be an error in the browser's console on each first visit.
+  if (!live) return json_object(http::Status::ok, {{"signed_in", false}});
+  return json_object(http::Status::ok,
+                     {{"signed_in", true}, {"csrf", live->csrf}, {"expires_in_s", whole_seconds(live->remaining)}});
 }
 
 http::Response sign_out(Context& c, const http::Request& req) {

@@ -802,12 +802,13 @@
   async function boot() {
     try {
       const res = await fetch('/ui/session', {credentials: 'same-origin', cache: 'no-store'});
-      if (res.ok) {
-        csrf = (await res.json()).csrf;
+      const answer = res.ok ? await res.json() : null;
+      if (answer && answer.signed_in) {
+        csrf = answer.csrf;
         showSignedIn();
         return;
       }
-      showSignedOut('');
+      showSignedOut(res.ok ? '' : 'The collector refused the page.');
     } catch (e) {
       showSignedOut('The collector does not answer.');
     }
