@@ -42,7 +42,7 @@
 
 using namespace http_testing;
 
-TEST_CASE("parse_base_url accepts http://host[:port] and explains every rejection", "[http]") {
+TEST_CASE("parse_base_url accepts http(s)://host[:port] and explains every rejection", "[http]") {
   auto url = dtraced::http::parse_base_url("http://127.0.0.1:7878");
   REQUIRE(url);
   CHECK(url->host == "127.0.0.1");
@@ -58,10 +58,24 @@ TEST_CASE("parse_base_url accepts http://host[:port] and explains every rejectio
   REQUIRE(url);
   CHECK(url->host == "::1");
   CHECK(url->host_header() == "[::1]:9000");
+  CHECK_FALSE(url->tls);
+
+  url = dtraced::http::parse_base_url("HTTPS://collector.example-farm.org");
+  REQUIRE(url);
+  CHECK(url->tls);
+  CHECK(url->port == 443);
+  CHECK(url->to_string() == "https://collector.example-farm.org:443");
+
+  url = dtraced::http::parse_base_url("https://[::1]:7878/");
+  REQUIRE(url);
+  CHECK(url->tls);
+  CHECK(url->host == "::1");
+  CHECK(url->to_string() == "https://[::1]:7878");
 
   const std::vector<std::pair<std::string, std::string>> bad = {
-      {"https://127.0.0.1:7878", "https"},
-      {"ftp://host", "http://"},
+      {"https://host:0", "port"},
+      {"https://host/v1/jobs", "path"},
+      {"ftp://host", "https://"},
       {"127.0.0.1:7878", "http://"},
       {"http://", "host"},
       {"http://:7878", "host"},
