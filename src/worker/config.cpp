@@ -14,6 +14,7 @@
 #include <fmt/ranges.h>
 
 #include "protocol/messages.h"
+#include "util/file.h"
 
 namespace dtraced::worker {
 namespace {
@@ -54,9 +55,13 @@ util::Errors validate(const WorkerConfig& config) {
   util::Errors errors;
 
   if (config.collector_url.empty()) {
-    add_problem(errors, "collector_url", "required (http://host[:port])");
+    add_problem(errors, "collector_url", "required (http://host[:port] or https://host[:port])");
   } else if (util::Result<http::Url> url = http::parse_base_url(config.collector_url); !url) {
     add_problem(errors, "collector_url", url.error().message);
+  } else if (url->tls && config.ca_file.empty()) {
+    add_problem(errors, "ca_file",
+                "required for an https:// collector_url: the collector's CA certificate (tls/ca.pem in its state "
+                "directory)");
   }
 
   if (config.token.empty()) {
@@ -95,6 +100,7 @@ util::Errors validate(const WorkerConfig& config) {
   check_range(errors, "timeouts.connect", config.timeouts.connect, milliseconds{1}, kMaxClientTimeout, "ms");
   check_range(errors, "timeouts.write", config.timeouts.write, milliseconds{1}, kMaxClientTimeout, "ms");
   check_range(errors, "timeouts.read", config.timeouts.read, milliseconds{1}, kMaxClientTimeout, "ms");
+  check_range(errors, "timeouts.handshake", config.timeouts.handshake, milliseconds{1}, kMaxClientTimeout, "ms");
   check_range(errors, "backoff_initial", config.backoff_initial, milliseconds{1}, kMaxBackoff, "ms");
   check_range(errors, "backoff_max", config.backoff_max, std::max(milliseconds{1}, config.backoff_initial), kMaxBackoff,
               "ms");
@@ -105,6 +111,29 @@ util::Errors validate(const WorkerConfig& config) {
                             config.max_unacknowledged));
   }
   return errors;
+}
+
+util::Result<std::optional<http::ClientTls>> load_client_tls(const WorkerConfig& config) {
+  util::Result<http::Url> url = http::parse_base_url(config.collector_url);
+  if (!url || !url->tls) return std::optional<http::ClientTls>();
+  util::Result<std::string> pem = util::read_file_limited(config.ca_file, kMaxCaFileBytes);
+  if (!pem) return util::Error{pem.error().message, "ca_file", config.ca_file};
+  http::ClientTls tls;
+  tls.ca_pem = std::move(pem).value();
+  tls.ca_source = config.ca_file;
+  if (util::Status usable = http::check_client_tls(tls); !usable) {
+    return util::Error{usable.error().message, "ca_file"};  // the message names the file
+  }
+  return std::optional<http::ClientTls>(std::move(tls));
+}
+
+http::ClientOptions client_options(const WorkerConfig& config, std::optional<http::ClientTls> tls) {
+  http::ClientOptions options;
+  options.timeouts = config.timeouts;
+  options.tls = std::move(tls);
+  options.max_idle_connections =
+      std::clamp<std::size_t>(std::size_t{2} * config.threads, kMinIdleConnections, kMaxIdleConnections);
+  return options;
 }
 
 WorkerConfig resolve_defaults(WorkerConfig config) {

@@ -10,6 +10,7 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <string>
 
 #include "accel/isa.h"
@@ -37,12 +38,22 @@ inline constexpr std::uint32_t kInHandPerThread = 16;
 // tiles (protocol::kMaxTilePayloadBytes), what the earlier default of 4 tiles per thread allowed.
 inline constexpr std::uint64_t kHeldBytesPerThread = std::uint64_t{64} << 20;
 inline constexpr std::uint32_t kMaxUnacknowledged = 1u << 16;
+// A CA file holds a few certificates; anything this large is the wrong file.
+inline constexpr std::uint64_t kMaxCaFileBytes = 1 << 20;
+// Idle kept-alive connections to the collector: two per render thread (a lease and a submission
+// each), within these bounds.
+inline constexpr std::size_t kMinIdleConnections = 4;
+inline constexpr std::size_t kMaxIdleConnections = 64;
 
 // ---- configuration -------------------------------------------------------------------------
 
 struct WorkerConfig {
-  std::string collector_url;  // http://host[:port] (http::parse_base_url)
-  std::string token;          // bearer token: 1..kMaxTokenBytes visible ASCII characters, no spaces
+  std::string collector_url;  // http(s)://host[:port] (http::parse_base_url)
+  // PEM file of the CA the collector's certificate must chain to (its state directory's
+  // tls/ca.pem, or the operator's --tls-ca); required for an https:// collector_url, read by
+  // Worker::create (load_client_tls). Unused for http://.
+  std::string ca_file;
+  std::string token;  // bearer token: 1..kMaxTokenBytes visible ASCII characters, no spaces
   // Sent with every lease request; the collector logs it. Empty: default_worker_name().
   // Otherwise 1..protocol::kMaxWorkerNameBytes printable ASCII characters.
   std::string name;
@@ -80,6 +91,15 @@ std::string default_worker_name();
 // "collector_url", "timeouts.connect"), so that to_string() reads "field: problem"; empty when it
 // is valid.
 util::Errors validate(const WorkerConfig& config);
+
+// What the worker trusts for an https:// collector_url: ca_file read and checked (an Error whose
+// file is ca_file and whose path is "ca_file" says what is wrong); nullopt for http://. Requires
+// validate(config) to be empty.
+util::Result<std::optional<http::ClientTls>> load_client_tls(const WorkerConfig& config);
+
+// The options of the worker's one http::Client: its timeouts, `tls`, and a pool sized for
+// `config.threads` (resolved).
+http::ClientOptions client_options(const WorkerConfig& config, std::optional<http::ClientTls> tls);
 
 // `config` with its host-dependent defaults filled in: name, threads, max_unacknowledged.
 // Requires validate(config) to be empty.

@@ -128,8 +128,7 @@ async::Awaitable<std::optional<LeaseAnswer>> Worker::Impl::request_lease() {
       http::Verb::post, "/v1/lease", protocol::encode(protocol::LeaseRequest{config.name, config.threads}),
       http::kJsonContentType));
   request.set(protocol::kIsaHeader, accel::isa_name(config.isa));
-  auto raced =
-      co_await (http::request(url, std::move(request), config.timeouts, protocol::kMaxMessageBytes) || stop.wait());
+  auto raced = co_await (client.request(url, std::move(request), protocol::kMaxMessageBytes) || stop.wait());
   if (raced.index() == 1 || stop.is_set()) co_return std::nullopt;
   co_return classify_lease(std::get<0>(raced));
 }
@@ -166,7 +165,7 @@ async::Awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
 async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
   SceneOutcome outcome;
   http::Request request = authorized(http::make_request(http::Verb::get, fmt::format("/v1/scenes/{}", digest)));
-  auto raced = co_await (http::request(url, std::move(request), config.timeouts, scene::kMaxSceneBytes) || stop.wait());
+  auto raced = co_await (client.request(url, std::move(request), scene::kMaxSceneBytes) || stop.wait());
   if (raced.index() == 1 || stop.is_set()) {
     outcome.stopped = true;
     co_return outcome;

@@ -38,8 +38,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
         authorized(http::make_request(http::Verb::put, target, tile.payload, http::kBinaryContentType));
     request.set(protocol::kWorkerHeader, config.name);
     request.set(protocol::kRenderMsHeader, std::to_string(tile.render_ms));
-    auto raced = co_await (http::request(url, std::move(request), config.timeouts, protocol::kMaxMessageBytes) ||
-                           abandon.wait());
+    auto raced = co_await (client.request(url, std::move(request), protocol::kMaxMessageBytes) || abandon.wait());
     if (raced.index() == 1 || abandon.is_set()) {
       tiles_abandoned.add();
       co_return;

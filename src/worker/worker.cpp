@@ -35,11 +35,12 @@ http::Url parse_url(const std::string& text) {
 
 }  // namespace
 
-Worker::Impl::Impl(WorkerConfig resolved, const util::Clock& clock)
+Worker::Impl::Impl(WorkerConfig resolved, const util::Clock& clock, std::optional<http::ClientTls> tls)
     : config(std::move(resolved)),
       clock(clock),
       url(parse_url(config.collector_url)),
       authorization("Bearer " + config.token),
+      client(io.get_executor(), client_options(config, std::move(tls))),
       pool(config.threads),
       rng(seed_from(config.jitter_seed)),
       scenes(config.scene_cache),
@@ -53,7 +54,10 @@ util::Result<std::unique_ptr<Worker>, util::Errors> Worker::create(const WorkerC
                                                                    const util::Clock& clock) {
   util::Errors problems = validate(config);
   if (!problems.empty()) return problems;
-  return std::unique_ptr<Worker>(new Worker(std::make_unique<Impl>(resolve_defaults(config), clock)));
+  util::Result<std::optional<http::ClientTls>> tls = load_client_tls(config);
+  if (!tls) return util::Errors{tls.error()};
+  return std::unique_ptr<Worker>(
+      new Worker(std::make_unique<Impl>(resolve_defaults(config), clock, std::move(tls).value())));
 }
 
 Worker::Worker(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}

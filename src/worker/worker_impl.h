@@ -83,7 +83,7 @@ class Counter {
 };
 
 struct Worker::Impl {
-  Impl(WorkerConfig resolved, const util::Clock& clock);
+  Impl(WorkerConfig resolved, const util::Clock& clock, std::optional<http::ClientTls> tls);
 
   // ---- lifecycle.cpp: start, signals, stop ----
 
@@ -125,6 +125,8 @@ struct Worker::Impl {
   const std::string authorization;
 
   async::net::io_context io{1};  // run by one thread: run()'s caller
+  // Every request to the collector, on kept-alive connections. After io: destroyed before it.
+  http::Client client;
   async::net::thread_pool pool;  // render threads
   std::mt19937_64 rng;           // retry jitter
   SceneCache scenes;
