@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cstdint>
 #include <map>
+#include <memory>
 #include <random>
 #include <thread>
 #include <utility>
@@ -38,6 +39,18 @@ std::string format_seconds(double s) {
   return fmt::format("{}h{:02}m", int(s) / 3600, (int(s) % 3600) / 60);
 }
 
+// The CA certificate(s) in `path`, checked to be usable; errors name the file.
+util::Result<http::ClientTls> read_ca_file(const std::string& path) {
+  constexpr std::uint64_t kMaxCaFileBytes = 1 << 20;
+  util::Result<std::string> pem = util::read_file_limited(path, kMaxCaFileBytes);
+  if (!pem) return pem.error();
+  http::ClientTls tls;
+  tls.ca_pem = std::move(pem).value();
+  tls.ca_source = path;
+  if (util::Status usable = http::check_client_tls(tls); !usable) return usable.error();
+  return tls;
+}
+
 // One connection's worth of state for a verb: where, with which token, how patient. Every call
 // rides out a busy collector (and, for a GET, one that does not answer) for up to --timeout-ms,
 // or what retry_for sets (cli/retry.h says what is retried and why that is safe).
@@ -50,6 +63,21 @@ class Session {
       return false;
     }
     url_ = *url;
+    http::ClientOptions options;
+    if (url_.tls) {
+      if (args.ca_file.empty()) {
+        fmt::print(stderr,
+                   "--ca-file: required for an https:// collector (its CA certificate: tls/ca.pem in the "
+                   "collector's state directory)\n");
+        return false;
+      }
+      auto tls = read_ca_file(args.ca_file);
+      if (!tls) {
+        fmt::print(stderr, "--ca-file: {}\n", tls.error().to_string());
+        return false;
+      }
+      options.tls = std::move(tls).value();
+    }
     if (!args.token_file.empty()) {
       auto token = read_token_file(args.token_file);
       if (!token) {
@@ -58,7 +86,11 @@ class Session {
       }
       token_ = std::move(token).value();
     }
-    timeouts_.read = timeouts_.write = std::chrono::milliseconds(args.timeout_ms);
+    options.timeouts.read = options.timeouts.write = std::chrono::milliseconds(args.timeout_ms);
+    // One verb's requests follow each other closely (a --wait polls every half second): one
+    // kept-alive connection carries them all.
+    options.max_idle_connections = 1;
+    client_ = std::make_unique<http::SyncClient>(std::move(options));
     retry_for(std::chrono::milliseconds(args.timeout_ms), fmt::format("--timeout-ms {}", args.timeout_ms));
     return true;
   }
@@ -78,7 +110,7 @@ class Session {
       http::Request req = http::make_request(verb, target, body,
                                              verb == http::Verb::post ? http::kJsonContentType : std::string_view{});
       if (!token_.empty()) req.set(boost::beast::http::field::authorization, "Bearer " + token_);
-      http::ClientResult r = http::request_sync(url_, std::move(req), timeouts_, max_body);
+      http::ClientResult r = client_->request(url_, std::move(req), max_body);
       if (r.ok() && r.response.result_int() >= 200 && r.response.result_int() < 300) {
         retry_.succeeded();
         return std::move(r.response);
@@ -102,7 +134,7 @@ class Session {
  private:
   http::Url url_;
   std::string token_;
-  http::ClientTimeouts timeouts_;
+  std::unique_ptr<http::SyncClient> client_;  // set by init()
   RetryPolicy retry_{std::chrono::milliseconds(0), 0};
   std::string retry_flag_;
 };

@@ -1,7 +1,7 @@
 // dtraced::cli client verbs: submit, list, status, fetch, cancel, priority, requeue and workers,
-// spoken to a collector over
-// its HTTP API (one blocking request at a time on a private io_context). Results go to stdout,
-// diagnostics to stderr; each function returns the process exit code (0 ok, 1 failed).
+// spoken to a collector over its HTTP API, plain or TLS (one blocking request at a time on a
+// private io_context; the requests of one verb share a kept-alive connection). Results go to
+// stdout, diagnostics to stderr; each function returns the process exit code (0 ok, 1 failed).
 #pragma once
 
 #include <cstdint>
@@ -17,6 +17,9 @@ namespace dtraced::cli {
 struct ClientArgs {
   std::string collector = "http://127.0.0.1:7878";
   std::string token_file;  // empty: no Authorization header
+  // PEM file of the CA the collector's certificate must chain to; required for an https://
+  // collector, unused for http://.
+  std::string ca_file;
   std::uint32_t timeout_ms = 30000;
 };
 
