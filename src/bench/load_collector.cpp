@@ -3,10 +3,13 @@
 //
 // Each simulated worker is a coroutine on one io_context thread. It loops until the run's time is
 // up: POST /v1/lease, then PUT /v1/jobs/{job}/tiles/{tile} with a valid payload for the leased
-// rectangle (constant, finite pixels), expecting "stored" or "already_done". Every request is its
-// own connection (Connection: close), exactly as the real worker speaks to the collector, so the
-// cost of setting up a connection is part of what is measured. Nothing renders: the simulated
-// workers answer as fast as the collector lets them.
+// rectangle (constant, finite pixels), expecting "stored" or "already_done". By default the
+// requests go on kept-alive connections (one http::Client, as the real worker speaks to the
+// collector: each simulated worker ends up with a connection of its own); with --no-keep-alive
+// every request is its own connection (Connection: close), as workers spoke before keep-alive,
+// so the cost of setting up a connection (and with https://, of a TLS handshake) is part of what
+// is measured. An https:// collector needs --ca-file. Nothing renders: the simulated workers
+// answer as fast as the collector lets them.
 //
 // It writes made-up pixels into the job it is given: point it only at a throwaway collector. As a
 // guard it first checks that the job exists and is unfinished, and it stops at the first lease of
@@ -82,11 +85,14 @@ constexpr std::size_t kMaxQuotedBytes = 200;
 // collector never counts them as faulty.
 constexpr float kPixelValue = 0.5f;
 const http::ClientTimeouts kTimeouts{std::chrono::milliseconds(5'000), std::chrono::milliseconds(10'000),
-                                     std::chrono::milliseconds(10'000)};
+                                     std::chrono::milliseconds(10'000), std::chrono::milliseconds(10'000)};
+constexpr std::uint64_t kMaxCaFileBytes = 1 << 20;
 
 struct Options {
   std::string collector;
   std::string token_file;
+  std::string ca_file;  // for an https:// collector
+  bool keep_alive = true;
   std::uint32_t workers = 64;
   std::uint32_t seconds = 10;
   std::uint64_t job = 0;
@@ -137,6 +143,7 @@ struct Tally {
 
 struct Run {
   http::Url url;
+  http::Client* client = nullptr;  // every request
   std::string authorization;
   std::uint64_t job = 0;
   bool lease_only = false;
@@ -181,7 +188,7 @@ util::Result<std::string> read_token(const std::string& path) {
 net::awaitable<http::ClientResult> exchange(const Run& run, http::Request req, std::string_view worker) {
   req.set(bhttp::field::authorization, run.authorization);
   req.set(protocol::kWorkerHeader, worker);
-  co_return co_await http::request(run.url, std::move(req), kTimeouts, kMaxAnswerBytes);
+  co_return co_await run.client->request(run.url, std::move(req), kMaxAnswerBytes);
 }
 
 net::awaitable<void> pause_for(net::steady_timer& timer, Clock::duration d) {
@@ -302,7 +309,7 @@ double cpu_seconds() {
   return seconds(usage.ru_utime) + seconds(usage.ru_stime);
 }
 
-void report(const Options& o, const Run& run, double elapsed_s, double cpu_s) {
+void report(const Options& o, const Run& run, const http::ClientStats& client, double elapsed_s, double cpu_s) {
   const Tally& t = run.tally;
   const double rate = elapsed_s > 0 ? static_cast<double>(t.stored) / elapsed_s : 0;
   const double lease_rate = elapsed_s > 0 ? static_cast<double>(t.leases) / elapsed_s : 0;
@@ -318,6 +325,10 @@ void report(const Options& o, const Run& run, double elapsed_s, double cpu_s) {
     j["already_done"] = t.already_done;
     j["job_gone"] = t.job_gone;
     j["lease_only"] = o.lease_only;
+    j["keep_alive"] = o.keep_alive;
+    j["tls"] = run.url.tls;
+    j["connections_opened"] = client.connections_opened;
+    j["tls_handshakes"] = client.tls_handshakes;
     j["leases"] = t.leases;
     j["leases_per_s"] = lease_rate;
     j["retry_after"] = t.retry_after;
@@ -337,8 +348,9 @@ void report(const Options& o, const Run& run, double elapsed_s, double cpu_s) {
     fmt::print("{}\n", jsonio::to_text(j));
     return;
   }
-  fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} (job {}){}\n", o.workers, elapsed_s,
-             run.url.to_string(), o.job, o.lease_only ? ", leases only" : "");
+  fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} (job {}){}, {}\n", o.workers, elapsed_s,
+             run.url.to_string(), o.job, o.lease_only ? ", leases only" : "",
+             o.keep_alive ? "kept-alive connections" : "a connection per request");
   fmt::print("  stored          {:>10}  {:>10.1f} /s\n", t.stored, rate);
   fmt::print("  already_done    {:>10}\n", t.already_done);
   fmt::print("  leases          {:>10}  {:>10.1f} /s  ({} retry_after answers)\n", t.leases, lease_rate, t.retry_after);
@@ -351,6 +363,8 @@ void report(const Options& o, const Run& run, double elapsed_s, double cpu_s) {
   };
   line("lease latency ", t.lease);
   line("upload latency", t.upload);
+  fmt::print("  connections     {:>10}  opened ({} TLS handshakes, {} requests reused a connection)\n",
+             client.connections_opened, client.tls_handshakes, client.reuses);
   fmt::print("  generator CPU   {:.2f} of one core\n", elapsed_s > 0 ? cpu_s / elapsed_s : 0);
   if (!t.first_problem.empty()) fmt::print("  first problem: {}\n", t.first_problem);
   if (t.retry_after > 0) {
@@ -372,6 +386,28 @@ int run_load(const Options& o) {
     fmt::print(stderr, "--token-file: {}\n", token.error().to_string());
     return 2;
   }
+  http::ClientOptions client_options;
+  client_options.timeouts = kTimeouts;
+  if (url->tls) {
+    if (o.ca_file.empty()) {
+      fmt::print(stderr, "--ca-file: required for an https:// collector (its tls/ca.pem)\n");
+      return 2;
+    }
+    util::Result<std::string> pem = util::read_file_limited(o.ca_file, kMaxCaFileBytes);
+    if (!pem) {
+      fmt::print(stderr, "--ca-file: {}\n", pem.error().to_string());
+      return 2;
+    }
+    http::ClientTls tls{std::move(pem).value(), o.ca_file, std::nullopt};
+    if (util::Status usable = http::check_client_tls(tls); !usable) {
+      fmt::print(stderr, "--ca-file: {}\n", usable.error().to_string());
+      return 2;
+    }
+    client_options.tls = std::move(tls);
+  }
+  // Kept alive: every simulated worker's connection may wait idle while it pauses.
+  client_options.max_idle_connections = o.keep_alive ? o.workers : 0;
+  client_options.max_requests_per_connection = o.keep_alive ? client_options.max_requests_per_connection : 1;
   Run run;
   run.url = *url;
   run.authorization = "Bearer " + *token;
@@ -379,6 +415,8 @@ int run_load(const Options& o) {
   run.lease_only = o.lease_only;
 
   net::io_context io{1};
+  http::Client client(io.get_executor(), client_options);  // after io: destroyed before it
+  run.client = &client;
   util::Status checked = util::Error{"the job check did not finish"};
   net::co_spawn(io, check_job(run), [&checked](std::exception_ptr e, util::Status result) {
     if (!e) {
@@ -419,7 +457,7 @@ int run_load(const Options& o) {
   const double cpu = cpu_seconds() - cpu_before;
   run.tally.lease.finish();
   run.tally.upload.finish();
-  report(o, run, elapsed, cpu);
+  report(o, run, client.stats(), elapsed, cpu);
   if (run.stopped) {
     fmt::print(stderr, "dtraced-load: stopped early: {}\n", run.reason);
     return 1;
@@ -437,7 +475,10 @@ int main(int argc, char** argv) {
       "prints durable submissions per second and lease latency. Writes into the job it is given: use a throwaway "
       "collector.",
       "dtraced-load"};
-  app.add_option("--collector", o.collector, "Collector base URL, http://HOST:PORT")->required();
+  app.add_option("--collector", o.collector, "Collector base URL, http://HOST:PORT or https://HOST:PORT")->required();
+  app.add_option("--ca-file", o.ca_file, "The collector's CA certificate (PEM), for an https:// collector");
+  app.add_flag("--keep-alive,!--no-keep-alive", o.keep_alive,
+               "Kept-alive connections (the default, as workers speak), or a connection per request");
   app.add_option("--token-file", o.token_file, "File holding the farm's bearer token")->required();
   app.add_option("--job", o.job, "The job to lease from and upload into (must be unfinished)")
       ->required()
