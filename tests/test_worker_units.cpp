@@ -278,7 +278,8 @@ TEST_CASE("worker configuration is validated field by field", "[worker][config]"
     std::function<void(WorkerConfig&)> change;
   };
   const std::vector<Case> cases = {
-      {"collector_url", [](WorkerConfig& c) { c.collector_url = "https://example.org"; }},
+      {"collector_url", [](WorkerConfig& c) { c.collector_url = "ftp://example.org"; }},
+      {"ca_file", [](WorkerConfig& c) { c.collector_url = "https://example.org"; }},
       {"collector_url", [](WorkerConfig& c) { c.collector_url = "http://host/path"; }},
       {"token", [](WorkerConfig& c) { c.token = "two words"; }},
       {"token", [](WorkerConfig& c) { c.token = "line\n"; }},
@@ -292,6 +293,7 @@ TEST_CASE("worker configuration is validated field by field", "[worker][config]"
       {"grace", [](WorkerConfig& c) { c.grace = -1s; }},
       {"timeouts.connect", [](WorkerConfig& c) { c.timeouts.connect = 0ms; }},
       {"timeouts.read", [](WorkerConfig& c) { c.timeouts.read = worker::kMaxClientTimeout + 1ms; }},
+      {"timeouts.handshake", [](WorkerConfig& c) { c.timeouts.handshake = 0ms; }},
       {"backoff_initial", [](WorkerConfig& c) { c.backoff_initial = 0ms; }},
       {"backoff_max", [](WorkerConfig& c) { c.backoff_max = c.backoff_initial - 1ms; }},
       {"max_unacknowledged", [](WorkerConfig& c) { c.max_unacknowledged = worker::kMaxUnacknowledged + 1; }},
@@ -314,6 +316,29 @@ TEST_CASE("worker configuration is validated field by field", "[worker][config]"
   CHECK(refused.error() == worker::validate(bad));
   CHECK(refused.error().size() == 2);
   CHECK(worker::Worker::create(good).ok());
+}
+
+TEST_CASE("worker ca_file is read by create, its problems naming the file", "[worker][config]") {
+  WorkerConfig config = test_config(7878);
+  config.collector_url = "https://127.0.0.1:7878";
+  config.ca_file = "/nonexistent/dtraced/ca.pem";
+  CHECK(worker::validate(config).empty());
+  auto refused = worker::Worker::create(config);
+  REQUIRE_FALSE(refused.ok());
+  REQUIRE(refused.error().size() == 1);
+  CHECK(refused.error().front().path == "ca_file");
+  CHECK_THAT(refused.error().front().to_string(), Catch::Contains("/nonexistent/dtraced/ca.pem"));
+
+  config.ca_file = "/dev/null";  // readable, but no certificate in it
+  refused = worker::Worker::create(config);
+  REQUIRE_FALSE(refused.ok());
+  CHECK(refused.error().front().path == "ca_file");
+  CHECK_THAT(refused.error().front().to_string(), Catch::Contains("the CA in /dev/null is empty"));
+
+  // Plain HTTP reads no CA file.
+  config.collector_url = "http://127.0.0.1:7878";
+  config.ca_file = "/nonexistent/dtraced/ca.pem";
+  CHECK(worker::Worker::create(config).ok());
 }
 
 TEST_CASE("worker defaults are resolved from the host", "[worker][config]") {
