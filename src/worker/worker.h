@@ -21,6 +21,9 @@
 //    answering 5xx is retried with backoff; while it fails, one request at a time probes it (one
 //    for leases, one for submissions), so a farm of waiting workers stays quiet. A worker started
 //    before its collector simply waits.
+//  - Connections. Every request goes through one http::Client on the event loop: kept-alive
+//    connections (two idle per render thread at most), TLS to an https:// collector whose
+//    certificate chains to the CA in WorkerConfig::ca_file (read by create()).
 //  - Stop (request_stop, or SIGTERM/SIGINT when asked to handle them): no more leases; leases held
 //    but not started are dropped (the collector re-offers them); tiles rendering are finished;
 //    everything rendered is submitted within the grace period, after which what is left is
@@ -87,8 +90,9 @@ struct RunOptions {
 class Worker {
  public:
   // A worker for `config`, or every problem validate() finds in it (each Error's path names the
-  // option). Host-dependent defaults are resolved here (see config()). `clock` (which must outlive
-  // the worker) is all the time the worker reads and sleeps on; see "Time" above.
+  // option), or the problem with its ca_file (load_client_tls). Host-dependent defaults are
+  // resolved here (see config()). `clock` (which must outlive the worker) is all the time the
+  // worker reads and sleeps on; see "Time" above.
   static util::Result<std::unique_ptr<Worker>, util::Errors> create(const WorkerConfig& config,
                                                                     const util::Clock& clock = util::real_clock());
   ~Worker();
