@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <mutex>
 #include <sstream>
 #include <variant>
 
@@ -18,6 +19,7 @@
 #include <boost/beast/core/tcp_stream.hpp>
 #include <boost/beast/http/write.hpp>
 #include <boost/beast/ssl/ssl_stream.hpp>
+#include <openssl/ssl.h>
 
 #include "http_testing.h"
 #include "temp_dir.h"
@@ -364,6 +366,8 @@ class TlsTestServer {
       : context_(ssl::context::tls_server), acceptor_(io_, tcp::endpoint(net::ip::make_address("127.0.0.1"), 0)) {
     context_.use_certificate_chain_file(chain_file);
     context_.use_private_key_file(key_file, ssl::context::pem);
+    SSL_CTX_set_tlsext_servername_arg(context_.native_handle(), this);
+    SSL_CTX_set_tlsext_servername_callback(context_.native_handle(), &TlsTestServer::note_server_name);
     net::co_spawn(io_, accept_loop(), net::detached);
     thread_ = std::thread([this] { io_.run(); });
   }
@@ -381,8 +385,21 @@ class TlsTestServer {
   }
   int handshakes() const { return handshakes_.load(); }
   int failed_handshakes() const { return failed_.load(); }
+  // The SNI names clients sent, in order ("" for none).
+  std::vector<std::string> server_names() const {
+    std::lock_guard lock(mutex_);
+    return server_names_;
+  }
 
  private:
+  static int note_server_name(SSL* ssl, int*, void* arg) {
+    auto* self = static_cast<TlsTestServer*>(arg);
+    const char* name = SSL_get_servername(ssl, TLSEXT_NAMETYPE_host_name);
+    std::lock_guard lock(self->mutex_);
+    self->server_names_.emplace_back(name != nullptr ? name : "");
+    return SSL_TLSEXT_ERR_OK;
+  }
+
   net::awaitable<void> accept_loop() {
     for (;;) {
       auto [ec, socket] = co_await acceptor_.async_accept(net::as_tuple(net::use_awaitable));
@@ -418,6 +435,8 @@ class TlsTestServer {
   tcp::acceptor acceptor_;
   std::atomic<int> handshakes_{0};
   std::atomic<int> failed_{0};
+  mutable std::mutex mutex_;
+  std::vector<std::string> server_names_;  // guarded by mutex_
   std::thread thread_;
 };
 
@@ -452,6 +471,8 @@ TEST_CASE("tls: requests over TLS, kept alive: one handshake", "[http][pool][tls
     CHECK(client.stats().reuses == 2);
   }
   CHECK(server.handshakes() == 2);
+  // SNI names a DNS name, never an address.
+  CHECK(server.server_names() == std::vector<std::string>{"", "localhost"});
   // The one-shot function speaks TLS too.
   const ClientResult once =
       dtraced::http::request_sync(server.url(), get("/once"), kTimeouts, kMaxResponse, certs.trust());

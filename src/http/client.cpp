@@ -82,7 +82,7 @@ bool is_ip_address(const std::string& host) {
   return !ec;
 }
 
-// OpenSSL's oldest queued error as text (and the queue emptied), or `otherwise`.
+// OpenSSL's latest queued error as text (and the queue emptied), or `otherwise`.
 std::string openssl_reason(std::string_view otherwise) {
   const unsigned long code = ERR_peek_last_error();
   ERR_clear_error();
@@ -444,7 +444,9 @@ std::unique_ptr<Connection> Client::Impl::take_idle(const std::string& key) {
 }
 
 void Client::Impl::give_back(std::unique_ptr<Connection> connection) {
-  connection->idle_since = RealClock::now();
+  const auto now = RealClock::now();
+  std::erase_if(idle, [&](const std::unique_ptr<Connection>& c) { return now - c->idle_since >= options.max_idle; });
+  connection->idle_since = now;
   idle.push_back(std::move(connection));
   while (idle.size() > options.max_idle_connections) idle.pop_front();
 }
