@@ -382,13 +382,15 @@ net::awaitable<bool> Server::Impl::handshake(Impl& self, Connection& conn, beast
   // The bytes detect_ssl read are the start of the ClientHello.
   auto [ec, used] = co_await conn.tls->async_handshake(net::ssl::stream_base::server, buffer.data(), kAwaitTuple);
   if (ec) {
-    self.count(&ServerMetrics::tls_handshake_failures);
+    conn.lowest().close();
+    // Closed by the server itself (eviction, stop) is no failure of the peer's.
+    if (ec == net::error::operation_aborted) co_return false;
     std::string reason =
         ec == beast::error::timeout ? fmt::format("no handshake within {} ms", limit.count()) : ec.message();
     const long verify = SSL_get_verify_result(conn.tls->native_handle());
     if (verify != X509_V_OK) reason += fmt::format(" (client certificate: {})", X509_verify_cert_error_string(verify));
     if (!self.cutting) self.log_handshake_failure(conn.peer, reason);
-    conn.lowest().close();
+    self.count(&ServerMetrics::tls_handshake_failures);  // after the log line: tests wait for it
     co_return false;
   }
   buffer.consume(used);
