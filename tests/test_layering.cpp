@@ -36,6 +36,7 @@ const std::map<std::string, std::set<std::string>>& allowed() {
       {"render", {"scene", "accel", "image", "math", "util"}},
       {"protocol", {"scene", "jsonio", "image", "math", "util"}},
       {"async", {"util"}},
+      {"tls", {"util"}},
       {"http", {"async", "util"}},
       {"store", {"util"}},
       {"web", {}},  // the web page's files, embedded: data only

@@ -3,12 +3,14 @@
 #include <algorithm>
 #include <array>
 #include <cassert>
+#include <cctype>
 #include <exception>
 #include <list>
 #include <mutex>
 #include <optional>
 #include <string>
 #include <tuple>
+#include <type_traits>
 #include <utility>
 
 #include <boost/asio/bind_cancellation_slot.hpp>
@@ -16,6 +18,9 @@
 #include <boost/asio/co_spawn.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/post.hpp>
+#include <boost/asio/ssl/context.hpp>
+#include <boost/asio/ssl/stream_base.hpp>
+#include <boost/beast/core/detect_ssl.hpp>
 #include <boost/beast/core/error.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
 #include <boost/beast/core/string.hpp>
@@ -26,6 +31,9 @@
 #include <boost/beast/http/parser.hpp>
 #include <boost/beast/http/read.hpp>
 #include <boost/beast/http/write.hpp>
+#include <boost/beast/ssl/ssl_stream.hpp>
+#include <openssl/ssl.h>
+#include <openssl/x509.h>
 
 #include "async/async.h"
 #include "http/names.h"
@@ -57,6 +65,10 @@ constexpr std::size_t kLingerChunkBytes = 4096;
 constexpr std::size_t kMaxRejectingConnections = 64;
 // Pause after a failed accept (EMFILE, ENFILE, ENOBUFS) so the loop does not spin on it.
 constexpr std::chrono::milliseconds kAcceptErrorBackoff{100};
+// How long a TLS connection's close_notify exchange may take before the socket is closed anyway.
+constexpr std::chrono::milliseconds kTlsShutdownTimeout{1000};
+// A client certificate's common name stamped on requests is cut to this length.
+constexpr std::size_t kMaxClientNameBytes = 256;
 // How long stop() waits for cancelled sessions to unwind after its grace period.
 constexpr std::chrono::milliseconds kCutUnwindTimeout{1000};
 // Request targets quoted in log lines are cut to this length.
@@ -91,36 +103,103 @@ std::string loggable_target(const Request& req) {
   return std::string(target.data(), std::min(target.size(), kMaxLoggedTargetBytes));
 }
 
+using TlsStream = beast::ssl_stream<beast::tcp_stream>;
+
 // One accepted socket. Lives in Impl::connections from accept until its coroutine has ended.
 struct Connection {
   Connection(tcp::socket socket, bool rejecting, bool authenticated)
       : stream(std::move(socket)), rejecting(rejecting), authenticated(authenticated) {}
 
-  beast::tcp_stream stream;
+  // The TCP layer, under TLS or not: its deadlines govern both, and closing it ends either.
+  beast::tcp_stream& lowest() { return tls ? tls->next_layer() : stream; }
+
+  beast::tcp_stream stream;         // moved into `tls` when a handshake starts; use lowest() instead
+  std::optional<TlsStream> tls;     // a TLS connection's stream, from its handshake on
+  std::string peer;                 // the peer's address, as stamped on requests ("" if unknown)
+  std::string client_name;          // a verified client certificate's CN ("" when none)
   const bool rejecting;             // over the cap: answered 503 and closed
   bool authenticated;               // a request's header passed the predicate (or there is none)
   bool reading = false;             // waiting for or reading a request: an unauthenticated one may be evicted
   bool holds_slot = false;          // counted in sessions (and unauthenticated) until released
   bool busy = false;                // a request is being read, handled or written: stop() lets it finish
   bool finished = false;            // its coroutine has completed; erased soon after
+  bool idle = false;                // waiting for a request after answering one (Impl::idle_count)
+  std::uint64_t idle_order = 0;     // when it went idle: the lowest goes first over the cap
+  std::uint32_t requests = 0;       // requests read on this connection
   net::cancellation_signal cancel;  // cancels the coroutine (and the handler) when stop() gives up
 };
 
 // Replaces any kPeerHeader the client sent with the connection's real source address, so the
-// header check and the handler can name the peer (logs, the collector's worker registry).
-void stamp_peer(Request& req, const beast::tcp_stream& stream) {
+// header check and the handler can name the peer (logs, the collector's worker registry), and
+// any kClientCertHeader with the verified client certificate's name (or nothing).
+void stamp_peer(Request& req, const Connection& conn) {
+  const beast::string_view peer(kPeerHeader.data(), kPeerHeader.size());
+  req.erase(peer);
+  if (!conn.peer.empty()) req.set(peer, conn.peer);
+  const beast::string_view client(kClientCertHeader.data(), kClientCertHeader.size());
+  req.erase(client);
+  if (!conn.client_name.empty()) req.set(client, conn.client_name);
+}
+
+std::string peer_address(const tcp::socket& socket) {
   error_code ec;
-  const tcp::endpoint peer = stream.socket().remote_endpoint(ec);
-  const beast::string_view name(kPeerHeader.data(), kPeerHeader.size());
-  req.erase(name);
-  if (!ec) req.set(name, peer.address().to_string());
+  const tcp::endpoint peer = socket.remote_endpoint(ec);
+  return ec ? std::string() : peer.address().to_string();
+}
+
+// The subject CN of the client certificate OpenSSL verified on `ssl`, made safe for a header
+// value (control characters become '?'), or "" when no certificate was asked for or given.
+std::string verified_client_name(SSL* ssl) {
+  if ((SSL_get_verify_mode(ssl) & SSL_VERIFY_PEER) == 0) return {};
+  X509* cert = SSL_get0_peer_certificate(ssl);
+  if (cert == nullptr || SSL_get_verify_result(ssl) != X509_V_OK) return {};
+  X509_NAME* subject = X509_get_subject_name(cert);
+  const int index = X509_NAME_get_index_by_NID(subject, NID_commonName, -1);
+  if (index < 0) return {};
+  unsigned char* utf8 = nullptr;
+  const int n = ASN1_STRING_to_UTF8(&utf8, X509_NAME_ENTRY_get_data(X509_NAME_get_entry(subject, index)));
+  if (n <= 0) return {};
+  std::string name(reinterpret_cast<const char*>(utf8), std::min<std::size_t>(n, kMaxClientNameBytes));
+  OPENSSL_free(utf8);
+  for (char& c : name) {
+    const auto u = static_cast<unsigned char>(c);
+    if (u < 0x20 || u == 0x7f) c = '?';
+  }
+  return name;
+}
+
+// What a client that spoke plain HTTP to the TLS port should have asked for: https:// and the
+// host it named (Host header, when it is a plain host[:port]), else the address it reached.
+std::string https_origin(const bhttp::fields* header, const tcp::socket& socket) {
+  error_code ec;
+  const tcp::endpoint local = socket.local_endpoint(ec);
+  const std::string port = ec ? std::string() : fmt::format(":{}", local.port());
+  if (header != nullptr) {
+    const auto host = (*header)[bhttp::field::host];
+    const bool plain = !host.empty() && host.size() <= 255 && std::all_of(host.begin(), host.end(), [](char c) {
+      return std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '-' || c == ':' || c == '[' || c == ']';
+    });
+    if (plain) {
+      const std::string name(host);
+      const auto bracket = name.rfind(']');
+      const auto colon = name.rfind(':');
+      const bool has_port = colon != std::string::npos && (bracket == std::string::npos || colon > bracket) &&
+                            (name.front() == '[' || name.find(':') == colon);
+      return "https://" + name + (has_port ? "" : port);
+    }
+  }
+  if (ec) return "https://HOST:PORT";
+  const auto address = local.address();
+  return address.is_v6() ? fmt::format("https://[{}]{}", address.to_string(), port)
+                         : fmt::format("https://{}{}", address.to_string(), port);
 }
 
 }  // namespace
 
 struct Server::Impl {
   Impl(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-       Handler handler, HeaderCheck header_check, Authenticated authenticated, const util::Clock& clock)
+       Handler handler, HeaderCheck header_check, Authenticated authenticated, const util::Clock& clock,
+       std::shared_ptr<net::ssl::context> tls)
       : executor(executor),
         endpoint(address, port),
         limits(limits),
@@ -128,6 +207,7 @@ struct Server::Impl {
         header_check(std::move(header_check)),
         authenticated(std::move(authenticated)),
         clock(clock),
+        tls(std::move(tls)),
         acceptor(executor) {}
 
   static net::awaitable<void> accept_loop(std::shared_ptr<Impl> self);
@@ -141,11 +221,25 @@ struct Server::Impl {
   void release_held(std::uint64_t held);
   static void on_finished(const std::shared_ptr<Impl>& self, std::list<Connection>::iterator it,
                           std::exception_ptr error);
-  static net::awaitable<void> session(std::shared_ptr<Impl> self, Connection& conn);
-  static net::awaitable<void> reject(std::shared_ptr<Impl> self, Connection& conn);
+  void set_idle(Connection& conn, bool idle);
+  // Over max_idle_connections: closes the connection idle the longest.
+  void close_excess_idle();
+  void log_handshake_failure(const std::string& peer, const std::string& reason);
+  // A connection's coroutine: on a TLS server, detection and handshake first; then session() or
+  // reject() on the stream that resulted.
+  static net::awaitable<void> run(std::shared_ptr<Impl> self, Connection& conn);
+  static net::awaitable<bool> handshake(Impl& self, Connection& conn, beast::flat_buffer& buffer);
+  static net::awaitable<void> refuse_plain(Impl& self, Connection& conn, beast::flat_buffer& buffer);
+  template <typename Stream>
+  static net::awaitable<void> session(std::shared_ptr<Impl> self, Connection& conn, Stream& stream,
+                                      beast::flat_buffer& buffer);
+  template <typename Stream>
+  static net::awaitable<void> reject(Impl& self, Connection& conn, Stream& stream);
   static net::awaitable<Response> call_handler(Impl& self, Request req);
-  static net::awaitable<void> respond_and_close(Impl& self, Connection& conn, Response res);
-  static net::awaitable<void> linger_and_close(Connection& conn);
+  template <typename Stream>
+  static net::awaitable<void> respond_and_close(Impl& self, Connection& conn, Stream& stream, Response res);
+  template <typename Stream>
+  static net::awaitable<void> linger_and_close(Connection& conn, Stream& stream);
   static net::awaitable<void> stop(std::shared_ptr<Impl> self, std::chrono::milliseconds grace);
   static net::awaitable<void> wait_until_drained(Impl& self, util::TimePoint deadline);
   void cut_all();
@@ -164,6 +258,7 @@ struct Server::Impl {
   const HeaderCheck header_check;     // may be empty
   const Authenticated authenticated;  // may be empty: every connection is authenticated
   const util::Clock& clock;
+  const std::shared_ptr<net::ssl::context> tls;  // null: plain HTTP
 
   // Owned by the executor.
   tcp::acceptor acceptor;
@@ -171,6 +266,10 @@ struct Server::Impl {
   std::size_t sessions = 0;           // connections holding a slot (not rejecting, not evicted)
   std::uint64_t held_bytes = 0;       // large answers handed back by the handler, not yet written
   std::size_t rejecting = 0;
+  std::size_t idle_count = 0;                          // connections with `idle` set
+  std::uint64_t idle_sequence = 0;                     // source of Connection::idle_order
+  std::optional<util::TimePoint> handshake_logged_at;  // the last handshake failure logged
+  std::uint64_t handshake_failures_held = 0;           // failures not logged since
   bool started = false;
   bool stopping = false;                 // no new connections; answers say Connection: close
   bool cutting = false;                  // the grace period is over: cancellations and errors are expected
@@ -207,8 +306,10 @@ void Server::Impl::spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, 
   // Requests and answers are small and written whole: Nagle would only add latency.
   error_code ignored;
   socket.set_option(tcp::no_delay(true), ignored);
+  std::string peer = peer_address(socket);
   const auto it = self->connections.emplace(self->connections.end(), std::move(socket), rejecting,
                                             /*authenticated=*/!self->authenticated);
+  it->peer = std::move(peer);
   if (rejecting) {
     ++self->rejecting;
   } else {
@@ -216,8 +317,7 @@ void Server::Impl::spawn(const std::shared_ptr<Impl>& self, tcp::socket socket, 
     ++self->sessions;
     self->count(&ServerMetrics::open_connections);
   }
-  auto body = rejecting ? reject(self, *it) : session(self, *it);
-  net::co_spawn(self->executor, std::move(body),
+  net::co_spawn(self->executor, run(self, *it),
                 net::bind_cancellation_slot(it->cancel.slot(), [self, it](std::exception_ptr error) {
                   on_finished(self, it, std::move(error));
                 }));
@@ -227,6 +327,7 @@ void Server::Impl::on_finished(const std::shared_ptr<Impl>& self, std::list<Conn
                                std::exception_ptr error) {
   if (!self->cutting) async::log_exception("http: a connection", error);
   it->finished = true;
+  self->set_idle(*it, false);
   if (it->rejecting) {
     --self->rejecting;
   } else {
@@ -240,9 +341,88 @@ void Server::Impl::on_finished(const std::shared_ptr<Impl>& self, std::list<Conn
   });
 }
 
-net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connection& conn) {
-  const ServerLimits& limits = self->limits;
+net::awaitable<void> Server::Impl::run(std::shared_ptr<Impl> self, Connection& conn) {
   beast::flat_buffer buffer;
+  conn.reading = !conn.rejecting;  // a connection that has not yet spoken may be evicted
+  if (!self->tls) {
+    if (conn.rejecting) {
+      co_await reject(*self, conn, conn.stream);
+    } else {
+      co_await session(self, conn, conn.stream, buffer);
+    }
+    co_return;
+  }
+  // The first bytes say whether the peer speaks TLS, under the deadline of a first byte.
+  const ServerLimits& limits = self->limits;
+  auto wait = limits.read_timeout;
+  if (!conn.authenticated) wait = std::min(wait, limits.unauthenticated_timeout);
+  conn.stream.expires_after(wait);
+  auto [ec, is_tls] = co_await beast::async_detect_ssl(conn.stream, buffer, kAwaitTuple);
+  if (ec) {
+    if (ec == beast::error::timeout) self->count(&ServerMetrics::read_timeouts);
+    co_return;
+  }
+  if (!is_tls) {
+    co_await refuse_plain(*self, conn, buffer);
+    co_return;
+  }
+  if (!co_await handshake(*self, conn, buffer)) co_return;
+  if (conn.rejecting) {
+    co_await reject(*self, conn, *conn.tls);
+  } else {
+    co_await session(self, conn, *conn.tls, buffer);
+  }
+}
+
+net::awaitable<bool> Server::Impl::handshake(Impl& self, Connection& conn, beast::flat_buffer& buffer) {
+  conn.tls.emplace(std::move(conn.stream), *self.tls);
+  auto limit = self.limits.handshake_timeout;
+  if (!conn.authenticated) limit = std::min(limit, self.limits.unauthenticated_timeout);
+  conn.lowest().expires_after(limit);
+  // The bytes detect_ssl read are the start of the ClientHello.
+  auto [ec, used] = co_await conn.tls->async_handshake(net::ssl::stream_base::server, buffer.data(), kAwaitTuple);
+  if (ec) {
+    conn.lowest().close();
+    // Closed by the server itself (eviction, stop) is no failure of the peer's.
+    if (ec == net::error::operation_aborted) co_return false;
+    std::string reason =
+        ec == beast::error::timeout ? fmt::format("no handshake within {} ms", limit.count()) : ec.message();
+    const long verify = SSL_get_verify_result(conn.tls->native_handle());
+    if (verify != X509_V_OK) reason += fmt::format(" (client certificate: {})", X509_verify_cert_error_string(verify));
+    if (!self.cutting) self.log_handshake_failure(conn.peer, reason);
+    self.count(&ServerMetrics::tls_handshake_failures);  // after the log line: tests wait for it
+    co_return false;
+  }
+  buffer.consume(used);
+  self.count(&ServerMetrics::tls_handshakes);
+  conn.client_name = verified_client_name(conn.tls->native_handle());
+  co_return true;
+}
+
+net::awaitable<void> Server::Impl::refuse_plain(Impl& self, Connection& conn, beast::flat_buffer& buffer) {
+  self.count(&ServerMetrics::plain_on_tls);
+  conn.busy = true;
+  // The request's header, if it is one, names the host the client meant; garbage ends the read
+  // at once with a parse error and gets the same answer.
+  auto wait = self.limits.read_timeout;
+  if (!conn.authenticated) wait = std::min(wait, self.limits.unauthenticated_timeout);
+  conn.stream.expires_after(wait);
+  bhttp::request_parser<bhttp::empty_body> parser;
+  parser.header_limit(self.limits.max_header_bytes);
+  auto [ec, n] = co_await bhttp::async_read_header(conn.stream, buffer, parser, kAwaitTuple);
+  if (ec == beast::error::timeout) {
+    self.count(&ServerMetrics::read_timeouts);
+    co_return;
+  }
+  const std::string origin = https_origin(ec ? nullptr : &parser.get().base(), conn.stream.socket());
+  co_await respond_and_close(self, conn, conn.stream,
+                             make_error(Status::bad_request, fmt::format("this port speaks HTTPS: use {}", origin)));
+}
+
+template <typename Stream>
+net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connection& conn, Stream& stream,
+                                           beast::flat_buffer& buffer) {
+  const ServerLimits& limits = self->limits;
   bool first = true;
   for (;;) {
     // Between requests. A pipelined request may already be in the buffer; otherwise wait for the
@@ -252,8 +432,10 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     if (buffer.size() == 0) {
       auto wait = first ? limits.read_timeout : limits.idle_keepalive_timeout;
       if (!conn.authenticated) wait = std::min(wait, limits.unauthenticated_timeout);
-      conn.stream.expires_after(wait);
-      auto [ec, n] = co_await conn.stream.async_read_some(buffer.prepare(kReadChunkBytes), kAwaitTuple);
+      conn.lowest().expires_after(wait);
+      if (!first) self->set_idle(conn, true);
+      auto [ec, n] = co_await stream.async_read_some(buffer.prepare(kReadChunkBytes), kAwaitTuple);
+      self->set_idle(conn, false);
       if (ec) {
         // A fresh connection that never speaks counts as a stalled request; an idle keep-alive
         // connection timing out is ordinary.
@@ -262,8 +444,10 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
       }
       buffer.commit(n);
     }
+    if (!first) self->count(&ServerMetrics::keepalive_reuses);
     first = false;
     conn.busy = true;
+    ++conn.requests;
 
     // One whole request before its deadline, within the size limits.
     // Socket deadlines; an unauthenticated peer has less time for the header.
@@ -271,7 +455,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     const auto read_deadline = now + limits.read_timeout;
     const auto header_deadline =
         conn.authenticated ? read_deadline : std::min(read_deadline, now + limits.unauthenticated_timeout);
-    conn.stream.expires_at(header_deadline);
+    conn.lowest().expires_at(header_deadline);
     bhttp::request_parser<bhttp::string_body> parser;
     parser.header_limit(limits.max_header_bytes);
     // No body limit while the header is read: Beast would refuse a Content-Length over it when the
@@ -279,12 +463,12 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     parser.body_limit(boost::none);
     error_code ec;
     std::size_t n = 0;
-    std::tie(ec, n) = co_await bhttp::async_read_header(conn.stream, buffer, parser, kAwaitTuple);
+    std::tie(ec, n) = co_await bhttp::async_read_header(stream, buffer, parser, kAwaitTuple);
     ServerLimits request_limits = limits;  // the body limit as the header check leaves it
     if (!ec) {
-      stamp_peer(parser.get(), conn.stream);
+      stamp_peer(parser.get(), conn);
       self->authenticate(conn, parser.get());
-      if (conn.authenticated) conn.stream.expires_at(read_deadline);
+      if (conn.authenticated) conn.lowest().expires_at(read_deadline);
       std::optional<Response> early;
       try {
         std::uint64_t body_limit = limits.max_body_bytes;
@@ -304,19 +488,19 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
       }
       if (early) {
         // Answered on the header alone; the body, if any, is never read (at most drained).
-        co_await respond_and_close(*self, conn, std::move(*early));
+        co_await respond_and_close(*self, conn, stream, std::move(*early));
         co_return;
       }
     }
     if (!ec && !parser.is_done()) {
       if (expects_continue(parser.get())) {
         // The client waits for this before it sends the body (curl does for large bodies).
-        conn.stream.expires_after(limits.write_timeout);
+        conn.lowest().expires_after(limits.write_timeout);
         bhttp::response<bhttp::empty_body> go_on{Status::continue_, parser.get().version()};
-        std::tie(ec, n) = co_await bhttp::async_write(conn.stream, go_on, kAwaitTuple);
-        conn.stream.expires_at(conn.authenticated ? read_deadline : header_deadline);
+        std::tie(ec, n) = co_await bhttp::async_write(stream, go_on, kAwaitTuple);
+        conn.lowest().expires_at(conn.authenticated ? read_deadline : header_deadline);
       }
-      if (!ec) std::tie(ec, n) = co_await bhttp::async_read(conn.stream, buffer, parser, kAwaitTuple);
+      if (!ec) std::tie(ec, n) = co_await bhttp::async_read(stream, buffer, parser, kAwaitTuple);
     }
     if (ec) {
       if (ec == beast::error::timeout) {
@@ -324,7 +508,7 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
         co_return;
       }
       std::optional<Response> answer = answer_read_error(ec, request_limits);
-      if (answer) co_await respond_and_close(*self, conn, std::move(*answer));
+      if (answer) co_await respond_and_close(*self, conn, stream, std::move(*answer));
       co_return;
     }
 
@@ -332,22 +516,23 @@ net::awaitable<void> Server::Impl::session(std::shared_ptr<Impl> self, Connectio
     Request req = parser.release();
     const bool client_keep_alive = req.keep_alive();
     const unsigned version = req.version();
-    conn.stream.expires_never();
+    conn.lowest().expires_never();
     Response res = co_await call_handler(*self, std::move(req));
 
-    const bool keep_alive = client_keep_alive && res.keep_alive() && !self->stopping;
+    const bool keep_alive =
+        client_keep_alive && res.keep_alive() && !self->stopping && conn.requests < limits.max_requests_per_connection;
     std::uint64_t held = 0;
     if (std::optional<Response> refused = self->hold_large_response(res, held)) res = std::move(*refused);
     res.version(version);
     res.keep_alive(keep_alive);
     self->count_response(res.result_int());
-    conn.stream.expires_after(limits.write_timeout);
-    std::tie(ec, n) = co_await bhttp::async_write(conn.stream, res, kAwaitTuple);
+    conn.lowest().expires_after(limits.write_timeout);
+    std::tie(ec, n) = co_await bhttp::async_write(stream, res, kAwaitTuple);
     res = Response();  // the body is written (or never will be): free it before lingering
     self->release_held(held);
     if (ec) co_return;
     if (!keep_alive) {
-      co_await linger_and_close(conn);
+      co_await linger_and_close(conn, stream);
       co_return;
     }
   }
@@ -358,7 +543,7 @@ bool Server::Impl::evict_oldest_unauthenticated() {
     if (conn.holds_slot && conn.reading && !conn.authenticated && !conn.finished) {
       release_slot(conn);
       count(&ServerMetrics::evicted_connections);
-      conn.stream.close();  // its read ends with an error and the session returns
+      conn.lowest().close();  // its read ends with an error and the session returns
       return true;
     }
   }
@@ -370,6 +555,49 @@ void Server::Impl::release_slot(Connection& conn) {
   conn.holds_slot = false;
   --sessions;
   count(&ServerMetrics::open_connections, -1);
+}
+
+void Server::Impl::set_idle(Connection& conn, bool idle) {
+  if (conn.idle == idle) return;
+  conn.idle = idle;
+  if (!idle) {
+    --idle_count;
+    return;
+  }
+  ++idle_count;
+  conn.idle_order = ++idle_sequence;
+  close_excess_idle();
+}
+
+void Server::Impl::close_excess_idle() {
+  while (idle_count > limits.max_idle_connections) {
+    Connection* oldest = nullptr;
+    for (Connection& conn : connections) {
+      if (conn.idle && !conn.finished && (oldest == nullptr || conn.idle_order < oldest->idle_order)) oldest = &conn;
+    }
+    if (oldest == nullptr) return;
+    set_idle(*oldest, false);
+    count(&ServerMetrics::evicted_idle_connections);
+    oldest->lowest().close();  // its read ends with an error and the session returns
+  }
+}
+
+void Server::Impl::log_handshake_failure(const std::string& peer, const std::string& reason) {
+  const util::TimePoint now = clock.now();
+  if (handshake_logged_at && now - *handshake_logged_at < kHandshakeLogInterval) {
+    ++handshake_failures_held;
+    return;
+  }
+  handshake_logged_at = now;
+  const std::string who = peer.empty() ? std::string("a peer") : peer;
+  if (handshake_failures_held > 0) {
+    util::log_warn(
+        "http: TLS handshake with {} failed: {} ({} more failed handshake(s) not logged since the last line)", who,
+        reason, handshake_failures_held);
+  } else {
+    util::log_warn("http: TLS handshake with {} failed: {}", who, reason);
+  }
+  handshake_failures_held = 0;
 }
 
 void Server::Impl::authenticate(Connection& conn, const Request& header) {
@@ -400,13 +628,14 @@ void Server::Impl::release_held(std::uint64_t held) {
   count(&ServerMetrics::held_response_bytes, -static_cast<std::int64_t>(held));
 }
 
-net::awaitable<void> Server::Impl::reject(std::shared_ptr<Impl> self, Connection& conn) {
+template <typename Stream>
+net::awaitable<void> Server::Impl::reject(Impl& self, Connection& conn, Stream& stream) {
   conn.busy = true;
   Response res =
       make_error(Status::service_unavailable,
-                 fmt::format("too many open connections (limit {}); retry later", self->limits.max_connections));
+                 fmt::format("too many open connections (limit {}); retry later", self.limits.max_connections));
   res.set(bhttp::field::retry_after, "1");
-  co_await respond_and_close(*self, conn, std::move(res));
+  co_await respond_and_close(self, conn, stream, std::move(res));
 }
 
 net::awaitable<Response> Server::Impl::call_handler(Impl& self, Request req) {
@@ -426,30 +655,40 @@ net::awaitable<Response> Server::Impl::call_handler(Impl& self, Request req) {
   co_return make_error(Status::internal_server_error, "internal error");
 }
 
-net::awaitable<void> Server::Impl::respond_and_close(Impl& self, Connection& conn, Response res) {
+template <typename Stream>
+net::awaitable<void> Server::Impl::respond_and_close(Impl& self, Connection& conn, Stream& stream, Response res) {
   res.keep_alive(false);
   self.count_response(res.result_int());
-  conn.stream.expires_after(self.limits.write_timeout);
-  auto [ec, n] = co_await bhttp::async_write(conn.stream, res, kAwaitTuple);
+  conn.lowest().expires_after(self.limits.write_timeout);
+  auto [ec, n] = co_await bhttp::async_write(stream, res, kAwaitTuple);
   if (ec) co_return;
-  co_await linger_and_close(conn);
+  co_await linger_and_close(conn, stream);
 }
 
-net::awaitable<void> Server::Impl::linger_and_close(Connection& conn) {
+template <typename Stream>
+net::awaitable<void> Server::Impl::linger_and_close(Connection& conn, Stream& stream) {
   conn.busy = false;  // the answer is out: stop() may close this at once
+  beast::tcp_stream& lowest = conn.lowest();
+  if constexpr (std::is_same_v<Stream, TlsStream>) {
+    // close_notify, so the peer knows the answer is complete; its own close_notify (or its end
+    // of stream) ends the exchange, a silent peer the deadline (which closes the socket).
+    lowest.expires_after(kTlsShutdownTimeout);
+    auto [sec] = co_await stream.async_shutdown(kAwaitTuple);
+    std::ignore = sec;
+  }
   error_code ec;
-  conn.stream.socket().shutdown(tcp::socket::shutdown_send, ec);
+  lowest.socket().shutdown(tcp::socket::shutdown_send, ec);
   if (!ec) {
-    conn.stream.expires_after(kLingerTimeout);
+    lowest.expires_after(kLingerTimeout);
     std::array<char, kLingerChunkBytes> scratch;
     std::size_t drained = 0;
     while (drained < kLingerMaxBytes) {
-      auto [rec, n] = co_await conn.stream.async_read_some(net::buffer(scratch), kAwaitTuple);
+      auto [rec, n] = co_await lowest.async_read_some(net::buffer(scratch), kAwaitTuple);
       if (rec) break;  // end of stream (the usual way out), reset, or the linger deadline
       drained += n;
     }
   }
-  conn.stream.close();
+  lowest.close();
 }
 
 net::awaitable<void> Server::Impl::stop(std::shared_ptr<Impl> self, std::chrono::milliseconds grace) {
@@ -458,7 +697,7 @@ net::awaitable<void> Server::Impl::stop(std::shared_ptr<Impl> self, std::chrono:
   error_code ignored;
   self->acceptor.close(ignored);
   for (Connection& conn : self->connections) {
-    if (!conn.busy && !conn.finished) conn.stream.close();
+    if (!conn.busy && !conn.finished) conn.lowest().close();
   }
   co_await wait_until_drained(*self, self->clock.now() + grace);
   if (self->connections.empty()) co_return;
@@ -491,7 +730,7 @@ void Server::Impl::cut_all() {
   for (Connection& conn : connections) {
     if (conn.finished) continue;
     conn.cancel.emit(net::cancellation_type::terminal);
-    conn.stream.close();
+    conn.lowest().close();
   }
 }
 
@@ -503,13 +742,15 @@ void Server::Impl::count_response(unsigned status) {
 }
 
 Server::Server(net::any_io_executor executor, net::ip::address address, std::uint16_t port, ServerLimits limits,
-               Handler handler, HeaderCheck header_check, Authenticated authenticated, const util::Clock& clock)
+               Handler handler, HeaderCheck header_check, Authenticated authenticated, const util::Clock& clock,
+               std::shared_ptr<net::ssl::context> tls)
     : impl_(std::make_shared<Impl>(std::move(executor), address, port, limits, std::move(handler),
-                                   std::move(header_check), std::move(authenticated), clock)) {
+                                   std::move(header_check), std::move(authenticated), clock, std::move(tls))) {
   assert(limits.max_header_bytes > 0 && limits.max_body_bytes > 0 && limits.max_connections > 0);
   assert(limits.read_timeout.count() > 0 && limits.write_timeout.count() > 0 &&
          limits.idle_keepalive_timeout.count() > 0 && limits.unauthenticated_timeout.count() > 0 &&
-         limits.max_held_response_bytes > 0);
+         limits.max_held_response_bytes > 0 && limits.handshake_timeout.count() > 0 &&
+         limits.max_idle_connections > 0 && limits.max_requests_per_connection > 0);
 }
 
 Server::~Server() {

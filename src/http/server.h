@@ -1,4 +1,4 @@
-// dtraced::http server: HTTP/1.1 over TCP with Boost.Beast and C++20 coroutines.
+// dtraced::http server: HTTP/1.1 over TCP, or over TLS, with Boost.Beast and C++20 coroutines.
 //
 // Owns: the listening socket, one coroutine per connection, and every limit a connection is held
 // to. A session waits for the first byte of a request (the idle deadline between requests, the
@@ -15,6 +15,24 @@
 // A request still incomplete at its read deadline is dropped without an answer: its client is
 // gone or hostile. Before closing after a last response the server half-closes and drains what
 // the peer still sends (bounded), so the peer reads the answer instead of a reset.
+//
+// TLS (a context from http/tls_server.h given to the constructor): every connection's first bytes
+// decide (Beast's detect_ssl, under the deadline of a fresh connection's first byte). A TLS
+// ClientHello is answered with a handshake held to handshake_timeout (and to
+// unauthenticated_timeout while unauthenticated); then the same session code as for plain HTTP
+// runs over the encrypted stream, with every limit, deadline, eviction, linger and stop rule
+// above and below. Anything else is answered, in plain HTTP, 400 "this port speaks HTTPS: use
+// https://HOST:PORT", and closed (counted plain_on_tls). A failed handshake (a client certificate
+// the client CA does not vouch for or that expired, a protocol below TLS 1.2, a timeout) closes
+// the connection and is logged at most once per kHandshakeLogInterval on the
+// clock, with the number of failures held back since. A verified client certificate's subject CN
+// is stamped on each request as kClientCertHeader. Before closing after a last response the
+// server sends close_notify (waiting a short bound for the peer's), then lingers as for plain.
+// Renegotiation is refused (the context's options): a client that tries loses its connection.
+//
+// Keep-alive: a connection serves up to max_requests_per_connection requests (the answer to the
+// last says Connection: close). A connection waiting for its next request is idle; when one goes
+// idle while max_idle_connections others are, the one idle the longest is closed.
 //
 // Unauthenticated peers cannot starve authenticated ones. With an `authenticated` predicate, a
 // connection is unauthenticated from accept until a request's header satisfies it; until then it
@@ -66,11 +84,20 @@
 #include "http/types.h"
 #include "util/clock.h"
 
+namespace boost::asio::ssl {
+class context;
+}  // namespace boost::asio::ssl
+
 namespace dtraced::http {
 
 // Set by the server on every request it hands to the header check and the handler: the peer's
 // address (e.g. "192.0.2.7", "::1"); a value the client sent under this name is replaced.
 inline constexpr std::string_view kPeerHeader = "X-Dtraced-Peer";
+// Set on TLS connections whose client presented a certificate the server verified: its subject
+// common name. A value the client sent under this name is always removed.
+inline constexpr std::string_view kClientCertHeader = "X-Dtraced-Client-Cert";
+// Failed TLS handshakes are logged at most once per this interval (on the server's clock).
+inline constexpr std::chrono::seconds kHandshakeLogInterval{10};
 
 struct ServerLimits {
   std::uint32_t max_header_bytes = 8 * 1024;  // request line and header fields together
@@ -83,6 +110,10 @@ struct ServerLimits {
   // deadline and the idle deadline between requests, each capped by the two above.
   std::chrono::milliseconds unauthenticated_timeout{5'000};
   std::uint64_t max_held_response_bytes = 256ull << 20;  // large answers waiting to be written
+  // TLS only: accept to the end of the handshake (capped by unauthenticated_timeout likewise).
+  std::chrono::milliseconds handshake_timeout{10'000};
+  std::size_t max_idle_connections = 128;            // keep-alive connections between requests
+  std::uint32_t max_requests_per_connection = 1000;  // then the answer says Connection: close
 };
 
 // Answers of this size and over count against ServerLimits::max_held_response_bytes; smaller
@@ -94,12 +125,17 @@ struct ServerMetrics {
   std::uint64_t requests = 0;  // responses sent, the server's own 4xx and 5xx (and 503s) included
   std::uint64_t responses_4xx = 0;
   std::uint64_t responses_5xx = 0;
-  std::uint64_t read_timeouts = 0;            // connections dropped at the read deadline
-  std::uint64_t rejected_connections = 0;     // connections over max_connections
-  std::uint64_t open_connections = 0;         // sessions open now (a gauge)
-  std::uint64_t evicted_connections = 0;      // unauthenticated connections closed to make room
-  std::uint64_t held_response_bytes = 0;      // large answers not yet written (a gauge)
-  std::uint64_t refused_large_responses = 0;  // large answers replaced by 503 over the cap
+  std::uint64_t read_timeouts = 0;             // connections dropped at the read deadline
+  std::uint64_t rejected_connections = 0;      // connections over max_connections
+  std::uint64_t open_connections = 0;          // sessions open now (a gauge)
+  std::uint64_t evicted_connections = 0;       // unauthenticated connections closed to make room
+  std::uint64_t held_response_bytes = 0;       // large answers not yet written (a gauge)
+  std::uint64_t refused_large_responses = 0;   // large answers replaced by 503 over the cap
+  std::uint64_t tls_handshakes = 0;            // completed
+  std::uint64_t tls_handshake_failures = 0;    // failed or timed out (the connection was closed)
+  std::uint64_t plain_on_tls = 0;              // plain bytes on a TLS server: answered 400, closed
+  std::uint64_t keepalive_reuses = 0;          // requests that were not the first on their connection
+  std::uint64_t evicted_idle_connections = 0;  // closed over max_idle_connections
 };
 
 class Server {
@@ -121,10 +157,11 @@ class Server {
   using Authenticated = std::function<bool(const Request& header)>;
 
   // Nothing happens until start(). `port` 0 asks the kernel for a free port (see port()).
-  // Limits must be positive (asserted).
+  // Limits must be positive (asserted). `tls` (make_server_tls_context) makes it an HTTPS server;
+  // null: plain HTTP. The context is shared by every connection and must not change afterwards.
   Server(boost::asio::any_io_executor executor, boost::asio::ip::address address, std::uint16_t port,
          ServerLimits limits, Handler handler, HeaderCheck header_check = {}, Authenticated authenticated = {},
-         const util::Clock& clock = util::real_clock());
+         const util::Clock& clock = util::real_clock(), std::shared_ptr<boost::asio::ssl::context> tls = nullptr);
   ~Server();
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
