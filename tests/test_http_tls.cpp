@@ -335,7 +335,7 @@ TEST_CASE("tls server: plain HTTP on the TLS port gets 400 naming https, and the
   CHECK(whoami(server.port()) == std::optional<std::string>(""));
 }
 
-TEST_CASE("tls server: garbage bytes close the connection; the next client is served", "[http][tls]") {
+TEST_CASE("tls server: garbage bytes close the connection and the next client is served", "[http][tls]") {
   TlsTestServer server(tls_limits());
   {
     RawConnection raw(server.port());
@@ -564,4 +564,23 @@ TEST_CASE("tls server: stop closes idle TLS connections and lets a request in fl
   CHECK(res->body() == "slow done");
   CHECK_FALSE(res->keep_alive());
   CHECK(stopped.wait_for(kBound) == std::future_status::ready);
+}
+
+TEST_CASE("tls server: over max_connections a TLS client is answered 503 over TLS", "[http][tls]") {
+  ServerLimits limits = tls_limits();
+  limits.max_connections = 1;
+  TlsTestServer server(limits);
+  TlsClient holder(server.port());
+  REQUIRE(holder.handshake());
+  REQUIRE(holder.get("/whoami"));
+  TlsClient late(server.port());
+  REQUIRE(late.handshake());
+  auto res = late.get("/whoami");
+  REQUIRE(res);
+  CHECK(res->result() == Status::service_unavailable);
+  CHECK(std::string(res->at(bhttp::field::retry_after)) == "1");
+  CHECK(late.wait_closed());
+  CHECK(server.metrics().rejected_connections == 1);
+  // The connection holding the slot is still served.
+  CHECK(holder.get("/whoami").has_value());
 }

@@ -24,10 +24,11 @@
 // above and below. Anything else is answered, in plain HTTP, 400 "this port speaks HTTPS: use
 // https://HOST:PORT", and closed (counted plain_on_tls). A failed handshake (a client certificate
 // the client CA does not vouch for or that expired, a protocol below TLS 1.2, a timeout) closes
-// the connection and is logged at most once per kHandshakeLogInterval on the
-// clock, with the number of failures held back since. A verified client certificate's subject CN
-// is stamped on each request as kClientCertHeader. Before closing after a last response the
-// server sends close_notify (waiting a short bound for the peer's), then lingers as for plain.
+// the connection and is logged, at most one line per kHandshakeLogInterval on the clock, with the
+// peer, OpenSSL's reason and the number of failures held back since the last line. A verified
+// client certificate's subject CN is stamped on each request as kClientCertHeader. Before closing
+// after a last response the server sends close_notify (waiting a short bound for the peer's),
+// then lingers as for plain HTTP.
 // Renegotiation is refused (the context's options): a client that tries loses its connection.
 //
 // Keep-alive: a connection serves up to max_requests_per_connection requests (the answer to the
@@ -110,7 +111,8 @@ struct ServerLimits {
   // deadline and the idle deadline between requests, each capped by the two above.
   std::chrono::milliseconds unauthenticated_timeout{5'000};
   std::uint64_t max_held_response_bytes = 256ull << 20;  // large answers waiting to be written
-  // TLS only: accept to the end of the handshake (capped by unauthenticated_timeout likewise).
+  // TLS only: the handshake, from its first bytes to its end (capped by unauthenticated_timeout
+  // while unauthenticated, like the header).
   std::chrono::milliseconds handshake_timeout{10'000};
   std::size_t max_idle_connections = 128;            // keep-alive connections between requests
   std::uint32_t max_requests_per_connection = 1000;  // then the answer says Connection: close
