@@ -60,7 +60,7 @@ std::string secret_part(const std::string& code) {
 
 }  // namespace
 
-TEST_CASE("enroll: a join code buys one worker credential; used, expired and unknown codes are refused",
+TEST_CASE("enroll: a join code buys one worker credential and used or expired or unknown codes are refused",
           "[collector][enroll]") {
   TempDir dir;
   std::string render_token;
@@ -136,7 +136,8 @@ TEST_CASE("enroll: failed attempts are limited like sign-ins", "[collector][enro
   enrolled(enroll(h, code.code));  // the code was not spent by the refusal
 }
 
-TEST_CASE("credentials: created, listed without tokens, revoked for good across a restart", "[collector][enroll]") {
+TEST_CASE("credentials: created and listed without tokens and revoked for good across a restart",
+          "[collector][enroll]") {
   TempDir dir;
   std::string viewer;
   {
@@ -171,7 +172,7 @@ TEST_CASE("credentials: created, listed without tokens, revoked for good across 
   CHECK(h.call(Verb::post, "/v1/credentials", R"({"name": "dash", "role": "viewer"})").result() == Status::conflict);
 }
 
-TEST_CASE("GET /v1/ca: 404 on plain HTTP, the PEM once set", "[collector][enroll]") {
+TEST_CASE("GET /v1/ca: 404 on plain HTTP and the PEM once set", "[collector][enroll]") {
   TempDir dir;
   Harness h(dir);
   CHECK(h.call(Verb::get, "/v1/ca", {}, "").result() == Status::not_found);
@@ -184,7 +185,7 @@ TEST_CASE("GET /v1/ca: 404 on plain HTTP, the PEM once set", "[collector][enroll
   CHECK(make_code(h, "{}").code.ends_with("."));
 }
 
-TEST_CASE("worker identity: a worker credential is its name, whatever it sends; the operator's keeps the header",
+TEST_CASE("worker identity: a worker credential is its name whatever it sends and the operator's keeps the header",
           "[collector][enroll]") {
   TempDir dir;
   Harness h(dir);
@@ -217,7 +218,7 @@ TEST_CASE("worker identity: a worker credential is its name, whatever it sends; 
   CHECK(std::find(names.begin(), names.end(), "liar") == names.end());
 }
 
-TEST_CASE("revoke: a worker's leased tiles go to another worker at once; its next request is 401",
+TEST_CASE("revoke: a worker's leased tiles go to another worker at once and its next request is 401",
           "[collector][enroll]") {
   TempDir dir;
   Harness h(dir);

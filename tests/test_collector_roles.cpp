@@ -285,7 +285,7 @@ TEST_CASE("roles: a refused request changes nothing", "[collector][roles]") {
   CHECK(h.metrics().counters.role_refusals[static_cast<std::size_t>(coll::Role::kViewer)] == 1);
 }
 
-TEST_CASE("roles: a viewer's page session is read-only; a revoked one is signed out", "[collector][roles]") {
+TEST_CASE("roles: a viewer's page session is read-only and a revoked one is signed out", "[collector][roles]") {
   TempDir dir;
   Harness h(dir);
   const std::uint64_t job = h.submit();

@@ -32,7 +32,7 @@ StoredJoinCode join_code(std::uint8_t fill, std::int64_t expires, std::optional<
 
 }  // namespace
 
-TEST_CASE("credentials are stored once, listed by name and survive a reopen; revoked stays revoked", "[store]") {
+TEST_CASE("credentials are stored once and listed by name and survive a reopen and revoked stays revoked", "[store]") {
   StoreDir tmp;
   {
     Store s = open_ok(tmp.path());
@@ -56,7 +56,8 @@ TEST_CASE("credentials are stored once, listed by name and survive a reopen; rev
   CHECK(all[1] == w1);
 }
 
-TEST_CASE("a join code enrolls once, in one transaction; used, expired and unknown codes change nothing", "[store]") {
+TEST_CASE("a join code enrolls once in one transaction and used or expired or unknown codes change nothing",
+          "[store]") {
   StoreDir tmp;
   {
     Store s = open_ok(tmp.path());
