@@ -19,7 +19,7 @@ using namespace dtraced::testing;
 
 // ---------------------------------------------------------------------------------------------
 
-TEST_CASE("open creates the state directory and a WAL database with schema version 2", "[store]") {
+TEST_CASE("open creates the state directory and a WAL database with schema version 3", "[store]") {
   StoreDir tmp;
   const std::string dir = tmp.path() + "/nested/state";
   {
@@ -31,7 +31,7 @@ TEST_CASE("open creates the state directory and a WAL database with schema versi
   }
   CHECK(fs::is_regular_file(dir + "/dtraced.db"));
   CHECK(raw_query_text(dir + "/dtraced.db", "PRAGMA journal_mode") == "wal");
-  CHECK(raw_query_text(dir + "/dtraced.db", "SELECT value FROM meta WHERE key = 'schema_version'") == "2");
+  CHECK(raw_query_text(dir + "/dtraced.db", "SELECT value FROM meta WHERE key = 'schema_version'") == "3");
   CHECK(raw_query_text(dir + "/dtraced.db", "PRAGMA auto_vacuum") == "2");  // incremental
   // A second open of the same, now non-empty, file accepts it.
   Store again = open_ok(dir);

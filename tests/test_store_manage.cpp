@@ -86,13 +86,14 @@ TEST_CASE("a version 1 database is upgraded in place and keeps every job and til
     REQUIRE(id.ok());
     CHECK(id.value() == 3);
   }
-  CHECK(raw_query_text(tmp.db(), "SELECT value FROM meta WHERE key = 'schema_version'") == "2");
+  CHECK(raw_query_text(tmp.db(), "SELECT value FROM meta WHERE key = 'schema_version'") == "3");
   CHECK(raw_query_text(tmp.db(), "SELECT value FROM meta WHERE key = 'last_job_id'") == "3");
   CHECK(raw_query_text(tmp.db(), "PRAGMA auto_vacuum") == "2");
   CHECK(raw_query_text(tmp.db(), "PRAGMA foreign_key_check") == "");
-  // Opened again, it is simply version 2.
+  // Opened again, it is simply version 3 (1 -> 2 -> 3: the credential tables exist).
   Store again = open_ok(tmp.path());
   CHECK(again.get_job(2).value()->state == "paused");
+  CHECK(again.list_credentials().value().empty());
 }
 
 TEST_CASE("delete_job removes an ended job, its tiles and its unshared scene, and nothing else", "[store]") {

@@ -1,10 +1,13 @@
 // dtraced::collector admission: whether a request may reach a handler, decided in one place.
 //
-// Owns: admit(), the one rule for a request's head (the health check needs no token; every other
-// request needs the bearer token, then a route; the route sets the body limit), which both the
+// Owns: admit(), the one rule for a request's head (the health check, the CA and enrollment need
+// no token; every other request needs a live credential's bearer token (401; a revoked one gets
+// "this credential was revoked"), then a route, then a role that may call it (credentials.h,
+// route_allows: 403); the route sets the body limit), which both the
 // server's header check (before the body is read) and the handler (for requests that reach it
 // by other paths, such as tests) apply; and the body check the handler adds once the body is in.
-// Pure functions of the request and the immutable token check: tested without sockets.
+// Pure functions of the request, the token check and the credential table: tested without
+// sockets.
 //
 // Also LogThrottle, which keeps a flood of refused requests from flooding the log.
 //
@@ -15,6 +18,7 @@
 #include <cstdint>
 #include <optional>
 
+#include "collector/credentials.h"
 #include "collector/refusal.h"
 #include "collector/routes.h"
 #include "collector/web_session.h"
@@ -28,10 +32,14 @@ struct Admitted {
   // The largest body this request may carry: the route's limit under the configured cap, or
   // no limit of the collector's own for the health check (the server's limit still holds).
   std::uint64_t body_limit = 0;
+  // Who sent it: the bearer token's credential, or the page session's; nullopt for the routes
+  // that need none (route_is_public).
+  std::optional<Principal> who;
 };
 
 // The health check (no token), else the token (401), else the route (404, 405, 400). The page's
-// targets (web_access.h) are 404 here: this is admission without the web page.
+// targets (web_access.h) are 404 here: this is admission without the web page. Only the operator
+// token is known (no credentials).
 util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes);
 
 // What admission needs to know of the web page: whether it is served, its sessions, the time.
@@ -47,6 +55,16 @@ struct PageAccess {
 // the session's CSRF header (403). A page route's body limit is kMaxPageBodyBytes.
 util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes,
                                       const PageAccess& page);
+
+// As above with the credentials of `table` too, and the role check (a page session has the role
+// of the token that signed in, and is refused once that credential is revoked). When a role is
+// refused (403), `refused_role` (if given) says which.
+util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, const CredentialTable& table,
+                                      std::uint64_t max_body_bytes, const PageAccess& page,
+                                      std::optional<Role>* refused_role = nullptr);
+
+// The 403 of a role that may not call `kind`.
+Refusal role_refusal(Role role, RouteKind kind);
 
 // 413 when the body is over the admitted limit.
 util::Result<void, Refusal> check_body_size(std::uint64_t body_bytes, std::uint64_t body_limit);

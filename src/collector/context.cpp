@@ -69,6 +69,9 @@ MetricsSnapshot Context::metrics() const {
   m.restored_tiles = restored_tiles;
   for (const auto& [id, job] : jobs) ++m.jobs_by_state[static_cast<std::size_t>(job.state)];
   m.counters = counters;
+  for (const Role r : {Role::kViewer, Role::kClient, Role::kWorker}) {
+    m.credentials_by_role[static_cast<std::size_t>(r)] = credentials.live(r);
+  }
   m.queue = queue.stats();
   if (server) m.http = server->metrics();
   m.store = writer ? writer->stats() : last_writer_stats;

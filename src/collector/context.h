@@ -33,6 +33,7 @@
 #include "async/async.h"
 #include "collector/admission.h"
 #include "collector/config.h"
+#include "collector/credentials.h"
 #include "collector/jobs.h"
 #include "collector/linger.h"
 #include "collector/metrics.h"
@@ -116,6 +117,17 @@ struct Context {
   // The web page's sessions and its failed sign-ins (web_session.h).
   SessionStore sessions;
   SignInLimiter sign_ins;
+
+  // Roles and enrollment (credentials.h): every credential (loaded from the store by
+  // open_collector, kept in step with it by handlers/credentials.cpp), and failed enrollments
+  // (POST /v1/enroll with a wrong, used or expired code), limited like sign-ins.
+  CredentialTable credentials;
+  SignInLimiter enroll_attempts;
+  // The CA that workers trust, set by the wiring before the loop runs (Collector::
+  // set_certificate_authority): GET /v1/ca answers ca_pem (404 when empty: plain HTTP), and join
+  // codes carry ca_fingerprint (SHA-256 of the CA certificate's DER; none on plain HTTP).
+  std::string ca_pem;
+  std::optional<CaFingerprint> ca_fingerprint;
 };
 
 }  // namespace dtraced::collector

@@ -13,6 +13,8 @@
 //   handlers/manage.cpp          POST /v1/jobs/{id}/priority, .../requeue, .../pause, .../resume
 //   handlers/delete.cpp          DELETE /v1/jobs/{id}
 //   handlers/workers.cpp         GET /v1/workers, and the registry updates of lease and tiles
+//   handlers/credentials.cpp     GET /v1/ca, POST /v1/enroll-codes, POST /v1/enroll,
+//                                POST and GET /v1/credentials, POST /v1/credentials/{name}/revoke
 //   handlers/web.cpp             GET /, /ui/<file>, /ui/session (POST, GET, DELETE),
 //                                GET /ui/api/jobs/{id}/tiles, POST /ui/api/jobs/{id}/focus
 //
@@ -38,9 +40,13 @@ http::Response list_jobs(const Context& c, const Route& route);
 http::Response get_job(const Context& c, JobId id);
 async::Awaitable<http::Response> cancel_job(Context& c, JobId id);
 
-async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req);
+// `who`: a worker credential's name is the worker's name (the request's own name is ignored);
+// the operator token keeps the name the worker sends (protocol::kWorkerHeader, the lease body).
+async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req, const Principal& who);
 
-http::Response lease_tile(Context& c, const http::Request& req);
+http::Response lease_tile(Context& c, const http::Request& req, const Principal& who);
+// The name a worker is recorded under: the credential's for a worker credential, else `sent`.
+std::string recorded_worker_name(const Principal& who, std::string sent);
 
 async::Awaitable<http::Response> get_scene(Context& c, std::string digest);
 // `frame`: a frame number of the job (404 when it renders no such frame); without it, the frame
@@ -59,6 +65,22 @@ async::Awaitable<http::Response> delete_job(Context& c, JobId id, bool delete_im
 
 // handlers/workers.cpp
 http::Response list_workers(Context& c);
+
+// handlers/credentials.cpp (credentials.h)
+// GET /v1/ca: Context::ca_pem, 404 when there is none (plain HTTP).
+http::Response get_ca(const Context& c);
+// POST /v1/enroll-codes {"expires_s", "name"} -> 201 {"code", "expires_unix"}.
+async::Awaitable<http::Response> create_enroll_code(Context& c, const http::Request& req);
+// POST /v1/enroll {"code", "name"} -> 201 {"name", "role": "worker", "token"}; 403 for an
+// unknown, used or expired code, 429 past the failed-attempt limit.
+async::Awaitable<http::Response> enroll(Context& c, const http::Request& req);
+// POST /v1/credentials {"name", "role"} -> 201 {"name", "role", "token"}; 409 when the name exists.
+async::Awaitable<http::Response> create_credential(Context& c, const http::Request& req);
+// GET /v1/credentials -> {"credentials": [{"name", "role", "created_unix", "revoked_unix"?}]}.
+http::Response list_credentials(const Context& c);
+// POST /v1/credentials/{name}/revoke -> 200 {"name", "role", "revoked_unix", "leases_released"}:
+// durable first, then refused from the next request on; a worker's leases are re-offered at once.
+async::Awaitable<http::Response> revoke_credential(Context& c, std::string name);
 
 // handlers/web.cpp: the web page (docs/web-access.md)
 // GET / and GET /ui/<file>: an embedded file, with its ETag (304 on If-None-Match).
@@ -87,8 +109,10 @@ std::string request_peer(const http::Request& req);
 std::string peer_text(const WorkerId& id);
 // The sender of `req` under the name it gave.
 WorkerId worker_id(const http::Request& req, std::string name);
-// Counts a lease request in the registry (with the kIsaHeader it carries); logs a first request.
-void note_lease_request(Context& c, const http::Request& req, const protocol::LeaseRequest& lease);
+// Counts a lease request of worker `name` in the registry (with the kIsaHeader it carries); logs a
+// first request.
+void note_lease_request(Context& c, const http::Request& req, const std::string& name,
+                        const protocol::LeaseRequest& lease);
 // Counts a tile upload's outcome; `rays` for a stored one. Logs a first request.
 void note_tile_upload(Context& c, const WorkerId& id, TileOutcome outcome, std::uint64_t rays);
 // A worker leased or returned a tile of `job`.

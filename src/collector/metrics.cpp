@@ -253,6 +253,20 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_auth_failures_total", "counter", "Requests refused for a missing or wrong token.", c.auth_failures);
   w.one("dtraced_web_sign_in_failures_total", "counter", "Web page sign-ins refused (wrong token or too many).",
         c.sign_in_failures);
+  w.header("dtraced_credentials", "gauge", "Live (not revoked) credentials, by role.");
+  for (const Role r : {Role::kViewer, Role::kClient, Role::kWorker}) {
+    w.labelled("dtraced_credentials", "role", role_name(r), m.credentials_by_role[static_cast<std::size_t>(r)]);
+  }
+  w.one("dtraced_enrollments_total", "counter", "Workers enrolled with a join code.", c.enrollments);
+  w.one("dtraced_enroll_failures_total", "counter", "Enrollments refused (unknown, used or expired code, or too many).",
+        c.enroll_failures);
+  w.one("dtraced_credentials_created_total", "counter", "Credentials created by POST /v1/credentials.",
+        c.credentials_created);
+  w.one("dtraced_revocations_total", "counter", "Credentials revoked.", c.revocations);
+  w.header("dtraced_role_refusals_total", "counter", "Requests refused with 403 because of the credential's role.");
+  for (const Role r : {Role::kViewer, Role::kClient, Role::kWorker, Role::kOperator}) {
+    w.labelled("dtraced_role_refusals_total", "role", role_name(r), c.role_refusals[static_cast<std::size_t>(r)]);
+  }
   w.one("dtraced_focus_requests_total", "counter", "Web page requests to render a region of a job first.",
         c.focus_requests);
   w.one("dtraced_focus_tiles_total", "counter", "Tiles moved to the front of their job's queue by those requests.",

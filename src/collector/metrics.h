@@ -18,6 +18,10 @@
 // it), and per-worker counters whose label set is bounded: the kMetricsWorkers most recently seen
 // workers by name, the rest (and every forgotten one) summed as worker="other".
 //
+// Roles and enrollment: dtraced_credentials{role} (live credentials), dtraced_enrollments_total,
+// dtraced_enroll_failures_total, dtraced_credentials_created_total, dtraced_revocations_total,
+// dtraced_role_refusals_total{role} (403: a credential outside its role).
+//
 // Thread safety: plain values and pure functions (read_process_stats reads /proc/self).
 #pragma once
 
@@ -29,6 +33,7 @@
 #include <string_view>
 #include <vector>
 
+#include "collector/credentials.h"
 #include "collector/queue.h"
 #include "collector/workers.h"
 #include "http/server.h"
@@ -69,11 +74,16 @@ struct CollectorCounters {
   std::uint64_t lease_retries = 0;    // "retry after" answers
   std::uint64_t restored_tile_leases = 0;
   std::uint64_t restored_tile_submissions = 0;
-  std::uint64_t auth_failures = 0;     // 401
-  std::uint64_t sign_in_failures = 0;  // POST /ui/session with a wrong token, or refused (429)
-  std::uint64_t focus_requests = 0;    // POST /ui/api/jobs/{id}/focus answered 200
-  std::uint64_t focus_tiles = 0;       // tiles those requests moved to the front
-  std::uint64_t store_busy = 0;        // 503 because the store's queue was full or a write failed
+  std::uint64_t auth_failures = 0;                        // 401
+  std::uint64_t sign_in_failures = 0;                     // POST /ui/session with a wrong token, or refused (429)
+  std::uint64_t focus_requests = 0;                       // POST /ui/api/jobs/{id}/focus answered 200
+  std::uint64_t focus_tiles = 0;                          // tiles those requests moved to the front
+  std::uint64_t store_busy = 0;                           // 503 because the store's queue was full or a write failed
+  std::uint64_t enrollments = 0;                          // POST /v1/enroll answered 201
+  std::uint64_t enroll_failures = 0;                      // refused: unknown, used or expired code, or rate-limited
+  std::uint64_t credentials_created = 0;                  // POST /v1/credentials answered 201
+  std::uint64_t revocations = 0;                          // credentials revoked by this process
+  std::array<std::uint64_t, kRoleCount> role_refusals{};  // 403 by the role refused (Role's order)
   std::uint64_t images_written = 0;
   std::uint64_t image_write_failures = 0;
   Histogram lease_seconds{0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1};
@@ -101,6 +111,7 @@ struct MetricsSnapshot {
   std::uint64_t restored_tiles = 0;
   // Jobs by protocol::JobState, in enum order (queued, rendering, done, cancelled, paused).
   std::array<std::uint64_t, 5> jobs_by_state{};
+  std::array<std::uint64_t, kRoleCount> credentials_by_role{};  // live ones (operator: always 0)
   CollectorCounters counters;
   QueueStats queue;
   http::ServerMetrics http;

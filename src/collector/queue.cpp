@@ -86,7 +86,7 @@ bool WorkQueue::add_job(JobId id, std::int32_t priority, TileIndex tile_count,
   return true;
 }
 
-LeaseResult WorkQueue::lease(TimePoint now) {
+LeaseResult WorkQueue::lease(TimePoint now, std::string_view holder) {
   Duration soonest = Duration::max();
   for (const auto& [key, id] : active_) {
     Job& job = jobs_.at(id);
@@ -102,7 +102,7 @@ LeaseResult WorkQueue::lease(TimePoint now) {
         ++stats_.leases;
         if (tile.ever_leased) ++stats_.reoffers;
         tile.ever_leased = true;
-        tile.leases.push_back(now);
+        tile.leases.push_back(OutLease{now, holder_id(holder)});
         return {LeaseGrant{id, t}, milliseconds(0)};
       }
       soonest = std::min(soonest, wait);
@@ -126,7 +126,10 @@ CompleteResult WorkQueue::complete(JobId id, TileIndex t, TimePoint now) {
   // A result for a lease that expired, or that a previous collector process handed out, has no
   // start time here: it teaches nothing about tile times.
   if (!tile.leases.empty()) {
-    const TimePoint oldest = *std::min_element(tile.leases.begin(), tile.leases.end());
+    const TimePoint oldest =
+        std::min_element(tile.leases.begin(), tile.leases.end(), [](const OutLease& a, const OutLease& b) {
+          return a.at < b.at;
+        })->at;
     record_duration(job, std::max(Duration::zero(), now - oldest));
   }
   tile.stored = true;
@@ -207,8 +210,8 @@ std::optional<JobProgress> WorkQueue::progress(JobId id, TimePoint now) const {
   const Duration lifetime = lease_lifetime(job);
   for (const Tile& tile : job.tiles) {
     if (tile.stored) continue;
-    for (const TimePoint t : tile.leases) {
-      if (now - t < lifetime) ++p.leases_outstanding;
+    for (const OutLease& l : tile.leases) {
+      if (now - l.at < lifetime) ++p.leases_outstanding;
     }
   }
   return p;
@@ -243,7 +246,7 @@ bool WorkQueue::has_lease(JobId id, TileIndex t, TimePoint now) const {
   const Tile& tile = job.tiles[t];
   if (tile.stored) return false;
   const Duration lifetime = lease_lifetime(job);
-  return std::any_of(tile.leases.begin(), tile.leases.end(), [&](TimePoint l) { return now - l < lifetime; });
+  return std::any_of(tile.leases.begin(), tile.leases.end(), [&](const OutLease& l) { return now - l.at < lifetime; });
 }
 
 Duration WorkQueue::reoffer_bound(JobId id) const {
@@ -261,7 +264,7 @@ Duration WorkQueue::lease_lifetime(const Job& job) const { return scaled(job.bou
 
 void WorkQueue::drop_expired(Tile& tile, const Job& job, TimePoint now) const {
   const Duration lifetime = lease_lifetime(job);
-  std::erase_if(tile.leases, [&](TimePoint t) { return now - t >= lifetime; });
+  std::erase_if(tile.leases, [&](const OutLease& l) { return now - l.at >= lifetime; });
 }
 
 Duration WorkQueue::until_eligible(Tile& tile, const Job& job, TimePoint now) const {
@@ -269,10 +272,10 @@ Duration WorkQueue::until_eligible(Tile& tile, const Job& job, TimePoint now) co
   if (tile.leases.empty()) return Duration::min();
   const Duration lifetime = lease_lifetime(job);
   // Leases are appended as time goes on, so the last is the newest.
-  TimePoint eligible_at = tile.leases.back() + job.bound;
+  TimePoint eligible_at = tile.leases.back().at + job.bound;
   if (tile.leases.size() >= config_.max_copies) {
     // At the copy cap: wait also for enough of the oldest leases to expire.
-    eligible_at = std::max(eligible_at, tile.leases[tile.leases.size() - config_.max_copies] + lifetime);
+    eligible_at = std::max(eligible_at, tile.leases[tile.leases.size() - config_.max_copies].at + lifetime);
   }
   return eligible_at - now;
 }
@@ -290,6 +293,41 @@ void WorkQueue::record_duration(Job& job, Duration d) {
   std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(rank - 1), sorted.end());
   const Duration p90 = sorted[rank - 1];
   job.bound = std::clamp(scaled(p90, config_.reoffer_factor), config_.reoffer_floor, config_.reoffer_ceiling);
+}
+
+std::uint32_t WorkQueue::holder_id(std::string_view holder) {
+  if (holder.empty()) return 0;
+  const auto it = std::find(holders_.begin(), holders_.end(), holder);
+  if (it != holders_.end()) return static_cast<std::uint32_t>(1 + (it - holders_.begin()));
+  if (holders_.size() >= kMaxHolders) return 0;
+  holders_.emplace_back(holder);
+  return static_cast<std::uint32_t>(holders_.size());
+}
+
+std::size_t WorkQueue::release_holder(std::string_view holder) {
+  const auto it = std::find(holders_.begin(), holders_.end(), holder);
+  if (holder.empty() || it == holders_.end()) return 0;
+  const auto id = static_cast<std::uint32_t>(1 + (it - holders_.begin()));
+  std::size_t released = 0;
+  for (auto& [job_id, job] : jobs_) {
+    std::vector<bool> freed(job.tiles.size(), false);
+    bool any = false;
+    for (std::size_t t = 0; t < job.tiles.size(); ++t) {
+      Tile& tile = job.tiles[t];
+      const std::size_t before = tile.leases.size();
+      std::erase_if(tile.leases, [id](const OutLease& l) { return l.holder == id; });
+      if (tile.leases.size() != before) {
+        released += before - tile.leases.size();
+        freed[t] = !tile.stored;
+        any = any || freed[t];
+      }
+    }
+    // Those tiles first, in their present order: the next leases hand them out.
+    if (any) {
+      std::stable_partition(job.ring.begin(), job.ring.end(), [&freed](TileIndex t) { return freed[t]; });
+    }
+  }
+  return released;
 }
 
 void WorkQueue::release_tiles(Job& job) {

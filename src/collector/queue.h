@@ -22,6 +22,9 @@
 //    copies were out it is not known which one answered, and overestimating is the safe side
 //    (a higher bound means fewer duplicates), while underestimating would feed back (a bound
 //    below the true tile time re-offers every tile, and every short measurement lowers it more).
+//  - A lease may name its holder (a worker credential's name). release_holder() forgets every
+//    outstanding lease of a holder (a revoked worker) and moves those tiles to the front of
+//    their jobs' queues, so they are leased again at once, not after the re-offer bound.
 //  - A tile leaves the queue only through complete(), which the caller invokes after the pixels
 //    are durably stored. The first completion wins (kStored); later ones are kAlreadyDone.
 //  - Nothing eligible: lease() suggests when to ask again, the time until the first tile becomes
@@ -44,6 +47,7 @@
 #include <set>
 #include <span>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -140,8 +144,14 @@ class WorkQueue {
   bool add_job(JobId job, std::int32_t priority, TileIndex tile_count, std::span<const TileIndex> already_stored = {},
                std::span<const TileIndex> skipped = {});
 
-  // The next tile to render, or nothing and when to ask again.
-  LeaseResult lease(TimePoint now);
+  // The next tile to render, or nothing and when to ask again. `holder` names who takes it (a
+  // worker credential), "" for nobody in particular.
+  LeaseResult lease(TimePoint now, std::string_view holder = {});
+
+  // Forgets the outstanding leases of `holder` and puts their tiles at the front of their jobs'
+  // queues, so the next lease() hands them out (no re-offer bound to wait for). Returns how many
+  // leases were forgotten. O(tiles of the unfinished jobs). "" releases nothing.
+  std::size_t release_holder(std::string_view holder);
 
   // Records that the tile's pixels are durably stored. Call only after the store committed them.
   // kJobGone for an unknown, removed or cancelled job and for an index out of range.
@@ -188,8 +198,12 @@ class WorkQueue {
   const QueueConfig& config() const { return config_; }
 
  private:
+  struct OutLease {
+    TimePoint at;
+    std::uint32_t holder = 0;  // 1 + index in holders_; 0 for none
+  };
   struct Tile {
-    std::vector<TimePoint> leases;  // outstanding (unexpired) leases, at most max_copies
+    std::vector<OutLease> leases;  // outstanding (unexpired) leases, oldest first, at most max_copies
     bool stored = false;
     bool ever_leased = false;
     bool skipped = false;  // no part of the job (add_job's `skipped`)
@@ -228,6 +242,10 @@ class WorkQueue {
   QueueConfig config_;
   std::map<JobId, Job> jobs_;
   std::set<OrderKey> active_;  // jobs with unfinished tiles, not cancelled, not paused
+  // Names of lease holders, interned (at most kMaxHolders; past that, leases name nobody).
+  std::vector<std::string> holders_;
+  static constexpr std::size_t kMaxHolders = 1 << 16;
+  std::uint32_t holder_id(std::string_view holder);
   QueueStats stats_;
 };
 

@@ -257,6 +257,27 @@ async::Awaitable<> restore_sample_counts(Context& c, JobId id) {
   }
 }
 
+// Every credential, revoked ones too (a revoked token keeps getting "revoked").
+util::Status load_credentials(Context& c, store::Store& s) {
+  auto rows = s.list_credentials();
+  if (!rows) return std::move(rows).error();
+  for (store::StoredCredential& row : rows.value()) {
+    const std::optional<Role> role = credential_role(row.role);
+    util::Sha256Digest digest{};
+    if (!role || row.token_sha256.size() != digest.size()) {
+      return util::Error(
+          fmt::format("{}: credential '{}' has role '{}' or a token digest of {} bytes; expected "
+                      "viewer, client or worker and {} bytes",
+                      s.path(), row.name, row.role, row.token_sha256.size(), digest.size()));
+    }
+    std::copy(row.token_sha256.begin(), row.token_sha256.end(), digest.begin());
+    if (!c.credentials.add(Credential{std::move(row.name), *role, row.created_unix, row.revoked_unix}, digest)) {
+      return util::Error(fmt::format("{}: two credentials share a token digest", s.path()));
+    }
+  }
+  return {};
+}
+
 }  // namespace
 
 util::Status open_collector(Context& c) {
@@ -278,6 +299,7 @@ util::Status open_collector(Context& c) {
   remove_temporaries(c);
   if (auto bumped = bump_epoch(c); !bumped) return bumped;
   if (auto restored = restore(c, s); !restored) return restored;
+  if (auto loaded = load_credentials(c, s); !loaded) return loaded;
   if (c.config.one_shot) {
     if (auto enqueued = enqueue_one_shot(c, s); !enqueued) return enqueued;
   }
@@ -291,8 +313,8 @@ util::Status open_collector(Context& c) {
                          async::log_failure(fmt::format("collector: reading the sample counts of job {}", id)));
   }
   c.to_count.clear();
-  util::log_info("collector: start {} on {}; {} unfinished job(s), {} tile(s) already stored", c.epoch,
-                 c.config.state_dir, c.unfinished_jobs(), c.restored_tiles);
+  util::log_info("collector: start {} on {}; {} unfinished job(s), {} tile(s) already stored, {} credential(s)",
+                 c.epoch, c.config.state_dir, c.unfinished_jobs(), c.restored_tiles, c.credentials.size());
   return {};
 }
 

@@ -18,16 +18,16 @@ namespace dtraced::collector {
 namespace {
 
 // Logs a refused token with the peer's address, at most once per LogThrottle interval.
-void note_auth_failure(Context& c, const http::Request& head) {
+void note_auth_failure(Context& c, const http::Request& head, std::string_view why) {
   ++c.counters.auth_failures;
   std::uint64_t held_back = 0;
   if (!c.auth_failure_log.allow(c.clock.now(), held_back)) return;
   const std::string peer = request_peer(head);
   const auto target = head.target();
   util::log_warn(
-      "collector: refused a request for {} from {}: missing or wrong bearer token{}",
+      "collector: refused a request for {} from {}: {}{}",
       std::string_view(target.data(), std::min<std::size_t>(target.size(), 128)),
-      peer.empty() ? "an unknown address" : peer,
+      peer.empty() ? "an unknown address" : peer, why,
       held_back == 0 ? std::string() : fmt::format(" ({} more refused since the last such line)", held_back));
 }
 
@@ -37,11 +37,13 @@ bool is_page_request(const http::Request& head) {
 
 util::Result<Admitted, Refusal> admit_counted(Context& c, const http::Request& head) {
   const PageAccess page{c.config.web_ui, &c.sessions, c.clock.now()};
-  auto admitted = admit(head, c.token, c.config.limits.max_body_bytes, page);
+  std::optional<Role> refused_role;
+  auto admitted = admit(head, c.token, c.credentials, c.config.limits.max_body_bytes, page, &refused_role);
   // A page request without a session is no refused token (the page asks before it signs in).
   if (!admitted && admitted.error().status == http::Status::unauthorized && !is_page_request(head)) {
-    note_auth_failure(c, head);
+    note_auth_failure(c, head, admitted.error().error.message);
   }
+  if (refused_role) ++c.counters.role_refusals[static_cast<std::size_t>(*refused_role)];
   return admitted;
 }
 
@@ -54,9 +56,9 @@ http::Response with_page_headers(const http::Request& head, http::Response res, 
 
 async::Awaitable<http::Response> dispatch(Context& c, http::Request req);
 
-http::Response timed_lease(Context& c, const http::Request& req) {
+http::Response timed_lease(Context& c, const http::Request& req, const Principal& who) {
   const TimePoint start = c.clock.now();
-  http::Response res = lease_tile(c, req);
+  http::Response res = lease_tile(c, req, who);
   c.counters.lease_seconds.observe(std::chrono::duration<double>(c.clock.now() - start).count());
   return res;
 }
@@ -75,7 +77,7 @@ bool is_authenticated(const Context& c, const http::Request& head) {
     const std::string cookie = session_cookie(head);
     return !cookie.empty() && c.sessions.find(cookie, c.clock.now()).has_value();
   }
-  return c.token.accepts(head);
+  return authenticate(head, c.token, c.credentials).kind == Authentication::Kind::kLive;
 }
 
 async::Awaitable<http::Response> handle_request(Context& c, http::Request req) {
@@ -98,6 +100,8 @@ async::Awaitable<http::Response> dispatch(Context& c, http::Request req) {
   auto admitted = admit_counted(c, req);
   if (!admitted) co_return respond(admitted.error());
   Route route = std::move(admitted->route);
+  // Every route but the public ones has a principal (admission.h).
+  const Principal who = admitted->who.value_or(Principal{});
   if (route.kind == RouteKind::kHealthz) co_return get_health();
   if (auto sized = check_body_size(req.body().size(), admitted->body_limit); !sized) co_return respond(sized.error());
   if (!c.opened) co_return respond(busy("the collector is starting"));
@@ -119,11 +123,11 @@ async::Awaitable<http::Response> dispatch(Context& c, http::Request req) {
     case RouteKind::kCancelJob:
       co_return co_await cancel_job(c, route.job);
     case RouteKind::kLease:
-      co_return timed_lease(c, req);
+      co_return timed_lease(c, req, who);
     case RouteKind::kScene:
       co_return co_await get_scene(c, std::move(route.digest));
     case RouteKind::kPutTile:
-      co_return co_await put_tile(c, std::move(route), std::move(req));
+      co_return co_await put_tile(c, std::move(route), std::move(req), who);
     case RouteKind::kJobPriority:
       co_return co_await set_job_priority(c, route.job, std::move(req));
     case RouteKind::kRequeueJob:
@@ -136,6 +140,18 @@ async::Awaitable<http::Response> dispatch(Context& c, http::Request req) {
       co_return co_await delete_job(c, route.job, route.delete_image);
     case RouteKind::kWorkers:
       co_return list_workers(c);
+    case RouteKind::kCa:
+      co_return get_ca(c);
+    case RouteKind::kCreateEnrollCode:
+      co_return co_await create_enroll_code(c, req);
+    case RouteKind::kEnroll:
+      co_return co_await enroll(c, req);
+    case RouteKind::kCreateCredential:
+      co_return co_await create_credential(c, req);
+    case RouteKind::kListCredentials:
+      co_return list_credentials(c);
+    case RouteKind::kRevokeCredential:
+      co_return co_await revoke_credential(c, route.name);
     case RouteKind::kPageAsset:
       co_return get_page_asset(route.asset, req);
     case RouteKind::kSessionCreate:

@@ -22,8 +22,9 @@ namespace dtraced::collector {
 // The server's header check (http::Server::HeaderCheck).
 std::optional<http::Response> check_request_header(Context& c, const http::Request& head, std::uint64_t& body_limit);
 
-// The server's authenticated predicate (http::Server::Authenticated): the request carries the
-// bearer token, so its connection keeps its slot under a flood of unauthenticated ones.
+// The server's authenticated predicate (http::Server::Authenticated): the request carries a live
+// credential's bearer token (or the operator's), so its connection keeps its slot under a flood
+// of unauthenticated ones.
 bool is_authenticated(const Context& c, const http::Request& head);
 
 // The server's handler (http::Server::Handler).

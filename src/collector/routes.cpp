@@ -10,6 +10,7 @@
 #include <fmt/format.h>
 #include <openssl/crypto.h>
 
+#include "collector/credentials.h"
 #include "collector/web_access.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
@@ -302,6 +303,29 @@ util::Result<Route, Refusal> match_route(http::Verb method, std::string_view tar
   } else if (is({"v1", "workers"})) {
     route.kind = RouteKind::kWorkers;
     allow = "GET";
+  } else if (is({"v1", "ca"})) {
+    route.kind = RouteKind::kCa;
+    allow = "GET";
+  } else if (is({"v1", "enroll"})) {
+    route.kind = RouteKind::kEnroll;
+    allow = "POST";
+  } else if (is({"v1", "enroll-codes"})) {
+    route.kind = RouteKind::kCreateEnrollCode;
+    allow = "POST";
+  } else if (is({"v1", "credentials"})) {
+    if (method == http::Verb::post) {
+      route.kind = RouteKind::kCreateCredential;
+    } else if (method == http::Verb::get) {
+      route.kind = RouteKind::kListCredentials;
+    } else {
+      return wrong_method("GET, POST");
+    }
+    allow = method == http::Verb::post ? "POST" : "GET";
+  } else if (is({"v1", "credentials", "", "revoke"})) {
+    if (!is_credential_name(seg[2])) return not_found();
+    route.kind = RouteKind::kRevokeCredential;
+    route.name = std::string(seg[2]);
+    allow = "POST";
   } else if (is({"v1", "lease"})) {
     route.kind = RouteKind::kLease;
     allow = "POST";
@@ -397,6 +421,11 @@ std::uint64_t route_body_limit(const Route& route) {
     default:
       return route.page ? kMaxPageBodyBytes : route_body_limit(route.kind);
   }
+}
+
+bool is_public_path(std::string_view target) {
+  const std::string_view path = target.substr(0, target.find('?'));
+  return path == "/healthz" || path == "/v1/ca" || path == "/v1/enroll";
 }
 
 bool is_health_check(http::Verb method, std::string_view target) {

@@ -14,6 +14,11 @@
 //   POST /v1/jobs/{id}/pause           POST /v1/jobs/{id}/resume
 //   DELETE /v1/jobs/{id}[?image=keep|delete]
 //   GET  /v1/workers
+//   GET  /v1/ca                        no token (the CA workers trust; 404 on plain HTTP)
+//   POST /v1/enroll                    no token (a join code buys a worker credential)
+//   POST /v1/enroll-codes              POST /v1/credentials       GET /v1/credentials
+//   POST /v1/credentials/{name}/revoke
+// Which credential may call what: credentials.h (route_allows).
 //   GET /v1/jobs takes ?state=S&limit=N (each at most once)
 //
 // The web page (docs/web-access.md; off with --no-web-ui, then all of these are 404):
@@ -72,6 +77,13 @@ enum class RouteKind {
   kResumeJob,    // POST /v1/jobs/{id}/resume
   kDeleteJob,    // DELETE /v1/jobs/{id}
   kWorkers,
+  // Roles and enrollment (credentials.h, handlers/credentials.cpp).
+  kCa,                // GET /v1/ca
+  kCreateEnrollCode,  // POST /v1/enroll-codes
+  kEnroll,            // POST /v1/enroll
+  kCreateCredential,  // POST /v1/credentials
+  kListCredentials,   // GET /v1/credentials
+  kRevokeCredential,  // POST /v1/credentials/{name}/revoke
   // The web page (web_access.h, docs/web-access.md).
   kPageAsset,      // GET / and GET /ui/<file>: an embedded file (web/assets.h)
   kSessionCreate,  // POST /ui/session: sign in
@@ -93,6 +105,7 @@ struct Route {
   std::optional<std::uint32_t> image_frame = std::nullopt;     // kJobImage, kJobTiles: ?frame=N, a frame number
   std::string asset = {};                                      // kPageAsset: its URL path
   std::uint64_t since = 0;                                     // kJobTiles: ?since=SEQ
+  std::string name = {};                                       // kRevokeCredential: the credential
   // Reached through the page (/ui/api/...): the session cookie, not the bearer token, admitted it.
   bool page = false;
   bool operator==(const Route&) const = default;
@@ -112,11 +125,16 @@ std::uint64_t route_body_limit(const Route& route);
 // offers; never a worker's route, a submission or a delete).
 bool page_may_call(RouteKind kind);
 
-// Everything but the health check needs the token.
-inline bool route_needs_token(RouteKind kind) { return kind != RouteKind::kHealthz; }
+// Everything but the health check, the CA and enrollment needs a token.
+inline bool route_needs_token(RouteKind kind) {
+  return kind != RouteKind::kHealthz && kind != RouteKind::kCa && kind != RouteKind::kEnroll;
+}
 
 // True for exactly `GET /healthz` (with or without a query): answered before the token check.
 bool is_health_check(http::Verb method, std::string_view target);
+// True for the paths of the routes that need no token: /healthz, /v1/ca and /v1/enroll (any
+// method, so that a wrong one gets its 405 without a token).
+bool is_public_path(std::string_view target);
 
 // Accepts `Authorization: Bearer <token>` (scheme case-insensitive) for the one token it was
 // built with. The comparison is over the SHA-256 digests of the presented and the expected token

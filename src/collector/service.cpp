@@ -121,6 +121,11 @@ void Collector::run_until_idle() {
   context_->ioc->run();
 }
 
+void Collector::set_certificate_authority(std::string ca_pem, std::optional<std::array<std::uint8_t, 32>> fingerprint) {
+  context_->ca_pem = std::move(ca_pem);
+  context_->ca_fingerprint = fingerprint;
+}
+
 MetricsSnapshot Collector::metrics() const { return context_->metrics(); }
 
 net::io_context& Collector::io_context() { return *context_->ioc; }

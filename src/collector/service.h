@@ -43,8 +43,11 @@
 // concurrently; handle() on the loop; stop() and port() from any thread.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <memory>
+#include <optional>
+#include <string>
 
 #include <boost/asio/awaitable.hpp>
 #include <boost/asio/io_context.hpp>
@@ -96,6 +99,11 @@ class Collector {
   // started (an image being written) is over too.
   http::Response handle_sync(http::Request req);
   void run_until_idle();
+
+  // The CA that workers must trust (TLS wiring): GET /v1/ca answers `ca_pem`, and join codes
+  // carry `fingerprint` (SHA-256 of the CA certificate's DER bytes). Without a call (plain HTTP)
+  // GET /v1/ca is 404 and join codes have an empty fingerprint. Call before run().
+  void set_certificate_authority(std::string ca_pem, std::optional<std::array<std::uint8_t, 32>> fingerprint);
 
   // A snapshot of every metric, as GET /metrics shows it. On the loop, or while it does not run.
   MetricsSnapshot metrics() const;

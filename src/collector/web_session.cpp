@@ -34,7 +34,7 @@ std::optional<util::Sha256Digest> SessionStore::key_of(std::string_view id) cons
   return util::sha256_bytes(id);
 }
 
-std::optional<SessionStore::Created> SessionStore::create(TimePoint now) {
+std::optional<SessionStore::Created> SessionStore::create(TimePoint now, Principal who) {
   sweep(now);
   std::optional<std::string> id = random_hex();
   std::optional<std::string> csrf = random_hex();
@@ -45,7 +45,7 @@ std::optional<SessionStore::Created> SessionStore::create(TimePoint now) {
     });
     sessions_.erase(oldest);
   }
-  sessions_[util::sha256_bytes(*id)] = Session{*csrf, now};
+  sessions_[util::sha256_bytes(*id)] = Session{*csrf, now, std::move(who)};
   return Created{std::move(*id), std::move(*csrf)};
 }
 
@@ -56,7 +56,7 @@ std::optional<SessionStore::Live> SessionStore::find(std::string_view id, TimePo
   if (it == sessions_.end()) return std::nullopt;
   const TimePoint expires = it->second.created + limits_.lifetime;
   if (now >= expires) return std::nullopt;
-  return Live{it->second.csrf, expires - now};
+  return Live{it->second.csrf, expires - now, it->second.who};
 }
 
 bool SessionStore::csrf_matches(std::string_view id, std::string_view csrf, TimePoint now) const {

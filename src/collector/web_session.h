@@ -1,12 +1,11 @@
 // dtraced::collector web sessions: who signed in to the web page, in memory only.
 //
 // Owns: the session store behind the page's cookie (docs/web-access.md). Signing in with the
-// farm's bearer token creates a session: a random id (32 bytes from OpenSSL's RAND_bytes, 64 hex
-// digits: the cookie) and a random CSRF token (the same size: the page sends it back in a header
-// on every request that changes state). The store keeps only the SHA-256 digest of each id, so
-// its memory never holds a usable cookie. Sessions live for `lifetime` from sign-in; at most
-// `max_sessions` are kept (signing in past the cap drops the oldest). A collector restart signs
-// everyone out.
+// farm's bearer token (or a viewer's or client's credential) creates a session: a random id (32 bytes from OpenSSL's
+// RAND_bytes, 64 hex digits: the cookie) and a random CSRF token (the same size: the page sends it back in a header on
+// every request that changes state). The store keeps only the SHA-256 digest of each id, so its memory never holds a
+// usable cookie. Sessions live for `lifetime` from sign-in; at most `max_sessions` are kept (signing in past the cap
+// drops the oldest). A collector restart signs everyone out.
 //
 // Also SignInLimiter: failed sign-ins in a sliding window; past the limit every sign-in is
 // refused (429) until the window has room again, so the token cannot be guessed quickly.
@@ -25,6 +24,7 @@
 #include <string>
 #include <string_view>
 
+#include "collector/credentials.h"
 #include "collector/queue.h"
 #include "util/sha256.h"
 
@@ -46,12 +46,14 @@ class SessionStore {
     std::string id;    // the cookie's value
     std::string csrf;  // the X-Dtraced-CSRF header's value
   };
-  // A new session from `now`; nullopt when the system's random source fails.
-  std::optional<Created> create(TimePoint now);
+  // A new session from `now` for `who` (the token that signed in: the operator's by default);
+  // nullopt when the system's random source fails.
+  std::optional<Created> create(TimePoint now, Principal who = Principal{"", Role::kOperator});
 
   struct Live {
     std::string csrf;
     Duration remaining{};  // until it expires
+    Principal who;         // who signed in (admission re-checks a credential is not revoked)
   };
   // The live session of cookie value `id`, or nullopt (unknown, malformed or expired).
   std::optional<Live> find(std::string_view id, TimePoint now) const;
@@ -72,6 +74,7 @@ class SessionStore {
   struct Session {
     std::string csrf;
     TimePoint created;
+    Principal who;
   };
   std::optional<util::Sha256Digest> key_of(std::string_view id) const;
 

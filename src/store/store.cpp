@@ -63,8 +63,34 @@ CREATE TABLE tiles(
   stored_unix INTEGER NOT NULL,
   PRIMARY KEY (job, tile)
 ) STRICT;
-INSERT INTO meta(key, value) VALUES ('schema_version', 2);
+{}
+INSERT INTO meta(key, value) VALUES ('schema_version', 3);
 INSERT INTO meta(key, value) VALUES ('last_job_id', 0);
+)sql";
+
+// The tables of version 3: credentials and join codes (digests only, never a token or secret).
+constexpr std::string_view kCredentialTablesSql = R"sql(
+CREATE TABLE credentials(
+  name TEXT PRIMARY KEY NOT NULL,
+  role TEXT NOT NULL CHECK (role IN ('viewer', 'client', 'worker')),
+  token_sha256 BLOB NOT NULL UNIQUE CHECK (length(token_sha256) = 32),
+  created_unix INTEGER NOT NULL,
+  revoked_unix INTEGER
+) STRICT;
+CREATE TABLE join_codes(
+  secret_sha256 BLOB PRIMARY KEY NOT NULL CHECK (length(secret_sha256) = 32),
+  name_hint TEXT,
+  created_unix INTEGER NOT NULL,
+  expires_unix INTEGER NOT NULL,
+  used_unix INTEGER,
+  used_by TEXT
+) STRICT;
+)sql";
+
+// Version 2 -> 3: the two new tables; nothing else changes.
+constexpr std::string_view kMigrateV2Sql = R"sql(
+{}
+UPDATE meta SET value = 3 WHERE key = 'schema_version';
 )sql";
 
 // Version 1 -> 2: the jobs table gains the state 'paused' (its CHECK changes, so the table is
@@ -84,13 +110,16 @@ UPDATE meta SET value = 2 WHERE key = 'schema_version';
 // What check_schema expects of an existing file: each table and its columns, in order.
 struct TableSpec {
   std::string_view name;
-  std::string_view columns;  // comma-separated, as joined by check_schema
+  std::string_view columns;        // comma-separated, as joined by check_schema
+  std::int64_t since_version = 1;  // older files lack the table (their upgrade creates it)
 };
 constexpr TableSpec kTables[] = {
     {"meta", "key,value"},
     {"scenes", "digest,json"},
     {"jobs", "id,digest,settings_json,output,priority,tile_size,state,created_unix,finished_unix,client_key"},
     {"tiles", "job,tile,pixels,worker,stored_unix"},
+    {"credentials", "name,role,token_sha256,created_unix,revoked_unix", 3},
+    {"join_codes", "secret_sha256,name_hint,created_unix,expires_unix,used_unix,used_by", 3},
 };
 
 constexpr std::string_view kRefuse =
@@ -167,13 +196,15 @@ Status Store::Impl::check_schema() {
       return Error{fmt::format("{}: schema_version is not an integer ('{}'); {}", path, column_text(s, 0), kRefuse)};
     }
     const std::int64_t version = sqlite3_column_int64(s, 0);
-    if (version != kSchemaVersion && version != kOldestMigratedVersion) {
-      return Error{fmt::format("{}: schema version {} is not a version this dtraced uses ({}) or upgrades ({}); {}",
-                               path, version, kSchemaVersion, kOldestMigratedVersion, kRefuse)};
+    if (version < kOldestMigratedVersion || version > kSchemaVersion) {
+      return Error{
+          fmt::format("{}: schema version {} is not a version this dtraced uses ({}) or upgrades ({} to {}); {}", path,
+                      version, kSchemaVersion, kOldestMigratedVersion, kSchemaVersion - 1, kRefuse)};
     }
     found_version = version;
   }
   for (const TableSpec& spec : kTables) {
+    if (spec.since_version > found_version) continue;
     if (!has_table(spec.name)) {
       return Error{
           fmt::format("{}: schema version {} but table '{}' is missing; {}", path, found_version, spec.name, kRefuse)};
@@ -200,7 +231,7 @@ Status Store::Impl::check_schema() {
 Status Store::Impl::create_schema() {
   if (auto st = exec(kSqlBegin); !st) return st;
   char* message = nullptr;
-  const std::string sql = fmt::format(fmt::runtime(kCreateSchemaSql), kJobsColumnsSql);
+  const std::string sql = fmt::format(fmt::runtime(kCreateSchemaSql), kJobsColumnsSql, kCredentialTablesSql);
   const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
   if (rc != SQLITE_OK) {
     Error e{fmt::format("{}: creating the schema: {} (code {})", path, message != nullptr ? message : "?", rc)};
@@ -268,6 +299,26 @@ Status Store::Impl::migrate_v1() {
     util::log_warn("{}: could not switch to incremental vacuum ({}); space of deleted jobs is reused, not released",
                    path, detail(st.error().message));
   }
+  return {};
+}
+
+Status Store::Impl::migrate_v2() {
+  if (auto st = exec(kSqlBegin); !st) return st;
+  char* message = nullptr;
+  const std::string sql = fmt::format(fmt::runtime(kMigrateV2Sql), kCredentialTablesSql);
+  const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
+  if (rc != SQLITE_OK) {
+    Error e{fmt::format("{}: upgrading the schema from version 2 to 3: {} (code {}); the database is unchanged", path,
+                        message != nullptr ? message : "?", rc)};
+    sqlite3_free(message);
+    rollback();
+    return e;
+  }
+  if (auto st = exec(kSqlCommit); !st) {
+    rollback();
+    return st;
+  }
+  util::log_info("{}: upgraded the schema from version 2 to 3 (credentials and join codes)", path);
   return {};
 }
 
@@ -359,8 +410,13 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   if (fresh) {
     if (auto st = impl->create_schema(); !st) return st.error();
     util::log_info("{}: created a new database (schema version {})", path, kSchemaVersion);
-  } else if (impl->found_version == kOldestMigratedVersion) {
-    if (auto st = impl->migrate_v1(); !st) return st.error();
+  } else {
+    if (impl->found_version == 1) {
+      if (auto st = impl->migrate_v1(); !st) return st.error();
+    }
+    if (impl->found_version <= 2) {
+      if (auto st = impl->migrate_v2(); !st) return st.error();
+    }
   }
   if (options.max_database_bytes > 0) {
     auto page = impl->exec_rows("PRAGMA page_size");

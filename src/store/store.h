@@ -4,14 +4,19 @@
 //
 // Owns: opening the database (and refusing a bad one), the schema, and every query.
 //
-// Schema (version 2, STRICT tables, documented in docs/http-api.md too):
-//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 2), ('last_job_id', N)
+// Schema (version 3, STRICT tables, documented in docs/http-api.md too):
+//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 3), ('last_job_id', N)
 //   scenes(digest TEXT PRIMARY KEY, json TEXT)       -- immutable, content-addressed
 //   jobs(id INTEGER PRIMARY KEY, digest -> scenes, settings_json, output, priority, tile_size,
 //        state IN ('queued','rendering','done','cancelled','paused'), created_unix, finished_unix,
 //        client_key TEXT UNIQUE NULL)
 //   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
 //   (what a pixels blob holds is the collector's business: collector/jobs.h, pixels_to_blob)
+//   credentials(name TEXT PRIMARY KEY, role TEXT, token_sha256 BLOB UNIQUE, created_unix,
+//        revoked_unix NULL)                       -- a revoked credential stays, revoked
+//   join_codes(secret_sha256 BLOB PRIMARY KEY, name_hint NULL, created_unix, expires_unix,
+//        used_unix NULL, used_by NULL)            -- single use: enroll() marks it used
+//   (only digests of tokens and secrets are stored: the database never holds a usable one)
 //
 // Failures: every call returns a util::Result or util::Status. An expected failure (a bad
 // database file, a constraint violation, a full disk) is a util::Error whose message names the
@@ -27,8 +32,9 @@
 // on a full disk, start-up and reads work, and writes fail with a message until space frees.
 // checkpoint() keeps the WAL short.
 //
+// Version 2 (no credentials, no join_codes) is upgraded in place by creating the two tables.
 // Version 1 (no 'paused' state, no last_job_id) is upgraded in place, in one transaction, when
-// opened; the upgrade also switches the file to incremental auto-vacuum when there is room for
+// opened (then on to version 3); the upgrade also switches the file to incremental auto-vacuum when there is room for
 // the VACUUM that takes (new files have it from the start), so delete_job returns space.
 //
 // Opening never replaces, truncates or deletes an existing file. A file that is not an SQLite
@@ -61,7 +67,7 @@
 
 namespace dtraced::store {
 
-inline constexpr std::int64_t kSchemaVersion = 2;
+inline constexpr std::int64_t kSchemaVersion = 3;
 inline constexpr std::int64_t kOldestMigratedVersion = 1;  // opened and upgraded to kSchemaVersion
 inline constexpr std::string_view kDatabaseFileName = "dtraced.db";
 // How long a statement waits for another connection's lock before failing with SQLITE_BUSY.
@@ -167,6 +173,44 @@ struct StateChange {
 };
 inline constexpr std::size_t kMaxStateChangeSources = 4;
 
+// A credential (collector/credentials.h says what the roles mean). The token itself is never
+// stored, only its SHA-256 digest.
+struct StoredCredential {
+  std::string name;
+  std::string role;
+  Blob token_sha256;  // 32 bytes
+  std::int64_t created_unix = 0;
+  std::optional<std::int64_t> revoked_unix;
+  bool operator==(const StoredCredential&) const = default;
+};
+
+// A join code (enrollment); only the SHA-256 digest of its secret is stored.
+struct StoredJoinCode {
+  Blob secret_sha256;  // 32 bytes
+  std::optional<std::string> name_hint;
+  std::int64_t created_unix = 0;
+  std::int64_t expires_unix = 0;
+  std::optional<std::int64_t> used_unix;
+  std::optional<std::string> used_by;  // the credential it enrolled
+  bool operator==(const StoredJoinCode&) const = default;
+};
+
+// What enroll() did.
+enum class EnrollOutcome {
+  kEnrolled,  // the credential is stored and the code marked used, in one transaction
+  kUnknown,   // no such code
+  kUsed,      // the code was used before (code->used_by says by whom)
+  kExpired,   // the code's expires_unix is not after now
+  kNoName,    // every candidate name is taken (kMaxEnrollNameTries)
+};
+struct Enrollment {
+  EnrollOutcome outcome = EnrollOutcome::kUnknown;
+  std::string name;                    // kEnrolled: the credential's name
+  std::optional<StoredJoinCode> code;  // as found (before it was marked used)
+};
+// enroll() tries `base`, then `base-2`, `base-3`, ... up to this many names.
+inline constexpr int kMaxEnrollNameTries = 1000;
+
 struct OpenOptions {
   // PRAGMA quick_check and foreign_key_check read the whole file. The first connection of a
   // process runs them; further connections to a file already verified may skip them.
@@ -239,6 +283,24 @@ class Store {
   util::Result<std::uint64_t> count_tiles(std::int64_t job);
   util::Result<std::optional<StoredTile>> get_tile(std::int64_t job, std::uint32_t tile);
   util::Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);  // ascending tile index
+
+  // Credentials. insert_credential: false (changing nothing) when the name or the token digest is
+  // taken. revoke_credential: false when there is no such credential or it is revoked already
+  // (the first revocation time stays). list_credentials: every one, revoked ones too, by name.
+  util::Result<bool> insert_credential(const StoredCredential& credential);
+  util::Result<bool> revoke_credential(std::string_view name, std::int64_t revoked_unix);
+  util::Result<std::vector<StoredCredential>> list_credentials();
+
+  // Join codes. insert_join_code fails when the digest exists (16 random bytes: never by chance).
+  util::Status insert_join_code(const StoredJoinCode& code);
+  util::Result<std::optional<StoredJoinCode>> get_join_code(std::span<const std::uint8_t> secret_sha256);
+  util::Result<std::vector<StoredJoinCode>> list_join_codes();  // by creation time
+  // In one transaction: finds the code, refuses it when unknown, used or expired at `now_unix`;
+  // else stores a credential of `role` with the first free name of `base`, `base-2`, ... and
+  // marks the code used by it. Nothing changes unless the outcome is kEnrolled.
+  util::Result<Enrollment> enroll(std::span<const std::uint8_t> secret_sha256, std::string_view base,
+                                  std::string_view role, std::span<const std::uint8_t> token_sha256,
+                                  std::int64_t now_unix);
 
   // Copies the WAL into the database file and empties the WAL file (wal_checkpoint(TRUNCATE)),
   // without waiting for other connections: while a reader still uses an older snapshot, it copies

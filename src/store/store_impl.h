@@ -92,6 +92,10 @@ class Query {
   Query& bind(std::string_view v) {
     return check(sqlite3_bind_text64(s_, next_++, v.empty() ? "" : v.data(), v.size(), SQLITE_STATIC, SQLITE_UTF8));
   }
+  Query& bind_optional(const std::optional<std::int64_t>& v) {
+    if (!v) return check(sqlite3_bind_null(s_, next_++));
+    return bind(*v);
+  }
   Query& bind_optional(const std::optional<std::string>& v) {
     if (!v) return check(sqlite3_bind_null(s_, next_++));
     return bind(std::string_view(*v));
@@ -220,6 +224,9 @@ struct Store::Impl {
   Status verify_integrity();
   Status create_schema();
   Status migrate_v1();  // schema version 1 -> 2, on a verified file of version 1
+  Status migrate_v2();  // schema version 2 -> 3: the credentials and join_codes tables
+  Result<std::optional<StoredJoinCode>> find_join_code(std::span<const std::uint8_t> secret_sha256);
+  Result<bool> name_taken(std::string_view name);
 };
 
 }  // namespace dtraced::store

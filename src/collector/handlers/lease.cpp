@@ -33,15 +33,18 @@ http::Response finished(Context& c, const http::Request& req, std::string name) 
 
 }  // namespace
 
-http::Response lease_tile(Context& c, const http::Request& req) {
+http::Response lease_tile(Context& c, const http::Request& req, const Principal& who) {
   auto request = protocol::decode_lease_request(req.body());
   if (!request) return respond(decode_failure(request.error()));
-  note_lease_request(c, req, request.value());
+  // A worker credential is its own name, whatever the body says.
+  const std::string name = recorded_worker_name(who, request.value().worker);
+  note_lease_request(c, req, name, request.value());
   // Lingering before the stop: nothing is leased any more (whatever else is queued resumes after
   // a restart), and every worker hears that this collector is going away.
-  if (c.linger) return finished(c, req, request.value().worker);
+  if (c.linger) return finished(c, req, name);
   const TimePoint now = c.clock.now();
-  const LeaseResult result = c.queue.lease(now);
+  // Leases of a worker credential name it, so revoking it re-offers them at once.
+  const LeaseResult result = c.queue.lease(now, who.role == Role::kWorker ? std::string_view(who.name) : "");
   JobRecord* job = result.grant ? c.find_job(result.grant->job) : nullptr;
   if (!result.grant || job == nullptr || !job->unfinished()) {
     if (result.grant) {
@@ -59,7 +62,7 @@ http::Response lease_tile(Context& c, const http::Request& req) {
                     job->id);
   }
   if (!job->first_lease) job->first_lease = now;
-  note_page_lease(*job, tile, request.value().worker);
+  note_page_lease(*job, tile, name);
   note_job_served(c, job->id);
   if (job->state == protocol::JobState::kQueued) job->state = protocol::JobState::kRendering;
   protocol::Lease lease;

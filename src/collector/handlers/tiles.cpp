@@ -136,8 +136,8 @@ async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol
 
 }  // namespace
 
-async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req) {
-  const WorkerId worker = worker_id(req, worker_name(req));
+async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req, const Principal& who) {
+  const WorkerId worker = worker_id(req, who.role == Role::kWorker ? who.name : worker_name(req));
   c.counters.tile_upload_bytes.observe(double(req.body().size()));
   observe_render_time(c, req);
   const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req));

@@ -174,15 +174,24 @@ http::Response sign_in(Context& c, const http::Request& req) {
   }
   auto token = decode_sign_in(req.body());
   if (!token) return respond(token.error());
-  if (!c.token.accepts_token(*token)) {
+  const Authentication auth = authenticate_token(*token, c.token, c.credentials);
+  if (auth.kind != Authentication::Kind::kLive) {
     c.sign_ins.failed(now);
-    note_sign_in_failure(c, req, "wrong token");
-    return http::make_error(http::Status::unauthorized, "wrong token", "/token");
+    const bool revoked = auth.kind == Authentication::Kind::kRevoked;
+    note_sign_in_failure(c, req, revoked ? "a revoked credential" : "wrong token");
+    return http::make_error(http::Status::unauthorized, revoked ? "this credential was revoked" : "wrong token",
+                            "/token");
   }
-  const std::optional<SessionStore::Created> session = c.sessions.create(now);
+  // The page is for people: a worker's credential signs in nowhere.
+  if (auth.who.role == Role::kWorker) {
+    ++c.counters.role_refusals[static_cast<std::size_t>(Role::kWorker)];
+    return respond(role_refusal(Role::kWorker, RouteKind::kSessionCreate));
+  }
+  const std::optional<SessionStore::Created> session = c.sessions.create(now, auth.who);
   if (!session) return respond(busy("no random numbers for a session; retry later"));
   const std::int64_t max_age = whole_seconds(c.sessions.limits().lifetime);
-  http::Response res = json_object(http::Status::ok, {{"csrf", session->csrf}, {"expires_in_s", max_age}});
+  http::Response res = json_object(
+      http::Status::ok, {{"csrf", session->csrf}, {"expires_in_s", max_age}, {"role", role_name(auth.who.role)}});
   res.set(bhttp::field::set_cookie, session_set_cookie(session->id, max_age));
   return res;
 }
@@ -192,8 +201,10 @@ http::Response get_session(Context& c, const http::Request& req) {
   // Not signed in is an answer, not a failure: the page asks this at every load, and a 401 here
   // would be an error in the browser's console on each first visit.
   if (!live) return json_object(http::Status::ok, {{"signed_in", false}});
-  return json_object(http::Status::ok,
-                     {{"signed_in", true}, {"csrf", live->csrf}, {"expires_in_s", whole_seconds(live->remaining)}});
+  return json_object(http::Status::ok, {{"signed_in", true},
+                                        {"csrf", live->csrf},
+                                        {"expires_in_s", whole_seconds(live->remaining)},
+                                        {"role", role_name(live->who.role)}});
 }
 
 http::Response sign_out(Context& c, const http::Request& req) {

@@ -38,6 +38,10 @@ void log_first(const WorkerId& id, std::string_view isa, std::uint32_t threads) 
 
 }  // namespace
 
+std::string recorded_worker_name(const Principal& who, std::string sent) {
+  return who.role == Role::kWorker ? who.name : std::move(sent);
+}
+
 std::string peer_text(const WorkerId& id) { return id.peer.empty() ? std::string("an unknown address") : id.peer; }
 
 std::string request_peer(const http::Request& req) {
@@ -47,8 +51,9 @@ std::string request_peer(const http::Request& req) {
 
 WorkerId worker_id(const http::Request& req, std::string name) { return WorkerId{std::move(name), request_peer(req)}; }
 
-void note_lease_request(Context& c, const http::Request& req, const protocol::LeaseRequest& lease) {
-  const WorkerId id = worker_id(req, lease.worker);
+void note_lease_request(Context& c, const http::Request& req, const std::string& name,
+                        const protocol::LeaseRequest& lease) {
+  const WorkerId id = worker_id(req, name);
   const std::string isa = protocol::parse_isa_header(header_value(req, protocol::kIsaHeader)).value_or("");
   if (c.workers.on_lease(id, isa, lease.threads, c.clock.now())) log_first(id, isa, lease.threads);
 }
