@@ -15,6 +15,7 @@
 
 #include "cli/overrides_flags.h"
 #include "cli/retry.h"
+#include "cli/session.h"
 #include "http/client.h"
 #include "image/image_io.h"
 #include "protocol/messages.h"
@@ -32,119 +33,6 @@ constexpr int kExitFailed = 1;
 constexpr int kExitUsage = 2;
 // An image response can be a 16384^2 PFM.
 constexpr std::uint64_t kMaxImageResponse = std::uint64_t(16384) * 16384 * 12 + (1 << 20);
-
-std::string format_seconds(double s) {
-  if (s < 60) return fmt::format("{:.1f}s", s);
-  if (s < 3600) return fmt::format("{}m{:02}s", int(s) / 60, int(s) % 60);
-  return fmt::format("{}h{:02}m", int(s) / 3600, (int(s) % 3600) / 60);
-}
-
-// The CA certificate(s) in `path`, checked to be usable; errors name the file.
-util::Result<http::ClientTls> read_ca_file(const std::string& path) {
-  constexpr std::uint64_t kMaxCaFileBytes = 1 << 20;
-  util::Result<std::string> pem = util::read_file_limited(path, kMaxCaFileBytes);
-  if (!pem) return pem.error();
-  http::ClientTls tls;
-  tls.ca_pem = std::move(pem).value();
-  tls.ca_source = path;
-  if (util::Status usable = http::check_client_tls(tls); !usable) return usable.error();
-  return tls;
-}
-
-// One connection's worth of state for a verb: where, with which token, how patient. Every call
-// rides out a busy collector (and, for a GET, one that does not answer) for up to --timeout-ms,
-// or what retry_for sets (cli/retry.h says what is retried and why that is safe).
-class Session {
- public:
-  bool init(const ClientArgs& args) {
-    auto url = http::parse_base_url(args.collector);
-    if (!url) {
-      fmt::print(stderr, "--collector: {}\n", url.error().message);
-      return false;
-    }
-    url_ = *url;
-    http::ClientOptions options;
-    if (url_.tls) {
-      if (args.ca_file.empty()) {
-        fmt::print(stderr,
-                   "--ca-file: required for an https:// collector (its CA certificate: tls/ca.pem in the "
-                   "collector's state directory)\n");
-        return false;
-      }
-      auto tls = read_ca_file(args.ca_file);
-      if (!tls) {
-        fmt::print(stderr, "--ca-file: {}\n", tls.error().to_string());
-        return false;
-      }
-      options.tls = std::move(tls).value();
-    }
-    if (!args.token_file.empty()) {
-      auto token = read_token_file(args.token_file);
-      if (!token) {
-        fmt::print(stderr, "{}\n", token.error().to_string());
-        return false;
-      }
-      token_ = std::move(token).value();
-    }
-    options.timeouts.read = options.timeouts.write = std::chrono::milliseconds(args.timeout_ms);
-    // One verb's requests follow each other closely (a --wait polls every half second): one
-    // kept-alive connection carries them all.
-    options.max_idle_connections = 1;
-    client_ = std::make_unique<http::SyncClient>(std::move(options));
-    retry_for(std::chrono::milliseconds(args.timeout_ms), fmt::format("--timeout-ms {}", args.timeout_ms));
-    return true;
-  }
-
-  // How long a run of failures is retried, and the flag that set it (named when giving up).
-  void retry_for(std::chrono::milliseconds budget, std::string flag) {
-    retry_ = RetryPolicy(budget, std::random_device{}());
-    retry_flag_ = std::move(flag);
-  }
-
-  // Sends one request, again after each retryable failure (one line on stderr per wait) until it
-  // succeeds or the retry budget is spent; on a final failure prints the reason and returns
-  // nullopt.
-  std::optional<http::Response> call(http::Verb verb, const std::string& target, const std::string& body = {},
-                                     std::uint64_t max_body = protocol::kMaxJobListBytes) {
-    while (true) {
-      http::Request req = http::make_request(verb, target, body,
-                                             verb == http::Verb::post ? http::kJsonContentType : std::string_view{});
-      if (!token_.empty()) req.set(boost::beast::http::field::authorization, "Bearer " + token_);
-      http::ClientResult r = client_->request(url_, std::move(req), max_body);
-      if (r.ok() && r.response.result_int() >= 200 && r.response.result_int() < 300) {
-        retry_.succeeded();
-        return std::move(r.response);
-      }
-      const Failure failure = classify(r, verb, target);
-      const auto now = std::chrono::steady_clock::now();
-      const std::optional<std::chrono::milliseconds> wait = retry_.next_wait(failure, now);
-      if (!wait) {
-        fmt::print(stderr, "{}\n", failure.reason);
-        if (failure.retryable && retry_.failures() > 1) {
-          fmt::print(stderr, "giving up on {} after {} of retries ({})\n", target,
-                     format_seconds(retry_.spent(now).count() / 1000.0), retry_flag_);
-        }
-        return std::nullopt;
-      }
-      fmt::print(stderr, "{}, retrying in {} ms\n", failure.reason, wait->count());
-      std::this_thread::sleep_for(*wait);
-    }
-  }
-
- private:
-  http::Url url_;
-  std::string token_;
-  std::unique_ptr<http::SyncClient> client_;  // set by init()
-  RetryPolicy retry_{std::chrono::milliseconds(0), 0};
-  std::string retry_flag_;
-};
-
-template <typename T>
-std::optional<T> decode_or_report(const protocol::Decoded<T>& d, std::string_view what) {
-  if (d.ok()) return d.value();
-  fmt::print(stderr, "unexpected answer to {}: {}\n", what, d.error().front().to_string());
-  return std::nullopt;
-}
 
 // "64 spp", or with adaptive sampling the mean over the stored tiles and the cap: "21.3/64 spp".
 std::string samples_text(const protocol::JobStatus& s) {
