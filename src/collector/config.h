@@ -12,6 +12,7 @@
 #include <string_view>
 
 #include "collector/queue.h"
+#include "collector/tls_setup.h"
 #include "collector/workers.h"
 #include "http/server.h"
 #include "protocol/messages.h"
@@ -66,6 +67,8 @@ struct CollectorConfig {
   WorkerLimits workers;
   // Serve the web page (`/` and `/ui/...`); --no-web-ui turns them all into 404.
   bool web_ui = true;
+  // HTTPS (tls_setup.h; the CLI decides `enabled` from --tls and the listen address).
+  TlsSettings tls;
 
   std::optional<OneShotJob> one_shot;
   // With one_shot: stop and exit 0 once that job's image is written (at once if it already was).

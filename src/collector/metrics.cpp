@@ -250,6 +250,17 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_http_refused_large_responses_total", "counter",
         "Large answers replaced by 503 because too many bytes were waiting for slow readers.",
         m.http.refused_large_responses);
+  w.one("dtraced_http_keepalive_reuses_total", "counter",
+        "Requests that arrived on a kept-alive connection (not the connection's first).", m.http.keepalive_reuses);
+  w.one("dtraced_http_evicted_idle_connections_total", "counter",
+        "Idle kept-alive connections closed because more than the idle cap were open.",
+        m.http.evicted_idle_connections);
+  w.one("dtraced_http_tls_handshakes_total", "counter", "TLS handshakes completed.", m.http.tls_handshakes);
+  w.one("dtraced_http_tls_handshake_failures_total", "counter",
+        "TLS handshakes refused or failed (garbage, foreign or expired certificate, timeout).",
+        m.http.tls_handshake_failures);
+  w.one("dtraced_http_plain_on_tls_total", "counter", "Plain HTTP requests refused on the TLS port.",
+        m.http.plain_on_tls);
   w.one("dtraced_auth_failures_total", "counter", "Requests refused for a missing or wrong token.", c.auth_failures);
   w.one("dtraced_web_sign_in_failures_total", "counter", "Web page sign-ins refused (wrong token or too many).",
         c.sign_in_failures);

@@ -14,6 +14,7 @@
 #include <boost/asio/ip/address.hpp>
 #include <boost/asio/post.hpp>
 #include <boost/asio/signal_set.hpp>
+#include <boost/asio/ssl/context.hpp>
 #include <fmt/format.h>
 
 #include "async/systemd_notifier.h"
@@ -22,6 +23,7 @@
 #include "collector/router.h"
 #include "collector/stop.h"
 #include "collector/systemd_status.h"
+#include "collector/tls_setup.h"
 #include "util/log.h"
 #include "util/sd_notify.h"
 
@@ -49,8 +51,8 @@ util::Status Collector::listen() {
   }
   if (!c.opened || ready_) return {};  // bound early, for a new state directory: open() comes next
   ready_ = true;
-  util::log_info("collector: listening on {} port {}; images go to {}", c.config.listen_address, c.server->port(),
-                 c.output_dir);
+  util::log_info("collector: listening on {} port {} ({}); images go to {}", c.config.listen_address, c.server->port(),
+                 c.config.tls.enabled ? "https" : "plain http", c.output_dir);
   util::sd_notify_state("READY=1");
   // Under systemd: WATCHDOG=1 and STATUS= from this loop until the stop begins.
   async::start_systemd_notifier(c.ioc->get_executor(), c.clock, *c.stop_begun, [&c] {
@@ -71,11 +73,21 @@ util::Status Collector::bind() {
   boost::system::error_code ec;
   const auto address = net::ip::make_address(c.config.listen_address, ec);
   if (ec) return util::Error(fmt::format("listen_address '{}': {}", c.config.listen_address, ec.message()));
+  // HTTPS: the private CA (or the operator's files) and this start's server certificate.
+  std::shared_ptr<net::ssl::context> tls;
+  if (c.config.tls.enabled) {
+    auto setup = prepare_tls(c.config.tls, c.config.state_dir, c.config.listen_address, c.clock.unix_seconds());
+    if (!setup) return util::Error(fmt::format("TLS: {}", setup.error().to_string()));
+    tls = setup->context;
+    c.ca_pem = setup->ca_pem;
+    c.ca_fingerprint = setup->ca_fingerprint;
+    util::log_info("collector: {}", setup->description);
+  }
   c.server = std::make_unique<http::Server>(
       c.ioc->get_executor(), address, c.config.port, limits,
       [&c](http::Request req) { return handle_request(c, std::move(req)); },
       [&c](const http::Request& head, std::uint64_t& body_limit) { return check_request_header(c, head, body_limit); },
-      [&c](const http::Request& head) { return is_authenticated(c, head); }, c.clock);
+      [&c](const http::Request& head) { return is_authenticated(c, head); }, c.clock, std::move(tls));
   ec = c.server->start();
   if (ec) {
     c.server.reset();
