@@ -16,6 +16,7 @@
 #include "cli/config_errors.h"
 #include "cli/listen_address.h"
 #include "cli/overrides_flags.h"
+#include "cli/tls_flags.h"
 #include "collector/config.h"
 #include "collector/service.h"
 #include "image/image_io.h"
@@ -67,6 +68,18 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   if (a.worker_quiet_after_s) c.workers.quiet_after = std::chrono::seconds(*a.worker_quiet_after_s);
   if (a.worker_forget_after_s) c.workers.forget_after = std::chrono::seconds(*a.worker_forget_after_s);
   c.web_ui = !a.no_web_ui;
+  const util::Result<bool> tls = resolve_tls(a.tls, c.listen_address, a.allow_plain_http);
+  if (!tls) return usage_error(locate_role_error(app, tls.error()));
+  c.tls.enabled = *tls;
+  c.tls.cert_file = a.tls_cert;
+  c.tls.key_file = a.tls_key;
+  c.tls.ca_file = a.tls_ca;
+  c.tls.names = a.tls_names;
+  if (!c.tls.enabled && (!a.tls_cert.empty() || !a.tls_key.empty() || !a.tls_ca.empty() || !a.tls_names.empty())) {
+    fmt::print(stderr, "--tls-cert, --tls-key, --tls-ca and --tls-name need TLS, which is off for {} ({})\n",
+               c.listen_address, a.tls == "off" ? "--tls off" : "a loopback address: add --tls on");
+    return kExitUsage;
+  }
   if (!a.scene.empty()) {
     if (a.output.empty()) {
       fmt::print(stderr, "--scene needs --output (the image to write)\n");
@@ -113,6 +126,7 @@ int run_worker_role(const CLI::App& app, const RoleArgs& a) {
   if (!token) return usage_error(token.error());
   w.token = *token;
   w.name = a.name;
+  w.ca_file = a.ca_file;
   w.threads = a.threads;
   w.isa = a.kernels;
   if (a.scene_cache) w.scene_cache = *a.scene_cache;
@@ -224,12 +238,37 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   one_shot.help_prefix = "One-shot: ";
   add_override_flags(app, a.overrides, one_shot);
   app.add_flag("--no-web-ui", a.no_web_ui, "Serve no web page: `/` and `/ui/...` answer 404")->group(kCollectorGroup);
+  app.add_option("--tls", a.tls,
+                 "auto (TLS unless the listen address is loopback), on, or off (plain HTTP; off loopback it needs "
+                 "--allow-plain-http)")
+      ->check(CLI::IsMember({"auto", "on", "off"}))
+      ->group(kCollectorGroup)
+      ->capture_default_str();
+  app.add_option("--tls-cert", a.tls_cert,
+                 "Your own server certificate (PEM chain) instead of the private CA's (default: "
+                 "STATE_DIR/tls holds a CA created on first start)")
+      ->group(kCollectorGroup);
+  app.add_option("--tls-key", a.tls_key, "The private key of --tls-cert (PEM)")->group(kCollectorGroup);
+  app.add_option("--tls-ca", a.tls_ca,
+                 "With --tls-cert: the CA workers must trust (PEM); join codes carry its fingerprint")
+      ->group(kCollectorGroup);
+  app.add_option("--tls-name", a.tls_names,
+                 "A DNS name or address workers use to reach this collector, added to the private CA's server "
+                 "certificate (repeatable; the host name and the listen addresses are always in it)")
+      ->group(kCollectorGroup);
+  app.add_flag("--allow-plain-http", a.allow_plain_http,
+               "Allow --tls off on an address that is not loopback (only behind a TLS proxy or on a trusted link)")
+      ->group(kCollectorGroup);
   // Both roles (so in neither group): one flag name, one meaning, "exit once the one-shot job is over".
   app.add_flag("--exit-when-done", a.exit_when_done,
                "One-shot collector: exit 0 once the image is written. Worker: exit 0 when its collector says it "
                "has finished (a one-shot collector with this flag)");
 
-  app.add_option("--collector", a.collector, "Collector base URL, http://HOST:PORT")->group(kWorkerGroup);
+  app.add_option("--collector", a.collector, "Collector base URL, https://HOST:PORT (or http:// on loopback)")
+      ->group(kWorkerGroup);
+  app.add_option("--ca-file", a.ca_file,
+                 "The collector's CA certificate (PEM) to trust for an https:// collector (dtraced enroll writes it)")
+      ->group(kWorkerGroup);
   app.add_option("--name", a.name, "Worker name in the collector's logs (default HOST-PID)")->group(kWorkerGroup);
   add_number_flags(app, a, kWorkerGroup);
   // Also an option of `render` (main adds it there, bound to the same value).

@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 
@@ -26,6 +27,12 @@ struct RoleArgs {
   std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, idle_timeout_ms, reoffer_floor_ms,
       max_copies, shutdown_grace_ms, cpu_threads, worker_quiet_after_s, worker_forget_after_s;
   bool no_web_ui = false;  // --no-web-ui: `/` and `/ui/...` are 404
+  // TLS (cli/tls_flags.h): --tls auto|on|off, the operator's files, extra names, plain HTTP off
+  // loopback only with --allow-plain-http.
+  std::string tls = "auto";
+  std::string tls_cert, tls_key, tls_ca;
+  std::vector<std::string> tls_names;
+  bool allow_plain_http = false;
   std::optional<std::uint64_t> max_body_bytes;
   std::optional<double> reoffer_factor;
   std::string scene;           // one-shot job
@@ -36,6 +43,7 @@ struct RoleArgs {
   // worker
   std::string collector;
   std::string name;
+  std::string ca_file;  // the collector's CA (PEM) for an https:// collector
   std::uint32_t threads = 0;
   std::optional<std::uint32_t> scene_cache, grace_seconds, connect_timeout_ms, request_timeout_ms, max_unacknowledged;
   // worker and `render`: --isa as given (main resolves it with $DTRACED_ISA into `kernels`)
