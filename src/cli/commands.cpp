@@ -52,6 +52,9 @@ void add_connection_options(CLI::App* sub, ClientArgs& client) {
       ->envname("DTRACED_COLLECTOR")
       ->capture_default_str();
   sub->add_option("--token-file", client.token_file, "File holding the bearer token")->envname("DTRACED_TOKEN_FILE");
+  sub->add_option("--ca-file", client.ca_file,
+                  "The collector's CA certificate (PEM) for an https:// collector (STATE_DIR/tls/ca.pem on its host)")
+      ->envname("DTRACED_CA_FILE");
   sub->add_option("--timeout-ms", client.timeout_ms,
                   "Per-request read/write timeout; also how long a busy collector (503), or for a "
                   "read one that does not answer, is retried with backoff")
@@ -158,6 +161,48 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
                                        "Delete a done or cancelled job and its stored tiles (the image file stays)");
   c.delete_cmd->add_option("id", c.delete_id, "Job id")->required();
   c.delete_cmd->add_flag("--delete-image", c.delete_image, "Also delete the job's finished image file");
+
+  c.revoke_cmd = c.workers_cmd->add_subcommand(
+      "revoke", "Revoke a worker's credential: its next request fails and its leased tiles go to other workers");
+  add_connection_options(c.revoke_cmd, c.client);
+  c.revoke_cmd->add_option("name", c.revoke_name, "The worker's name (as `dtraced workers` lists it)")->required();
+
+  c.enroll_code_cmd = add_client_subcommand(app, c.client, "enroll-code",
+                                            "Print a one-time join code for a new worker host (dtraced enroll)");
+  c.enroll_code_cmd->add_option("--expires", c.enroll_code.expires, "How long the code is good: 90s, 30m, 1h, 7d")
+      ->capture_default_str();
+  c.enroll_code_cmd->add_option("--name", c.enroll_code.name, "The name the enrolled worker gets");
+
+  CLI::App* enroll = app.add_subcommand(
+      "enroll", "Join this host to a collector as a worker: store its credentials for dtraced-worker@INSTANCE");
+  enroll->add_option("--collector", c.enroll.collector, "The collector's URL, https://HOST:PORT")->required();
+  enroll->add_option("--code", c.enroll.code, "The join code from `dtraced enroll-code` on the collector's side")
+      ->required();
+  enroll->add_option("--name", c.enroll.name, "The worker name to ask for (default: this host's name)");
+  enroll->add_option("--instance", c.enroll.instance, "The systemd instance: dtraced-worker@INSTANCE")
+      ->capture_default_str();
+  enroll->add_option("--dir", c.enroll.dir, "Where the token, CA and config go (the unit reads /etc/dtraced)")
+      ->capture_default_str();
+  enroll->add_option("--ca-file", c.enroll.ca_file,
+                     "The collector's CA (PEM), for a join code that carries no CA fingerprint");
+  enroll->add_flag("--force", c.enroll.force, "Replace this instance's existing enrollment");
+  enroll->add_option("--timeout-ms", c.enroll.timeout_ms, "Per-request read/write timeout")
+      ->check(CLI::Range(100u, 3600000u));
+  c.enroll_cmd = enroll;
+
+  CLI::App* credentials = app.add_subcommand("credentials", "The collector's credentials: add one, list them");
+  credentials->require_subcommand(1);
+  c.credentials_add_cmd = credentials->add_subcommand("add", "Create a credential and print its token (shown once)");
+  add_connection_options(c.credentials_add_cmd, c.client);
+  c.credentials_add_cmd->add_option("name", c.credential_add.name, "Its name")->required();
+  c.credentials_add_cmd->add_option("--role", c.credential_add.role, "viewer, client or worker")
+      ->required()
+      ->check(CLI::IsMember({"viewer", "client", "worker"}));
+  c.credentials_add_cmd->add_option("-o,--output", c.credential_add.output,
+                                    "Write the token to this file (0600) instead of stdout");
+  c.credentials_list_cmd = credentials->add_subcommand("list", "List the credentials (names, roles; no tokens)");
+  add_connection_options(c.credentials_list_cmd, c.client);
+  c.credentials_list_cmd->add_flag("--json", c.credentials_json, "Machine-readable JSON");
 }
 
 std::optional<int> run_client_command(const ClientCommands& c) {
@@ -168,10 +213,15 @@ std::optional<int> run_client_command(const ClientCommands& c) {
   if (c.cancel_cmd->parsed()) return run_cancel(c.client, c.cancel_id);
   if (c.priority_cmd->parsed()) return run_priority(c.client, c.priority_id, c.priority_value);
   if (c.requeue_cmd->parsed()) return run_requeue(c.client, c.requeue_id);
+  if (c.revoke_cmd->parsed()) return run_revoke(c.client, c.revoke_name);
   if (c.workers_cmd->parsed()) return run_workers(c.client, c.workers_json);
   if (c.pause_cmd->parsed()) return run_pause(c.client, c.pause_id, /*pause=*/true);
   if (c.resume_cmd->parsed()) return run_pause(c.client, c.resume_id, /*pause=*/false);
   if (c.delete_cmd->parsed()) return run_delete(c.client, c.delete_id, c.delete_image);
+  if (c.enroll_code_cmd->parsed()) return run_enroll_code(c.client, c.enroll_code);
+  if (c.enroll_cmd->parsed()) return run_enroll(c.enroll);
+  if (c.credentials_add_cmd->parsed()) return run_credentials_add(c.client, c.credential_add);
+  if (c.credentials_list_cmd->parsed()) return run_credentials_list(c.client, c.credentials_json);
   return std::nullopt;
 }
 

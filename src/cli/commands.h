@@ -18,6 +18,7 @@
 
 #include "cli/bench_error_args.h"
 #include "cli/client_verbs.h"
+#include "cli/enroll_verbs.h"
 #include "cli/roles.h"
 #include "cli/verbs.h"
 
@@ -83,10 +84,21 @@ struct ClientCommands {
   CLI::App* pause_cmd = nullptr;
   CLI::App* resume_cmd = nullptr;
   CLI::App* delete_cmd = nullptr;
+  // Credentials and enrollment (enroll_verbs.h).
+  EnrollCodeArgs enroll_code;
+  EnrollArgs enroll;
+  std::string revoke_name;
+  CredentialAddArgs credential_add;
+  bool credentials_json = false;
+  CLI::App* enroll_code_cmd = nullptr;
+  CLI::App* enroll_cmd = nullptr;
+  CLI::App* revoke_cmd = nullptr;
+  CLI::App* credentials_add_cmd = nullptr;
+  CLI::App* credentials_list_cmd = nullptr;
 };
 
-// Adds submit, list, status, fetch, cancel, priority, requeue, workers, pause, resume and delete
-// to `app`.
+// Adds submit, list, status, fetch, cancel, priority, requeue, workers (and workers revoke),
+// pause, resume, delete, enroll-code, enroll and credentials (add, list) to `app`.
 void add_client_commands(CLI::App& app, ClientCommands& c);
 // Runs the client verb that was parsed; nullopt when none was.
 std::optional<int> run_client_command(const ClientCommands& c);
