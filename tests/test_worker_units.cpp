@@ -678,7 +678,7 @@ TEST_CASE("a lease answer is a lease, a retry-after, or a failure to retry with 
 
   const auto rejected = classify_lease(answer(http::make_error(http::Status::unauthorized, "wrong token")));
   CHECK(rejected.token_rejected);
-  CHECK(rejected.error == "token rejected (HTTP 401)");
+  CHECK(rejected.error == "credential rejected (HTTP 401: wrong token)");
   CHECK(classify_lease(refused()).error == refused().message);
   CHECK(classify_lease(answer(http::make_error(http::Status::service_unavailable, "busy"))).error == "HTTP 503: busy");
   CHECK_THAT(classify_lease(json_answer(http::Status::ok, "{\"lease\": 1}")).error,

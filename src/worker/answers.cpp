@@ -38,7 +38,7 @@ LeaseAnswer classify_lease(const http::ClientResult& result) {
     return answer;
   }
   if (result.response.result() == http::Status::unauthorized) {
-    answer.error = "token rejected (HTTP 401)";
+    answer.error = fmt::format("credential rejected ({})", describe_answer(result.response));
     answer.token_rejected = true;
     return answer;
   }
@@ -80,7 +80,8 @@ SubmitAnswer classify_submit(const http::ClientResult& result) {
   }
   if (response.result() == http::Status::gone) return {SubmitVerdict::kJobGone, describe_answer(response)};
   if (response.result() == http::Status::unauthorized) {
-    return {SubmitVerdict::kRetry, "token rejected (HTTP 401)", /*token_rejected=*/true};
+    return {SubmitVerdict::kRetry, fmt::format("credential rejected ({})", describe_answer(response)),
+            /*token_rejected=*/true};
   }
   // Timeouts and rate limits are the collector's state, not the tile's.
   if (response.result() == http::Status::request_timeout || response.result() == http::Status::too_many_requests ||

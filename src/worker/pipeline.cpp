@@ -89,7 +89,7 @@ void Worker::Impl::note_lease_failure(RetryGate::Attempt& attempt, const std::st
   const std::uint32_t in_a_row = lease_gate.failed(attempt);
   if (!should_log_failure(in_a_row)) return;
   if (token_rejected) {
-    util::log_error("token rejected by the collector {} ({} failed attempts in a row); retrying with backoff",
+    util::log_error("{} by the collector {} ({} failed attempts in a row); retrying with backoff", message,
                     url.to_string(), in_a_row);
   } else {
     util::log_warn("no lease from {} ({} failed attempts in a row): {}; retrying with backoff", url.to_string(),

@@ -87,8 +87,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
     const std::uint32_t in_a_row = submit_gate.failed(*attempt);
     if (should_log_failure(in_a_row)) {
       util::log_warn("{} submitting to {} ({} failed attempts in a row); keeping {} tiles and retrying with backoff",
-                     answer.token_rejected ? "token rejected" : answer.message, url.to_string(), in_a_row,
-                     tiles_held.get());
+                     answer.message, url.to_string(), in_a_row, tiles_held.get());
     }
   }
 }
