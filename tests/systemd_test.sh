@@ -8,7 +8,8 @@ command -v systemd-analyze >/dev/null || { echo "systemd-analyze not installed: 
 # credential the service user can read (tests/unit_as_user_test.sh runs the units as that user).
 for f in "$UNITS"/*.service; do
   grep -qx 'RestartPreventExitStatus=2' "$f" || { echo "$f: no RestartPreventExitStatus=2"; exit 1; }
-  grep -qx 'LoadCredential=token:/etc/dtraced/token' "$f" || { echo "$f: no token credential"; exit 1; }
+  # The collector's operator token, or a worker instance's own token (written by dtraced enroll).
+  grep -Eqx 'LoadCredential=token:/etc/dtraced/(token|worker-%i\.token)' "$f" || { echo "$f: no token credential"; exit 1; }
   grep -q '^ExecStart=.* --token-file %d/token' "$f" || { echo "$f: ExecStart does not read the credential"; exit 1; }
 done
 d=$(mktemp -d)
