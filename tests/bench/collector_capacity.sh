@@ -6,8 +6,10 @@
 # A collector is pinned to one core (taskset -c COLLECTOR_CPU: its event loop, its SQLite writer
 # thread and its small pool all share that core); dtraced-load runs pinned to another core with
 # 16, 64 and 256 simulated workers. Each simulated worker leases a tile and uploads a valid payload
-# for it (made-up pixels) as fast as the collector answers; every request is its own connection, as
-# with the real worker. Each run gets a fresh job of many small tiles (a 16384 x 8192 image of a
+# for it (made-up pixels) as fast as the collector answers. Two transports, one table each, then
+# their ratio: "plain" is plain HTTP with a connection per request (the workers before TLS and
+# keep-alive), "tls" is HTTPS with the collector's private CA and kept-alive connections (the
+# workers now). Each run gets a fresh job of many small tiles (a 16384 x 8192 image of a
 # one-sphere scene in 32-pixel tiles: 131,072 tiles of 12 KiB) on a fresh collector and database, a
 # 1 s warm-up that is not measured, then RUN_SECONDS measured. The collector never renders, so the
 # scene's cost is irrelevant. A last run leases without uploading: the rate of bare requests, the
@@ -22,7 +24,8 @@
 # Environment: DTRACED and DTRACED_LOAD (binaries; default build/src/cli/dtraced and
 # build/src/bench/dtraced-load), RUN_SECONDS (10), WARMUP_SECONDS (1), WORKER_COUNTS ("16 64 256"),
 # FLOOR_WORKERS (64), FLOOR_IMAGE_SIDE (16384), IMAGE_WIDTH (16384), IMAGE_HEIGHT (8192),
-# TILE_SIZE (32), COLLECTOR_CPU (0), LOAD_CPU (1), KEEP_LOGS=1 to keep the temporary directory.
+# TILE_SIZE (32), COLLECTOR_CPU (0), LOAD_CPU (1), MODES ("plain tls"), KEEP_LOGS=1 to keep the
+# temporary directory.
 # Needs curl; taskset (util-linux) for pinning, else it runs unpinned and says so.
 set -uo pipefail
 
@@ -42,6 +45,7 @@ WORKER_COUNTS=${WORKER_COUNTS:-"16 64 256"}
 IMAGE_WIDTH=${IMAGE_WIDTH:-16384}
 IMAGE_HEIGHT=${IMAGE_HEIGHT:-8192}
 TILE_SIZE=${TILE_SIZE:-32}
+MODES=${MODES:-"plain tls"}
 COLLECTOR_CPU=${COLLECTOR_CPU:-0}
 LOAD_CPU=${LOAD_CPU:-1}
 START_DEADLINE=30  # seconds for the collector to listen
@@ -114,7 +118,7 @@ start_collector() {
   # The default connection cap (256) would refuse some of 256 simulated workers' connections while
   # earlier ones close; the cap is not what this measures.
   "${pin_collector[@]}" "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$state" \
-    --token-file "$work/token" --max-connections 1024 2>"$work/collector.log" &
+    --token-file "$work/token" --max-connections 1024 --tls "$tls" 2>"$work/collector.log" &
   collector_pid=$!
   port=
   for _ in $(seq $((START_DEADLINE * 10))); do
@@ -128,7 +132,17 @@ start_collector() {
     tail -n 20 "$work/collector.log" >&2
     exit 1
   fi
-  url="http://127.0.0.1:$port"
+  if [ "$tls" = on ]; then
+    url="https://127.0.0.1:$port"
+    transport=(--ca-file "$state/tls/ca.pem")
+    client_tls=(--ca-file "$state/tls/ca.pem")
+    curl_tls=(--cacert "$state/tls/ca.pem")
+  else
+    url="http://127.0.0.1:$port"
+    transport=(--no-keep-alive)
+    client_tls=()
+    curl_tls=()
+  fi
 }
 # stop_collector: gracefully, and its state directory goes (a run stores up to ~1 GB of tiles).
 stop_collector() {
@@ -136,8 +150,8 @@ stop_collector() {
   collector_pid=
   rm -rf "$work/state-$collectors"
 }
-client() { "$DTRACED" "$@" --collector "$url" --token-file "$work/token"; }
-metric() { curl -sf -H "Authorization: Bearer $token" "$url/metrics" | sed -n "s/^$1 //p"; }
+client() { "$DTRACED" "$@" --collector "$url" --token-file "$work/token" "${client_tls[@]}"; }
+metric() { curl -sf "${curl_tls[@]}" -H "Authorization: Bearer $token" "$url/metrics" | sed -n "s/^$1 //p"; }
 # CPU seconds the collector used so far, all its threads (utime + stime from /proc/PID/stat).
 ticks=$(getconf CLK_TCK)
 collector_cpu() { awk -v t="$ticks" '{ sub(/.*\) /, ""); printf "%.3f", ($12 + $13) / t }' "/proc/$collector_pid/stat"; }
@@ -172,7 +186,7 @@ measure() {
   # 16384 x 8192, zeroed on the collector's event loop, which stalls it for a while), once per
   # job; the figures are for the steady state that follows.
   timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
-    --job "$id" --workers "$workers" --seconds "$WARMUP_SECONDS" "$@" >/dev/null 2>"$work/load.err"
+    --job "$id" --workers "$workers" --seconds "$WARMUP_SECONDS" "${transport[@]}" "$@" >/dev/null 2>"$work/load.err"
   rc=$?
   if [ "$rc" = 0 ]; then
     b0=$(metric dtraced_store_commit_batches_total)
@@ -181,7 +195,7 @@ measure() {
     cpu0=$(collector_cpu)
     core0=$(core_busy "$COLLECTOR_CPU")
     timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
-      --job "$id" --workers "$workers" --seconds "$RUN_SECONDS" --json "$@" >"$work/load.json" 2>"$work/load.err"
+      --job "$id" --workers "$workers" --seconds "$RUN_SECONDS" --json "${transport[@]}" "$@" >"$work/load.json" 2>"$work/load.err"
     rc=$?
     cpu1=$(collector_cpu)
     core1=$(core_busy "$COLLECTOR_CPU")
@@ -222,33 +236,65 @@ measure() {
   return 0
 }
 
-for workers in $WORKER_COUNTS; do
-  measure "$workers" "$IMAGE_WIDTH" "$IMAGE_HEIGHT" && rows+=("$ROW")
+declare -A stored
+for mode in $MODES; do
+  case $mode in
+    plain) tls=off ;;
+    tls) tls=on ;;
+    *)
+      echo "MODES: unknown mode $mode (plain or tls)" >&2
+      exit 1
+      ;;
+  esac
+  rows=()
+  for workers in $WORKER_COUNTS; do
+    if measure "$workers" "$IMAGE_WIDTH" "$IMAGE_HEIGHT"; then
+      rows+=("$ROW")
+      stored[$mode,$workers]=$(field stored_per_s)
+    fi
+  done
+  # The floor of HTTP alone: leases without uploads.
+  floor=
+  if measure "$FLOOR_WORKERS" "$FLOOR_IMAGE_SIDE" "$FLOOR_IMAGE_SIDE" --lease-only; then
+    floor=$(awk -v r="$(field leases_per_s)" -v p50="$(field lease_p50_ms)" -v p99="$(field lease_p99_ms)" \
+      -v gen="$(field generator_cpu)" -v row="$ROW" 'BEGIN {
+        split(row, c, "|")
+        cpu = c[8] + 0
+        others = c[10] + 0
+        us = 0
+        if (r > 0) us = 1e6 * cpu / r
+        printf "%.0f requests/s, lease p50 %.2f ms, p99 %.2f ms, collector CPU %.2f (%.0f us a request), others on its core %.2f, generator CPU %.2f",
+          r, p50, p99, cpu, us, others, gen
+      }')
+  fi
+  echo
+  if [ "$mode" = tls ]; then
+    echo "tls: HTTPS (the collector's private CA), kept-alive connections"
+  else
+    echo "plain: plain HTTP, one connection per request"
+  fi
+  echo
+  echo "| workers | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | generator CPU | tiles/commit | in tile txns |"
+  echo "|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+  for row in "${rows[@]}"; do echo "$row"; done
+  [ -n "$floor" ] && echo && echo "HTTP floor, $FLOOR_WORKERS workers leasing without uploading: $floor"
 done
-# The floor of HTTP alone: leases without uploads, one request (and connection) each.
-floor=
-if measure "$FLOOR_WORKERS" "$FLOOR_IMAGE_SIDE" "$FLOOR_IMAGE_SIDE" --lease-only; then
-  floor=$(awk -v r="$(field leases_per_s)" -v p50="$(field lease_p50_ms)" -v p99="$(field lease_p99_ms)" \
-    -v gen="$(field generator_cpu)" -v row="$ROW" 'BEGIN {
-      split(row, c, "|")
-      cpu = c[8] + 0
-      others = c[10] + 0
-      us = 0
-      if (r > 0) us = 1e6 * cpu / r
-      printf "%.0f requests/s, lease p50 %.2f ms, p99 %.2f ms, collector CPU %.2f (%.0f us a request), others on its core %.2f, generator CPU %.2f",
-        r, p50, p99, cpu, us, others, gen
-    }')
-fi
-
-echo
-echo "| workers | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | generator CPU | tiles/commit | in tile txns |"
-echo "|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
-for row in "${rows[@]}"; do echo "$row"; done
-[ -n "$floor" ] && echo && echo "HTTP floor, $FLOOR_WORKERS workers leasing without uploading: $floor"
 echo
 echo "CPU columns: cores busy (1.00 = the whole pinned core). us/tile: collector CPU time per stored tile (its"
 echo "lease and its upload). others on its core: busy time of the collector's core not charged to the collector"
 echo "(other processes, interrupts); well above 0.05 means the machine was not quiet enough for a one-core figure."
 echo "in tile txns: wall time the store writer spent inside tile transactions (inserts + COMMIT with fsync), as a"
 echo "share of the run. Target: >= 5000 stored/s."
+if [[ " $MODES " == *" plain "* && " $MODES " == *" tls "* ]]; then
+  echo
+  echo "| workers | plain, a connection per request: stored/s | TLS with keep-alive: stored/s | TLS+keep-alive / plain | target >= 1 |"
+  echo "|--:|--:|--:|--:|:-:|"
+  for workers in $WORKER_COUNTS; do
+    awk -v w="$workers" -v p="${stored[plain,$workers]:-0}" -v t="${stored[tls,$workers]:-0}" 'BEGIN {
+      r = 0
+      if (p > 0) r = t / p
+      printf "| %d | %.0f | %.0f | %.2f | %s |\n", w, p, t, r, (r >= 1 ? "MET" : "MISSED")
+    }'
+  done
+fi
 [ "$problems" = 0 ]

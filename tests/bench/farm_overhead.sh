@@ -23,7 +23,9 @@
 #   tests/bench/farm_overhead.sh
 # Environment: DTRACED (default build/src/cli/dtraced), SCENE (scenes/showcase.json), WIDTH (960),
 # HEIGHT (540), SAMPLES_PER_THREAD (24), TILE_SIZE (32), THREADS ("1 2", capped at nproc), RUNS (3),
-# FARM_DEADLINE (seconds a farm run may take, 600), KEEP_LOGS=1 to keep the temporary directory.
+# FARM_DEADLINE (seconds a farm run may take, 600), TRANSPORT (tls: HTTPS with the collector's
+# private CA and kept-alive connections, as a farm across hosts runs; plain: plain HTTP on
+# loopback), KEEP_LOGS=1 to keep the temporary directory.
 # Needs bash 5 (EPOCHREALTIME), curl, cmp.
 set -uo pipefail
 export LC_ALL=C # EPOCHREALTIME and printf with a decimal point
@@ -38,6 +40,15 @@ TILE_SIZE=${TILE_SIZE:-32}
 THREADS=${THREADS:-"1 2"}
 RUNS=${RUNS:-3}
 FARM_DEADLINE=${FARM_DEADLINE:-600}
+TRANSPORT=${TRANSPORT:-tls}
+case $TRANSPORT in
+  tls) tls_flag=on ;;
+  plain) tls_flag=off ;;
+  *)
+    echo "TRANSPORT must be tls or plain" >&2
+    exit 1
+    ;;
+esac
 POLL=0.05        # seconds between polls of the job's state and of the output file
 START_DEADLINE=30 # seconds for the collector to listen
 MIN_RENDER_S=10  # the issue asks for at least this much rendering
@@ -92,7 +103,7 @@ printf 'overhead-%s-token\n' "$$" >"$work/token"
 token=$(head -n1 "$work/token")
 
 "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$work/state" --token-file "$work/token" \
-  2>"$work/collector.log" &
+  --tls "$tls_flag" 2>"$work/collector.log" &
 collector_pid=$!
 port=
 for _ in $(seq $((START_DEADLINE * 10))); do
@@ -102,12 +113,20 @@ for _ in $(seq $((START_DEADLINE * 10))); do
   sleep 0.1
 done
 [ -n "$port" ] || fail "the collector did not start"
-url="http://127.0.0.1:$port"
+if [ "$TRANSPORT" = tls ]; then
+  url="https://127.0.0.1:$port"
+  ca=(--ca-file "$work/state/tls/ca.pem")
+  curl_ca=(--cacert "$work/state/tls/ca.pem")
+else
+  url="http://127.0.0.1:$port"
+  ca=()
+  curl_ca=()
+fi
 outdir="$work/state/output"
 
 # job_state ID: "queued", "rendering", "done", ... (empty if the collector did not answer).
 job_state() {
-  curl -sf -H "Authorization: Bearer $token" "$url/v1/jobs/$1" | sed -n 's/.*"state":"\([a-z]*\)".*/\1/p'
+  curl -sf "${curl_ca[@]}" -H "Authorization: Bearer $token" "$url/v1/jobs/$1" | sed -n 's/.*"state":"\([a-z]*\)".*/\1/p'
 }
 # pause SECONDS without forking a sleep process 20 times a second while the farm renders: a read
 # that times out on a pipe nobody writes to.
@@ -122,7 +141,7 @@ farm_run() {
   local name=$1 t0 t1 t2 id state deadline
   shift
   t0=$EPOCHREALTIME
-  id=$("$DTRACED" submit "$SCENE" -o "$name" "$@" --collector "$url" --token-file "$work/token") ||
+  id=$("$DTRACED" submit "$SCENE" -o "$name" "$@" --collector "$url" --token-file "$work/token" "${ca[@]}") ||
     fail "submit failed"
   deadline=$(awk -v t="$t0" -v d="$FARM_DEADLINE" 'BEGIN { printf "%d", t + d }')
   state=queued
@@ -164,7 +183,7 @@ busy_start=$(machine_busy)
 own_cpu
 own_start=$(cat "$work/times")
 wall_start=$EPOCHREALTIME
-echo "farm overhead: $cores CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg)"
+echo "farm overhead ($TRANSPORT): $cores CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg)"
 echo "job: $(basename "$SCENE") ${WIDTH}x${HEIGHT}, ${SAMPLES_PER_THREAD} x T samples, ${TILE_SIZE}-px tiles, $RUNS runs each"
 echo
 rows=()
@@ -176,7 +195,7 @@ for t in $THREADS; do
   fi
   samples=$((SAMPLES_PER_THREAD * t))
   job_args=(--width "$WIDTH" --height "$HEIGHT" -s "$samples" --tile-size "$TILE_SIZE")
-  "$DTRACED" --role worker --collector "$url" --token-file "$work/token" --threads "$t" --name "bench-t$t" \
+  "$DTRACED" --role worker --collector "$url" --token-file "$work/token" "${ca[@]}" --threads "$t" --name "bench-t$t" \
     2>"$work/worker-t$t.log" &
   worker_pid=$!
   sleep 1 # the worker's first lease request finds nothing and it goes idle, as in a waiting farm
