@@ -17,7 +17,7 @@ TEST_CASE("loopback addresses are told from the others", "[cli][tls]") {
   CHECK_FALSE(is_loopback_address("not an address"));
 }
 
-TEST_CASE("--tls auto is on off loopback and off on it", "[cli][tls]") {
+TEST_CASE("tls flag: auto is on off loopback and off on it", "[cli][tls]") {
   CHECK(resolve_tls("auto", "0.0.0.0", false).value() == true);
   CHECK(resolve_tls("auto", "192.0.2.1", false).value() == true);
   CHECK(resolve_tls("auto", "127.0.0.1", false).value() == false);
@@ -26,7 +26,7 @@ TEST_CASE("--tls auto is on off loopback and off on it", "[cli][tls]") {
   CHECK(resolve_tls("off", "127.0.0.1", false).value() == false);
 }
 
-TEST_CASE("plain HTTP off loopback needs --allow-plain-http", "[cli][tls]") {
+TEST_CASE("tls flag: plain HTTP off loopback needs --allow-plain-http", "[cli][tls]") {
   const auto refused = resolve_tls("off", "0.0.0.0", false);
   REQUIRE_FALSE(refused);
   CHECK(refused.error().path == "--tls");

@@ -40,14 +40,14 @@ const std::map<std::string, std::set<std::string>>& allowed() {
       {"http", {"async", "util"}},
       {"store", {"util"}},
       {"web", {}},  // the web page's files, embedded: data only
-      {"collector", {"web", "protocol", "http", "async", "store", "scene", "jsonio", "image", "math", "util"}},
+      {"collector", {"web", "protocol", "http", "tls", "async", "store", "scene", "jsonio", "image", "math", "util"}},
       {"worker", {"protocol", "http", "async", "render", "accel", "scene", "jsonio", "image", "math", "util"}},
       {"cli",
-       {"collector", "web", "worker", "protocol", "http", "async", "store", "render", "accel", "scene", "jsonio",
+       {"collector", "web", "worker", "protocol", "http", "tls", "async", "store", "render", "accel", "scene", "jsonio",
         "image", "math", "util"}},
       // Benchmark tools, not the product: they may measure anything.
       {"bench",
-       {"collector", "web", "worker", "protocol", "http", "async", "store", "render", "accel", "scene", "jsonio",
+       {"collector", "web", "worker", "protocol", "http", "tls", "async", "store", "render", "accel", "scene", "jsonio",
         "image", "math", "util"}},
   };
   return table;

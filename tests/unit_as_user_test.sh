@@ -127,6 +127,7 @@ start_unit() {
   while IFS= read -r credential; do
     [ -n "$credential" ] || continue
     mkdir -p "$creds"
+    credential=${credential//%i/$instance}
     cp "$root${credential#*:}" "$creds/${credential%%:*}" || die "$unit: no file for LoadCredential=$credential"
     chmod 400 "$creds/${credential%%:*}"
     chown -R "$uid:$uid" "$creds"
@@ -178,7 +179,9 @@ uid_collector=$((61184 + $$ % 2000))
 uid_worker=$((uid_collector + 1))
 
 # ---- the collector -----------------------------------------------------------------------------
-install_config "$CONFIGS/collector.json" "$root/etc/dtraced/collector.json" -e 's#"listen": *"[^"]*"#"listen": "127.0.0.1:0"#'
+# On loopback, as a farm host would on its network address: HTTPS from the collector's own CA.
+install_config "$CONFIGS/collector.json" "$root/etc/dtraced/collector.json" \
+  -e 's#"listen": *"[^"]*"#"listen": "127.0.0.1:0", "tls": "on"#'
 start_unit collector "$UNITS/dtraced-collector.service" "" "$uid_collector"
 collector_pid=$STARTED_PID
 port=
@@ -192,24 +195,32 @@ for ((t = 0; t < DEADLINE * 10; t++)); do
   sleep 0.1
 done
 [ -n "$port" ] || die "the collector did not listen within ${DEADLINE}s"
-url="http://127.0.0.1:$port"
-curl -sf "$url/healthz" >/dev/null || die "the collector does not answer /healthz"
+url="https://127.0.0.1:$port"
+ca="$root/var/lib/dtraced/tls/ca.pem"
+[ "$(stat -c %a "$root/var/lib/dtraced/tls/ca.key")" = 600 ] || die "the CA key is not 0600"
+curl -sf --cacert "$ca" "$url/healthz" >/dev/null || die "the collector does not answer /healthz over TLS"
 echo "ok: the collector runs as uid $uid_collector and answers /healthz"
 wait_notify collector READY=1
 [ -z "$(unit_value "$UNITS/dtraced-collector.service" WatchdogSec)" ] || wait_notify collector WATCHDOG=1
 wait_notify collector "STATUS=jobs: 0 queued"
 
-# ---- a worker instance -------------------------------------------------------------------------
-install_config "$CONFIGS/worker.json" "$root/etc/dtraced/worker-farm.json" \
-  -e "s#\"collector\": *\"[^\"]*\"#\"collector\": \"$url\"#" -e 's#"threads": *[0-9]*#"threads": 1#'
+# ---- a worker instance, enrolled as the README says ----------------------------------------------
+printf '%s\n' "$TOKEN" >"$root/client-token"
+code=$("$DTRACED" enroll-code --expires 10m --collector "$url" --ca-file "$ca" --token-file "$root/client-token") ||
+  die "enroll-code failed"
+"$DTRACED" enroll --collector "$url" --code "$code" --name farm-box --instance farm --dir "$root/etc/dtraced" \
+  >"$root/enroll.log" 2>&1 || die "enroll failed: $(cat "$root/enroll.log")"
+grep -q "systemctl enable --now dtraced-worker@farm" "$root/enroll.log" || die "enroll did not print the systemctl command"
+[ "$(stat -c %a "$root/etc/dtraced/worker-farm.token")" = 600 ] || die "the worker's token is not 0600"
+echo "ok: enrolled worker-farm ($(head -n1 "$root/enroll.log"))"
+sed -i 's#^{#{\n  "threads": 1,#' "$root/etc/dtraced/worker-farm.json"
 start_unit worker "$UNITS/dtraced-worker@.service" farm "$uid_worker"
 worker_pid=$STARTED_PID
 wait_notify worker READY=1
 [ -z "$(unit_value "$UNITS/dtraced-worker@.service" WatchdogSec)" ] || wait_notify worker WATCHDOG=1
 
 # ---- the workstation: submit, wait, fetch ------------------------------------------------------
-printf '%s\n' "$TOKEN" >"$root/client-token"
-client() { "$DTRACED" "$@" --collector "$url" --token-file "$root/client-token"; }
+client() { "$DTRACED" "$@" --collector "$url" --ca-file "$ca" --token-file "$root/client-token"; }
 id=$(client submit "$SCENES/snowman.json" -o farm.png --width 48 --height 32 -s 1 --tile-size 16) ||
   die "submit failed"
 state=

@@ -71,7 +71,6 @@ std::string worker_config(const std::string& collector, const std::string& ca_fi
   o["collector"] = collector;
   if (!ca_file.empty()) o["ca_file"] = ca_file;
   o["name"] = name;
-  o["threads"] = 0;
   // One key a line, as people edit it.
   std::string pretty = "{\n";
   bool first = true;
