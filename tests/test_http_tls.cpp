@@ -451,6 +451,30 @@ TEST_CASE("tls server: over max_idle_connections the connection idle longest is 
   CHECK(server.metrics().evicted_idle_connections == 1);
 }
 
+TEST_CASE("tls server: with every slot taken a newcomer closes the connection idle longest", "[http][tls]") {
+  ServerLimits limits = tls_limits();
+  limits.max_connections = 2;
+  TlsTestServer server(limits);
+  std::vector<std::unique_ptr<TlsClient>> clients;
+  for (int i = 0; i < 2; ++i) {
+    clients.push_back(std::make_unique<TlsClient>(server.port()));
+    REQUIRE(clients.back()->handshake());
+    auto res = clients.back()->get("/whoami");
+    REQUIRE(res);
+    REQUIRE(res->keep_alive());
+  }
+  // Both slots hold idle kept-alive connections: the third is served, not refused.
+  TlsClient newcomer(server.port());
+  REQUIRE(newcomer.handshake());
+  auto res = newcomer.get("/whoami");
+  REQUIRE(res);
+  CHECK(res->result() == Status::ok);
+  CHECK(clients[0]->wait_closed());
+  CHECK(clients[1]->get("/whoami").has_value());
+  CHECK(server.metrics().evicted_idle_connections == 1);
+  CHECK(server.metrics().rejected_connections == 0);
+}
+
 TEST_CASE("tls server: the last request a connection may make is answered Connection: close", "[http][tls]") {
   ServerLimits limits = tls_limits();
   limits.max_requests_per_connection = 2;
@@ -572,7 +596,9 @@ TEST_CASE("tls server: over max_connections a TLS client is answered 503 over TL
   TlsTestServer server(limits);
   TlsClient holder(server.port());
   REQUIRE(holder.handshake());
-  REQUIRE(holder.get("/whoami"));
+  // The slot's connection is busy (its request in the handler), so there is nothing to evict.
+  REQUIRE(holder.write("GET /slow HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"));
+  REQUIRE(server.gate().entered.get_future().wait_for(kBound) == std::future_status::ready);
   TlsClient late(server.port());
   REQUIRE(late.handshake());
   auto res = late.get("/whoami");
@@ -582,5 +608,8 @@ TEST_CASE("tls server: over max_connections a TLS client is answered 503 over TL
   CHECK(late.wait_closed());
   CHECK(server.metrics().rejected_connections == 1);
   // The connection holding the slot is still served.
-  CHECK(holder.get("/whoami").has_value());
+  open_gate(server.executor(), server.gate());
+  auto slow = holder.read_response();
+  REQUIRE(slow);
+  CHECK(slow->body() == "slow done");
 }

@@ -224,6 +224,9 @@ struct Server::Impl {
   void set_idle(Connection& conn, bool idle);
   // Over max_idle_connections: closes the connection idle the longest.
   void close_excess_idle();
+  // The connection idle the longest, or null.
+  Connection* oldest_idle();
+  void close_idle(Connection& conn);
   void log_handshake_failure(const std::string& peer, const std::string& reason);
   // A connection's coroutine: on a TLS server, detection and handshake first; then session() or
   // reject() on the stream that resulted.
@@ -291,8 +294,15 @@ net::awaitable<void> Server::Impl::accept_loop(std::shared_ptr<Impl> self) {
       co_await async::sleep_for(self->clock, kAcceptErrorBackoff);
       continue;
     }
-    // Room for the newcomer: the oldest unauthenticated connection waiting for bytes goes first.
+    // Room for the newcomer: the oldest unauthenticated connection waiting for bytes goes first,
+    // then the connection idle the longest (its client opens another when it needs one).
     if (self->sessions >= self->limits.max_connections) self->evict_oldest_unauthenticated();
+    if (self->sessions >= self->limits.max_connections) {
+      if (Connection* idle = self->oldest_idle()) {
+        self->release_slot(*idle);
+        self->close_idle(*idle);
+      }
+    }
     if (self->sessions >= self->limits.max_connections) {
       self->count(&ServerMetrics::rejected_connections);
       if (self->rejecting < kMaxRejectingConnections) spawn(self, std::move(socket), /*rejecting=*/true);
@@ -571,15 +581,24 @@ void Server::Impl::set_idle(Connection& conn, bool idle) {
 
 void Server::Impl::close_excess_idle() {
   while (idle_count > limits.max_idle_connections) {
-    Connection* oldest = nullptr;
-    for (Connection& conn : connections) {
-      if (conn.idle && !conn.finished && (oldest == nullptr || conn.idle_order < oldest->idle_order)) oldest = &conn;
-    }
+    Connection* oldest = oldest_idle();
     if (oldest == nullptr) return;
-    set_idle(*oldest, false);
-    count(&ServerMetrics::evicted_idle_connections);
-    oldest->lowest().close();  // its read ends with an error and the session returns
+    close_idle(*oldest);
   }
+}
+
+Connection* Server::Impl::oldest_idle() {
+  Connection* oldest = nullptr;
+  for (Connection& conn : connections) {
+    if (conn.idle && !conn.finished && (oldest == nullptr || conn.idle_order < oldest->idle_order)) oldest = &conn;
+  }
+  return oldest;
+}
+
+void Server::Impl::close_idle(Connection& conn) {
+  set_idle(conn, false);
+  count(&ServerMetrics::evicted_idle_connections);
+  conn.lowest().close();  // its read ends with an error and the session returns
 }
 
 void Server::Impl::log_handshake_failure(const std::string& peer, const std::string& reason) {

@@ -33,7 +33,10 @@
 //
 // Keep-alive: a connection serves up to max_requests_per_connection requests (the answer to the
 // last says Connection: close). A connection waiting for its next request is idle; when one goes
-// idle while max_idle_connections others are, the one idle the longest is closed.
+// idle while max_idle_connections others are, the one idle the longest is closed, and so is it
+// when a new connection finds every slot taken (after the unauthenticated ones below): an idle
+// client opens another connection when it needs one, so kept-alive connections never lock
+// newcomers out.
 //
 // Unauthenticated peers cannot starve authenticated ones. With an `authenticated` predicate, a
 // connection is unauthenticated from accept until a request's header satisfies it; until then it
@@ -114,7 +117,7 @@ struct ServerLimits {
   // TLS only: the handshake, from its first bytes to its end (capped by unauthenticated_timeout
   // while unauthenticated, like the header).
   std::chrono::milliseconds handshake_timeout{10'000};
-  std::size_t max_idle_connections = 128;            // keep-alive connections between requests
+  std::size_t max_idle_connections = 256;            // keep-alive connections between requests
   std::uint32_t max_requests_per_connection = 1000;  // then the answer says Connection: close
 };
 
