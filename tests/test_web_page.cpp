@@ -259,27 +259,69 @@ TEST_CASE("web sign-in limiter: more than 10 failures a minute refuse sign-ins",
 }
 
 TEST_CASE("web access: the cookie, its attributes and the same-origin rule", "[web][access]") {
+  using coll::PageScheme;
   Request req = http::make_request(Verb::post, "/ui/session");
   req.set(bhttp::field::cookie, "a=b; dtraced_session=abc; c=d");
   CHECK(coll::session_cookie(req) == "abc");
   req.set(bhttp::field::cookie, "dtraced_sessionx=1");
   CHECK(coll::session_cookie(req).empty());
-  CHECK(coll::check_same_origin(req).ok());  // neither header: not a browser's cross-site request
+  // Neither header: not a browser's cross-site request, whatever the scheme.
+  CHECK(coll::check_same_origin(req, PageScheme::kHttp).ok());
+  CHECK(coll::check_same_origin(req, PageScheme::kHttps).ok());
   req.set(bhttp::field::host, "farm:7878");
   req.set(bhttp::field::origin, "http://farm:7878");
-  CHECK(coll::check_same_origin(req).ok());
+  CHECK(coll::check_same_origin(req, PageScheme::kHttp).ok());
   req.set(bhttp::field::origin, "http://evil.example");
-  CHECK(coll::check_same_origin(req).error().status == Status::forbidden);
+  CHECK(coll::check_same_origin(req, PageScheme::kHttp).error().status == Status::forbidden);
   req.set(bhttp::field::origin, "null");
-  CHECK_FALSE(coll::check_same_origin(req).ok());
+  CHECK_FALSE(coll::check_same_origin(req, PageScheme::kHttp).ok());
   req.erase(bhttp::field::origin);
   req.set("Sec-Fetch-Site", "cross-site");
-  CHECK_FALSE(coll::check_same_origin(req).ok());
+  CHECK_FALSE(coll::check_same_origin(req, PageScheme::kHttp).ok());
+  CHECK_FALSE(coll::check_same_origin(req, PageScheme::kHttps).ok());
   req.set("Sec-Fetch-Site", "same-site");
-  CHECK_FALSE(coll::check_same_origin(req).ok());
+  CHECK_FALSE(coll::check_same_origin(req, PageScheme::kHttp).ok());
   req.set("Sec-Fetch-Site", "none");
-  CHECK(coll::check_same_origin(req).ok());
-  CHECK(coll::session_clear_cookie() == "dtraced_session=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0");
+  CHECK(coll::check_same_origin(req, PageScheme::kHttp).ok());
+  CHECK(coll::session_clear_cookie(PageScheme::kHttp) ==
+        "dtraced_session=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0");
+  CHECK(coll::session_set_cookie("ab12", 60, PageScheme::kHttp) ==
+        "dtraced_session=ab12; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=60");
+}
+
+TEST_CASE("web access: over HTTPS the Origin is https://<Host> and the cookie is Secure", "[web][access]") {
+  using coll::PageScheme;
+  CHECK(coll::scheme_name(PageScheme::kHttp) == "http");
+  CHECK(coll::scheme_name(PageScheme::kHttps) == "https");
+  CHECK(coll::page_scheme(true) == PageScheme::kHttps);
+  CHECK(coll::page_scheme(false) == PageScheme::kHttp);
+  Request req = http::make_request(Verb::post, "/ui/session");
+  req.set(bhttp::field::host, "farm.example:7878");
+  req.set("Sec-Fetch-Site", "same-origin");
+  req.set(bhttp::field::origin, "https://farm.example:7878");
+  CHECK(coll::check_same_origin(req, PageScheme::kHttps).ok());
+  // The same page's origin over the other scheme is another origin.
+  const auto https_on_plain = coll::check_same_origin(req, PageScheme::kHttp);
+  REQUIRE_FALSE(https_on_plain.ok());
+  CHECK(https_on_plain.error().status == Status::forbidden);
+  req.set(bhttp::field::origin, "http://farm.example:7878");
+  const auto http_on_tls = coll::check_same_origin(req, PageScheme::kHttps);
+  REQUIRE_FALSE(http_on_tls.ok());
+  CHECK(http_on_tls.error().status == Status::forbidden);
+  for (const std::string_view other : {"https://evil.example", "https://farm.example", "https://farm.example:7879",
+                                       "https://farm.example:7878/", "null"}) {
+    INFO(other);
+    req.set(bhttp::field::origin, other);
+    CHECK_FALSE(coll::check_same_origin(req, PageScheme::kHttps).ok());
+  }
+  req.erase(bhttp::field::host);
+  req.set(bhttp::field::origin, "https://");
+  CHECK_FALSE(coll::check_same_origin(req, PageScheme::kHttps).ok());  // no Host: nothing to be the same as
+
+  CHECK(coll::session_set_cookie("ab12", 60, PageScheme::kHttps) ==
+        "dtraced_session=ab12; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=60; Secure");
+  CHECK(coll::session_clear_cookie(PageScheme::kHttps) ==
+        "dtraced_session=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0; Secure");
 }
 
 // ---- through the handler -----------------------------------------------------------------------
@@ -425,6 +467,62 @@ TEST_CASE("web page: sign-in, the session, credentials per route, CSRF and Origi
   CHECK(field_of(out, "Set-Cookie").find("Max-Age=0") != std::string::npos);
   check_page_headers(out);
   CHECK(signed_in(h, t.cookie) == false);
+}
+
+TEST_CASE("web page: a collector with TLS wants https:// origins and sets a Secure cookie", "[web][page]") {
+  // The handler never touches certificates: config.tls.enabled only tells it how it is reached.
+  TempDir dir;
+  coll::CollectorConfig config = make_config(dir);
+  config.tls.enabled = true;
+  Harness h(config);
+  const std::uint64_t job = h.submit();
+  const auto over_https = [](Request req) {
+    if (req.find(bhttp::field::origin) != req.end()) req.set(bhttp::field::origin, "https://127.0.0.1:7878");
+    return req;
+  };
+
+  // Sign-in from the http:// origin of the same host and port: another origin, 403, no cookie.
+  const Response plain = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})"));
+  CHECK(plain.result() == Status::forbidden);
+  CHECK(field_of(plain, "Set-Cookie").empty());
+  check_page_headers(plain);
+
+  const Response in =
+      h.collector.handle_sync(over_https(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})")));
+  REQUIRE(in.result() == Status::ok);
+  const std::string set = field_of(in, "Set-Cookie");
+  REQUIRE(set.starts_with("dtraced_session="));
+  CHECK(set.ends_with("; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=43200; Secure"));
+  Session s;
+  s.cookie = set.substr(16, 64);
+  s.csrf = std::string(json::parse(in.body()).at("csrf").as_string());
+  CHECK(signed_in(h, s.cookie));
+
+  // A state change from http:// is refused and changes nothing; from https:// it is made.
+  const std::string priority = fmt::format("/ui/api/jobs/{}/priority", job);
+  CHECK(h.collector.handle_sync(browser(Verb::post, priority, R"({"priority": 3})", s.cookie, s.csrf)).result() ==
+        Status::forbidden);
+  CHECK(h.status(job).priority == 0);
+  CHECK(h.collector.handle_sync(over_https(browser(Verb::post, priority, R"({"priority": 3})", s.cookie, s.csrf)))
+            .result() == Status::ok);
+  CHECK(h.status(job).priority == 3);
+
+  // Signing out clears the cookie with the same attributes.
+  const Response out = h.collector.handle_sync(over_https(browser(Verb::delete_, "/ui/session", {}, s.cookie, s.csrf)));
+  CHECK(out.result() == Status::no_content);
+  CHECK(field_of(out, "Set-Cookie") == "dtraced_session=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0; Secure");
+  CHECK(signed_in(h, s.cookie) == false);
+}
+
+TEST_CASE("web page: without TLS an https:// origin is refused and the cookie is not Secure", "[web][page]") {
+  TempDir dir;
+  Harness h(dir);
+  Request req = browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})");
+  req.set(bhttp::field::origin, "https://127.0.0.1:7878");
+  CHECK(h.collector.handle_sync(std::move(req)).result() == Status::forbidden);
+  const Response in = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})"));
+  REQUIRE(in.result() == Status::ok);
+  CHECK(field_of(in, "Set-Cookie").find("Secure") == std::string::npos);
 }
 
 TEST_CASE("web page: more than 10 failed sign-ins a minute get 429", "[web][page]") {

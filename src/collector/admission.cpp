@@ -57,7 +57,7 @@ util::Result<Admitted, Refusal> admit_page(const http::Request& head, std::strin
   if (!matched) return std::move(matched).error();
   Route route = std::move(matched).value();
   if (changes_state) {
-    if (auto same = check_same_origin(head); !same) return std::move(same).error();
+    if (auto same = check_same_origin(head, page.scheme); !same) return std::move(same).error();
     // Signing in has no session yet; signing out of one that is gone needs no proof.
     const bool needs_csrf = route.page || (route.kind == RouteKind::kSessionDelete && !cookie.empty() &&
                                            page.sessions->find(cookie, page.now));

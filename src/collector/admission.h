@@ -21,6 +21,7 @@
 #include "collector/credentials.h"
 #include "collector/refusal.h"
 #include "collector/routes.h"
+#include "collector/web_access.h"
 #include "collector/web_session.h"
 #include "http/types.h"
 #include "util/result.h"
@@ -42,17 +43,19 @@ struct Admitted {
 // token is known (no credentials).
 util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes);
 
-// What admission needs to know of the web page: whether it is served, its sessions, the time.
+// What admission needs to know of the web page: whether it is served, its sessions, the time, and
+// whether the collector listens with TLS (the Origin a state change must carry).
 struct PageAccess {
   bool enabled = false;
   const SessionStore* sessions = nullptr;  // required when enabled
   TimePoint now{};
+  PageScheme scheme = PageScheme::kHttp;
 };
 
 // As above, and the page's targets (docs/web-access.md): 404 unless enabled; static files need
 // nothing; POST/DELETE /ui/session must be same-origin (403); /ui/api/... needs a live session
-// cookie and no bearer header (401), then a route, and when it changes state, same origin and
-// the session's CSRF header (403). A page route's body limit is kMaxPageBodyBytes.
+// cookie and no bearer header (401), then a route, and when it changes state, same origin (for
+// page.scheme) and the session's CSRF header (403). A page route's body limit is kMaxPageBodyBytes.
 util::Result<Admitted, Refusal> admit(const http::Request& head, const TokenCheck& token, std::uint64_t max_body_bytes,
                                       const PageAccess& page);
 

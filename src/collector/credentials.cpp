@@ -1,28 +1,15 @@
 #include "collector/credentials.h"
 
 #include <algorithm>
+#include <stdexcept>
 #include <utility>
 
 #include <boost/beast/core/string.hpp>
 #include <boost/beast/http/field.hpp>
 #include <fmt/format.h>
-#include <openssl/crypto.h>
-#include <openssl/rand.h>
 
 namespace dtraced::collector {
 namespace {
-
-constexpr std::string_view kJoinCodePrefix = "dtj1.";
-constexpr char kBase64Url[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_";
-
-int base64url_value(char c) {
-  if (c >= 'A' && c <= 'Z') return c - 'A';
-  if (c >= 'a' && c <= 'z') return c - 'a' + 26;
-  if (c >= '0' && c <= '9') return c - '0' + 52;
-  if (c == '-') return 62;
-  if (c == '_') return 63;
-  return -1;
-}
 
 constexpr unsigned bit(Role r) { return 1u << static_cast<unsigned>(r); }
 constexpr unsigned kReaders = bit(Role::kViewer) | bit(Role::kClient) | bit(Role::kOperator);
@@ -256,81 +243,37 @@ Authentication authenticate(const http::Request& head, const TokenCheck& operato
 
 // ---- secrets --------------------------------------------------------------------------------
 
-std::string base64url(const std::uint8_t* data, std::size_t size) {
-  std::string out;
-  out.reserve((size * 4 + 2) / 3);
-  std::uint32_t acc = 0;
-  int bits = 0;
-  for (std::size_t i = 0; i < size; ++i) {
-    acc = (acc << 8) | data[i];
-    bits += 8;
-    while (bits >= 6) {
-      bits -= 6;
-      out += kBase64Url[(acc >> bits) & 63];
-    }
-  }
-  if (bits > 0) out += kBase64Url[(acc << (6 - bits)) & 63];
-  return out;
-}
-
-std::optional<std::vector<std::uint8_t>> from_base64url(std::string_view text) {
-  if (text.size() % 4 == 1) return std::nullopt;
-  std::vector<std::uint8_t> out;
-  out.reserve(text.size() * 3 / 4);
-  std::uint32_t acc = 0;
-  int bits = 0;
-  for (const char c : text) {
-    const int v = base64url_value(c);
-    if (v < 0) return std::nullopt;
-    acc = (acc << 6) | static_cast<std::uint32_t>(v);
-    bits += 6;
-    if (bits >= 8) {
-      bits -= 8;
-      out.push_back(static_cast<std::uint8_t>((acc >> bits) & 0xff));
-    }
-  }
-  if ((acc & ((1u << bits) - 1)) != 0) return std::nullopt;  // leftover bits must be zero
-  return out;
-}
-
 std::optional<std::string> random_token() {
-  std::array<std::uint8_t, 32> bytes{};
-  if (RAND_bytes(bytes.data(), static_cast<int>(bytes.size())) != 1) return std::nullopt;
-  std::string token = base64url(bytes.data(), bytes.size());
-  OPENSSL_cleanse(bytes.data(), bytes.size());
-  return token;
+  try {
+    return tls::random_token();
+  } catch (const std::runtime_error&) {
+    return std::nullopt;
+  }
 }
 
 std::optional<JoinSecret> random_join_secret() {
-  JoinSecret secret{};
-  if (RAND_bytes(secret.data(), static_cast<int>(secret.size())) != 1) return std::nullopt;
-  return secret;
+  try {
+    return tls::make_join_code(std::nullopt).secret;
+  } catch (const std::runtime_error&) {
+    return std::nullopt;
+  }
 }
 
 std::string format_join_code(const JoinSecret& secret, const std::optional<CaFingerprint>& ca) {
-  return fmt::format("{}{}.{}", kJoinCodePrefix, base64url(secret.data(), secret.size()),
-                     ca ? base64url(ca->data(), ca->size()) : std::string());
+  return tls::format_join_code(tls::JoinCode{secret, ca});
 }
 
 util::Result<JoinSecret> join_code_secret(std::string_view code) {
-  std::string_view secret = code;
-  if (code.starts_with(kJoinCodePrefix)) {
-    const std::string_view rest = code.substr(kJoinCodePrefix.size());
-    const std::size_t dot = rest.find('.');
-    if (dot == std::string_view::npos) {
-      return util::Error("a join code has three parts: dtj1.<secret>.<fingerprint>", "/code");
-    }
-    secret = rest.substr(0, dot);
-  } else if (code.find('.') != std::string_view::npos) {
-    return util::Error("not a join code: it starts with dtj1.", "/code");
-  }
-  const auto bytes = from_base64url(secret);
-  if (!bytes || bytes->size() != JoinSecret().size()) {
-    return util::Error("the join code's secret must be 16 bytes in base64url (22 characters)", "/code");
-  }
-  JoinSecret out{};
-  std::copy(bytes->begin(), bytes->end(), out.begin());
-  return out;
+  // White space around it is ignored, as pasted; the secret part alone reads as a whole code
+  // without a fingerprint.
+  const auto space = [](char ch) { return ch == ' ' || ch == '\t' || ch == '\r' || ch == '\n'; };
+  while (!code.empty() && space(code.front())) code.remove_prefix(1);
+  while (!code.empty() && space(code.back())) code.remove_suffix(1);
+  const bool secret_only = !code.starts_with(tls::kJoinCodePrefix) && code.find('.') == std::string_view::npos;
+  auto parsed =
+      tls::parse_join_code(secret_only ? fmt::format("{}{}.", tls::kJoinCodePrefix, code) : std::string(code));
+  if (!parsed) return util::Error(parsed.error().message, "/code");
+  return parsed->secret;
 }
 
 }  // namespace dtraced::collector

@@ -3,14 +3,14 @@
 // Owns: the roles (viewer, client, worker, and operator: the --token-file token, client + worker),
 // the in-memory table of credentials (loaded from the store at start, kept in step with it by the
 // handlers, handlers/credentials.cpp), the one table of which roles may call which route
-// (route_allows: a pure function), and the small secrets of enrollment: random tokens, join code
-// secrets and the join code's text form ("dtj1.<base64url secret>.<base64url CA fingerprint>").
+// (route_allows: a pure function), and the collector's view of the secrets of enrollment (random
+// tokens, join code secrets and their text form), made and read by tls/join_code.h.
 //
 // Tokens are looked up by the SHA-256 digest of what was presented (a map keyed by digest: the
 // digest of a secret reveals nothing about it); the table never holds a usable token.
 //
 // Thread safety: a CredentialTable has one owner (the collector's event loop); the free
-// functions are stateless (random_* read OpenSSL's RAND_bytes).
+// functions are stateless (the random ones read OpenSSL's RAND_bytes through tls/join_code.h).
 #pragma once
 
 #include <array>
@@ -24,6 +24,7 @@
 
 #include "collector/routes.h"
 #include "http/types.h"
+#include "tls/join_code.h"
 #include "util/sha256.h"
 
 namespace dtraced::collector {
@@ -107,23 +108,20 @@ Authentication authenticate(const http::Request& head, const TokenCheck& operato
 // malformed.
 std::string_view bearer_token(const http::Request& head);
 
-// ---- secrets --------------------------------------------------------------------------------
+// ---- secrets (tls/join_code.h makes them; these say "try later" instead of throwing) -------
 
-// base64url without padding (RFC 4648 section 5), and back (nullopt on any other character or a
-// length no encoding has).
-std::string base64url(const std::uint8_t* data, std::size_t size);
-std::optional<std::vector<std::uint8_t>> from_base64url(std::string_view text);
-
-// 32 random bytes, base64url: a credential's token. nullopt when the random source fails.
+// tls::random_token (32 random bytes, base64url): a credential's token. nullopt when the random
+// source fails (the handler answers 503).
 std::optional<std::string> random_token();
 
-using JoinSecret = std::array<std::uint8_t, 16>;
-using CaFingerprint = std::array<std::uint8_t, 32>;
+using JoinSecret = decltype(tls::JoinCode::secret);
+using CaFingerprint = tls::Fingerprint;
+// A join code's random secret; nullopt when the random source fails.
 std::optional<JoinSecret> random_join_secret();
-// "dtj1.<base64url secret>.<base64url fingerprint, or empty>".
+// tls::format_join_code: "dtj1.<base64url secret>.<base64url fingerprint, or empty>".
 std::string format_join_code(const JoinSecret& secret, const std::optional<CaFingerprint>& ca);
-// The secret of a join code given whole ("dtj1.S.F") or as its secret part alone ("S"); the
-// error says what is wrong.
+// The secret of a join code given whole ("dtj1.S.F", read by tls::parse_join_code) or as its
+// secret part alone ("S"); the error says what is wrong.
 util::Result<JoinSecret> join_code_secret(std::string_view code);
 
 }  // namespace dtraced::collector

@@ -36,7 +36,7 @@ bool is_page_request(const http::Request& head) {
 }
 
 util::Result<Admitted, Refusal> admit_counted(Context& c, const http::Request& head) {
-  const PageAccess page{c.config.web_ui, &c.sessions, c.clock.now()};
+  const PageAccess page{c.config.web_ui, &c.sessions, c.clock.now(), page_scheme(c.config.tls.enabled)};
   std::optional<Role> refused_role;
   auto admitted = admit(head, c.token, c.credentials, c.config.limits.max_body_bytes, page, &refused_role);
   // A page request without a session is no refused token (the page asks before it signs in).

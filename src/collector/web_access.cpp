@@ -40,6 +40,8 @@ util::Result<T, Refusal> decode_page_object(std::string_view text, std::span<con
 
 }  // namespace
 
+std::string_view scheme_name(PageScheme scheme) { return scheme == PageScheme::kHttps ? "https" : "http"; }
+
 bool is_page_path(std::string_view path) { return path == "/" || path == "/ui" || path.starts_with("/ui/"); }
 
 bool is_page_api_path(std::string_view path) { return path.starts_with("/ui/api/") || path == "/ui/api"; }
@@ -65,19 +67,21 @@ std::string session_cookie(const http::Request& req) {
   return {};
 }
 
-std::string session_set_cookie(std::string_view id, std::int64_t max_age_s) {
-  return fmt::format("{}={}; Path=/ui; HttpOnly; SameSite=Strict; Max-Age={}", kSessionCookie, id, max_age_s);
+std::string session_set_cookie(std::string_view id, std::int64_t max_age_s, PageScheme scheme) {
+  return fmt::format("{}={}; Path=/ui; HttpOnly; SameSite=Strict; Max-Age={}{}", kSessionCookie, id, max_age_s,
+                     scheme == PageScheme::kHttps ? "; Secure" : "");
 }
 
-std::string session_clear_cookie() {
-  return fmt::format("{}=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0", kSessionCookie);
+std::string session_clear_cookie(PageScheme scheme) {
+  return fmt::format("{}=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0{}", kSessionCookie,
+                     scheme == PageScheme::kHttps ? "; Secure" : "");
 }
 
-util::Result<void, Refusal> check_same_origin(const http::Request& req) {
+util::Result<void, Refusal> check_same_origin(const http::Request& req, PageScheme scheme) {
   if (req.find(bhttp::field::origin) != req.end()) {
     const std::string_view origin = header(req, "Origin");
     const std::string_view host = header(req, "Host");
-    if (host.empty() || origin != fmt::format("http://{}", host)) {
+    if (host.empty() || origin != fmt::format("{}://{}", scheme_name(scheme), host)) {
       return forbidden("cross-origin request refused: Origin is not this collector's");
     }
   }

@@ -22,6 +22,9 @@ token) and drives headless Chromium through Selenium. It checks, in order:
   - the stopped worker is marked quiet, then leaves the list;
   - a hidden tab sends no request, and polls again once shown;
   - sign-out shows the sign-in form again;
+  - a viewer credential (made with POST /v1/credentials) signs in read-only: "read-only
+    (viewer)" shows, a queued job's row has no pause or cancel button, the priority cannot be
+    set, the region form is gone, and a state change forced past the page gets 403;
   - the browser logged no JavaScript error or warning.
 Exits 77 (ctest: skipped) only when chromium, chromedriver or python3-selenium is missing.
 Needs DTRACED (the binary) and SCENES (the scenes folder) in the environment.
@@ -218,13 +221,15 @@ class Farm:
 class Session:
     """A signed-in page session seen from Python: its cookie and CSRF value."""
 
-    def __init__(self, farm):
+    def __init__(self, farm, token=None):
         self.farm = farm
-        status, headers, body = farm.request("POST", "/ui/session", {"token": farm.token},
+        status, headers, body = farm.request("POST", "/ui/session", {"token": token or farm.token},
                                              {"Origin": farm.url})
         if status != 200:
             raise Failure(f"POST /ui/session with the token: {status} {body[:200]!r}")
-        self.csrf = json.loads(body)["csrf"]
+        answer = json.loads(body)
+        self.csrf = answer["csrf"]
+        self.role = answer.get("role")
         jar = http.cookies.SimpleCookie()
         for value in headers.get_all("Set-Cookie") or []:
             jar.load(value)
@@ -593,8 +598,52 @@ def run(farm, driver):
     wait_for("sign-out shows the sign-in form", lambda: driver.find_element(By.ID, "signin-view").is_displayed())
     ok("sign-out shows the sign-in form")
 
+    check_viewer(farm, driver, scene, common)
+
     problems = console_at_load + console_problems(driver)
     check(not problems, "no JavaScript console errors or warnings" + ("" if not problems else f": {problems}"))
+
+
+def check_viewer(farm, driver, scene, common):
+    """A viewer's session watches: no control that changes the farm, and a forced change is 403."""
+    job_c = int(farm.client("submit", scene, "-o", "web-c.png", *common).strip())
+    status, _, body = farm.request("POST", "/v1/credentials", {"name": "web-viewer", "role": "viewer"},
+                                   farm.bearer())
+    if status != 201:
+        raise Failure(f"POST /v1/credentials for a viewer: {status} {body[:200]!r}")
+    ok("POST /v1/credentials makes a viewer credential")
+    viewer_token = json.loads(body)["token"]
+
+    token = driver.find_element(By.ID, "token")
+    token.clear()
+    token.send_keys(viewer_token + Keys.RETURN)
+    wait_for("the page signs in as the viewer", lambda: driver.find_element(By.ID, "app-view").is_displayed())
+    check(driver.find_element(By.ID, "role-note").is_displayed()
+          and text_of(driver, "role-note") == "read-only (viewer)",
+          "a viewer's page says read-only (viewer)")
+    r = wait_for("job C's row appears", lambda: row(driver, job_c))
+    wait_for("job C's row shows it queued", lambda: "queued" in row(driver, job_c).text)
+    r = row(driver, job_c)
+    shown = [b.text for b in r.find_elements(By.CSS_SELECTOR, "button") if b.is_displayed()]
+    check(shown == ["Preview"], f"a viewer sees no pause, cancel or priority button on a queued job ({shown})")
+    check(not r.find_element(By.CSS_SELECTOR, "input").is_enabled(), "a viewer cannot edit a job's priority")
+    r.find_element(By.CSS_SELECTOR, f'button[aria-label="Preview job {job_c}"]').click()
+    wait_for("the viewer's preview shows", lambda: driver.find_element(By.ID, "preview-box").is_displayed())
+    check(not driver.find_element(By.ID, "focus-form").is_displayed(), "a viewer's preview has no region form")
+
+    v = Session(farm, viewer_token)
+    check(v.role == "viewer", f"the viewer's sign-in answers role viewer ({v.role})")
+    check(v.json("/ui/session").get("role") == "viewer", "GET /ui/session says role viewer")
+    forced = {"Cookie": v.cookie, "Origin": farm.url, "X-Dtraced-CSRF": v.csrf}
+    check(farm.request("POST", f"/ui/api/jobs/{job_c}/cancel", None, forced)[0] == 403,
+          "a viewer's forced cancel is 403")
+    check(farm.request("POST", f"/ui/api/jobs/{job_c}/focus", {"x": 0, "y": 0, "width": 1, "height": 1},
+                       forced)[0] == 403, "a viewer's forced focus is 403")
+    check(farm.job(job_c)["state"] == "queued", "the viewer's refused requests changed nothing")
+
+    driver.find_element(By.ID, "signout").click()
+    wait_for("the viewer signs out", lambda: driver.find_element(By.ID, "signin-view").is_displayed())
+    check(not driver.find_element(By.ID, "role-note").is_displayed(), "signed out, the read-only note is gone")
 
 
 def main():

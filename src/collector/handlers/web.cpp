@@ -192,7 +192,7 @@ http::Response sign_in(Context& c, const http::Request& req) {
   const std::int64_t max_age = whole_seconds(c.sessions.limits().lifetime);
   http::Response res = json_object(
       http::Status::ok, {{"csrf", session->csrf}, {"expires_in_s", max_age}, {"role", role_name(auth.who.role)}});
-  res.set(bhttp::field::set_cookie, session_set_cookie(session->id, max_age));
+  res.set(bhttp::field::set_cookie, session_set_cookie(session->id, max_age, page_scheme(c.config.tls.enabled)));
   return res;
 }
 
@@ -210,7 +210,7 @@ http::Response get_session(Context& c, const http::Request& req) {
 http::Response sign_out(Context& c, const http::Request& req) {
   c.sessions.remove(session_cookie(req));
   http::Response res{http::Status::no_content, 11};
-  res.set(bhttp::field::set_cookie, session_clear_cookie());
+  res.set(bhttp::field::set_cookie, session_clear_cookie(page_scheme(c.config.tls.enabled)));
   return res;
 }
 

@@ -59,6 +59,19 @@
   // ---- session and requests ----
   let csrf = null;        // in memory only
   let signedIn = false;
+  let role = null;        // the session's role (GET /ui/session, the sign-in's answer)
+
+  // A viewer's session watches: the collector refuses its state changes (403), so the page shows
+  // none of the controls that make them (CSS .read-only .writer-only) and sends none.
+  function readOnly() {
+    return role === 'viewer';
+  }
+
+  function applyRole(r) {
+    role = typeof r === 'string' ? r : null;
+    document.body.classList.toggle('read-only', readOnly());
+    $('role-note').hidden = !readOnly();
+  }
 
   class Unauthorized extends Error {}
   class HttpError extends Error {
@@ -71,6 +84,7 @@
   function showSignedOut(message) {
     signedIn = false;
     csrf = null;
+    applyRole(null);
     stopPolling();
     $('app-view').hidden = true;
     $('signout').hidden = true;
@@ -83,8 +97,9 @@
     $('token').focus();
   }
 
-  function showSignedIn() {
+  function showSignedIn(sessionRole) {
     signedIn = true;
+    applyRole(sessionRole);
     $('signin-view').hidden = true;
     $('app-view').hidden = false;
     $('signout').hidden = false;
@@ -146,8 +161,9 @@
         body: JSON.stringify({token: $('token').value.trim()}),
       });
       if (res.ok) {
-        csrf = (await res.json()).csrf;
-        showSignedIn();
+        const answer = await res.json();
+        csrf = answer.csrf;
+        showSignedIn(answer.role);
       } else if (res.status === 401) {
         setText($('signin-error'), 'That token is not this farm\'s.');
       } else if (res.status === 429) {
@@ -291,7 +307,7 @@
     r.prioInput.max = '1000';
     r.prioInput.step = '1';
     r.prioInput.setAttribute('aria-label', `Priority of job ${id}`);
-    r.prioSet = el('button', 'small', 'Set');
+    r.prioSet = el('button', 'small writer-only', 'Set');
     r.prioSet.type = 'submit';
     r.prioSet.setAttribute('aria-label', `Set the priority of job ${id}`);
     r.prioForm.append(r.prioInput, r.prioSet);
@@ -308,13 +324,13 @@
     r.actions = el('td', 'actions');
     r.view = actionButton('Preview', 'small', () => selectJob(id));
     r.view.setAttribute('aria-label', `Preview job ${id}`);
-    r.pause = actionButton('Pause', 'small', () => jobAction(id, 'pause'));
-    r.resume = actionButton('Resume', 'small', () => jobAction(id, 'resume'));
-    r.cancel = actionButton('Cancel', 'small danger', async () => {
+    r.pause = actionButton('Pause', 'small writer-only', () => jobAction(id, 'pause'));
+    r.resume = actionButton('Resume', 'small writer-only', () => jobAction(id, 'resume'));
+    r.cancel = actionButton('Cancel', 'small danger writer-only', async () => {
       if (await confirmAction(`Cancel job ${id}? Workers stop receiving its tiles; its stored tiles are kept and "Requeue" continues it.`, 'Cancel job'))
         jobAction(id, 'cancel');
     });
-    r.requeue = actionButton('Requeue', 'small', async () => {
+    r.requeue = actionButton('Requeue', 'small writer-only', async () => {
       if (await confirmAction(`Requeue job ${id}? It is rendered again from the tiles it lacks.`, 'Requeue job'))
         jobAction(id, 'requeue');
     });
@@ -355,8 +371,8 @@
     setText(r.spp, spp);
     if (document.activeElement !== r.prioInput && r.prioInput.value !== String(j.priority))
       r.prioInput.value = String(j.priority);
-    r.prioInput.disabled = j.state === 'done';
-    r.prioSet.disabled = j.state === 'done';
+    r.prioInput.disabled = j.state === 'done' || readOnly();
+    r.prioSet.disabled = j.state === 'done' || readOnly();
     r.pause.hidden = !(j.state === 'queued' || j.state === 'rendering');
     r.resume.hidden = j.state !== 'paused';
     r.cancel.hidden = finished;
@@ -402,6 +418,7 @@
   }
 
   async function jobAction(id, verb, body, focusBack) {
+    if (readOnly()) return;
     setText($('jobs-note'), '');
     try {
       await post(`/ui/api/jobs/${id}/${verb}`, body === undefined ? undefined : body);
@@ -732,7 +749,7 @@
   }
 
   overlay.addEventListener('pointerdown', (ev) => {
-    if (ev.button !== 0 || preview.job === null) return;
+    if (ev.button !== 0 || preview.job === null || readOnly()) return;
     const p = imagePoint(ev);
     preview.drag = {x0: p.x, y0: p.y, x1: p.x, y1: p.y, cx: ev.clientX, cy: ev.clientY, moved: false};
     overlay.setPointerCapture(ev.pointerId);
@@ -781,7 +798,7 @@
 
   async function focusRegion(r) {
     const id = preview.job;
-    if (id === null) return;
+    if (id === null || readOnly()) return;
     setText($('focus-result'), '');
     try {
       const body = await post(`/ui/api/jobs/${id}/focus`, r);
@@ -805,7 +822,7 @@
       const answer = res.ok ? await res.json() : null;
       if (answer && answer.signed_in) {
         csrf = answer.csrf;
-        showSignedIn();
+        showSignedIn(answer.role);
         return;
       }
       showSignedOut(res.ok ? '' : 'The collector refused the page.');
