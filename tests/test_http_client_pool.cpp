@@ -1,28 +1,21 @@
 // dtraced::http::Client: kept-alive connections (reuse, the server closing an idle one, the
 // retry on a fresh connection, the per-connection request cap, concurrency, cancellation) against
 // the plain http::Server and against hand-driven servers on loopback; and the client side of TLS
-// (trust, host names, a plain server, a handshake that never ends, a pinned CA fingerprint)
-// against a small HTTPS server written here with Beast, with certificates made by the openssl
-// command (the [tls] cases are skipped, saying so, when it is missing). The integrator can point
-// the [tls] cases at the dtraced server once it speaks TLS: TlsTestServer is the only server they
-// use.
-#include <cstdio>
-#include <cstdlib>
-#include <fstream>
+// (trust, host names, validity, a plain server, a handshake that never ends, a pinned CA
+// fingerprint, SNI) against the HTTPS http::Server, with certificates made in memory by src/tls.
+#include <ctime>
 #include <mutex>
-#include <sstream>
 #include <variant>
 
 #include <boost/asio/detached.hpp>
 #include <boost/asio/experimental/awaitable_operators.hpp>
 #include <boost/asio/ssl/context.hpp>
-#include <boost/beast/core/tcp_stream.hpp>
 #include <boost/beast/http/write.hpp>
-#include <boost/beast/ssl/ssl_stream.hpp>
 #include <openssl/ssl.h>
 
+#include "http/tls_server.h"
 #include "http_testing.h"
-#include "temp_dir.h"
+#include "tls/material.h"
 
 using namespace http_testing;
 using dtraced::http::Client;
@@ -34,7 +27,6 @@ using dtraced::http::SyncClient;
 namespace {
 
 namespace beast = boost::beast;
-namespace ssl = net::ssl;
 using namespace net::experimental::awaitable_operators;
 
 Request echo(std::string json) {
@@ -302,89 +294,76 @@ TEST_CASE("free request_sync still closes its connection", "[http][pool]") {
 
 namespace {
 
-bool have_openssl_command() { return std::system("openssl version >/dev/null 2>&1") == 0; }
+using dtraced::tls::CertSpec;
+using dtraced::tls::KeyPair;
 
-std::string read_text(const std::filesystem::path& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
+const std::int64_t kNow = static_cast<std::int64_t>(std::time(nullptr));
+
+// A server certificate for `dns` and `ips`, valid from an hour ago for a day unless told.
+CertSpec leaf_spec(std::string cn, std::vector<std::string> dns, std::vector<std::string> ips,
+                   std::int64_t from = kNow - 3600, std::int64_t to = kNow + 86'400) {
+  CertSpec s;
+  s.common_name = std::move(cn);
+  s.dns_names = std::move(dns);
+  s.ip_addresses = std::move(ips);
+  s.not_before_unix = from;
+  s.not_after_unix = to;
+  return s;
 }
 
-// Certificates made with the openssl command in a temporary directory: a CA and a server
-// certificate it signed for localhost and 127.0.0.1 (chain.pem = server + CA); another CA; and a
-// certificate of the first CA for another name.
-struct Certificates {
-  dtraced::testing::TempDir dir{"dtraced-tls"};
+CertSpec ca_spec(std::string cn) { return leaf_spec(std::move(cn), {}, {}, kNow - 3600, kNow + 30 * 86'400); }
 
-  bool make() {
-    const std::string script = fmt::format(
-        R"(set -e; cd '{}'
-key() {{ openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$1"; }}
-ca() {{ key $1.key; openssl req -x509 -new -key $1.key -subj "/CN=$1" -days 30 -out $1.pem \
-  -addext basicConstraints=critical,CA:TRUE -addext keyUsage=critical,keyCertSign,cRLSign; }}
-leaf() {{ key $1.key; openssl req -new -key $1.key -subj "/CN=$1" -out $1.csr
-  printf 'subjectAltName=%s\nextendedKeyUsage=serverAuth\nbasicConstraints=CA:FALSE\n' "$2" > $1.ext
-  openssl x509 -req -in $1.csr -CA ca.pem -CAkey ca.key -CAcreateserial -days 30 -out $1.pem -extfile $1.ext
-  cat $1.pem ca.pem > $1-chain.pem; }}
-ca ca; ca other
-leaf server "DNS:localhost,IP:127.0.0.1"
-leaf elsewhere "DNS:elsewhere.example"
-openssl x509 -in ca.pem -noout -fingerprint -sha256 > ca.fingerprint
-) >/dev/null 2>&1)",
-        dir.path().string());
-    return std::system(("(" + script).c_str()) == 0;
-  }
-
-  std::string path(std::string_view name) const { return (dir.path() / name).string(); }
-
-  ClientTls trust(std::string_view ca = "ca.pem") const {
-    ClientTls tls;
-    tls.ca_pem = read_text(dir.path() / ca);
-    tls.ca_source = path(ca);
-    return tls;
-  }
-
-  // "sha256 Fingerprint=AB:CD:..." -> 32 bytes.
-  std::array<std::uint8_t, 32> ca_fingerprint() const {
-    const std::string text = read_text(dir.path() / "ca.fingerprint");
-    std::array<std::uint8_t, 32> out{};
-    std::size_t at = text.find('=') + 1;
-    for (auto& byte : out) {
-      byte = static_cast<std::uint8_t>(std::stoul(text.substr(at, 2), nullptr, 16));
-      at += 3;
-    }
-    return out;
-  }
+// The certificates the tests use, made once in memory: a CA and, signed by it, a server
+// certificate for localhost and 127.0.0.1, one for another name, and an expired one for
+// localhost and 127.0.0.1; and another CA.
+struct Pki {
+  KeyPair ca = *dtraced::tls::make_self_signed_ca(ca_spec("test CA"));
+  KeyPair other_ca = *dtraced::tls::make_self_signed_ca(ca_spec("other CA"));
+  KeyPair server = *dtraced::tls::issue(ca, leaf_spec("server", {"localhost"}, {"127.0.0.1"}));
+  KeyPair elsewhere = *dtraced::tls::issue(ca, leaf_spec("elsewhere", {"elsewhere.example"}, {}));
+  KeyPair expired =
+      *dtraced::tls::issue(ca, leaf_spec("expired", {"localhost"}, {"127.0.0.1"}, kNow - 7200, kNow - 3600));
 };
 
-// An HTTPS server on 127.0.0.1 that answers every request with its target, keeping connections
-// alive as asked; counts handshakes.
-class TlsTestServer {
+const Pki& pki() {
+  static const Pki p;
+  return p;
+}
+
+// Trust in `ca`, as if read from a file called `source` (named in errors).
+ClientTls trust(const KeyPair& ca, std::string source) {
+  ClientTls tls;
+  tls.ca_pem = ca.cert_pem;
+  tls.ca_source = std::move(source);
+  return tls;
+}
+
+ClientTls trust_ca() { return trust(pki().ca, "ca.pem"); }
+
+// The HTTPS http::Server on 127.0.0.1, on an ephemeral port, with its io_context on a thread of
+// its own. It presents `leaf` followed by the test CA and answers every request with its target.
+// It records the SNI name of every ClientHello ("" for none) through a server-name callback on its
+// context.
+class HttpsServer {
  public:
-  TlsTestServer(const std::string& chain_file, const std::string& key_file)
-      : context_(ssl::context::tls_server), acceptor_(io_, tcp::endpoint(net::ip::make_address("127.0.0.1"), 0)) {
-    context_.use_certificate_chain_file(chain_file);
-    context_.use_private_key_file(key_file, ssl::context::pem);
-    SSL_CTX_set_tlsext_servername_arg(context_.native_handle(), this);
-    SSL_CTX_set_tlsext_servername_callback(context_.native_handle(), &TlsTestServer::note_server_name);
-    net::co_spawn(io_, accept_loop(), net::detached);
+  explicit HttpsServer(const KeyPair& leaf)
+      : server_(io_.get_executor(), net::ip::make_address("127.0.0.1"), 0, generous_limits(), answer_target(), {}, {},
+                dtraced::util::real_clock(), context(leaf, this)) {
+    REQUIRE(!server_.start());
+    REQUIRE(server_.port() != 0);
     thread_ = std::thread([this] { io_.run(); });
   }
-  ~TlsTestServer() {
-    net::post(io_, [this] {
-      error_code ignored;
-      acceptor_.close(ignored);
-    });
+  ~HttpsServer() {
+    net::co_spawn(io_, server_.stop(1s), net::use_future).wait_for(kBound);
+    work_.reset();
     io_.stop();
     thread_.join();
   }
+  HttpsServer(const HttpsServer&) = delete;
+  HttpsServer& operator=(const HttpsServer&) = delete;
 
-  Url url(std::string host = "127.0.0.1") const {
-    return Url{std::move(host), acceptor_.local_endpoint().port(), true};
-  }
-  int handshakes() const { return handshakes_.load(); }
-  int failed_handshakes() const { return failed_.load(); }
+  Url url(std::string host = "127.0.0.1") const { return Url{std::move(host), server_.port(), true}; }
+  dtraced::http::ServerMetrics metrics() const { return server_.metrics(); }
   // The SNI names clients sent, in order ("" for none).
   std::vector<std::string> server_names() const {
     std::lock_guard lock(mutex_);
@@ -392,51 +371,37 @@ class TlsTestServer {
   }
 
  private:
+  static Server::Handler answer_target() {
+    return [](Request req) -> net::awaitable<Response> {
+      co_return dtraced::http::make_text_response(Status::ok, std::string(req.target()));
+    };
+  }
+
+  static std::shared_ptr<net::ssl::context> context(const KeyPair& leaf, HttpsServer* self) {
+    auto made = dtraced::http::make_server_tls_context(
+        dtraced::http::ServerTlsConfig{leaf.cert_pem + pki().ca.cert_pem, leaf.key_pem, ""});
+    INFO((made.ok() ? std::string() : made.error().message));
+    REQUIRE(made.ok());
+    std::shared_ptr<net::ssl::context> ctx = *made;
+    SSL_CTX_set_tlsext_servername_arg(ctx->native_handle(), self);
+    SSL_CTX_set_tlsext_servername_callback(ctx->native_handle(), &HttpsServer::note_server_name);
+    return ctx;
+  }
+
+  // Runs on the server's thread during each handshake.
   static int note_server_name(SSL* ssl, int*, void* arg) {
-    auto* self = static_cast<TlsTestServer*>(arg);
+    auto* self = static_cast<HttpsServer*>(arg);
     const char* name = SSL_get_servername(ssl, TLSEXT_NAMETYPE_host_name);
     std::lock_guard lock(self->mutex_);
     self->server_names_.emplace_back(name != nullptr ? name : "");
     return SSL_TLSEXT_ERR_OK;
   }
 
-  net::awaitable<void> accept_loop() {
-    for (;;) {
-      auto [ec, socket] = co_await acceptor_.async_accept(net::as_tuple(net::use_awaitable));
-      if (ec) co_return;
-      net::co_spawn(io_, session(std::move(socket)), net::detached);
-    }
-  }
-
-  net::awaitable<void> session(tcp::socket socket) {
-    beast::ssl_stream<beast::tcp_stream> stream(std::move(socket), context_);
-    beast::get_lowest_layer(stream).expires_after(kBound);
-    auto [handshake_ec] = co_await stream.async_handshake(ssl::stream_base::server, net::as_tuple(net::use_awaitable));
-    if (handshake_ec) {
-      ++failed_;
-      co_return;
-    }
-    ++handshakes_;
-    beast::flat_buffer buffer;
-    for (;;) {
-      Request req;
-      beast::get_lowest_layer(stream).expires_after(kBound);
-      auto [read_ec, read] = co_await bhttp::async_read(stream, buffer, req, net::as_tuple(net::use_awaitable));
-      if (read_ec) co_return;
-      Response res = dtraced::http::make_text_response(Status::ok, std::string(req.target()));
-      res.keep_alive(req.keep_alive());
-      auto [write_ec, written] = co_await bhttp::async_write(stream, res, net::as_tuple(net::use_awaitable));
-      if (write_ec || !req.keep_alive()) co_return;
-    }
-  }
-
-  net::io_context io_;
-  ssl::context context_;
-  tcp::acceptor acceptor_;
-  std::atomic<int> handshakes_{0};
-  std::atomic<int> failed_{0};
   mutable std::mutex mutex_;
   std::vector<std::string> server_names_;  // guarded by mutex_
+  net::io_context io_;
+  net::executor_work_guard<net::io_context::executor_type> work_ = net::make_work_guard(io_);
+  Server server_;
   std::thread thread_;
 };
 
@@ -451,16 +416,10 @@ Request get(std::string_view target) { return dtraced::http::make_request(Verb::
 }  // namespace
 
 TEST_CASE("tls: requests over TLS, kept alive: one handshake", "[http][pool][tls]") {
-  if (!have_openssl_command()) {
-    WARN("skipped: the openssl command is not installed (it makes the test certificates)");
-    return;
-  }
-  Certificates certs;
-  REQUIRE(certs.make());
-  TlsTestServer server(certs.path("server-chain.pem"), certs.path("server.key"));
+  HttpsServer server(pki().server);
   for (const std::string host : {"127.0.0.1", "localhost"}) {
     INFO(host);
-    SyncClient client(tls_options(certs.trust()));
+    SyncClient client(tls_options(trust_ca()));
     for (int i = 0; i < 3; ++i) {
       const ClientResult r = client.request(server.url(host), get(fmt::format("/n{}", i)), kMaxResponse);
       INFO(r.message);
@@ -470,39 +429,36 @@ TEST_CASE("tls: requests over TLS, kept alive: one handshake", "[http][pool][tls
     CHECK(client.stats().tls_handshakes == 1);
     CHECK(client.stats().reuses == 2);
   }
-  CHECK(server.handshakes() == 2);
+  CHECK(server.metrics().tls_handshakes == 2);
+  CHECK(server.metrics().keepalive_reuses == 4);
   // SNI names a DNS name, never an address.
   CHECK(server.server_names() == std::vector<std::string>{"", "localhost"});
   // The one-shot function speaks TLS too.
   const ClientResult once =
-      dtraced::http::request_sync(server.url(), get("/once"), kTimeouts, kMaxResponse, certs.trust());
+      dtraced::http::request_sync(server.url(), get("/once"), kTimeouts, kMaxResponse, trust_ca());
   INFO(once.message);
   CHECK(once.ok());
+  CHECK(once.response.body() == "/once");
 }
 
 TEST_CASE("tls: a certificate from another CA or for another name is refused, saying why", "[http][pool][tls]") {
-  if (!have_openssl_command()) {
-    WARN("skipped: the openssl command is not installed (it makes the test certificates)");
-    return;
-  }
-  Certificates certs;
-  REQUIRE(certs.make());
-  TlsTestServer server(certs.path("server-chain.pem"), certs.path("server.key"));
-  TlsTestServer elsewhere(certs.path("elsewhere-chain.pem"), certs.path("elsewhere.key"));
+  HttpsServer server(pki().server);
+  HttpsServer elsewhere(pki().elsewhere);
 
   SECTION("another CA") {
-    SyncClient client(tls_options(certs.trust("other.pem")));
+    SyncClient client(tls_options(trust(pki().other_ca, "/etc/dtraced/other-ca.pem")));
     const ClientResult r = client.request(server.url(), get("/"), kMaxResponse);
     CHECK(r.error == ClientError::kTls);
-    CHECK_THAT(r.message, Catch::Contains("is not signed by the CA in " + certs.path("other.pem")));
+    CHECK_THAT(r.message, Catch::Contains("is not signed by the CA in /etc/dtraced/other-ca.pem"));
     CHECK(client.stats().tls_failures == 1);
   }
   SECTION("another name") {
-    SyncClient client(tls_options(certs.trust()));
+    SyncClient client(tls_options(trust_ca()));
     const ClientResult r = client.request(elsewhere.url(), get("/"), kMaxResponse);
     CHECK(r.error == ClientError::kTls);
     CHECK_THAT(r.message, Catch::Contains("does not name 127.0.0.1") && Catch::Contains("--tls-name 127.0.0.1"));
     const ClientResult by_name = client.request(server.url("localhost"), get("/"), kMaxResponse);
+    INFO(by_name.message);
     CHECK(by_name.ok());
   }
   SECTION("no CA given") {
@@ -525,22 +481,34 @@ TEST_CASE("tls: a certificate from another CA or for another name is refused, sa
   }
 }
 
-TEST_CASE("tls: a pinned CA fingerprint is trusted when the server sends that CA", "[http][pool][tls]") {
-  if (!have_openssl_command()) {
-    WARN("skipped: the openssl command is not installed (it makes the test certificates)");
-    return;
+TEST_CASE("tls: an expired server certificate is refused, saying so", "[http][pool][tls]") {
+  HttpsServer server(pki().expired);
+  SyncClient client(tls_options(trust_ca()));
+  for (const std::string host : {"127.0.0.1", "localhost"}) {
+    INFO(host);
+    const ClientResult r = client.request(server.url(host), get("/"), kMaxResponse);
+    CHECK(r.error == ClientError::kTls);
+    CHECK_THAT(r.message, Catch::Contains("is not valid now") && Catch::Contains("expired") &&
+                              Catch::Contains("check both clocks"));
   }
-  Certificates certs;
-  REQUIRE(certs.make());
-  TlsTestServer server(certs.path("server-chain.pem"), certs.path("server.key"));
-  TlsTestServer elsewhere(certs.path("elsewhere-chain.pem"), certs.path("elsewhere.key"));
+  CHECK(client.stats().tls_handshakes == 0);
+  CHECK(client.stats().tls_failures == 2);
+  CHECK(server.metrics().requests == 0);
+}
+
+TEST_CASE("tls: a pinned CA fingerprint is trusted when the server sends that CA", "[http][pool][tls]") {
+  HttpsServer server(pki().server);
+  HttpsServer elsewhere(pki().elsewhere);
+  const auto fingerprint = dtraced::tls::fingerprint_of_pem(pki().ca.cert_pem);
+  REQUIRE(fingerprint.ok());
   ClientTls pinned;
-  pinned.ca_fingerprint = certs.ca_fingerprint();
+  pinned.ca_fingerprint = *fingerprint;
   REQUIRE(dtraced::http::check_client_tls(pinned));
   SyncClient client(tls_options(pinned));
   const ClientResult r = client.request(server.url(), get("/enroll"), kMaxResponse);
   INFO(r.message);
   CHECK(r.ok());
+  CHECK(r.response.body() == "/enroll");
   // The name is still checked.
   const ClientResult wrong_name = client.request(elsewhere.url(), get("/"), kMaxResponse);
   CHECK(wrong_name.error == ClientError::kTls);
