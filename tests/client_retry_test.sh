@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # A client verb riding out a busy collector, end to end through the real binary on 127.0.0.1
-# (ephemeral port): a collector with --max-connections 1 whose one slot is held by an idle
-# authenticated connection answers `dtraced list` 503 with Retry-After; list says it is retrying,
+# (ephemeral port): a collector with --max-connections 1 whose one slot is held by an
+# authenticated connection in the middle of its second request (an idle one would be closed to
+# make room) answers `dtraced list` 503 with Retry-After; list says it is retrying,
 # and succeeds once the slot is let go. Every wait is bounded (DEADLINE seconds); every process
 # started here is killed on exit.
 # Needs DTRACED (the binary). The list is started without fd 3, so that closing it frees the slot.
@@ -12,13 +13,16 @@ DEADLINE=${DEADLINE:-120}
 source "$(dirname "${BASH_SOURCE[0]}")/e2e_lib.sh"
 
 printf 'retry-%s-token\n' "$$" >"$work/token"
-start_collector collector "$work/state" 127.0.0.1:0 --max-connections 1 --idle-timeout-ms 600000
+start_collector collector "$work/state" 127.0.0.1:0 --max-connections 1 --idle-timeout-ms 600000 \
+  --read-timeout-ms 600000
 
 # Hold the one slot: a request with the token on a connection kept open (HTTP/1.1 keep-alive).
 exec 3<>"/dev/tcp/127.0.0.1/$PORT" || die "cannot connect to the collector"
 printf 'GET /v1/jobs HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer %s\r\n\r\n' "$(head -n1 "$work/token")" >&3
 answered() { read -r -t 1 line <&3 && [[ "$line" == HTTP/1.1\ 200* ]]; }
 until_ok 10 answered && ok "the held connection is served and kept" || die "the held connection was not answered"
+# The start of a second request: the connection is busy reading it, not idle.
+printf 'GET /v1/jobs HTTP/1.1\r\n' >&3
 
 "$DTRACED" list --json --collector "http://127.0.0.1:$PORT" --token-file "$work/token" --timeout-ms $((DEADLINE * 1000)) \
   >"$work/list.out" 2>"$work/list.err" 3>&- &

@@ -236,10 +236,42 @@ TEST_CASE("server: a client that stalls mid-request is dropped at the read deadl
 
 TEST_CASE("server: connections over max_connections get 503 and are closed", "[http]") {
   ServerLimits limits = generous_limits();
+  limits.max_connections = 1;
+  Gate gate;
+  TestServer server(limits, routes(&gate));
+
+  // The one slot is busy: its request is in the handler.
+  RawConnection a(server.port());
+  REQUIRE(a.send("GET /slow HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"));
+  REQUIRE(gate.entered.get_future().wait_for(kBound) == std::future_status::ready);
+  CHECK(server.metrics().open_connections == 1);
+
+  RawConnection c(server.port());
+  REQUIRE(c.send(echo_request("{}")));
+  const auto refused = c.read_response();
+  REQUIRE(refused);
+  CHECK(refused->result() == Status::service_unavailable);
+  CHECK(field_of(*refused, bhttp::field::retry_after) == "1");
+  CHECK(json_body(*refused).is_object());
+  CHECK(c.wait_closed());
+  CHECK(server.metrics().rejected_connections == 1);
+
+  // The busy one is answered; a slot frees when its session ends.
+  open_gate(server.executor(), gate);
+  const auto slow = a.read_response();
+  REQUIRE(slow);
+  CHECK(slow->result() == Status::ok);
+  a.close();
+  REQUIRE(eventually([&] { return server.metrics().open_connections == 0; }));
+  CHECK(post_echo(server.url(), "{}").response.result() == Status::ok);
+}
+
+TEST_CASE("server: at max_connections the connection idle longest makes room", "[http]") {
+  ServerLimits limits = generous_limits();
   limits.max_connections = 2;
   TestServer server(limits, routes());
 
-  // Two sessions, each proven open by an answered keep-alive request.
+  // Two kept-alive connections, idle after their answers.
   RawConnection a(server.port());
   RawConnection b(server.port());
   for (RawConnection* conn : {&a, &b}) {
@@ -252,18 +284,14 @@ TEST_CASE("server: connections over max_connections get 503 and are closed", "[h
 
   RawConnection c(server.port());
   REQUIRE(c.send(echo_request("{}")));
-  const auto refused = c.read_response();
-  REQUIRE(refused);
-  CHECK(refused->result() == Status::service_unavailable);
-  CHECK(field_of(*refused, bhttp::field::retry_after) == "1");
-  CHECK(json_body(*refused).is_object());
-  CHECK(c.wait_closed());
-  CHECK(server.metrics().rejected_connections == 1);
-
-  // A slot frees when a session ends.
-  a.close();
-  REQUIRE(eventually([&] { return server.metrics().open_connections == 1; }));
-  CHECK(post_echo(server.url(), "{}").response.result() == Status::ok);
+  const auto served = c.read_response();
+  REQUIRE(served);
+  CHECK(served->result() == Status::ok);
+  CHECK(a.wait_closed());  // idle the longest
+  REQUIRE(b.send(echo_request("{}")));
+  CHECK(b.read_response().has_value());
+  CHECK(server.metrics().evicted_idle_connections == 1);
+  CHECK(server.metrics().rejected_connections == 0);
 }
 
 TEST_CASE("server: a throwing handler gives 500 with a JSON body, and serving goes on", "[http]") {
