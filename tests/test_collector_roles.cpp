@@ -12,6 +12,7 @@
 #include "collector/routes.h"
 #include "collector/web_access.h"
 #include "collector_testing.h"
+#include "page_testing.h"
 #include "protocol/credential_messages.h"
 
 namespace {
@@ -53,25 +54,6 @@ Outcome outcome_of(const Response& res) {
   return Outcome::kPassed;
 }
 
-// A request as the browser on the page sends it.
-Request browser(Verb method, std::string target, std::string body = {}, std::string_view cookie = {},
-                std::string_view csrf = {}) {
-  Request req = http::make_request(method, target, std::move(body), method == Verb::get ? "" : "application/json");
-  req.set(bhttp::field::host, "127.0.0.1:7878");
-  if (!cookie.empty()) req.set(bhttp::field::cookie, fmt::format("dtraced_session={}", cookie));
-  if (!csrf.empty()) req.set(coll::kCsrfHeader, csrf);
-  if (method != Verb::get) {
-    req.set(bhttp::field::origin, "http://127.0.0.1:7878");
-    req.set("Sec-Fetch-Site", "same-origin");
-  }
-  return req;
-}
-
-std::string field_of(const Response& res, std::string_view name) {
-  const auto it = res.find(boost::beast::string_view(name.data(), name.size()));
-  return it == res.end() ? std::string() : std::string(it->value());
-}
-
 struct PageSession {
   std::string cookie, csrf;
 };
@@ -93,7 +75,7 @@ std::optional<PageSession> page_sign_in(Harness& h, std::string_view token, Stat
       h.collector.handle_sync(browser(Verb::post, "/ui/session", fmt::format(R"({{"token": "{}"}})", token)));
   if (status != nullptr) *status = res.result();
   if (res.result() != Status::ok) return std::nullopt;
-  const std::string set = field_of(res, "Set-Cookie");
+  const std::string set = header_of(res, "Set-Cookie");
   PageSession s;
   s.cookie = set.substr(16, 64);
   s.csrf = std::string(json::parse(res.body()).at("csrf").as_string());

@@ -37,7 +37,7 @@ const std::map<std::string, std::set<std::string>>& allowed() {
       {"protocol", {"scene", "jsonio", "image", "math", "util"}},
       {"async", {"util"}},
       {"tls", {"util"}},
-      {"http", {"async", "util"}},
+      {"http", {"tls", "async", "util"}},
       {"store", {"util"}},
       {"web", {}},  // the web page's files, embedded: data only
       {"collector", {"web", "protocol", "http", "tls", "async", "store", "scene", "jsonio", "image", "math", "util"}},

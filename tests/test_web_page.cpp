@@ -15,6 +15,7 @@
 #include "collector/web_access.h"
 #include "collector/web_session.h"
 #include "collector_testing.h"
+#include "page_testing.h"
 
 namespace {
 
@@ -26,31 +27,12 @@ namespace json = boost::json;
 
 const coll::TimePoint t0 = coll::TimePoint{} + std::chrono::hours(1000);
 
-// A request as a browser on the page sends it (no bearer token).
-Request browser(Verb method, std::string target, std::string body = {}, std::string_view cookie = {},
-                std::string_view csrf = {}) {
-  Request req = http::make_request(method, target, std::move(body), method == Verb::get ? "" : "application/json");
-  req.set(bhttp::field::host, "127.0.0.1:7878");
-  if (!cookie.empty()) req.set(bhttp::field::cookie, fmt::format("other=1; dtraced_session={}", cookie));
-  if (!csrf.empty()) req.set(coll::kCsrfHeader, csrf);
-  if (method != Verb::get) {
-    req.set(bhttp::field::origin, "http://127.0.0.1:7878");
-    req.set("Sec-Fetch-Site", "same-origin");
-  }
-  return req;
-}
-
-std::string field_of(const Response& res, std::string_view name) {
-  const auto it = res.find(boost::beast::string_view(name.data(), name.size()));
-  return it == res.end() ? std::string() : std::string(it->value());
-}
-
 void check_page_headers(const Response& res) {
   INFO("status " << res.result_int());
-  CHECK(field_of(res, "Content-Security-Policy") == coll::kPageContentSecurityPolicy);
-  CHECK(field_of(res, "X-Content-Type-Options") == "nosniff");
-  CHECK(field_of(res, "X-Frame-Options") == "DENY");
-  CHECK(field_of(res, "Referrer-Policy") == "no-referrer");
+  CHECK(header_of(res, "Content-Security-Policy") == coll::kPageContentSecurityPolicy);
+  CHECK(header_of(res, "X-Content-Type-Options") == "nosniff");
+  CHECK(header_of(res, "X-Frame-Options") == "DENY");
+  CHECK(header_of(res, "Referrer-Policy") == "no-referrer");
 }
 
 struct Session {
@@ -72,8 +54,8 @@ Session sign_in(Harness& h) {
   const Response res = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})"));
   REQUIRE(res.result() == Status::ok);
   check_page_headers(res);
-  CHECK(field_of(res, "Cache-Control") == "no-store");
-  const std::string set = field_of(res, "Set-Cookie");
+  CHECK(header_of(res, "Cache-Control") == "no-store");
+  const std::string set = header_of(res, "Set-Cookie");
   REQUIRE(set.starts_with("dtraced_session="));
   CHECK(set.find("; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=43200") != std::string::npos);
   Session s;
@@ -123,7 +105,7 @@ json::value get_delta(Harness& h, const Session& s, std::uint64_t job, std::uint
       browser(Verb::get, fmt::format("/ui/api/jobs/{}/tiles?since={}", job, since), {}, s.cookie));
   REQUIRE(res.result() == Status::ok);
   check_page_headers(res);
-  CHECK(field_of(res, "Cache-Control") == "no-store");
+  CHECK(header_of(res, "Cache-Control") == "no-store");
   json::value v = json::parse(res.body());
   if (raw != nullptr) *raw = std::move(res);
   return v;
@@ -334,8 +316,8 @@ TEST_CASE("web page: static files with ETag, security headers, and --no-web-ui",
     const Response res = h.collector.handle_sync(browser(Verb::get, std::string(path)));
     REQUIRE(res.result() == Status::ok);
     check_page_headers(res);
-    CHECK(field_of(res, "Cache-Control") == "no-cache");
-    const std::string etag = field_of(res, "ETag");
+    CHECK(header_of(res, "Cache-Control") == "no-cache");
+    const std::string etag = header_of(res, "ETag");
     CHECK(etag.size() == 34);
     Request again = browser(Verb::get, std::string(path));
     again.set(bhttp::field::if_none_match, etag);
@@ -344,7 +326,7 @@ TEST_CASE("web page: static files with ETag, security headers, and --no-web-ui",
     CHECK(cached.body().empty());
     check_page_headers(cached);
   }
-  CHECK(field_of(h.collector.handle_sync(browser(Verb::get, "/")), "Content-Type") == "text/html; charset=utf-8");
+  CHECK(header_of(h.collector.handle_sync(browser(Verb::get, "/")), "Content-Type") == "text/html; charset=utf-8");
   // Errors of the page's paths carry the headers too.
   for (const auto& [verb, target, expected] : {std::tuple{Verb::get, "/ui/nothing", Status::not_found},
                                                std::tuple{Verb::post, "/", Status::method_not_allowed},
@@ -352,10 +334,10 @@ TEST_CASE("web page: static files with ETag, security headers, and --no-web-ui",
     const Response res = h.collector.handle_sync(browser(verb, target));
     CHECK(res.result() == expected);
     check_page_headers(res);
-    CHECK(field_of(res, "Cache-Control") == "no-store");
+    CHECK(header_of(res, "Cache-Control") == "no-store");
   }
   // The /v1 API is as it was: no page headers.
-  CHECK(field_of(h.call(Verb::get, "/v1/jobs"), "Content-Security-Policy").empty());
+  CHECK(header_of(h.call(Verb::get, "/v1/jobs"), "Content-Security-Policy").empty());
   // A page request without a session is not a refused bearer token.
   CHECK(h.metrics().counters.auth_failures == 0);
 
@@ -378,7 +360,7 @@ TEST_CASE("web page: sign-in, the session, credentials per route, CSRF and Origi
   // Wrong token: 401, counted; no cookie.
   Response wrong = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "guess"})"));
   CHECK(wrong.result() == Status::unauthorized);
-  CHECK(field_of(wrong, "Set-Cookie").empty());
+  CHECK(header_of(wrong, "Set-Cookie").empty());
   check_page_headers(wrong);
   CHECK(h.metrics().counters.sign_in_failures == 1);
   CHECK(h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"tokn": "x"})")).result() ==
@@ -449,7 +431,7 @@ TEST_CASE("web page: sign-in, the session, credentials per route, CSRF and Origi
   const Response changed =
       h.collector.handle_sync(browser(Verb::post, priority, R"({"priority": 3})", s.cookie, s.csrf));
   CHECK(changed.result() == Status::ok);
-  CHECK(field_of(changed, "Cache-Control") == "no-store");
+  CHECK(header_of(changed, "Cache-Control") == "no-store");
   CHECK(h.status(job).priority == 3);
   CHECK(h.collector.handle_sync(browser(Verb::post, fmt::format("/ui/api/jobs/{}/cancel", job), {}, s.cookie, s.csrf))
             .result() == Status::ok);
@@ -464,7 +446,7 @@ TEST_CASE("web page: sign-in, the session, credentials per route, CSRF and Origi
   const Session t = sign_in(h);
   const Response out = h.collector.handle_sync(browser(Verb::delete_, "/ui/session", {}, t.cookie, t.csrf));
   CHECK(out.result() == Status::no_content);
-  CHECK(field_of(out, "Set-Cookie").find("Max-Age=0") != std::string::npos);
+  CHECK(header_of(out, "Set-Cookie").find("Max-Age=0") != std::string::npos);
   check_page_headers(out);
   CHECK(signed_in(h, t.cookie) == false);
 }
@@ -484,13 +466,13 @@ TEST_CASE("web page: a collector with TLS wants https:// origins and sets a Secu
   // Sign-in from the http:// origin of the same host and port: another origin, 403, no cookie.
   const Response plain = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})"));
   CHECK(plain.result() == Status::forbidden);
-  CHECK(field_of(plain, "Set-Cookie").empty());
+  CHECK(header_of(plain, "Set-Cookie").empty());
   check_page_headers(plain);
 
   const Response in =
       h.collector.handle_sync(over_https(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})")));
   REQUIRE(in.result() == Status::ok);
-  const std::string set = field_of(in, "Set-Cookie");
+  const std::string set = header_of(in, "Set-Cookie");
   REQUIRE(set.starts_with("dtraced_session="));
   CHECK(set.ends_with("; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=43200; Secure"));
   Session s;
@@ -510,7 +492,7 @@ TEST_CASE("web page: a collector with TLS wants https:// origins and sets a Secu
   // Signing out clears the cookie with the same attributes.
   const Response out = h.collector.handle_sync(over_https(browser(Verb::delete_, "/ui/session", {}, s.cookie, s.csrf)));
   CHECK(out.result() == Status::no_content);
-  CHECK(field_of(out, "Set-Cookie") == "dtraced_session=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0; Secure");
+  CHECK(header_of(out, "Set-Cookie") == "dtraced_session=; Path=/ui; HttpOnly; SameSite=Strict; Max-Age=0; Secure");
   CHECK(signed_in(h, s.cookie) == false);
 }
 
@@ -522,7 +504,7 @@ TEST_CASE("web page: without TLS an https:// origin is refused and the cookie is
   CHECK(h.collector.handle_sync(std::move(req)).result() == Status::forbidden);
   const Response in = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})"));
   REQUIRE(in.result() == Status::ok);
-  CHECK(field_of(in, "Set-Cookie").find("Secure") == std::string::npos);
+  CHECK(header_of(in, "Set-Cookie").find("Secure") == std::string::npos);
 }
 
 TEST_CASE("web page: more than 10 failed sign-ins a minute get 429", "[web][page]") {
@@ -534,7 +516,7 @@ TEST_CASE("web page: more than 10 failed sign-ins a minute get 429", "[web][page
   }
   const Response limited = h.collector.handle_sync(browser(Verb::post, "/ui/session", R"({"token": "s3cret-token"})"));
   CHECK(limited.result() == Status::too_many_requests);
-  CHECK_FALSE(field_of(limited, "Retry-After").empty());
+  CHECK_FALSE(header_of(limited, "Retry-After").empty());
   h.clock.advance(std::chrono::minutes(1));
   sign_in(h);
 }
@@ -568,7 +550,7 @@ TEST_CASE("web page: the tile delta matches the job's PNG, with seq, ETag, lease
   CHECK(leased == std::vector<std::uint32_t>{leases[3].tile, leases[4].tile});
 
   // Unchanged: 304 on the ETag, decided before any encoding.
-  const std::string etag = field_of(raw, "ETag");
+  const std::string etag = header_of(raw, "ETag");
   Request again = browser(Verb::get, fmt::format("/ui/api/jobs/{}/tiles?since={}", job, 0), {}, s.cookie);
   again.set(bhttp::field::if_none_match, etag);
   const Response cached = h.collector.handle_sync(std::move(again));

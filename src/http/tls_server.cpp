@@ -11,6 +11,8 @@
 #include <openssl/ssl.h>
 #include <openssl/x509.h>
 
+#include "tls/material.h"
+
 namespace dtraced::http {
 namespace {
 
@@ -25,14 +27,9 @@ constexpr int kMaxVerifyDepth = 4;
 
 // OpenSSL's queued reasons, joined, or the error code's message; the queue is left empty.
 std::string context_failure_reason(const boost::system::error_code& ec = {}) {
-  std::string out;
-  while (const unsigned long code = ERR_get_error()) {
-    std::array<char, 256> text{};
-    ERR_error_string_n(code, text.data(), text.size());
-    if (!out.empty()) out += "; ";
-    out += text.data();
-  }
-  if (out.empty()) out = ec ? ec.message() : std::string("no reason given");
+  const bool queued = ERR_peek_error() != 0;
+  std::string out = tls::openssl_reason();
+  if (!queued && ec) out = ec.message();
   return out;
 }
 

@@ -61,18 +61,6 @@ using ExtPtr = std::unique_ptr<X509_EXTENSION, ExtFree>;
 using NamesPtr = std::unique_ptr<GENERAL_NAMES, NamesFree>;
 using BnPtr = std::unique_ptr<BIGNUM, BnFree>;
 
-// OpenSSL's queued reasons, oldest first, joined; the queue is left empty.
-std::string openssl_reason() {
-  std::string out;
-  while (const unsigned long code = ERR_get_error()) {
-    std::array<char, 256> text{};
-    ERR_error_string_n(code, text.data(), text.size());
-    if (!out.empty()) out += "; ";
-    out += text.data();
-  }
-  return out.empty() ? std::string("no reason given") : out;
-}
-
 util::Error failure(std::string_view what, std::string_view file = {}) {
   return util::Error(fmt::format("{} ({})", what, openssl_reason()), "", std::string(file));
 }
@@ -306,6 +294,17 @@ void add_unique(std::vector<std::string>& to, std::string value) {
 }
 
 }  // namespace
+
+std::string openssl_reason() {
+  std::string out;
+  while (const unsigned long code = ERR_get_error()) {
+    std::array<char, 256> text{};
+    ERR_error_string_n(code, text.data(), text.size());
+    if (!out.empty()) out += "; ";
+    out += text.data();
+  }
+  return out.empty() ? std::string("no reason given") : out;
+}
 
 util::Result<Fingerprint> fingerprint_of_pem(std::string_view cert_pem_text) {
   auto cert = parse_cert(cert_pem_text, "certificate");

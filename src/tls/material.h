@@ -36,6 +36,10 @@ using Fingerprint = std::array<std::uint8_t, 32>;
 
 // The fingerprint of the first certificate in `cert_pem`.
 util::Result<Fingerprint> fingerprint_of_pem(std::string_view cert_pem);
+
+// OpenSSL's queued error reasons, oldest first, joined with "; " ("no reason given" when the
+// queue is empty); the queue is left empty. Not a secret: safe to log.
+std::string openssl_reason();
 // 64 lower-case hex digits.
 std::string fingerprint_hex(const Fingerprint& fingerprint);
 
