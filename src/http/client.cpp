@@ -396,6 +396,20 @@ net::awaitable<Outcome> exchange_on(Stream& stream, beast::tcp_stream& tcp, beas
   co_return out;
 }
 
+// Runs `exchange` on `io` from the calling thread until it is over; rethrows what it threw.
+ClientResult run_blocking(net::io_context& io, net::awaitable<ClientResult> exchange) {
+  ClientResult result;
+  std::exception_ptr error;
+  net::co_spawn(io, std::move(exchange), [&](std::exception_ptr e, ClientResult r) {
+    error = e;
+    result = std::move(r);
+    io.stop();  // do not wait for an abandoned name lookup
+  });
+  io.run();
+  if (error) std::rethrow_exception(error);
+  return result;
+}
+
 }  // namespace
 
 // ---- Client ------------------------------------------------------------------------------------
@@ -606,19 +620,8 @@ SyncClient::SyncClient(ClientOptions options) : impl_(std::make_unique<Impl>(std
 SyncClient::~SyncClient() = default;
 
 ClientResult SyncClient::request(const Url& url, Request req, std::uint64_t max_response_body) {
-  net::io_context& io = impl_->io;
-  ClientResult result;
-  std::exception_ptr error;
-  io.restart();
-  net::co_spawn(io, impl_->client.request(url, std::move(req), max_response_body),
-                [&](std::exception_ptr e, ClientResult r) {
-                  error = e;
-                  result = std::move(r);
-                  io.stop();  // do not wait for an abandoned name lookup
-                });
-  io.run();
-  if (error) std::rethrow_exception(error);
-  return result;
+  impl_->io.restart();
+  return run_blocking(impl_->io, impl_->client.request(url, std::move(req), max_response_body));
 }
 
 ClientStats SyncClient::stats() const { return impl_->client.stats(); }
@@ -717,17 +720,7 @@ net::awaitable<ClientResult> request(Url url, Request req, ClientTimeouts timeou
 ClientResult request_sync(const Url& url, Request req, const ClientTimeouts& timeouts, std::uint64_t max_response_body,
                           const std::optional<ClientTls>& tls) {
   net::io_context io;
-  ClientResult result;
-  std::exception_ptr error;
-  net::co_spawn(io, request(url, std::move(req), timeouts, max_response_body, tls),
-                [&](std::exception_ptr e, ClientResult r) {
-                  error = e;
-                  result = std::move(r);
-                  io.stop();  // do not wait for an abandoned name lookup
-                });
-  io.run();
-  if (error) std::rethrow_exception(error);
-  return result;
+  return run_blocking(io, request(url, std::move(req), timeouts, max_response_body, tls));
 }
 
 }  // namespace dtraced::http
