@@ -468,3 +468,26 @@ TEST_CASE("higher priority first, then submission order", "[collector][service]"
   CHECK(leases[1].job == low);
   CHECK(leases[2].job == low2);
 }
+
+TEST_CASE("an idle worker of a small farm asks again sooner than one of a large farm", "[collector][service]") {
+  TempDir dir;
+  Harness h(dir);
+  // The retry hint a worker named `name` gets from a collector with no work.
+  const auto hint = [&h](const std::string& name) {
+    const Response res = h.call(Verb::post, "/v1/lease", fmt::format(R"({{"worker": "{}", "threads": 1}})", name));
+    REQUIRE(res.result() == Status::ok);
+    auto reply = protocol::decode_lease_reply(res.body());
+    REQUIRE(reply.ok());
+    const auto* retry = std::get_if<protocol::RetryAfter>(&reply.value());
+    REQUIRE(retry != nullptr);
+    return retry->ms;
+  };
+  // One worker: the shortest wait the queue allows (50 ms), not the longest (500 ms).
+  CHECK(hint("only") == 50);
+  // 40 workers known: 5 ms each, so that all of them together ask about 200 times a second.
+  for (int i = 1; i < 39; ++i) hint(fmt::format("w{}", i));
+  CHECK(hint("w39") == 200);
+  // Past 100 workers the queue's longest wait holds, as before.
+  for (int i = 40; i < 150; ++i) hint(fmt::format("w{}", i));
+  CHECK(hint("w150") == 500);
+}

@@ -84,7 +84,8 @@ struct QueueConfig {
   Duration min_retry_after = std::chrono::milliseconds(50);
   // An idle worker asks again at most this much later. Short, because it is how long a new job
   // waits for idle workers to notice it (a lease costs the collector ~45 us of CPU: 1000 idle
-  // workers asking twice a second take ~10 % of a core), and stateless leases have no push.
+  // workers asking twice a second take ~10 % of a core), and stateless leases have no push. The
+  // lease handler shortens it on a small farm (handlers/lease.cpp, idle_wait).
   Duration max_retry_after = std::chrono::milliseconds(500);
 };
 
