@@ -150,6 +150,10 @@ TEST_CASE("no answer is retryable for a GET only, since a POST may have been app
   CHECK_FALSE(cli::classify(no_answer(http::ClientError::kProtocol), http::Verb::get, "/v1/jobs").retryable);
   CHECK_THAT(cli::classify(no_answer(http::ClientError::kConnect), http::Verb::get, "/v1/jobs").reason,
              Catch::Matchers::Contains("connection refused"));
+  // A certificate the client refused is final, and not called a missing answer.
+  const Failure tls = cli::classify(no_answer(http::ClientError::kTls), http::Verb::get, "/v1/jobs");
+  CHECK_FALSE(tls.retryable);
+  CHECK_THAT(tls.reason, Catch::Matchers::StartsWith("the collector could not be trusted ("));
 }
 
 TEST_CASE("other error answers are final and keep their code, path and message", "[cli][retry]") {

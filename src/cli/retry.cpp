@@ -29,7 +29,10 @@ Failure classify(const http::ClientResult& result, http::Verb verb, const std::s
     const bool no_answer = result.error == http::ClientError::kConnect || result.error == http::ClientError::kIo ||
                            result.error == http::ClientError::kTimeout;
     f.retryable = no_answer && verb == http::Verb::get;
-    f.reason = fmt::format("no answer from the collector ({})", result.message);
+    // A refused certificate is an answer, and a final one: it says who the collector is not.
+    f.reason = result.error == http::ClientError::kTls
+                   ? fmt::format("the collector could not be trusted ({})", result.message)
+                   : fmt::format("no answer from the collector ({})", result.message);
     return f;
   }
   const unsigned code = result.response.result_int();
