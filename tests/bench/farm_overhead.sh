@@ -136,10 +136,15 @@ elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.3f", b - a }'; }
 ratio() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.3f", b / a }'; }
 median() { printf '%s\n' "$@" | sort -g | awk '{ v[NR] = $1 } END { print (NR % 2) ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2 }'; }
 
-# farm_run NAME ARGS...: submits, waits; sets FARM_S, PICKUP_S, SPAN_S. The image: $outdir/NAME.
+# proc_cpu PID: CPU seconds (user + system) the process has used so far, from /proc/PID/stat.
+proc_cpu() { awk -v t="$ticks" '{ sub(/.*\) /, ""); printf "%.3f", ($12 + $13) / t }' "/proc/$1/stat"; }
+
+# farm_run NAME ARGS...: submits, waits; sets FARM_S, PICKUP_S, SPAN_S and COLLECTOR_CPU_S (what
+# the collector used meanwhile). The image: $outdir/NAME.
 farm_run() {
-  local name=$1 t0 t1 t2 id state deadline
+  local name=$1 t0 t1 t2 id state deadline c0
   shift
+  c0=$(proc_cpu "$collector_pid")
   t0=$EPOCHREALTIME
   id=$("$DTRACED" submit "$SCENE" -o "$name" "$@" --collector "$url" --token-file "$work/token" "${ca[@]}") ||
     fail "submit failed"
@@ -157,6 +162,7 @@ farm_run() {
     pause "$POLL"
   done
   t2=$EPOCHREALTIME
+  COLLECTOR_CPU_S=$(elapsed "$c0" "$(proc_cpu "$collector_pid")")
   # The collector marks the job done right after the rename; nothing is timed from here on.
   until [ "$(job_state "$id")" = "done" ]; do
     [ "${EPOCHREALTIME%.*}" -lt "$deadline" ] || fail "job $id: image written but not done"
@@ -200,7 +206,7 @@ for t in $THREADS; do
   worker_pid=$!
   sleep 1 # the worker's first lease request finds nothing and it goes idle, as in a waiting farm
   kill -0 "$worker_pid" 2>/dev/null || fail "the worker did not start"
-  locals=() farms=() pickups=() spans=()
+  locals=() farms=() pickups=() spans=() collector_cpus=()
   identical=yes
   for run in $(seq "$RUNS"); do
     t0=$EPOCHREALTIME
@@ -208,15 +214,16 @@ for t in $THREADS; do
     t1=$EPOCHREALTIME
     locals+=("$(elapsed "$t0" "$t1")")
     farm_run "farm-t$t-$run.pfm" "${job_args[@]}"
-    farms+=("$FARM_S") pickups+=("$PICKUP_S") spans+=("$SPAN_S")
+    farms+=("$FARM_S") pickups+=("$PICKUP_S") spans+=("$SPAN_S") collector_cpus+=("$COLLECTOR_CPU_S")
     if cmp -s "$work/local-t$t-$run.pfm" "$outdir/farm-t$t-$run.pfm"; then same=yes; else same=no identical=no; fi
-    echo "T=$t run $run: local ${locals[-1]} s, farm $FARM_S s (pickup $PICKUP_S s + span $SPAN_S s), identical: $same"
+    echo "T=$t run $run: local ${locals[-1]} s, farm $FARM_S s (pickup $PICKUP_S s + span $SPAN_S s), collector CPU $COLLECTOR_CPU_S s, identical: $same"
   done
   stop_pid "$worker_pid"
   worker_pid=
   [ "$identical" = yes ] || all_identical=no
   lm=$(median "${locals[@]}") fm=$(median "${farms[@]}") pm=$(median "${pickups[@]}") sm=$(median "${spans[@]}")
-  rows+=("| $t | $samples | $lm | $fm | $(ratio "$lm" "$fm") | $pm | $sm | $(ratio "$lm" "$sm") | $identical |")
+  cm=$(median "${collector_cpus[@]}")
+  rows+=("| $t | $samples | $lm | $fm | $(ratio "$lm" "$fm") | $pm | $sm | $(ratio "$lm" "$sm") | $cm | $identical |")
   awk -v l="$lm" -v m="$MIN_RENDER_S" 'BEGIN { exit !(l < m) }' &&
     echo "warning: T=$t: the local render took $lm s, under $MIN_RENDER_S s; raise SAMPLES_PER_THREAD"
 done
@@ -234,10 +241,11 @@ others=$(awk -v b0="$busy_start" -v b1="$(machine_busy)" -v o0="$own_start" -v o
   }')
 
 echo
-echo "Medians of $RUNS runs, seconds. farm = submit to image file; pickup = submit to first lease; span = first lease to image file."
+echo "Medians of $RUNS runs, seconds. farm = submit to image file; pickup = submit to first lease; span = first lease to image file;"
+echo "collector CPU = CPU seconds the collector used during the farm run (on this machine it shares the cores with the worker; across hosts it would not)."
 echo
-echo "| threads | samples | local s | farm s | farm/local | pickup s | span s | span/local | identical |"
-echo "|--:|--:|--:|--:|--:|--:|--:|--:|:-:|"
+echo "| threads | samples | local s | farm s | farm/local | pickup s | span s | span/local | collector CPU s | identical |"
+echo "|--:|--:|--:|--:|--:|--:|--:|--:|--:|:-:|"
 for row in "${rows[@]}"; do echo "$row"; done
 echo
 echo "identical: $all_identical"
