@@ -66,6 +66,10 @@ expect_text "missing file is named" "$work/err" "missing.json"
 
 check "render png" 0 "$DTRACED" render "$SCENES/snowman.json" -o "$work/a.png" --width 64 --height 48 -s 2 -t 1
 expect_text "summary line" "$work/err" "Mrays/s"
+# -t 0 (the default) is the CPUs of the affinity mask, not the machine's: under taskset, one.
+check "render under taskset" 0 taskset -c "$(taskset -pc $$ | sed 's/.*: *//; s/[-,].*//')" \
+  "$DTRACED" render "$SCENES/snowman.json" -o "$work/t.png" --width 32 --height 24
+expect_text "one CPU allowed, one render thread" "$work/err" "(1 threads,"
 check "render the diffuse scene" 0 "$DTRACED" render "$SCENES/diffuse.json" -o "$work/d.png" --width 32 --height 24
 expect_text "render prints the scene's features" "$work/err" "scene features: shadows point-lights (the tracer"
 check "render the soft-shadow scene" 0 "$DTRACED" render "$SCENES/soft_shadows.json" -o "$work/s.png" --width 32 --height 24 -s 2

@@ -565,7 +565,9 @@ TEST_CASE("with exit_when_done a worker submits what it has and exits when its c
   CHECK_FALSE(worker.stats().stopping);  // "retry after" alone is no reason to leave
   // The job is over and the collector is going away: the next lease answer says so.
   farm.fake.set_rules([](FakeRules& r) { r.finished_header = "1"; });
-  REQUIRE(worker.wait(util::TimePoint::max()) == std::optional<bool>(true));
+  // The stop comes after now, so its grace period ends after now + grace: never move the clock
+  // that far, or a submission still on its way in real time would be abandoned.
+  REQUIRE(worker.wait(worker.clock().now() + worker.config().grace - 1ms) == std::optional<bool>(true));
 
   const WorkerStats s = worker.stats();
   check_stopped_cleanly(s);
@@ -593,4 +595,72 @@ TEST_CASE("without exit_when_done, or with a garbled header, a finished answer i
     CHECK_FALSE(s.collector_finished);
     check_pixels(farm.fake);
   }
+}
+
+TEST_CASE("with exit_when_idle a worker renders the whole job, then exits once it has had no work that long",
+          "[worker][end_to_end][exit_when_idle]") {
+  Farm farm({}, [](worker::WorkerConfig& c) { c.exit_when_idle = 30s; });
+  RunningWorker& worker = farm.worker;
+  REQUIRE(worker.until([&] { return farm.fake.all_stored(); }));
+  CHECK_FALSE(worker.stats().stopping);  // it had work until now
+  const util::TimePoint done = worker.clock().now();
+  // Not past the grace period of a stop that comes after `done` (see the exit_when_done case).
+  REQUIRE(worker.wait(done + worker.config().grace - 1ms) == std::optional<bool>(true));
+
+  const WorkerStats s = worker.stats();
+  check_stopped_cleanly(s);
+  CHECK(s.stopped_idle);
+  CHECK_FALSE(s.stopped_runtime);
+  CHECK(s.tiles_abandoned == 0);
+  CHECK(s.tiles_submitted == farm.fake.counts().acknowledged);
+  // It asked again and again meanwhile, and left no sooner than 30 s after its last tile (whose
+  // render ended at or after the start; the clock does not stop exactly there, so the start is the
+  // bound a test can see).
+  CHECK(farm.fake.counts().retry_answers >= 2);
+  CHECK(worker.clock().now() >= worker.start() + 30s);
+  check_pixels(farm.fake);
+}
+
+TEST_CASE("exit_when_idle does not count time with work, nor time the collector cannot be reached",
+          "[worker][end_to_end][exit_when_idle]") {
+  // Every lease fails for a while (500): that is not "no work", so the worker keeps waiting
+  // however long the failures last, then renders the job, and only then is idle.
+  Farm farm({.failing_leases = 40}, [](worker::WorkerConfig& c) {
+    c.exit_when_idle = 1s;
+    c.backoff_initial = 100ms;
+    c.backoff_max = 2s;
+  });
+  RunningWorker& worker = farm.worker;
+  REQUIRE(worker.until([&] { return farm.fake.all_stored(); }));
+  CHECK_FALSE(worker.stats().stopping);
+  CHECK(worker.clock().now() >= worker.start() + 1s);  // the failures lasted longer than the idle limit
+  REQUIRE(worker.wait(worker.clock().now() + worker.config().grace - 1ms) == std::optional<bool>(true));
+  const WorkerStats s = worker.stats();
+  check_stopped_cleanly(s);
+  CHECK(s.stopped_idle);
+  check_pixels(farm.fake);
+}
+
+TEST_CASE("with max_runtime a worker stops leasing when its time is up and submits what it has",
+          "[worker][end_to_end][max_runtime]") {
+  // Leases of the one job keep coming back (re-offered), so only the run time ends the worker.
+  Farm farm({.submits_unavailable = true}, [](worker::WorkerConfig& c) {
+    c.max_runtime = 10s;
+    c.grace = 60s;
+  });
+  RunningWorker& worker = farm.worker;
+  // The clock does not reach the end of the run time while the worker renders.
+  REQUIRE(worker.until([&] { return worker.stats().tiles_rendered >= 2; }, worker.start() + 10s - 1ms));
+  CHECK_FALSE(worker.stats().stopping);
+  // Its submissions succeed again once it has stopped leasing: it submits them in the grace period.
+  REQUIRE(worker.until([&] { return worker.stats().stopping; }));
+  CHECK(worker.clock().now() >= worker.start() + 10s);
+  CHECK(worker.stats().stopped_runtime);
+  farm.fake.set_rules([](FakeRules& r) { r.submits_unavailable = false; });
+  REQUIRE(worker.wait(worker.start() + 10s + 60s - 1ms) == std::optional<bool>(true));
+  const WorkerStats s = worker.stats();
+  check_stopped_cleanly(s);
+  CHECK_FALSE(s.stopped_idle);
+  CHECK(s.tiles_abandoned == 0);
+  CHECK(s.tiles_submitted >= 2);
 }

@@ -1,6 +1,7 @@
 // dtraced::worker, unit by unit, without sockets: backoff bounds and jitter, the scene cache and
 // its verification, configuration, the retry gate on a util::ManualClock (a backoff ends when the
 // test moves the clock, not after real time), and what a collector's answers mean.
+#include <sched.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -8,11 +9,13 @@
 #include <deque>
 #include <functional>
 #include <limits>
+#include <map>
 #include <memory>
 #include <optional>
 #include <random>
 #include <string>
 #include <string_view>
+#include <thread>
 #include <vector>
 
 #include <boost/asio/co_spawn.hpp>
@@ -28,6 +31,7 @@
 #include "render/tile.h"
 #include "scene/digest.h"
 #include "util/clock.h"
+#include "util/cpus.h"
 #include "worker/answers.h"
 #include "worker/backoff.h"
 #include "worker/config.h"
@@ -351,8 +355,86 @@ TEST_CASE("worker defaults are resolved from the host", "[worker][config]") {
   CHECK(resolved.max_unacknowledged == worker::kInHandPerThread * resolved.threads);
   CHECK_FALSE(resolved.name.empty());
   CHECK(resolved.name.size() <= protocol::kMaxWorkerNameBytes);
-  CHECK(resolved.name.ends_with(fmt::format("-{}", ::getpid())));
+  CHECK(resolved.name == worker::default_worker_name());
   CHECK(worker::validate(resolved).empty());
+}
+
+TEST_CASE("the default worker name tells Slurm array tasks apart", "[worker][config]") {
+  // A stand-in environment: the variables in `vars`, nothing else.
+  const auto env_of = [](std::map<std::string, std::string> vars) {
+    return [vars = std::move(vars)](const char* key) -> const char* {
+      const auto it = vars.find(key);
+      return it == vars.end() ? nullptr : it->second.c_str();
+    };
+  };
+  // Outside Slurm: HOST-PID.
+  const std::string plain = worker::default_worker_name(env_of({}));
+  CHECK(plain.ends_with(fmt::format("-{}", ::getpid())));
+  const std::string host = plain.substr(0, plain.size() - fmt::format("-{}", ::getpid()).size());
+  CHECK_FALSE(host.empty());
+  // A task of a job array: HOST-JOB_TASK, whatever SLURM_JOB_ID says (each task has its own).
+  CHECK(worker::default_worker_name(
+            env_of({{"SLURM_ARRAY_JOB_ID", "4242"}, {"SLURM_ARRAY_TASK_ID", "7"}, {"SLURM_JOB_ID", "4249"}})) ==
+        host + "-4242_7");
+  // A plain job: HOST-JOB; a step of several tasks adds the task's rank.
+  CHECK(worker::default_worker_name(env_of({{"SLURM_JOB_ID", "77"}})) == host + "-77");
+  CHECK(worker::default_worker_name(env_of({{"SLURM_JOB_ID", "77"}, {"SLURM_NTASKS", "1"}, {"SLURM_PROCID", "0"}})) ==
+        host + "-77");
+  CHECK(worker::default_worker_name(env_of({{"SLURM_JOB_ID", "77"}, {"SLURM_NTASKS", "4"}, {"SLURM_PROCID", "3"}})) ==
+        host + "-77.3");
+  // An array id without its task is no array: the job id names it.
+  CHECK(worker::default_worker_name(env_of({{"SLURM_ARRAY_JOB_ID", "4242"}, {"SLURM_JOB_ID", "4249"}})) ==
+        host + "-4249");
+  // Whatever the variables hold, the name stays a valid one: printable, no spaces, bounded.
+  const std::string odd = worker::default_worker_name(
+      env_of({{"SLURM_ARRAY_JOB_ID", std::string(300, 'x') + " \t"}, {"SLURM_ARRAY_TASK_ID", "1 2"}}));
+  CHECK(odd.size() <= protocol::kMaxWorkerNameBytes);
+  CHECK(odd.find(' ') == std::string::npos);
+  WorkerConfig config = test_config(7878);
+  config.name = odd;
+  CHECK(worker::validate(config).empty());
+}
+
+TEST_CASE("the default thread count is the CPUs of the affinity mask", "[worker][config]") {
+  // On a thread of its own narrowed to one CPU (as `taskset -c N` or a Slurm allocation narrows a
+  // process), every-core means that one CPU.
+  std::uint32_t narrowed = 0, resolved = 0;
+  bool pinned = false;
+  std::thread probe([&] {
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    if (::sched_getaffinity(0, sizeof set, &set) != 0) return;  // no Catch2 assertions off the test's thread
+    int first = 0;
+    while (!CPU_ISSET(first, &set)) ++first;
+    cpu_set_t one;
+    CPU_ZERO(&one);
+    CPU_SET(first, &one);
+    pinned = ::sched_setaffinity(0, sizeof one, &one) == 0;
+    narrowed = util::usable_cpus();
+    WorkerConfig config = test_config(7878);
+    config.threads = 0;
+    resolved = worker::resolve_defaults(config).threads;
+  });
+  probe.join();
+  REQUIRE(pinned);
+  CHECK(narrowed == 1);
+  CHECK(resolved == 1);
+  // This thread's own mask is the process's: at least one CPU, at most the machine's.
+  CHECK(util::usable_cpus() >= 1);
+  CHECK(util::usable_cpus() <= std::max(1u, std::thread::hardware_concurrency()));
+}
+
+TEST_CASE("exit_when_idle and max_runtime are bounded", "[worker][config]") {
+  WorkerConfig config = test_config(7878);
+  config.exit_when_idle = worker::kMaxExitWhenIdle;
+  config.max_runtime = worker::kMaxRuntime;
+  CHECK(worker::validate(config).empty());
+  config.exit_when_idle = worker::kMaxExitWhenIdle + 1s;
+  config.max_runtime = worker::kMaxRuntime + 1s;
+  const util::Errors errors = worker::validate(config);
+  REQUIRE(errors.size() == 2);
+  CHECK(errors[0].path == "exit_when_idle");
+  CHECK(errors[1].path == "max_runtime");
 }
 
 // ---- tiles in hand -------------------------------------------------------------------------------

@@ -20,7 +20,8 @@ void add_render(CLI::App& app, LocalCommands& c, std::optional<std::string>& isa
   add_override_flags(*r, render.overrides);
   r->add_option("--spp-map", render.spp_map,
                 "Also write the samples each pixel took: .pfm raw counts, .png/.ppm grey (white = --samples)");
-  r->add_option("-t,--threads", render.threads, "Render threads (0: every core)")->check(CLI::Range(0u, 1024u));
+  r->add_option("-t,--threads", render.threads, "Render threads (0: every CPU this process may use)")
+      ->check(CLI::Range(0u, 1024u));
   r->add_flag("-q,--quiet", render.quiet, "No progress bar and no summary line");
   r->add_flag("--resume", render.resume,
               "Continue the interrupted render kept in OUTPUT.partial (a sequence: skip the frames already written)");

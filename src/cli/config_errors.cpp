@@ -42,6 +42,8 @@ constexpr FieldFlag kFieldFlags[] = {
     {"timeouts.read", "--request-timeout-ms"},
     {"timeouts.write", "--request-timeout-ms"},
     {"max_unacknowledged", "--max-unacknowledged"},
+    {"exit_when_idle", "--exit-when-idle"},
+    {"max_runtime", "--max-runtime"},
     // both: the field holds the token, the flag names the file that holds it
     {"token", "--token-file"},
 };

@@ -137,6 +137,8 @@ int run_worker_role(const CLI::App& app, const RoleArgs& a) {
   }
   if (a.max_unacknowledged) w.max_unacknowledged = *a.max_unacknowledged;
   w.exit_when_done = a.exit_when_done;
+  if (a.exit_when_idle) w.exit_when_idle = std::chrono::seconds(*a.exit_when_idle);
+  if (a.max_runtime) w.max_runtime = std::chrono::seconds(*a.max_runtime);
   const auto problems = worker::validate(w);
   if (!problems.empty()) {
     fmt::print(stderr, "{}\n", located_errors_text(app, problems));
@@ -178,7 +180,8 @@ const NumberFlag kNumberFlags[] = {
      "A worker unseen this long shows as quiet (default 60)"},
     {kCollectorGroup, "--worker-forget-after-s", &RoleArgs::worker_forget_after_s, 1, 2592000,
      "A worker unseen this long leaves the worker list (default 3600)"},
-    {kWorkerGroup, "-t,--threads", &RoleArgs::threads, 0, 4096, "Render threads (0: every core)"},
+    {kWorkerGroup, "-t,--threads", &RoleArgs::threads, 0, 4096,
+     "Render threads (0: every CPU this process may use, its affinity mask)"},
     {kWorkerGroup, "--scene-cache", &RoleArgs::scene_cache, 1, 1024, "Scenes kept built in memory"},
     {kWorkerGroup, "--grace-seconds", &RoleArgs::grace_seconds, 0, 3600,
      "On SIGTERM, time to submit the tiles in hand"},
@@ -187,6 +190,10 @@ const NumberFlag kNumberFlags[] = {
      "Read and write timeout of each request"},
     {kWorkerGroup, "--max-unacknowledged", &RoleArgs::max_unacknowledged, 0, 65536,
      "Tiles in hand at most (0: 16 per thread)"},
+    {kWorkerGroup, "--exit-when-idle", &RoleArgs::exit_when_idle, 1, 2592000,
+     "Batch jobs: exit 0 once the collector has had no work for this worker for this many seconds"},
+    {kWorkerGroup, "--max-runtime", &RoleArgs::max_runtime, 1, 31622400,
+     "Batch jobs: stop leasing after this many seconds, submit what is in hand, exit 0"},
 };
 
 template <typename T>
@@ -269,7 +276,8 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
   app.add_option("--ca-file", a.ca_file,
                  "The collector's CA certificate (PEM) to trust for an https:// collector (dtraced enroll writes it)")
       ->group(kWorkerGroup);
-  app.add_option("--name", a.name, "Worker name in the collector's logs (default HOST-PID)")->group(kWorkerGroup);
+  app.add_option("--name", a.name, "Worker name in the collector's logs (default HOST-PID; under Slurm HOST-JOB_TASK)")
+      ->group(kWorkerGroup);
   add_number_flags(app, a, kWorkerGroup);
   // Also an option of `render` (main adds it there, bound to the same value).
   app.add_option("--isa", a.isa, kIsaHelp)->group(kWorkerGroup);

@@ -45,7 +45,8 @@ struct RoleArgs {
   std::string name;
   std::string ca_file;  // the collector's CA (PEM) for an https:// collector
   std::uint32_t threads = 0;
-  std::optional<std::uint32_t> scene_cache, grace_seconds, connect_timeout_ms, request_timeout_ms, max_unacknowledged;
+  std::optional<std::uint32_t> scene_cache, grace_seconds, connect_timeout_ms, request_timeout_ms, max_unacknowledged,
+      exit_when_idle, max_runtime;
   // worker and `render`: --isa as given (main resolves it with $DTRACED_ISA into `kernels`)
   std::optional<std::string> isa;
   accel::Isa kernels = accel::Isa::kScalar;

@@ -8,6 +8,8 @@
 #include <thread>
 #include <vector>
 
+#include "util/cpus.h"
+
 namespace dtraced::render {
 
 void paste_tile(const Tile& t, std::uint32_t image_width, LocalResult& result) {
@@ -35,7 +37,7 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
     if (i >= options.skip.size() || !options.skip[i]) tiles.push_back(i);
   }
   const std::size_t skipped = all.size() - tiles.size();
-  std::uint32_t threads = options.threads ? options.threads : std::max(1u, std::thread::hardware_concurrency());
+  std::uint32_t threads = options.threads ? options.threads : util::usable_cpus();
   threads = std::min<std::uint32_t>(threads, std::max<std::size_t>(1, tiles.size()));
   result.threads = threads;
 

@@ -5,8 +5,8 @@
 
 #include <algorithm>
 #include <array>
+#include <cstdlib>
 #include <string>
-#include <thread>
 #include <utility>
 #include <vector>
 
@@ -14,6 +14,7 @@
 #include <fmt/ranges.h>
 
 #include "protocol/messages.h"
+#include "util/cpus.h"
 #include "util/file.h"
 
 namespace dtraced::worker {
@@ -38,17 +39,38 @@ void check_range(util::Errors& errors, std::string_view field, Duration value, D
 
 }  // namespace
 
-std::string default_worker_name() {
+const char* process_env(const char* name) { return std::getenv(name); }
+
+std::string default_worker_name(const EnvLookup& env) {
   std::array<char, HOST_NAME_MAX + 1> host{};
   std::string name;
   if (::gethostname(host.data(), host.size() - 1) == 0) name = host.data();
+  if (name.empty()) name = "worker";
+  // A variable that is set and not empty.
+  const auto var = [&env](const char* key) -> std::string {
+    const char* value = env(key);
+    return value != nullptr ? std::string(value) : std::string();
+  };
+  std::string suffix;
+  if (const std::string array_job = var("SLURM_ARRAY_JOB_ID"), task = var("SLURM_ARRAY_TASK_ID");
+      !array_job.empty() && !task.empty()) {
+    suffix = fmt::format("-{}_{}", array_job, task);
+  } else if (const std::string job = var("SLURM_JOB_ID"); !job.empty()) {
+    suffix = fmt::format("-{}", job);
+  }
+  if (!suffix.empty()) {
+    const std::string tasks = var("SLURM_NTASKS"), procid = var("SLURM_PROCID");
+    if (!procid.empty() && !tasks.empty() && tasks != "1") suffix += "." + procid;
+  } else {
+    suffix = fmt::format("-{}", ::getpid());
+  }
+  suffix.resize(std::min(suffix.size(), protocol::kMaxWorkerNameBytes / 2));
+  name.resize(std::min(name.size(), protocol::kMaxWorkerNameBytes - suffix.size()));
+  name += suffix;
   for (char& c : name) {
     if (!is_visible(c)) c = '_';
   }
-  if (name.empty()) name = "worker";
-  const std::string pid = fmt::format("-{}", ::getpid());
-  name.resize(std::min(name.size(), protocol::kMaxWorkerNameBytes - pid.size()));
-  return name + pid;
+  return name;
 }
 
 util::Errors validate(const WorkerConfig& config) {
@@ -105,6 +127,9 @@ util::Errors validate(const WorkerConfig& config) {
   check_range(errors, "backoff_max", config.backoff_max, std::max(milliseconds{1}, config.backoff_initial), kMaxBackoff,
               "ms");
 
+  check_range(errors, "exit_when_idle", config.exit_when_idle, std::chrono::seconds{0}, kMaxExitWhenIdle, "s");
+  check_range(errors, "max_runtime", config.max_runtime, std::chrono::seconds{0}, kMaxRuntime, "s");
+
   if (config.max_unacknowledged > kMaxUnacknowledged) {
     add_problem(errors, "max_unacknowledged",
                 fmt::format("at most {} tiles (0 means {} per thread; got {})", kMaxUnacknowledged, kInHandPerThread,
@@ -139,7 +164,7 @@ http::ClientOptions client_options(const WorkerConfig& config, std::optional<htt
 WorkerConfig resolve_defaults(WorkerConfig config) {
   if (config.name.empty()) config.name = default_worker_name();
   if (config.threads == 0) {
-    config.threads = std::clamp(std::thread::hardware_concurrency(), 1u, protocol::kMaxWorkerThreads);
+    config.threads = std::clamp(util::usable_cpus(), 1u, protocol::kMaxWorkerThreads);
   }
   if (config.max_unacknowledged == 0) {
     config.max_unacknowledged = std::min(kMaxUnacknowledged, kInHandPerThread * config.threads);

@@ -10,6 +10,7 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <string>
 
@@ -44,6 +45,9 @@ inline constexpr std::uint64_t kMaxCaFileBytes = 1 << 20;
 // each), within these bounds.
 inline constexpr std::size_t kMinIdleConnections = 4;
 inline constexpr std::size_t kMaxIdleConnections = 64;
+// Bounds of exit_when_idle and max_runtime: a month and a year.
+inline constexpr std::chrono::seconds kMaxExitWhenIdle{30 * 24 * 3600};
+inline constexpr std::chrono::seconds kMaxRuntime{366 * 24 * 3600};
 
 // ---- configuration -------------------------------------------------------------------------
 
@@ -57,7 +61,9 @@ struct WorkerConfig {
   // Sent with every lease request; the collector logs it. Empty: default_worker_name().
   // Otherwise 1..protocol::kMaxWorkerNameBytes printable ASCII characters.
   std::string name;
-  std::uint32_t threads = 0;      // render threads; 0: every core. At most protocol::kMaxWorkerThreads
+  // Render threads; 0: the CPUs this process may run on (util::usable_cpus(): its affinity mask,
+  // which a Slurm allocation, a cpuset or taskset narrows). At most protocol::kMaxWorkerThreads.
+  std::uint32_t threads = 0;
   std::uint32_t scene_cache = 8;  // built scenes kept (least recently used evicted); [1, kMaxSceneCache]
   // Instruction set of the traversal kernels; one of accel::supported_isas(). Every choice
   // renders the same bits, so workers of one farm may differ.
@@ -82,10 +88,29 @@ struct WorkerConfig {
   // Off: such an answer is a "retry after" like any other, and the worker waits for a collector
   // at that address for as long as it runs.
   bool exit_when_done = false;
+  // For batch jobs (docs/scale-out.md), both 0 (off) by default; each stop is the drain of a
+  // SIGTERM (no more leases, what is in hand rendered and submitted within `grace`), then exit 0.
+  // exit_when_idle: stop once the collector has had no work for this worker for this long (every
+  // lease answered "retry after" since, and nothing rendering or awaiting acknowledgement), so
+  // an allocation is given back when the render is done. [0, kMaxExitWhenIdle]
+  std::chrono::seconds exit_when_idle{0};
+  // max_runtime: stop this long after the start, so that max_runtime + grace fits a fixed
+  // allocation. [0, kMaxRuntime]
+  std::chrono::seconds max_runtime{0};
 };
 
-// "hostname-pid", reduced to printable ASCII and to the protocol's name length.
-std::string default_worker_name();
+// Looks up an environment variable: its value, or null when it is not set.
+using EnvLookup = std::function<const char*(const char*)>;
+
+// The process's environment (std::getenv).
+const char* process_env(const char* name);
+
+// "HOST-PID", or under Slurm "HOST-JOB_TASK" for a task of a job array (SLURM_ARRAY_JOB_ID,
+// SLURM_ARRAY_TASK_ID) and "HOST-JOB" for another job (SLURM_JOB_ID), with ".STEP_TASK"
+// (SLURM_PROCID) when the job step runs more than one task (SLURM_NTASKS > 1); so that the tasks
+// of an array tell apart in the collector's worker list. Reduced to printable ASCII and to the
+// protocol's name length (the host name is shortened first).
+std::string default_worker_name(const EnvLookup& env = process_env);
 
 // Every problem with `config`, each an Error whose path is the field named as in WorkerConfig (e.g.
 // "collector_url", "timeouts.connect"), so that to_string() reads "field: problem"; empty when it

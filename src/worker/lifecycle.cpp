@@ -23,6 +23,10 @@ async::Awaitable<> Worker::Impl::main_loop(RunOptions options) {
     async::net::co_spawn(io, watch_signals(), async::log_failure("the signal watcher"));
   }
   started = true;
+  last_work_at = clock.now();
+  if (config.max_runtime.count() > 0) {
+    async::net::co_spawn(io, watch_runtime(last_work_at), async::log_failure("the run-time watcher"));
+  }
   if (notify_systemd) util::sd_notify_state("READY=1");
   util::log_info(
       "worker {} started: collector {}, {} render threads ({} kernels), up to {} tiles in hand, {} scenes cached",
@@ -69,6 +73,14 @@ async::Awaitable<> Worker::Impl::main_loop(RunOptions options) {
       tiles_abandoned.get(), leases_dropped.get(), lease_failures.get(),
       submitted == 0 ? 0.0 : double(ack_ms.get()) / double(submitted), double(in_hand_wait_ms.get()) / 1000.0,
       config.max_unacknowledged);
+}
+
+async::Awaitable<> Worker::Impl::watch_runtime(util::TimePoint started_at) {
+  co_await async::sleep_until(clock, started_at + config.max_runtime, &stop);
+  if (stop.is_set()) co_return;
+  util::log_info("the run time of {} s is over: stopping (--max-runtime)", config.max_runtime.count());
+  stopped_runtime = true;
+  begin_stop();
 }
 
 async::Awaitable<> Worker::Impl::drain() {

@@ -65,10 +65,12 @@ async::Awaitable<std::optional<Work>> Worker::Impl::acquire() {
     if (answer.retry_after) {
       note_lease_success(*attempt);
       if (answer.collector_finished && note_collector_finished()) co_return std::nullopt;
+      if (note_no_work()) co_return std::nullopt;
       lease_gate.idle_for(jittered_retry_after(*answer.retry_after, rng));
       continue;
     }
     lease_gate.busy();
+    last_work_at = clock.now();
     protocol::Lease lease = std::move(*answer.lease);
     // The collector is the authority: a job it leases out is not gone (any more).
     gone.remove(lease.job);
@@ -120,6 +122,19 @@ bool Worker::Impl::note_collector_finished() {
     collector_finished = true;
     begin_stop();
   }
+  return true;
+}
+
+bool Worker::Impl::note_no_work() {
+  if (config.exit_when_idle.count() == 0 || stop.is_set()) return stop.is_set();
+  if (rendering > 0 || tiles_held.get() > 0) return false;
+  const util::TimePoint now = clock.now();
+  if (now - last_work_at < config.exit_when_idle) return false;
+  util::log_info("no work from the collector {} for {} s: stopping (--exit-when-idle {})", url.to_string(),
+                 std::chrono::duration_cast<std::chrono::seconds>(now - last_work_at).count(),
+                 config.exit_when_idle.count());
+  stopped_idle = true;
+  begin_stop();
   return true;
 }
 
@@ -213,7 +228,10 @@ async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
                                                                          std::move(tile.rgb), std::move(tile.spp)}),
                      static_cast<std::uint64_t>(std::max<std::int64_t>(took.count(), 0)));
   };
+  ++rendering;
   auto [payload, render_ms] = co_await async::on_pool(pool, std::move(render));
+  --rendering;
+  last_work_at = clock.now();
   tiles_rendered.add();
   if (abandon.is_set()) {
     tiles_abandoned.add();

@@ -103,6 +103,8 @@ WorkerStats Worker::stats() const {
   stats.started = s.started.load();
   stats.stopping = s.stopping.load();
   stats.collector_finished = s.collector_finished.load();
+  stats.stopped_idle = s.stopped_idle.load();
+  stats.stopped_runtime = s.stopped_runtime.load();
   stats.tiles_rendered = s.tiles_rendered.get();
   stats.tiles_submitted = s.tiles_submitted.get();
   stats.tiles_dropped = s.tiles_dropped.get();

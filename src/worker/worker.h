@@ -28,6 +28,9 @@
 //    but not started are dropped (the collector re-offers them); tiles rendering are finished;
 //    everything rendered is submitted within the grace period, after which what is left is
 //    abandoned and logged. A second signal abandons at once. Counters are logged at exit.
+//  - Batch jobs. With exit_when_idle, once every lease answer for that long said "no work" and
+//    nothing is rendering or awaiting acknowledgement, the worker stops as after request_stop;
+//    with max_runtime it stops that long after its start. Either way run() returns true (exit 0).
 //  - Finished collector. With exit_when_done, a lease answer saying the collector has finished all
 //    its work and is going away (protocol::kFinishedHeader) is a stop like request_stop: what is
 //    in hand is finished and submitted, then run() returns (exit code 0). Without it, that answer
@@ -59,6 +62,8 @@ struct WorkerStats {
   bool stopping = false;  // a stop was requested
   // The stop came from the collector's "finished" answer (exit_when_done).
   bool collector_finished = false;
+  bool stopped_idle = false;     // the stop came from exit_when_idle
+  bool stopped_runtime = false;  // the stop came from max_runtime
   std::uint64_t tiles_rendered = 0;
   std::uint64_t tiles_submitted = 0;  // acknowledged: "stored" or "already done"
   std::uint64_t tiles_dropped = 0;    // their job is gone (410, or known gone before submission)

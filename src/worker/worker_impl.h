@@ -107,6 +107,13 @@ struct Worker::Impl {
   // A lease answer said the collector has finished and is going away: with exit_when_done, begins
   // the stop (once) and returns true; otherwise logs it once and returns false (a retry-after).
   bool note_collector_finished();
+  // A lease answer said there is no work now: with exit_when_idle, when there has been none for
+  // that long and nothing is rendering or awaiting acknowledgement, begins the stop and returns
+  // true.
+  bool note_no_work();
+
+  // With max_runtime: begins the stop once it has passed since the start.
+  async::Awaitable<> watch_runtime(util::TimePoint started_at);
 
   // ---- submission.cpp ----
 
@@ -142,6 +149,9 @@ struct Worker::Impl {
   std::optional<async::net::signal_set> signals;
   util::TimePoint stop_requested_at;
   std::uint32_t slots_live = 0;
+  std::uint32_t rendering = 0;  // tiles on the render pool now
+  // The last sign of work: the start, a lease granted, a render finished (exit_when_idle).
+  util::TimePoint last_work_at;
   bool notify_systemd = false;
   bool told_finished = false;  // a "finished" answer was logged (without exit_when_done)
   bool ran = false;
@@ -150,6 +160,8 @@ struct Worker::Impl {
   std::atomic<bool> started{false};
   std::atomic<bool> stopping{false};
   std::atomic<bool> collector_finished{false};
+  std::atomic<bool> stopped_idle{false};
+  std::atomic<bool> stopped_runtime{false};
   Counter tiles_rendered;
   Counter tiles_submitted;
   Counter tiles_dropped;
