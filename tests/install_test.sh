@@ -32,7 +32,7 @@ for unit in dtraced-collector.service dtraced-worker@.service; do
   check "$unit names no other binary" bash -c "! grep -v '^#' '$f' | grep -q /usr/local/bin"
 done
 doc="$dest/usr/share/doc/dtraced"
-for f in examples/collector.json examples/worker.json README.md docs/operations.md; do
+for f in examples/collector.json examples/worker.json examples/dtraced-worker.sbatch README.md docs/operations.md; do
   check "share/doc/dtraced/$f is installed" test -s "$doc/$f"
 done
 # Nothing else is installed: no tests, benchmarks or build files.
