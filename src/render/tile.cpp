@@ -6,13 +6,16 @@
 
 #include "accel/geometry.h"
 #include "math/rng.h"
+#include "render/sampler.h"
 
 namespace dtraced::render {
 
 namespace {
 
 // Film position of sample s of pixel (x, y). One sample per pixel goes through the pixel centre
-// (the closed-form tests rely on it); more are jittered uniformly over the pixel (box filter).
+// (the closed-form tests rely on it); more are spread over the pixel (box filter) by the
+// stratified sequence of render/sampler.h, dimensions 0 and 1, point s: the first 2^k samples of
+// a pixel cover it as a (0,k,2)-net.
 math::SampleKey sample_key(const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y, std::uint32_t s) {
   return math::SampleKey{settings.seed, settings.frame, x, y, s};
 }
@@ -21,9 +24,9 @@ math::Ray camera_ray(const RenderScene& scene, const scene::RenderSettings& sett
                      std::uint32_t s) {
   double jx = 0.5, jy = 0.5;
   if (settings.samples > 1) {
-    const math::SampleKey key = sample_key(settings, x, y, s);
-    jx = math::sample_uniform(key, 0);
-    jy = math::sample_uniform(key, 1);
+    const Sample2 u = stratified_2d(sample_key(settings, x, y, s), 0, s);
+    jx = u.u;
+    jy = u.v;
   }
   return scene.camera().generate(x + jx, y + jy, settings.width, settings.height);
 }
@@ -279,8 +282,9 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   const std::size_t pixels = std::size_t(rect.width) * rect.height;
   tile.rgb.assign(pixels * 3, 0.0f);
   const bool adaptive = settings.error_target > 0;
-  TileContext ctx{scene, settings, TraceLimits{Vec3f(settings.background), settings.max_depth, options.specialise},
-                  adaptive, options.want_variance};
+  const TraceLimits limits{Vec3f(settings.background), settings.max_depth, float(settings.branch_cutoff),
+                           options.specialise};
+  TileContext ctx{scene, settings, limits, adaptive, options.want_variance};
   ctx.first =
       adaptive && scene::is_checkpoint(settings, settings.min_samples) ? settings.min_samples : settings.samples;
   if (ctx.adaptive) tile.spp.assign(pixels, 0);
