@@ -107,14 +107,22 @@ TEST_CASE("Stratified samples are a pure function of (seed, frame, pixel, dimens
 }
 
 TEST_CASE("owen_scramble is a bijection that keeps aligned runs together", "[sampling]") {
-  // On the top 8 bits (the rest left alone): a permutation of the 256 values.
+  // The top 8 bits of the result depend on the top 8 bits of the value only, and permute them.
   std::set<std::uint32_t> seen;
   for (std::uint32_t i = 0; i < 256; ++i) {
-    const std::uint32_t v = render::owen_scramble(i << 24, 42, 8);
-    CHECK((v & 0xffffffu) == 0);
+    const std::uint32_t v = render::owen_scramble(i << 24, 42);
+    CHECK(render::owen_scramble((i << 24) | (i * 0x10101u), 42) >> 24 == v >> 24);
     seen.insert(v >> 24);
   }
   CHECK(seen.size() == 256);
+  // Not the identity, and another seed scrambles differently.
+  std::uint32_t moved = 0, differs = 0;
+  for (std::uint32_t i = 0; i < 256; ++i) {
+    moved += render::owen_scramble(i << 24, 42) >> 24 != i;
+    differs += render::owen_scramble(i << 24, 42) != render::owen_scramble(i << 24, 43);
+  }
+  CHECK(moved > 128);
+  CHECK(differs > 128);
   // The values [0, 16) land in one aligned run of 16.
   std::set<std::uint32_t> runs;
   for (std::uint32_t i = 0; i < 16; ++i) runs.insert(render::owen_scramble(i, 99) >> 4);

@@ -17,6 +17,8 @@ namespace dtraced::render {
 namespace {
 
 constexpr float kInvPi = std::numbers::inv_pi_v<float>;
+// An area light's sample index, key.sample * samples + s, stays below stratified_2d's 2^24.
+static_assert(std::uint64_t(scene::kMaxSamples) * scene::kMaxLightSamples <= (std::uint64_t(1) << 24));
 // Continuations through index-matched (eta == 1) surfaces do not consume depth, so they get
 // their own bound.
 constexpr int kMaxPassThroughs = 64;

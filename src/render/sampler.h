@@ -2,7 +2,7 @@
 //
 // A pixel's film positions, and each area light's shadow-ray positions, are the first two
 // dimensions of the Sobol' sequence (a (0,2)-sequence in base 2), with a random permutation of the
-// point indices and an independent nested uniform (Owen) scramble of each coordinate. Both are
+// point indices and an independent nested (Owen-type) scramble of each coordinate. Both are
 // drawn from counter-based hashes of (seed, frame, pixel, dimension), so a sample is a pure
 // function of (seed, frame, pixel x, pixel y, dimension, point index): no state, the same bits on
 // every host, thread, tiling and instruction set (integer arithmetic only).
@@ -30,14 +30,15 @@ struct Sample2 {
 // The first two Sobol' dimensions of point `index`, as 32-bit binary fractions (unscrambled).
 void sobol2(std::uint32_t index, std::uint32_t& x, std::uint32_t& y);
 
-// Nested uniform (Owen) scramble of the top `bits` bits of a 32-bit binary fraction under `seed`:
-// bit 31 - l is flipped by a hash of (seed, l, the l bits above it). A bijection of [0, 2^32)
-// that maps every aligned run of 2^(32 - l) values onto another one.
-std::uint32_t owen_scramble(std::uint32_t value, std::uint64_t seed, int bits = 32);
+// Nested (Owen-type) scramble of a 32-bit binary fraction under `seed`: each bit is flipped by a
+// seeded function of the bits above it (a few integer multiplies, not one hash per bit). A
+// bijection of [0, 2^32) that maps every aligned run of 2^k values onto another one, so it keeps
+// nets nets.
+std::uint32_t owen_scramble(std::uint32_t value, std::uint64_t seed);
 
 // The 2D sample of dimensions (dim, dim + 1) for point `index` of the pixel that `key` names
-// (key.sample is not read: the caller's index says which point). Points of one pixel and
-// dimension pair with indices in an aligned run of 2^k form a (0,k,2)-net.
+// (key.sample is not read: the caller's index says which point), index < 2^24. Points of one
+// pixel and dimension pair with indices in an aligned run of 2^k form a (0,k,2)-net.
 Sample2 stratified_2d(const math::SampleKey& key, std::uint32_t dim, std::uint32_t index);
 
 }  // namespace dtraced::render
