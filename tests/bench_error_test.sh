@@ -19,9 +19,11 @@ check "the reference is the closed form" grep -q "reference: closed form" "$T/a.
 check "the slope line is printed" grep -q "log-log slope" "$T/a.out"
 check "the specialised path renders the same bits" grep -q "same bits: yes" "$T/a.out"
 check "the CSV header names every column" test "$(head -1 "$T/a.csv")" = \
-  "scene,isa,kind,target,spp,seconds,mrays_per_s,mse,rel_mse,psnr_db,max_abs,nonfinite,efficiency,ref_noise"
+  "scene,isa,kind,target,spp,seconds,mrays_per_s,mse,rel_mse,psnr_db,max_abs,nonfinite,efficiency,ref_noise,rays_per_pixel,branch_cutoff"
 check "uniform rows at 1, 2, 4, 8 spp" test "$(awk -F, '$3=="uniform"{printf "%d ", $5}' "$T/a.csv")" = "1 2 4 8 "
 check "two adaptive rows, one per target" test "$(awk -F, '$3=="adaptive"{printf "%s ", $4}' "$T/a.csv")" = "0.1 0.05 "
+check "one cut-off row at 1/255 and 8 spp" test "$(awk -F, '$3=="cutoff"{printf "%s %d ", $16, $5}' "$T/a.csv")" = "0.00392157 8 "
+check "the cut-off row is compared with the uniform row" grep -q "branch cut-off 0.00392157 at 8 spp" "$T/a.out"
 check "no NaN or Inf in any row" test "$(awk -F, 'NR>1 && $12!=0' "$T/a.csv" | wc -l)" -eq 0
 check "uniform relMSE falls with every doubling" \
   awk -F, 'NR>1 && $3=="uniform" { if (n++ && $9 >= last) bad=1; last=$9 } END { exit bad || n != 4 }' "$T/a.csv"
@@ -44,7 +46,7 @@ check "Monte Carlo reference run exits 0" test $? -eq 0
 check "first run renders the reference" grep -q "rendering the reference at 64 spp" "$T/b1.err"
 check "the reference is cached beside the digest" test "$(ls "$T/cache" | grep -c '^soft_shadows\.ref-[0-9a-f]\{16\}\.pfm$')" -eq 1
 check "its variance is cached too" test "$(ls "$T/cache" | grep -c '\.var\.pfm$')" -eq 1
-check "the reference's noise is estimated" test "$(awk -F, 'NR>1 && $14>0' "$T/b.csv" | wc -l)" -eq 4
+check "the reference's noise is estimated" test "$(awk -F, 'NR>1 && $14>0' "$T/b.csv" | wc -l)" -eq 5
 cp "$T/b.csv" "$T/b1.csv"
 run_soft 2
 check "second run exits 0" test $? -eq 0

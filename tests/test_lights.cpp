@@ -187,7 +187,10 @@ TEST_CASE("Area lights match the closed-form irradiance of sphere, disk and rect
   }
 }
 
-TEST_CASE("Area-light estimates converge as 1/sqrt(samples)", "[lights][convergence]") {
+// Light samples are stratified across a pixel's samples (render/sampler.h: Owen-scrambled Sobol'
+// nets). For these smooth, unoccluded integrands that gives an RMS error falling about as N^-1.5,
+// where independent samples gave Monte Carlo's N^-0.5 (the test asserted that until issue 16).
+TEST_CASE("Area-light estimates converge faster than 1/sqrt(samples)", "[lights][convergence]") {
   constexpr int kSeeds = 32;
   const std::uint32_t counts[] = {16, 64, 256, 1024};
   for (const ClosedFormCase& c : closed_form_cases()) {
@@ -222,7 +225,8 @@ TEST_CASE("Area-light estimates converge as 1/sqrt(samples)", "[lights][converge
     }
     const double slope = sxy / sxx;
     INFO("slope " << slope << ", relative RMS at N = 1024: " << last_rms);
-    REQUIRE(std::abs(slope + 0.5) <= 0.15);
+    REQUIRE(slope <= -1.1);
+    REQUIRE(slope >= -2.0);
     REQUIRE(last_rms < 0.015);
   }
 }

@@ -42,7 +42,10 @@ std::optional<image::ImageRGBf> reference_of(const scene::SceneDesc& d, std::str
 
 }  // namespace
 
-TEST_CASE("Uniform sampling's relMSE against the closed form falls as 1/samples", "[reference][convergence]") {
+// Pixel and light samples are stratified (render/sampler.h), so the relMSE falls faster than
+// Monte Carlo's 1/samples (the slope this test asserted until issue 16): about samples^-1.5 to
+// samples^-2 on this scene of smooth shading and a few edges.
+TEST_CASE("Uniform sampling's relMSE against the closed form falls faster than 1/samples", "[reference][convergence]") {
   const scene::SceneDesc d = lit_plane(64, 48);
   const render::RenderScene rs = render::RenderScene::build(d, accel::best_isa());
   std::string why;
@@ -65,7 +68,8 @@ TEST_CASE("Uniform sampling's relMSE against the closed form falls as 1/samples"
   for (std::size_t i = 0; i < xs.size(); ++i) sxy += (xs[i] - mx) * (ys[i] - my), sxx += (xs[i] - mx) * (xs[i] - mx);
   const double slope = sxy / sxx;
   INFO("log-log slope " << slope);
-  CHECK(slope == Approx(-1.0).margin(0.1));
+  CHECK(slope <= -1.3);
+  CHECK(slope >= -2.5);
 }
 
 TEST_CASE("The closed form agrees with a many-sample render of each light alone", "[reference]") {

@@ -45,11 +45,13 @@ constexpr std::size_t kMaxTargets = 16;
 constexpr std::uint32_t kMaxRepeats = 99;
 
 struct Row {
-  std::string kind;  // "uniform" or "adaptive"
-  double target = 0.0;
-  double spp = 0.0;  // mean samples per pixel
+  std::string kind;     // "uniform", "adaptive" or "cutoff"
+  double target = 0.0;  // adaptive: the error target; cutoff: the branch cut-off
+  double cutoff = 0.0;  // the branch cut-off the row rendered with
+  double spp = 0.0;     // mean samples per pixel
   double seconds = 0.0;
   double mrays = 0.0;
+  double rays_per_pixel = 0.0;  // every ray cast, border rays included, per image pixel
   image::ImageDiff diff;
   double efficiency() const { return 1.0 / (diff.rel_mse * seconds); }
 };
@@ -137,6 +139,8 @@ util::Result<Reference> make_reference(const scene::SceneDesc& desc, const rende
   s.samples = args.reference_spp.value_or(std::min<std::uint32_t>(args.max_spp * kReferenceFactor, scene::kMaxSamples));
   s.seed += kReferenceSeedOffset;
   s.error_target = 0.0;
+  // Branches the rows may cut are in the reference.
+  s.branch_cutoff = std::min(s.branch_cutoff, scene::RenderSettings{}.branch_cutoff);
 
   const std::filesystem::path scene_path(args.scene);
   const std::filesystem::path dir =
@@ -217,11 +221,13 @@ std::string csv_field(std::string s) {
 
 std::string csv_text(const std::vector<Row>& rows, const std::string& scene, std::string_view isa, double noise) {
   std::string out =
-      "scene,isa,kind,target,spp,seconds,mrays_per_s,mse,rel_mse,psnr_db,max_abs,nonfinite,efficiency,ref_noise\n";
+      "scene,isa,kind,target,spp,seconds,mrays_per_s,mse,rel_mse,psnr_db,max_abs,nonfinite,efficiency,ref_noise,"
+      "rays_per_pixel,branch_cutoff\n";
   for (const Row& r : rows) {
-    out += fmt::format("{},{},{},{},{:.4f},{:.6g},{:.4g},{:.6g},{:.6g},{:.4f},{:.6g},{},{:.6g},{:.6g}\n",
+    out += fmt::format("{},{},{},{},{:.4f},{:.6g},{:.4g},{:.6g},{:.6g},{:.4f},{:.6g},{},{:.6g},{:.6g},{:.6g},{:.6g}\n",
                        csv_field(scene), isa, r.kind, r.target, r.spp, r.seconds, r.mrays, r.diff.mse, r.diff.rel_mse,
-                       r.diff.psnr_db, r.diff.max_abs, r.diff.nonfinite, r.efficiency(), noise);
+                       r.diff.psnr_db, r.diff.max_abs, r.diff.nonfinite, r.efficiency(), noise, r.rays_per_pixel,
+                       r.cutoff);
   }
   return out;
 }
@@ -288,7 +294,12 @@ CLI::App* add_bench_error_verb(CLI::App& app, BenchErrorArgs& args, std::optiona
   e->add_option("--targets", args.targets, "Adaptive rows: error targets (relative standard error), at --max-spp")
       ->check(CLI::Range(1e-6, 1.0))
       ->expected(1, int(kMaxTargets));
-  e->add_flag("--no-adaptive", args.no_adaptive, "Uniform rows only");
+  e->add_flag("--no-adaptive", args.no_adaptive, "No adaptive rows");
+  e->add_option("--cutoffs", args.cutoffs,
+                "Cut-off rows: uniform renders at --max-spp with each of these branch cut-offs (default 1/255)")
+      ->check(CLI::Range(scene::kMinBranchCutoff, scene::kMaxBranchCutoff))
+      ->expected(1, int(kMaxTargets));
+  e->add_flag("--no-cutoffs", args.no_cutoffs, "No cut-off rows");
   e->add_option("--min-samples", args.min_samples, "Adaptive rows: the first checkpoint")
       ->check(CLI::Range(1u, scene::kMaxSamples));
   e->add_option("--reference-spp", args.reference_spp,
@@ -342,20 +353,24 @@ util::Result<Row> measure(const render::RenderScene& rs, const render::LocalOpti
   if (!t) return std::move(t).error();
   const util::Result<image::ImageDiff> d = image::compare_images(t->result.image, ref.image);
   if (!d) return d.error();
-  Row row{kind, target, double(s.samples), t->seconds, 0.0, *d};
+  Row row{kind, target, s.branch_cutoff, double(s.samples), t->seconds, 0.0, 0.0, *d};
   if (!t->result.spp.empty()) {
     double total = 0;
     for (const std::uint32_t n : t->result.spp) total += n;
     row.spp = total / double(t->result.spp.size());
   }
-  row.mrays = t->seconds > 0 ? double(t->result.stats.all_rays()) / t->seconds / 1e6 : 0.0;
+  const double rays = double(t->result.stats.all_rays());
+  row.mrays = t->seconds > 0 ? rays / t->seconds / 1e6 : 0.0;
+  row.rays_per_pixel = rays / (double(s.width) * double(s.height));
   return row;
 }
 
-// The uniform rows at 1, 2, 4, ... spp, then one adaptive row per target.
+// The uniform rows at 1, 2, 4, ... spp, then one adaptive row per target, then one uniform row at
+// max spp per branch cut-off.
 util::Result<std::vector<Row>> measure_rows(const render::RenderScene& rs, const render::LocalOptions& opts,
                                             const BenchErrorArgs& args, const Reference& ref,
-                                            const scene::RenderSettings& render, const std::vector<double>& targets) {
+                                            const scene::RenderSettings& render, const std::vector<double>& targets,
+                                            const std::vector<double>& cutoffs) {
   std::vector<Row> rows;
   scene::RenderSettings s = render;
   s.error_target = 0.0;
@@ -373,17 +388,27 @@ util::Result<std::vector<Row>> measure_rows(const render::RenderScene& rs, const
     if (!row) return std::move(row).error();
     rows.push_back(std::move(row).value());
   }
+  for (const double cutoff : cutoffs) {
+    s = render;
+    s.samples = args.max_spp;
+    s.error_target = 0.0;
+    s.branch_cutoff = cutoff;
+    util::Result<Row> row = measure(rs, opts, args, ref, "cutoff", cutoff, s);
+    if (!row) return std::move(row).error();
+    rows.push_back(std::move(row).value());
+  }
   return rows;
 }
 
 // The table, the convergence slope and each adaptive row against uniform sampling.
 void print_rows(const std::vector<Row>& rows, double noise) {
-  fmt::print("\n{:<9} {:>7} {:>8} {:>9} {:>8} {:>10} {:>10} {:>8} {:>9} {:>8} {:>11}\n", "kind", "target", "spp",
-             "seconds", "Mrays/s", "MSE", "relMSE", "PSNR dB", "max abs", "NaN/Inf", "efficiency");
+  fmt::print("\n{:<9} {:>7} {:>8} {:>9} {:>8} {:>8} {:>10} {:>10} {:>8} {:>9} {:>8} {:>11}\n", "kind", "target", "spp",
+             "seconds", "Mrays/s", "rays/px", "MSE", "relMSE", "PSNR dB", "max abs", "NaN/Inf", "efficiency");
   for (const Row& r : rows) {
-    fmt::print("{:<9} {:>7} {:>8.2f} {:>9.4f} {:>8.2f} {:>10.3e} {:>10.3e} {:>8.2f} {:>9.3g} {:>8} {:>11.4g}\n", r.kind,
-               fmt_target(r.target), r.spp, r.seconds, r.mrays, r.diff.mse, r.diff.rel_mse, r.diff.psnr_db,
-               r.diff.max_abs, r.diff.nonfinite, r.efficiency());
+    fmt::print(
+        "{:<9} {:>7} {:>8.2f} {:>9.4f} {:>8.2f} {:>8.1f} {:>10.3e} {:>10.3e} {:>8.2f} {:>9.3g} {:>8} {:>11.4g}\n",
+        r.kind, fmt_target(r.target), r.spp, r.seconds, r.mrays, r.rays_per_pixel, r.diff.mse, r.diff.rel_mse,
+        r.diff.psnr_db, r.diff.max_abs, r.diff.nonfinite, r.efficiency());
   }
 
   const double slope = convergence_slope(rows, noise);
@@ -400,6 +425,18 @@ void print_rows(const std::vector<Row>& rows, double noise) {
     } else {
       fmt::print("adaptive {:g}: relMSE {:.3e} in {:.4f} s at a mean {:.1f} spp; outside the uniform rows' range\n",
                  r.target, r.diff.rel_mse, r.seconds, r.spp);
+    }
+  }
+  // Each cut-off row against the uniform row of the same spp (the scene's own cut-off).
+  for (const Row& r : rows) {
+    if (r.kind != "cutoff") continue;
+    for (const Row& u : rows) {
+      if (u.kind != "uniform" || u.spp != r.spp) continue;
+      fmt::print(
+          "branch cut-off {:g} at {:g} spp: {:.1f} rays/px against {:.1f} (cut-off {:g}), time ratio {:.2f}, "
+          "relMSE {:.3e} against {:.3e} (x{:.3f}), PSNR {:+.2f} dB\n",
+          r.target, r.spp, r.rays_per_pixel, u.rays_per_pixel, u.cutoff, r.seconds / u.seconds, r.diff.rel_mse,
+          u.diff.rel_mse, r.diff.rel_mse / u.diff.rel_mse, r.diff.psnr_db - u.diff.psnr_db);
     }
   }
 }
@@ -443,6 +480,7 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
   scene::SceneDesc desc = *loaded.scene;
   desc.render = scene::apply(args.overrides, desc.render);
   const std::vector<double> targets = args.no_adaptive ? std::vector<double>{} : args.targets;
+  const std::vector<double> cutoffs = args.no_cutoffs ? std::vector<double>{} : args.cutoffs;
   const std::string stem = std::filesystem::path(args.scene).stem().string();
   const std::string csv_path = args.csv.empty() ? stem + "-error.csv" : args.csv;
   const std::string plot_path = args.plot.empty() ? stem + "-error.svg" : args.plot;
@@ -462,7 +500,8 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
       "dtraced bench error {}: {}x{}, {} kernels, median of {} renders per row (scene build {:.3f} s, "
       "not counted)\n",
       args.scene, desc.render.width, desc.render.height, isa_str, args.repeats, build_s);
-  fmt::print("features: {}\nreference: {}\n", render::feature_names(rs.features()), ref->how);
+  fmt::print("features: {}\nbranch cut-off {:g}\nreference: {}\n", render::feature_names(rs.features()),
+             desc.render.branch_cutoff, ref->how);
   if (ref->noise > 0) fmt::print("reference noise: adds about {:.3g} to every relMSE below\n", ref->noise);
 
   // One untimed render first: the first rows would otherwise also pay for cold caches, page
@@ -473,7 +512,7 @@ int run_bench_error(const BenchErrorArgs& args, accel::Isa isa) {
     warm.error_target = 0.0;
     (void)render::render_local(rs, warm, opts);
   }
-  const util::Result<std::vector<Row>> rows = measure_rows(rs, opts, args, *ref, desc.render, targets);
+  const util::Result<std::vector<Row>> rows = measure_rows(rs, opts, args, *ref, desc.render, targets, cutoffs);
   if (!rows) return failed(rows.error());
   print_rows(*rows, ref->noise);
   const util::Result<bool> same_bits = compare_specialised(rs, opts, args, desc.render);

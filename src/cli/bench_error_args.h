@@ -16,6 +16,10 @@ struct BenchErrorArgs {
   std::vector<double> targets{0.1, 0.05, 0.02, 0.01};  // adaptive rows, at max_spp
   bool no_adaptive = false;
   std::uint32_t min_samples = 8;  // adaptive rows' first checkpoint
+  // Cut-off rows: uniform renders at max_spp with each of these RenderSettings::branch_cutoff
+  // values, against the same reference (rendered at the strictest cut-off).
+  std::vector<double> cutoffs{1.0 / 255.0};
+  bool no_cutoffs = false;
   // Of the scene's render block and the tile size; samples, error target and min samples are the
   // bench's own (the rows), so they are not among its override flags (kBenchOverrides).
   scene::Overrides overrides;

@@ -215,6 +215,7 @@ std::string encode(const JobSubmit& m) {
   if (v.background) o["background"] = scene::vec3_value(*v.background);
   if (v.error_target) o["error_target"] = jsonio::exact_number(*v.error_target);
   if (v.min_samples) o["min_samples"] = *v.min_samples;
+  if (v.branch_cutoff) o["branch_cutoff"] = jsonio::exact_number(*v.branch_cutoff);
   if (v.png_bit_depth) o["png_bit_depth"] = *v.png_bit_depth;
   if (v.frames) o["frames"] = scene::frame_range_value(*v.frames);
   if (v.fps) o["fps"] = jsonio::exact_number(*v.fps);

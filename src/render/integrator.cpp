@@ -9,6 +9,7 @@
 
 #include "math/rng.h"
 #include "render/light_sampling.h"
+#include "render/sampler.h"
 #include "render/shading.h"
 
 namespace dtraced::render {
@@ -16,9 +17,8 @@ namespace dtraced::render {
 namespace {
 
 constexpr float kInvPi = std::numbers::inv_pi_v<float>;
-// A branch whose weight on the pixel falls below this is not traced: it cannot change an 8- or
-// 16-bit output and, with glass, would otherwise double the ray count at every bounce.
-constexpr float kMinBranchWeight = 1e-6f;
+// An area light's sample index, key.sample * samples + s, stays below stratified_2d's 2^24.
+static_assert(std::uint64_t(scene::kMaxSamples) * scene::kMaxLightSamples <= (std::uint64_t(1) << 24));
 // Continuations through index-matched (eta == 1) surfaces do not consume depth, so they get
 // their own bound.
 constexpr int kMaxPassThroughs = 64;
@@ -278,10 +278,11 @@ struct Tracer {
         dim += 2 * a.samples;
         Vec3f acc{0, 0, 0};
         for (std::uint32_t s = 0; s < a.samples; ++s) {
-          const float u1 = math::sample_uniform(key, base + 2 * s);
-          const float u2 = math::sample_uniform(key, base + 2 * s + 1);
+          // Point key.sample * samples + s of one stratified sequence: the light's samples of
+          // one pixel sample, and of the pixel's first 2^k samples, are stratified together.
+          const Sample2 u = stratified_2d(key, base, key.sample * a.samples + s);
           AreaSample as;
-          if (!sample_area_light(a, hit.p, nf, u1, u2, as)) continue;
+          if (!sample_area_light(a, hit.p, nf, u.u, u.v, as)) continue;
           float vis = 1.0f;
           if constexpr (kShadow) {
             if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point, kAreaShadowEnd), media);
@@ -357,10 +358,25 @@ struct Tracer {
         radiance += direct * m.local_weight;
       }
       const bool deeper = depth < limits.max_depth;
-      if (kReflect && m.reflectivity > 0.0f && deeper && weight * m.reflectivity >= kMinBranchWeight) {
+      const float cutoff = limits.min_branch_weight;
+      // The Fresnel reflection of a surface that bends light; its weight on this path, 0 for none.
+      const bool bends = transparent && eta != 1.0f && deeper;
+      Interface it;
+      if (bends) it = dielectric_interface(wo, nf, eta);
+      const float fresnel_w = bends ? m.transparency * it.fresnel : 0.0f;
+      if (kReflect && m.reflectivity > 0.0f && deeper) {
+        const float mirror_w = bends ? m.reflectivity + fresnel_w : m.reflectivity;
+        if (weight * mirror_w >= cutoff) {
+          // One ray for every lobe that reflects in the mirror direction: the `reflectivity`
+          // mirror (tinted by the colour) and, on glass, the Fresnel reflection.
+          const Vec3f r = math::normalize(reflect(ray.d, nf));
+          const Vec3f lr = trace(spawn(hit, r), depth + 1, weight * mirror_w, media);
+          radiance += math::mul(m.color, lr) * m.reflectivity;
+          if (bends) radiance += lr * fresnel_w;
+        }
+      } else if (bends && weight * fresnel_w >= cutoff) {
         const Vec3f r = math::normalize(reflect(ray.d, nf));
-        radiance +=
-            math::mul(m.color, trace(spawn(hit, r), depth + 1, weight * m.reflectivity, media)) * m.reflectivity;
+        radiance += trace(spawn(hit, r), depth + 1, weight * fresnel_w, media) * fresnel_w;
       }
       if (!transparent) return radiance;
 
@@ -374,21 +390,15 @@ struct Tracer {
         }
         // Partly transparent: recurse along the same ray. The branch weight shrinks by the
         // transparency at each such surface, so the cut-off bounds this recursion.
-        if (weight * m.transparency < kMinBranchWeight) return radiance;
+        if (weight * m.transparency < cutoff) return radiance;
         math::Ray cont = ray;
         cont.t_min = hit.t;
         return radiance + trace(cont, depth, weight * m.transparency, inside) * m.transparency;
       }
       if (!deeper) return radiance;
-      const Interface it = dielectric_interface(wo, nf, eta);
-      const float w_reflect = weight * m.transparency * it.fresnel;
-      if (w_reflect >= kMinBranchWeight) {
-        const Vec3f r = math::normalize(reflect(ray.d, nf));
-        radiance += trace(spawn(hit, r), depth + 1, w_reflect, media) * (m.transparency * it.fresnel);
-      }
-      const float w_refract = weight * m.transparency * (1.0f - it.fresnel);
-      if (it.refracts && w_refract >= kMinBranchWeight) {
-        radiance += trace(spawn(hit, it.wt), depth + 1, w_refract, inside) * (m.transparency * (1.0f - it.fresnel));
+      const float refract_w = m.transparency * (1.0f - it.fresnel);
+      if (it.refracts && weight * refract_w >= cutoff) {
+        radiance += trace(spawn(hit, it.wt), depth + 1, weight * refract_w, inside) * refract_w;
       }
       return radiance;
     }

@@ -4,11 +4,14 @@
 // with soft shadows (Monte Carlo: `samples` shadow rays per light and shading point, uniform over
 // a sphere's cone of directions or a disk's or rect's area), Lambert diffuse plus normalised
 // Blinn-Phong specular, mirror reflection, and dielectric refraction with exact Fresnel and total
-// internal reflection. Nested and touching transparent objects are handled with a small per-path
-// stack of the media the path is inside; camera paths start inside the media that contain the
-// camera (RenderScene::camera_media). Camera, mirror and refracted rays that reach an area
-// light's emitting side before any surface return its radiance Le. Pure function of (scene, ray,
-// sample key, settings): thread-safe.
+// internal reflection. A hit casts at most one mirror ray, carrying the summed weight of every lobe
+// that reflects in that direction (the material's `reflectivity` and, on glass, the Fresnel
+// reflection), and no branch lighter than TraceLimits::min_branch_weight. Area-light samples are
+// stratified across a pixel's samples (render/sampler.h). Nested and touching transparent objects
+// are handled with a small per-path stack of the media the path is inside; camera paths start
+// inside the media that contain the camera (RenderScene::camera_media). Camera, mirror and
+// refracted rays that reach an area light's emitting side before any surface return its radiance
+// Le. Pure function of (scene, ray, sample key, settings): thread-safe.
 //
 // Each call runs a path specialised to the scene's features (RenderScene::features: code for a
 // feature the scene lacks is compiled out), or with TraceLimits::specialise false the generic
@@ -46,6 +49,11 @@ struct TraceStats {
 struct TraceLimits {
   Vec3f background;
   std::uint32_t max_depth = 8;
+  // A reflected, refracted or see-through branch whose weight on the pixel (the product of the
+  // reflectances and transmittances along its path, at most 1) falls below this is not traced
+  // (RenderSettings::branch_cutoff). It only loses light: at most this fraction of the radiance
+  // arriving along the branch.
+  float min_branch_weight = 1e-6f;
   // Run the path specialised to the scene's features (RenderScene::features); false runs the
   // generic path, which renders the same bits (the tests and the benchmark compare them).
   bool specialise = true;

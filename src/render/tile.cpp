@@ -6,13 +6,16 @@
 
 #include "accel/geometry.h"
 #include "math/rng.h"
+#include "render/sampler.h"
 
 namespace dtraced::render {
 
 namespace {
 
 // Film position of sample s of pixel (x, y). One sample per pixel goes through the pixel centre
-// (the closed-form tests rely on it); more are jittered uniformly over the pixel (box filter).
+// (the closed-form tests rely on it); more are spread over the pixel (box filter) by the
+// stratified sequence of render/sampler.h, dimensions 0 and 1, point s: the first 2^k samples of
+// a pixel cover it as a (0,k,2)-net.
 math::SampleKey sample_key(const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y, std::uint32_t s) {
   return math::SampleKey{settings.seed, settings.frame, x, y, s};
 }
@@ -21,24 +24,52 @@ math::Ray camera_ray(const RenderScene& scene, const scene::RenderSettings& sett
                      std::uint32_t s) {
   double jx = 0.5, jy = 0.5;
   if (settings.samples > 1) {
-    const math::SampleKey key = sample_key(settings, x, y, s);
-    jx = math::sample_uniform(key, 0);
-    jy = math::sample_uniform(key, 1);
+    const Sample2 u = stratified_2d(sample_key(settings, x, y, s), 0, s);
+    jx = u.u;
+    jy = u.v;
   }
   return scene.camera().generate(x + jx, y + jy, settings.width, settings.height);
 }
 
-// One pixel's running sums, in double and in sample order. The sums of squares are kept only
-// when something reads them (adaptive sampling, variance output); they never change `sum`.
+// Groups of a pixel's samples for the adaptive error estimate: at checkpoint n they are the four
+// aligned runs of n/4 samples, each a net of its own (render/sampler.h).
+constexpr std::uint32_t kGroups = 4;
+
+// One pixel's running sums, in double and in sample order. The sums of squares and the group
+// sums are kept only when something reads them (adaptive sampling, variance output); they never
+// change `sum`. Group k holds samples [k span, (k + 1) span); when sample kGroups * span arrives,
+// neighbouring groups merge pairwise and span doubles, so at a checkpoint n = kGroups * span the
+// groups are the four quarters of the pixel's samples.
 struct PixelSums {
   double sum[3] = {0, 0, 0};
   double squares[3] = {0, 0, 0};
+  double group[kGroups][3] = {};
+  std::uint32_t span = 0;  // samples per group; 0 until the first sample
 };
 
-// Adds one sample to a pixel's sums, or counts it and drops it when it has a NaN or an Inf: a bad
+// The first group span: a quarter of the first checkpoint (at least 1), so that the groups are
+// quarters at every checkpoint min_samples * 2^j when min_samples is a multiple of 4.
+std::uint32_t first_span(const scene::RenderSettings& settings) { return std::max(1u, settings.min_samples / kGroups); }
+
+// Adds sample s (0-based) of a pixel to its group sums.
+void add_to_group(const Vec3f& l, std::uint32_t s, std::uint32_t span0, PixelSums& p) {
+  if (p.span == 0) p.span = span0;
+  while (s >= kGroups * p.span) {
+    for (std::uint32_t k = 0; k < kGroups / 2; ++k) {
+      for (int c = 0; c < 3; ++c) p.group[k][c] = p.group[2 * k][c] + p.group[2 * k + 1][c];
+    }
+    for (std::uint32_t k = kGroups / 2; k < kGroups; ++k) {
+      for (int c = 0; c < 3; ++c) p.group[k][c] = 0.0;
+    }
+    p.span *= 2;
+  }
+  for (int c = 0; c < 3; ++c) p.group[s / p.span][c] += double(l[c]);
+}
+
+// Adds sample s to a pixel's sums, or counts it and drops it when it has a NaN or an Inf: a bad
 // sample never reaches a pixel, and tests and logs can still see it. A dropped sample still
 // counts in the pixel's sample count, as a zero.
-void accumulate(const Vec3f& l, PixelSums& p, bool squares, TraceStats& stats) {
+void accumulate(const Vec3f& l, std::uint32_t s, std::uint32_t span0, PixelSums& p, bool squares, TraceStats& stats) {
   bool has_nan = false, has_inf = false;
   for (int c = 0; c < 3; ++c) {
     has_nan = has_nan || std::isnan(l[c]);
@@ -52,6 +83,7 @@ void accumulate(const Vec3f& l, PixelSums& p, bool squares, TraceStats& stats) {
   for (int c = 0; c < 3; ++c) p.sum[c] += double(l[c]);
   if (squares) {
     for (int c = 0; c < 3; ++c) p.squares[c] += double(l[c]) * double(l[c]);
+    add_to_group(l, s, span0, p);
   }
 }
 
@@ -62,15 +94,35 @@ double sample_variance(const PixelSums& p, int c, std::uint32_t n) {
   return std::max(0.0, (p.squares[c] - p.sum[c] * mean) / double(n - 1));
 }
 
+// The estimated variance of channel c's mean after n samples. When the samples fall in four
+// equal groups of at least 2 (n = 4 span), each an aligned run of the stratified sequence and so
+// a net of its own, it is the variance of the four group means over 4: the independent-sample
+// formula applied to the groups. Where a pixel's variance falls as n^-a (a > 1 for stratified
+// samples), s^2/n overstates it by about n^(a-1) (a pixel stops late); this by about 4^(a-1).
+// Otherwise (groups of one, or a count that is not a checkpoint) the independent-sample s^2/n.
+double mean_variance(const PixelSums& p, int c, std::uint32_t n) {
+  if (p.span >= 2 && n == kGroups * p.span) {
+    const double mean = p.sum[c] / double(n);
+    double d2 = 0.0;
+    for (std::uint32_t k = 0; k < kGroups; ++k) {
+      const double d = p.group[k][c] / double(p.span) - mean;
+      d2 += d * d;
+    }
+    return d2 / double(kGroups * (kGroups - 1));
+  }
+  return sample_variance(p, c, n) / double(n);
+}
+
 // Whether a pixel's estimated relative standard error after n samples is within the target:
-// sqrt(max_c (s_c^2 / n) / (mean_c^2 + 0.01)) <= error_target. The 0.01 is relMSE's epsilon, so
-// dark pixels are judged by absolute rather than relative error. Needs n >= 2 to estimate.
+// sqrt(max_c var_c / (mean_c^2 + 0.01)) <= error_target, var_c from mean_variance. The 0.01 is
+// relMSE's epsilon, so dark pixels are judged by absolute rather than relative error. Needs
+// n >= 2 to estimate.
 bool converged(const scene::RenderSettings& settings, const PixelSums& p, std::uint32_t n) {
   if (n < 2) return false;
   double worst = 0.0;
   for (int c = 0; c < 3; ++c) {
     const double mean = p.sum[c] / double(n);
-    worst = std::max(worst, sample_variance(p, c, n) / double(n) / (mean * mean + 0.01));
+    worst = std::max(worst, mean_variance(p, c, n) / (mean * mean + 0.01));
   }
   return std::sqrt(worst) <= settings.error_target;
 }
@@ -81,6 +133,7 @@ struct TileContext {
   TraceLimits limits;
   bool adaptive = false;
   bool want_variance = false;
+  std::uint32_t span0 = 1;  // first_span(settings)
   bool squares() const { return adaptive || want_variance; }
   // Samples of the first phase: every pixel takes them before any may stop. With adaptive
   // sampling, min_samples when that is a checkpoint (decided by the neighbourhood rule, see
@@ -124,7 +177,7 @@ void render_pixels(const TileContext& ctx, TileSums& st, std::uint32_t until, Ti
       while (n < until) {
         accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, ctx.settings, x, y, n),
                                   sample_key(ctx.settings, x, y, n), ctx.limits, tile.stats),
-                   p, ctx.squares(), tile.stats);
+                   n, ctx.span0, p, ctx.squares(), tile.stats);
         ++n;
         if (ctx.own_checkpoint(n) && converged(ctx.settings, p, n)) {
           if (st.kept()) st.done[i] = 1;
@@ -187,7 +240,7 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
         const bool checkpoint = ctx.own_checkpoint(s + 1);
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (!(active >> i & 1u)) continue;
-          accumulate(radiance[i], *sums[i], ctx.squares(), tile.stats);
+          accumulate(radiance[i], s, ctx.span0, *sums[i], ctx.squares(), tile.stats);
           *taken[i] = s + 1;
           if (checkpoint && converged(settings, *sums[i], s + 1)) {
             if (st.kept()) st.done[index[i]] = 1;
@@ -244,7 +297,7 @@ void first_checkpoint(const TileContext& ctx, TileSums& st, Tile& tile) {
         for (std::uint32_t n = 0; n < ctx.first; ++n) {
           accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, settings, x, y, n), sample_key(settings, x, y, n),
                                     ctx.limits, border),
-                     p, true, border);
+                     n, ctx.span0, p, true, border);
         }
         pass = converged(settings, p, ctx.first);
       }
@@ -279,8 +332,9 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   const std::size_t pixels = std::size_t(rect.width) * rect.height;
   tile.rgb.assign(pixels * 3, 0.0f);
   const bool adaptive = settings.error_target > 0;
-  TileContext ctx{scene, settings, TraceLimits{Vec3f(settings.background), settings.max_depth, options.specialise},
-                  adaptive, options.want_variance};
+  const TraceLimits limits{Vec3f(settings.background), settings.max_depth, float(settings.branch_cutoff),
+                           options.specialise};
+  TileContext ctx{scene, settings, limits, adaptive, options.want_variance, first_span(settings)};
   ctx.first =
       adaptive && scene::is_checkpoint(settings, settings.min_samples) ? settings.min_samples : settings.samples;
   if (ctx.adaptive) tile.spp.assign(pixels, 0);

@@ -195,6 +195,11 @@ struct RenderSettings {
   // standard error is below error_target; otherwise it takes all `samples`. [0, kMaxErrorTarget]
   double error_target = 0.0;
   std::uint32_t min_samples = 16;  // [1, kMaxSamples]; the first checkpoint
+  // A reflected, refracted or see-through branch whose weight on the pixel (product of the
+  // reflectances and transmittances on its path) is below this is not traced: it loses at most
+  // this fraction of the radiance along it. 1/255 is one step of an 8-bit output for radiance <= 1.
+  // [kMinBranchCutoff, kMaxBranchCutoff]
+  double branch_cutoff = 1e-6;
   // Animation: frame n shows the scene at time n / fps seconds (and `frame` also seeds the noise,
   // math/rng.h). `frames` is the range a sequence renders when no flag names one; unset, a render
   // is the single frame `frame`. (0, kMaxFps]; frames.count() <= kMaxFrames.
@@ -212,6 +217,8 @@ inline constexpr std::uint32_t kMaxImageSide = image::kMaxImageSide;
 inline constexpr std::uint32_t kMaxSamples = 65536;
 inline constexpr std::uint32_t kMaxDepth = 64;
 inline constexpr double kMaxErrorTarget = 1.0;
+inline constexpr double kMinBranchCutoff = 1e-9;
+inline constexpr double kMaxBranchCutoff = 0.5;
 inline constexpr std::uint64_t kMaxSeed = (1ull << 53) - 1;  // seeds survive a trip through a JS double
 inline constexpr double kMaxFps = 1000;
 inline constexpr std::uint32_t kMaxFrames = 100'000;  // frames in one range

@@ -14,6 +14,7 @@ RenderSettings apply(const Overrides& o, RenderSettings s) {
   if (o.background) s.background = *o.background;
   if (o.error_target) s.error_target = *o.error_target;
   if (o.min_samples) s.min_samples = *o.min_samples;
+  if (o.branch_cutoff) s.branch_cutoff = *o.branch_cutoff;
   if (o.frames) s.frames = *o.frames;
   if (o.fps) s.fps = *o.fps;
   if (o.exposure) s.display.exposure = *o.exposure;

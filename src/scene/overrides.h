@@ -36,6 +36,7 @@ struct Overrides {
   std::optional<Color> background;             // each channel finite, >= 0, within the float range
   std::optional<double> error_target;          // [0, kMaxErrorTarget]; 0 turns adaptive sampling off
   std::optional<std::uint32_t> min_samples;    // [1, kMaxSamples]
+  std::optional<double> branch_cutoff;         // [kMinBranchCutoff, kMaxBranchCutoff]
   // Animation: the range of a sequence (count() <= kMaxFrames) and the frame rate, (0, kMaxFps].
   std::optional<FrameRange> frames;
   std::optional<double> fps;

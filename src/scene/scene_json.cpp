@@ -91,6 +91,7 @@ void read_render_settings(jsonio::Fields& f, Settings& s, Need need) {
   f.integer("frame", s.frame, 0, std::numeric_limits<std::uint32_t>::max(), need);
   f.number("error_target", s.error_target, 0, kMaxErrorTarget, Need::kOptional);
   f.integer("min_samples", s.min_samples, 1, kMaxSamples, Need::kOptional);
+  f.number("branch_cutoff", s.branch_cutoff, kMinBranchCutoff, kMaxBranchCutoff, Need::kOptional);
   f.read("fps", s.fps, Need::kOptional, [&r](const json::value& v, const Path& at) -> std::optional<double> {
     const auto d = r.number(v, at);
     if (d && !(*d > 0 && *d <= kMaxFps)) {
@@ -161,6 +162,7 @@ json::object render_settings_object(const RenderSettings& s, const json::storage
   if (s.frames) o["frames"] = frame_range_value(*s.frames, sp);
   if (s.display.exposure != defaults.display.exposure) o["exposure"] = jsonio::exact_number(s.display.exposure, sp);
   if (s.display.tone != defaults.display.tone) o["tone"] = image::to_string(s.display.tone);
+  if (s.branch_cutoff != defaults.branch_cutoff) o["branch_cutoff"] = jsonio::exact_number(s.branch_cutoff, sp);
   return o;
 }
 

@@ -30,14 +30,15 @@ std::optional<Vec3d> read_vec3(jsonio::Reader& r, const boost::json::value& v, c
 std::optional<Color> read_color(jsonio::Reader& r, const boost::json::value& v, const jsonio::Path& at);
 
 // The keys of a render block, in canonical order.
-inline constexpr std::array<std::string_view, 13> kRenderKeys = {
+inline constexpr std::array<std::string_view, 14> kRenderKeys = {
     "width",        "height",      "samples", "max_depth", "background", "seed", "frame",
-    "error_target", "min_samples", "fps",     "frames",    "exposure",   "tone"};
+    "error_target", "min_samples", "fps",     "frames",    "exposure",   "tone", "branch_cutoff"};
 
 // Reads the keys of kRenderKeys that `f` holds into `s` (keys are checked by the caller), with the
 // limits of description.h: width, height, samples, max_depth, background, seed and frame as
-// `need` says; error_target, min_samples, fps, frames, exposure and tone always optional, so that
-// settings stored before adaptive sampling, animation and tone curves existed still read.
+// `need` says; error_target, min_samples, fps, frames, exposure, tone and branch_cutoff always
+// optional, so that settings stored before adaptive sampling, animation, tone curves and the
+// cut-off existed still read.
 // "frames" is {"first": F, "last": L, "step": S} (step optional, 1), first <= last, at most
 // kMaxFrames frames; "tone" one of image::kToneCurveNames; "exposure" in stops. `Settings` is RenderSettings, or
 // Overrides (overrides.h), whose fields are set only for the keys present.
@@ -45,9 +46,9 @@ template <typename Settings>
 void read_render_settings(jsonio::Fields& f, Settings& s, jsonio::Need need);
 
 // The canonical render block: every key of kRenderKeys but error_target and min_samples, which
-// are written only when adaptive sampling is on, and fps, frames, exposure and tone, written only
-// when they differ from their defaults (so that scenes and stored jobs without them keep the text,
-// and the digests, they always had).
+// are written only when adaptive sampling is on, and fps, frames, exposure, tone and
+// branch_cutoff, written only when they differ from their defaults (so that scenes and stored jobs
+// without them keep the text, and the digests, they always had).
 boost::json::object render_settings_object(const RenderSettings& s, const boost::json::storage_ptr& sp = {});
 // {"first", "last", "step"}: how a render block (and a job submission) writes a frame range.
 boost::json::value frame_range_value(const FrameRange& range, const boost::json::storage_ptr& sp = {});
