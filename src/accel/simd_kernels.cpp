@@ -384,46 +384,109 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  Single single[kP];   // the same rays as single rays (fallback, zero edge functions)
   bool uniform_signs;  // every lane has the direction signs sign[0..2]
   std::uint32_t sign[3];
+  // The same rays as single rays (the fallback below kSwitch lanes, zero edge functions, boxes),
+  // made on first use: most packets never need them.
+  const math::Ray* rays;
+  bool shear;  // precompute's `shear` argument
+  int src[kP];
+  mutable std::uint32_t ready;  // lanes of `single` made
+  mutable Single single[kP];
+
+  const Single& lane(int i) const {
+    if (!(ready >> i & 1u)) {
+      const math::Ray& ray = rays[src[i]];
+      single[i] = make_single(precompute(ray, shear), ray.t_min);
+      ready |= 1u << i;
+    }
+    return single[i];
+  }
 };
 
+// The packet's per-lane constants, computed a vector of lanes at a time with the very operations
+// precompute() and set_shear() do per ray (1 / d, the sign bits, the shear axes chosen by the
+// same comparisons, d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz]), so every lane has the bits of the
+// single-ray constants.
 inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
+  alignas(64) float dir[3][kP];
   for (int i = 0; i < kP; ++i) {
     // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
     // results are masked off.
     const int src = (live >> i & 1u) ? i : std::countr_zero(live);
     const math::Ray& ray = rays[src];
-    Single& s = p.single[i];
-    s = make_single(precompute(ray, bvh.has_triangles), ray.t_min);
+    p.src[i] = src;
     for (int a = 0; a < 3; ++a) {
-      p.o[a][i] = s.r.o[a];
-      p.inv[a][i] = s.r.inv_d[a];
-      p.negf[a][i] = s.r.neg[a] ? 1.0f : 0.0f;
-      p.od[a][i] = double(s.r.o[a]);
-      p.dd[a][i] = double(s.r.d[a]);
+      p.o[a][i] = ray.o[a];
+      dir[a][i] = ray.d[a];
     }
-    p.a[i] = s.a;
     p.t_min[i] = ray.t_min;
-    p.kx0[i] = s.r.kx == 0 ? 1.0f : 0.0f;
-    p.kx1[i] = s.r.kx == 1 ? 1.0f : 0.0f;
-    p.ky0[i] = s.r.ky == 0 ? 1.0f : 0.0f;
-    p.ky1[i] = s.r.ky == 1 ? 1.0f : 0.0f;
-    p.kz0[i] = s.r.kz == 0 ? 1.0f : 0.0f;
-    p.kz1[i] = s.r.kz == 1 ? 1.0f : 0.0f;
-    p.sx[i] = s.r.sx;
-    p.sy[i] = s.r.sy;
-    p.sz[i] = s.r.sz;
-    if (any_hit) {
-      p.best[i] = ray.t_max;
-      p.cull[i] = ray.t_max * kFarScale;
+    if (any_hit) p.best[i] = ray.t_max;
+  }
+  p.rays = rays;
+  p.shear = bvh.has_triangles;
+  p.ready = 0;
+
+  const hn::CappedTag<float, kP> d;
+  const hn::RebindToSigned<decltype(d)> di;
+  const std::size_t n = hn::Lanes(d);
+  const auto one = hn::Set(d, 1.0f), zero = hn::Zero(d);
+  std::uint32_t neg_bits[3] = {0, 0, 0};
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    hn::Vec<decltype(d)> dv[3];
+    for (int a = 0; a < 3; ++a) {
+      dv[a] = hn::LoadU(d, dir[a] + i);
+      hn::StoreU(hn::Div(one, dv[a]), d, p.inv[a] + i);
+      const auto neg = hn::RebindMask(d, hn::Lt(hn::BitCast(di, dv[a]), hn::Zero(di)));
+      hn::StoreU(hn::IfThenElseZero(neg, one), d, p.negf[a] + i);
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, neg, mb);
+      neg_bits[a] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
     }
+    if (any_hit) hn::StoreU(hn::Mul(hn::LoadU(d, p.best + i), hn::Set(d, kFarScale)), d, p.cull + i);
+    // set_shear: kz = ax > ay ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2); kx, ky the next two axes,
+    // swapped when d[kz] < 0.
+    const auto ax = hn::Abs(dv[0]), ay = hn::Abs(dv[1]), az = hn::Abs(dv[2]);
+    const auto x_gt_y = hn::Gt(ax, ay);
+    const auto kz0 = hn::And(x_gt_y, hn::Gt(ax, az));
+    const auto kz1 = hn::AndNot(x_gt_y, hn::Gt(ay, az));
+    const auto kz2 = hn::Not(hn::Or(kz0, kz1));
+    const auto dkz = hn::IfThenElse(kz0, dv[0], hn::IfThenElse(kz1, dv[1], dv[2]));
+    const auto flip = hn::Lt(dkz, zero);
+    // Unswapped: kz 0 -> (kx, ky) = (1, 2); kz 1 -> (2, 0); kz 2 -> (0, 1).
+    const auto kx0 = hn::Or(hn::AndNot(flip, kz2), hn::And(flip, kz1));
+    const auto kx1 = hn::Or(hn::AndNot(flip, kz0), hn::And(flip, kz2));
+    const auto ky0 = hn::Or(hn::AndNot(flip, kz1), hn::And(flip, kz2));
+    const auto ky1 = hn::Or(hn::AndNot(flip, kz2), hn::And(flip, kz0));
+    const auto dkx = hn::IfThenElse(kx0, dv[0], hn::IfThenElse(kx1, dv[1], dv[2]));
+    const auto dky = hn::IfThenElse(ky0, dv[0], hn::IfThenElse(ky1, dv[1], dv[2]));
+    hn::StoreU(hn::Div(dkx, dkz), d, p.sx + i);
+    hn::StoreU(hn::Div(dky, dkz), d, p.sy + i);
+    hn::StoreU(hn::Div(one, dkz), d, p.sz + i);
+    hn::StoreU(hn::IfThenElseZero(kx0, one), d, p.kx0 + i);
+    hn::StoreU(hn::IfThenElseZero(kx1, one), d, p.kx1 + i);
+    hn::StoreU(hn::IfThenElseZero(ky0, one), d, p.ky0 + i);
+    hn::StoreU(hn::IfThenElseZero(ky1, one), d, p.ky1 + i);
+    hn::StoreU(hn::IfThenElseZero(kz0, one), d, p.kz0 + i);
+    hn::StoreU(hn::IfThenElseZero(kz1, one), d, p.kz1 + i);
+  }
+  // The sphere test's double copies and a = |d|^2, as make_single computes it.
+  const hn::CappedTag<double, kP> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const std::size_t nd = hn::Lanes(dd);
+  for (std::size_t i = 0; i < std::size_t(kP); i += nd) {
+    hn::Vec<decltype(dd)> dv[3];
+    for (int a = 0; a < 3; ++a) {
+      dv[a] = hn::PromoteTo(dd, hn::LoadU(df, dir[a] + i));
+      hn::StoreU(dv[a], dd, p.dd[a] + i);
+      hn::StoreU(hn::PromoteTo(dd, hn::LoadU(df, p.o[a] + i)), dd, p.od[a] + i);
+    }
+    hn::StoreU(hn::Add(hn::Add(hn::Mul(dv[0], dv[0]), hn::Mul(dv[1], dv[1])), hn::Mul(dv[2], dv[2])), dd, p.a + i);
   }
   p.uniform_signs = true;
   for (int a = 0; a < 3; ++a) {
-    p.sign[a] = p.single[0].r.neg[a];
-    for (int i = 1; i < kP; ++i) p.uniform_signs = p.uniform_signs && p.single[i].r.neg[a] == p.sign[a];
+    p.sign[a] = neg_bits[a] & 1u;
+    p.uniform_signs = p.uniform_signs && (neg_bits[a] == 0 || neg_bits[a] == (1u << kP) - 1u);
   }
 }
 
@@ -558,7 +621,7 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
     const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2],
                                           rel[2][2], sz, hn::LoadU(d, p.t_min + i), t + i);
     redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2]}, t + i,
-                    [&p, i](std::size_t k) -> const Single& { return p.single[i + k]; });
+                    [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); });
   }
 }
 
@@ -597,7 +660,8 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
     while (m != 0) {
       const int i = std::countr_zero(m);
       m &= m - 1;
-      t[i] = box_t(bp.b, p.single[i].r, p.single[i].t_min);
+      const Single& s = p.lane(i);
+      t[i] = box_t(bp.b, s.r, s.t_min);
     }
     const std::uint32_t hit = apply8<kAnyHit>(p, t, bp.id, mask);
     out |= hit;
@@ -627,7 +691,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       while (m != 0) {
         const int i = std::countr_zero(m);
         m &= m - 1;
-        if (traverse1<kAnyHit>(bvh, p.single[i], cur, p.best[i], p.id[i])) {
+        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i])) {
           result |= 1u << i;
           if (kAnyHit) {
             alive &= ~(1u << i);
