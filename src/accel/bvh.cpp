@@ -437,13 +437,21 @@ const detail::Kernels& Geometry::wide_kernels() const { return detail::kernels_f
 namespace {
 bool ray_ok(const Ray& ray) { return ray.t_min < ray.t_max && math::is_finite(ray.o) && math::is_finite(ray.d); }
 
-// Whether the shapes outside_hit tests for a packet are planes only, which need no division of
-// the ray's constants (precompute_od); any other outside shape does. With the flat layout, they are.
-bool planes_only(const std::vector<Shape>& shapes, const std::vector<std::uint32_t>& outside,
-                 const detail::WideBvh& wide) {
-  return detail::is_flat(wide) || std::all_of(outside.begin(), outside.end(), [&shapes](std::uint32_t id) {
-           return shapes[id].type == ShapeType::kPlane;
-         });
+// What outside_hit tests for a packet's lanes: kNone, kPlanes (which need no division of the
+// ray's constants: precompute_od) or kAny. With the flat layout only the planes are outside it.
+enum class Outside { kNone, kPlanes, kAny };
+Outside outside_kind(const std::vector<Shape>& shapes, const std::vector<std::uint32_t>& outside,
+                     const detail::WideBvh& wide) {
+  const bool flat = detail::is_flat(wide);
+  Outside kind = Outside::kNone;
+  for (const std::uint32_t id : outside) {
+    if (shapes[id].type != ShapeType::kPlane) {
+      if (!flat) return Outside::kAny;
+    } else {
+      kind = Outside::kPlanes;
+    }
+  }
+  return kind;
 }
 }  // namespace
 
@@ -463,13 +471,14 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
   float best_t[kPacketSize];
   std::uint32_t best_id[kPacketSize];
   std::uint32_t found = 0;
-  const bool only_planes = planes_only(shapes_, outside_, wide_);
+  const Outside outside = outside_kind(shapes_, outside_, wide_);
   for (int i = 0; i < kPacketSize; ++i) {
     best_t[i] = rays[i].t_max;
     best_id[i] = 0;
-    if ((live >> i & 1u) && !outside_.empty() &&
-        outside_hit(only_planes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
-                    rays[i].t_min, best_t[i], best_id[i])) {
+    if ((live >> i & 1u) && outside != Outside::kNone &&
+        outside_hit(
+            outside == Outside::kPlanes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
+            rays[i].t_min, best_t[i], best_id[i])) {
       found |= 1u << i;
     }
   }
@@ -497,13 +506,14 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
     return blocked;
   }
   std::uint32_t blocked = 0;
-  const bool only_planes = planes_only(shapes_, outside_, wide_);
+  const Outside outside = outside_kind(shapes_, outside_, wide_);
   for (int i = 0; i < kPacketSize; ++i) {
     float t = rays[i].t_max;
     std::uint32_t id = 0;
-    if ((live >> i & 1u) && !outside_.empty() &&
-        outside_hit(only_planes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
-                    rays[i].t_min, t, id)) {
+    if ((live >> i & 1u) && outside != Outside::kNone &&
+        outside_hit(
+            outside == Outside::kPlanes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
+            rays[i].t_min, t, id)) {
       blocked |= 1u << i;
     }
   }

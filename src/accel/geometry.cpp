@@ -169,8 +169,6 @@ WideBvh flat_wide(const std::vector<Shape>& shapes, const std::vector<std::vecto
   return w;
 }
 
-bool is_flat(const WideBvh& w) { return w.nodes.size() == 1 && w.leaves.size() > 0 && w.leaves.size() <= 2; }
-
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit) {
   hit.t = t;
   hit.shape = id;

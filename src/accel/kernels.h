@@ -312,7 +312,7 @@ WideBvh flat_wide(const std::vector<Shape>& shapes, const std::vector<std::vecto
 
 // Whether `w` is a flat_wide layout (one node over one or two leaves; a collapsed tree of 64 or
 // more shapes never is).
-bool is_flat(const WideBvh& w);
+inline bool is_flat(const WideBvh& w) { return w.nodes.size() == 1 && !w.leaves.empty() && w.leaves.size() <= 2; }
 
 // cross(v1 - v0, v2 - v0) in double (exact inputs, one rounding per product and difference).
 math::Vec3d triangle_normal_d(const TriangleShape& t);

@@ -386,6 +386,8 @@ struct alignas(64) Packet {
   float sx[kP], sy[kP], sz[kP];
   bool uniform_signs;  // every lane has the direction signs sign[0..2]
   std::uint32_t sign[3];
+  bool uniform_axes;  // every lane has the shear axes axis[0..2] (kx, ky, kz)
+  std::uint32_t axis[3];
   // The same rays as single rays (the fallback below kSwitch lanes, zero edge functions, boxes),
   // made on first use: most packets never need them.
   const math::Ray* rays;
@@ -432,6 +434,7 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
   const std::size_t n = hn::Lanes(d);
   const auto one = hn::Set(d, 1.0f), zero = hn::Zero(d);
   std::uint32_t neg_bits[3] = {0, 0, 0};
+  std::uint32_t axis_bits[6] = {0, 0, 0, 0, 0, 0};  // kx0, kx1, ky0, ky1, kz0, kz1
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     hn::Vec<decltype(d)> dv[3];
     for (int a = 0; a < 3; ++a) {
@@ -469,6 +472,12 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
     hn::StoreU(hn::IfThenElseZero(ky1, one), d, p.ky1 + i);
     hn::StoreU(hn::IfThenElseZero(kz0, one), d, p.kz0 + i);
     hn::StoreU(hn::IfThenElseZero(kz1, one), d, p.kz1 + i);
+    const hn::Mask<decltype(d)> axis_masks[6] = {kx0, kx1, ky0, ky1, kz0, kz1};
+    for (int k = 0; k < 6; ++k) {
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, axis_masks[k], mb);
+      axis_bits[k] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    }
   }
   // The sphere test's double copies and a = |d|^2, as make_single computes it.
   const hn::CappedTag<double, kP> dd;
@@ -483,10 +492,17 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
     }
     hn::StoreU(hn::Add(hn::Add(hn::Mul(dv[0], dv[0]), hn::Mul(dv[1], dv[1])), hn::Mul(dv[2], dv[2])), dd, p.a + i);
   }
+  constexpr std::uint32_t kAll = (1u << kP) - 1u;
   p.uniform_signs = true;
   for (int a = 0; a < 3; ++a) {
     p.sign[a] = neg_bits[a] & 1u;
-    p.uniform_signs = p.uniform_signs && (neg_bits[a] == 0 || neg_bits[a] == (1u << kP) - 1u);
+    p.uniform_signs = p.uniform_signs && (neg_bits[a] == 0 || neg_bits[a] == kAll);
+  }
+  p.uniform_axes = true;
+  for (int k = 0; k < 3; ++k) {
+    const std::uint32_t is0 = axis_bits[2 * k], is1 = axis_bits[2 * k + 1];
+    p.uniform_axes = p.uniform_axes && (is0 == 0 || is0 == kAll) && (is1 == 0 || is1 == kAll);
+    p.axis[k] = (is0 & 1u) ? 0u : (is1 & 1u) ? 1u : 2u;
   }
 }
 
@@ -556,13 +572,28 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
 // that improved (nearest) or that are now blocked (any-hit).
 template <bool kAnyHit>
 inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::uint32_t mask) {
+  // Which lanes have t < best or t == best (a NaN t, a miss, is neither), a vector at a time;
+  // most candidates miss every lane, and then nothing else is done.
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t lt = 0, eq = 0;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto tv = hn::LoadU(d, t + i), best = hn::LoadU(d, p.best + i);
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, hn::Lt(tv, best), mb);
+    lt |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    if (!kAnyHit) {
+      hn::StoreMaskBits(d, hn::Eq(tv, best), mb);
+      eq |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    }
+  }
+  if (kAnyHit) return lt & mask;
   std::uint32_t out = 0;
-  while (mask != 0) {
-    const int i = std::countr_zero(mask);
-    mask &= mask - 1;
-    if (kAnyHit) {
-      if (t[i] < p.best[i]) out |= 1u << i;
-    } else if (better(t[i], id, p.best[i], p.id[i])) {
+  std::uint32_t m = (lt | eq) & mask;
+  while (m != 0) {
+    const int i = std::countr_zero(m);
+    m &= m - 1;
+    if (better(t[i], id, p.best[i], p.id[i])) {
       p.best[i] = t[i];
       p.id[i] = id;
       p.cull[i] = t[i] * kFarScale;
@@ -596,6 +627,28 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  if (p.uniform_axes) {
+    // Every lane shears along the same axes (nearly every camera and shadow packet): the
+    // vertices' coordinates are picked once, not lane by lane.
+    const std::uint32_t kx = p.axis[0], ky = p.axis[1], kz = p.axis[2];
+    for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+      const auto ox = hn::LoadU(d, p.o[kx] + i), oy = hn::LoadU(d, p.o[ky] + i), oz = hn::LoadU(d, p.o[kz] + i);
+      const auto sx = hn::LoadU(d, p.sx + i), sy = hn::LoadU(d, p.sy + i), sz = hn::LoadU(d, p.sz + i);
+      const auto az = hn::Sub(hn::Set(d, v[0][kz]), oz), bz = hn::Sub(hn::Set(d, v[1][kz]), oz),
+                 cz = hn::Sub(hn::Set(d, v[2][kz]), oz);
+      const auto sax = hn::Sub(hn::Sub(hn::Set(d, v[0][kx]), ox), hn::Mul(sx, az));
+      const auto say = hn::Sub(hn::Sub(hn::Set(d, v[0][ky]), oy), hn::Mul(sy, az));
+      const auto sbx = hn::Sub(hn::Sub(hn::Set(d, v[1][kx]), ox), hn::Mul(sx, bz));
+      const auto sby = hn::Sub(hn::Sub(hn::Set(d, v[1][ky]), oy), hn::Mul(sy, bz));
+      const auto scx = hn::Sub(hn::Sub(hn::Set(d, v[2][kx]), ox), hn::Mul(sx, cz));
+      const auto scy = hn::Sub(hn::Sub(hn::Set(d, v[2][ky]), oy), hn::Mul(sy, cz));
+      const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz,
+                                            hn::LoadU(d, p.t_min + i), t + i);
+      redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
+                      [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); });
+    }
+    return;
+  }
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     const auto kx0 = hn::Gt(hn::LoadU(d, p.kx0 + i), zero), kx1 = hn::Gt(hn::LoadU(d, p.kx1 + i), zero);
     const auto ky0 = hn::Gt(hn::LoadU(d, p.ky0 + i), zero), ky1 = hn::Gt(hn::LoadU(d, p.ky1 + i), zero);
@@ -630,7 +683,7 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
 template <bool kAnyHit>
 inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, std::uint32_t mask) {
   std::uint32_t out = 0;
-  alignas(64) float t[kP];
+  alignas(64) float t[kP] = {};  // lanes a box test skips stay harmless
   for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
     const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
     for (int j = 0; j < kWidth && mask != 0; ++j) {
