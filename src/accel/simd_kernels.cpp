@@ -16,7 +16,10 @@
 // and a leaf's 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 rays in SoA arrays and test
 // one box, sphere or triangle against all 8 (one AVX2/AVX-512 vector, two SSE4 vectors), with a
 // per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
-// active at a node, those lanes finish that subtree as single rays.
+// active at a node, those lanes finish that subtree as single rays. A packet's per-lane constants
+// are computed a vector at a time (make_packet); its lanes as single rays only when a fallback
+// needs them. Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two
+// leaves), which these same loops walk.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -678,12 +681,38 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
   }
 }
 
+// One box shape b = [lo, hi] against the 8 rays, exactly as box_t: the slab distances, the near
+// and far planes picked by each lane's direction sign, Max / Min in the order and with the NaN
+// rule of slab_span's comparisons (maxps / minps return their second operand when one is NaN, so
+// a NaN slab never constrains), then box_t's choice between the near and the far distance.
+inline void box8(const Packet& p, const float* b, float* t) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    auto t_near = hn::Set(d, -kInfF), t_far = inf;
+    for (int a = 0; a < 3; ++a) {
+      const auto o = hn::LoadU(d, p.o[a] + i), inv = hn::LoadU(d, p.inv[a] + i);
+      const auto tlo = hn::Mul(hn::Sub(hn::Set(d, b[a]), o), inv);
+      const auto thi = hn::Mul(hn::Sub(hn::Set(d, b[3 + a]), o), inv);
+      const auto neg = hn::Gt(hn::LoadU(d, p.negf[a] + i), zero);
+      t_near = hn::Max(hn::IfThenElse(neg, thi, tlo), t_near);
+      t_far = hn::Min(hn::IfThenElse(neg, tlo, thi), t_far);
+    }
+    const auto tmin = hn::LoadU(d, p.t_min + i);
+    const auto crosses = hn::Le(t_near, hn::Mul(t_far, hn::Set(d, kFarScale)));
+    const auto use_far = hn::And(hn::Gt(t_far, tmin), hn::Lt(t_far, inf));
+    const auto tv = hn::IfThenElse(hn::Gt(t_near, tmin), t_near, hn::IfThenElse(use_far, t_far, nan));
+    hn::StoreU(hn::IfThenElse(crosses, tv, nan), d, t + i);
+  }
+}
+
 // Tests a leaf against the lanes in `mask`. Returns the lanes that improved (nearest) or that are
 // blocked (any-hit).
 template <bool kAnyHit>
 inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, std::uint32_t mask) {
   std::uint32_t out = 0;
-  alignas(64) float t[kP] = {};  // lanes a box test skips stay harmless
+  alignas(64) float t[kP];
   for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
     const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
     for (int j = 0; j < kWidth && mask != 0; ++j) {
@@ -709,13 +738,7 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
   }
   for (std::uint32_t k = 0; k < leaf.box_count && mask != 0; ++k) {
     const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
-    std::uint32_t m = mask;
-    while (m != 0) {
-      const int i = std::countr_zero(m);
-      m &= m - 1;
-      const Single& s = p.lane(i);
-      t[i] = box_t(bp.b, s.r, s.t_min);
-    }
+    box8(p, bp.b, t);
     const std::uint32_t hit = apply8<kAnyHit>(p, t, bp.id, mask);
     out |= hit;
     if (kAnyHit) mask &= ~hit;
