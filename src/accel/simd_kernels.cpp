@@ -509,24 +509,21 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
   }
 }
 
-// Which of the 8 lanes enter each child box of the node (bits[c]), and the smallest entry
-// distance among them (min_near[c], for children whose bits meet `mask`). The packet's origins,
-// inverse directions and direction signs are loaded once per node, not once per child; when
-// every lane has the same direction signs (camera and shadow packets nearly always do), the near
-// and far planes are picked per axis like a single ray's instead of lane by lane.
+// Which of the 8 lanes in `mask` enter each child box of the node (bits[c]) and each such lane's
+// entry distance (dist[c][lane]; +inf for the other lanes). No branch depends on the outcome of a
+// child's test. The packet's origins, inverse directions and direction signs are loaded once per
+// node, not once per child; when every lane has the same direction signs (camera and shadow
+// packets nearly always do), the near and far planes are picked per axis like a single ray's
+// instead of lane by lane.
 inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask, std::uint32_t* bits,
-                       float* min_near) {
+                       float (*dist)[kP]) {
   const hn::CappedTag<float, kP> d;
   using V = hn::Vec<decltype(d)>;
   const std::size_t n = hn::Lanes(d);
   const auto inf = hn::Set(d, kInfF);
   const auto scale = hn::Set(d, kFarScale);
   const auto zero = hn::Zero(d);
-  V near_min[kNodeWidth];
-  for (int c = 0; c < kNodeWidth; ++c) {
-    bits[c] = 0;
-    near_min[c] = inf;
-  }
+  for (int c = 0; c < kNodeWidth; ++c) bits[c] = 0;
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     V o[3], inv[3];
     for (int a = 0; a < 3; ++a) {
@@ -534,8 +531,9 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       inv[a] = hn::LoadU(d, p.inv[a] + i);
     }
     const auto tmin = hn::LoadU(d, p.t_min + i);
+    const std::uint8_t mask_byte = std::uint8_t(mask >> i);
+    const auto active = hn::LoadMaskBits(d, &mask_byte);
     const auto cull = hn::LoadU(d, p.cull + i);
-    const std::uint32_t lane_mask = ((1u << n) - 1u) << i;
     for (int c = 0; c < kNodeWidth; ++c) {
       if (node.child[c] == kEmptyChild) break;  // empty slots come last
       auto t0 = tmin;
@@ -556,18 +554,12 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
           tf = hn::Min(hn::IfThenElse(neg, tlo, thi), tf);
         }
       }
-      const auto m = hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull));
+      const auto m = hn::And(active, hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull)));
+      hn::StoreU(hn::IfThenElse(m, t0, inf), d, dist[c] + i);
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, m, mb);
-      const std::uint32_t b = (std::uint32_t(mb[0]) << i) & lane_mask & mask;
-      if (b != 0) {
-        bits[c] |= b;
-        near_min[c] = hn::Min(near_min[c], hn::IfThenElse(m, t0, inf));
-      }
+      bits[c] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
     }
-  }
-  for (int c = 0; c < kNodeWidth; ++c) {
-    if (bits[c] != 0) min_near[c] = hn::GetLane(hn::MinOfLanes(d, near_min[c]));
   }
 }
 
@@ -749,12 +741,30 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
 struct Entry8 {
   std::uint32_t ref;
   std::uint32_t mask;
-  float t_near;  // smallest entry distance over the entry's lanes
+  float key;  // ordering key: the entry distance of the entry's first lane
+  int child;  // slot in the node (while ordering)
 };
 
+// Bits of the lanes i with a[i] <= b[i].
+inline std::uint32_t lanes_le(const float* a, const float* b) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t bits = 0;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, hn::Le(hn::LoadU(d, a + i), hn::LoadU(d, b + i)), mb);
+    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+  }
+  return bits;
+}
+
+// Packet traversal. A stack entry keeps each of its lanes' entry distance (nearest hits only), so
+// a pop drops exactly the lanes whose nearest hit found since is closer than their own entry
+// into the box: what testing the box again against the tightened interval would drop.
 template <bool kAnyHit>
 std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
   Entry8 stack[kStackSize];
+  alignas(64) float stack_dist[kAnyHit ? 1 : kStackSize][kP];
   int sp = 0;
   std::uint32_t cur = 0;
   std::uint32_t mask = live;
@@ -785,41 +795,37 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       Entry8 hit[kNodeWidth];
       int n = 0;
       std::uint32_t bits[kNodeWidth];
-      float near[kNodeWidth];
-      node_test8(node, p, mask, bits, near);
+      alignas(64) float dist[kNodeWidth][kP];
+      node_test8(node, p, mask, bits, dist);
       for (int c = 0; c < kNodeWidth; ++c) {
         if (bits[c] == 0) continue;
-        Entry8 e{node.child[c], bits[c], near[c]};
+        Entry8 e{node.child[c], bits[c], dist[c][std::countr_zero(bits[c])], c};
         int j = n++;
-        while (j > 0 && hit[j - 1].t_near < e.t_near) {
+        while (j > 0 && hit[j - 1].key < e.key) {
           hit[j] = hit[j - 1];
           --j;
         }
         hit[j] = e;
       }
       if (n > 0) {
-        for (int i = 0; i < n - 1; ++i) stack[sp++] = hit[i];
+        for (int i = 0; i < n - 1; ++i) {
+          if (!kAnyHit) std::copy_n(dist[hit[i].child], kP, stack_dist[sp]);
+          stack[sp++] = hit[i];
+        }
         cur = hit[n - 1].ref;
         mask = hit[n - 1].mask;
         continue;
       }
     }
     if (kAnyHit && alive == 0) return result;
-    // Pop; drop lanes whose nearest hit since is closer than the entry's nearest box entry.
+    // Pop; nearest hits drop the lanes whose hit since is closer than their entry into the box.
     while (true) {
       if (sp == 0) return result;
-      const Entry8 e = stack[--sp];
-      std::uint32_t m = e.mask & alive;
-      if (!kAnyHit) {
-        std::uint32_t k = m;
-        while (k != 0) {
-          const int i = std::countr_zero(k);
-          k &= k - 1;
-          if (p.cull[i] < e.t_near) m &= ~(1u << i);
-        }
-      }
+      --sp;
+      std::uint32_t m = stack[sp].mask & alive;
+      if (!kAnyHit) m &= lanes_le(stack_dist[sp], p.cull);
       if (m != 0) {
-        cur = e.ref;
+        cur = stack[sp].ref;
         mask = m;
         break;
       }
