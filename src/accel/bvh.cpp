@@ -483,12 +483,30 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
     }
   }
   found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
+  // Sphere hits are finished together (their square roots and divisions overlap), the rest one
+  // by one.
+  const Shape* sph_shape[kPacketSize];
+  std::uint32_t sph_id[kPacketSize];
+  const Ray* sph_ray[kPacketSize];
+  float sph_t[kPacketSize];
+  Hit* sph_hit[kPacketSize];
+  int spheres = 0;
   for (int i = 0; i < kPacketSize; ++i) {
     if (found >> i & 1u) {
       const Shape& s = shapes_[best_id[i]];
-      detail::finish_hit(s, best_id[i], rays[i], detail::precompute_for(rays[i], s.type), best_t[i], hits[i]);
+      if (s.type == ShapeType::kSphere) {
+        sph_shape[spheres] = &s;
+        sph_id[spheres] = best_id[i];
+        sph_ray[spheres] = &rays[i];
+        sph_t[spheres] = best_t[i];
+        sph_hit[spheres] = &hits[i];
+        ++spheres;
+      } else {
+        detail::finish_hit(s, best_id[i], rays[i], detail::precompute_for(rays[i], s.type), best_t[i], hits[i]);
+      }
     }
   }
+  if (spheres > 0) detail::finish_sphere_hits(sph_shape, sph_id, sph_ray, sph_t, sph_hit, spheres);
   return found;
 }
 

@@ -282,6 +282,60 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
   }
 }
 
+void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, const Ray* const* rays, const float* ts,
+                        Hit* const* hits, int n) {
+  // finish_hit's sphere case, stage by stage over the lanes: the same operations in the same
+  // order (so the same bits), but the lanes' independent square roots and divisions overlap
+  // instead of each waiting for the previous lane's chain.
+  constexpr int kMax = kPacketSize;
+  double f[3][kMax], d[3][kMax], c[3][kMax], rad[kMax], disc[kMax], a[kMax], bq[kMax], cc[kMax], td[kMax];
+  n = std::min(n, kMax);
+  for (int k = 0; k < n; ++k) {
+    const SphereShape& s = shapes[k]->sphere;
+    for (int i = 0; i < 3; ++i) {
+      c[i][k] = double(s.center[i]);
+      f[i][k] = double(rays[k]->o[i]) - c[i][k];
+      d[i][k] = rays[k]->d[i];
+    }
+    rad[k] = s.radius;
+  }
+  for (int k = 0; k < n; ++k) {  // sphere_roots
+    const double fx = f[0][k], fy = f[1][k], fz = f[2][k], dx = d[0][k], dy = d[1][k], dz = d[2][k];
+    const double rr = rad[k] * rad[k];
+    const double cx = fy * dz - fz * dy;
+    const double cy = fz * dx - fx * dz;
+    const double cz = fx * dy - fy * dx;
+    a[k] = dx * dx + dy * dy + dz * dz;
+    disc[k] = a[k] * rr - (cx * cx + cy * cy + cz * cz);
+    bq[k] = fx * dx + fy * dy + fz * dz;
+    cc[k] = (fx * fx + fy * fy + fz * fz) - rr;
+  }
+  for (int k = 0; k < n; ++k) {  // sphere_t's choice of root
+    const double q = -(bq[k] + std::copysign(std::sqrt(disc[k]), bq[k]));
+    double t0 = cc[k] / q;
+    double t1 = q / a[k];
+    if (t0 > t1) std::swap(t0, t1);
+    const float t0f = float(t0);
+    td[k] = (t0f > rays[k]->t_min && t0f < kInf) ? t0 : t1;
+  }
+  for (int k = 0; k < n; ++k) {
+    Hit& hit = *hits[k];
+    hit.t = ts[k];
+    hit.shape = ids[k];
+    double pl[3];
+    for (int i = 0; i < 3; ++i) pl[i] = f[i][k] + td[k] * d[i][k];
+    const double len = std::sqrt(pl[0] * pl[0] + pl[1] * pl[1] + pl[2] * pl[2]);
+    const double scale = rad[k] / len;
+    for (int i = 0; i < 3; ++i) {
+      pl[i] *= scale;
+      hit.n[i] = float(pl[i] / rad[k]);
+      hit.p[i] = float(c[i][k] + pl[i]);
+      hit.p_error[i] =
+          float(kSphereDoubleError * (std::abs(pl[i]) + std::abs(c[i][k]))) + gamma(1) * std::abs(hit.p[i]);
+    }
+  }
+}
+
 }  // namespace detail
 
 bool intersect_shape(const Shape& shape, std::uint32_t id, const Ray& ray, Hit& hit) {

@@ -300,6 +300,11 @@ inline float triangle_t(const float* v, const RayPre& r, float t_min, TriangleUv
 // query, for the final nearest hit only. Defined in geometry.cpp.
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit);
 
+// finish_hit for up to kPacketSize sphere hits at once (shapes[k] is a sphere hit by *rays[k] at
+// ts[k] as the kernels found it), with the same bits; *hits[k] receives lane k's record.
+void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, const Ray* const* rays, const float* ts,
+                        Hit* const* hits, int n);
+
 bool shape_is_valid(const Shape& shape);
 
 // Tiny scenes (Geometry::build's small-scene layout): no tree at all. Each group of `groups` (at
