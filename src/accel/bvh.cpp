@@ -20,7 +20,7 @@ constexpr std::uint32_t kMaxLeafSize = 4;
 constexpr double kTraversalCost = 0.5;
 // Marginal cost of one more prim in a SIMD leaf block (SAH units; see the leaf cost in build).
 constexpr double kSimdLeafSlope = 0.3;
-// Bounded prims below which the SIMD layout is not built (see Geometry::build).
+// Bounded prims below which the SIMD kernels get no tree but one flat leaf (see Geometry::build).
 constexpr std::size_t kMinWidePrims = 64;
 // Shapes whose bounds have more than this fraction of the scene bounds' surface area are kept
 // out of the tree (at most kMaxOutside of them, besides the planes).
@@ -252,13 +252,26 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
   g.stats_.max_depth = max_depth;
   g.stats_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   g.isa_ = isa;
-  // A tree of a few dozen prims is two or three wide levels: there the SIMD kernels' fixed costs
-  // (a 4-lane double sphere test for a leaf's one or two spheres, the packet setup) exceed what
-  // they save, and the showcase scene rendered ~20% slower with them. Such scenes keep the
-  // scalar walk, which answers with the same bits.
-  if (isa != Isa::kScalar && g.prims_.size() >= kMinWidePrims) {
+  // A tree of a few dozen prims is two or three wide levels whose fixed costs exceed what they
+  // save (the showcase scene rendered ~20% slower with it than with the scalar walk). Such scenes
+  // get no tree at all for packets: every bounded shape in a flat leaf that the SIMD kernels test
+  // against 8 rays at once (detail::flat_wide), with the same bits as the scalar walk. Single
+  // rays are faster on the scalar walk there (measured: 19 vs 12 Mrays/s for secondary rays of
+  // 10 spheres), which answers with the same bits.
+  if (isa != Isa::kScalar && !g.prims_.empty()) {
     const auto wide_start = std::chrono::steady_clock::now();
-    g.wide_ = detail::collapse_to_wide(g);
+    if (g.prims_.size() >= kMinWidePrims) {
+      g.wide_ = detail::collapse_to_wide(g);
+    } else {
+      // Packets test the huge shapes in a second flat leaf (only planes stay beside it); single
+      // rays keep the scalar walk, with the huge shapes beside the binary tree.
+      std::vector<std::vector<std::uint32_t>> groups(2);
+      for (const Prim& p : g.prims_) groups[0].push_back(p.id);
+      for (const std::uint32_t id : g.outside_) {
+        if (g.shapes_[id].type != ShapeType::kPlane) groups[1].push_back(id);
+      }
+      g.wide_ = detail::flat_wide(g.shapes_, groups);
+    }
     g.stats_.wide_nodes = std::uint32_t(g.wide_.nodes.size());
     g.stats_.wide_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - wide_start).count();
   }
@@ -340,7 +353,7 @@ void walk(const Nodes& nodes, const Prims& prims, const detail::RayPre& r, float
 bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
   const detail::RayPre r = detail::precompute(ray, has_triangles_);
-  if (!wide_.empty()) {
+  if (!wide_.empty() && !detail::is_flat(wide_)) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
     const bool found = outside_hit(r, ray.t_min, best_t, best_id);
@@ -384,7 +397,7 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
 bool Geometry::occluded(const Ray& ray) const {
   if (!(ray.t_min < ray.t_max) || !math::is_finite(ray.o) || !math::is_finite(ray.d)) return false;
   const detail::RayPre r = detail::precompute(ray, has_triangles_);
-  if (!wide_.empty()) {
+  if (!wide_.empty() && !detail::is_flat(wide_)) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
     if (outside_hit(r, ray.t_min, best_t, best_id)) return true;
@@ -404,8 +417,11 @@ bool Geometry::occluded(const Ray& ray) const {
 }
 
 bool Geometry::outside_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const {
+  // With the flat layout the huge shapes are in it: only the planes are beside it.
+  const bool flat = detail::is_flat(wide_);
   bool found = false;
   for (const std::uint32_t id : outside_) {
+    if (flat && shapes_[id].type != ShapeType::kPlane) continue;
     const float t = outside_t(shapes_[id], r, t_min);
     if (t < best_t || (found && t == best_t && id < best_id)) {
       best_t = t;
@@ -420,6 +436,23 @@ const detail::Kernels& Geometry::wide_kernels() const { return detail::kernels_f
 
 namespace {
 bool ray_ok(const Ray& ray) { return ray.t_min < ray.t_max && math::is_finite(ray.o) && math::is_finite(ray.d); }
+
+// What outside_hit tests for a packet's lanes: kNone, kPlanes (which need no division of the
+// ray's constants: precompute_od) or kAny. With the flat layout only the planes are outside it.
+enum class Outside { kNone, kPlanes, kAny };
+Outside outside_kind(const std::vector<Shape>& shapes, const std::vector<std::uint32_t>& outside,
+                     const detail::WideBvh& wide) {
+  const bool flat = detail::is_flat(wide);
+  Outside kind = Outside::kNone;
+  for (const std::uint32_t id : outside) {
+    if (shapes[id].type != ShapeType::kPlane) {
+      if (!flat) return Outside::kAny;
+    } else {
+      kind = Outside::kPlanes;
+    }
+  }
+  return kind;
+}
 }  // namespace
 
 std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const {
@@ -438,20 +471,42 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
   float best_t[kPacketSize];
   std::uint32_t best_id[kPacketSize];
   std::uint32_t found = 0;
+  const Outside outside = outside_kind(shapes_, outside_, wide_);
   for (int i = 0; i < kPacketSize; ++i) {
     best_t[i] = rays[i].t_max;
     best_id[i] = 0;
-    if ((live >> i & 1u) && !outside_.empty() &&
-        outside_hit(detail::precompute(rays[i], has_triangles_), rays[i].t_min, best_t[i], best_id[i])) {
+    if ((live >> i & 1u) && outside != Outside::kNone &&
+        outside_hit(
+            outside == Outside::kPlanes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
+            rays[i].t_min, best_t[i], best_id[i])) {
       found |= 1u << i;
     }
   }
   found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
+  // Sphere hits are finished together (their square roots and divisions overlap), the rest one
+  // by one.
+  const Shape* sph_shape[kPacketSize];
+  std::uint32_t sph_id[kPacketSize];
+  const Ray* sph_ray[kPacketSize];
+  float sph_t[kPacketSize];
+  Hit* sph_hit[kPacketSize];
+  int spheres = 0;
   for (int i = 0; i < kPacketSize; ++i) {
     if (found >> i & 1u) {
-      detail::finish_hit(shapes_[best_id[i]], best_id[i], rays[i], detail::precompute(rays[i]), best_t[i], hits[i]);
+      const Shape& s = shapes_[best_id[i]];
+      if (s.type == ShapeType::kSphere) {
+        sph_shape[spheres] = &s;
+        sph_id[spheres] = best_id[i];
+        sph_ray[spheres] = &rays[i];
+        sph_t[spheres] = best_t[i];
+        sph_hit[spheres] = &hits[i];
+        ++spheres;
+      } else {
+        detail::finish_hit(s, best_id[i], rays[i], detail::precompute_for(rays[i], s.type), best_t[i], hits[i]);
+      }
     }
   }
+  if (spheres > 0) detail::finish_sphere_hits(sph_shape, sph_id, sph_ray, sph_t, sph_hit, spheres);
   return found;
 }
 
@@ -469,11 +524,14 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
     return blocked;
   }
   std::uint32_t blocked = 0;
+  const Outside outside = outside_kind(shapes_, outside_, wide_);
   for (int i = 0; i < kPacketSize; ++i) {
     float t = rays[i].t_max;
     std::uint32_t id = 0;
-    if ((live >> i & 1u) && !outside_.empty() &&
-        outside_hit(detail::precompute(rays[i], has_triangles_), rays[i].t_min, t, id)) {
+    if ((live >> i & 1u) && outside != Outside::kNone &&
+        outside_hit(
+            outside == Outside::kPlanes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
+            rays[i].t_min, t, id)) {
       blocked |= 1u << i;
     }
   }

@@ -71,6 +71,104 @@ math::Vec3d triangle_normal_d(const TriangleShape& t) {
   return math::cross(b - a, c - a);
 }
 
+namespace {
+
+// One leaf of the flat layout holding the shapes `ids`, whose bounds it extends into `bounds`.
+std::uint32_t flat_leaf(const std::vector<Shape>& shapes, const std::vector<std::uint32_t>& ids, WideBvh& w,
+                        Bounds3f& bounds) {
+  WideLeaf leaf;
+  leaf.sphere_begin = std::uint32_t(w.spheres.size());
+  leaf.triangle_begin = std::uint32_t(w.triangles.size());
+  leaf.box_begin = std::uint32_t(w.boxes.size());
+  std::uint32_t ns = 0, nt = 0;
+  for (const std::uint32_t id : ids) {
+    const Shape& shape = shapes[id];
+    bounds.extend(shape_bounds(shape));
+    switch (shape.type) {
+      case ShapeType::kSphere: {
+        if (ns % kWidth == 0) {
+          SphereBlock b;
+          for (int i = 0; i < kWidth; ++i) {
+            b.cx[i] = b.cy[i] = b.cz[i] = b.r[i] = kNaN;  // never hit
+            b.id[i] = kEmptyChild;
+          }
+          w.spheres.push_back(b);
+        }
+        SphereBlock& b = w.spheres.back();
+        const std::uint32_t lane = ns++ % kWidth;
+        b.cx[lane] = shape.sphere.center.x;
+        b.cy[lane] = shape.sphere.center.y;
+        b.cz[lane] = shape.sphere.center.z;
+        b.r[lane] = shape.sphere.radius;
+        b.id[lane] = id;
+        break;
+      }
+      case ShapeType::kTriangle: {
+        w.has_triangles = true;
+        if (nt % kWidth == 0) {
+          TriangleBlock b;
+          for (auto& vertex : b.v)
+            for (auto& axis : vertex)
+              for (float& x : axis) x = kNaN;
+          for (std::uint32_t& i : b.id) i = kEmptyChild;
+          w.triangles.push_back(b);
+        }
+        TriangleBlock& b = w.triangles.back();
+        const std::uint32_t lane = nt++ % kWidth;
+        const Vec3f* v[3] = {&shape.triangle.v0, &shape.triangle.v1, &shape.triangle.v2};
+        for (int vert = 0; vert < 3; ++vert)
+          for (int axis = 0; axis < 3; ++axis) b.v[vert][axis][lane] = (*v[vert])[axis];
+        b.id[lane] = id;
+        break;
+      }
+      case ShapeType::kBox: {
+        const BoxShape& bs = shape.box;
+        w.boxes.push_back({{bs.lo.x, bs.lo.y, bs.lo.z, bs.hi.x, bs.hi.y, bs.hi.z}, id});
+        ++leaf.box_count;
+        break;
+      }
+      case ShapeType::kPlane:
+        assert(false && "planes are tested beside the tree");
+        break;
+    }
+  }
+  leaf.sphere_blocks = std::uint16_t(w.spheres.size() - leaf.sphere_begin);
+  leaf.triangle_blocks = std::uint16_t(w.triangles.size() - leaf.triangle_begin);
+  w.leaves.push_back(leaf);
+  return kLeafBit | std::uint32_t(w.leaves.size() - 1);
+}
+
+}  // namespace
+
+WideBvh flat_wide(const std::vector<Shape>& shapes, const std::vector<std::vector<std::uint32_t>>& groups) {
+  assert(groups.size() <= std::size_t(kNodeWidth));
+  WideBvh w;
+  WideNode root;
+  int n = 0;
+  for (const std::vector<std::uint32_t>& ids : groups) {
+    if (ids.empty()) continue;
+    Bounds3f b;
+    root.child[n] = flat_leaf(shapes, ids, w, b);
+    for (int axis = 0; axis < 3; ++axis) {
+      root.lo[axis][n] = b.lo[axis];
+      root.hi[axis][n] = b.hi[axis];
+    }
+    ++n;
+  }
+  if (n == 0) return w;
+  for (int i = 0; i < kNodeWidth; ++i) {
+    root.pad[i] = 0;
+    if (i < n) continue;
+    root.child[i] = kEmptyChild;
+    for (int axis = 0; axis < 3; ++axis) {
+      root.lo[axis][i] = kInf;
+      root.hi[axis][i] = -kInf;
+    }
+  }
+  w.nodes.push_back(root);
+  return w;
+}
+
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit) {
   hit.t = t;
   hit.shape = id;
@@ -180,6 +278,60 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
       }
       hit.n = pl.normal;
       return;
+    }
+  }
+}
+
+void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, const Ray* const* rays, const float* ts,
+                        Hit* const* hits, int n) {
+  // finish_hit's sphere case, stage by stage over the lanes: the same operations in the same
+  // order (so the same bits), but the lanes' independent square roots and divisions overlap
+  // instead of each waiting for the previous lane's chain.
+  constexpr int kMax = kPacketSize;
+  double f[3][kMax], d[3][kMax], c[3][kMax], rad[kMax], disc[kMax], a[kMax], bq[kMax], cc[kMax], td[kMax];
+  n = std::min(n, kMax);
+  for (int k = 0; k < n; ++k) {
+    const SphereShape& s = shapes[k]->sphere;
+    for (int i = 0; i < 3; ++i) {
+      c[i][k] = double(s.center[i]);
+      f[i][k] = double(rays[k]->o[i]) - c[i][k];
+      d[i][k] = rays[k]->d[i];
+    }
+    rad[k] = s.radius;
+  }
+  for (int k = 0; k < n; ++k) {  // sphere_roots
+    const double fx = f[0][k], fy = f[1][k], fz = f[2][k], dx = d[0][k], dy = d[1][k], dz = d[2][k];
+    const double rr = rad[k] * rad[k];
+    const double cx = fy * dz - fz * dy;
+    const double cy = fz * dx - fx * dz;
+    const double cz = fx * dy - fy * dx;
+    a[k] = dx * dx + dy * dy + dz * dz;
+    disc[k] = a[k] * rr - (cx * cx + cy * cy + cz * cz);
+    bq[k] = fx * dx + fy * dy + fz * dz;
+    cc[k] = (fx * fx + fy * fy + fz * fz) - rr;
+  }
+  for (int k = 0; k < n; ++k) {  // sphere_t's choice of root
+    const double q = -(bq[k] + std::copysign(std::sqrt(disc[k]), bq[k]));
+    double t0 = cc[k] / q;
+    double t1 = q / a[k];
+    if (t0 > t1) std::swap(t0, t1);
+    const float t0f = float(t0);
+    td[k] = (t0f > rays[k]->t_min && t0f < kInf) ? t0 : t1;
+  }
+  for (int k = 0; k < n; ++k) {
+    Hit& hit = *hits[k];
+    hit.t = ts[k];
+    hit.shape = ids[k];
+    double pl[3];
+    for (int i = 0; i < 3; ++i) pl[i] = f[i][k] + td[k] * d[i][k];
+    const double len = std::sqrt(pl[0] * pl[0] + pl[1] * pl[1] + pl[2] * pl[2]);
+    const double scale = rad[k] / len;
+    for (int i = 0; i < 3; ++i) {
+      pl[i] *= scale;
+      hit.n[i] = float(pl[i] / rad[k]);
+      hit.p[i] = float(c[i][k] + pl[i]);
+      hit.p_error[i] =
+          float(kSphereDoubleError * (std::abs(pl[i]) + std::abs(c[i][k]))) + gamma(1) * std::abs(hit.p[i]);
     }
   }
 }

@@ -100,8 +100,9 @@ class Geometry {
   // Builds the BVH (binned SAH) over the bounded shapes; planes and a few huge shapes (bounds of
   // more than a quarter of the scene's surface area) are kept in a separate list. With
   // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 8-wide
-  // layout that isa's kernels walk, unless the scene has fewer than 64 bounded shapes: there the
-  // scalar walk is faster (stats().wide_nodes is then 0).
+  // layout that isa's kernels walk. A scene of fewer than 64 bounded shapes gets no wide tree:
+  // packets test every shape directly (one flat leaf, stats().wide_nodes is then 1), single rays
+  // keep the scalar walk, which is faster there.
   static Geometry build(std::vector<Shape> shapes, Isa isa = best_isa());
 
   // Nearest hit with t in the open interval (ray.t_min, ray.t_max). Returns false on a miss.

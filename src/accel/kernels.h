@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <limits>
 #include <utility>
+#include <vector>
 
 #include "accel/geometry.h"
 #include "math/float_util.h"
@@ -67,6 +68,31 @@ inline RayPre precompute(const Ray& ray, bool shear = true) {
   }
   if (shear) set_shear(r);
   return r;
+}
+
+// Only the origin and direction: all that the sphere and plane kernels (and their finish_hit)
+// read. The rest is left zero; box and triangle tests need precompute().
+inline RayPre precompute_od(const Ray& ray) {
+  RayPre r{};
+  for (int i = 0; i < 3; ++i) {
+    r.o[i] = ray.o[i];
+    r.d[i] = ray.d[i];
+  }
+  return r;
+}
+
+// What testing or finishing a shape of type `type` needs (same bits as precompute() for it).
+inline RayPre precompute_for(const Ray& ray, ShapeType type) {
+  switch (type) {
+    case ShapeType::kSphere:
+    case ShapeType::kPlane:
+      return precompute_od(ray);
+    case ShapeType::kBox:
+      return precompute(ray, false);
+    case ShapeType::kTriangle:
+      break;
+  }
+  return precompute(ray, true);
 }
 
 // The parametric span of the ray inside the box b = [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z] on the
@@ -274,7 +300,24 @@ inline float triangle_t(const float* v, const RayPre& r, float t_min, TriangleUv
 // query, for the final nearest hit only. Defined in geometry.cpp.
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit);
 
+// finish_hit for up to kPacketSize sphere hits at once (shapes[k] is a sphere hit by *rays[k] at
+// ts[k] as the kernels found it), with the same bits; *hits[k] receives lane k's record.
+void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, const Ray* const* rays, const float* ts,
+                        Hit* const* hits, int n);
+
 bool shape_is_valid(const Shape& shape);
+
+// Tiny scenes (Geometry::build's small-scene layout): no tree at all. Each group of `groups` (at
+// most kNodeWidth; ids of valid bounded shapes of `shapes`) becomes one leaf of SoA blocks, a child
+// of a single root node whose box for it is the union of its shapes' bounds: the SIMD kernels
+// then test 8 rays (or one) against every shape of a group directly, after one node test that lets
+// rays missing a group skip it. Geometry uses two groups: the ordinary shapes and the huge ones.
+// Empty groups are left out; all empty gives an empty WideBvh. Defined in geometry.cpp.
+WideBvh flat_wide(const std::vector<Shape>& shapes, const std::vector<std::vector<std::uint32_t>>& groups);
+
+// Whether `w` is a flat_wide layout (one node over one or two leaves; a collapsed tree of 64 or
+// more shapes never is).
+inline bool is_flat(const WideBvh& w) { return w.nodes.size() == 1 && !w.leaves.empty() && w.leaves.size() <= 2; }
 
 // cross(v1 - v0, v2 - v0) in double (exact inputs, one rounding per product and difference).
 math::Vec3d triangle_normal_d(const TriangleShape& t);

@@ -16,7 +16,10 @@
 // and a leaf's 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 rays in SoA arrays and test
 // one box, sphere or triangle against all 8 (one AVX2/AVX-512 vector, two SSE4 vectors), with a
 // per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
-// active at a node, those lanes finish that subtree as single rays.
+// active at a node, those lanes finish that subtree as single rays. A packet's per-lane constants
+// are computed a vector at a time (make_packet); its lanes as single rays only when a fallback
+// needs them. Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two
+// leaves), which these same loops walk.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -384,67 +387,143 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  Single single[kP];   // the same rays as single rays (fallback, zero edge functions)
   bool uniform_signs;  // every lane has the direction signs sign[0..2]
   std::uint32_t sign[3];
+  bool uniform_axes;  // every lane has the shear axes axis[0..2] (kx, ky, kz)
+  std::uint32_t axis[3];
+  // The same rays as single rays (the fallback below kSwitch lanes, zero edge functions, boxes),
+  // made on first use: most packets never need them.
+  const math::Ray* rays;
+  bool shear;  // precompute's `shear` argument
+  int src[kP];
+  mutable std::uint32_t ready;  // lanes of `single` made
+  mutable Single single[kP];
+
+  const Single& lane(int i) const {
+    if (!(ready >> i & 1u)) {
+      const math::Ray& ray = rays[src[i]];
+      single[i] = make_single(precompute(ray, shear), ray.t_min);
+      ready |= 1u << i;
+    }
+    return single[i];
+  }
 };
 
+// The packet's per-lane constants, computed a vector of lanes at a time with the very operations
+// precompute() and set_shear() do per ray (1 / d, the sign bits, the shear axes chosen by the
+// same comparisons, d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz]), so every lane has the bits of the
+// single-ray constants.
 inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
+  alignas(64) float dir[3][kP];
   for (int i = 0; i < kP; ++i) {
     // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
     // results are masked off.
     const int src = (live >> i & 1u) ? i : std::countr_zero(live);
     const math::Ray& ray = rays[src];
-    Single& s = p.single[i];
-    s = make_single(precompute(ray, bvh.has_triangles), ray.t_min);
+    p.src[i] = src;
     for (int a = 0; a < 3; ++a) {
-      p.o[a][i] = s.r.o[a];
-      p.inv[a][i] = s.r.inv_d[a];
-      p.negf[a][i] = s.r.neg[a] ? 1.0f : 0.0f;
-      p.od[a][i] = double(s.r.o[a]);
-      p.dd[a][i] = double(s.r.d[a]);
+      p.o[a][i] = ray.o[a];
+      dir[a][i] = ray.d[a];
     }
-    p.a[i] = s.a;
     p.t_min[i] = ray.t_min;
-    p.kx0[i] = s.r.kx == 0 ? 1.0f : 0.0f;
-    p.kx1[i] = s.r.kx == 1 ? 1.0f : 0.0f;
-    p.ky0[i] = s.r.ky == 0 ? 1.0f : 0.0f;
-    p.ky1[i] = s.r.ky == 1 ? 1.0f : 0.0f;
-    p.kz0[i] = s.r.kz == 0 ? 1.0f : 0.0f;
-    p.kz1[i] = s.r.kz == 1 ? 1.0f : 0.0f;
-    p.sx[i] = s.r.sx;
-    p.sy[i] = s.r.sy;
-    p.sz[i] = s.r.sz;
-    if (any_hit) {
-      p.best[i] = ray.t_max;
-      p.cull[i] = ray.t_max * kFarScale;
+    if (any_hit) p.best[i] = ray.t_max;
+  }
+  p.rays = rays;
+  p.shear = bvh.has_triangles;
+  p.ready = 0;
+
+  const hn::CappedTag<float, kP> d;
+  const hn::RebindToSigned<decltype(d)> di;
+  const std::size_t n = hn::Lanes(d);
+  const auto one = hn::Set(d, 1.0f), zero = hn::Zero(d);
+  std::uint32_t neg_bits[3] = {0, 0, 0};
+  std::uint32_t axis_bits[6] = {0, 0, 0, 0, 0, 0};  // kx0, kx1, ky0, ky1, kz0, kz1
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    hn::Vec<decltype(d)> dv[3];
+    for (int a = 0; a < 3; ++a) {
+      dv[a] = hn::LoadU(d, dir[a] + i);
+      hn::StoreU(hn::Div(one, dv[a]), d, p.inv[a] + i);
+      const auto neg = hn::RebindMask(d, hn::Lt(hn::BitCast(di, dv[a]), hn::Zero(di)));
+      hn::StoreU(hn::IfThenElseZero(neg, one), d, p.negf[a] + i);
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, neg, mb);
+      neg_bits[a] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    }
+    if (any_hit) hn::StoreU(hn::Mul(hn::LoadU(d, p.best + i), hn::Set(d, kFarScale)), d, p.cull + i);
+    // set_shear: kz = ax > ay ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2); kx, ky the next two axes,
+    // swapped when d[kz] < 0.
+    const auto ax = hn::Abs(dv[0]), ay = hn::Abs(dv[1]), az = hn::Abs(dv[2]);
+    const auto x_gt_y = hn::Gt(ax, ay);
+    const auto kz0 = hn::And(x_gt_y, hn::Gt(ax, az));
+    const auto kz1 = hn::AndNot(x_gt_y, hn::Gt(ay, az));
+    const auto kz2 = hn::Not(hn::Or(kz0, kz1));
+    const auto dkz = hn::IfThenElse(kz0, dv[0], hn::IfThenElse(kz1, dv[1], dv[2]));
+    const auto flip = hn::Lt(dkz, zero);
+    // Unswapped: kz 0 -> (kx, ky) = (1, 2); kz 1 -> (2, 0); kz 2 -> (0, 1).
+    const auto kx0 = hn::Or(hn::AndNot(flip, kz2), hn::And(flip, kz1));
+    const auto kx1 = hn::Or(hn::AndNot(flip, kz0), hn::And(flip, kz2));
+    const auto ky0 = hn::Or(hn::AndNot(flip, kz1), hn::And(flip, kz2));
+    const auto ky1 = hn::Or(hn::AndNot(flip, kz2), hn::And(flip, kz0));
+    const auto dkx = hn::IfThenElse(kx0, dv[0], hn::IfThenElse(kx1, dv[1], dv[2]));
+    const auto dky = hn::IfThenElse(ky0, dv[0], hn::IfThenElse(ky1, dv[1], dv[2]));
+    hn::StoreU(hn::Div(dkx, dkz), d, p.sx + i);
+    hn::StoreU(hn::Div(dky, dkz), d, p.sy + i);
+    hn::StoreU(hn::Div(one, dkz), d, p.sz + i);
+    hn::StoreU(hn::IfThenElseZero(kx0, one), d, p.kx0 + i);
+    hn::StoreU(hn::IfThenElseZero(kx1, one), d, p.kx1 + i);
+    hn::StoreU(hn::IfThenElseZero(ky0, one), d, p.ky0 + i);
+    hn::StoreU(hn::IfThenElseZero(ky1, one), d, p.ky1 + i);
+    hn::StoreU(hn::IfThenElseZero(kz0, one), d, p.kz0 + i);
+    hn::StoreU(hn::IfThenElseZero(kz1, one), d, p.kz1 + i);
+    const hn::Mask<decltype(d)> axis_masks[6] = {kx0, kx1, ky0, ky1, kz0, kz1};
+    for (int k = 0; k < 6; ++k) {
+      std::uint8_t mb[8] = {};
+      hn::StoreMaskBits(d, axis_masks[k], mb);
+      axis_bits[k] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
     }
   }
+  // The sphere test's double copies and a = |d|^2, as make_single computes it.
+  const hn::CappedTag<double, kP> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const std::size_t nd = hn::Lanes(dd);
+  for (std::size_t i = 0; i < std::size_t(kP); i += nd) {
+    hn::Vec<decltype(dd)> dv[3];
+    for (int a = 0; a < 3; ++a) {
+      dv[a] = hn::PromoteTo(dd, hn::LoadU(df, dir[a] + i));
+      hn::StoreU(dv[a], dd, p.dd[a] + i);
+      hn::StoreU(hn::PromoteTo(dd, hn::LoadU(df, p.o[a] + i)), dd, p.od[a] + i);
+    }
+    hn::StoreU(hn::Add(hn::Add(hn::Mul(dv[0], dv[0]), hn::Mul(dv[1], dv[1])), hn::Mul(dv[2], dv[2])), dd, p.a + i);
+  }
+  constexpr std::uint32_t kAll = (1u << kP) - 1u;
   p.uniform_signs = true;
   for (int a = 0; a < 3; ++a) {
-    p.sign[a] = p.single[0].r.neg[a];
-    for (int i = 1; i < kP; ++i) p.uniform_signs = p.uniform_signs && p.single[i].r.neg[a] == p.sign[a];
+    p.sign[a] = neg_bits[a] & 1u;
+    p.uniform_signs = p.uniform_signs && (neg_bits[a] == 0 || neg_bits[a] == kAll);
+  }
+  p.uniform_axes = true;
+  for (int k = 0; k < 3; ++k) {
+    const std::uint32_t is0 = axis_bits[2 * k], is1 = axis_bits[2 * k + 1];
+    p.uniform_axes = p.uniform_axes && (is0 == 0 || is0 == kAll) && (is1 == 0 || is1 == kAll);
+    p.axis[k] = (is0 & 1u) ? 0u : (is1 & 1u) ? 1u : 2u;
   }
 }
 
-// Which of the 8 lanes enter each child box of the node (bits[c]), and the smallest entry
-// distance among them (min_near[c], for children whose bits meet `mask`). The packet's origins,
-// inverse directions and direction signs are loaded once per node, not once per child; when
-// every lane has the same direction signs (camera and shadow packets nearly always do), the near
-// and far planes are picked per axis like a single ray's instead of lane by lane.
+// Which of the 8 lanes in `mask` enter each child box of the node (bits[c]) and each such lane's
+// entry distance (dist[c][lane]; +inf for the other lanes). No branch depends on the outcome of a
+// child's test. The packet's origins, inverse directions and direction signs are loaded once per
+// node, not once per child; when every lane has the same direction signs (camera and shadow
+// packets nearly always do), the near and far planes are picked per axis like a single ray's
+// instead of lane by lane.
 inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask, std::uint32_t* bits,
-                       float* min_near) {
+                       float (*dist)[kP]) {
   const hn::CappedTag<float, kP> d;
   using V = hn::Vec<decltype(d)>;
   const std::size_t n = hn::Lanes(d);
   const auto inf = hn::Set(d, kInfF);
   const auto scale = hn::Set(d, kFarScale);
   const auto zero = hn::Zero(d);
-  V near_min[kNodeWidth];
-  for (int c = 0; c < kNodeWidth; ++c) {
-    bits[c] = 0;
-    near_min[c] = inf;
-  }
+  for (int c = 0; c < kNodeWidth; ++c) bits[c] = 0;
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     V o[3], inv[3];
     for (int a = 0; a < 3; ++a) {
@@ -452,8 +531,9 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       inv[a] = hn::LoadU(d, p.inv[a] + i);
     }
     const auto tmin = hn::LoadU(d, p.t_min + i);
+    const std::uint8_t mask_byte = std::uint8_t(mask >> i);
+    const auto active = hn::LoadMaskBits(d, &mask_byte);
     const auto cull = hn::LoadU(d, p.cull + i);
-    const std::uint32_t lane_mask = ((1u << n) - 1u) << i;
     for (int c = 0; c < kNodeWidth; ++c) {
       if (node.child[c] == kEmptyChild) break;  // empty slots come last
       auto t0 = tmin;
@@ -474,18 +554,12 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
           tf = hn::Min(hn::IfThenElse(neg, tlo, thi), tf);
         }
       }
-      const auto m = hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull));
+      const auto m = hn::And(active, hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull)));
+      hn::StoreU(hn::IfThenElse(m, t0, inf), d, dist[c] + i);
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, m, mb);
-      const std::uint32_t b = (std::uint32_t(mb[0]) << i) & lane_mask & mask;
-      if (b != 0) {
-        bits[c] |= b;
-        near_min[c] = hn::Min(near_min[c], hn::IfThenElse(m, t0, inf));
-      }
+      bits[c] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
     }
-  }
-  for (int c = 0; c < kNodeWidth; ++c) {
-    if (bits[c] != 0) min_near[c] = hn::GetLane(hn::MinOfLanes(d, near_min[c]));
   }
 }
 
@@ -493,13 +567,28 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
 // that improved (nearest) or that are now blocked (any-hit).
 template <bool kAnyHit>
 inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::uint32_t mask) {
+  // Which lanes have t < best or t == best (a NaN t, a miss, is neither), a vector at a time;
+  // most candidates miss every lane, and then nothing else is done.
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t lt = 0, eq = 0;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto tv = hn::LoadU(d, t + i), best = hn::LoadU(d, p.best + i);
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, hn::Lt(tv, best), mb);
+    lt |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    if (!kAnyHit) {
+      hn::StoreMaskBits(d, hn::Eq(tv, best), mb);
+      eq |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    }
+  }
+  if (kAnyHit) return lt & mask;
   std::uint32_t out = 0;
-  while (mask != 0) {
-    const int i = std::countr_zero(mask);
-    mask &= mask - 1;
-    if (kAnyHit) {
-      if (t[i] < p.best[i]) out |= 1u << i;
-    } else if (better(t[i], id, p.best[i], p.id[i])) {
+  std::uint32_t m = (lt | eq) & mask;
+  while (m != 0) {
+    const int i = std::countr_zero(m);
+    m &= m - 1;
+    if (better(t[i], id, p.best[i], p.id[i])) {
       p.best[i] = t[i];
       p.id[i] = id;
       p.cull[i] = t[i] * kFarScale;
@@ -533,6 +622,28 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  if (p.uniform_axes) {
+    // Every lane shears along the same axes (nearly every camera and shadow packet): the
+    // vertices' coordinates are picked once, not lane by lane.
+    const std::uint32_t kx = p.axis[0], ky = p.axis[1], kz = p.axis[2];
+    for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+      const auto ox = hn::LoadU(d, p.o[kx] + i), oy = hn::LoadU(d, p.o[ky] + i), oz = hn::LoadU(d, p.o[kz] + i);
+      const auto sx = hn::LoadU(d, p.sx + i), sy = hn::LoadU(d, p.sy + i), sz = hn::LoadU(d, p.sz + i);
+      const auto az = hn::Sub(hn::Set(d, v[0][kz]), oz), bz = hn::Sub(hn::Set(d, v[1][kz]), oz),
+                 cz = hn::Sub(hn::Set(d, v[2][kz]), oz);
+      const auto sax = hn::Sub(hn::Sub(hn::Set(d, v[0][kx]), ox), hn::Mul(sx, az));
+      const auto say = hn::Sub(hn::Sub(hn::Set(d, v[0][ky]), oy), hn::Mul(sy, az));
+      const auto sbx = hn::Sub(hn::Sub(hn::Set(d, v[1][kx]), ox), hn::Mul(sx, bz));
+      const auto sby = hn::Sub(hn::Sub(hn::Set(d, v[1][ky]), oy), hn::Mul(sy, bz));
+      const auto scx = hn::Sub(hn::Sub(hn::Set(d, v[2][kx]), ox), hn::Mul(sx, cz));
+      const auto scy = hn::Sub(hn::Sub(hn::Set(d, v[2][ky]), oy), hn::Mul(sy, cz));
+      const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz,
+                                            hn::LoadU(d, p.t_min + i), t + i);
+      redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
+                      [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); });
+    }
+    return;
+  }
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     const auto kx0 = hn::Gt(hn::LoadU(d, p.kx0 + i), zero), kx1 = hn::Gt(hn::LoadU(d, p.kx1 + i), zero);
     const auto ky0 = hn::Gt(hn::LoadU(d, p.ky0 + i), zero), ky1 = hn::Gt(hn::LoadU(d, p.ky1 + i), zero);
@@ -558,7 +669,33 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
     const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2],
                                           rel[2][2], sz, hn::LoadU(d, p.t_min + i), t + i);
     redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2]}, t + i,
-                    [&p, i](std::size_t k) -> const Single& { return p.single[i + k]; });
+                    [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); });
+  }
+}
+
+// One box shape b = [lo, hi] against the 8 rays, exactly as box_t: the slab distances, the near
+// and far planes picked by each lane's direction sign, Max / Min in the order and with the NaN
+// rule of slab_span's comparisons (maxps / minps return their second operand when one is NaN, so
+// a NaN slab never constrains), then box_t's choice between the near and the far distance.
+inline void box8(const Packet& p, const float* b, float* t) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    auto t_near = hn::Set(d, -kInfF), t_far = inf;
+    for (int a = 0; a < 3; ++a) {
+      const auto o = hn::LoadU(d, p.o[a] + i), inv = hn::LoadU(d, p.inv[a] + i);
+      const auto tlo = hn::Mul(hn::Sub(hn::Set(d, b[a]), o), inv);
+      const auto thi = hn::Mul(hn::Sub(hn::Set(d, b[3 + a]), o), inv);
+      const auto neg = hn::Gt(hn::LoadU(d, p.negf[a] + i), zero);
+      t_near = hn::Max(hn::IfThenElse(neg, thi, tlo), t_near);
+      t_far = hn::Min(hn::IfThenElse(neg, tlo, thi), t_far);
+    }
+    const auto tmin = hn::LoadU(d, p.t_min + i);
+    const auto crosses = hn::Le(t_near, hn::Mul(t_far, hn::Set(d, kFarScale)));
+    const auto use_far = hn::And(hn::Gt(t_far, tmin), hn::Lt(t_far, inf));
+    const auto tv = hn::IfThenElse(hn::Gt(t_near, tmin), t_near, hn::IfThenElse(use_far, t_far, nan));
+    hn::StoreU(hn::IfThenElse(crosses, tv, nan), d, t + i);
   }
 }
 
@@ -593,12 +730,7 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
   }
   for (std::uint32_t k = 0; k < leaf.box_count && mask != 0; ++k) {
     const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
-    std::uint32_t m = mask;
-    while (m != 0) {
-      const int i = std::countr_zero(m);
-      m &= m - 1;
-      t[i] = box_t(bp.b, p.single[i].r, p.single[i].t_min);
-    }
+    box8(p, bp.b, t);
     const std::uint32_t hit = apply8<kAnyHit>(p, t, bp.id, mask);
     out |= hit;
     if (kAnyHit) mask &= ~hit;
@@ -609,12 +741,30 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
 struct Entry8 {
   std::uint32_t ref;
   std::uint32_t mask;
-  float t_near;  // smallest entry distance over the entry's lanes
+  float key;  // ordering key: the entry distance of the entry's first lane
+  int child;  // slot in the node (while ordering)
 };
 
+// Bits of the lanes i with a[i] <= b[i].
+inline std::uint32_t lanes_le(const float* a, const float* b) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t bits = 0;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, hn::Le(hn::LoadU(d, a + i), hn::LoadU(d, b + i)), mb);
+    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+  }
+  return bits;
+}
+
+// Packet traversal. A stack entry keeps each of its lanes' entry distance (nearest hits only), so
+// a pop drops exactly the lanes whose nearest hit found since is closer than their own entry
+// into the box: what testing the box again against the tightened interval would drop.
 template <bool kAnyHit>
 std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
   Entry8 stack[kStackSize];
+  alignas(64) float stack_dist[kAnyHit ? 1 : kStackSize][kP];
   int sp = 0;
   std::uint32_t cur = 0;
   std::uint32_t mask = live;
@@ -627,7 +777,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       while (m != 0) {
         const int i = std::countr_zero(m);
         m &= m - 1;
-        if (traverse1<kAnyHit>(bvh, p.single[i], cur, p.best[i], p.id[i])) {
+        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i])) {
           result |= 1u << i;
           if (kAnyHit) {
             alive &= ~(1u << i);
@@ -645,41 +795,37 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       Entry8 hit[kNodeWidth];
       int n = 0;
       std::uint32_t bits[kNodeWidth];
-      float near[kNodeWidth];
-      node_test8(node, p, mask, bits, near);
+      alignas(64) float dist[kNodeWidth][kP];
+      node_test8(node, p, mask, bits, dist);
       for (int c = 0; c < kNodeWidth; ++c) {
         if (bits[c] == 0) continue;
-        Entry8 e{node.child[c], bits[c], near[c]};
+        Entry8 e{node.child[c], bits[c], dist[c][std::countr_zero(bits[c])], c};
         int j = n++;
-        while (j > 0 && hit[j - 1].t_near < e.t_near) {
+        while (j > 0 && hit[j - 1].key < e.key) {
           hit[j] = hit[j - 1];
           --j;
         }
         hit[j] = e;
       }
       if (n > 0) {
-        for (int i = 0; i < n - 1; ++i) stack[sp++] = hit[i];
+        for (int i = 0; i < n - 1; ++i) {
+          if (!kAnyHit) std::copy_n(dist[hit[i].child], kP, stack_dist[sp]);
+          stack[sp++] = hit[i];
+        }
         cur = hit[n - 1].ref;
         mask = hit[n - 1].mask;
         continue;
       }
     }
     if (kAnyHit && alive == 0) return result;
-    // Pop; drop lanes whose nearest hit since is closer than the entry's nearest box entry.
+    // Pop; nearest hits drop the lanes whose hit since is closer than their entry into the box.
     while (true) {
       if (sp == 0) return result;
-      const Entry8 e = stack[--sp];
-      std::uint32_t m = e.mask & alive;
-      if (!kAnyHit) {
-        std::uint32_t k = m;
-        while (k != 0) {
-          const int i = std::countr_zero(k);
-          k &= k - 1;
-          if (p.cull[i] < e.t_near) m &= ~(1u << i);
-        }
-      }
+      --sp;
+      std::uint32_t m = stack[sp].mask & alive;
+      if (!kAnyHit) m &= lanes_le(stack_dist[sp], p.cull);
       if (m != 0) {
-        cur = e.ref;
+        cur = stack[sp].ref;
         mask = m;
         break;
       }

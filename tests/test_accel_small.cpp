@@ -1,0 +1,227 @@
+// Tests of dtraced::accel's small-scene layout and packet set-up: below 64 bounded shapes a SIMD
+// geometry has no tree for packets (one flat node over the shapes and, apart, the huge ones; see
+// Geometry::build), and its packets, single rays and any-hit queries must answer exactly as the
+// scalar reference does (same shape, same t bits, same hit record) on every instruction set this
+// machine runs. Also packets whose lanes differ in direction signs, have zero or negative-zero
+// direction components or different dominant axes, which exercise the per-lane constants the
+// packet kernels compute a vector at a time, on a flat and on a tree layout.
+#include <algorithm>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <catch2/catch.hpp>
+
+#include "accel/geometry.h"
+#include "accel/isa.h"
+#include "shape_builders.h"
+
+using namespace dtraced::accel;
+using namespace dtraced::testing;
+
+namespace {
+
+// `n` bounded shapes in a 20-unit cube (spheres, boxes and triangles in turn, so every leaf kind
+// is there), an exact duplicate (a tie: the smaller id wins), and, if asked, a ground plane and a
+// huge triangle pair (kept out of the tree, in the flat layout's second group).
+std::vector<Shape> small_scene(TestRng& rng, int n, bool extras) {
+  std::vector<Shape> shapes;
+  for (int i = 0; i < n; ++i) {
+    const Vec3d c = rng.in_cube(10.0);
+    const double size = rng.log_uniform(0.2, 3.0);
+    switch (i % 3) {
+      case 0:
+        shapes.push_back(sphere(to_f(c), float(size)));
+        break;
+      case 1: {
+        const Vec3d h{size * rng.uniform(0.2, 1.0), size * rng.uniform(0.2, 1.0), size * rng.uniform(0.2, 1.0)};
+        shapes.push_back(box(to_f(c - h), to_f(c + h)));
+        break;
+      }
+      default:
+        shapes.push_back(
+            triangle(to_f(c + rng.unit() * size), to_f(c + rng.unit() * size), to_f(c + rng.unit() * size)));
+        break;
+    }
+  }
+  if (n > 0) shapes.push_back(shapes.front());
+  if (extras) {
+    shapes.push_back(plane({0, -12, 0}, {0, 1, 0}));
+    shapes.push_back(triangle({-500, -11, -500}, {500, -11, -500}, {500, -11, 500}));
+    shapes.push_back(triangle({-500, -11, -500}, {500, -11, 500}, {-500, -11, 500}));
+  }
+  return shapes;
+}
+
+// Rays from random points: random directions, axis-parallel ones, some with a zero or a negative
+// zero component, and some with a finite interval.
+std::vector<Ray> awkward_rays(TestRng& rng, int n) {
+  std::vector<Ray> rays;
+  for (int i = 0; i < n; ++i) {
+    const Vec3f o = to_f(rng.in_cube(16.0));
+    Vec3f d = unit_f(rng.unit());
+    const int kind = rng.index(4);
+    if (kind == 1) {
+      d = {0, 0, 0};
+      d[std::size_t(rng.index(3))] = rng.uniform() < 0.5 ? -1.0f : 1.0f;
+    } else if (kind == 2) {
+      d[std::size_t(rng.index(3))] = 0.0f;
+      d = unit_f(to_d(d));
+    }
+    for (std::size_t k = 0; k < 3; ++k) {
+      if (d[k] == 0.0f && rng.uniform() < 0.5) d[k] = -0.0f;
+    }
+    Ray r = make_ray(o, d);
+    if (rng.uniform() < 0.2) {
+      r.t_min = float(rng.uniform(0.0, 3.0));
+      r.t_max = float(r.t_min + rng.uniform(0.0, 30.0));
+    }
+    rays.push_back(r);
+  }
+  return rays;
+}
+
+// Rays from random points aimed at a point of a random bounded shape (a sphere's centre, a box's
+// corner, a triangle's vertex: edges and corners included), so that small scenes are hit often.
+std::vector<Ray> aimed_rays(TestRng& rng, const std::vector<Shape>& shapes, int n) {
+  std::vector<Ray> rays;
+  for (int i = 0; i < n; ++i) {
+    const Shape& s = shapes[std::size_t(rng.index(int(shapes.size())))];
+    Vec3f target;
+    switch (s.type) {
+      case ShapeType::kSphere:
+        target = s.sphere.center;
+        break;
+      case ShapeType::kBox:
+        target = rng.uniform() < 0.5 ? s.box.lo : s.box.hi;
+        break;
+      case ShapeType::kTriangle:
+        target = rng.uniform() < 0.5 ? s.triangle.v0 : s.triangle.v2;
+        break;
+      case ShapeType::kPlane:
+        target = s.plane.point;
+        break;
+    }
+    const Vec3f o = to_f(rng.in_cube(16.0));
+    if (to_d(target) == to_d(o)) continue;
+    rays.push_back(make_ray(o, unit_f(to_d(target) - to_d(o))));
+  }
+  return rays;
+}
+
+// Camera-like rays towards the scene from one point: coherent packets (4x2 pixels).
+std::vector<Ray> camera_rays(int w, int h, const Vec3f& eye) {
+  std::vector<Ray> rays;
+  for (int by = 0; by < h; by += 2) {
+    for (int bx = 0; bx < w; bx += 4) {
+      for (int k = 0; k < 8; ++k) {
+        const double x = (bx + k % 4 + 0.5) / w - 0.5, y = (by + k / 4 + 0.5) / h - 0.5;
+        rays.push_back(make_ray(eye, unit_f(Vec3d{x * 1.6, y * 1.2, 1.0})));
+      }
+    }
+  }
+  return rays;
+}
+
+struct Counts {
+  long rays = 0, hits = 0, mismatches = 0;
+};
+
+// Every query of `rays` (packets of 8 consecutive rays, with a lane mask that varies) through `geo`
+// against the scalar reference `ref`.
+Counts compare(const Geometry& ref, const Geometry& geo, const std::vector<Ray>& rays) {
+  Counts c;
+  for (std::size_t base = 0; base + kPacketSize <= rays.size(); base += kPacketSize) {
+    const std::uint32_t valid = (base / kPacketSize) % 5 == 4 ? 0xa5u : 0xffu;
+    Hit hits[kPacketSize];
+    const std::uint32_t found = geo.intersect8(&rays[base], valid, hits);
+    const std::uint32_t blocked = geo.occluded8(&rays[base], valid);
+    for (std::uint32_t i = 0; i < std::uint32_t(kPacketSize); ++i) {
+      if (!(valid >> i & 1u)) {
+        c.mismatches += (found >> i & 1u) + (blocked >> i & 1u);
+        continue;
+      }
+      const Ray& r = rays[base + i];
+      Hit want, got;
+      const bool w = ref.intersect(r, want);
+      const bool g = geo.intersect(r, got);
+      const bool p = found >> i & 1u;
+      c.hits += w;
+      ++c.rays;
+      const int bad = ((w != g) || (w && !same_hit(want, got))) + ((w != p) || (w && !same_hit(want, hits[i]))) +
+                      (ref.occluded(r) != w) + (geo.occluded(r) != w) + (bool(blocked >> i & 1u) != w);
+      if (bad != 0 && ++c.mismatches <= 3) {
+        UNSCOPED_INFO("mismatch " << describe(r) << " ref=" << w << "/" << want.shape << "/" << want.t
+                                  << " single=" << g << "/" << got.shape << " packet=" << p << "/" << hits[i].shape
+                                  << "/" << hits[i].t);
+      }
+    }
+  }
+  return c;
+}
+
+}  // namespace
+
+TEST_CASE("small scenes: packets test every shape directly and answer as the scalar path", "[accel][small]") {
+  for (const int n : {1, 2, 5, 10, 33, 62}) {
+    for (const bool extras : {false, true}) {
+      TestRng rng{std::uint64_t(100 + n * 2 + int(extras))};
+      const std::vector<Shape> shapes = small_scene(rng, n, extras);
+      std::vector<Ray> rays = camera_rays(64, 32, {0, 2, -30});
+      const std::vector<Ray> more = awkward_rays(rng, 6000);
+      rays.insert(rays.end(), more.begin(), more.end());
+      const std::vector<Ray> aimed = aimed_rays(rng, shapes, 3000);
+      rays.insert(rays.end(), aimed.begin(), aimed.end());
+      const Geometry ref = Geometry::build(shapes, Isa::kScalar);
+      for (const Isa isa : supported_isas()) {
+        if (isa == Isa::kScalar) continue;
+        const Geometry geo = Geometry::build(shapes, isa);
+        INFO("isa " << isa_name(isa) << ", " << n << " shapes, extras " << extras);
+        CHECK(geo.stats().wide_nodes == 1);  // the flat layout: one node, no tree
+        const Counts c = compare(ref, geo, rays);
+        CHECK(c.rays > 9000);
+        CHECK(c.hits > c.rays / 10);
+        CHECK(c.mismatches == 0);
+      }
+    }
+  }
+}
+
+TEST_CASE("64 bounded shapes get the wide tree, and it answers as the scalar path", "[accel][small]") {
+  TestRng rng{7};
+  const std::vector<Shape> shapes = small_scene(rng, 64, true);  // 65 bounded with the duplicate
+  std::vector<Ray> rays = camera_rays(64, 32, {0, 2, -30});
+  const std::vector<Ray> more = awkward_rays(rng, 6000);
+  rays.insert(rays.end(), more.begin(), more.end());
+  const Geometry ref = Geometry::build(shapes, Isa::kScalar);
+  for (const Isa isa : supported_isas()) {
+    if (isa == Isa::kScalar) continue;
+    const Geometry geo = Geometry::build(shapes, isa);
+    INFO("isa " << isa_name(isa));
+    CHECK(geo.stats().wide_nodes > 1);
+    const Counts c = compare(ref, geo, rays);
+    CHECK(c.hits > c.rays / 20);
+    CHECK(c.mismatches == 0);
+  }
+}
+
+TEST_CASE("a scene of planes alone, or one shape, on every isa", "[accel][small]") {
+  const std::vector<Shape> shapes = {plane({0, 0, 0}, {0, 1, 0}), sphere({0, 1, 5}, 1.0f)};
+  const Ray down = make_ray({0, 3, 0}, {0, -1, 0});
+  const Ray at_sphere = make_ray({0, 1, 0}, {0, 0, 1});
+  for (const Isa isa : supported_isas()) {
+    INFO("isa " << isa_name(isa));
+    const Geometry planes = Geometry::build({shapes[0]}, isa);
+    CHECK(planes.stats().wide_nodes == 0);
+    Hit hits[kPacketSize];
+    const Ray packet[kPacketSize] = {down, down, down, down, down, down, down, at_sphere};
+    CHECK(planes.intersect8(packet, 0xffu, hits) == 0x7fu);
+    CHECK(hits[0].shape == 0);
+    CHECK(hits[0].t == 3.0f);
+    const Geometry both = Geometry::build(shapes, isa);
+    CHECK(both.intersect8(packet, 0xffu, hits) == 0xffu);
+    CHECK(hits[7].shape == 1);
+    CHECK(hits[7].t == 4.0f);
+    CHECK(both.occluded8(packet, 0x80u) == 0x80u);
+  }
+}
