@@ -89,6 +89,9 @@ struct BuildStats {
   std::uint32_t wide_nodes = 0;  // 8-wide nodes after collapsing (SIMD isa only)
   double wide_seconds = 0.0;     // collapsing and packing the leaves (SIMD isa only)
   std::uint32_t outside = 0;     // shapes tested beside the tree: planes and huge shapes
+  // FNV-1a over the binary tree's node array and leaf order: equal hashes, same tree (what the
+  // tests compare between thread counts).
+  std::uint64_t tree_hash = 0;
 };
 
 class Geometry {
@@ -102,7 +105,10 @@ class Geometry {
   // a SIMD `isa` (which must be in supported_isas()) the tree is also collapsed to the 8-wide
   // layout that isa's kernels walk, unless the scene has fewer than 64 bounded shapes: there the
   // scalar walk is faster (stats().wide_nodes is then 0).
-  static Geometry build(std::vector<Shape> shapes, Isa isa = best_isa());
+  // Large trees are built on up to `threads` threads (0: std::thread::hardware_concurrency()),
+  // started and joined inside the call. The tree, and so every answer, is the same whatever the
+  // thread count.
+  static Geometry build(std::vector<Shape> shapes, Isa isa = best_isa(), unsigned threads = 0);
 
   // Nearest hit with t in the open interval (ray.t_min, ray.t_max). Returns false on a miss.
   bool intersect(const Ray& ray, Hit& hit) const;
