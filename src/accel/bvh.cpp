@@ -153,10 +153,15 @@ class Splitter {
         chunked ? bin_chunked(begin, end, axis, c_lo, scale, threads) : bin(begin, end, axis, c_lo, scale);
     // SAH cost of splitting after bin k, scaled by the node's area to avoid a division (flat or
     // point-like nodes have zero area): kTraversalCost A + A_left n_left + A_right n_right.
+    // Only splits between the first and the last non-empty bin have two non-empty sides; the
+    // sweeps skip the rest (most bins of a small range are empty).
+    int first_bin = 0, last_bin = kBins - 1;
+    while (bins.count[first_bin] == 0) ++first_bin;
+    while (bins.count[last_bin] == 0) --last_bin;
     std::array<double, kBins - 1> left_cost{};
     Bounds3f acc;
     std::uint32_t acc_n = 0;
-    for (int k = 0; k < kBins - 1; ++k) {
+    for (int k = first_bin; k < last_bin; ++k) {
       acc.extend(bins.bounds[k].bounds);
       acc_n += bins.count[k];
       left_cost[k] = acc_n == 0 ? -1.0 : area(acc) * acc_n;  // -1: empty side, not a split
@@ -166,7 +171,7 @@ class Splitter {
     int best_k = -1;
     acc = Bounds3f{};
     acc_n = 0;
-    for (int k = kBins - 2; k >= 0; --k) {
+    for (int k = last_bin - 1; k >= first_bin; --k) {
       acc.extend(bins.bounds[k + 1].bounds);
       acc_n += bins.count[k + 1];
       if (acc_n == 0 || left_cost[k] < 0.0) continue;
