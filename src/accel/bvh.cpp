@@ -56,7 +56,6 @@ struct Task {
   std::uint32_t end = 0;
   std::uint32_t depth = 0;
   std::uint32_t parent = kNoParent;
-  int known = -1;  // index of the range's bounds on the bounds stack, -1 to compute them
 };
 
 // Surface area in double: float extents up to 3e38 would overflow a float product.
@@ -101,20 +100,18 @@ struct RangeBounds {
 };
 
 struct Bins {
-  std::array<RangeBounds, kBins> bounds;
+  std::array<Bounds3f, kBins> bounds;
   std::array<std::uint32_t, kBins> count{};
 };
 
-// The outcome of looking at one range: a leaf, or a split at `mid` along `axis`. A split along
-// SAH bins also knows its two children's bounds (the union of their bins), which saves the
-// children a pass over their prims.
+// The outcome of looking at one range: a leaf, or a split at `mid` along `axis`. (Handing the
+// children their bounds from the bins, to save them a pass, was tried: tracking centroid bounds
+// per bin cost more than the pass.)
 struct Split {
   Bounds3f bounds;
   bool leaf = false;
   std::uint32_t axis = 0;
   std::uint32_t mid = 0;
-  bool children_known = false;
-  RangeBounds left, right;
 };
 
 // Binned SAH over refs[begin, end): the same decisions for a range whoever looks at it. With
@@ -125,13 +122,9 @@ class Splitter {
  public:
   Splitter(std::vector<BuildPrim>& refs, Isa isa) : refs_(refs), isa_(isa) {}
 
-  // `known`: the range's bounds when its parent's split gave them, else null.
-  Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, const RangeBounds* known, bool chunked,
-              unsigned threads) const {
+  Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, bool chunked, unsigned threads) const {
     Split out;
-    const RangeBounds rb = known != nullptr ? *known
-                           : chunked        ? range_bounds_chunked(begin, end, threads)
-                                            : range_bounds(begin, end);
+    const RangeBounds rb = chunked ? range_bounds_chunked(begin, end, threads) : range_bounds(begin, end);
     out.bounds = rb.bounds;
     const std::uint32_t n = end - begin;
     if (n == 1 || depth + 1 >= Geometry::kMaxDepth) {
@@ -162,7 +155,7 @@ class Splitter {
     Bounds3f acc;
     std::uint32_t acc_n = 0;
     for (int k = first_bin; k < last_bin; ++k) {
-      acc.extend(bins.bounds[k].bounds);
+      acc.extend(bins.bounds[k]);
       acc_n += bins.count[k];
       left_cost[k] = acc_n == 0 ? -1.0 : area(acc) * acc_n;  // -1: empty side, not a split
     }
@@ -172,7 +165,7 @@ class Splitter {
     acc = Bounds3f{};
     acc_n = 0;
     for (int k = last_bin - 1; k >= first_bin; --k) {
-      acc.extend(bins.bounds[k + 1].bounds);
+      acc.extend(bins.bounds[k + 1]);
       acc_n += bins.count[k + 1];
       if (acc_n == 0 || left_cost[k] < 0.0) continue;
       const double cost = kTraversalCost * node_area + left_cost[k] + area(acc) * acc_n;
@@ -197,12 +190,6 @@ class Splitter {
           std::partition(first, last,
                          [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
           refs_.data());
-      out.children_known = true;
-      for (int k = 0; k < kBins; ++k) {
-        RangeBounds& side = k <= best_k ? out.left : out.right;
-        side.bounds.extend(bins.bounds[k].bounds);
-        side.centroids.extend(bins.bounds[k].centroids);
-      }
     }
     assert(out.mid > begin && out.mid < end);
     return out;
@@ -234,8 +221,7 @@ class Splitter {
     for (std::size_t i = begin; i < end; ++i) {
       const int b = bin_of(refs_[i].centroid[axis], c_lo, scale);
       ++bins.count[b];
-      bins.bounds[b].bounds.extend(refs_[i].bounds);
-      bins.bounds[b].centroids.extend(refs_[i].centroid);
+      bins.bounds[b].extend(refs_[i].bounds);
     }
     return bins;
   }
@@ -248,8 +234,7 @@ class Splitter {
     Bins bins;
     for (const Bins& p : parts) {
       for (int k = 0; k < kBins; ++k) {
-        bins.bounds[k].bounds.extend(p.bounds[k].bounds);
-        bins.bounds[k].centroids.extend(p.bounds[k].centroids);
+        bins.bounds[k].extend(p.bounds[k]);
         bins.count[k] += p.count[k];
       }
     }
@@ -265,8 +250,6 @@ class Splitter {
 template <typename Node>
 struct Subtree {
   std::uint32_t begin = 0, end = 0, depth = 0;
-  bool known = false;  // `bounds` holds the range's bounds
-  RangeBounds bounds;
   std::vector<Node> nodes;
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;
@@ -294,35 +277,22 @@ template <typename Node>
 void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
   t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
   std::vector<Task> stack;
-  std::vector<RangeBounds> known;  // a stack beside `stack`: the children's bounds of splits
-  stack.push_back({t.begin, t.end, t.depth, kNoParent, t.known ? 0 : -1});
-  if (t.known) known.push_back(t.bounds);
+  stack.push_back({t.begin, t.end, t.depth, kNoParent});
   while (!stack.empty()) {
     const Task task = stack.back();
     stack.pop_back();
     const auto index = std::uint32_t(t.nodes.size());
     if (task.parent != kNoParent) t.nodes[task.parent].offset = index;
     t.max_depth = std::max(t.max_depth, task.depth);
-    const Split s = splitter.split(task.begin, task.end, task.depth, task.known >= 0 ? &known[task.known] : nullptr,
-                                   /* chunked = */ false, 1);
-    // The first child is popped next: its bounds are the top of `known` then, and the second
-    // child's just below, so `known` shrinks as `stack` does.
-    if (task.known >= 0) known.resize(task.known);
+    const Split s = splitter.split(task.begin, task.end, task.depth, /* chunked = */ false, 1);
     fill_node(t.nodes.emplace_back(), s, task.begin, task.end);
     if (s.leaf) {
       ++t.leaves;
       continue;
     }
-    int second = -1, first = -1;
-    if (s.children_known) {
-      second = int(known.size());
-      known.push_back(s.right);
-      first = int(known.size());
-      known.push_back(s.left);
-    }
     // LIFO: the first child is popped next and so lands at index + 1.
-    stack.push_back({s.mid, task.end, task.depth + 1, index, second});
-    stack.push_back({task.begin, s.mid, task.depth + 1, kNoParent, first});
+    stack.push_back({s.mid, task.end, task.depth + 1, index});
+    stack.push_back({task.begin, s.mid, task.depth + 1, kNoParent});
   }
 }
 
@@ -336,9 +306,8 @@ struct TopNode {
 };
 
 template <typename Node>
-int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, std::uint32_t depth,
-              const RangeBounds* known, unsigned threads, std::vector<TopNode<Node>>& top,
-              std::vector<Subtree<Node>>& subtrees) {
+int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, std::uint32_t depth, unsigned threads,
+              std::vector<TopNode<Node>>& top, std::vector<Subtree<Node>>& subtrees) {
   const int index = int(top.size());
   top.emplace_back().depth = depth;
   if (end - begin < kParallelGrain) {
@@ -347,18 +316,14 @@ int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, 
     t.begin = begin;
     t.end = end;
     t.depth = depth;
-    t.known = known != nullptr;
-    if (known != nullptr) t.bounds = *known;
     return index;
   }
-  const Split s = splitter.split(begin, end, depth, known, /* chunked = */ true, threads);
+  const Split s = splitter.split(begin, end, depth, /* chunked = */ true, threads);
   fill_node(top[index].node, s, begin, end);
   if (!s.leaf) {
     // Recursion depth is bounded by log2(prims / kParallelGrain) + 1: both children are smaller.
-    const int first =
-        split_top(splitter, begin, s.mid, depth + 1, s.children_known ? &s.left : nullptr, threads, top, subtrees);
-    const int second =
-        split_top(splitter, s.mid, end, depth + 1, s.children_known ? &s.right : nullptr, threads, top, subtrees);
+    const int first = split_top(splitter, begin, s.mid, depth + 1, threads, top, subtrees);
+    const int second = split_top(splitter, s.mid, end, depth + 1, threads, top, subtrees);
     top[index].first = first;
     top[index].second = second;
   }
@@ -466,7 +431,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     const Splitter splitter(refs, isa);
     std::vector<TopNode<Node>> top;
     std::vector<Subtree<Node>> subtrees;
-    split_top(splitter, 0, std::uint32_t(refs.size()), 0, nullptr, threads, top, subtrees);
+    split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, top, subtrees);
     parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
