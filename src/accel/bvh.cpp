@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <bit>
 #include <cassert>
 #include <chrono>
 #include <limits>
@@ -477,19 +478,19 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   });
   std::vector<BuildPrim>().swap(refs);
 
+  // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
   std::uint64_t hash = 0xcbf29ce484222325ull;
-  const auto mix = [&hash](const void* data, std::size_t bytes) {
-    for (std::size_t i = 0; i < bytes; ++i) {
-      hash ^= static_cast<const unsigned char*>(data)[i];
-      hash *= 0x100000001b3ull;
-    }
+  const auto mix = [&hash](std::uint32_t word) {
+    hash ^= word;
+    hash *= 0x100000001b3ull;
   };
   for (const Node& n : g.nodes_) {
-    const std::uint32_t fields[3] = {n.offset, n.count, n.axis};
-    mix(n.bounds, sizeof n.bounds);
-    mix(fields, sizeof fields);
+    for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
+    mix(n.offset);
+    mix(n.count);
+    mix(n.axis);
   }
-  for (const Prim& p : g.prims_) mix(&p.id, sizeof p.id);
+  for (const Prim& p : g.prims_) mix(p.id);
   g.stats_.tree_hash = hash;
   g.stats_.nodes = std::uint32_t(g.nodes_.size());
   g.stats_.leaves = leaves;
