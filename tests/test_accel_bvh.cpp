@@ -317,6 +317,49 @@ TEST_CASE("BVH build: stats, degenerate inputs, depth cap", "[accel][bvh]") {
   }
 }
 
+TEST_CASE("BVH build: the same tree on any number of threads", "[accel][bvh][threads]") {
+  // Large enough that the top levels are split by all threads and the rest by one thread per
+  // subtree (bvh.cpp's kParallelGrain is 2^15 prims): mixed shapes, duplicates, a cluster of
+  // coincident centres and a geometric cluster that drives one subtree deep.
+  TestRng rng{16};
+  std::vector<Shape> shapes = random_scene(rng, 120000);
+  for (int i = 0; i < 5000; ++i) shapes.push_back(sphere({3, 4, 5}, 0.25f + 0.001f * float(i % 7)));
+  double x = 1.0;
+  for (int i = 0; i < 200; ++i, x *= 0.7) shapes.push_back(sphere({float(x) - 10, 0, 0}, float(0.01 * x)));
+  for (const Isa isa : {Isa::kScalar, best_isa()}) {
+    const Geometry one = Geometry::build(shapes, isa, 1);
+    INFO("isa " << isa_name(isa) << ", nodes " << one.stats().nodes << ", depth " << one.stats().max_depth);
+    CHECK(one.stats().nodes == 2 * one.stats().leaves - 1);
+    CHECK(one.stats().nodes > 2 * (1u << 15) / 4);
+    for (const unsigned threads : {2u, 3u, 0u}) {
+      const Geometry many = Geometry::build(shapes, isa, threads);
+      INFO("threads " << threads);
+      CHECK(many.stats().tree_hash == one.stats().tree_hash);
+      CHECK(many.stats().nodes == one.stats().nodes);
+      CHECK(many.stats().leaves == one.stats().leaves);
+      CHECK(many.stats().max_depth == one.stats().max_depth);
+      CHECK(many.stats().outside == one.stats().outside);
+      CHECK(many.stats().wide_nodes == one.stats().wide_nodes);
+    }
+    // And the tree answers as brute force does.
+    const Geometry two = Geometry::build(shapes, isa, 2);
+    long mismatches = 0, hits = 0;
+    for (int i = 0; i < 3000; ++i) {
+      const Ray ray = make_ray(to_f(rng.in_cube(30.0)), unit_f(rng.unit()));
+      Hit a, b;
+      const bool fa = two.intersect(ray, a), fb = brute_force(shapes, ray, b);
+      hits += fb;
+      mismatches += fa != fb || (fa && !same_hit(a, b));
+    }
+    CHECK(hits > 300);
+    CHECK(mismatches == 0);
+  }
+  // A different tree gives a different hash (the hash can fail).
+  std::vector<Shape> fewer(shapes.begin(), shapes.end() - 1);
+  CHECK(Geometry::build(fewer, Isa::kScalar, 2).stats().tree_hash !=
+        Geometry::build(shapes, Isa::kScalar, 2).stats().tree_hash);
+}
+
 TEST_CASE("Timing: 1280x720 camera rays into 100,000 spheres (reported, not asserted)", "[accel][timing]") {
   TestRng rng{11};
   std::vector<Shape> shapes;

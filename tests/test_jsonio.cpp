@@ -413,3 +413,64 @@ TEST_CASE("utf8_at decodes RFC 3629 sequences and refuses overlong, surrogate, t
     CHECK(utf8_at(bad, 0).length == 0);
   }
 }
+
+TEST_CASE("StrictParser: pieces of any size, a split array handed over element by element", "[jsonio][stream]") {
+  const std::string text =
+      "{\"a\": 1,\n \"items\": [{\"x\": [1, 2.5]}, 7, \"s\\u00e9\", [], null, {\"y\": {\"z\": true}}],\n"
+      " \"b\": {\"items\": [1]}, \"c\": [0.1]}";
+  const jsonio::Document whole = jsonio::parse_strict(text, 64, 10);
+  REQUIRE(whole.parsed);
+  for (const std::size_t piece : {std::size_t(1), std::size_t(3), std::size_t(7), text.size()}) {
+    INFO("piece " << piece);
+    jsonio::StrictParser parser(64, 10);
+    std::vector<std::pair<std::size_t, std::string>> got;
+    parser.split_array("items", [&](std::size_t i, const json::value& v) { got.push_back({i, json::serialize(v)}); });
+    for (std::size_t at = 0; at < text.size(); at += piece)
+      REQUIRE(parser.write(std::string_view(text).substr(at, piece)));
+    const jsonio::Document doc = parser.finish();
+    REQUIRE(doc.parsed);
+    CHECK(parser.split_seen());
+    REQUIRE(got.size() == 6);
+    const json::array& items = whole.value.at("items").as_array();
+    for (std::size_t i = 0; i < got.size(); ++i) {
+      CHECK(got[i].first == i);
+      CHECK(got[i].second == json::serialize(items[i]));
+    }
+    // The split array is empty in the document; everything else (a nested "items" too) is kept.
+    CHECK(doc.value.at("items").as_array().empty());
+    CHECK(json::serialize(doc.value.at("b")) == json::serialize(whole.value.at("b")));
+    CHECK(doc.value.at("c") == whole.value.at("c"));
+    CHECK(doc.value.at("a") == whole.value.at("a"));
+  }
+}
+
+TEST_CASE("StrictParser: a syntax error found in a later piece has the whole text's position", "[jsonio][stream]") {
+  const std::string text = "{\"items\": [1,\n 2,\n 3 4]}";  // line 3, column 4
+  const jsonio::Document whole = jsonio::parse_strict(text, 64, 10);
+  REQUIRE_FALSE(whole.parsed);
+  REQUIRE(whole.errors.size() == 1);
+  for (const std::size_t piece : {std::size_t(1), std::size_t(5), text.size()}) {
+    INFO("piece " << piece);
+    jsonio::StrictParser parser(64, 10);
+    std::size_t elements = 0;
+    parser.split_array("items", [&](std::size_t, const json::value&) { ++elements; });
+    for (std::size_t at = 0; at < text.size(); at += piece) {
+      if (!parser.write(std::string_view(text).substr(at, piece))) break;
+    }
+    const jsonio::Document doc = parser.finish();
+    CHECK_FALSE(doc.parsed);
+    REQUIRE(doc.errors.size() == 1);
+    CHECK(doc.errors[0].message == whole.errors[0].message);
+    CHECK(doc.errors[0].message.find("line 3, column 4") != std::string::npos);
+    CHECK(doc.errors[0].path == whole.errors[0].path);
+    CHECK(elements == 3);  // 1, 2 and 3 were complete
+  }
+  SECTION("unexpected end of input") {
+    jsonio::StrictParser parser(64, 10);
+    REQUIRE(parser.write("{\"a\": [1,\n"));
+    const jsonio::Document doc = parser.finish();
+    CHECK_FALSE(doc.parsed);
+    REQUIRE(doc.errors.size() == 1);
+    CHECK(doc.errors[0].message == jsonio::parse_strict("{\"a\": [1,\n", 64, 10).errors[0].message);
+  }
+}

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include <catch2/catch.hpp>
+#include <fmt/format.h>
 
 #include "scene/digest.h"
 #include "scene/generate.h"
@@ -549,5 +550,49 @@ TEST_CASE("file-level errors name the file", "[scene][files]") {
     REQUIRE(r.errors.size() == 1);
     CHECK(r.errors[0].file == file.path());
     CHECK(r.errors[0].path == "/camera");
+  }
+}
+
+TEST_CASE("Scene files are read and parsed in pieces: same scene, same errors", "[scene][stream]") {
+  // Over 1 MiB (the loader's read size), so the objects and the error below cross pieces.
+  const dtraced::scene::SceneDesc desc = generate_sphere_field(6000, 3);
+  const std::string canonical = dtraced::scene::canonical_json(desc);
+  REQUIRE(canonical.size() > (std::size_t(1) << 20));
+  {
+    const TempFile file(canonical);
+    const LoadResult r = load_scene_file(file.path());
+    REQUIRE(r.ok());
+    CHECK(*r.scene == desc);
+  }
+  SECTION("an object's problem keeps its path, after the camera's and before the lights'") {
+    std::string bad = canonical;
+    const std::size_t at = bad.rfind("\"radius\":");
+    bad.replace(at, 9, "\"radius\":-");
+    const std::size_t cam = bad.find("\"fov\":");
+    bad.replace(cam, 6, "\"fov\":-");
+    const TempFile file(bad);
+    const LoadResult r = load_scene_file(file.path());
+    REQUIRE(r.errors.size() == 2);
+    CHECK(r.errors[0].path == "/camera/fov");
+    CHECK(r.errors[1].path == "/scene_objects/6000/radius");
+    CHECK(r.errors[1].file == file.path());
+    CHECK(load_scene_string(bad, "x.json").errors.size() == 2);
+  }
+  SECTION("a syntax error past the first piece: its line, column and byte") {
+    std::string bad = canonical;
+    const std::size_t at = bad.rfind("\"radius\":");
+    bad.replace(at, 9, "\"radius\"::");
+    const TempFile file(bad);
+    const LoadResult r = load_scene_file(file.path());
+    REQUIRE(r.errors.size() == 1);
+    const LoadResult s = load_scene_string(bad, file.path());
+    REQUIRE(s.errors.size() == 1);
+    CHECK(r.errors[0].to_string() == s.errors[0].to_string());
+    CHECK(r.errors[0].message.find(fmt::format("(byte {})", at + 9)) != std::string::npos);
+  }
+  SECTION("a file over the size limit stops the read with one error") {
+    LoadOptions options;
+    options.max_bytes = 100;
+    CHECK(load_scene_file(TempFile(canonical).path(), options).errors.size() == 1);
   }
 }

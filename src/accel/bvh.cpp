@@ -1,14 +1,23 @@
 // dtraced::accel BVH: binned-SAH build into a depth-first node array, and iterative nearest-hit /
 // any-hit traversal with a fixed stack. Planes are infinite and tested linearly beside the tree.
+//
+// The build runs on up to the caller's thread count and gives the same node array whatever that
+// count: the levels above kParallelGrain prims are split one node at a time with their binning
+// cut into fixed-size chunks (merged in chunk order), the ranges below become independent
+// subtrees built one per thread, and the subtrees are stitched back in depth-first order.
 #include <algorithm>
 #include <array>
+#include <atomic>
+#include <bit>
 #include <cassert>
 #include <chrono>
 #include <limits>
+#include <thread>
 #include <utility>
 
 #include "accel/geometry.h"
 #include "accel/kernels.h"
+#include "util/cpus.h"
 
 namespace dtraced::accel {
 
@@ -27,6 +36,13 @@ constexpr std::size_t kMinWidePrims = 64;
 constexpr double kHugeFraction = 0.25;
 constexpr std::size_t kMaxOutside = 16;
 constexpr std::uint32_t kNoParent = std::numeric_limits<std::uint32_t>::max();
+// Ranges of fewer prims are built as one subtree by one thread; larger ones are split by all.
+// A constant, not derived from the thread count, so the work split is the same on every host.
+constexpr std::uint32_t kParallelGrain = 1u << 15;
+// Prims per chunk of the parallel loops (binning, bounds, prim packing).
+constexpr std::size_t kChunk = 1u << 14;
+// Most threads a build starts, whatever the caller asks.
+constexpr unsigned kMaxBuildThreads = 64;
 
 struct BuildPrim {
   Bounds3f bounds;
@@ -58,26 +74,326 @@ int bin_of(float c, double lo, double scale) {
   return std::clamp(int(x), 0, kBins - 1);
 }
 
+// Calls fn(i) for every i in [0, count) on up to `threads` threads, the caller's among them; returns
+// when all are done. Which thread runs which i is left to chance, so fn(i) must write only what
+// belongs to i.
+template <typename Fn>
+void parallel_for(std::size_t count, unsigned threads, const Fn& fn) {
+  const auto n = unsigned(std::min<std::size_t>(threads, count));
+  if (n <= 1) {
+    for (std::size_t i = 0; i < count; ++i) fn(i);
+    return;
+  }
+  std::atomic<std::size_t> next{0};
+  const auto work = [&] {
+    for (std::size_t i = next.fetch_add(1); i < count; i = next.fetch_add(1)) fn(i);
+  };
+  std::vector<std::thread> pool;
+  pool.reserve(n - 1);
+  for (unsigned k = 0; k + 1 < n; ++k) pool.emplace_back(work);
+  work();
+  for (std::thread& t : pool) t.join();
+}
+
+std::size_t chunks_of(std::size_t n) { return (n + kChunk - 1) / kChunk; }
+
+struct RangeBounds {
+  Bounds3f bounds, centroids;
+};
+
+struct Bins {
+  std::array<Bounds3f, kBins> bounds;
+  std::array<std::uint32_t, kBins> count{};
+};
+
+// The outcome of looking at one range: a leaf, or a split at `mid` along `axis`. (Handing the
+// children their bounds from the bins, to save them a pass, was tried: tracking centroid bounds
+// per bin cost more than the pass.)
+struct Split {
+  Bounds3f bounds;
+  bool leaf = false;
+  std::uint32_t axis = 0;
+  std::uint32_t mid = 0;
+};
+
+// Binned SAH over refs[begin, end): the same decisions for a range whoever looks at it. With
+// `threads` > 1 the passes over the range go in kChunk pieces, merged in chunk order; `chunked`
+// selects that form (also on one thread) so a range's bounds come out of the same operations
+// whatever the thread count.
+class Splitter {
+ public:
+  Splitter(std::vector<BuildPrim>& refs, Isa isa) : refs_(refs), isa_(isa) {}
+
+  Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, bool chunked, unsigned threads) const {
+    Split out;
+    const RangeBounds rb = chunked ? range_bounds_chunked(begin, end, threads) : range_bounds(begin, end);
+    out.bounds = rb.bounds;
+    const std::uint32_t n = end - begin;
+    if (n == 1 || depth + 1 >= Geometry::kMaxDepth) {
+      out.leaf = true;
+      return out;
+    }
+    const auto axis = std::uint32_t(math::max_dimension(rb.centroids.extent()));
+    out.axis = axis;
+    const double c_lo = rb.centroids.lo[axis];
+    const double c_extent = double(rb.centroids.hi[axis]) - c_lo;
+    if (!(c_extent > 0.0)) {
+      // All centroids coincide: SAH cannot separate them, split the range in half.
+      out.leaf = n <= kMaxLeafSize;
+      out.mid = begin + n / 2;
+      return out;
+    }
+    const double scale = kBins / c_extent;
+    const Bins bins =
+        chunked ? bin_chunked(begin, end, axis, c_lo, scale, threads) : bin(begin, end, axis, c_lo, scale);
+    // SAH cost of splitting after bin k, scaled by the node's area to avoid a division (flat or
+    // point-like nodes have zero area): kTraversalCost A + A_left n_left + A_right n_right.
+    // Only splits between the first and the last non-empty bin have two non-empty sides; the
+    // sweeps skip the rest (most bins of a small range are empty).
+    int first_bin = 0, last_bin = kBins - 1;
+    while (bins.count[first_bin] == 0) ++first_bin;
+    while (bins.count[last_bin] == 0) --last_bin;
+    std::array<double, kBins - 1> left_cost{};
+    Bounds3f acc;
+    std::uint32_t acc_n = 0;
+    for (int k = first_bin; k < last_bin; ++k) {
+      acc.extend(bins.bounds[k]);
+      acc_n += bins.count[k];
+      left_cost[k] = acc_n == 0 ? -1.0 : area(acc) * acc_n;  // -1: empty side, not a split
+    }
+    const double node_area = area(rb.bounds);
+    double best_cost = std::numeric_limits<double>::infinity();
+    int best_k = -1;
+    acc = Bounds3f{};
+    acc_n = 0;
+    for (int k = last_bin - 1; k >= first_bin; --k) {
+      acc.extend(bins.bounds[k + 1]);
+      acc_n += bins.count[k + 1];
+      if (acc_n == 0 || left_cost[k] < 0.0) continue;
+      const double cost = kTraversalCost * node_area + left_cost[k] + area(acc) * acc_n;
+      if (cost <= best_cost) {
+        best_cost = cost;
+        best_k = k;
+      }
+    }
+    // The SIMD kernels test a leaf's prims 4 at a time, so for them a fuller leaf costs little
+    // more than a single prim: favour leaves of up to kMaxLeafSize (fewer, fuller blocks).
+    const double leaf_cost = (isa_ == Isa::kScalar ? double(n) : 1.0 + kSimdLeafSlope * (n - 1)) * node_area;
+    if (n <= kMaxLeafSize && leaf_cost <= best_cost) {
+      out.leaf = true;
+      return out;
+    }
+    if (best_k < 0) {
+      out.mid = begin + n / 2;  // NaN costs (cannot happen for valid shapes): split in half
+    } else {
+      auto* first = refs_.data() + begin;
+      auto* last = refs_.data() + end;
+      out.mid = std::uint32_t(
+          std::partition(first, last,
+                         [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
+          refs_.data());
+    }
+    assert(out.mid > begin && out.mid < end);
+    return out;
+  }
+
+ private:
+  RangeBounds range_bounds(std::size_t begin, std::size_t end) const {
+    RangeBounds rb;
+    for (std::size_t i = begin; i < end; ++i) {
+      rb.bounds.extend(refs_[i].bounds);
+      rb.centroids.extend(refs_[i].centroid);
+    }
+    return rb;
+  }
+  RangeBounds range_bounds_chunked(std::size_t begin, std::size_t end, unsigned threads) const {
+    std::vector<RangeBounds> parts(chunks_of(end - begin));
+    parallel_for(parts.size(), threads, [&](std::size_t c) {
+      parts[c] = range_bounds(begin + c * kChunk, std::min(end, begin + (c + 1) * kChunk));
+    });
+    RangeBounds rb;
+    for (const RangeBounds& p : parts) {
+      rb.bounds.extend(p.bounds);
+      rb.centroids.extend(p.centroids);
+    }
+    return rb;
+  }
+  Bins bin(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale) const {
+    Bins bins;
+    for (std::size_t i = begin; i < end; ++i) {
+      const int b = bin_of(refs_[i].centroid[axis], c_lo, scale);
+      ++bins.count[b];
+      bins.bounds[b].extend(refs_[i].bounds);
+    }
+    return bins;
+  }
+  Bins bin_chunked(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale,
+                   unsigned threads) const {
+    std::vector<Bins> parts(chunks_of(end - begin));
+    parallel_for(parts.size(), threads, [&](std::size_t c) {
+      parts[c] = bin(begin + c * kChunk, std::min(end, begin + (c + 1) * kChunk), axis, c_lo, scale);
+    });
+    Bins bins;
+    for (const Bins& p : parts) {
+      for (int k = 0; k < kBins; ++k) {
+        bins.bounds[k].extend(p.bounds[k]);
+        bins.count[k] += p.count[k];
+      }
+    }
+    return bins;
+  }
+
+  std::vector<BuildPrim>& refs_;
+  Isa isa_;
+};
+
+// A subtree built by one thread: nodes in depth-first order, `offset`s of interior nodes local to
+// `nodes` (the stitch adds the subtree's place in the whole array), leaf offsets into refs.
+template <typename Node>
+struct Subtree {
+  std::uint32_t begin = 0, end = 0, depth = 0;
+  std::vector<Node> nodes;
+  std::uint32_t leaves = 0;
+  std::uint32_t max_depth = 0;
+};
+
+template <typename Node>
+void fill_node(Node& node, const Split& s, std::uint32_t begin, std::uint32_t end) {
+  for (int i = 0; i < 3; ++i) {
+    node.bounds[i] = s.bounds.lo[i];
+    node.bounds[3 + i] = s.bounds.hi[i];
+  }
+  if (s.leaf) {
+    node.offset = begin;
+    node.count = end - begin;
+    node.axis = 0;
+  } else {
+    node.offset = 0;
+    node.count = 0;
+    node.axis = s.axis;
+  }
+}
+
+// Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread.
+template <typename Node>
+void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
+  t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
+  std::vector<Task> stack;
+  stack.push_back({t.begin, t.end, t.depth, kNoParent});
+  while (!stack.empty()) {
+    const Task task = stack.back();
+    stack.pop_back();
+    const auto index = std::uint32_t(t.nodes.size());
+    if (task.parent != kNoParent) t.nodes[task.parent].offset = index;
+    t.max_depth = std::max(t.max_depth, task.depth);
+    const Split s = splitter.split(task.begin, task.end, task.depth, /* chunked = */ false, 1);
+    fill_node(t.nodes.emplace_back(), s, task.begin, task.end);
+    if (s.leaf) {
+      ++t.leaves;
+      continue;
+    }
+    // LIFO: the first child is popped next and so lands at index + 1.
+    stack.push_back({s.mid, task.end, task.depth + 1, index});
+    stack.push_back({task.begin, s.mid, task.depth + 1, kNoParent});
+  }
+}
+
+// The levels above kParallelGrain: one node each (`subtree` < 0), or a range left to a subtree.
+template <typename Node>
+struct TopNode {
+  Node node;
+  int first = -1, second = -1;  // children, indices into the top node list
+  int subtree = -1;             // index into the subtree list
+  std::uint32_t depth = 0;
+};
+
+template <typename Node>
+int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, std::uint32_t depth, unsigned threads,
+              std::vector<TopNode<Node>>& top, std::vector<Subtree<Node>>& subtrees) {
+  const int index = int(top.size());
+  top.emplace_back().depth = depth;
+  if (end - begin < kParallelGrain) {
+    top[index].subtree = int(subtrees.size());
+    Subtree<Node>& t = subtrees.emplace_back();
+    t.begin = begin;
+    t.end = end;
+    t.depth = depth;
+    return index;
+  }
+  const Split s = splitter.split(begin, end, depth, /* chunked = */ true, threads);
+  fill_node(top[index].node, s, begin, end);
+  if (!s.leaf) {
+    // Recursion depth is bounded by log2(prims / kParallelGrain) + 1: both children are smaller.
+    const int first = split_top(splitter, begin, s.mid, depth + 1, threads, top, subtrees);
+    const int second = split_top(splitter, s.mid, end, depth + 1, threads, top, subtrees);
+    top[index].first = first;
+    top[index].second = second;
+  }
+  return index;
+}
+
+// Appends top node `t` and everything below it to `nodes` in depth-first order; returns its index.
+template <typename Node>
+std::uint32_t stitch(int t, const std::vector<TopNode<Node>>& top, const std::vector<Subtree<Node>>& subtrees,
+                     std::vector<Node>& nodes) {
+  const auto index = std::uint32_t(nodes.size());
+  const TopNode<Node>& tn = top[t];
+  if (tn.subtree >= 0) {
+    for (Node n : subtrees[tn.subtree].nodes) {
+      if (n.count == 0) n.offset += index;
+      nodes.push_back(n);
+    }
+    return index;
+  }
+  nodes.push_back(tn.node);
+  if (tn.first >= 0) {
+    stitch(tn.first, top, subtrees, nodes);  // lands at index + 1
+    nodes[index].offset = stitch(tn.second, top, subtrees, nodes);
+  }
+  return index;
+}
+
 }  // namespace
 
-Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
+Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   static_assert(sizeof(Node) == 32 && sizeof(Prim) == 32, "two nodes / prims per 64-byte cache line");
   const auto start = std::chrono::steady_clock::now();
+  if (threads == 0) threads = util::usable_cpus();
+  threads = std::min(threads, kMaxBuildThreads);
   Geometry g;
   g.shapes_ = std::move(shapes);
 
-  std::vector<BuildPrim> refs;
-  refs.reserve(g.shapes_.size());
-  for (std::uint32_t id = 0; id < g.shapes_.size(); ++id) {
-    const Shape& s = g.shapes_[id];
-    if (!detail::shape_is_valid(s)) continue;
-    g.has_triangles_ = g.has_triangles_ || s.type == ShapeType::kTriangle;
-    if (s.type == ShapeType::kPlane) {
-      g.outside_.push_back(id);
-      continue;
+  // Bounds of every shape, in chunks (in parallel for large scenes); the planes and invalid
+  // shapes are dropped after, in id order.
+  std::vector<BuildPrim> refs(g.shapes_.size());
+  std::vector<std::uint8_t> kind(g.shapes_.size());  // 0 invalid, 1 plane, 2 bounded
+  parallel_for(chunks_of(g.shapes_.size()), g.shapes_.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+    const std::size_t end = std::min(g.shapes_.size(), (c + 1) * kChunk);
+    for (std::size_t id = c * kChunk; id < end; ++id) {
+      const Shape& s = g.shapes_[id];
+      if (!detail::shape_is_valid(s)) continue;
+      if (s.type == ShapeType::kPlane) {
+        kind[id] = 1;
+        continue;
+      }
+      kind[id] = 2;
+      const Bounds3f b = shape_bounds(s);
+      refs[id] = {b, b.centroid(), std::uint32_t(id)};
     }
-    const Bounds3f b = shape_bounds(s);
-    refs.push_back({b, b.centroid(), id});
+  });
+  {
+    std::size_t k = 0;
+    for (std::uint32_t id = 0; id < g.shapes_.size(); ++id) {
+      if (kind[id] == 0) continue;
+      g.has_triangles_ = g.has_triangles_ || g.shapes_[id].type == ShapeType::kTriangle;
+      if (kind[id] == 1) {
+        g.outside_.push_back(id);
+      } else {
+        refs[k++] = refs[id];
+      }
+    }
+    refs.resize(k);
+    std::vector<std::uint8_t>().swap(kind);
   }
 
   // Huge shapes (a floor or the walls of a room as boxes or big triangles) overlap every SAH
@@ -114,138 +430,69 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa) {
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;
   if (!refs.empty()) {
-    g.nodes_.reserve(2 * refs.size());
-    std::vector<Task> stack;
-    stack.push_back({0, std::uint32_t(refs.size()), 0, kNoParent});
-    while (!stack.empty()) {
-      const Task task = stack.back();
-      stack.pop_back();
-      const auto index = std::uint32_t(g.nodes_.size());
-      if (task.parent != kNoParent) g.nodes_[task.parent].offset = index;
-      g.nodes_.emplace_back();
-      max_depth = std::max(max_depth, task.depth);
+    const Splitter splitter(refs, isa);
+    std::vector<TopNode<Node>> top;
+    std::vector<Subtree<Node>> subtrees;
+    split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, top, subtrees);
+    parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
+    std::size_t total = top.size();
+    for (const auto& t : subtrees) total += t.nodes.size();
+    g.nodes_.reserve(total);
+    stitch(0, top, subtrees, g.nodes_);
+    for (const TopNode<Node>& t : top) {
+      if (t.subtree >= 0) continue;
+      max_depth = std::max(max_depth, t.depth);
+      if (t.node.count > 0) ++leaves;
+    }
+    for (const auto& t : subtrees) {
+      leaves += t.leaves;
+      max_depth = std::max(max_depth, t.max_depth);
+    }
+  }
 
-      Bounds3f bounds, centroids;
-      for (std::uint32_t i = task.begin; i < task.end; ++i) {
-        bounds.extend(refs[i].bounds);
-        centroids.extend(refs[i].centroid);
-      }
-      Node& node = g.nodes_.back();
-      for (int i = 0; i < 3; ++i) {
-        node.bounds[i] = bounds.lo[i];
-        node.bounds[3 + i] = bounds.hi[i];
-      }
-      node.count = 0;
-      node.axis = 0;
-
-      const std::uint32_t n = task.end - task.begin;
-      auto make_leaf = [&] {
-        node.offset = task.begin;
-        node.count = n;
-        ++leaves;
-      };
-      if (n == 1 || task.depth + 1 >= kMaxDepth) {
-        make_leaf();
-        continue;
-      }
-
-      const auto axis = std::uint32_t(math::max_dimension(centroids.extent()));
-      const double c_lo = centroids.lo[axis];
-      const double c_extent = double(centroids.hi[axis]) - c_lo;
-      std::uint32_t mid = 0;
-      if (!(c_extent > 0.0)) {
-        // All centroids coincide: SAH cannot separate them, split the range in half.
-        if (n <= kMaxLeafSize) {
-          make_leaf();
-          continue;
-        }
-        mid = task.begin + n / 2;
+  g.prims_.resize(refs.size());
+  parallel_for(chunks_of(refs.size()), refs.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+    const std::size_t end = std::min(refs.size(), (c + 1) * kChunk);
+    for (std::size_t i = c * kChunk; i < end; ++i) {
+      const Shape& s = g.shapes_[refs[i].id];
+      Prim& p = g.prims_[i];
+      p.id = refs[i].id;
+      p.type = s.type;
+      if (s.type == ShapeType::kTriangle) {
+        // The scalar path reads the vertices from shapes_ (9 floats do not fit a 32-byte prim).
+        for (float& x : p.data) x = 0.0f;
+      } else if (s.type == ShapeType::kSphere) {
+        p.data[0] = s.sphere.center.x;
+        p.data[1] = s.sphere.center.y;
+        p.data[2] = s.sphere.center.z;
+        p.data[3] = s.sphere.radius;
+        p.data[4] = p.data[5] = 0.0f;
       } else {
-        const double scale = kBins / c_extent;
-        std::array<Bounds3f, kBins> bin_bounds;
-        std::array<std::uint32_t, kBins> bin_count{};
-        for (std::uint32_t i = task.begin; i < task.end; ++i) {
-          const int b = bin_of(refs[i].centroid[axis], c_lo, scale);
-          ++bin_count[b];
-          bin_bounds[b].extend(refs[i].bounds);
-        }
-        // SAH cost of splitting after bin k, scaled by the node's area to avoid a division (flat or
-        // point-like nodes have zero area): kTraversalCost A + A_left n_left + A_right n_right.
-        std::array<double, kBins - 1> left_cost{};
-        Bounds3f acc;
-        std::uint32_t acc_n = 0;
-        for (int k = 0; k < kBins - 1; ++k) {
-          acc.extend(bin_bounds[k]);
-          acc_n += bin_count[k];
-          left_cost[k] = acc_n == 0 ? -1.0 : area(acc) * acc_n;  // -1: empty side, not a split
-        }
-        const double node_area = area(bounds);
-        double best_cost = std::numeric_limits<double>::infinity();
-        int best_k = -1;
-        acc = Bounds3f{};
-        acc_n = 0;
-        for (int k = kBins - 2; k >= 0; --k) {
-          acc.extend(bin_bounds[k + 1]);
-          acc_n += bin_count[k + 1];
-          if (acc_n == 0 || left_cost[k] < 0.0) continue;
-          const double cost = kTraversalCost * node_area + left_cost[k] + area(acc) * acc_n;
-          if (cost <= best_cost) {
-            best_cost = cost;
-            best_k = k;
-          }
-        }
-        // The SIMD kernels test a leaf's prims 4 at a time, so for them a fuller leaf costs little
-        // more than a single prim: favour leaves of up to kMaxLeafSize (fewer, fuller blocks).
-        const double leaf_cost = (isa == Isa::kScalar ? double(n) : 1.0 + kSimdLeafSlope * (n - 1)) * node_area;
-        if (n <= kMaxLeafSize && leaf_cost <= best_cost) {
-          make_leaf();
-          continue;
-        }
-        if (best_k < 0) {
-          mid = task.begin + n / 2;  // NaN costs (cannot happen for valid shapes): split in half
-        } else {
-          auto* first = refs.data() + task.begin;
-          auto* last = refs.data() + task.end;
-          mid = std::uint32_t(
-              std::partition(first, last,
-                             [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
-              refs.data());
-        }
+        p.data[0] = s.box.lo.x;
+        p.data[1] = s.box.lo.y;
+        p.data[2] = s.box.lo.z;
+        p.data[3] = s.box.hi.x;
+        p.data[4] = s.box.hi.y;
+        p.data[5] = s.box.hi.z;
       }
-      assert(mid > task.begin && mid < task.end);
-      node.axis = axis;
-      // LIFO: the first child is popped next and so lands at index + 1.
-      stack.push_back({mid, task.end, task.depth + 1, index});
-      stack.push_back({task.begin, mid, task.depth + 1, kNoParent});
     }
-  }
+  });
+  std::vector<BuildPrim>().swap(refs);
 
-  g.prims_.reserve(refs.size());
-  for (const BuildPrim& ref : refs) {
-    const Shape& s = g.shapes_[ref.id];
-    Prim p;
-    p.id = ref.id;
-    p.type = s.type;
-    if (s.type == ShapeType::kTriangle) {
-      // The scalar path reads the vertices from shapes_ (9 floats do not fit a 32-byte prim).
-      for (float& x : p.data) x = 0.0f;
-    } else if (s.type == ShapeType::kSphere) {
-      p.data[0] = s.sphere.center.x;
-      p.data[1] = s.sphere.center.y;
-      p.data[2] = s.sphere.center.z;
-      p.data[3] = s.sphere.radius;
-      p.data[4] = p.data[5] = 0.0f;
-    } else {
-      p.data[0] = s.box.lo.x;
-      p.data[1] = s.box.lo.y;
-      p.data[2] = s.box.lo.z;
-      p.data[3] = s.box.hi.x;
-      p.data[4] = s.box.hi.y;
-      p.data[5] = s.box.hi.z;
-    }
-    g.prims_.push_back(p);
+  // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
+  std::uint64_t hash = 0xcbf29ce484222325ull;
+  const auto mix = [&hash](std::uint32_t word) {
+    hash ^= word;
+    hash *= 0x100000001b3ull;
+  };
+  for (const Node& n : g.nodes_) {
+    for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
+    mix(n.offset);
+    mix(n.count);
+    mix(n.axis);
   }
-
+  for (const Prim& p : g.prims_) mix(p.id);
+  g.stats_.tree_hash = hash;
   g.stats_.nodes = std::uint32_t(g.nodes_.size());
   g.stats_.leaves = leaves;
   g.stats_.outside = std::uint32_t(g.outside_.size());

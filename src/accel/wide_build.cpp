@@ -47,7 +47,31 @@ WideBvh collapse_to_wide(const Geometry& g) {
   WideBvh w;
   const auto& nodes = g.nodes_;
   if (nodes.empty()) return w;
-  w.nodes.reserve(nodes.size() / 2 + 1);
+  // Exact sizes up front: growing these vectors by doubling copied and first-touched every block
+  // twice. Leaves and blocks are counted from the binary leaves (a pass over the prims, which
+  // are in leaf order); a wide node holds at least two binary interior nodes' children, so the
+  // binary interior count bounds the wide count.
+  {
+    std::size_t leaves = 0, sphere_blocks = 0, triangle_blocks = 0, boxes = 0;
+    for (const auto& node : nodes) {
+      if (node.count == 0) continue;
+      ++leaves;
+      std::size_t ns = 0, nt = 0;
+      for (std::uint32_t k = 0; k < node.count; ++k) {
+        const ShapeType type = g.prims_[node.offset + k].type;
+        ns += type == ShapeType::kSphere;
+        nt += type == ShapeType::kTriangle;
+        boxes += type == ShapeType::kBox;
+      }
+      sphere_blocks += (ns + kWidth - 1) / kWidth;
+      triangle_blocks += (nt + kWidth - 1) / kWidth;
+    }
+    w.nodes.reserve(nodes.size() - leaves + 1);
+    w.leaves.reserve(leaves);
+    w.spheres.reserve(sphere_blocks);
+    w.triangles.reserve(triangle_blocks);
+    w.boxes.reserve(boxes);
+  }
 
   auto make_leaf = [&](std::uint32_t bin_index) {
     const auto& node = nodes[bin_index];
@@ -58,20 +82,22 @@ WideBvh collapse_to_wide(const Geometry& g) {
     int ns = 0, nt = 0;
     for (std::uint32_t k = 0; k < node.count; ++k) {
       const auto& prim = g.prims_[node.offset + k];
-      const Shape& shape = g.shapes_[prim.id];
       switch (prim.type) {
         case ShapeType::kSphere: {
+          // The prim holds the sphere (centre, radius), and prims are in leaf order: no random
+          // access into shapes_.
           if (ns % kWidth == 0) w.spheres.push_back(empty_sphere_block());
           SphereBlock& b = w.spheres.back();
           const int lane = ns++ % kWidth;
-          b.cx[lane] = shape.sphere.center.x;
-          b.cy[lane] = shape.sphere.center.y;
-          b.cz[lane] = shape.sphere.center.z;
-          b.r[lane] = shape.sphere.radius;
+          b.cx[lane] = prim.data[0];
+          b.cy[lane] = prim.data[1];
+          b.cz[lane] = prim.data[2];
+          b.r[lane] = prim.data[3];
           b.id[lane] = prim.id;
           break;
         }
         case ShapeType::kTriangle: {
+          const Shape& shape = g.shapes_[prim.id];
           w.has_triangles = true;
           if (nt % kWidth == 0) w.triangles.push_back(empty_triangle_block());
           TriangleBlock& b = w.triangles.back();

@@ -35,7 +35,7 @@ void add_generate(CLI::App& app, LocalCommands& c) {
   GenerateArgs& generate = c.generate;
   CLI::App* g = app.add_subcommand("generate", "Write a generated stress scene (many spheres on a plane)");
   CLI::Option* count = g->add_option("-n,--count", generate.count, "Number of spheres")
-                           ->check(CLI::Range(1u, 500000u));  // keeps the file under the loader's size limit
+                           ->check(CLI::Range(1u, 9999999u));  // with the plane, the loader's 10M objects
   g->add_option("--seed", generate.seed, "Generator seed");
   g->add_option("--mesh-triangles", generate.mesh_triangles,
                 "Write a mesh scene of about this many triangles (OBJ files beside the scene) instead of spheres")

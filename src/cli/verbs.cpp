@@ -125,6 +125,8 @@ int generate_mesh(const GenerateArgs& args) {
 // The canonical text with plain decimals (2.2, not Boost's 2.2E0) for people to read: the same
 // doubles (both forms are shortest round-trip), so the same scene and digest.
 std::string readable_json(const std::string& canonical) {
+  // A large scene is written as it is: re-reading it into a tree would cost ~1 GB per 1M objects.
+  if (canonical.size() > (std::size_t(64) << 20)) return canonical + "\n";
   jsonio::Document doc = jsonio::parse_strict(canonical, scene::kMaxJsonDepth, 1);
   return doc.parsed ? jsonio::to_text(doc.value) + "\n" : canonical;
 }

@@ -4,6 +4,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <system_error>
 #include <utility>
 #include <vector>
@@ -12,6 +13,7 @@
 // translation units that instantiate basic_parser with their own handler (this one).
 #include <boost/json/basic_parser_impl.hpp>
 #include <boost/json/error.hpp>
+#include <boost/json/monotonic_resource.hpp>
 #include <boost/json/object.hpp>
 #include <boost/json/string.hpp>
 #include <boost/json/value_stack.hpp>
@@ -53,35 +55,60 @@ class StrictHandler {
     stack_.reset(std::move(storage));
   }
 
+  // See StrictParser::split_array.
+  void split_array(std::string key, StrictParser::ElementSink sink) {
+    split_key_ = std::move(key);
+    sink_ = std::move(sink);
+  }
+  bool split_seen() const { return split_seen_; }
+
   bool on_document_begin(json::error_code&) { return true; }
   bool on_document_end(json::error_code&) { return true; }
 
-  bool on_array_begin(json::error_code&) { return open(/* is_array = */ true); }
+  bool on_array_begin(json::error_code&) {
+    begin_element();
+    // The split array: a root object's member under the split key.
+    if (sink_ && depth_ == 1 && !frames_[0].is_array && frames_[0].has_key && frames_[0].key == split_key_) {
+      in_split_ = true;
+      split_seen_ = true;
+    }
+    return open(/* is_array = */ true);
+  }
   bool on_array_end(std::size_t n, json::error_code&) {
-    stack_.push_array(n);
+    if (in_split_ && !in_element_ && depth_ == kSplitDepth) {
+      stack_.push_array(0);  // its elements went to the sink
+      in_split_ = false;
+    } else {
+      stack().push_array(n);
+    }
     return close();
   }
-  bool on_object_begin(json::error_code&) { return open(/* is_array = */ false); }
+  bool on_object_begin(json::error_code&) {
+    begin_element();
+    return open(/* is_array = */ false);
+  }
   bool on_object_end(std::size_t n, json::error_code&) {
-    stack_.push_object(n);
+    stack().push_object(n);
     return close();
   }
 
   bool on_string_part(json::string_view s, std::size_t, json::error_code&) {
-    stack_.push_chars(s);
+    begin_element();
+    stack().push_chars(s);
     return true;
   }
   bool on_string(json::string_view s, std::size_t, json::error_code&) {
-    stack_.push_string(s);
+    begin_element();
+    stack().push_string(s);
     return value_done();
   }
   bool on_key_part(json::string_view s, std::size_t, json::error_code&) {
-    stack_.push_chars(s);
+    stack().push_chars(s);
     key_part_.append(s.data(), s.size());
     return true;
   }
   bool on_key(json::string_view s, std::size_t, json::error_code&) {
-    stack_.push_key(s);
+    stack().push_key(s);
     key_part_.append(s.data(), s.size());
     key_read(std::move(key_part_));
     key_part_.clear();
@@ -94,26 +121,31 @@ class StrictHandler {
   }
   bool on_int64(std::int64_t i, json::string_view, json::error_code&) {
     number_part_.clear();
-    stack_.push_int64(i);
+    begin_element();
+    stack().push_int64(i);
     return value_done();
   }
   bool on_uint64(std::uint64_t u, json::string_view, json::error_code&) {
     number_part_.clear();
-    stack_.push_uint64(u);
+    begin_element();
+    stack().push_uint64(u);
     return value_done();
   }
   bool on_double(double boost_value, json::string_view s, json::error_code&) {
     number_part_.append(s.data(), s.size());
-    stack_.push_double(precise_double(number_part_, boost_value));
+    begin_element();
+    stack().push_double(precise_double(number_part_, boost_value));
     number_part_.clear();
     return value_done();
   }
   bool on_bool(bool b, json::error_code&) {
-    stack_.push_bool(b);
+    begin_element();
+    stack().push_bool(b);
     return value_done();
   }
   bool on_null(json::error_code&) {
-    stack_.push_null();
+    begin_element();
+    stack().push_null();
     return value_done();
   }
   // Comments are disabled in parse_options; these only satisfy the handler concept.
@@ -179,8 +211,33 @@ class StrictHandler {
     }
   }
 
+  // Depth (frames open) inside the split array: the root object's and the array's.
+  static constexpr std::size_t kSplitDepth = 2;
+  static constexpr std::size_t kElementBuffer = std::size_t(64) << 10;
+
+  json::value_stack& stack() { return in_element_ ? element_stack_ : stack_; }
+
+  // A value starts: if it is an element of the split array, it is built on its own stack.
+  void begin_element() {
+    if (!in_split_ || in_element_ || depth_ != kSplitDepth) return;
+    in_element_ = true;
+    element_stack_.reset(json::storage_ptr(&element_memory_));
+  }
+
+  // A value is complete: an element of the split array goes to the sink, and its memory is reused.
+  void end_element() {
+    if (!in_element_ || depth_ != kSplitDepth) return;
+    in_element_ = false;
+    {
+      const json::value element = element_stack_.release();
+      sink_(element_index_++, element);
+    }
+    element_memory_.release();
+  }
+
   // A value (scalar or closed container) is complete: advance the enclosing container.
   bool value_done() {
+    end_element();
     if (depth_ == 0) return true;
     Frame& f = frames_[depth_ - 1];
     if (f.is_array) {
@@ -192,6 +249,18 @@ class StrictHandler {
   }
 
   json::value_stack stack_;
+  // The split array (StrictParser::split_array): its key, where its elements go, and the element
+  // being built.
+  std::string split_key_;
+  StrictParser::ElementSink sink_;
+  bool split_seen_ = false;
+  bool in_split_ = false;
+  bool in_element_ = false;
+  std::size_t element_index_ = 0;
+  // The first 64 KiB of every element come from this one buffer, reused (release() keeps it).
+  std::unique_ptr<unsigned char[]> element_buffer_ = std::make_unique<unsigned char[]>(kElementBuffer);
+  json::monotonic_resource element_memory_{element_buffer_.get(), kElementBuffer};
+  json::value_stack element_stack_;
   std::vector<Frame> frames_;
   std::size_t depth_ = 0;
   std::string key_part_;
@@ -312,6 +381,78 @@ std::string quoted(std::string_view text, std::size_t max_bytes) {
   append_printable(out, text.substr(0, keep), /*escape_quote=*/true);
   out += keep < text.size() ? "...\"" : "\"";
   return out;
+}
+
+struct StrictParser::Impl {
+  Impl(std::size_t max_depth_, std::size_t max_errors, json::storage_ptr storage)
+      : max_depth(max_depth_), parser(options(max_depth_), std::move(storage), max_errors) {}
+  static json::parse_options options(std::size_t max_depth) {
+    json::parse_options o;
+    o.max_depth = max_depth;  // the other options already default to strict JSON
+    return o;
+  }
+  // The syntax error `ec` found `consumed` bytes into `piece`.
+  void fail(std::string_view piece, std::size_t consumed, const json::error_code& ec) {
+    const std::string_view before = piece.substr(0, std::min(consumed, piece.size()));
+    const std::size_t newlines = static_cast<std::size_t>(std::count(before.begin(), before.end(), '\n'));
+    const std::size_t last = before.rfind('\n');
+    const std::size_t start = last == std::string_view::npos ? line_start : offset + last + 1;
+    auto& handler = parser.handler();
+    handler.errors().push_back(
+        {fmt::format("invalid JSON at line {}, column {} (byte {}): {}", line + newlines, offset + consumed - start + 1,
+                     offset + consumed, describe_parse_error(ec, max_depth)),
+         handler.current_path()});
+    failed = true;
+  }
+
+  std::size_t max_depth;
+  json::basic_parser<StrictHandler> parser;
+  std::size_t offset = 0;      // bytes of the pieces before this one
+  std::size_t line = 1;        // line at `offset`
+  std::size_t line_start = 0;  // offset of that line's first byte
+  bool failed = false;
+};
+
+StrictParser::StrictParser(std::size_t max_depth, std::size_t max_errors, json::storage_ptr storage)
+    : impl_(std::make_unique<Impl>(max_depth, max_errors, std::move(storage))) {}
+
+StrictParser::~StrictParser() = default;
+
+void StrictParser::split_array(std::string root_key, ElementSink sink) {
+  impl_->parser.handler().split_array(std::move(root_key), std::move(sink));
+}
+
+bool StrictParser::split_seen() const { return impl_->parser.handler().split_seen(); }
+
+bool StrictParser::write(std::string_view piece) {
+  Impl& im = *impl_;
+  if (im.failed) return false;
+  json::error_code ec;
+  const std::size_t consumed = im.parser.write_some(/* more = */ true, piece.data(), piece.size(), ec);
+  if (!ec && consumed != piece.size()) ec = json::error::extra_data;
+  if (ec) {
+    im.fail(piece, consumed, ec);
+    return false;
+  }
+  const std::size_t last = piece.rfind('\n');
+  if (last != std::string_view::npos) {
+    im.line += static_cast<std::size_t>(std::count(piece.begin(), piece.end(), '\n'));
+    im.line_start = im.offset + last + 1;
+  }
+  im.offset += piece.size();
+  return true;
+}
+
+Document StrictParser::finish() {
+  Impl& im = *impl_;
+  auto& handler = im.parser.handler();
+  if (!im.failed) {
+    json::error_code ec;
+    im.parser.write_some(/* more = */ false, nullptr, 0, ec);
+    if (ec) im.fail({}, 0, ec);
+  }
+  if (im.failed) return Document{json::value(), /* parsed = */ false, std::move(handler.errors())};
+  return Document{handler.release(), /* parsed = */ true, std::move(handler.errors())};
 }
 
 Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t max_errors, json::storage_ptr storage) {

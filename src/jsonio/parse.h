@@ -16,6 +16,8 @@
 #pragma once
 
 #include <cstddef>
+#include <functional>
+#include <memory>
 #include <string>
 #include <string_view>
 
@@ -40,6 +42,39 @@ struct Document {
 // from `storage`.
 Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t max_errors,
                       boost::json::storage_ptr storage = {});
+
+// parse_strict for text that arrives in pieces (a large file read a block at a time), with one
+// more feature for documents too large to hold as a tree: the elements of one array just below the
+// root object (e.g. "scene_objects") can be handed to a callback one at a time, as each completes,
+// instead of being kept; the document then holds an empty array under that key. Same rules, same
+// errors (a syntax error's line, column and byte count from the start of the whole text) as
+// parse_strict. One parser per document; not thread-safe.
+class StrictParser {
+ public:
+  // Called with each element of the split array, its index and its JSON Pointer path's key; the
+  // value lives only for the call.
+  using ElementSink = std::function<void(std::size_t index, const boost::json::value& element)>;
+
+  StrictParser(std::size_t max_depth, std::size_t max_errors, boost::json::storage_ptr storage = {});
+  ~StrictParser();
+  StrictParser(const StrictParser&) = delete;
+  StrictParser& operator=(const StrictParser&) = delete;
+
+  // Elements of the array under `root_key` of the root object go to `sink`, not into the document.
+  // Call before the first write.
+  void split_array(std::string root_key, ElementSink sink);
+  // Whether an array under the split key was met (and its elements went to the sink).
+  bool split_seen() const;
+  // The next piece of the text. Returns false once the text has a syntax error (then stop
+  // writing: finish() reports it).
+  bool write(std::string_view piece);
+  // The end of the text: the document, or the syntax error.
+  Document finish();
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
 
 // Escapes one reference token of a JSON Pointer (RFC 6901): '~' -> "~0", '/' -> "~1".
 std::string pointer_escape(std::string_view token);

@@ -78,6 +78,15 @@ class Reader {
   const std::string& file() const { return file_; }
   // The errors, the count of those not shown appended as one more; the Reader starts afresh.
   util::Errors take_errors();
+  // Appends `other`'s errors, shown and counted, as if reported here now (a part read apart, e.g.
+  // while parsing, keeps its place in the order of the messages); `other` starts afresh.
+  void absorb(Reader& other) {
+    const std::size_t hidden = other.count_ - other.errors_.size();
+    for (util::Error& e : other.errors_) error(std::move(e.path), std::move(e.message));
+    count_ += hidden;
+    other.errors_.clear();
+    other.count_ = 0;
+  }
 
   // ---- text -----------------------------------------------------------------------------------
   // `text` parsed by parse_strict, or nullopt after reporting why not: larger than `max_bytes`

@@ -230,15 +230,18 @@ std::shared_ptr<const StaticPart> StaticPart::build(const scene::SceneDesc& desc
   return part;
 }
 
-RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa) { return assemble(desc, nullptr, isa); }
+RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa, unsigned build_threads) {
+  return assemble(desc, nullptr, isa, build_threads);
+}
 
 RenderScene RenderScene::build_frame(const scene::SceneDesc& frame, const StaticPart& part) {
-  return assemble(frame, &part, part.isa);
+  return assemble(frame, &part, part.isa, 0);
 }
 
 // Without `part`, every shape goes into one Geometry (a static scene: today's single BVH); with
 // it, only the shapes of moving objects are built, into the frame's own layer.
-RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa) {
+RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa,
+                                  unsigned build_threads) {
   assert(part == nullptr || part->moving.size() == desc.objects.size());
   RenderScene rs;
   std::size_t shape_count = 0;
@@ -269,7 +272,7 @@ RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart
   }
   rs.features_.refraction = rs.has_transparency_;
   if (part == nullptr) {
-    rs.geometry_ = accel::LayeredGeometry(accel::Geometry::build(std::move(shapes), isa));
+    rs.geometry_ = accel::LayeredGeometry(accel::Geometry::build(std::move(shapes), isa, build_threads));
   } else {
     rs.geometry_ =
         accel::LayeredGeometry(part->layer, accel::Layer::build(std::move(shapes), std::move(ids), isa), shape_count);

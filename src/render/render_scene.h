@@ -102,8 +102,11 @@ struct StaticPart {
 class RenderScene {
  public:
   // The description must have passed validation (scene::load_*); build asserts its invariants.
-  // `isa` picks the traversal kernels (accel/isa.h); every choice renders the same bits.
-  static RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa());
+  // `isa` picks the traversal kernels (accel/isa.h); every choice renders the same bits. The BVH
+  // is built on up to `build_threads` threads (accel::Geometry::build; 0: every hardware thread),
+  // which changes nothing but the time it takes.
+  static RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(),
+                           unsigned build_threads = 0);
 
   // One frame of an animation (`frame`: scene::scene_at_frame of the description `part` was built
   // from): the shapes of moving objects are built now, the others are part's shared layer.
@@ -136,7 +139,8 @@ class RenderScene {
   const std::vector<std::uint32_t>& camera_media() const { return camera_media_; }
 
  private:
-  static RenderScene assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa);
+  static RenderScene assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa,
+                              unsigned build_threads);
 
   accel::LayeredGeometry geometry_;
   std::vector<MaterialF> materials_;         // one per scene object

@@ -3,8 +3,11 @@
 #include "scene/load.h"
 
 #include <array>
+#include <cerrno>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
+#include <fstream>
 #include <memory>
 #include <utility>
 #include <vector>
@@ -14,6 +17,7 @@
 #include <boost/json/value.hpp>
 #include <fmt/format.h>
 
+#include "jsonio/parse.h"
 #include "math/vec.h"
 #include "scene/animation.h"
 #include "scene/load_animation.h"
@@ -114,7 +118,31 @@ void read_list(SceneReader& s, jsonio::Fields& root, std::string_view key, std::
   if (list->empty()) s.warning(at, std::string(when_empty));
 }
 
-std::optional<SceneDesc> read_scene(SceneReader& s, const json::value& root_value) {
+// The elements of "scene_objects", read while the file was parsed (jsonio::StrictParser), so the
+// document never holds them all: a reader of their own keeps their errors, warnings and tracks
+// apart until read_scene puts them where reading them in place would have.
+struct StreamedObjects {
+  StreamedObjects(const std::string& file, const LoadOptions& options) : s(file, options) {}
+  SceneReader s;
+  std::vector<Object> objects;
+  std::size_t count = 0;  // elements met, also past kMaxObjects
+
+  void read(std::size_t i, const json::value& v) {
+    ++count;
+    if (i >= kMaxObjects) return;  // one error at the end, as for a document
+    const Path root;
+    const Path at = root.key("scene_objects");
+    s.index = static_cast<std::uint32_t>(i);
+    auto element = detail::read_object(s, v, at.index(i));
+    if (s.r.failed()) {
+      std::vector<Object>().swap(objects);  // the scene will not load: keep no memory for it
+    } else if (element) {
+      objects.push_back(std::move(*element));
+    }
+  }
+};
+
+std::optional<SceneDesc> read_scene(SceneReader& s, const json::value& root_value, StreamedObjects* streamed) {
   const Path root;
   const json::object* root_obj = s.r.object(root_value, root);
   if (root_obj == nullptr) return std::nullopt;
@@ -123,8 +151,23 @@ std::optional<SceneDesc> read_scene(SceneReader& s, const json::value& root_valu
   SceneDesc scene;
   if (const json::value* v = f.get("camera", Need::kRequired)) read_camera(s, *v, f.path("camera"), scene.camera);
   if (const json::value* v = f.get("render", Need::kOptional)) read_render(s, *v, f.path("render"), scene.render);
-  read_list(s, f, "scene_objects", kMaxObjects, "objects", scene.objects, detail::read_object,
-            "the scene has no objects: it renders as the background only");
+  if (streamed != nullptr) {
+    // The document holds an empty array under the key; the elements were read already.
+    f.get("scene_objects", Need::kRequired);
+    const Path at = f.path("scene_objects");
+    s.r.absorb(streamed->s.r);
+    if (streamed->count > kMaxObjects) {
+      s.r.error(at, fmt::format("too many {}: {} (limit {})", "objects", streamed->count, kMaxObjects));
+    }
+    for (util::Error& w : streamed->s.warnings) s.warnings.push_back(std::move(w));
+    for (Track& t : streamed->s.animation.tracks) s.animation.tracks.push_back(std::move(t));
+    s.triangles += streamed->s.triangles;
+    scene.objects = std::move(streamed->objects);
+    if (streamed->count == 0) s.warning(at, "the scene has no objects: it renders as the background only");
+  } else {
+    read_list(s, f, "scene_objects", kMaxObjects, "objects", scene.objects, detail::read_object,
+              "the scene has no objects: it renders as the background only");
+  }
   read_list(s, f, "scene_lights", kMaxLights, "lights", scene.lights, detail::read_light,
             "the scene has no lights: only reflections of the background will show");
   if (s.r.failed()) return std::nullopt;
@@ -148,17 +191,33 @@ std::string format_errors(const util::Errors& errors) {
   return out;
 }
 
-LoadResult load_scene_string(std::string_view text, const std::string& file_name, const LoadOptions& options) {
+namespace {
+
+constexpr std::size_t kReadPiece = std::size_t(1) << 20;  // bytes per read of a scene file
+
+// Parses the text that `feed` writes into the parser (returning an error that ends the load, e.g.
+// an unreadable file) and reads the scene from it, the objects as they are parsed.
+template <typename Feed>
+LoadResult load_streaming(const std::string& file_name, const LoadOptions& options, Feed feed) {
   SceneReader s(file_name, options);
+  StreamedObjects streamed(file_name, options);
   std::optional<SceneDesc> scene;
   {
-    // The parsed tree lives only for this block; a monotonic arena makes building and dropping a
-    // large one cheap. Duplicate keys do not stop validation: the rest of the file still gets
-    // checked.
+    // The parsed tree (everything but the objects) lives only for this block. Duplicate keys do
+    // not stop validation: the rest of the file still gets checked. One place is kept for the
+    // syntax error, which matters more than any duplicate key before it.
     json::monotonic_resource arena;
-    if (const auto doc = s.r.parse(text, "scene", options.max_bytes, kMaxJsonDepth, &arena)) {
-      scene = read_scene(s, *doc);
+    jsonio::StrictParser parser(kMaxJsonDepth, options.max_errors > 0 ? options.max_errors - 1 : 0, &arena);
+    parser.split_array("scene_objects", [&streamed](std::size_t i, const json::value& v) { streamed.read(i, v); });
+    if (std::optional<util::Error> failed = feed(parser)) {
+      LoadResult result;
+      result.errors.push_back(std::move(*failed));
+      return result;
     }
+    jsonio::Document doc = parser.finish();
+    for (util::Error& e : doc.errors) s.r.error(std::move(e.path), std::move(e.message));
+    // After a syntax error only that error is reported, as when the document is read whole.
+    if (doc.parsed) scene = read_scene(s, doc.value, parser.split_seen() ? &streamed : nullptr);
   }
   LoadResult result;
   if (!s.r.failed()) result.scene = std::move(scene);
@@ -167,17 +226,48 @@ LoadResult load_scene_string(std::string_view text, const std::string& file_name
   return result;
 }
 
-LoadResult load_scene_file(const std::string& path, const LoadOptions& options) {
-  util::Result<std::string> text = util::read_file_limited(path, options.max_bytes);
-  if (!text) {
+}  // namespace
+
+LoadResult load_scene_string(std::string_view text, const std::string& file_name, const LoadOptions& options) {
+  if (text.size() > options.max_bytes) {
     LoadResult result;
-    result.errors.push_back(std::move(text).error());  // names the file
+    result.errors.push_back(
+        {fmt::format("{} is {} bytes, larger than the limit of {} bytes", "scene", text.size(), options.max_bytes), "",
+         file_name});
     return result;
   }
+  return load_streaming(file_name, options, [text](jsonio::StrictParser& parser) -> std::optional<util::Error> {
+    parser.write(text);
+    return std::nullopt;
+  });
+}
+
+LoadResult load_scene_file(const std::string& path, const LoadOptions& options) {
   // Mesh files are named relative to the scene file, wherever the process runs from.
   LoadOptions with_base = options;
   with_base.base_dir = std::filesystem::path(path).parent_path().string();
-  return load_scene_string(*text, path, with_base);
+  // Read and parsed a piece at a time: a 10M-sphere file is 3 GB, and its text is never held.
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    LoadResult result;
+    result.errors.push_back({fmt::format("cannot open: {}", std::strerror(errno)), "", path});
+    return result;
+  }
+  return load_streaming(path, with_base, [&](jsonio::StrictParser& parser) -> std::optional<util::Error> {
+    std::vector<char> buffer(kReadPiece);
+    std::uint64_t total = 0;
+    while (in) {
+      in.read(buffer.data(), std::streamsize(buffer.size()));
+      const auto got = static_cast<std::size_t>(in.gcount());
+      total += got;
+      if (total > options.max_bytes) {
+        return util::Error(fmt::format("file is larger than the limit of {} bytes", options.max_bytes), "", path);
+      }
+      if (got > 0 && !parser.write(std::string_view(buffer.data(), got))) break;  // finish() reports it
+    }
+    if (in.bad()) return util::Error("read error", "", path);
+    return std::nullopt;
+  });
 }
 
 }  // namespace dtraced::scene

@@ -32,8 +32,12 @@
 
 namespace dtraced::scene {
 
-inline constexpr std::uint64_t kMaxSceneBytes = 256ull << 20;  // 256 MiB
-inline constexpr std::size_t kMaxJsonDepth = 64;               // nesting levels
+// Scenes that travel (uploads, a worker's fetch) are held to kMaxSceneBytes by the HTTP layer; a
+// local scene file may be larger, up to kMaxSceneFileBytes: 10M spheres in canonical form are
+// about 3 GB.
+inline constexpr std::uint64_t kMaxSceneBytes = 256ull << 20;    // 256 MiB
+inline constexpr std::uint64_t kMaxSceneFileBytes = 4ull << 30;  // 4 GiB
+inline constexpr std::size_t kMaxJsonDepth = 64;                 // nesting levels
 inline constexpr std::size_t kMaxObjects = 10'000'000;
 inline constexpr std::size_t kMaxLights = 10'000;
 inline constexpr std::size_t kMaxReportedErrors = 1000;      // a broken 10M-object file stays readable
@@ -47,7 +51,7 @@ inline constexpr std::size_t kMaxTriangles = 20'000'000;
 // "FILE: /scene_objects/3/radius: must be > 0 (got -1)".
 
 struct LoadOptions {
-  std::uint64_t max_bytes = kMaxSceneBytes;
+  std::uint64_t max_bytes = kMaxSceneFileBytes;
   // Past this many errors the rest are counted in one final error; tests lower it.
   std::size_t max_errors = kMaxReportedErrors;
   // Whether meshes may name a "file". False for scenes from the network (the collector decoding

@@ -1,0 +1,182 @@
+// dtraced-bench-scale: how a scene of many spheres scales (issue 16, "Scale"): load (JSON file to
+// render-ready shapes), BVH build on 1 and N threads, a 1 spp render, peak RSS and bytes per
+// sphere, and Embree's build time for the same spheres when the build found Embree 3.
+// A benchmark, not a test: it prints figures and marks the issue's targets MET or MISSED.
+//
+// Two modes, so that the process that measures memory holds nothing but the pipeline:
+//   dtraced-bench-scale --write N FILE   writes scene::generate_sphere_field(N, 1) as canonical JSON
+//   dtraced-bench-scale FILE             loads FILE, builds, renders, prints one line of figures
+// Peak RSS (getrusage ru_maxrss) is read right after the render, before the extra timing builds.
+// Times are wall time (steady_clock); the build figures are the median of --runs builds.
+//
+// Exit codes: 0 done; 1 the scene could not be written, loaded or built; 2 usage error.
+// Threading: the main thread drives; Geometry::build and render_local start their own threads.
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdint>
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+#include <fmt/format.h>
+
+#include "accel/geometry.h"
+#include "accel/isa.h"
+#include "render/local_render.h"
+#include "render/render_scene.h"
+#include "scene/digest.h"
+#include "scene/generate.h"
+#include "scene/load.h"
+#include "util/file.h"
+
+#ifdef DTRACED_BENCH_EMBREE
+#include "bench/embree_tracer.h"
+#endif
+
+namespace dtraced::bench {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+
+double peak_rss_bytes() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return double(u.ru_maxrss) * 1024.0;  // kilobytes on Linux
+}
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.empty() ? 0.0 : v[v.size() / 2];
+}
+
+const char* verdict(bool met) { return met ? "MET" : "MISSED"; }
+
+int write_scene(std::uint32_t count, const std::string& path) {
+  const auto start = Clock::now();
+  const scene::SceneDesc desc = scene::generate_sphere_field(count, 1);
+  const auto written = util::write_file_atomic(path, scene::canonical_json(desc));
+  if (!written) {
+    fmt::print(stderr, "dtraced-bench-scale: {}\n", written.error().to_string());
+    return 1;
+  }
+  fmt::print(stderr, "wrote {} ({} spheres) in {:.2f} s\n", path, count, since(start));
+  return 0;
+}
+
+struct Figures {
+  std::size_t spheres = 0;
+  double load_s = 0, build1_s = 0, buildn_s = 0, render_s = 0, rss = 0;
+  double embree1_s = -1, embreen_s = -1;
+};
+
+int measure(const std::string& path, std::uint32_t threads, int runs, std::uint32_t width, std::uint32_t height) {
+  Figures f;
+  const accel::Isa isa = accel::best_isa();
+  double pipeline_build_s = 0.0;
+  {
+    // The pipeline as `dtraced render` runs it: load, build, render.
+    auto start = Clock::now();
+    scene::LoadResult loaded = scene::load_scene_file(path);
+    if (!loaded.ok()) {
+      fmt::print(stderr, "{}", scene::format_errors(loaded.errors));
+      return 1;
+    }
+    const double parse_s = since(start);
+    for (const scene::Object& o : loaded.scene->objects) f.spheres += o.type == scene::ObjectType::kSphere;
+    start = Clock::now();
+    const render::RenderScene rs = render::RenderScene::build(*loaded.scene, isa, threads);
+    const double scene_s = since(start);
+    const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
+    pipeline_build_s = st.seconds + st.wide_seconds;
+    f.load_s = parse_s + (scene_s - pipeline_build_s);
+    scene::RenderSettings settings = loaded.scene->render;
+    settings.width = width;
+    settings.height = height;
+    settings.samples = 1;
+    settings.error_target = 0.0;
+    render::LocalOptions options;
+    options.threads = threads;
+    const render::LocalResult result = render::render_local(rs, settings, options);
+    f.render_s = result.seconds;
+    f.rss = peak_rss_bytes();
+    fmt::print(stderr, "load {:.3f} s (parse {:.3f}), pipeline build {:.3f} s on {} threads, render {:.3f} s\n",
+               f.load_s, parse_s, pipeline_build_s, threads, f.render_s);
+
+    // The build alone, on 1 thread and on `threads`, from the same shapes.
+    const std::vector<accel::Shape>& shapes = rs.geometry().fixed()->geometry.shapes();
+    std::vector<double> one, many;
+    for (int i = 0; i < runs; ++i) {
+      for (const std::uint32_t t : {1u, threads}) {
+        const accel::Geometry g = accel::Geometry::build(shapes, isa, t);
+        (t == 1 ? one : many).push_back(g.stats().seconds + g.stats().wide_seconds);
+        fmt::print(
+            stderr,
+            "  build on {} thread{}: binary {:.3f} s + wide {:.3f} s ({} nodes, {} leaves, {} wide, tree {:016x})\n", t,
+            t == 1 ? "" : "s", g.stats().seconds, g.stats().wide_seconds, g.stats().nodes, g.stats().leaves,
+            g.stats().wide_nodes, g.stats().tree_hash);
+      }
+    }
+    f.build1_s = median(one);
+    f.buildn_s = median(many);
+#ifdef DTRACED_BENCH_EMBREE
+    std::vector<double> e1, en;
+    for (int i = 0; i < runs; ++i) {
+      for (const std::uint32_t t : {1u, threads}) {
+        auto tracer = EmbreeTracer::build(shapes, EmbreeQuality::kMedium, t);
+        if (!tracer) {
+          fmt::print(stderr, "embree: {}\n", tracer.error().to_string());
+          break;
+        }
+        (t == 1 ? e1 : en).push_back((*tracer)->build_seconds());
+      }
+    }
+    if (!e1.empty()) f.embree1_s = median(e1);
+    if (!en.empty()) f.embreen_s = median(en);
+#endif
+  }
+
+  const double per_sphere = f.spheres ? f.rss / double(f.spheres) : 0.0;
+  fmt::print(
+      "spheres {:>9}  load {:7.3f} s  build 1t {:6.3f} s  {}t {:6.3f} s  render {:6.3f} s  peak RSS {:7.1f} MiB"
+      "  {:6.1f} B/sphere",
+      f.spheres, f.load_s, f.build1_s, threads, f.buildn_s, f.render_s, f.rss / (1 << 20), per_sphere);
+  if (f.embree1_s >= 0) fmt::print("  embree 1t {:6.3f} s  {}t {:6.3f} s", f.embree1_s, threads, f.embreen_s);
+  fmt::print("\n");
+  if (f.spheres >= 1'000'000) {
+    fmt::print("  target load <= 1 s: {}; bytes/sphere <= 150: {}", verdict(f.load_s <= 1.0),
+               verdict(per_sphere <= 150));
+    if (f.embree1_s >= 0) {
+      fmt::print("; build <= embree (1t): {}; ({}t): {}", verdict(f.build1_s <= f.embree1_s), threads,
+                 verdict(f.buildn_s <= f.embreen_s));
+    }
+    fmt::print("\n");
+  }
+  return 0;
+}
+
+}  // namespace
+}  // namespace dtraced::bench
+
+int main(int argc, char** argv) {
+  CLI::App app("dtraced-bench-scale: load, build, render and memory of a large sphere scene");
+  std::string file;
+  std::uint32_t write_count = 0;
+  std::uint32_t threads = 2;
+  int runs = 3;
+  std::uint32_t width = 640, height = 360;
+  app.add_option("file", file, "Scene file to measure (or to write with --write)")->required();
+  app.add_option("--write", write_count, "Write a scene of this many spheres to FILE instead")
+      ->check(CLI::Range(1u, 9'999'999u));  // with the plane, the loader's 10M objects
+  app.add_option("--threads", threads, "Threads of the parallel build and of the render")->check(CLI::Range(1u, 256u));
+  app.add_option("--runs", runs, "Timed builds per thread count (median)")->check(CLI::Range(1, 100));
+  app.add_option("--width", width, "Render width")->check(CLI::Range(1u, 8192u));
+  app.add_option("--height", height, "Render height")->check(CLI::Range(1u, 8192u));
+  CLI11_PARSE(app, argc, argv);
+  if (write_count > 0) return dtraced::bench::write_scene(write_count, file);
+  return dtraced::bench::measure(file, threads, runs, width, height);
+}
