@@ -4,8 +4,9 @@
 // Each simulated worker is a coroutine on one io_context thread. It loops until the run's time is
 // up: POST /v1/lease, then PUT /v1/jobs/{job}/tiles/{tile} with a valid payload for the leased
 // rectangle (constant, finite pixels), expecting "stored" or "already_done". By default the
-// requests go on kept-alive connections (one http::Client, as the real worker speaks to the
-// collector: each simulated worker ends up with a connection of its own); with --no-keep-alive
+// requests go on kept-alive connections (one http::Client shared by all: at full speed each
+// simulated worker ends up with a connection of its own; in the farm modes below, where workers
+// pause, each has a client and so a connection of its own, as real workers do); with --no-keep-alive
 // every request is its own connection (Connection: close), as workers spoke before keep-alive,
 // so the cost of setting up a connection (and with https://, of a TLS handshake) is part of what
 // is measured. An https:// collector needs --ca-file. Nothing renders: by default the simulated
@@ -53,6 +54,7 @@
 #include <cstdio>
 #include <cstring>
 #include <exception>
+#include <memory>
 #include <optional>
 #include <random>
 #include <string>
@@ -173,7 +175,10 @@ struct Tally {
 
 struct Run {
   http::Url url;
-  http::Client* client = nullptr;  // every request
+  http::Client* client = nullptr;  // the job check, and every request unless own_clients
+  // Farm modes: one client (one connection, kept alive) per simulated worker, as each real worker
+  // has its own; empty when the workers share `client`.
+  std::vector<std::unique_ptr<http::Client>> own_clients;
   std::string authorization;
   std::uint64_t job = 0;  // 0: idle workers, no lease may be granted
   bool lease_only = false;
@@ -236,10 +241,11 @@ util::Result<std::string> read_token(const std::string& path) {
   return token;
 }
 
-net::awaitable<http::ClientResult> exchange(const Run& run, http::Request req, std::string_view worker) {
+net::awaitable<http::ClientResult> exchange(const Run& run, http::Client& client, http::Request req,
+                                            std::string_view worker) {
   req.set(bhttp::field::authorization, run.authorization);
   req.set(protocol::kWorkerHeader, worker);
-  co_return co_await run.client->request(run.url, std::move(req), kMaxAnswerBytes);
+  co_return co_await client.request(run.url, std::move(req), kMaxAnswerBytes);
 }
 
 net::awaitable<void> pause_for(net::steady_timer& timer, Clock::duration d) {
@@ -250,7 +256,8 @@ net::awaitable<void> pause_for(net::steady_timer& timer, Clock::duration d) {
 // Before the run: the job must exist and still have tiles to lease.
 net::awaitable<util::Status> check_job(const Run& run) {
   const std::string target = fmt::format("/v1/jobs/{}", run.job);
-  http::ClientResult r = co_await exchange(run, http::make_request(http::Verb::get, target), "dtraced-load");
+  http::ClientResult r =
+      co_await exchange(run, *run.client, http::make_request(http::Verb::get, target), "dtraced-load");
   if (!r.ok()) co_return util::Error{r.message, "GET " + target};
   if (r.response.result() != http::Status::ok) co_return util::Error{quote(r.response), "GET " + target};
   auto status = protocol::decode_job_status(r.response.body());
@@ -267,6 +274,7 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
   const std::string name = fmt::format("dtraced-load-{}-{}", ::getpid(), index);
   const std::string lease_body = protocol::encode(protocol::LeaseRequest{name, 1});
   net::steady_timer pause(co_await net::this_coro::executor);
+  http::Client& client = run.own_clients.empty() ? *run.client : *run.own_clients[index];
   if (run.ramp_ms > 0) {
     std::uniform_int_distribution<std::uint32_t> uniform(0, run.ramp_ms);
     co_await pause_for(pause, std::chrono::milliseconds(uniform(run.rng)));
@@ -277,7 +285,7 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
     Clock::time_point sent = Clock::now();
     Tally* tp = &run.tally_for(sent);
     http::ClientResult r = co_await exchange(
-        run, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
+        run, client, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
     Tally& t = *tp;
     if (!r.ok()) {
       ++t.network_errors;
@@ -336,7 +344,7 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
                                            protocol::encode_tile_payload(payload), http::kBinaryContentType);
     sent = Clock::now();
     tp = &run.tally_for(sent);
-    r = co_await exchange(run, std::move(put), name);
+    r = co_await exchange(run, client, std::move(put), name);
     Tally& u = *tp;
     if (!r.ok()) {
       ++u.network_errors;
@@ -551,6 +559,15 @@ int run_load(const Options& o) {
   }
 
   io.restart();
+  if (o.render_ms > 0 || o.job == 0) {
+    // A farm: each worker keeps its own connection between its requests, however long it pauses.
+    http::ClientOptions own = client_options;
+    own.max_idle_connections = o.keep_alive ? 1 : 0;
+    run.own_clients.reserve(o.workers);
+    for (std::uint32_t i = 0; i < o.workers; ++i) {
+      run.own_clients.push_back(std::make_unique<http::Client>(io.get_executor(), own));
+    }
+  }
   const double cpu_before = cpu_seconds();
   run.start = Clock::now();
   run.measure_from = run.start + std::chrono::seconds(o.warmup_seconds);
@@ -576,7 +593,17 @@ int run_load(const Options& o) {
   const double cpu = total > 0 ? (cpu_seconds() - cpu_before) * elapsed / total : 0;
   run.tally.lease.finish();
   run.tally.upload.finish();
-  report(o, run, client.stats(), elapsed, cpu);
+  http::ClientStats stats = client.stats();
+  for (const auto& own : run.own_clients) {
+    const http::ClientStats one = own->stats();
+    stats.requests += one.requests;
+    stats.connections_opened += one.connections_opened;
+    stats.reuses += one.reuses;
+    stats.retries += one.retries;
+    stats.tls_handshakes += one.tls_handshakes;
+    stats.tls_failures += one.tls_failures;
+  }
+  report(o, run, stats, elapsed, cpu);
   if (run.stopped) {
     fmt::print(stderr, "dtraced-load: stopped early: {}\n", run.reason);
     return 1;
