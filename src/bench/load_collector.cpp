@@ -178,7 +178,7 @@ struct Run {
   http::Client* client = nullptr;  // the job check, and every request unless own_clients
   // Farm modes: one client (one connection, kept alive) per simulated worker, as each real worker
   // has its own; empty when the workers share `client`.
-  std::vector<std::unique_ptr<http::Client>> own_clients;
+  std::vector<http::Client*> own_clients;
   std::string authorization;
   std::uint64_t job = 0;  // 0: idle workers, no lease may be granted
   bool lease_only = false;
@@ -538,6 +538,8 @@ int run_load(const Options& o) {
   net::io_context io{1};
   http::Client client(io.get_executor(), client_options);  // after io: destroyed before it
   run.client = &client;
+  // Farm modes' clients, one per simulated worker; after io, so destroyed before it.
+  std::vector<std::unique_ptr<http::Client>> own_clients;
   util::Status checked = util::Error{"the job check did not finish"};
   if (o.job == 0) checked = util::Status();  // idle workers: the first granted lease stops the run
   if (o.job != 0)
@@ -563,9 +565,10 @@ int run_load(const Options& o) {
     // A farm: each worker keeps its own connection between its requests, however long it pauses.
     http::ClientOptions own = client_options;
     own.max_idle_connections = o.keep_alive ? 1 : 0;
-    run.own_clients.reserve(o.workers);
+    own_clients.reserve(o.workers);
     for (std::uint32_t i = 0; i < o.workers; ++i) {
-      run.own_clients.push_back(std::make_unique<http::Client>(io.get_executor(), own));
+      own_clients.push_back(std::make_unique<http::Client>(io.get_executor(), own));
+      run.own_clients.push_back(own_clients.back().get());
     }
   }
   const double cpu_before = cpu_seconds();
@@ -594,7 +597,7 @@ int run_load(const Options& o) {
   run.tally.lease.finish();
   run.tally.upload.finish();
   http::ClientStats stats = client.stats();
-  for (const auto& own : run.own_clients) {
+  for (const http::Client* own : run.own_clients) {
     const http::ClientStats one = own->stats();
     stats.requests += one.requests;
     stats.connections_opened += one.connections_opened;

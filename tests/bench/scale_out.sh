@@ -177,7 +177,7 @@ problems=0
 # farm_row WORKERS RENDER_MS: one measured row on a fresh collector (a job when RENDER_MS > 0, none
 # when it is "idle"). Sets ROW and the row's P99 and CPU, or returns 1.
 farm_row() {
-  local workers=$1 render=$2 id rc cpu0 cpu1 core0 core1 s0 s1 rss el job_args=() ramp wait_s key v h0 h1 e0 e1
+  local workers=$1 render=$2 id rc cpu0 cpu1 core0 core1 s0 s1 rss el job_args=() ramp wait_s key v h0 h1 e0 e1 b0 b1
   ROW=
   rm -f "$work/load.json"
   start_collector
@@ -209,12 +209,14 @@ farm_row() {
   s0=$(date +%s.%N)
   h0=$(metric dtraced_http_tls_handshakes_total)
   e0=$(metric dtraced_http_evicted_idle_connections_total)
+  b0=$(metric dtraced_store_commit_batches_total)
   sleep "$RUN_SECONDS"
   cpu1=$(collector_cpu)
   core1=$(core_busy "$COLLECTOR_CPU")
   s1=$(date +%s.%N)
   h1=$(metric dtraced_http_tls_handshakes_total)
   e1=$(metric dtraced_http_evicted_idle_connections_total)
+  b1=$(metric dtraced_store_commit_batches_total)
   REGISTRY=$(metric 'dtraced_workers{state="active"}')
   EVICTED=$(metric dtraced_workers_evicted_total)
   rss=$(collector_rss)
@@ -242,14 +244,14 @@ farm_row() {
   ROW=$(awk -v w="$workers" -v r="$render" -v fail="$FAILED" -v rate="$(field stored_per_s)" \
     -v ans="$(field lease_answers_per_s)" -v p50="$(field lease_p50_ms)" -v p99="$P99" \
     -v u50="$(field upload_p50_ms)" -v u99="$(field upload_p99_ms)" -v cpu="$CPU" -v rss="$rss" \
-    -v k0="$core0" -v k1="$core1" -v c0="$cpu0" -v c1="$cpu1" -v el="$el" -v h0="${h0:-0}" -v h1="${h1:-0}" -v e0="${e0:-0}" -v e1="${e1:-0}" \
+    -v k0="$core0" -v k1="$core1" -v c0="$cpu0" -v c1="$cpu1" -v el="$el" -v h0="${h0:-0}" -v h1="${h1:-0}" -v e0="${e0:-0}" -v e1="${e1:-0}" -v b0="${b0:-0}" -v b1="${b1:-0}" \
       -v gen="$(field generator_cpu)" -v dup="$(field already_done)" 'BEGIN {
       others = (k1 - k0 - (c1 - c0)) / el
       if (others < 0) others = 0
       if (u50 == "null") u50 = "-"
       if (u99 == "null") u99 = "-"
-      printf "| %d | %s | %d | %.0f | %.0f | %.1f | %.1f | %s | %s | %.2f | %.0f | %.2f | %.0f | %.0f | %.2f | %d |",
-        w, r, fail, rate, ans, p50, p99, u50, u99, cpu, rss / 1024, others, (h1 - h0) / el, (e1 - e0) / el, gen, dup
+      printf "| %d | %s | %d | %.0f | %.1f | %.0f | %.1f | %.1f | %s | %s | %.2f | %.0f | %.2f | %.0f | %.0f | %.2f | %d |",
+        w, r, fail, rate, (b1 - b0) / el, ans, p50, p99, u50, u99, cpu, rss / 1024, others, (h1 - h0) / el, (e1 - e0) / el, gen, dup
     }')
   for key in busy http_errors network_errors; do
     v=$(field "$key")
@@ -264,8 +266,8 @@ farm_row() {
 }
 
 header() {
-  echo "| workers | render ms | failed exchanges | stored/s | lease answers/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector RSS MiB | others on its core | TLS handshakes/s | idle connections closed/s | generator CPU | duplicates |"
-  echo "|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+  echo "| workers | render ms | failed exchanges | stored/s | SQLite commits/s | lease answers/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector RSS MiB | others on its core | TLS handshakes/s | idle connections closed/s | generator CPU | duplicates |"
+  echo "|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
 }
 # verdict: whether the row just measured is within the limits.
 within() {
@@ -371,6 +373,7 @@ if [[ " $PARTS " == *" 4 "* ]]; then
   load_pid=$!
   sleep 5
   r1=$(collector_rss)
+  open=$(metric dtraced_http_open_connections)
   wait "$load_pid"
   load_pid=
   sleep 2
@@ -378,7 +381,7 @@ if [[ " $PARTS " == *" 4 "* ]]; then
   known=$(metric 'dtraced_workers{state="active"}')
   stop_collector
   echo "4. memory per worker: $MEMORY_WORKERS idle workers polling, collector RSS $((r0 / 1024)) MiB ->" \
-    "$((r1 / 1024)) MiB while they poll ->" \
+    "$((r1 / 1024)) MiB while they poll (${open:-?} connections open) ->" \
     "$((r2 / 1024)) MiB after they stopped ($known in the worker list):" \
     "$(awk -v a="$r0" -v b="$r1" -v c="$r2" -v n="$MEMORY_WORKERS" 'BEGIN { printf "%.1f KiB a polling worker, %.1f KiB a registered one", (b - a) / n, (c - a) / n }')"
   echo
