@@ -26,10 +26,13 @@
 # Usage, after the README's build (cmake -B build && cmake --build build):
 #   tests/bench/scale_out.sh
 # Environment: DTRACED, DTRACED_LOAD (binaries; default build/src/cli/dtraced and
-# build/src/bench/dtraced-load), WORKERS (10000), RENDER_MS (5000), RAMP_MS (5000: the workers
-# start at random over this long), CEILING_WORKERS ("500 1000 2000 4000"), IDLE_COUNTS
-# ("250 500 1000 2500"), HANDSHAKE_WORKERS (64), RUN_SECONDS (15), WARMUP_SECONDS (RENDER_MS or
-# RAMP_MS, the longer, plus 1 s), P99_LIMIT_MS (100), CPU_LIMIT (0.90), JOBS (200), MEMORY_WORKERS (1000),
+# build/src/bench/dtraced-load), WORKERS (10000), RENDER_MS (5000), RAMP_MS (5000) and
+# RAMP_PER_WORKER_US (2000): a row's workers start at random over the longer of RAMP_MS and
+# RAMP_PER_WORKER_US per worker (500 new workers a second: each is a TLS handshake, and a farm of
+# 10,000 starting within a few seconds is a herd one core cannot take), CEILING_WORKERS
+# ("500 1000 2000 4000"), IDLE_COUNTS ("250 500 1000 2500"), HANDSHAKE_WORKERS (64), RUN_SECONDS
+# (10), WARMUP_SECONDS (default per row: the ramp, plus RENDER_MS for rendering workers, plus
+# 1 s), P99_LIMIT_MS (100), CPU_LIMIT (0.90), JOBS (200), MEMORY_WORKERS (1000),
 # MAX_CONNECTIONS (19000), COLLECTOR_CPU (0), LOAD_CPU (1), PARTS ("1 2 3 4"), KEEP_LOGS=1 to keep
 # the temporary directory. Needs curl; taskset for pinning (else it runs unpinned and says so);
 # an open-file hard limit above WORKERS (ulimit -Hn) for both processes.
@@ -41,13 +44,12 @@ DTRACED_LOAD=${DTRACED_LOAD:-$root/build/src/bench/dtraced-load}
 WORKERS=${WORKERS:-10000}
 RENDER_MS=${RENDER_MS:-5000}
 RAMP_MS=${RAMP_MS:-5000}
+RAMP_PER_WORKER_US=${RAMP_PER_WORKER_US:-2000}
 CEILING_WORKERS=${CEILING_WORKERS:-"500 1000 2000 4000"}
 IDLE_COUNTS=${IDLE_COUNTS:-"250 500 1000 2500"}
 HANDSHAKE_WORKERS=${HANDSHAKE_WORKERS:-64}
-RUN_SECONDS=${RUN_SECONDS:-15}
-# Long enough for every worker to have started and finished its first tile: the steady state.
-longest=$((RENDER_MS > RAMP_MS ? RENDER_MS : RAMP_MS))
-WARMUP_SECONDS=${WARMUP_SECONDS:-$(((longest + 999) / 1000 + 1))}
+RUN_SECONDS=${RUN_SECONDS:-10}
+WARMUP_SECONDS=${WARMUP_SECONDS:-}
 P99_LIMIT_MS=${P99_LIMIT_MS:-100}
 CPU_LIMIT=${CPU_LIMIT:-0.90}
 JOBS=${JOBS:-200}
@@ -177,7 +179,7 @@ problems=0
 # farm_row WORKERS RENDER_MS: one measured row on a fresh collector (a job when RENDER_MS > 0, none
 # when it is "idle"). Sets ROW and the row's P99 and CPU, or returns 1.
 farm_row() {
-  local workers=$1 render=$2 id rc cpu0 cpu1 core0 core1 s0 s1 rss el job_args=() ramp wait_s key v h0 h1 e0 e1 b0 b1
+  local workers=$1 render=$2 id rc cpu0 cpu1 core0 core1 s0 s1 rss el job_args=() ramp warmup wait_s key v h0 h1 e0 e1 b0 b1
   ROW=
   rm -f "$work/load.json"
   start_collector
@@ -196,14 +198,22 @@ farm_row() {
       exit 1
     }
   fi
-  ramp=$RAMP_MS
-  # The load warms up for WARMUP_SECONDS (first requests spread over one tile time, the first
+  ramp=$((workers * RAMP_PER_WORKER_US / 1000))
+  [ "$ramp" -lt "$RAMP_MS" ] && ramp=$RAMP_MS
+  # Long enough for every worker to have started and finished its first tile: the steady state.
+  warmup=$WARMUP_SECONDS
+  if [ -z "$warmup" ]; then
+    local longest=$ramp
+    [ "$render" != idle ] && longest=$((ramp + render))
+    warmup=$(((longest + 999) / 1000 + 1))
+  fi
+  # The load warms up (first requests spread over the ramp, the first
   # tiles stored, the framebuffer allocated) and then measures RUN_SECONDS; the collector's CPU is
   # sampled over the same window from here.
-  load "${job_args[@]}" --workers "$workers" --ramp-ms "$ramp" --warmup-seconds "$WARMUP_SECONDS" \
+  load "${job_args[@]}" --workers "$workers" --ramp-ms "$ramp" --warmup-seconds "$warmup" \
     --seconds "$RUN_SECONDS" --json >"$work/load.json" 2>"$work/load.err" &
   load_pid=$!
-  sleep "$WARMUP_SECONDS"
+  sleep "$warmup"
   cpu0=$(collector_cpu)
   core0=$(core_busy "$COLLECTOR_CPU")
   s0=$(date +%s.%N)
@@ -277,7 +287,7 @@ within() {
 
 if [[ " $PARTS " == *" 1 "* ]]; then
   echo "1. the farm pattern: $WORKERS workers, ${RENDER_MS}-ms tiles (+/-20 %), and $WORKERS idle workers;" \
-    "${WARMUP_SECONDS} s warm-up, ${RUN_SECONDS} s measured"
+    "starting over $((WORKERS * RAMP_PER_WORKER_US / 1000000)) s, ${RUN_SECONDS} s measured after that and one tile time"
   echo
   header
   farm_row "$WORKERS" "$RENDER_MS" && echo "$ROW"
