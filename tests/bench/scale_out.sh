@@ -32,7 +32,8 @@
 # 10,000 starting within a few seconds is a herd one core cannot take), CEILING_WORKERS
 # ("500 1000 2000 4000"), IDLE_COUNTS ("250 500 1000 2500"), HANDSHAKE_WORKERS (64), RUN_SECONDS
 # (10), WARMUP_SECONDS (default per row: the ramp, plus RENDER_MS for rendering workers, plus
-# 1 s), P99_LIMIT_MS (100), CPU_LIMIT (0.90), JOBS (200), MEMORY_WORKERS (1000),
+# 1 s), P99_LIMIT_MS (100), CPU_LIMIT (0.90), JOBS (100 of 1920x1080: within the collector's
+# default 2^28 unfinished pixels), MEMORY_WORKERS (1000),
 # MAX_CONNECTIONS (19000), COLLECTOR_CPU (0), LOAD_CPU (1), PARTS ("1 2 3 4"), KEEP_LOGS=1 to keep
 # the temporary directory. Needs curl; taskset for pinning (else it runs unpinned and says so);
 # an open-file hard limit above WORKERS (ulimit -Hn) for both processes.
@@ -52,7 +53,7 @@ RUN_SECONDS=${RUN_SECONDS:-10}
 WARMUP_SECONDS=${WARMUP_SECONDS:-}
 P99_LIMIT_MS=${P99_LIMIT_MS:-100}
 CPU_LIMIT=${CPU_LIMIT:-0.90}
-JOBS=${JOBS:-200}
+JOBS=${JOBS:-100}
 MEMORY_WORKERS=${MEMORY_WORKERS:-1000}
 MAX_CONNECTIONS=${MAX_CONNECTIONS:-19000}
 COLLECTOR_CPU=${COLLECTOR_CPU:-0}
@@ -358,19 +359,21 @@ if [[ " $PARTS " == *" 3 "* ]]; then
   start_collector
   sleep 1
   r0=$(collector_rss)
+  submitted=0
   for i in $(seq "$JOBS"); do
     client submit "$work/scene.json" -o "job-$i.png" --width 1920 --height 1080 --tile-size 64 --seed "$i" \
-      >/dev/null || {
+      >/dev/null 2>"$work/submit.err" || {
       echo "submit $i failed" >&2
       problems=$((problems + 1))
       break
     }
+    submitted=$i
   done
   sleep 1
   r1=$(collector_rss)
   stop_collector
-  echo "3. memory per job: $JOBS unstarted 1920x1080 jobs in 64-px tiles (510 tiles each), collector RSS" \
-    "$((r0 / 1024)) MiB -> $((r1 / 1024)) MiB: $(awk -v a="$r0" -v b="$r1" -v n="$JOBS" 'BEGIN { printf "%.1f", (b - a) / n }') KiB a job"
+  echo "3. memory per job: $submitted unstarted 1920x1080 jobs in 64-px tiles (510 tiles each), collector RSS" \
+    "$((r0 / 1024)) MiB -> $((r1 / 1024)) MiB: $(awk -v a="$r0" -v b="$r1" -v n="$submitted" 'BEGIN { if (n > 0) printf "%.1f", (b - a) / n }') KiB a job"
   echo "   (a started job also holds its framebuffer: 12 bytes a pixel, 24 MiB for 1920x1080)"
   echo
 fi
