@@ -4,12 +4,25 @@
 // Each simulated worker is a coroutine on one io_context thread. It loops until the run's time is
 // up: POST /v1/lease, then PUT /v1/jobs/{job}/tiles/{tile} with a valid payload for the leased
 // rectangle (constant, finite pixels), expecting "stored" or "already_done". By default the
-// requests go on kept-alive connections (one http::Client, as the real worker speaks to the
-// collector: each simulated worker ends up with a connection of its own); with --no-keep-alive
+// requests go on kept-alive connections (one http::Client shared by all: at full speed each
+// simulated worker ends up with a connection of its own; in the farm modes below, where workers
+// pause, each has a client and so a connection of its own, as real workers do); with --no-keep-alive
 // every request is its own connection (Connection: close), as workers spoke before keep-alive,
 // so the cost of setting up a connection (and with https://, of a TLS handshake) is part of what
-// is measured. An https:// collector needs --ca-file. Nothing renders: the simulated workers
-// answer as fast as the collector lets them.
+// is measured. An https:// collector needs --ca-file. Nothing renders: by default the simulated
+// workers answer as fast as the collector lets them.
+//
+// A farm rather than a flood: --render-ms N makes each simulated worker hold every leased tile for
+// N ms (uniform within +/- --render-jitter percent) before it uploads, as a worker rendering it
+// would; --ramp-ms spreads the workers' first requests over that long, as a farm's workers start
+// at different times; --warmup-seconds runs before the measured window and is not counted. A
+// "nothing now" answer (retry_after_ms) is obeyed as the real worker obeys it: a wait drawn
+// uniformly from [asked, 1.5 x asked], never less than 50 ms. Without --job the workers are idle
+// workers of a farm with no work: every lease must come back "nothing now", and the figures are
+// the polling load they put on the collector (a granted lease stops the run: the collector is not
+// idle, and nothing is uploaded). Each simulated worker keeps a connection open, so the run raises
+// this process's open-file limit (RLIMIT_NOFILE) to the workers plus a margin, within the hard
+// limit, and refuses to start when the hard limit is too low.
 //
 // It writes made-up pixels into the job it is given: point it only at a throwaway collector. As a
 // guard it first checks that the job exists and is unfinished, and it stops at the first lease of
@@ -34,12 +47,16 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstring>
 #include <exception>
+#include <memory>
 #include <optional>
+#include <random>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -69,7 +86,18 @@ namespace net = boost::asio;
 namespace bhttp = boost::beast::http;
 using Clock = std::chrono::steady_clock;
 
-constexpr std::uint32_t kMaxWorkers = 4096;
+// Each simulated worker holds a connection (a file descriptor) and a coroutine frame (a few KiB):
+// 20,000 fit the open-file limits of most systems once the soft limit is raised.
+constexpr std::uint32_t kMaxWorkers = 20'000;
+// Descriptors beyond one per simulated worker: stdio, the io_context's own, the files read.
+constexpr rlim_t kSpareFds = 64;
+// A simulated tile takes at most ten minutes; ramp-up and warm-up are bounded alike.
+constexpr std::uint32_t kMaxRenderMs = 600'000;
+constexpr std::uint32_t kMaxRampMs = 600'000;
+constexpr std::uint32_t kMaxWarmupSeconds = 600;
+constexpr std::uint32_t kMaxJitterPercent = 100;
+// The real worker's bounds on a "nothing now" wait (worker/backoff.h): never sooner than this.
+constexpr std::chrono::milliseconds kMinRetryAfter{50};
 constexpr std::uint32_t kMaxSeconds = 3600;
 constexpr std::size_t kMaxTokenBytes = 4096;
 // Latency samples kept per kind (4 bytes each: 64 MiB at most); past this they are counted only.
@@ -95,9 +123,13 @@ struct Options {
   bool keep_alive = true;
   std::uint32_t workers = 64;
   std::uint32_t seconds = 10;
-  std::uint64_t job = 0;
+  std::uint64_t job = 0;  // 0: no job, idle workers
   bool json = false;
   bool lease_only = false;
+  std::uint32_t render_ms = 0;       // simulated render time of a tile
+  std::uint32_t render_jitter = 20;  // percent, either side of render_ms
+  std::uint32_t ramp_ms = 0;         // first requests spread over this long
+  std::uint32_t warmup_seconds = 0;  // before the measured window
 };
 
 // Durations in whole microseconds, up to kMaxLatencySamples of them.
@@ -143,18 +175,42 @@ struct Tally {
 
 struct Run {
   http::Url url;
-  http::Client* client = nullptr;  // every request
+  http::Client* client = nullptr;  // the job check, and every request unless own_clients
+  // Farm modes: one client (one connection, kept alive) per simulated worker, as each real worker
+  // has its own; empty when the workers share `client`.
+  std::vector<http::Client*> own_clients;
   std::string authorization;
-  std::uint64_t job = 0;
+  std::uint64_t job = 0;  // 0: idle workers, no lease may be granted
   bool lease_only = false;
-  Clock::time_point start;
+  std::uint32_t render_ms = 0;
+  std::uint32_t render_jitter = 0;  // percent
+  std::uint32_t ramp_ms = 0;
+  std::mt19937_64 rng{0x64747261636564};  // jitter; fixed seed: runs draw the same waits
+  Clock::time_point start;                // first request may go
+  Clock::time_point measure_from;         // start + warm-up: the measured window opens
   Clock::time_point deadline;
   Clock::time_point last_answer;  // when the last simulated worker ended
   bool stopped = false;           // a condition that makes the figures meaningless; see reason
   std::string reason;
-  Tally tally;
+  Tally tally;         // the measured window
+  Tally warmup_tally;  // before it; discarded
 
   bool running() const { return !stopped && Clock::now() < deadline; }
+  // Where an exchange that started at `sent` is counted.
+  Tally& tally_for(Clock::time_point sent) { return sent < measure_from ? warmup_tally : tally; }
+  // A tile's simulated render time: render_ms +/- render_jitter percent, uniformly.
+  Clock::duration render_time() {
+    if (render_ms == 0) return Clock::duration::zero();
+    const double spread = render_ms * (render_jitter / 100.0);
+    std::uniform_real_distribution<double> uniform(render_ms - spread, render_ms + spread);
+    return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double, std::milli>(uniform(rng)));
+  }
+  // The wait after "nothing now, ask again in `asked`", as the real worker draws it.
+  Clock::duration retry_wait(std::chrono::milliseconds asked) {
+    const auto base = std::max(asked, kMinRetryAfter).count();
+    std::uniform_int_distribution<std::chrono::milliseconds::rep> uniform(base, base + base / 2);
+    return std::chrono::milliseconds(uniform(rng));
+  }
   void stop(std::string why) {
     if (stopped) return;
     stopped = true;
@@ -185,10 +241,11 @@ util::Result<std::string> read_token(const std::string& path) {
   return token;
 }
 
-net::awaitable<http::ClientResult> exchange(const Run& run, http::Request req, std::string_view worker) {
+net::awaitable<http::ClientResult> exchange(const Run& run, http::Client& client, http::Request req,
+                                            std::string_view worker) {
   req.set(bhttp::field::authorization, run.authorization);
   req.set(protocol::kWorkerHeader, worker);
-  co_return co_await run.client->request(run.url, std::move(req), kMaxAnswerBytes);
+  co_return co_await client.request(run.url, std::move(req), kMaxAnswerBytes);
 }
 
 net::awaitable<void> pause_for(net::steady_timer& timer, Clock::duration d) {
@@ -199,7 +256,8 @@ net::awaitable<void> pause_for(net::steady_timer& timer, Clock::duration d) {
 // Before the run: the job must exist and still have tiles to lease.
 net::awaitable<util::Status> check_job(const Run& run) {
   const std::string target = fmt::format("/v1/jobs/{}", run.job);
-  http::ClientResult r = co_await exchange(run, http::make_request(http::Verb::get, target), "dtraced-load");
+  http::ClientResult r =
+      co_await exchange(run, *run.client, http::make_request(http::Verb::get, target), "dtraced-load");
   if (!r.ok()) co_return util::Error{r.message, "GET " + target};
   if (r.response.result() != http::Status::ok) co_return util::Error{quote(r.response), "GET " + target};
   auto status = protocol::decode_job_status(r.response.body());
@@ -216,13 +274,19 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
   const std::string name = fmt::format("dtraced-load-{}-{}", ::getpid(), index);
   const std::string lease_body = protocol::encode(protocol::LeaseRequest{name, 1});
   net::steady_timer pause(co_await net::this_coro::executor);
-  Tally& t = run.tally;
+  http::Client& client = run.own_clients.empty() ? *run.client : *run.own_clients[index];
+  if (run.ramp_ms > 0) {
+    std::uniform_int_distribution<std::uint32_t> uniform(0, run.ramp_ms);
+    co_await pause_for(pause, std::chrono::milliseconds(uniform(run.rng)));
+  }
 
   while (run.running()) {
     // ---- lease ----
     Clock::time_point sent = Clock::now();
+    Tally* tp = &run.tally_for(sent);
     http::ClientResult r = co_await exchange(
-        run, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
+        run, client, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
+    Tally& t = *tp;
     if (!r.ok()) {
       ++t.network_errors;
       run.note_problem("POST /v1/lease: " + r.message);
@@ -245,17 +309,30 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
     if (const auto* retry = std::get_if<protocol::RetryAfter>(&reply.value())) {
       ++t.retry_after;
       const auto left = run.deadline - Clock::now();
-      co_await pause_for(pause, std::min<Clock::duration>(std::chrono::milliseconds(retry->ms), left));
+      co_await pause_for(pause, std::min<Clock::duration>(run.retry_wait(std::chrono::milliseconds(retry->ms)), left));
       continue;
     }
     const protocol::Lease& lease = std::get<protocol::Lease>(reply.value());
     if (lease.job != run.job) {
       // Uploading made-up pixels into someone else's job would corrupt it.
-      run.stop(fmt::format("the collector leased a tile of job {}, not of job {}: it is not idle", lease.job, run.job));
+      run.stop(run.job == 0
+                   ? fmt::format("the collector leased a tile of job {} to an idle worker: it has work", lease.job)
+                   : fmt::format("the collector leased a tile of job {}, not of job {}: it is not idle", lease.job,
+                                 run.job));
       co_return;
     }
     ++t.leases;
     if (run.lease_only) continue;
+
+    // ---- render ----
+    if (const Clock::duration render = run.render_time(); render > Clock::duration::zero()) {
+      if (Clock::now() + render >= run.deadline) {
+        // The run ends before this tile would be done: it stays leased, as with a worker stopped.
+        co_await pause_for(pause, std::max<Clock::duration>(run.deadline - Clock::now(), Clock::duration::zero()));
+        break;
+      }
+      co_await pause_for(pause, render);
+    }
 
     // ---- upload ----
     protocol::TilePayload payload;
@@ -266,36 +343,38 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
     http::Request put = http::make_request(http::Verb::put, fmt::format("/v1/jobs/{}/tiles/{}", lease.job, lease.tile),
                                            protocol::encode_tile_payload(payload), http::kBinaryContentType);
     sent = Clock::now();
-    r = co_await exchange(run, std::move(put), name);
+    tp = &run.tally_for(sent);
+    r = co_await exchange(run, client, std::move(put), name);
+    Tally& u = *tp;
     if (!r.ok()) {
-      ++t.network_errors;
+      ++u.network_errors;
       run.note_problem("PUT tile: " + r.message);
       co_await pause_for(pause, kErrorPause);
       continue;
     }
-    t.upload.add(Clock::now() - sent);
+    u.upload.add(Clock::now() - sent);
     const http::Status status = r.response.result();
     if (status == http::Status::service_unavailable) {
-      ++t.busy;
+      ++u.busy;
       co_await pause_for(pause, kErrorPause);
       continue;
     }
     auto answer = protocol::decode_submit_result(r.response.body());
     if ((status != http::Status::ok && status != http::Status::gone) || !answer) {
-      ++t.http_errors;
+      ++u.http_errors;
       run.note_problem("PUT tile: " + quote(r.response));
       co_await pause_for(pause, kErrorPause);
       continue;
     }
     switch (answer.value()) {
       case protocol::SubmitResult::kStored:
-        ++t.stored;
+        ++u.stored;
         break;
       case protocol::SubmitResult::kAlreadyDone:
-        ++t.already_done;
+        ++u.already_done;
         break;
       case protocol::SubmitResult::kJobGone:
-        ++t.job_gone;
+        ++u.job_gone;
         run.stop(fmt::format("job {} is gone (cancelled?)", run.job));
         co_return;
     }
@@ -313,12 +392,19 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
   const Tally& t = run.tally;
   const double rate = elapsed_s > 0 ? static_cast<double>(t.stored) / elapsed_s : 0;
   const double lease_rate = elapsed_s > 0 ? static_cast<double>(t.leases) / elapsed_s : 0;
+  // Every lease request answered, tile or "nothing now" or busy: the polling load.
+  const double answer_rate = elapsed_s > 0 ? static_cast<double>(t.lease.count() + t.lease.dropped()) / elapsed_s : 0;
   if (o.json) {
     // A percentile without samples is NaN, which JSON cannot carry: null.
     const auto ms = [](double v) { return std::isnan(v) ? boost::json::value(nullptr) : boost::json::value(v); };
     boost::json::object j;
     j["workers"] = o.workers;
     j["job"] = o.job;
+    j["idle"] = o.job == 0;
+    j["render_ms"] = o.render_ms;
+    j["render_jitter_percent"] = o.render_jitter;
+    j["ramp_ms"] = o.ramp_ms;
+    j["warmup_s"] = o.warmup_seconds;
     j["elapsed_s"] = elapsed_s;
     j["stored"] = t.stored;
     j["stored_per_s"] = rate;
@@ -331,6 +417,7 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
     j["tls_handshakes"] = client.tls_handshakes;
     j["leases"] = t.leases;
     j["leases_per_s"] = lease_rate;
+    j["lease_answers_per_s"] = answer_rate;
     j["retry_after"] = t.retry_after;
     j["busy"] = t.busy;
     j["http_errors"] = t.http_errors;
@@ -348,12 +435,17 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
     fmt::print("{}\n", jsonio::to_text(j));
     return;
   }
-  fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} (job {}){}, {}\n", o.workers, elapsed_s,
-             run.url.to_string(), o.job, o.lease_only ? ", leases only" : "",
-             o.keep_alive ? "kept-alive connections" : "a connection per request");
+  fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} ({}){}, {}\n", o.workers, elapsed_s,
+             run.url.to_string(), o.job == 0 ? "idle, no job" : fmt::format("job {}", o.job),
+             o.lease_only ? ", leases only" : "", o.keep_alive ? "kept-alive connections" : "a connection per request");
+  if (o.render_ms > 0 || o.ramp_ms > 0 || o.warmup_seconds > 0) {
+    fmt::print("  farm            tiles take {} ms +/- {} %, first requests over {} ms, {} s warm-up not counted\n",
+               o.render_ms, o.render_jitter, o.ramp_ms, o.warmup_seconds);
+  }
   fmt::print("  stored          {:>10}  {:>10.1f} /s\n", t.stored, rate);
   fmt::print("  already_done    {:>10}\n", t.already_done);
-  fmt::print("  leases          {:>10}  {:>10.1f} /s  ({} retry_after answers)\n", t.leases, lease_rate, t.retry_after);
+  fmt::print("  leases          {:>10}  {:>10.1f} /s  ({} retry_after answers; {:.1f} lease answers/s in all)\n",
+             t.leases, lease_rate, t.retry_after, answer_rate);
   fmt::print("  errors          {:>10}  network, {} busy (503), {} other, {} job_gone\n", t.network_errors, t.busy,
              t.http_errors, t.job_gone);
   const auto line = [](std::string_view what, const Latencies& l) {
@@ -367,12 +459,34 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
              client.connections_opened, client.tls_handshakes, client.reuses);
   fmt::print("  generator CPU   {:.2f} of one core\n", elapsed_s > 0 ? cpu_s / elapsed_s : 0);
   if (!t.first_problem.empty()) fmt::print("  first problem: {}\n", t.first_problem);
-  if (t.retry_after > 0) {
+  if (t.retry_after > 0 && o.job != 0 && o.render_ms == 0) {
     fmt::print(
         "  warning: the collector had no tile to lease {} times (job finished, or every tile out): the rate "
         "understates its capacity; use a larger job\n",
         t.retry_after);
   }
+}
+
+// Raises the soft open-file limit to one descriptor per simulated worker plus a margin, within the
+// hard limit; an error when the hard limit is below that (the run would fail to connect).
+util::Status raise_fd_limit(std::uint32_t workers) {
+  const rlim_t want = static_cast<rlim_t>(workers) + kSpareFds;
+  rlimit limit{};
+  if (::getrlimit(RLIMIT_NOFILE, &limit) != 0) {
+    return util::Error{fmt::format("getrlimit(RLIMIT_NOFILE): {}", std::strerror(errno))};
+  }
+  if (limit.rlim_cur != RLIM_INFINITY && limit.rlim_cur >= want) return util::Status();
+  if (limit.rlim_max != RLIM_INFINITY && limit.rlim_max < want) {
+    return util::Error{fmt::format(
+        "--workers {} needs {} open files, but the hard limit (RLIMIT_NOFILE, ulimit -Hn) is {}: raise it or use "
+        "fewer workers",
+        workers, want, limit.rlim_max)};
+  }
+  limit.rlim_cur = want;
+  if (::setrlimit(RLIMIT_NOFILE, &limit) != 0) {
+    return util::Error{fmt::format("setrlimit(RLIMIT_NOFILE, {}): {}", want, std::strerror(errno))};
+  }
+  return util::Status();
 }
 
 int run_load(const Options& o) {
@@ -385,6 +499,10 @@ int run_load(const Options& o) {
   if (!token) {
     fmt::print(stderr, "--token-file: {}\n", token.error().to_string());
     return 2;
+  }
+  if (util::Status fds = raise_fd_limit(o.workers); !fds) {
+    fmt::print(stderr, "dtraced-load: {}\n", fds.error().to_string());
+    return 1;
   }
   http::ClientOptions client_options;
   client_options.timeouts = kTimeouts;
@@ -413,22 +531,29 @@ int run_load(const Options& o) {
   run.authorization = "Bearer " + *token;
   run.job = o.job;
   run.lease_only = o.lease_only;
+  run.render_ms = o.render_ms;
+  run.render_jitter = o.render_jitter;
+  run.ramp_ms = o.ramp_ms;
 
   net::io_context io{1};
   http::Client client(io.get_executor(), client_options);  // after io: destroyed before it
   run.client = &client;
+  // Farm modes' clients, one per simulated worker; after io, so destroyed before it.
+  std::vector<std::unique_ptr<http::Client>> own_clients;
   util::Status checked = util::Error{"the job check did not finish"};
-  net::co_spawn(io, check_job(run), [&checked](std::exception_ptr e, util::Status result) {
-    if (!e) {
-      checked = std::move(result);
-      return;
-    }
-    try {
-      std::rethrow_exception(e);
-    } catch (const std::exception& ex) {
-      checked = util::Error{fmt::format("job check: {}", ex.what())};
-    }
-  });
+  if (o.job == 0) checked = util::Status();  // idle workers: the first granted lease stops the run
+  if (o.job != 0)
+    net::co_spawn(io, check_job(run), [&checked](std::exception_ptr e, util::Status result) {
+      if (!e) {
+        checked = std::move(result);
+        return;
+      }
+      try {
+        std::rethrow_exception(e);
+      } catch (const std::exception& ex) {
+        checked = util::Error{fmt::format("job check: {}", ex.what())};
+      }
+    });
   io.run();
   if (!checked) {
     fmt::print(stderr, "dtraced-load: {}\n", checked.error().to_string());
@@ -436,10 +561,21 @@ int run_load(const Options& o) {
   }
 
   io.restart();
+  if (o.render_ms > 0 || o.job == 0) {
+    // A farm: each worker keeps its own connection between its requests, however long it pauses.
+    http::ClientOptions own = client_options;
+    own.max_idle_connections = o.keep_alive ? 1 : 0;
+    own_clients.reserve(o.workers);
+    for (std::uint32_t i = 0; i < o.workers; ++i) {
+      own_clients.push_back(std::make_unique<http::Client>(io.get_executor(), own));
+      run.own_clients.push_back(own_clients.back().get());
+    }
+  }
   const double cpu_before = cpu_seconds();
   run.start = Clock::now();
-  run.deadline = run.start + std::chrono::seconds(o.seconds);
-  run.last_answer = run.start;
+  run.measure_from = run.start + std::chrono::seconds(o.warmup_seconds);
+  run.deadline = run.measure_from + std::chrono::seconds(o.seconds);
+  run.last_answer = run.measure_from;
   for (std::uint32_t i = 0; i < o.workers; ++i) {
     net::co_spawn(io, simulated_worker(run, i), [&run, i](std::exception_ptr e) {
       run.last_answer = std::max(run.last_answer, Clock::now());
@@ -453,11 +589,24 @@ int run_load(const Options& o) {
     });
   }
   io.run();
-  const double elapsed = std::chrono::duration<double>(run.last_answer - run.start).count();
-  const double cpu = cpu_seconds() - cpu_before;
+  const double elapsed = std::chrono::duration<double>(run.last_answer - run.measure_from).count();
+  // CPU over the whole run, warm-up included, as a share of the measured window alone would
+  // overstate it: spread over the run's full length instead.
+  const double total = std::chrono::duration<double>(run.last_answer - run.start).count();
+  const double cpu = total > 0 ? (cpu_seconds() - cpu_before) * elapsed / total : 0;
   run.tally.lease.finish();
   run.tally.upload.finish();
-  report(o, run, client.stats(), elapsed, cpu);
+  http::ClientStats stats = client.stats();
+  for (const http::Client* own : run.own_clients) {
+    const http::ClientStats one = own->stats();
+    stats.requests += one.requests;
+    stats.connections_opened += one.connections_opened;
+    stats.reuses += one.reuses;
+    stats.retries += one.retries;
+    stats.tls_handshakes += one.tls_handshakes;
+    stats.tls_failures += one.tls_failures;
+  }
+  report(o, run, stats, elapsed, cpu);
   if (run.stopped) {
     fmt::print(stderr, "dtraced-load: stopped early: {}\n", run.reason);
     return 1;
@@ -471,17 +620,18 @@ int run_load(const Options& o) {
 int main(int argc, char** argv) {
   dtraced::bench::Options o;
   CLI::App app{
-      "dtraced-load: simulated workers lease tiles from a collector and upload made-up pixels as fast as it answers; "
-      "prints durable submissions per second and lease latency. Writes into the job it is given: use a throwaway "
-      "collector.",
+      "dtraced-load: simulated workers lease tiles from a collector and upload made-up pixels, as fast as it answers "
+      "or after a simulated render time; without --job, idle workers poll a collector that has no work. Prints "
+      "durable submissions per second and lease latency. Writes into the job it is given: use a throwaway collector.",
       "dtraced-load"};
   app.add_option("--collector", o.collector, "Collector base URL, http://HOST:PORT or https://HOST:PORT")->required();
   app.add_option("--ca-file", o.ca_file, "The collector's CA certificate (PEM), for an https:// collector");
   app.add_flag("--keep-alive,!--no-keep-alive", o.keep_alive,
                "Kept-alive connections (the default, as workers speak), or a connection per request");
   app.add_option("--token-file", o.token_file, "File holding the farm's bearer token")->required();
-  app.add_option("--job", o.job, "The job to lease from and upload into (must be unfinished)")
-      ->required()
+  app.add_option("--job", o.job,
+                 "The job to lease from and upload into (must be unfinished); without it the workers are idle and "
+                 "the collector must have no work")
       ->check(CLI::Range(std::uint64_t{1}, dtraced::protocol::kMaxId));
   app.add_option("--workers", o.workers, "Simulated workers (concurrent coroutines on one thread)")
       ->check(CLI::Range(std::uint32_t{1}, dtraced::bench::kMaxWorkers))
@@ -490,6 +640,18 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(std::uint32_t{1}, dtraced::bench::kMaxSeconds))
       ->capture_default_str();
   app.add_flag("--lease-only", o.lease_only, "Lease without uploading: the rate of bare requests");
+  app.add_option("--render-ms", o.render_ms, "Hold each leased tile this long before uploading it (simulated render)")
+      ->check(CLI::Range(std::uint32_t{0}, dtraced::bench::kMaxRenderMs))
+      ->capture_default_str();
+  app.add_option("--render-jitter", o.render_jitter, "Spread of the render time, percent either side of --render-ms")
+      ->check(CLI::Range(std::uint32_t{0}, dtraced::bench::kMaxJitterPercent))
+      ->capture_default_str();
+  app.add_option("--ramp-ms", o.ramp_ms, "Start the simulated workers at random times over this long")
+      ->check(CLI::Range(std::uint32_t{0}, dtraced::bench::kMaxRampMs))
+      ->capture_default_str();
+  app.add_option("--warmup-seconds", o.warmup_seconds, "Run this long before the measured window (not counted)")
+      ->check(CLI::Range(std::uint32_t{0}, dtraced::bench::kMaxWarmupSeconds))
+      ->capture_default_str();
   app.add_flag("--json", o.json, "Print the figures as one JSON object");
   try {
     app.parse(argc, argv);
