@@ -53,6 +53,8 @@ munged --key-file="$slurm/munge/munge.key" --socket="$slurm/munge/munge.socket" 
   --force || die "munged did not start"
 
 host=$(hostname -s)
+# Slurm names the node by its short name; the worker names itself by gethostname(), in full.
+whost=$(hostname)
 cpus=$(nproc)
 cat >"$slurm/slurm.conf" <<EOF
 ClusterName=dtraced-test
@@ -127,7 +129,7 @@ task_running() { squeue -h -j "${array}_$1" -t R -o %i 2>/dev/null | grep -q .; 
 until_ok 60 task_running 0 || die "array task 0 did not start: $(squeue 2>&1)"
 # Wait until task 0 has stored tiles, then kill it outright: its leases are re-offered.
 stored_by() { client workers --json 2>/dev/null | grep -q "\"$1\"" && [ "$(job_field "$id" tiles_done)" -ge 4 ] 2>/dev/null; }
-until_ok "$DEADLINE" stored_by "$host-${array}_0" || die "task 0 never stored tiles"
+until_ok "$DEADLINE" stored_by "$whost-${array}_0" || die "task 0 never stored tiles"
 scancel --signal=KILL "${array}_0" || die "scancel failed"
 ok "array task 0 killed mid-job (scancel --signal=KILL)"
 
@@ -146,7 +148,7 @@ grep -q "1 render threads" "$log1" && ok "a one-CPU task renders with 1 thread (
   fail "task 1 did not render with 1 thread: $(grep started "$log1")"
 grep -q "stopping (--exit-when-idle 3)" "$log1" && ok "task 1 exits by itself once there is no work" ||
   fail "task 1 did not exit on idle"
-grep -q "worker $host-${array}_1 started" "$log1" && ok "task 1 is named $host-${array}_1" ||
+grep -q "worker $whost-${array}_1 started" "$log1" && ok "task 1 is named $whost-${array}_1" ||
   fail "task 1's name is not HOST-JOB_TASK: $(grep started "$log1")"
 state=$(job_field "$id" state)
 [ "$state" = done ] && ok "the job is done" || fail "the job's state is $state"

@@ -228,9 +228,18 @@ async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
                                                                          std::move(tile.rgb), std::move(tile.spp)}),
                      static_cast<std::uint64_t>(std::max<std::int64_t>(took.count(), 0)));
   };
-  ++rendering;
-  auto [payload, render_ms] = co_await async::on_pool(pool, std::move(render));
-  --rendering;
+  std::pair<std::string, std::uint64_t> rendered;
+  {
+    // Counted while on the pool, and uncounted even if the render throws, so that exit_when_idle
+    // is not disabled for good by one failed tile.
+    ++rendering;
+    struct Uncount {
+      std::uint32_t& n;
+      ~Uncount() { --n; }
+    } uncount{rendering};
+    rendered = co_await async::on_pool(pool, std::move(render));
+  }
+  auto& [payload, render_ms] = rendered;
   last_work_at = clock.now();
   tiles_rendered.add();
   if (abandon.is_set()) {
