@@ -263,6 +263,37 @@ kill -TERM "$localhost_pid" 2>/dev/null
 wait "$localhost_pid"
 check "a collector on localhost stops cleanly on SIGTERM" 0 test "$?" = 0
 
+# The farm limits (issue 17): in --help, bounded, named by flag or by config key, role-checked.
+for flag in --max-idle-connections --max-workers --max-idle-wait-ms --start-jitter-ms; do
+  expect_text "--help lists $flag" "$work/help-top" "$flag"
+done
+expect_text "--help says idle connections follow --max-connections" "$work/help-top" "default: --max-connections"
+check "--max-workers 0" 2 "$DTRACED" --role collector --max-workers 0 --state-dir "$work/s" --token-file "$work/token"
+expect_text "--max-workers 0 is named by its flag" "$work/err" "^--max-workers: Value 0 not in range"
+check "--max-idle-wait-ms over the protocol's limit" 2 "$DTRACED" --role collector --max-idle-wait-ms 60001 --state-dir "$work/s" --token-file "$work/token"
+expect_text "--max-idle-wait-ms is named by its flag" "$work/err" "^--max-idle-wait-ms: Value 60001 not in range"
+echo '{"role": "collector", "max_idle_connections": 0}' >"$work/c7.json"
+check "max_idle_connections 0 in the config" 2 "$DTRACED" --config "$work/c7.json" --state-dir "$work/s" --token-file "$work/token"
+expect_text "max_idle_connections is named by the config file and key" "$work/err" "c7.json: /max_idle_connections: Value 0 not in range"
+check "--start-jitter-ms is a worker flag" 2 "$DTRACED" --role collector --start-jitter-ms 10 --state-dir "$work/s" --token-file "$work/token"
+expect_text "--start-jitter-ms on a collector is refused" "$work/err" "start-jitter-ms is not an option of --role collector"
+check "--start-jitter-ms over an hour" 2 "$DTRACED" --role worker --collector http://127.0.0.1:1 --start-jitter-ms 3600001 --token-file "$work/token"
+# A worker waiting out its start jitter exits 0 on SIGTERM at once, having asked nothing.
+echo '{"role": "worker", "start_jitter_ms": 3600000}' >"$work/w3.json"
+"$DTRACED" --config "$work/w3.json" --collector "http://127.0.0.1:1" --name jittery --token-file "$work/token" 2>"$work/jitter.log" &
+jitter_pid=$!
+for _ in $(seq 1 300); do
+  grep -q "before the first request" "$work/jitter.log" && break
+  kill -0 "$jitter_pid" 2>/dev/null || break
+  sleep 0.1
+done
+expect_text "the worker says how long it waits before its first request" "$work/jitter.log" "jittery: waiting [0-9]* ms before the first request (--start-jitter-ms 3600000)"
+kill -TERM "$jitter_pid" 2>/dev/null
+wait "$jitter_pid"
+check "a worker stopped during its start jitter exits 0" 0 test "$?" = 0
+# It asked nothing (the address refuses connections: a lease request would have failed).
+expect_text "a worker stopped during its start jitter asked nothing" "$work/jitter.log" " 0 lease failures"
+
 # render prints the warnings validate prints.
 echo '{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 45},
  "scene_objects": [{"type": "sphere", "loc": [0, 0, 0], "radius": 1}], "scene_lights": []}' >"$work/nolights.json"

@@ -487,7 +487,73 @@ TEST_CASE("an idle worker of a small farm asks again sooner than one of a large 
   // 40 workers known: 5 ms each, so that all of them together ask about 200 times a second.
   for (int i = 1; i < 39; ++i) hint(fmt::format("w{}", i));
   CHECK(hint("w39") == 200);
-  // Past 100 workers the queue's longest wait holds, as before.
+  // Past 100 workers the rule goes on growing: 151 workers wait 755 ms (the old 500 ms ceiling
+  // is gone: the default is 5 s, --max-idle-wait-ms).
   for (int i = 40; i < 150; ++i) hint(fmt::format("w{}", i));
-  CHECK(hint("w150") == 500);
+  CHECK(hint("w150") == 755);
+}
+
+TEST_CASE("the idle wait grows with the farm up to --max-idle-wait-ms", "[collector][service][limits]") {
+  TempDir dir;
+  // The retry hint of `name`, asking `h`'s collector, which has no work.
+  const auto hint = [](Harness& h, const std::string& name) {
+    const Response res = h.call(Verb::post, "/v1/lease", fmt::format(R"({{"worker": "{}", "threads": 1}})", name));
+    REQUIRE(res.result() == Status::ok);
+    auto reply = protocol::decode_lease_reply(res.body());
+    REQUIRE(reply.ok());
+    const auto* retry = std::get_if<protocol::RetryAfter>(&reply.value());
+    REQUIRE(retry != nullptr);
+    return retry->ms;
+  };
+  SECTION("the default ceiling, 5 s: reached at 1,000 known workers") {
+    CHECK(coll::QueueConfig{}.max_retry_after == 5s);
+    Harness h(dir);
+    for (int i = 1; i < 999; ++i) hint(h, fmt::format("w{}", i));
+    CHECK(hint(h, "w999") == 4995);
+    CHECK(hint(h, "w1000") == 5000);
+    for (int i = 1001; i < 1200; ++i) hint(h, fmt::format("w{}", i));
+    CHECK(hint(h, "w1200") == 5000);
+  }
+  SECTION("a ceiling of 2 s: 300 workers wait 1.5 s, 500 and more 2 s") {
+    coll::CollectorConfig c = make_config(dir);
+    c.queue.max_retry_after = 2s;
+    Harness h(std::move(c));
+    for (int i = 1; i < 300; ++i) hint(h, fmt::format("w{}", i));
+    CHECK(hint(h, "w300") == 1500);
+    for (int i = 301; i < 600; ++i) hint(h, fmt::format("w{}", i));
+    CHECK(hint(h, "w600") == 2000);
+  }
+  SECTION("the old ceiling, 500 ms, as a flag value") {
+    coll::CollectorConfig c = make_config(dir);
+    c.queue.max_retry_after = 500ms;
+    Harness h(std::move(c));
+    for (int i = 1; i < 200; ++i) hint(h, fmt::format("w{}", i));
+    CHECK(hint(h, "w200") == 500);
+  }
+}
+
+TEST_CASE("the configuration bounds the farm limits and names each one", "[collector][limits]") {
+  TempDir dir;
+  coll::CollectorConfig c = make_config(dir);
+  const auto paths = [](const coll::CollectorConfig& config) {
+    std::vector<std::string> out;
+    for (const auto& e : coll::check_collector_config(config)) out.push_back(e.path);
+    return out;
+  };
+  CHECK(c.workers.max_workers == coll::kDefaultMaxWorkers);
+  CHECK(c.workers.max_workers >= 10'000);  // a 10,000-worker farm does not trip it
+  c.workers.max_workers = coll::kMaxMaxWorkers;
+  c.limits.max_idle_connections = 100'000;
+  c.queue.max_retry_after = std::chrono::milliseconds(protocol::kMaxRetryAfterMs);
+  CHECK(coll::check_collector_config(c).empty());
+  c.workers.max_workers = coll::kMaxMaxWorkers + 1;
+  CHECK(paths(c) == std::vector<std::string>{"workers.max_workers"});
+  c.workers.max_workers = 0;
+  CHECK(paths(c) == std::vector<std::string>{"workers.max_workers"});
+  c = make_config(dir);
+  c.limits.max_idle_connections = 0;
+  CHECK(paths(c) == std::vector<std::string>{"limits.max_idle_connections"});
+  c = make_config(dir);
+  c.queue.max_retry_after = std::chrono::milliseconds(protocol::kMaxRetryAfterMs + 1);
+  CHECK(paths(c) == std::vector<std::string>{"queue.max_retry_after"});
 }

@@ -119,10 +119,18 @@ TEST_CASE("a linger waits for every worker it was to tell, or for its deadline",
 
 TEST_CASE("the linger bound covers the longest retry-after the idle workers were given",
           "[collector][exit_when_done]") {
-  coll::QueueConfig queue;  // max_retry_after 500 ms
+  coll::QueueConfig queue;  // max_retry_after 5 s (--max-idle-wait-ms)
+  CHECK(collector::linger_bound(queue) == 10s);
+  queue.max_retry_after = 500ms;
   CHECK(collector::linger_bound(queue) == collector::kFinishedLinger);
   queue.max_retry_after = 60s;
   CHECK(collector::linger_bound(queue) == 120s);
+  // Whatever the ceiling, a worker told to wait it comes back (within 1.5 x, its jitter) before
+  // the linger ends.
+  for (const auto ms : {50, 500, 2000, 3333, 5000, 20000, 60000}) {
+    queue.max_retry_after = std::chrono::milliseconds(ms);
+    CHECK(collector::linger_bound(queue) >= queue.max_retry_after * 3 / 2);
+  }
 }
 
 TEST_CASE("the workers to tell are those not quiet", "[collector][exit_when_done]") {

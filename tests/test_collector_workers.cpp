@@ -159,6 +159,51 @@ TEST_CASE("past the cap, the least recently seen worker is evicted", "[collector
   CHECK(r.size() == 3);
 }
 
+TEST_CASE("a registry of max_workers N keeps N and evicts the least recently seen for the (N+1)th",
+          "[collector][workers][limits]") {
+  WorkerLimits limits;
+  limits.max_workers = 100;
+  WorkerRegistry r(limits);
+  // Seen in the order 0..99, then the even ones again (leases and uploads alike move a worker).
+  for (int i = 0; i < 100; ++i) CHECK(r.on_lease({fmt::format("w{}", i), ""}, "", 1, kStart + i * 1s));
+  for (int i = 0; i < 100; i += 2) {
+    if (i % 4 == 0) {
+      CHECK_FALSE(r.on_lease({fmt::format("w{}", i), ""}, "", 1, kStart + 200s + i * 1s));
+    } else {
+      CHECK_FALSE(r.on_tile({fmt::format("w{}", i), ""}, TileOutcome::kStored, 1, kStart + 200s + i * 1s));
+    }
+  }
+  CHECK(r.size() == 100);
+  CHECK(r.evicted() == 0);
+  // 50 newcomers evict exactly the odd ones, oldest first.
+  for (int i = 0; i < 50; ++i) {
+    CHECK(r.on_lease({fmt::format("new{}", i), ""}, "", 1, kStart + 400s + i * 1s));
+    CHECK(r.evicted() == std::uint64_t(i + 1));
+    CHECK(r.size() == 100);
+    const auto list = r.list(kStart + 400s + i * 1s);
+    CHECK(find(list, {fmt::format("w{}", 2 * i + 1), ""}) == nullptr);
+    if (i + 1 < 50) CHECK(find(list, {fmt::format("w{}", 2 * i + 3), ""}) != nullptr);
+  }
+  const auto list = r.list(kStart + 500s);
+  for (int i = 0; i < 100; i += 2) CHECK(find(list, {fmt::format("w{}", i), ""}) != nullptr);
+  // Forgetting keeps the recency order right: after a sweep, the next eviction is the oldest left.
+  r.sweep(kStart + 399s + limits.forget_after);  // forgets those seen before 399 s: the even ones
+  CHECK(r.size() == 50);
+  for (int i = 0; i < 51; ++i) r.on_lease({fmt::format("late{}", i), ""}, "", 1, kStart + 2h + i * 1s);
+  CHECK(r.size() == 100);
+  CHECK(r.evicted() == 51);
+  CHECK(find(r.list(kStart + 3h), {"new0", ""}) == nullptr);
+  CHECK(find(r.list(kStart + 3h), {"new1", ""}) != nullptr);
+}
+
+TEST_CASE("the default registry holds a 10,000-worker farm without evicting", "[collector][workers][limits]") {
+  WorkerRegistry r;
+  CHECK(r.limits().max_workers == coll::kDefaultMaxWorkers);
+  for (int i = 0; i < 10'000; ++i) r.on_lease({fmt::format("host{}-77_{}", i / 8, i), "10.0.0.1"}, "", 8, kStart);
+  CHECK(r.size() == 10'000);
+  CHECK(r.evicted() == 0);
+}
+
 TEST_CASE("a log throttle lets one line through per interval and counts the rest", "[collector][admission]") {
   coll::LogThrottle throttle(10s);
   std::uint64_t held = 99;

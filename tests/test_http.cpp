@@ -294,6 +294,42 @@ TEST_CASE("server: at max_connections the connection idle longest makes room", "
   CHECK(server.metrics().rejected_connections == 0);
 }
 
+TEST_CASE("server: with max_idle_connections N, N idle connections are kept and the (N+1)th closes the oldest",
+          "[http][limits]") {
+  constexpr std::size_t kIdle = 40;
+  ServerLimits limits = generous_limits();
+  limits.max_connections = 100;
+  limits.max_idle_connections = kIdle;
+  TestServer server(limits, routes());
+
+  std::vector<std::unique_ptr<RawConnection>> conns;
+  const auto ask = [](RawConnection& conn) {
+    if (!conn.send(echo_request("{}"))) return false;
+    const auto res = conn.read_response();
+    return res && res->result() == Status::ok && res->keep_alive();
+  };
+  for (std::size_t i = 0; i < kIdle; ++i) {
+    conns.push_back(std::make_unique<RawConnection>(server.port()));
+    REQUIRE(ask(*conns.back()));
+  }
+  // All N are idle and kept: each serves a second request on the same connection.
+  CHECK(eventually([&] { return server.metrics().open_connections == kIdle; }));
+  CHECK(server.metrics().evicted_idle_connections == 0);
+  for (auto& conn : conns) CHECK(ask(*conn));
+  CHECK(server.metrics().keepalive_reuses == kIdle);
+  CHECK(server.metrics().evicted_idle_connections == 0);
+
+  // One more idle connection: the one idle the longest (conns[0], answered first above) is closed.
+  conns.push_back(std::make_unique<RawConnection>(server.port()));
+  REQUIRE(ask(*conns.back()));
+  CHECK(conns[0]->wait_closed());
+  CHECK(eventually([&] { return server.metrics().evicted_idle_connections == 1; }));
+  // The other N are still kept, and going idle again among N idle ones closes nothing.
+  for (std::size_t i = 1; i < conns.size(); ++i) CHECK(ask(*conns[i]));
+  CHECK(server.metrics().evicted_idle_connections == 1);
+  CHECK(server.metrics().rejected_connections == 0);
+}
+
 TEST_CASE("server: a throwing handler gives 500 with a JSON body, and serving goes on", "[http]") {
   TestServer server(generous_limits(), routes());
   const ClientResult res = dtraced::http::request_sync(server.url(), dtraced::http::make_request(Verb::get, "/throw"),

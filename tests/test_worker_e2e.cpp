@@ -399,6 +399,47 @@ TEST_CASE("SIGTERM stops a worker that waits for an absent collector", "[worker]
   CHECK(s.tiles_rendered == 0);
 }
 
+TEST_CASE("with start_jitter a worker waits before its first request, and a stop during the wait exits at once",
+          "[worker][end_to_end][limits]") {
+  SECTION("a stop during the wait: no request, exit true, well before the wait or a grace period ends") {
+    Farm farm({}, [](worker::WorkerConfig& c) {
+      c.start_jitter = 3'600'000ms;  // an hour: the clock is never moved that far
+      c.jitter_seed = 7;
+    });
+    RunningWorker& worker = farm.worker;
+    std::mt19937_64 replica(7);
+    const auto delay = worker::start_delay(3'600'000ms, replica);
+    REQUIRE(delay > 1s);  // the seed's delay, as the worker draws it first
+    // The worker sleeps on the clock (its start delay) and asks nothing meanwhile.
+    REQUIRE(worker.until([&] { return worker.stats().started && worker.clock().sleepers() >= 1; }, worker.start()));
+    CHECK(worker.clock().next_deadline() == std::optional<util::TimePoint>(worker.start() + delay));
+    CHECK(farm.fake.counts().lease_requests == 0);
+    worker.request_stop();
+    // Not a moment of the wait, nor of the grace period, passes on the clock.
+    REQUIRE(worker.wait(worker.start()) == std::optional<bool>(true));
+    const WorkerStats s = worker.stats();
+    check_stopped_cleanly(s);
+    CHECK(s.tiles_rendered == 0);
+    CHECK(farm.fake.counts().lease_requests == 0);
+    CHECK(worker.clock().now() == worker.start());
+  }
+  SECTION("the wait over, the worker renders the job as usual") {
+    Farm farm({}, [](worker::WorkerConfig& c) {
+      c.start_jitter = 20'000ms;
+      c.jitter_seed = 11;
+    });
+    RunningWorker& worker = farm.worker;
+    std::mt19937_64 replica(11);
+    const auto delay = worker::start_delay(20'000ms, replica);
+    REQUIRE(worker.until([&] { return farm.fake.all_stored(); }));
+    // Its first move of the clock was to the end of the start delay.
+    REQUIRE_FALSE(worker.moves().empty());
+    CHECK(worker.moves().front() == worker.start() + delay);
+    worker.stop_cleanly();
+    check_pixels(farm.fake);
+  }
+}
+
 TEST_CASE("an adaptive job's tiles carry their per-pixel sample counts", "[worker][end_to_end][adaptive]") {
   scene::SceneDesc desc = load_tiny_scene();
   desc.render.samples = 16;

@@ -437,6 +437,37 @@ TEST_CASE("exit_when_idle and max_runtime are bounded", "[worker][config]") {
   CHECK(errors[1].path == "max_runtime");
 }
 
+TEST_CASE("start_jitter is bounded, and the start delay drawn is within [0, start_jitter]",
+          "[worker][config][limits]") {
+  WorkerConfig config = test_config(7878);
+  CHECK(config.start_jitter == 0ms);  // off by default
+  config.start_jitter = worker::kMaxStartJitter;
+  CHECK(worker::validate(config).empty());
+  config.start_jitter = worker::kMaxStartJitter + 1ms;
+  const util::Errors errors = worker::validate(config);
+  REQUIRE(errors.size() == 1);
+  CHECK(errors[0].path == "start_jitter");
+
+  std::mt19937_64 rng(12345);
+  CHECK(worker::start_delay(0ms, rng) == 0ms);
+  for (const auto max : {1ms, 7ms, 1000ms, worker::kMaxStartJitter}) {
+    std::chrono::milliseconds lowest = max, highest = 0ms;
+    for (int i = 0; i < 2000; ++i) {
+      const auto d = worker::start_delay(max, rng);
+      REQUIRE(d >= 0ms);
+      REQUIRE(d <= max);
+      lowest = std::min(lowest, d);
+      highest = std::max(highest, d);
+    }
+    // Spread over the range, not stuck at one end (2,000 draws: a failure here is not chance).
+    CHECK(lowest <= max / 10);
+    CHECK(highest >= max - max / 10);
+  }
+  // Two workers seeded differently start at different times.
+  std::mt19937_64 a(1), b(2);
+  CHECK(worker::start_delay(60'000ms, a) != worker::start_delay(60'000ms, b));
+}
+
 // ---- tiles in hand -------------------------------------------------------------------------------
 
 TEST_CASE("the tiles in hand are bounded by count, and the rendered ones also by bytes", "[worker][in_hand]") {

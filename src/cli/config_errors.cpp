@@ -20,6 +20,9 @@ constexpr FieldFlag kFieldFlags[] = {
     {"listen_address", "--listen"},
     {"state_dir", "--state-dir"},
     {"limits.max_connections", "--max-connections"},
+    {"limits.max_idle_connections", "--max-idle-connections"},
+    {"workers.max_workers", "--max-workers"},
+    {"queue.max_retry_after", "--max-idle-wait-ms"},
     {"limits.max_body_bytes", "--max-body-bytes"},
     {"limits.read_timeout", "--read-timeout-ms"},
     {"limits.write_timeout", "--write-timeout-ms"},
@@ -44,6 +47,7 @@ constexpr FieldFlag kFieldFlags[] = {
     {"max_unacknowledged", "--max-unacknowledged"},
     {"exit_when_idle", "--exit-when-idle"},
     {"max_runtime", "--max-runtime"},
+    {"start_jitter", "--start-jitter-ms"},
     // both: the field holds the token, the flag names the file that holds it
     {"token", "--token-file"},
 };

@@ -56,6 +56,8 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   c.state_dir = a.state_dir;
   c.output_dir = a.output_dir;
   if (a.max_connections) c.limits.max_connections = *a.max_connections;
+  // Idle kept-alive connections follow --max-connections unless given: a farm raises one flag.
+  c.limits.max_idle_connections = a.max_idle_connections.value_or(c.limits.max_connections);
   if (a.max_body_bytes) c.limits.max_body_bytes = *a.max_body_bytes;
   if (a.read_timeout_ms) c.limits.read_timeout = std::chrono::milliseconds(*a.read_timeout_ms);
   if (a.write_timeout_ms) c.limits.write_timeout = std::chrono::milliseconds(*a.write_timeout_ms);
@@ -67,6 +69,8 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   if (a.cpu_threads) c.cpu_threads = *a.cpu_threads;
   if (a.worker_quiet_after_s) c.workers.quiet_after = std::chrono::seconds(*a.worker_quiet_after_s);
   if (a.worker_forget_after_s) c.workers.forget_after = std::chrono::seconds(*a.worker_forget_after_s);
+  if (a.max_workers) c.workers.max_workers = *a.max_workers;
+  if (a.max_idle_wait_ms) c.queue.max_retry_after = std::chrono::milliseconds(*a.max_idle_wait_ms);
   c.web_ui = !a.no_web_ui;
   const util::Result<bool> tls = resolve_tls(a.tls, c.listen_address, a.allow_plain_http);
   if (!tls) return usage_error(locate_role_error(app, tls.error()));
@@ -139,6 +143,7 @@ int run_worker_role(const CLI::App& app, const RoleArgs& a) {
   w.exit_when_done = a.exit_when_done;
   if (a.exit_when_idle) w.exit_when_idle = std::chrono::seconds(*a.exit_when_idle);
   if (a.max_runtime) w.max_runtime = std::chrono::seconds(*a.max_runtime);
+  if (a.start_jitter_ms) w.start_jitter = std::chrono::milliseconds(*a.start_jitter_ms);
   const auto problems = worker::validate(w);
   if (!problems.empty()) {
     fmt::print(stderr, "{}\n", located_errors_text(app, problems));
@@ -160,7 +165,11 @@ struct NumberFlag {
 
 // In the order --help lists them.
 const NumberFlag kNumberFlags[] = {
-    {kCollectorGroup, "--max-connections", &RoleArgs::max_connections, 1, 100000, "Open connections at most"},
+    {kCollectorGroup, "--max-connections", &RoleArgs::max_connections, 1, 100000,
+     "Open connections at most (default 256; a farm needs one per worker)"},
+    {kCollectorGroup, "--max-idle-connections", &RoleArgs::max_idle_connections, 1, 100000,
+     "Kept-alive connections idle between requests at most; past it the one idle longest is closed and its "
+     "client pays a new TLS handshake (default: --max-connections, so raising that is enough)"},
     {kCollectorGroup, "--max-body-bytes", &RoleArgs::max_body_bytes, 1024, 4294967296.0, "Largest request body"},
     {kCollectorGroup, "--read-timeout-ms", &RoleArgs::read_timeout_ms, 10, 3600000,
      "Time a client has to send its request"},
@@ -180,6 +189,13 @@ const NumberFlag kNumberFlags[] = {
      "A worker unseen this long shows as quiet (default 60)"},
     {kCollectorGroup, "--worker-forget-after-s", &RoleArgs::worker_forget_after_s, 1, 2592000,
      "A worker unseen this long leaves the worker list (default 3600)"},
+    {kCollectorGroup, "--max-workers", &RoleArgs::max_workers, 1, 1000000,
+     "Workers the worker list keeps at most (about 0.5 KiB each); past it a new worker evicts the one seen "
+     "least recently (default 65536)"},
+    {kCollectorGroup, "--max-idle-wait-ms", &RoleArgs::max_idle_wait_ms, 50, 60000,
+     "Longest wait told to a worker with nothing to do; the wait is 5 ms x the workers known, at least 50 ms "
+     "(default 5000: farms up to 100 workers wait at most 0.5 s, larger ones poll ~200 times/s in all up to 1,000 "
+     "workers; an idle worker notices a new job within 1.5 x its wait)"},
     {kWorkerGroup, "-t,--threads", &RoleArgs::threads, 0, 4096,
      "Render threads (0: every CPU this process may use, its affinity mask)"},
     {kWorkerGroup, "--scene-cache", &RoleArgs::scene_cache, 1, 1024, "Scenes kept built in memory"},
@@ -194,6 +210,9 @@ const NumberFlag kNumberFlags[] = {
      "Batch jobs: exit 0 once the collector has had no work for this worker for this many seconds"},
     {kWorkerGroup, "--max-runtime", &RoleArgs::max_runtime, 1, 31622400,
      "Batch jobs: stop leasing after this many seconds, submit what is in hand, exit 0"},
+    {kWorkerGroup, "--start-jitter-ms", &RoleArgs::start_jitter_ms, 0, 3600000,
+     "Wait a random time up to this long before the first request, so that a farm started at once does not "
+     "reach the collector at once (default 0; SIGTERM during the wait exits 0 at once)"},
 };
 
 template <typename T>

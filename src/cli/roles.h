@@ -25,7 +25,8 @@ struct RoleArgs {
   std::string state_dir;
   std::string output_dir;
   std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, idle_timeout_ms, reoffer_floor_ms,
-      max_copies, shutdown_grace_ms, cpu_threads, worker_quiet_after_s, worker_forget_after_s;
+      max_copies, shutdown_grace_ms, cpu_threads, worker_quiet_after_s, worker_forget_after_s, max_idle_connections,
+      max_workers, max_idle_wait_ms;
   bool no_web_ui = false;  // --no-web-ui: `/` and `/ui/...` are 404
   // TLS (cli/tls_flags.h): --tls auto|on|off, the operator's files, extra names, plain HTTP off
   // loopback only with --allow-plain-http.
@@ -46,7 +47,7 @@ struct RoleArgs {
   std::string ca_file;  // the collector's CA (PEM) for an https:// collector
   std::uint32_t threads = 0;
   std::optional<std::uint32_t> scene_cache, grace_seconds, connect_timeout_ms, request_timeout_ms, max_unacknowledged,
-      exit_when_idle, max_runtime;
+      exit_when_idle, max_runtime, start_jitter_ms;
   // worker and `render`: --isa as given (main resolves it with $DTRACED_ISA into `kernels`)
   std::optional<std::string> isa;
   accel::Isa kernels = accel::Isa::kScalar;

@@ -35,6 +35,7 @@ void check_limits(const http::ServerLimits& l, util::Errors& errors) {
   if (l.unauthenticated_timeout.count() <= 0) errors.push_back({"must be > 0", "limits.unauthenticated_timeout"});
   if (l.max_held_response_bytes == 0) errors.push_back({"must be > 0", "limits.max_held_response_bytes"});
   if (l.max_connections == 0) errors.push_back({"must be > 0", "limits.max_connections"});
+  if (l.max_idle_connections == 0) errors.push_back({"must be > 0", "limits.max_idle_connections"});
 }
 
 void check_queue_and_writer(const CollectorConfig& c, util::Errors& errors) {
@@ -95,7 +96,9 @@ util::Errors check_collector_config(const CollectorConfig& c) {
   if (c.workers.forget_after < c.workers.quiet_after) {
     errors.push_back({"must be at least workers.quiet_after", "workers.forget_after"});
   }
-  if (c.workers.max_workers == 0) errors.push_back({"must be > 0", "workers.max_workers"});
+  if (c.workers.max_workers == 0 || c.workers.max_workers > kMaxMaxWorkers) {
+    errors.push_back({fmt::format("must be in [1, {}]", kMaxMaxWorkers), "workers.max_workers"});
+  }
   check_one_shot(c, errors);
   return errors;
 }

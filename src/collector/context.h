@@ -108,6 +108,9 @@ struct Context {
   // Who has been asking for work (handlers/workers.cpp) and when it was last swept.
   WorkerRegistry workers;
   std::optional<TimePoint> workers_swept;
+  // A full registry evicts a worker at each first request past the cap: one warning a minute
+  // (with the count held back) instead of an info line per eviction (handlers/workers.cpp).
+  LogThrottle eviction_log{std::chrono::seconds(60)};
   // When a worker last leased or returned a tile of each unfinished job (handlers/workers.cpp),
   // and when this process started: a job's status says when it has had no worker for a minute.
   std::map<JobId, TimePoint> job_served;

@@ -82,11 +82,15 @@ struct QueueConfig {
   double copy_expiry_factor = 10.0;  // a lease stops counting toward max_copies at this x bound
   std::size_t window_size = 64;      // recent tile times kept per job for the p90
   Duration min_retry_after = std::chrono::milliseconds(50);
-  // An idle worker asks again at most this much later. Short, because it is how long a new job
-  // waits for idle workers to notice it (a lease costs the collector ~45 us of CPU: 1000 idle
-  // workers asking twice a second take ~10 % of a core), and stateless leases have no push. The
-  // lease handler shortens it on a small farm (handlers/lease.cpp, idle_wait).
-  Duration max_retry_after = std::chrono::milliseconds(500);
+  // An idle worker asks again at most this much later (--max-idle-wait-ms). It is how long a new
+  // job waits for idle workers to notice it (stateless leases have no push), and it bounds what
+  // an idle farm costs: N idle workers ask about N / (1.25 x this) times a second. The lease
+  // handler shortens it to 5 ms x the workers known (handlers/lease.cpp, idle_wait), so a farm of
+  // up to 100 workers waits at most 0.5 s, as before this ceiling was raised from 0.5 s, and one
+  // of up to 1,000 polls ~200 times a second in all; 5 s keeps 10,000 idle workers at ~1,600
+  // polls a second (~5 % of a core on kept-alive connections at ~32 us a lease) instead of the
+  // 16,000 a 0.5 s ceiling made them send, and a new job reaches them within 7.5 s.
+  Duration max_retry_after = std::chrono::milliseconds(5000);
 };
 
 // Every problem of the configuration, none when it is usable; each Error's path names the field.

@@ -18,15 +18,15 @@ WorkerRegistry::Entry& WorkerRegistry::touch(const WorkerId& id, TimePoint now, 
   fresh = it == workers_.end();
   if (fresh) {
     if (workers_.size() >= limits_.max_workers) {
-      const auto oldest = std::min_element(workers_.begin(), workers_.end(), [](const auto& a, const auto& b) {
-        return a.second.last_seen < b.second.last_seen;
-      });
-      retire(oldest->second);
-      workers_.erase(oldest);
+      retire(workers_.find(*recency_.back()));
       ++evicted_;
     }
     it = workers_.emplace(id, Entry{}).first;
     it->second.first_seen = now;
+    recency_.push_front(&it->first);
+    it->second.recency = recency_.begin();
+  } else {
+    recency_.splice(recency_.begin(), recency_, it->second.recency);
   }
   Entry& e = it->second;
   // The clock is monotonic, but a caller may hand in an earlier `now` after a later one (a
@@ -36,12 +36,15 @@ WorkerRegistry::Entry& WorkerRegistry::touch(const WorkerId& id, TimePoint now, 
   return e;
 }
 
-void WorkerRegistry::retire(const Entry& e) {
+WorkerRegistry::Map::iterator WorkerRegistry::retire(Map::iterator it) {
+  const Entry& e = it->second;
   retired_.leases += e.leases;
   retired_.tiles += e.tiles;
   retired_.duplicates += e.duplicates;
   retired_.faulty_duplicates += e.faulty_duplicates;
   retired_.refused += e.refused;
+  recency_.erase(e.recency);
+  return workers_.erase(it);
 }
 
 bool WorkerRegistry::on_lease(const WorkerId& id, std::string_view isa, std::uint32_t threads, TimePoint now) {
@@ -88,8 +91,7 @@ std::vector<WorkerId> WorkerRegistry::sweep(TimePoint now) {
     Entry& e = it->second;
     const Duration unseen = now - e.last_seen;
     if (unseen >= limits_.forget_after) {
-      retire(e);
-      it = workers_.erase(it);
+      it = retire(it);
       continue;
     }
     if (unseen >= limits_.quiet_after && !e.quiet) {

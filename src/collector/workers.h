@@ -10,8 +10,10 @@
 // kRecentWindow, kept in a fixed ring of kRecentBuckets buckets.
 //
 // A worker unseen for quiet_after is "quiet"; unseen for forget_after it is forgotten. At most
-// max_workers are kept: a new worker past the cap evicts the least recently seen one (an O(n)
-// scan, paid only when the registry is full). So memory is bounded whatever connects.
+// max_workers are kept: a new worker past the cap evicts the least recently seen one, found in
+// O(1) from a recency list that every request moves its sender to the front of (so a farm larger
+// than the cap costs a map lookup and an eviction per request, not a scan of the registry). So
+// memory is bounded whatever connects: about kWorkerEntryBytes a worker.
 //
 // Pure: no sockets, no clock reads (every call takes `now`, the collector's monotonic clock), no
 // logging; the caller logs what the results say (a first request, a worker going quiet).
@@ -23,6 +25,7 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <list>
 #include <map>
 #include <string>
 #include <string_view>
@@ -33,10 +36,22 @@
 
 namespace dtraced::collector {
 
+// Heap bytes one known worker costs, measured: 100,000 entries with 21-byte names and IPv4 peers
+// (Slurm-style HOST-JOB_TASK names), malloc's in-use bytes (mallinfo2) before and after, divided.
+// The longest names and peers (protocol::kMaxWorkerNameBytes, kMaxPeerBytes) add up to ~190 more.
+inline constexpr std::size_t kWorkerEntryBytes = 528;
+// The default cap: six times a 10,000-worker farm, so that a farm that size, its restarts and
+// further arrays under new names (Slurm names are HOST-JOB_TASK: a new array is new names) stay
+// listed until forget_after instead of evicting each other; 65,536 x kWorkerEntryBytes = 33 MiB
+// at most (46 MiB with the longest names).
+inline constexpr std::size_t kDefaultMaxWorkers = 65'536;
+// The largest cap the configuration accepts (--max-workers): about 0.5 GiB of registry at most.
+inline constexpr std::size_t kMaxMaxWorkers = 1'000'000;
+
 struct WorkerLimits {
   Duration quiet_after = std::chrono::seconds(60);
   Duration forget_after = std::chrono::hours(1);
-  std::size_t max_workers = 1024;
+  std::size_t max_workers = kDefaultMaxWorkers;  // [1, kMaxMaxWorkers]
 };
 
 // The window of "recent" counts, and its resolution.
@@ -81,8 +96,14 @@ struct WorkerView {
 class WorkerRegistry {
  public:
   explicit WorkerRegistry(WorkerLimits limits = {});
+  // recency_ points into workers_: moved, never copied.
+  WorkerRegistry(const WorkerRegistry&) = delete;
+  WorkerRegistry& operator=(const WorkerRegistry&) = delete;
+  WorkerRegistry(WorkerRegistry&&) = default;
+  WorkerRegistry& operator=(WorkerRegistry&&) = default;
 
-  // A lease request. True when this worker was not known (its first request).
+  // A lease request. True when this worker was not known (its first request; past the cap,
+  // making room for it evicted another, which evicted() counts).
   bool on_lease(const WorkerId& id, std::string_view isa, std::uint32_t threads, TimePoint now);
   // A tile upload and what came of it; `rays` counts only for kStored. True on a first request.
   bool on_tile(const WorkerId& id, TileOutcome outcome, std::uint64_t rays, TimePoint now);
@@ -107,7 +128,9 @@ class WorkerRegistry {
     std::uint64_t tiles = 0;
     std::uint64_t rays = 0;
   };
+  using Recency = std::list<const WorkerId*>;  // keys of workers_ (stable while in the map)
   struct Entry {
+    Recency::iterator recency;  // its place in recency_
     std::string isa;
     std::uint32_t threads = 0;
     TimePoint first_seen;
@@ -120,15 +143,18 @@ class WorkerRegistry {
     std::uint64_t refused = 0;
     std::array<Bucket, kRecentBuckets> recent{};
   };
+  using Map = std::map<WorkerId, Entry>;
 
   // The entry of `id`, created (evicting the least recently seen past the cap) when new; `fresh`
-  // says which. Marks it seen at `now`.
+  // says which. Marks it seen at `now` and moves it to the front of recency_.
   Entry& touch(const WorkerId& id, TimePoint now, bool& fresh);
-  // Adds an entry's counts to retired_ before it is dropped.
-  void retire(const Entry& e);
+  // Adds an entry's counts to retired_ and drops it.
+  Map::iterator retire(Map::iterator it);
 
   WorkerLimits limits_;
-  std::map<WorkerId, Entry> workers_;
+  Map workers_;
+  // Every entry of workers_, the one touched last first: the back is the one to evict.
+  Recency recency_;
   std::uint64_t evicted_ = 0;
   WorkerView retired_;
 };

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cstdint>
 #include <cstdlib>
 #include <string>
 #include <utility>
@@ -40,6 +41,12 @@ void check_range(util::Errors& errors, std::string_view field, Duration value, D
 }  // namespace
 
 const char* process_env(const char* name) { return std::getenv(name); }
+
+std::chrono::milliseconds start_delay(std::chrono::milliseconds max, std::mt19937_64& rng) {
+  if (max.count() <= 0) return std::chrono::milliseconds{0};
+  std::uniform_int_distribution<std::int64_t> pick(0, max.count());
+  return std::chrono::milliseconds{pick(rng)};
+}
 
 std::string default_worker_name(const EnvLookup& env) {
   std::array<char, HOST_NAME_MAX + 1> host{};
@@ -129,6 +136,7 @@ util::Errors validate(const WorkerConfig& config) {
 
   check_range(errors, "exit_when_idle", config.exit_when_idle, std::chrono::seconds{0}, kMaxExitWhenIdle, "s");
   check_range(errors, "max_runtime", config.max_runtime, std::chrono::seconds{0}, kMaxRuntime, "s");
+  check_range(errors, "start_jitter", config.start_jitter, milliseconds{0}, kMaxStartJitter, "ms");
 
   if (config.max_unacknowledged > kMaxUnacknowledged) {
     add_problem(errors, "max_unacknowledged",

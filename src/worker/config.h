@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <functional>
 #include <optional>
+#include <random>
 #include <string>
 
 #include "accel/isa.h"
@@ -48,6 +49,8 @@ inline constexpr std::size_t kMaxIdleConnections = 64;
 // Bounds of exit_when_idle and max_runtime: a month and a year.
 inline constexpr std::chrono::seconds kMaxExitWhenIdle{30 * 24 * 3600};
 inline constexpr std::chrono::seconds kMaxRuntime{366 * 24 * 3600};
+// Bound of start_jitter: an hour.
+inline constexpr std::chrono::milliseconds kMaxStartJitter{3600 * 1000};
 
 // ---- configuration -------------------------------------------------------------------------
 
@@ -97,6 +100,12 @@ struct WorkerConfig {
   // max_runtime: stop this long after the start, so that max_runtime + grace fits a fixed
   // allocation. [0, kMaxRuntime]
   std::chrono::seconds max_runtime{0};
+  // Before its first request the worker waits a random time in [0, start_jitter] (drawn from
+  // the jitter generator above: jitter_seed, else std::random_device), so that a farm started
+  // at once (a pdsh loop, a restart of every host) does not reach the collector at once: each
+  // new connection costs the collector a TLS handshake (docs/scale-out.md). A stop during the
+  // wait ends it at once (nothing is in hand yet). 0: no wait. [0, kMaxStartJitter]
+  std::chrono::milliseconds start_jitter{0};
 };
 
 // Looks up an environment variable: its value, or null when it is not set.
@@ -125,6 +134,9 @@ util::Result<std::optional<http::ClientTls>> load_client_tls(const WorkerConfig&
 // The options of the worker's one http::Client: its timeouts, `tls`, and a pool sized for
 // `config.threads` (resolved).
 http::ClientOptions client_options(const WorkerConfig& config, std::optional<http::ClientTls> tls);
+
+// The wait before the first request: uniform in [0, max] ms, drawn from `rng`; 0 when max is 0.
+std::chrono::milliseconds start_delay(std::chrono::milliseconds max, std::mt19937_64& rng);
 
 // `config` with its host-dependent defaults filled in: name, threads, max_unacknowledged.
 // Requires validate(config) to be empty.

@@ -23,11 +23,18 @@ async::Awaitable<> Worker::Impl::main_loop(RunOptions options) {
     async::net::co_spawn(io, watch_signals(), async::log_failure("the signal watcher"));
   }
   started = true;
-  last_work_at = clock.now();
   if (config.max_runtime.count() > 0) {
-    async::net::co_spawn(io, watch_runtime(last_work_at), async::log_failure("the run-time watcher"));
+    async::net::co_spawn(io, watch_runtime(clock.now()), async::log_failure("the run-time watcher"));
   }
+  // Ready before the start delay, so that a long one does not look like a start that hangs.
   if (notify_systemd) util::sd_notify_state("READY=1");
+  // A staggered start: nothing is in hand yet, so a stop during the wait ends the worker at once.
+  if (const auto delay = start_delay(config.start_jitter, rng); delay.count() > 0) {
+    util::log_info("worker {}: waiting {} ms before the first request (--start-jitter-ms {})", config.name,
+                   delay.count(), config.start_jitter.count());
+    co_await async::sleep_for(clock, delay, &stop);
+  }
+  last_work_at = clock.now();
   util::log_info(
       "worker {} started: collector {}, {} render threads ({} kernels), up to {} tiles in hand, {} scenes cached",
       config.name, url.to_string(), config.threads, accel::isa_name(config.isa), config.max_unacknowledged,
@@ -37,7 +44,7 @@ async::Awaitable<> Worker::Impl::main_loop(RunOptions options) {
                    config.max_unacknowledged, config.threads);
   }
 
-  for (std::uint32_t i = 0; i < config.threads; ++i) {
+  for (std::uint32_t i = 0; i < config.threads && !stop.is_set(); ++i) {
     ++slots_live;
     async::net::co_spawn(io, slot(), [this](std::exception_ptr e) {
       if (e) {

@@ -34,7 +34,9 @@
 # (10), WARMUP_SECONDS (default per row: the ramp, plus RENDER_MS for rendering workers, plus
 # 1 s), P99_LIMIT_MS (100), CPU_LIMIT (0.90), JOBS (100 of 1920x1080: within the collector's
 # default 2^28 unfinished pixels), MEMORY_WORKERS (1000),
-# MAX_CONNECTIONS (19000), COLLECTOR_CPU (0), LOAD_CPU (1), PARTS ("1 2 3 4"), KEEP_LOGS=1 to keep
+# MAX_CONNECTIONS (19000), COLLECTOR_FLAGS (more collector flags, e.g. the limits of before issue
+# 17's follow-up: "--max-idle-connections 256 --max-workers 1024 --max-idle-wait-ms 500"),
+# COLLECTOR_CPU (0), LOAD_CPU (1), PARTS ("1 2 3 4"), KEEP_LOGS=1 to keep
 # the temporary directory. Needs curl; taskset for pinning (else it runs unpinned and says so);
 # an open-file hard limit above WORKERS (ulimit -Hn) for both processes.
 set -uo pipefail
@@ -56,6 +58,7 @@ CPU_LIMIT=${CPU_LIMIT:-0.90}
 JOBS=${JOBS:-100}
 MEMORY_WORKERS=${MEMORY_WORKERS:-1000}
 MAX_CONNECTIONS=${MAX_CONNECTIONS:-19000}
+read -r -a collector_flags <<<"${COLLECTOR_FLAGS:-}"
 COLLECTOR_CPU=${COLLECTOR_CPU:-0}
 LOAD_CPU=${LOAD_CPU:-1}
 PARTS=${PARTS:-"1 2 3 4"}
@@ -137,7 +140,7 @@ start_collector() {
   reoffer=$((3 * RENDER_MS))
   "${pin_collector[@]}" "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$state" \
     --token-file "$work/token" --max-connections "$MAX_CONNECTIONS" --reoffer-floor-ms "$reoffer" \
-    --tls on 2>"$work/collector.log" &
+    --tls on "${collector_flags[@]}" 2>"$work/collector.log" &
   collector_pid=$!
   port=
   for _ in $(seq $((START_DEADLINE * 10))); do
@@ -173,7 +176,7 @@ load() {
 }
 
 echo "scale-out: $(nproc) CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg), $pinning"
-echo "open files: hard limit $hard, collector --max-connections $MAX_CONNECTIONS"
+echo "open files: hard limit $hard, collector --max-connections $MAX_CONNECTIONS ${COLLECTOR_FLAGS:-}"
 echo
 problems=0
 

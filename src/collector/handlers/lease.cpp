@@ -35,7 +35,9 @@ http::Response finished(Context& c, const http::Request& req, std::string name) 
 // knows adds this to the wait, so that all idle workers together ask about 1 / kIdlePollPerWorker
 // times a second (200/s, ~1 % of a core at ~30-60 us a lease) while the farm has more than
 // min_retry_after / kIdlePollPerWorker workers, and a small farm's idle worker notices a new job
-// within tens of milliseconds. A thousand idle workers still wait max_retry_after, as before.
+// within tens of milliseconds. The wait stops growing at max_retry_after (--max-idle-wait-ms,
+// 5 s by default: reached at 1,000 workers; past that the farm asks more often than 200/s, at
+// N / (1.25 x max_retry_after), the price of noticing a new job within 1.5 x max_retry_after).
 constexpr std::chrono::milliseconds kIdlePollPerWorker{5};
 
 std::chrono::milliseconds idle_wait(const Context& c, std::chrono::milliseconds queue_hint) {

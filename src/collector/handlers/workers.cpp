@@ -27,7 +27,21 @@ std::string_view header_value(const http::Request& req, std::string_view name) {
 
 double seconds(Duration d) { return std::chrono::duration<double>(d).count(); }
 
-void log_first(const WorkerId& id, std::string_view isa, std::uint32_t threads) {
+// A worker's first request, at info level; at debug level when admitting it evicted another
+// (the registry is full: under churn that is once per request), with a throttled warning instead.
+void log_first(Context& c, const WorkerId& id, std::string_view isa, std::uint32_t threads, bool evicted) {
+  if (evicted) {
+    util::log_debug("collector: worker '{}' from {} sent its first request (another worker evicted)", id.name,
+                    peer_text(id));
+    std::uint64_t held_back = 0;
+    if (!c.eviction_log.allow(c.clock.now(), held_back)) return;
+    util::log_warn(
+        "collector: the worker registry is full ({} workers, --max-workers): the least recently seen worker is "
+        "forgotten at each new worker's first request ({} evictions so far, {} since the last such line); raise "
+        "--max-workers above the farm's size",
+        c.workers.limits().max_workers, c.workers.evicted(), held_back + 1);
+    return;
+  }
   if (threads == 0) {
     util::log_info("collector: worker '{}' from {} sent its first request", id.name, peer_text(id));
   } else {
@@ -55,11 +69,15 @@ void note_lease_request(Context& c, const http::Request& req, const std::string&
                         const protocol::LeaseRequest& lease) {
   const WorkerId id = worker_id(req, name);
   const std::string isa = protocol::parse_isa_header(header_value(req, protocol::kIsaHeader)).value_or("");
-  if (c.workers.on_lease(id, isa, lease.threads, c.clock.now())) log_first(id, isa, lease.threads);
+  const std::uint64_t evicted = c.workers.evicted();
+  if (c.workers.on_lease(id, isa, lease.threads, c.clock.now())) {
+    log_first(c, id, isa, lease.threads, c.workers.evicted() != evicted);
+  }
 }
 
 void note_tile_upload(Context& c, const WorkerId& id, TileOutcome outcome, std::uint64_t rays) {
-  if (c.workers.on_tile(id, outcome, rays, c.clock.now())) log_first(id, {}, 0);
+  const std::uint64_t evicted = c.workers.evicted();
+  if (c.workers.on_tile(id, outcome, rays, c.clock.now())) log_first(c, id, {}, 0, c.workers.evicted() != evicted);
 }
 
 void note_job_served(Context& c, JobId job) { c.job_served[job] = c.clock.now(); }
