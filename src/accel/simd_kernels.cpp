@@ -446,6 +446,7 @@ struct alignas(64) Packet {
   std::uint32_t sign[3];
   bool uniform_axes;  // every lane has the shear axes axis[0..2] (kx, ky, kz)
   std::uint32_t axis[3];
+  bool uniform_origin;  // every lane has the origin of lane 0, bit for bit (pinhole camera packets)
   // The same rays as single rays (the fallback below kSwitch lanes, zero edge functions, boxes),
   // made on first use: most packets never need them.
   const math::Ray* rays;
@@ -562,14 +563,21 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
     p.uniform_axes = p.uniform_axes && (is0 == 0 || is0 == kAll) && (is1 == 0 || is1 == kAll);
     p.axis[k] = (is0 & 1u) ? 0u : (is1 & 1u) ? 1u : 2u;
   }
+  p.uniform_origin = true;
+  for (int a = 0; a < 3; ++a) {
+    const std::uint32_t o0 = std::bit_cast<std::uint32_t>(p.o[a][0]);
+    for (int i = 1; i < kP; ++i) p.uniform_origin = p.uniform_origin && std::bit_cast<std::uint32_t>(p.o[a][i]) == o0;
+  }
 }
 
 // Which of the 8 lanes in `mask` enter each child box of the node (bits[c]) and each such lane's
-// entry distance (dist[c][lane]; +inf for the other lanes). No branch depends on the outcome of a
-// child's test. The packet's origins, inverse directions and direction signs are loaded once per
-// node, not once per child; when every lane has the same direction signs (camera and shadow
-// packets nearly always do), the near and far planes are picked per axis like a single ray's
-// instead of lane by lane.
+// entry distance (dist[c][lane]; other lanes' entries are left unspecified). No branch depends on
+// the outcome of a child's test. The packet's origins, inverse directions and direction signs are
+// loaded once per node, not once per child; when every lane has the same direction signs (camera
+// and shadow packets nearly always do), the near and far planes are picked per axis like a single
+// ray's instead of lane by lane, and when the lanes also share their origin (pinhole camera
+// packets), the plane-minus-origin differences of all 8 children are one vector subtraction per
+// plane (the same single rounding each lane would do).
 inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask, std::uint32_t* bits,
                        float (*dist)[kP]) {
   const hn::CappedTag<float, kP> d;
@@ -579,6 +587,21 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
   const auto scale = hn::Set(d, kFarScale);
   const auto zero = hn::Zero(d);
   for (int c = 0; c < kNodeWidth; ++c) bits[c] = 0;
+  // Uniform signs and origin: rel[0][a][c] = near plane - o, rel[1][a][c] = far plane - o.
+  alignas(64) float rel[2][3][kNodeWidth];
+  const bool shared = p.uniform_signs && p.uniform_origin;
+  if (shared) {
+    const hn::CappedTag<float, kNodeWidth> d8;
+    for (std::size_t i = 0; i < std::size_t(kNodeWidth); i += hn::Lanes(d8)) {
+      for (int a = 0; a < 3; ++a) {
+        const auto o = hn::Set(d8, p.o[a][0]);
+        const float* nb = p.sign[a] ? node.hi[a] : node.lo[a];
+        const float* fb = p.sign[a] ? node.lo[a] : node.hi[a];
+        hn::Store(hn::Sub(hn::LoadU(d8, nb + i), o), d8, rel[0][a] + i);
+        hn::Store(hn::Sub(hn::LoadU(d8, fb + i), o), d8, rel[1][a] + i);
+      }
+    }
+  }
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     V o[3], inv[3];
     for (int a = 0; a < 3; ++a) {
@@ -593,7 +616,12 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       if (node.child[c] == kEmptyChild) break;  // empty slots come last
       auto t0 = tmin;
       auto tf = inf;
-      if (p.uniform_signs) {
+      if (shared) {
+        for (int a = 0; a < 3; ++a) {
+          t0 = hn::Max(hn::Mul(hn::Set(d, rel[0][a][c]), inv[a]), t0);  // NaN skipped, see node_test1
+          tf = hn::Min(hn::Mul(hn::Set(d, rel[1][a][c]), inv[a]), tf);
+        }
+      } else if (p.uniform_signs) {
         for (int a = 0; a < 3; ++a) {
           const float nb = p.sign[a] ? node.hi[a][c] : node.lo[a][c];
           const float fb = p.sign[a] ? node.lo[a][c] : node.hi[a][c];
@@ -610,7 +638,7 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
         }
       }
       const auto m = hn::And(active, hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull)));
-      hn::StoreU(hn::IfThenElse(m, t0, inf), d, dist[c] + i);
+      hn::StoreU(t0, d, dist[c] + i);  // read only for the lanes of bits[c]
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, m, mb);
       bits[c] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
