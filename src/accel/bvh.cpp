@@ -603,10 +603,17 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!wide_.empty() && !detail::is_flat(wide_)) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
+    detail::TriangleUvw uvw{};
     const bool found = outside_hit(r, ray.t_min, best_t, best_id);
-    const bool tree = wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id);
+    const bool tree = wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id, uvw);
     if (!found && !tree) return false;
-    detail::finish_hit(shapes_[best_id], best_id, ray, r, best_t, hit);
+    const Shape& s = shapes_[best_id];
+    if (tree && s.type == ShapeType::kTriangle) {
+      // The kernel kept the winning test's edge functions: no second test.
+      detail::finish_triangle_hit(s.triangle, best_id, best_t, uvw, hit);
+    } else {
+      detail::finish_hit(s, best_id, ray, r, best_t, hit);
+    }
     return true;
   }
 
@@ -729,7 +736,9 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
       found |= 1u << i;
     }
   }
-  found |= wide_kernels().intersect8(wide_, rays, live, best_t, best_id);
+  detail::TriangleUvw uvw[kPacketSize];
+  const std::uint32_t tree = wide_kernels().intersect8(wide_, rays, live, best_t, best_id, uvw);
+  found |= tree;
   // Sphere hits are finished together (their square roots and divisions overlap), the rest one
   // by one.
   const Shape* sph_shape[kPacketSize];
@@ -748,6 +757,9 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
         sph_t[spheres] = best_t[i];
         sph_hit[spheres] = &hits[i];
         ++spheres;
+      } else if (s.type == ShapeType::kTriangle && (tree >> i & 1u)) {
+        // The kernel kept the winning test's edge functions: no second test, no shear constants.
+        detail::finish_triangle_hit(s.triangle, best_id[i], best_t[i], uvw[i], hits[i]);
       } else {
         detail::finish_hit(s, best_id[i], rays[i], detail::precompute_for(rays[i], s.type), best_t[i], hits[i]);
       }

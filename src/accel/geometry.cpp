@@ -237,25 +237,12 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
       return;
     }
     case ShapeType::kTriangle: {
-      // pbrt-v4's triangle hit point: barycentric blend of the vertices, here with the
-      // barycentrics in double; the bound gamma(7) sum |b_i v_i| covers it with room to spare.
-      // A float bound is the right kind here, unlike a sphere's: the barycentrics come from the
-      // float edge functions (double only in the rare zero-edge fallback), so they sum to 1 only
-      // to float precision and the point leaves the triangle's plane by float-sized amounts.
       const TriangleShape& tri = shape.triangle;
       const float vd[9] = {tri.v0.x, tri.v0.y, tri.v0.z, tri.v1.x, tri.v1.y, tri.v1.z, tri.v2.x, tri.v2.y, tri.v2.z};
       TriangleUvw uvw{};
       [[maybe_unused]] const float t_again = triangle_t(vd, r, ray.t_min, &uvw);
       assert(t_again == t);
-      // u weighs a, v weighs b, w weighs c (each is the edge function opposite its vertex).
-      const double b0 = uvw.u / uvw.det, b1 = uvw.v / uvw.det, b2 = uvw.w / uvw.det;
-      for (int i = 0; i < 3; ++i) {
-        const double x0 = b0 * tri.v0[i], x1 = b1 * tri.v1[i], x2 = b2 * tri.v2[i];
-        hit.p[i] = float(x0 + x1 + x2);
-        hit.p_error[i] = gamma(7) * float(std::abs(x0) + std::abs(x1) + std::abs(x2));
-      }
-      const math::Vec3d n = math::normalize(triangle_normal_d(tri));
-      hit.n = Vec3f(n);
+      finish_triangle_hit(tri, id, t, uvw, hit);
       return;
     }
     case ShapeType::kPlane: {
@@ -280,6 +267,25 @@ void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayP
       return;
     }
   }
+}
+
+void finish_triangle_hit(const TriangleShape& tri, std::uint32_t id, float t, const TriangleUvw& uvw, Hit& hit) {
+  // pbrt-v4's triangle hit point: barycentric blend of the vertices, here with the barycentrics
+  // in double; the bound gamma(7) sum |b_i v_i| covers it with room to spare. A float bound is the
+  // right kind here, unlike a sphere's: the barycentrics come from the float edge functions
+  // (double only in the rare zero-edge fallback), so they sum to 1 only to float precision and
+  // the point leaves the triangle's plane by float-sized amounts.
+  hit.t = t;
+  hit.shape = id;
+  // u weighs a, v weighs b, w weighs c (each is the edge function opposite its vertex).
+  const double b0 = uvw.u / uvw.det, b1 = uvw.v / uvw.det, b2 = uvw.w / uvw.det;
+  for (int i = 0; i < 3; ++i) {
+    const double x0 = b0 * tri.v0[i], x1 = b1 * tri.v1[i], x2 = b2 * tri.v2[i];
+    hit.p[i] = float(x0 + x1 + x2);
+    hit.p_error[i] = gamma(7) * float(std::abs(x0) + std::abs(x1) + std::abs(x2));
+  }
+  const math::Vec3d n = math::normalize(triangle_normal_d(tri));
+  hit.n = Vec3f(n);
 }
 
 void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, const Ray* const* rays, const float* ts,

@@ -300,6 +300,11 @@ inline float triangle_t(const float* v, const RayPre& r, float t_min, TriangleUv
 // query, for the final nearest hit only. Defined in geometry.cpp.
 void finish_hit(const Shape& shape, std::uint32_t id, const Ray& ray, const RayPre& r, float t, Hit& hit);
 
+// finish_hit's triangle case from the edge functions the test itself produced (`uvw` exactly as
+// triangle_t reports it for this ray, which the SIMD kernels keep for their nearest hit): the
+// same bits without testing the triangle again or computing the ray's shear constants.
+void finish_triangle_hit(const TriangleShape& tri, std::uint32_t id, float t, const TriangleUvw& uvw, Hit& hit);
+
 // finish_hit for up to kPacketSize sphere hits at once (shapes[k] is a sphere hit by *rays[k] at
 // ts[k] as the kernels found it), with the same bits; *hits[k] receives lane k's record.
 void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, const Ray* const* rays, const float* ts,

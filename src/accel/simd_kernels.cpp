@@ -18,8 +18,10 @@
 // per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
 // active at a node, those lanes finish that subtree as single rays. A packet's per-lane constants
 // are computed a vector at a time (make_packet); its lanes as single rays only when a fallback
-// needs them. Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two
-// leaves), which these same loops walk.
+// needs them. A nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so
+// Geometry builds the hit record from them instead of testing the triangle again (about 15 % of
+// a camera packet's time went to that second test and its ray constants). Tiny scenes come as a
+// flat layout (detail::flat_wide: one node over one or two leaves), which these same loops walk.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -178,15 +180,32 @@ inline V triangle_t_error8(D d, V sax, V say, V sbx, V sby, V scx, V scy, V saz,
   return hn::Div(num, hn::Abs(det));
 }
 
+// Edge functions of the latest triangle test, per lane (a single ray's block of 4 or a packet's
+// 8): the float ones, or for the lanes in `fallback` the double ones of triangle_t_double. A
+// lane that hit gets them exactly as triangle_t reports them; kept for the nearest hit only.
+struct LaneUvw {
+  alignas(64) float u[kPacketSize];
+  alignas(64) float v[kPacketSize];
+  alignas(64) float w[kPacketSize];
+  alignas(64) float det[kPacketSize];
+  TriangleUvw fb[kPacketSize];
+  std::uint32_t fallback = 0;
+  TriangleUvw get(std::size_t i) const {
+    if (fallback >> i & 1u) return fb[i];
+    return {double(u[i]), double(v[i]), double(w[i]), double(det[i])};
+  }
+};
+
 // The watertight test of kernels.h (triangle_t, float part) on one vector of lanes, operation for
 // operation: from the vertices relative to the origin, already sheared in x and y (sax ... scy),
 // their z before the shear (az, bz, cz), the shear sz and t_min per lane, t gets each lane's t or
 // NaN. Returns the lanes whose float edge function came out exactly zero, which the caller redoes
 // with the scalar triangle_t_double. Shared by the single-ray and the packet kernels, whose loops
-// make the constants 0, +Inf and NaN once and pass them in.
+// make the constants 0, +Inf and NaN once and pass them in. With `uvw`, the lanes' edge functions
+// go to uvw->{u, v, w, det}[off ...] (unless every lane misses).
 template <class D, class V>
 HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V sby, V scx, V scy, V az, V bz, V cz,
-                               V sz, V tmin, float* t) {
+                               V sz, V tmin, float* t, LaneUvw* uvw, std::size_t off) {
   const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
   const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
   const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
@@ -198,6 +217,12 @@ HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V
     return zero_edge;  // no lane
   }
   const auto det = hn::Add(hn::Add(u, v), w);
+  if (uvw != nullptr) {
+    hn::StoreU(u, d, uvw->u + off);
+    hn::StoreU(v, d, uvw->v + off);
+    hn::StoreU(w, d, uvw->w + off);
+    hn::StoreU(det, d, uvw->det + off);
+  }
   const auto saz = hn::Mul(sz, az), sbz = hn::Mul(sz, bz), scz = hn::Mul(sz, cz);
   const auto tt = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(v, sbz)), hn::Mul(w, scz));
   const auto tv = hn::Div(tt, det);
@@ -210,9 +235,11 @@ HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V
 
 // Redoes the lanes of `zero_edge` (a ray through an edge or a vertex: rare) with the scalar
 // triangle_t_double, from the sheared coordinates `v` (sax, say, sbx, sby, scx, scy, az, bz, cz).
-// lane_ray(k) is lane k's Single.
+// lane_ray(k) is lane k's Single. With `uvw`, those lanes' double edge functions go to
+// uvw->fb[off + k] and their bits into uvw->fallback.
 template <class D, class M, class LaneRay>
-HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], float* t, LaneRay lane_ray) {
+HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], float* t, LaneRay lane_ray, LaneUvw* uvw,
+                                std::size_t off) {
   if (hn::AllFalse(d, zero_edge)) return;
   alignas(64) float l[9][kPacketSize];  // lanes of a single-ray block (4) or a packet (8)
   for (int j = 0; j < 9; ++j) hn::StoreU(v[j], d, l[j]);
@@ -221,15 +248,21 @@ HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], floa
   for (std::size_t k = 0; k < hn::Lanes(d); ++k) {
     if (mb[0] >> k & 1u) {
       const Single& s = lane_ray(k);
+      TriangleUvw* out = nullptr;
+      if (uvw != nullptr) {
+        out = &uvw->fb[off + k];
+        uvw->fallback |= 1u << (off + k);
+      }
       t[k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], l[6][k], l[7][k], l[8][k], s.r,
-                               s.t_min, nullptr);
+                               s.t_min, out);
     }
   }
 }
 
 // Watertight test of one ray against a block of 4 triangles, exactly as triangle_t; lanes whose
-// float edge function is zero are redone by the scalar triangle_t_double.
-inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
+// float edge function is zero are redone by the scalar triangle_t_double. With `uvw`, the
+// lanes' edge functions too.
+inline void triangles1(const TriangleBlock& b, const Single& s, float* t, LaneUvw* uvw) {
   const hn::CappedTag<float, kWidth> d;
   const std::size_t n = hn::Lanes(d);
   const RayPre& r = s.r;
@@ -237,6 +270,7 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
   const auto sx = hn::Set(d, r.sx), sy = hn::Set(d, r.sy), sz = hn::Set(d, r.sz);
   const auto tmin = hn::Set(d, s.t_min);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  if (uvw != nullptr) uvw->fallback = 0;
   for (std::size_t i = 0; i < std::size_t(kWidth); i += n) {
     const auto ax = hn::Sub(hn::LoadU(d, b.v[0][r.kx] + i), ox), ay = hn::Sub(hn::LoadU(d, b.v[0][r.ky] + i), oy),
                az = hn::Sub(hn::LoadU(d, b.v[0][r.kz] + i), oz);
@@ -247,9 +281,11 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t) {
     const auto sax = hn::Sub(ax, hn::Mul(sx, az)), say = hn::Sub(ay, hn::Mul(sy, az));
     const auto sbx = hn::Sub(bx, hn::Mul(sx, bz)), sby = hn::Sub(by, hn::Mul(sy, bz));
     const auto scx = hn::Sub(cx, hn::Mul(sx, cz)), scy = hn::Sub(cy, hn::Mul(sy, cz));
-    const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz, tmin, t + i);
-    redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
-                    [&s](std::size_t) -> const Single& { return s; });
+    const auto zero_edge =
+        triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz, tmin, t + i, uvw, i);
+    redo_zero_edges(
+        d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
+        [&s](std::size_t) -> const Single& { return s; }, uvw, i);
   }
 }
 
@@ -272,9 +308,11 @@ inline bool consider1(float t, std::uint32_t id, float& best_t, std::uint32_t& b
 }
 
 // Tests a leaf. kAnyHit: returns true at the first prim with t < best_t. Otherwise updates
-// best_t / best_id and returns whether anything improved.
+// best_t / best_id (and *uvw when a triangle becomes the best) and returns whether anything
+// improved.
 template <bool kAnyHit>
-inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, float& best_t, std::uint32_t& best_id) {
+inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, float& best_t, std::uint32_t& best_id,
+                  TriangleUvw* uvw) {
   bool improved = false;
   alignas(64) float t[kWidth];
   for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
@@ -286,9 +324,22 @@ inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, flo
   }
   for (std::uint32_t k = 0; k < leaf.triangle_blocks; ++k) {
     const TriangleBlock& b = bvh.triangles[leaf.triangle_begin + k];
-    triangles1(b, s, t);
-    for (int i = 0; i < kWidth; ++i) {
-      if (consider1<kAnyHit>(t[i], b.id[i], best_t, best_id, improved)) return true;
+    if (kAnyHit) {
+      triangles1(b, s, t, nullptr);
+      for (int i = 0; i < kWidth; ++i) {
+        if (t[i] < best_t) return true;
+      }
+    } else {
+      LaneUvw lu;
+      triangles1(b, s, t, &lu);
+      for (int i = 0; i < kWidth; ++i) {
+        if (better(t[i], b.id[i], best_t, best_id)) {
+          best_t = t[i];
+          best_id = b.id[i];
+          improved = true;
+          *uvw = lu.get(std::size_t(i));
+        }
+      }
     }
   }
   for (std::uint32_t k = 0; k < leaf.box_count; ++k) {
@@ -307,7 +358,8 @@ struct Entry {
 // hits, best_t / best_id are updated and the result says whether they were; for any-hit, best_t
 // is the ray's t_max and the result says whether something lies before it.
 template <bool kAnyHit>
-bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& best_t, std::uint32_t& best_id) {
+bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& best_t, std::uint32_t& best_id,
+               TriangleUvw* uvw) {
   Entry stack[kStackSize];
   int sp = 0;
   std::uint32_t cur = start;
@@ -315,7 +367,7 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   float cull = best_t * kFarScale;
   while (true) {
     if (cur & kLeafBit) {
-      if (leaf1<kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], s, best_t, best_id)) {
+      if (leaf1<kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], s, best_t, best_id, uvw)) {
         if (kAnyHit) return true;
         improved = true;
         cull = best_t * kFarScale;
@@ -357,15 +409,16 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   }
 }
 
-bool Intersect1(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) {
+bool Intersect1(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id,
+                TriangleUvw& uvw) {
   const Single s = make_single(r, t_min);
-  return traverse1<false>(bvh, s, 0, best_t, best_id);
+  return traverse1<false>(bvh, s, 0, best_t, best_id, &uvw);
 }
 
 bool Occluded1(const WideBvh& bvh, const RayPre& r, float t_min, float t_max) {
   const Single s = make_single(r, t_min);
   std::uint32_t unused = 0;
-  return traverse1<true>(bvh, s, 0, t_max, unused);
+  return traverse1<true>(bvh, s, 0, t_max, unused, nullptr);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -387,10 +440,13 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  bool uniform_signs;  // every lane has the direction signs sign[0..2]
+  LaneUvw tri;               // edge functions of the latest triangle8 (nearest hits only)
+  TriangleUvw best_uvw[kP];  // those of each lane's best, when it is a triangle
+  bool uniform_signs;        // every lane has the direction signs sign[0..2]
   std::uint32_t sign[3];
   bool uniform_axes;  // every lane has the shear axes axis[0..2] (kx, ky, kz)
   std::uint32_t axis[3];
+  bool uniform_origin;  // every lane has the origin of lane 0, bit for bit (pinhole camera packets)
   // The same rays as single rays (the fallback below kSwitch lanes, zero edge functions, boxes),
   // made on first use: most packets never need them.
   const math::Ray* rays;
@@ -507,14 +563,21 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
     p.uniform_axes = p.uniform_axes && (is0 == 0 || is0 == kAll) && (is1 == 0 || is1 == kAll);
     p.axis[k] = (is0 & 1u) ? 0u : (is1 & 1u) ? 1u : 2u;
   }
+  p.uniform_origin = true;
+  for (int a = 0; a < 3; ++a) {
+    const std::uint32_t o0 = std::bit_cast<std::uint32_t>(p.o[a][0]);
+    for (int i = 1; i < kP; ++i) p.uniform_origin = p.uniform_origin && std::bit_cast<std::uint32_t>(p.o[a][i]) == o0;
+  }
 }
 
 // Which of the 8 lanes in `mask` enter each child box of the node (bits[c]) and each such lane's
-// entry distance (dist[c][lane]; +inf for the other lanes). No branch depends on the outcome of a
-// child's test. The packet's origins, inverse directions and direction signs are loaded once per
-// node, not once per child; when every lane has the same direction signs (camera and shadow
-// packets nearly always do), the near and far planes are picked per axis like a single ray's
-// instead of lane by lane.
+// entry distance (dist[c][lane]; other lanes' entries are left unspecified). No branch depends on
+// the outcome of a child's test. The packet's origins, inverse directions and direction signs are
+// loaded once per node, not once per child; when every lane has the same direction signs (camera
+// and shadow packets nearly always do), the near and far planes are picked per axis like a single
+// ray's instead of lane by lane, and when the lanes also share their origin (pinhole camera
+// packets), the plane-minus-origin differences of all 8 children are one vector subtraction per
+// plane (the same single rounding each lane would do).
 inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask, std::uint32_t* bits,
                        float (*dist)[kP]) {
   const hn::CappedTag<float, kP> d;
@@ -524,6 +587,21 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
   const auto scale = hn::Set(d, kFarScale);
   const auto zero = hn::Zero(d);
   for (int c = 0; c < kNodeWidth; ++c) bits[c] = 0;
+  // Uniform signs and origin: rel[0][a][c] = near plane - o, rel[1][a][c] = far plane - o.
+  alignas(64) float rel[2][3][kNodeWidth];
+  const bool shared = p.uniform_signs && p.uniform_origin;
+  if (shared) {
+    const hn::CappedTag<float, kNodeWidth> d8;
+    for (std::size_t i = 0; i < std::size_t(kNodeWidth); i += hn::Lanes(d8)) {
+      for (int a = 0; a < 3; ++a) {
+        const auto o = hn::Set(d8, p.o[a][0]);
+        const float* nb = p.sign[a] ? node.hi[a] : node.lo[a];
+        const float* fb = p.sign[a] ? node.lo[a] : node.hi[a];
+        hn::Store(hn::Sub(hn::LoadU(d8, nb + i), o), d8, rel[0][a] + i);
+        hn::Store(hn::Sub(hn::LoadU(d8, fb + i), o), d8, rel[1][a] + i);
+      }
+    }
+  }
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     V o[3], inv[3];
     for (int a = 0; a < 3; ++a) {
@@ -538,7 +616,12 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       if (node.child[c] == kEmptyChild) break;  // empty slots come last
       auto t0 = tmin;
       auto tf = inf;
-      if (p.uniform_signs) {
+      if (shared) {
+        for (int a = 0; a < 3; ++a) {
+          t0 = hn::Max(hn::Mul(hn::Set(d, rel[0][a][c]), inv[a]), t0);  // NaN skipped, see node_test1
+          tf = hn::Min(hn::Mul(hn::Set(d, rel[1][a][c]), inv[a]), tf);
+        }
+      } else if (p.uniform_signs) {
         for (int a = 0; a < 3; ++a) {
           const float nb = p.sign[a] ? node.hi[a][c] : node.lo[a][c];
           const float fb = p.sign[a] ? node.lo[a][c] : node.hi[a][c];
@@ -555,7 +638,7 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
         }
       }
       const auto m = hn::And(active, hn::Le(t0, hn::Min(hn::Mul(tf, scale), cull)));
-      hn::StoreU(hn::IfThenElse(m, t0, inf), d, dist[c] + i);
+      hn::StoreU(t0, d, dist[c] + i);  // read only for the lanes of bits[c]
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, m, mb);
       bits[c] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
@@ -564,9 +647,11 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
 }
 
 // Applies candidate distances t[lane] of prim `id` to the lanes in `mask`; returns the lanes
-// that improved (nearest) or that are now blocked (any-hit).
+// that improved (nearest) or that are now blocked (any-hit). `uvw`: the candidate is a triangle
+// with these edge functions, kept for the lanes it becomes the best of.
 template <bool kAnyHit>
-inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::uint32_t mask) {
+inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::uint32_t mask,
+                            const LaneUvw* uvw = nullptr) {
   // Which lanes have t < best or t == best (a NaN t, a miss, is neither), a vector at a time;
   // most candidates miss every lane, and then nothing else is done.
   const hn::CappedTag<float, kP> d;
@@ -592,6 +677,7 @@ inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::ui
       p.best[i] = t[i];
       p.id[i] = id;
       p.cull[i] = t[i] * kFarScale;
+      if (uvw != nullptr) p.best_uvw[i] = uvw->get(std::size_t(i));
       out |= 1u << i;
     }
   }
@@ -617,11 +703,12 @@ inline void sphere8(const Packet& p, float cx, float cy, float cz, float radius,
 }
 
 // One triangle (vertices v[vertex][axis]) against the 8 rays, exactly as triangle_t; each lane
-// picks its own shear axes.
-inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
+// picks its own shear axes. With `uvw`, the lanes' edge functions too.
+inline void triangle8(const Packet& p, const float (&v)[3][3], float* t, LaneUvw* uvw) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
+  if (uvw != nullptr) uvw->fallback = 0;
   if (p.uniform_axes) {
     // Every lane shears along the same axes (nearly every camera and shadow packet): the
     // vertices' coordinates are picked once, not lane by lane.
@@ -638,9 +725,10 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
       const auto scx = hn::Sub(hn::Sub(hn::Set(d, v[2][kx]), ox), hn::Mul(sx, cz));
       const auto scy = hn::Sub(hn::Sub(hn::Set(d, v[2][ky]), oy), hn::Mul(sy, cz));
       const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz,
-                                            hn::LoadU(d, p.t_min + i), t + i);
-      redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
-                      [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); });
+                                            hn::LoadU(d, p.t_min + i), t + i, uvw, i);
+      redo_zero_edges(
+          d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
+          [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); }, uvw, i);
     }
     return;
   }
@@ -667,9 +755,10 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t) {
     const auto sbx = hn::Sub(rel[1][0], hn::Mul(sx, rel[1][2])), sby = hn::Sub(rel[1][1], hn::Mul(sy, rel[1][2]));
     const auto scx = hn::Sub(rel[2][0], hn::Mul(sx, rel[2][2])), scy = hn::Sub(rel[2][1], hn::Mul(sy, rel[2][2]));
     const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2],
-                                          rel[2][2], sz, hn::LoadU(d, p.t_min + i), t + i);
-    redo_zero_edges(d, zero_edge, {sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2]}, t + i,
-                    [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); });
+                                          rel[2][2], sz, hn::LoadU(d, p.t_min + i), t + i, uvw, i);
+    redo_zero_edges(
+        d, zero_edge, {sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2]}, t + i,
+        [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); }, uvw, i);
   }
 }
 
@@ -722,8 +811,8 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
       const float v[3][3] = {{b.v[0][0][j], b.v[0][1][j], b.v[0][2][j]},
                              {b.v[1][0][j], b.v[1][1][j], b.v[1][2][j]},
                              {b.v[2][0][j], b.v[2][1][j], b.v[2][2][j]}};
-      triangle8(p, v, t);
-      const std::uint32_t hit = apply8<kAnyHit>(p, t, b.id[j], mask);
+      triangle8(p, v, t, kAnyHit ? nullptr : &p.tri);
+      const std::uint32_t hit = apply8<kAnyHit>(p, t, b.id[j], mask, kAnyHit ? nullptr : &p.tri);
       out |= hit;
       if (kAnyHit) mask &= ~hit;
     }
@@ -777,7 +866,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       while (m != 0) {
         const int i = std::countr_zero(m);
         m &= m - 1;
-        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i])) {
+        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i])) {
           result |= 1u << i;
           if (kAnyHit) {
             alive &= ~(1u << i);
@@ -834,7 +923,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
 }
 
 std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
-                         std::uint32_t* best_id) {
+                         std::uint32_t* best_id, TriangleUvw* uvw) {
   Packet p;
   make_packet(bvh, rays, valid, p, false);
   for (int i = 0; i < kP; ++i) {
@@ -847,6 +936,7 @@ std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_
     if (improved >> i & 1u) {
       best_t[i] = p.best[i];
       best_id[i] = p.id[i];
+      uvw[i] = p.best_uvw[i];
     }
   }
   return improved;

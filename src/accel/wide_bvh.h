@@ -16,7 +16,8 @@ class Geometry;
 
 namespace dtraced::accel::detail {
 
-struct RayPre;  // kernels.h
+struct RayPre;       // kernels.h
+struct TriangleUvw;  // kernels.h
 
 inline constexpr int kNodeWidth = 8;  // children per node (one AVX2/AVX-512 vector, two SSE4)
 inline constexpr int kWidth = 4;      // prims per leaf block
@@ -75,16 +76,19 @@ struct WideBvh {
 
 // What one instruction set provides. The planes and the final hit record are handled by Geometry
 // around these calls; `best_t`/`best_id` carry in the planes' result and come back as the nearest
-// hit over planes and tree (ties to the smaller id).
+// hit over planes and tree (ties to the smaller id). When the tree's nearest hit is a triangle,
+// `uvw` receives its edge functions exactly as triangle_t reports them (finish_triangle_hit builds
+// the hit record from them); otherwise it is left alone.
 struct Kernels {
-  // Single ray: updates best_t / best_id; returns true if the tree held a nearer hit.
+  // Single ray: updates best_t / best_id (and uvw); returns true if the tree held a nearer hit.
   // `r` is precompute(ray, bvh.has_triangles).
-  bool (*intersect1)(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id);
+  bool (*intersect1)(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id,
+                     TriangleUvw& uvw);
   bool (*occluded1)(const WideBvh& bvh, const RayPre& r, float t_min, float t_max);
-  // Packet of 8: lanes with bit set in `valid`; per lane best_t / best_id as above. Returns the
-  // mask of lanes whose best came from the tree.
+  // Packet of 8: lanes with bit set in `valid`; per lane best_t / best_id / uvw[lane] as above.
+  // Returns the mask of lanes whose best came from the tree.
   std::uint32_t (*intersect8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
-                              std::uint32_t* best_id);
+                              std::uint32_t* best_id, TriangleUvw* uvw);
   std::uint32_t (*occluded8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid);
 };
 
