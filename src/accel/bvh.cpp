@@ -18,6 +18,7 @@
 #include "accel/geometry.h"
 #include "accel/kernels.h"
 #include "util/cpus.h"
+#include "util/huge_pages.h"
 
 namespace dtraced::accel {
 
@@ -365,7 +366,10 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
 
   // Bounds of every shape, in chunks (in parallel for large scenes); the planes and invalid
   // shapes are dropped after, in id order.
-  std::vector<BuildPrim> refs(g.shapes_.size());
+  std::vector<BuildPrim> refs;
+  refs.reserve(g.shapes_.size());
+  util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
+  refs.resize(g.shapes_.size());
   std::vector<std::uint8_t> kind(g.shapes_.size());  // 0 invalid, 1 plane, 2 bounded
   parallel_for(chunks_of(g.shapes_.size()), g.shapes_.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
     const std::size_t end = std::min(g.shapes_.size(), (c + 1) * kChunk);
@@ -438,6 +442,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
     g.nodes_.reserve(total);
+    util::advise_huge_pages_for(g.nodes_);
     stitch(0, top, subtrees, g.nodes_);
     for (const TopNode<Node>& t : top) {
       if (t.subtree >= 0) continue;
@@ -450,6 +455,8 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
   }
 
+  g.prims_.reserve(refs.size());
+  util::advise_huge_pages_for(g.prims_);
   g.prims_.resize(refs.size());
   parallel_for(chunks_of(refs.size()), refs.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
     const std::size_t end = std::min(refs.size(), (c + 1) * kChunk);
