@@ -455,15 +455,20 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
   }
 
-  g.prims_.reserve(refs.size());
+  // Only the ids of the build prims are left to use: keep those (4 bytes a prim) and free the
+  // rest (40) before the prims (32) are allocated, which lowers the build's peak.
+  std::vector<std::uint32_t> order(refs.size());
+  for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
+  std::vector<BuildPrim>().swap(refs);
+  g.prims_.reserve(order.size());
   util::advise_huge_pages_for(g.prims_);
-  g.prims_.resize(refs.size());
-  parallel_for(chunks_of(refs.size()), refs.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
-    const std::size_t end = std::min(refs.size(), (c + 1) * kChunk);
+  g.prims_.resize(order.size());
+  parallel_for(chunks_of(order.size()), order.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+    const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
     for (std::size_t i = c * kChunk; i < end; ++i) {
-      const Shape& s = g.shapes_[refs[i].id];
+      const Shape& s = g.shapes_[order[i]];
       Prim& p = g.prims_[i];
-      p.id = refs[i].id;
+      p.id = order[i];
       p.type = s.type;
       if (s.type == ShapeType::kTriangle) {
         // The scalar path reads the vertices from shapes_ (9 floats do not fit a 32-byte prim).
@@ -484,7 +489,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       }
     }
   });
-  std::vector<BuildPrim>().swap(refs);
+  std::vector<std::uint32_t>().swap(order);
 
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
   std::uint64_t hash = 0xcbf29ce484222325ull;
