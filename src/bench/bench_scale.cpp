@@ -50,6 +50,14 @@ double peak_rss_bytes() {
   return double(u.ru_maxrss) * 1024.0;  // kilobytes on Linux
 }
 
+// CPU time of the process (every thread), user and system: on a shared machine the wall times
+// above wait for the CPU, while this only counts the work.
+double cpu_seconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) + 1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
+}
+
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.empty() ? 0.0 : v[v.size() / 2];
@@ -83,16 +91,18 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
   {
     // The pipeline as `dtraced render` runs it: load, build, render.
     auto start = Clock::now();
+    const double cpu_start = cpu_seconds();
     scene::LoadResult loaded = scene::load_scene_file(path);
     if (!loaded.ok()) {
       fmt::print(stderr, "{}", scene::format_errors(loaded.errors));
       return 1;
     }
     const double parse_s = since(start);
+    const double parse_cpu = cpu_seconds() - cpu_start;
     const double parse_rss = peak_rss_bytes();
     if (load_only) {
-      fmt::print("parse {:.3f} s  peak RSS {:.1f} MiB  {} objects\n", parse_s, parse_rss / (1 << 20),
-                 loaded.scene->objects.size());
+      fmt::print("parse {:.3f} s (cpu {:.3f} s)  peak RSS {:.1f} MiB  {} objects\n", parse_s, parse_cpu,
+                 parse_rss / (1 << 20), loaded.scene->objects.size());
       return 0;
     }
     for (const scene::Object& o : loaded.scene->objects) f.spheres += o.type == scene::ObjectType::kSphere;
@@ -114,9 +124,11 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     f.render_s = result.seconds;
     f.rss = peak_rss_bytes();
     fmt::print(stderr,
-               "load {:.3f} s (parse {:.3f}), pipeline build {:.3f} s on {} threads, render {:.3f} s; peak RSS after "
+               "load {:.3f} s (parse {:.3f}, cpu {:.3f}), pipeline build {:.3f} s on {} threads, render {:.3f} s; peak "
+               "RSS after "
                "parse {:.1f} MiB, after build {:.1f} MiB\n",
-               f.load_s, parse_s, pipeline_build_s, threads, f.render_s, parse_rss / (1 << 20), build_rss / (1 << 20));
+               f.load_s, parse_s, parse_cpu, pipeline_build_s, threads, f.render_s, parse_rss / (1 << 20),
+               build_rss / (1 << 20));
 
     // The build alone, on 1 thread and on `threads`, from the same shapes.
     const std::vector<accel::Shape>& shapes = rs.geometry().fixed()->geometry.shapes();

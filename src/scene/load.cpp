@@ -287,7 +287,7 @@ class ObjectPipeline {
   // mapped); a batch of larger elements (inline meshes) continues on the heap.
   static constexpr std::size_t kArenaBytes = std::size_t(4) << 20;
   struct Batch {
-    std::unique_ptr<unsigned char[]> buffer = std::make_unique<unsigned char[]>(kArenaBytes);
+    std::unique_ptr<unsigned char[]> buffer = std::make_unique_for_overwrite<unsigned char[]>(kArenaBytes);
     // New per batch: Boost 1.81's release() keeps the grown block size, which then doubles
     // batch after batch until an allocation fails.
     std::unique_ptr<json::monotonic_resource> arena =
