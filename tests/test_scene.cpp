@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -551,6 +552,64 @@ TEST_CASE("file-level errors name the file", "[scene][files]") {
     CHECK(r.errors[0].file == file.path());
     CHECK(r.errors[0].path == "/camera");
   }
+}
+
+TEST_CASE("objects are read on a second thread for a large text: same scene, same errors", "[scene][stream]") {
+  const dtraced::scene::SceneDesc desc = generate_sphere_field(7000, 5);  // several batches and pieces
+  const std::string canonical = dtraced::scene::canonical_json(desc);
+  LoadOptions threaded, inline_only;
+  threaded.parallel_min_bytes = 0;
+  inline_only.parallel_min_bytes = std::numeric_limits<std::uint64_t>::max();
+  {
+    const LoadResult a = load_scene_string(canonical, "x.json", threaded);
+    REQUIRE(a.ok());
+    CHECK(*a.scene == desc);
+    CHECK(a.scene->objects.capacity() >= desc.objects.size());
+    const TempFile file(canonical);
+    const LoadResult b = load_scene_file(file.path(), threaded);
+    REQUIRE(b.ok());
+    CHECK(*b.scene == desc);
+  }
+  // Problems in objects of several batches, a duplicate key, a warning-free camera error: every
+  // message, in the order the inline reader gives them.
+  std::string bad = canonical;
+  for (const std::size_t k : {5000, 3000, 2100, 10}) {
+    std::size_t at = 0;
+    for (std::size_t n = 0; n < k; ++n) at = bad.find("\"radius\":", at + 1);
+    bad.replace(at, 9, "\"radius\":-");
+  }
+  const std::size_t dup = bad.find("\"diffuse\":");
+  bad.insert(dup, "\"diffuse\":0.5,");
+  bad.replace(bad.find("\"fov\":"), 6, "\"fov\":-");
+  const LoadResult a = load_scene_string(bad, "x.json", threaded);
+  const LoadResult b = load_scene_string(bad, "x.json", inline_only);
+  REQUIRE(a.errors.size() == 6);
+  REQUIRE(b.errors.size() == a.errors.size());
+  for (std::size_t i = 0; i < a.errors.size(); ++i) CHECK(a.errors[i].to_string() == b.errors[i].to_string());
+  CHECK(a.errors[1].path == "/camera/fov");
+  CHECK(a.errors[2].path == "/scene_objects/10/radius");
+  CHECK(a.errors[5].path == "/scene_objects/5000/radius");
+  SECTION("error limits hold across batches") {
+    threaded.max_errors = 3;
+    inline_only.max_errors = 3;
+    const LoadResult c = load_scene_string(bad, "x.json", threaded);
+    const LoadResult d = load_scene_string(bad, "x.json", inline_only);
+    REQUIRE(c.errors.size() == d.errors.size());
+    for (std::size_t i = 0; i < c.errors.size(); ++i) CHECK(c.errors[i].to_string() == d.errors[i].to_string());
+  }
+}
+
+TEST_CASE("an object holds one geometry in shared storage", "[scene]") {
+  STATIC_REQUIRE(sizeof(dtraced::scene::Object) <= 144);
+  dtraced::scene::Object a, b;
+  a.type = b.type = dtraced::scene::ObjectType::kBox;
+  a.box = b.box = {{0, 0, 0}, {1, 2, 3}};
+  CHECK(a == b);
+  b.box.max.z = 4;
+  CHECK_FALSE(a == b);
+  b.type = dtraced::scene::ObjectType::kPlane;
+  b.plane = {{0, 0, 0}, {0, 1, 0}};
+  CHECK_FALSE(a == b);
 }
 
 TEST_CASE("Scene files are read and parsed in pieces: same scene, same errors", "[scene][stream]") {

@@ -18,6 +18,7 @@
 #include "accel/geometry.h"
 #include "accel/kernels.h"
 #include "util/cpus.h"
+#include "util/huge_pages.h"
 
 namespace dtraced::accel {
 
@@ -43,6 +44,8 @@ constexpr std::uint32_t kParallelGrain = 1u << 15;
 constexpr std::size_t kChunk = 1u << 14;
 // Most threads a build starts, whatever the caller asks.
 constexpr unsigned kMaxBuildThreads = 64;
+// Ranges of at most this many prims take Splitter::split_sparse (same decisions, less fixed cost).
+constexpr std::uint32_t kSparseMax = 16;
 
 struct BuildPrim {
   Bounds3f bounds;
@@ -144,6 +147,7 @@ class Splitter {
       return out;
     }
     const double scale = kBins / c_extent;
+    if (!chunked && n <= kSparseMax) return split_sparse(begin, end, rb.bounds, axis, c_lo, scale);
     const Bins bins =
         chunked ? bin_chunked(begin, end, axis, c_lo, scale, threads) : bin(begin, end, axis, c_lo, scale);
     // SAH cost of splitting after bin k, scaled by the node's area to avoid a division (flat or
@@ -198,6 +202,82 @@ class Splitter {
   }
 
  private:
+  // Small ranges (most nodes of a tree) fill few of the kBins bins, and the fixed cost of the bins
+  // (clearing them, two sweeps with a surface area in double per bin) outweighed their prims. This
+  // is the same binned SAH over the non-empty bins only: the same bins (bin_of), each bin's bounds
+  // gathered in prim order and the sides in bin order (minima and maxima, extending by an empty bin
+  // changes nothing), so the same costs to the bit; a split between two non-empty bins stands for
+  // every split among the empty bins between them (same sides, same cost) and, like the sweep over
+  // all bins, ties go to the lowest. Same decisions, same tree.
+  Split split_sparse(std::uint32_t begin, std::uint32_t end, const Bounds3f& bounds, std::uint32_t axis, double c_lo,
+                     double scale) const {
+    Split out;
+    out.bounds = bounds;
+    out.axis = axis;
+    const std::uint32_t n = end - begin;
+    // (bin, prim) in bin order, prims in index order within a bin (insertion sort: stable).
+    std::array<std::pair<int, std::uint32_t>, kSparseMax> items;
+    for (std::uint32_t i = 0; i < n; ++i) {
+      const std::pair<int, std::uint32_t> item{bin_of(refs_[begin + i].centroid[axis], c_lo, scale), begin + i};
+      std::uint32_t j = i;
+      for (; j > 0 && items[j - 1].first > item.first; --j) items[j] = items[j - 1];
+      items[j] = item;
+    }
+    // The non-empty bins: their index, count and bounds.
+    std::array<int, kSparseMax> bin_index;
+    std::array<std::uint32_t, kSparseMax> count;
+    std::array<Bounds3f, kSparseMax> bin_bounds;
+    std::uint32_t groups = 0;
+    for (std::uint32_t i = 0; i < n; ++i) {
+      if (groups == 0 || bin_index[groups - 1] != items[i].first) {
+        bin_index[groups] = items[i].first;
+        count[groups] = 0;
+        bin_bounds[groups] = Bounds3f{};
+        ++groups;
+      }
+      ++count[groups - 1];
+      bin_bounds[groups - 1].extend(refs_[items[i].second].bounds);
+    }
+    // Split after group g (g + 1 < groups): the sweeps of split() over these groups.
+    std::array<double, kSparseMax> left_cost;
+    Bounds3f acc;
+    std::uint32_t acc_n = 0;
+    for (std::uint32_t g = 0; g + 1 < groups; ++g) {
+      acc.extend(bin_bounds[g]);
+      acc_n += count[g];
+      left_cost[g] = area(acc) * acc_n;
+    }
+    const double node_area = area(bounds);
+    double best_cost = std::numeric_limits<double>::infinity();
+    int best_k = -1;
+    acc = Bounds3f{};
+    acc_n = 0;
+    for (std::uint32_t g = groups - 1; g-- > 0;) {
+      acc.extend(bin_bounds[g + 1]);
+      acc_n += count[g + 1];
+      const double cost = kTraversalCost * node_area + left_cost[g] + area(acc) * acc_n;
+      if (cost <= best_cost) {
+        best_cost = cost;
+        best_k = bin_index[g];
+      }
+    }
+    const double leaf_cost = (isa_ == Isa::kScalar ? double(n) : 1.0 + kSimdLeafSlope * (n - 1)) * node_area;
+    if (n <= kMaxLeafSize && leaf_cost <= best_cost) {
+      out.leaf = true;
+      return out;
+    }
+    if (best_k < 0) {
+      out.mid = begin + n / 2;
+    } else {
+      out.mid = std::uint32_t(
+          std::partition(refs_.data() + begin, refs_.data() + end,
+                         [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
+          refs_.data());
+    }
+    assert(out.mid > begin && out.mid < end);
+    return out;
+  }
+
   RangeBounds range_bounds(std::size_t begin, std::size_t end) const {
     RangeBounds rb;
     for (std::size_t i = begin; i < end; ++i) {
@@ -365,7 +445,10 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
 
   // Bounds of every shape, in chunks (in parallel for large scenes); the planes and invalid
   // shapes are dropped after, in id order.
-  std::vector<BuildPrim> refs(g.shapes_.size());
+  std::vector<BuildPrim> refs;
+  refs.reserve(g.shapes_.size());
+  util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
+  refs.resize(g.shapes_.size());
   std::vector<std::uint8_t> kind(g.shapes_.size());  // 0 invalid, 1 plane, 2 bounded
   parallel_for(chunks_of(g.shapes_.size()), g.shapes_.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
     const std::size_t end = std::min(g.shapes_.size(), (c + 1) * kChunk);
@@ -438,6 +521,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
     g.nodes_.reserve(total);
+    util::advise_huge_pages_for(g.nodes_);
     stitch(0, top, subtrees, g.nodes_);
     for (const TopNode<Node>& t : top) {
       if (t.subtree >= 0) continue;
@@ -450,13 +534,20 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
   }
 
-  g.prims_.resize(refs.size());
-  parallel_for(chunks_of(refs.size()), refs.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
-    const std::size_t end = std::min(refs.size(), (c + 1) * kChunk);
+  // Only the ids of the build prims are left to use: keep those (4 bytes a prim) and free the
+  // rest (40) before the prims (32) are allocated, which lowers the build's peak.
+  std::vector<std::uint32_t> order(refs.size());
+  for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
+  std::vector<BuildPrim>().swap(refs);
+  g.prims_.reserve(order.size());
+  util::advise_huge_pages_for(g.prims_);
+  g.prims_.resize(order.size());
+  parallel_for(chunks_of(order.size()), order.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+    const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
     for (std::size_t i = c * kChunk; i < end; ++i) {
-      const Shape& s = g.shapes_[refs[i].id];
+      const Shape& s = g.shapes_[order[i]];
       Prim& p = g.prims_[i];
-      p.id = refs[i].id;
+      p.id = order[i];
       p.type = s.type;
       if (s.type == ShapeType::kTriangle) {
         // The scalar path reads the vertices from shapes_ (9 floats do not fit a 32-byte prim).
@@ -477,7 +568,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       }
     }
   });
-  std::vector<BuildPrim>().swap(refs);
+  std::vector<std::uint32_t>().swap(order);
 
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
   std::uint64_t hash = 0xcbf29ce484222325ull;

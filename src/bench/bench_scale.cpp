@@ -6,6 +6,7 @@
 // Two modes, so that the process that measures memory holds nothing but the pipeline:
 //   dtraced-bench-scale --write N FILE   writes scene::generate_sphere_field(N, 1) as canonical JSON
 //   dtraced-bench-scale FILE             loads FILE, builds, renders, prints one line of figures
+//   dtraced-bench-scale FILE --load-only only parses FILE (time and peak RSS), for profiles
 // Peak RSS (getrusage ru_maxrss) is read right after the render, before the extra timing builds.
 // Times are wall time (steady_clock); the build figures are the median of --runs builds.
 //
@@ -49,6 +50,14 @@ double peak_rss_bytes() {
   return double(u.ru_maxrss) * 1024.0;  // kilobytes on Linux
 }
 
+// CPU time of the process (every thread), user and system: on a shared machine the wall times
+// above wait for the CPU, while this only counts the work.
+double cpu_seconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) + 1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
+}
+
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.empty() ? 0.0 : v[v.size() / 2];
@@ -74,23 +83,33 @@ struct Figures {
   double embree1_s = -1, embreen_s = -1;
 };
 
-int measure(const std::string& path, std::uint32_t threads, int runs, std::uint32_t width, std::uint32_t height) {
+int measure(const std::string& path, std::uint32_t threads, int runs, std::uint32_t width, std::uint32_t height,
+            bool load_only) {
   Figures f;
   const accel::Isa isa = accel::best_isa();
   double pipeline_build_s = 0.0;
   {
     // The pipeline as `dtraced render` runs it: load, build, render.
     auto start = Clock::now();
+    const double cpu_start = cpu_seconds();
     scene::LoadResult loaded = scene::load_scene_file(path);
     if (!loaded.ok()) {
       fmt::print(stderr, "{}", scene::format_errors(loaded.errors));
       return 1;
     }
     const double parse_s = since(start);
+    const double parse_cpu = cpu_seconds() - cpu_start;
+    const double parse_rss = peak_rss_bytes();
+    if (load_only) {
+      fmt::print("parse {:.3f} s (cpu {:.3f} s)  peak RSS {:.1f} MiB  {} objects\n", parse_s, parse_cpu,
+                 parse_rss / (1 << 20), loaded.scene->objects.size());
+      return 0;
+    }
     for (const scene::Object& o : loaded.scene->objects) f.spheres += o.type == scene::ObjectType::kSphere;
     start = Clock::now();
     const render::RenderScene rs = render::RenderScene::build(*loaded.scene, isa, threads);
     const double scene_s = since(start);
+    const double build_rss = peak_rss_bytes();
     const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
     pipeline_build_s = st.seconds + st.wide_seconds;
     f.load_s = parse_s + (scene_s - pipeline_build_s);
@@ -104,8 +123,12 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     const render::LocalResult result = render::render_local(rs, settings, options);
     f.render_s = result.seconds;
     f.rss = peak_rss_bytes();
-    fmt::print(stderr, "load {:.3f} s (parse {:.3f}), pipeline build {:.3f} s on {} threads, render {:.3f} s\n",
-               f.load_s, parse_s, pipeline_build_s, threads, f.render_s);
+    fmt::print(stderr,
+               "load {:.3f} s (parse {:.3f}, cpu {:.3f}), pipeline build {:.3f} s on {} threads, render {:.3f} s; peak "
+               "RSS after "
+               "parse {:.1f} MiB, after build {:.1f} MiB\n",
+               f.load_s, parse_s, parse_cpu, pipeline_build_s, threads, f.render_s, parse_rss / (1 << 20),
+               build_rss / (1 << 20));
 
     // The build alone, on 1 thread and on `threads`, from the same shapes.
     const std::vector<accel::Shape>& shapes = rs.geometry().fixed()->geometry.shapes();
@@ -176,7 +199,9 @@ int main(int argc, char** argv) {
   app.add_option("--runs", runs, "Timed builds per thread count (median)")->check(CLI::Range(1, 100));
   app.add_option("--width", width, "Render width")->check(CLI::Range(1u, 8192u));
   app.add_option("--height", height, "Render height")->check(CLI::Range(1u, 8192u));
+  bool load_only = false;
+  app.add_flag("--load-only", load_only, "Only parse FILE: its time and peak RSS (for profiling the load)");
   CLI11_PARSE(app, argc, argv);
   if (write_count > 0) return dtraced::bench::write_scene(write_count, file);
-  return dtraced::bench::measure(file, threads, runs, width, height);
+  return dtraced::bench::measure(file, threads, runs, width, height, load_only);
 }

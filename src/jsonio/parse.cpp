@@ -61,6 +61,7 @@ class StrictHandler {
     sink_ = std::move(sink);
   }
   bool split_seen() const { return split_seen_; }
+  void set_element_storage(json::memory_resource* memory) { element_storage_ = memory; }
 
   bool on_document_begin(json::error_code&) { return true; }
   bool on_document_end(json::error_code&) { return true; }
@@ -221,7 +222,7 @@ class StrictHandler {
   void begin_element() {
     if (!in_split_ || in_element_ || depth_ != kSplitDepth) return;
     in_element_ = true;
-    element_stack_.reset(json::storage_ptr(&element_memory_));
+    element_stack_.reset(json::storage_ptr(element_storage_ != nullptr ? element_storage_ : &element_memory_));
   }
 
   // A value is complete: an element of the split array goes to the sink, and its memory is reused.
@@ -229,10 +230,10 @@ class StrictHandler {
     if (!in_element_ || depth_ != kSplitDepth) return;
     in_element_ = false;
     {
-      const json::value element = element_stack_.release();
+      json::value element = element_stack_.release();
       sink_(element_index_++, element);
     }
-    element_memory_.release();
+    if (element_storage_ == nullptr) element_memory_.release();
   }
 
   // A value (scalar or closed container) is complete: advance the enclosing container.
@@ -260,6 +261,7 @@ class StrictHandler {
   // The first 64 KiB of every element come from this one buffer, reused (release() keeps it).
   std::unique_ptr<unsigned char[]> element_buffer_ = std::make_unique<unsigned char[]>(kElementBuffer);
   json::monotonic_resource element_memory_{element_buffer_.get(), kElementBuffer};
+  json::memory_resource* element_storage_ = nullptr;  // the caller's (set_element_storage), else element_memory_
   json::value_stack element_stack_;
   std::vector<Frame> frames_;
   std::size_t depth_ = 0;
@@ -423,6 +425,10 @@ void StrictParser::split_array(std::string root_key, ElementSink sink) {
 }
 
 bool StrictParser::split_seen() const { return impl_->parser.handler().split_seen(); }
+
+void StrictParser::set_element_storage(boost::json::memory_resource* memory) {
+  impl_->parser.handler().set_element_storage(memory);
+}
 
 bool StrictParser::write(std::string_view piece) {
   Impl& im = *impl_;

@@ -21,6 +21,7 @@
 #include <string>
 #include <string_view>
 
+#include <boost/json/memory_resource.hpp>
 #include <boost/json/storage_ptr.hpp>
 #include <boost/json/value.hpp>
 
@@ -51,9 +52,9 @@ Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t 
 // parse_strict. One parser per document; not thread-safe.
 class StrictParser {
  public:
-  // Called with each element of the split array, its index and its JSON Pointer path's key; the
-  // value lives only for the call.
-  using ElementSink = std::function<void(std::size_t index, const boost::json::value& element)>;
+  // Called with each element of the split array and its index. The sink may move the value out
+  // when its memory is the caller's (set_element_storage); otherwise it lives only for the call.
+  using ElementSink = std::function<void(std::size_t index, boost::json::value& element)>;
 
   StrictParser(std::size_t max_depth, std::size_t max_errors, boost::json::storage_ptr storage = {});
   ~StrictParser();
@@ -63,6 +64,11 @@ class StrictParser {
   // Elements of the array under `root_key` of the root object go to `sink`, not into the document.
   // Call before the first write.
   void split_array(std::string root_key, ElementSink sink);
+  // Where the next elements of the split array are built (null: the parser's own memory, reused
+  // element after element). The caller owns `memory` and keeps it alive as long as the values
+  // built on it; it may change it at any time, also from within the sink (then it applies from
+  // the next element on).
+  void set_element_storage(boost::json::memory_resource* memory);
   // Whether an array under the split key was met (and its elements went to the sink).
   bool split_seen() const;
   // The next piece of the text. Returns false once the text has a syntax error (then stop

@@ -7,6 +7,7 @@
 #include <numbers>
 
 #include "scene/animation.h"
+#include "util/huge_pages.h"
 
 namespace dtraced::render {
 
@@ -254,11 +255,12 @@ RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart
   if (part == nullptr) shapes.reserve(shape_count);
   rs.shape_object_.reserve(shape_count);
   rs.materials_.reserve(desc.objects.size());
-  std::vector<std::uint32_t> first_shape(desc.objects.size());
+  util::advise_huge_pages_for(shapes);  // first touches are costly page faults (util/huge_pages.h)
+  util::advise_huge_pages_for(rs.shape_object_);
+  util::advise_huge_pages_for(rs.materials_);
   for (std::size_t i = 0; i < desc.objects.size(); ++i) {
     const scene::Object& o = desc.objects[i];
     const std::size_t first = rs.shape_object_.size();
-    first_shape[i] = static_cast<std::uint32_t>(first);
     const std::size_t end = first + shape_count_of(o);
     if (part == nullptr || part->moving[i]) append_shapes(o, shapes);
     if (part != nullptr && part->moving[i]) {
@@ -298,6 +300,9 @@ RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart
   if (rs.has_transparency_) {
     // Where camera rays start (CameraF::generate).
     const Vec3f origin(rs.camera_.position);
+    // Each object's first shape id; only here, so a scene without glass never holds it.
+    std::vector<std::uint32_t> first_shape(desc.objects.size());
+    for (std::size_t id = rs.shape_object_.size(); id-- > 0;) first_shape[rs.shape_object_[id]] = std::uint32_t(id);
     rs.camera_media_ = find_camera_media(rs.geometry_, desc.objects, rs.shape_object_, first_shape, origin);
   }
   return rs;

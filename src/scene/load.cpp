@@ -2,13 +2,18 @@
 // lights are load_objects.cpp's.
 #include "scene/load.h"
 
+#include <algorithm>
 #include <array>
 #include <cerrno>
 #include <cmath>
+#include <condition_variable>
 #include <cstring>
+#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <memory>
+#include <mutex>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -24,6 +29,7 @@
 #include "scene/load_objects.h"
 #include "scene/scene_json.h"
 #include "util/file.h"
+#include "util/huge_pages.h"
 
 namespace dtraced::scene {
 namespace {
@@ -126,6 +132,10 @@ struct StreamedObjects {
   SceneReader s;
   std::vector<Object> objects;
   std::size_t count = 0;  // elements met, also past kMaxObjects
+  // The size of the whole text (0: unknown) and how much of it came before the piece being
+  // parsed: the objects seen per byte so far predict how many there are in all.
+  std::uint64_t total_bytes = 0;
+  std::uint64_t bytes_before_piece = 0;
 
   void read(std::size_t i, const json::value& v) {
     ++count;
@@ -137,8 +147,26 @@ struct StreamedObjects {
     if (s.r.failed()) {
       std::vector<Object>().swap(objects);  // the scene will not load: keep no memory for it
     } else if (element) {
+      if (objects.size() == objects.capacity()) grow();
       objects.push_back(std::move(*element));
     }
+  }
+
+  // Room for every object the text predicts: one allocation where doubling made ~20 (each
+  // copying all the objects so far, and with old and new arrays alive at once, peaking at 1.5x).
+  // The prediction over-counts (the objects so far are counted against the bytes before the
+  // current piece, not those parsed), and pages of the array never written cost no memory.
+  void grow() {
+    constexpr std::uint64_t kMinSample = 8ull << 20;  // bytes: the piece's lag is then <= 1/8
+    std::size_t want = std::max<std::size_t>(16, 2 * objects.capacity());
+    if (total_bytes > 0 && bytes_before_piece >= kMinSample) {
+      const double per_byte = double(objects.size()) / double(bytes_before_piece);
+      const double predicted = per_byte * double(total_bytes) * 1.02 + 1024;
+      want = std::max(objects.size() + 1, std::size_t(std::min(predicted, double(kMaxObjects))));
+      if (want <= objects.size()) want = 2 * objects.capacity();  // more than predicted after all
+    }
+    objects.reserve(std::min(want, kMaxObjects));
+    util::advise_huge_pages_for(objects);  // first touches are costly page faults (util/huge_pages.h)
   }
 };
 
@@ -195,26 +223,173 @@ namespace {
 
 constexpr std::size_t kReadPiece = std::size_t(1) << 20;  // bytes per read of a scene file
 
+// The objects' half of a load, on a thread of its own for a large text: the parser (the calling
+// thread) builds each element of "scene_objects" in the arena of a batch (no copy), and the reader
+// thread turns whole batches into objects, in order, while the parser reads on. Every object is read by the one
+// StreamedObjects::read, in file order, so the objects, errors, warnings and tracks are the same
+// as reading them inline, which is what a small text does (LoadOptions::parallel_min_bytes).
+class ObjectPipeline {
+ public:
+  // Declared before the parser, so that the arenas outlive the values it may still hold.
+  explicit ObjectPipeline(StreamedObjects& streamed) : streamed_(streamed) {}
+  // Threaded: elements are built in batch arenas and read on a thread of the pipeline's own.
+  void start(jsonio::StrictParser& parser) {
+    parser_ = &parser;
+    for (auto& b : batches_) free_.push_back(b.get());
+    start_batch();
+    reader_ = std::thread([this] { run(); });
+  }
+  ~ObjectPipeline() { finish(); }
+  ObjectPipeline(const ObjectPipeline&) = delete;
+  ObjectPipeline& operator=(const ObjectPipeline&) = delete;
+
+  // Parser thread: one element, built in the filling batch's arena when threaded.
+  void element(std::size_t i, json::value& v) {
+    if (!reader_.joinable()) {
+      streamed_.read(i, v);
+      return;
+    }
+    if (filling_->values.empty()) filling_->first = i;
+    filling_->values.push_back(std::move(v));
+    filling_->bytes_before_piece.push_back(bytes_before_piece_);
+    if (filling_->values.size() == kBatchElements) {
+      submit();
+      start_batch();
+    }
+  }
+  // Parser thread: the bytes before the piece being parsed now (StreamedObjects::grow).
+  void bytes_before_piece(std::uint64_t bytes) {
+    if (!reader_.joinable()) streamed_.bytes_before_piece = bytes;
+    bytes_before_piece_ = bytes;
+  }
+  // Parser thread: every element has been given; returns once all are read.
+  void finish() {
+    if (!reader_.joinable()) return;
+    if (!filling_->values.empty()) {
+      submit();
+    } else {
+      std::lock_guard lock(mutex_);
+      free_.push_back(filling_);  // unused
+    }
+    filling_ = nullptr;
+    {
+      std::lock_guard lock(mutex_);
+      done_ = true;
+    }
+    ready_cv_.notify_one();
+    reader_.join();
+  }
+
+ private:
+  static constexpr std::size_t kBatchElements = 2048;
+  static constexpr std::size_t kBatches = 3;  // one filling, one being read, one spare
+  // A batch's arena starts in a buffer of its own, reused batch after batch (its pages stay
+  // mapped); a batch of larger elements (inline meshes) continues on the heap.
+  static constexpr std::size_t kArenaBytes = std::size_t(4) << 20;
+  struct Batch {
+    std::unique_ptr<unsigned char[]> buffer = std::make_unique_for_overwrite<unsigned char[]>(kArenaBytes);
+    // New per batch: Boost 1.81's release() keeps the grown block size, which then doubles
+    // batch after batch until an allocation fails.
+    std::unique_ptr<json::monotonic_resource> arena =
+        std::make_unique<json::monotonic_resource>(buffer.get(), kArenaBytes);
+    std::vector<json::value> values;
+    std::size_t first = 0;                          // index of values[0] in "scene_objects"
+    std::vector<std::uint64_t> bytes_before_piece;  // per value, when it was parsed
+  };
+
+  // The next elements are built in a free batch's arena (waiting for the reader to free one).
+  void start_batch() {
+    std::unique_lock lock(mutex_);
+    free_cv_.wait(lock, [this] { return !free_.empty(); });
+    filling_ = free_.back();
+    free_.pop_back();
+    parser_->set_element_storage(filling_->arena.get());
+  }
+  void submit() {
+    {
+      std::lock_guard lock(mutex_);
+      ready_.push_back(filling_);
+    }
+    ready_cv_.notify_one();
+  }
+  // Reader thread.
+  void run() {
+    for (;;) {
+      Batch* b = nullptr;
+      {
+        std::unique_lock lock(mutex_);
+        ready_cv_.wait(lock, [this] { return !ready_.empty() || done_; });
+        if (ready_.empty()) return;  // done, and every batch read
+        b = ready_.front();
+        ready_.pop_front();
+      }
+      for (std::size_t k = 0; k < b->values.size(); ++k) {
+        streamed_.bytes_before_piece = b->bytes_before_piece[k];
+        streamed_.read(b->first + k, b->values[k]);
+      }
+      b->values.clear();
+      b->bytes_before_piece.clear();
+      b->arena = std::make_unique<json::monotonic_resource>(b->buffer.get(), kArenaBytes);
+      {
+        std::lock_guard lock(mutex_);
+        free_.push_back(b);
+      }
+      free_cv_.notify_one();
+    }
+  }
+
+  StreamedObjects& streamed_;               // touched only by the reader thread while it runs
+  jsonio::StrictParser* parser_ = nullptr;  // threaded
+  std::array<std::unique_ptr<Batch>, kBatches> batches_ = {std::make_unique<Batch>(), std::make_unique<Batch>(),
+                                                           std::make_unique<Batch>()};
+  Batch* filling_ = nullptr;  // parser thread
+  std::uint64_t bytes_before_piece_ = 0;
+  std::mutex mutex_;  // guards free_, ready_, done_
+  std::condition_variable free_cv_, ready_cv_;
+  std::vector<Batch*> free_;
+  std::deque<Batch*> ready_;
+  bool done_ = false;
+  std::thread reader_;
+};
+
+// The parser a feed writes to, counting the bytes for StreamedObjects::grow.
+struct Feeder {
+  jsonio::StrictParser& parser;
+  ObjectPipeline& pipeline;
+  std::uint64_t bytes = 0;
+  bool write(std::string_view piece) {
+    pipeline.bytes_before_piece(bytes);
+    bytes += piece.size();
+    return parser.write(piece);
+  }
+};
+
 // Parses the text that `feed` writes into the parser (returning an error that ends the load, e.g.
 // an unreadable file) and reads the scene from it, the objects as they are parsed.
 template <typename Feed>
-LoadResult load_streaming(const std::string& file_name, const LoadOptions& options, Feed feed) {
+LoadResult load_streaming(const std::string& file_name, const LoadOptions& options, std::uint64_t total_bytes,
+                          Feed feed) {
   SceneReader s(file_name, options);
   StreamedObjects streamed(file_name, options);
+  streamed.total_bytes = total_bytes;
   std::optional<SceneDesc> scene;
   {
     // The parsed tree (everything but the objects) lives only for this block. Duplicate keys do
     // not stop validation: the rest of the file still gets checked. One place is kept for the
     // syntax error, which matters more than any duplicate key before it.
     json::monotonic_resource arena;
+    ObjectPipeline pipeline(streamed);
     jsonio::StrictParser parser(kMaxJsonDepth, options.max_errors > 0 ? options.max_errors - 1 : 0, &arena);
-    parser.split_array("scene_objects", [&streamed](std::size_t i, const json::value& v) { streamed.read(i, v); });
-    if (std::optional<util::Error> failed = feed(parser)) {
+    if (total_bytes >= options.parallel_min_bytes) pipeline.start(parser);
+    parser.split_array("scene_objects", [&pipeline](std::size_t i, json::value& v) { pipeline.element(i, v); });
+    Feeder feeder{parser, pipeline};
+    if (std::optional<util::Error> failed = feed(feeder)) {
       LoadResult result;
       result.errors.push_back(std::move(*failed));
       return result;
     }
     jsonio::Document doc = parser.finish();
+    pipeline.finish();  // every object read before the document is
     for (util::Error& e : doc.errors) s.r.error(std::move(e.path), std::move(e.message));
     // After a syntax error only that error is reported, as when the document is read whole.
     if (doc.parsed) scene = read_scene(s, doc.value, parser.split_seen() ? &streamed : nullptr);
@@ -236,8 +411,11 @@ LoadResult load_scene_string(std::string_view text, const std::string& file_name
          file_name});
     return result;
   }
-  return load_streaming(file_name, options, [text](jsonio::StrictParser& parser) -> std::optional<util::Error> {
-    parser.write(text);
+  return load_streaming(file_name, options, text.size(), [text](Feeder& feeder) -> std::optional<util::Error> {
+    // In pieces, as a file is read: StreamedObjects::grow predicts the count from the first ones.
+    for (std::size_t at = 0; at < text.size(); at += kReadPiece) {
+      if (!feeder.write(text.substr(at, kReadPiece))) break;  // finish() reports it
+    }
     return std::nullopt;
   });
 }
@@ -253,21 +431,24 @@ LoadResult load_scene_file(const std::string& path, const LoadOptions& options) 
     result.errors.push_back({fmt::format("cannot open: {}", std::strerror(errno)), "", path});
     return result;
   }
-  return load_streaming(path, with_base, [&](jsonio::StrictParser& parser) -> std::optional<util::Error> {
-    std::vector<char> buffer(kReadPiece);
-    std::uint64_t total = 0;
-    while (in) {
-      in.read(buffer.data(), std::streamsize(buffer.size()));
-      const auto got = static_cast<std::size_t>(in.gcount());
-      total += got;
-      if (total > options.max_bytes) {
-        return util::Error(fmt::format("file is larger than the limit of {} bytes", options.max_bytes), "", path);
-      }
-      if (got > 0 && !parser.write(std::string_view(buffer.data(), got))) break;  // finish() reports it
-    }
-    if (in.bad()) return util::Error("read error", "", path);
-    return std::nullopt;
-  });
+  std::error_code size_error;
+  const std::uintmax_t size = std::filesystem::file_size(path, size_error);  // a hint only
+  return load_streaming(
+      path, with_base, size_error ? 0 : std::uint64_t(size), [&](Feeder& feeder) -> std::optional<util::Error> {
+        std::vector<char> buffer(kReadPiece);
+        std::uint64_t total = 0;
+        while (in) {
+          in.read(buffer.data(), std::streamsize(buffer.size()));
+          const auto got = static_cast<std::size_t>(in.gcount());
+          total += got;
+          if (total > options.max_bytes) {
+            return util::Error(fmt::format("file is larger than the limit of {} bytes", options.max_bytes), "", path);
+          }
+          if (got > 0 && !feeder.write(std::string_view(buffer.data(), got))) break;  // finish() reports it
+        }
+        if (in.bad()) return util::Error("read error", "", path);
+        return std::nullopt;
+      });
 }
 
 }  // namespace dtraced::scene

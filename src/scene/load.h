@@ -17,7 +17,8 @@
 // Scenes that arrive over the network are loaded with allow_mesh_files = false, so a scene can
 // never make a collector or a worker read a file of its host.
 //
-// Stateless functions: thread-safe; concurrent loads share nothing.
+// Stateless functions: thread-safe; concurrent loads share nothing. A large scene's load starts one
+// thread of its own (LoadOptions::parallel_min_bytes) and joins it before returning.
 #pragma once
 
 #include <cstddef>
@@ -45,6 +46,8 @@ inline constexpr std::uint64_t kMaxObjBytes = 512ull << 20;  // one OBJ file, 51
 // Triangles of all the meshes of one scene: 20M triangles are about 720 MB of float vertices in
 // the description, and as many again once built for rendering.
 inline constexpr std::size_t kMaxTriangles = 20'000'000;
+// Below this a scene loads on the calling thread alone (a thread costs more than it saves).
+inline constexpr std::uint64_t kParallelLoadBytes = 4ull << 20;
 
 // Problems are util::Error{message, path, file}: `path` a JSON Pointer into the file
 // ("/scene_objects/3/radius"), empty for problems with the file as a whole; to_string() gives
@@ -62,6 +65,9 @@ struct LoadOptions {
   std::string base_dir;
   std::uint64_t max_obj_bytes = kMaxObjBytes;  // per OBJ file
   std::size_t max_triangles = kMaxTriangles;   // per scene, all meshes together
+  // A text of at least this many bytes has its objects read on a second thread while the first
+  // parses on (same scene, same errors, in the same order, either way); tests lower it.
+  std::uint64_t parallel_min_bytes = kParallelLoadBytes;
 };
 
 struct LoadResult {

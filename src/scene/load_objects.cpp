@@ -496,12 +496,15 @@ class ObjectReader {
       jsonio::Fields f(r_, *o, at);
       switch (out.type) {
         case ObjectType::kSphere:
+          out.sphere = Sphere{};
           read_sphere(f, out.sphere);
           break;
         case ObjectType::kBox:
+          out.box = Box{};
           read_box(f, out.box);
           break;
         case ObjectType::kPlane:
+          out.plane = Plane{};
           read_plane(f, out.plane);
           break;
         case ObjectType::kMesh:
