@@ -36,6 +36,7 @@ expect_text() {  # expect_text NAME FILE PATTERN
 
 check "--version" 0 "$DTRACED" --version
 expect_text "--version prints a version" "$work/out" "[0-9]\+\.[0-9]\+\.[0-9]\+"
+expect_text "--version names its pixel version" "$work/out" "pixel version [1-9][0-9]*;"
 check "--help" 0 "$DTRACED" --help
 expect_text "--help lists render" "$work/out" "render"
 for verb in render validate compare generate; do

@@ -36,6 +36,7 @@
 #include "image/image_io.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
+#include "protocol/worker_messages.h"
 #include "scene/tiling.h"
 #include "store/store.h"
 #include "temp_dir.h"
@@ -122,6 +123,8 @@ inline coll::CollectorConfig one_shot_config(const TempDir& dir, std::string out
 inline Request make(Verb method, std::string target, std::string body = {}, std::string_view token = kToken) {
   Request req = http::make_request(method, target, std::move(body));
   if (!token.empty()) req.set(boost::beast::http::field::authorization, fmt::format("Bearer {}", token));
+  // As every worker does: a lease needs this build's pixel version (tests of the refusal remove it).
+  if (target == "/v1/lease") req.set(protocol::kPixelVersionHeader, std::to_string(protocol::kPixelVersion));
   return req;
 }
 

@@ -212,6 +212,12 @@ class FakeCollector {
   http::Response lease(const http::Request& req) {
     ++counts_.lease_requests;
     const auto decoded = protocol::decode_lease_request(req.body());
+    const auto version =
+        req.find(boost::beast::string_view(protocol::kPixelVersionHeader.data(), protocol::kPixelVersionHeader.size()));
+    if (version == req.end() || version->value() != std::to_string(protocol::kPixelVersion)) {
+      counts_.problems.push_back("a lease request without this build's pixel version");
+      return http::make_error(http::Status::conflict, "wrong pixel version");
+    }
     if (!decoded || decoded.value().worker != "test-worker" || decoded.value().threads != 2) {
       counts_.problems.push_back(fmt::format("bad lease request: {}", req.body()));
       return http::make_error(http::Status::bad_request, "bad lease request");

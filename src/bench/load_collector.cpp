@@ -75,6 +75,7 @@
 #include "jsonio/write.h"
 #include "protocol/messages.h"
 #include "protocol/tile_payload.h"
+#include "protocol/worker_messages.h"
 #include "util/file.h"
 #include "util/log.h"
 #include "util/result.h"
@@ -245,6 +246,8 @@ net::awaitable<http::ClientResult> exchange(const Run& run, http::Client& client
                                             std::string_view worker) {
   req.set(bhttp::field::authorization, run.authorization);
   req.set(protocol::kWorkerHeader, worker);
+  // A worker of this build: leases need its pixel version.
+  req.set(protocol::kPixelVersionHeader, std::to_string(protocol::kPixelVersion));
   co_return co_await client.request(run.url, std::move(req), kMaxAnswerBytes);
 }
 

@@ -5,6 +5,8 @@
 
 #include <fmt/format.h>
 
+#include "protocol/worker_messages.h"
+
 namespace dtraced::cli {
 
 std::string supported_isa_names(std::string_view separator) {
@@ -32,7 +34,8 @@ util::Result<accel::Isa> choose_isa(const std::optional<std::string>& flag, cons
 std::string version_line(std::string_view version, const char* env) {
   const util::Result<accel::Isa> isa = choose_isa(std::nullopt, env);
   const std::string kernels = isa ? std::string(accel::isa_name(*isa)) : fmt::format("none ({})", isa.error().message);
-  return fmt::format("dtraced {} (kernels: {}; supported: {})", version, kernels, supported_isa_names(" "));
+  return fmt::format("dtraced {} (pixel version {}; kernels: {}; supported: {})", version, protocol::kPixelVersion,
+                     kernels, supported_isa_names(" "));
 }
 
 }  // namespace dtraced::cli

@@ -22,11 +22,13 @@
 // and looks its job up again afterwards.
 #pragma once
 
+#include <optional>
 #include <string>
 #include <string_view>
 
 #include "async/async.h"
 #include "collector/context.h"
+#include "collector/refusal.h"
 #include "collector/routes.h"
 #include "http/types.h"
 #include "image/image_io.h"
@@ -121,6 +123,11 @@ void note_job_served(Context& c, JobId job);
 protocol::JobStatus with_worker_gap(const Context& c, protocol::JobStatus s);
 // At most every few seconds: marks quiet workers (logging each once) and forgets old ones.
 void sweep_workers(Context& c);
+
+// A refusal (409) when `req` is from a worker of another pixel version than this collector's
+// (protocol::kPixelVersionHeader): a different number, or, when `required`, none or a garbled one.
+// Counted in the metrics; the caller answers with it.
+std::optional<Refusal> pixel_version_refusal(Context& c, const http::Request& req, bool required);
 
 // ---- answers shared by the handler files ------------------------------------------------------
 

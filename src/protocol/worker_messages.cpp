@@ -71,6 +71,13 @@ std::optional<std::string> parse_isa_header(std::string_view value) {
   return std::string(value);
 }
 
+std::optional<std::uint32_t> parse_pixel_version_header(std::string_view value) {
+  std::uint32_t version = 0;
+  const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), version);
+  if (value.empty() || ec != std::errc() || end != value.data() + value.size() || version == 0) return std::nullopt;
+  return version;
+}
+
 std::optional<std::uint64_t> parse_render_ms_header(std::string_view value) {
   std::uint64_t ms = 0;
   const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), ms);

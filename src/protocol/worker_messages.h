@@ -3,10 +3,11 @@
 //
 // Owns: the wire form of the collector's worker registry (collector/workers.h) and its limits.
 // A worker names itself in kWorkerHeader (messages.h) and the lease request; it also sends its
-// instruction set in kIsaHeader on lease requests and the time a tile took to render in
-// kRenderMsHeader on tile uploads. The collector, going away, says so in kFinishedHeader on its
-// lease answers. Headers rather than body fields, so that a peer that does not know them ignores
-// them (an unknown body key is refused) and mixed versions keep working.
+// instruction set in kIsaHeader and its pixel version in kPixelVersionHeader on lease requests,
+// and the time a tile took to render in kRenderMsHeader (and its pixel version) on tile uploads.
+// The collector, going away, says so in kFinishedHeader on its lease answers. Headers rather than
+// body fields, so that a peer that does not know them ignores them (an unknown body key is
+// refused); the pixel version is the one a collector insists on.
 //
 // Stateless functions: thread-safe.
 #pragma once
@@ -35,6 +36,15 @@ inline constexpr std::uint64_t kMaxRenderMs = 24ull * 3600 * 1000;
 // started with exit_when_done then stops. "0" or no header: it has not. Any other value is
 // ignored (read as "0"), so a garbled header never ends a worker.
 inline constexpr std::string_view kFinishedHeader = "X-Dtraced-Collector-Finished";
+// On POST /v1/lease (required) and tile uploads: the worker's pixel version, a decimal integer.
+// Two builds of the same pixel version give the same bits for the same scene and settings on
+// every host and instruction set; a change to the renderer that alters any pixel bumps
+// kPixelVersion (tests/test_pixel_version.cpp pins a digest of reference renders to it, so such a
+// change cannot land without the bump). The collector leases only to workers of its own pixel
+// version and refuses tiles that name another, so a farm in the middle of an upgrade never mixes
+// two renderers' pixels in one image.
+inline constexpr std::string_view kPixelVersionHeader = "X-Dtraced-Pixel-Version";
+inline constexpr std::uint32_t kPixelVersion = 1;
 // GET /v1/workers lists at most this many (the collector's registry cap is below it).
 inline constexpr std::size_t kMaxListedWorkers = 10'000;
 inline constexpr std::size_t kMaxWorkerListBytes = 16 << 20;
@@ -45,6 +55,8 @@ inline constexpr std::size_t kMaxPeerBytes = 64;
 std::optional<std::string> parse_isa_header(std::string_view value);
 // The render time named by a kRenderMsHeader value, or nullopt when it is not one.
 std::optional<std::uint64_t> parse_render_ms_header(std::string_view value);
+// The pixel version named by a kPixelVersionHeader value (1..2^32-1), or nullopt when it is not one.
+std::optional<std::uint32_t> parse_pixel_version_header(std::string_view value);
 // Whether a kFinishedHeader value says "finished" ("1") or not ("0"); nullopt for anything else.
 std::optional<bool> parse_finished_header(std::string_view value);
 

@@ -143,6 +143,7 @@ async::Awaitable<std::optional<LeaseAnswer>> Worker::Impl::request_lease() {
       http::Verb::post, "/v1/lease", protocol::encode(protocol::LeaseRequest{config.name, config.threads}),
       http::kJsonContentType));
   request.set(protocol::kIsaHeader, accel::isa_name(config.isa));
+  request.set(protocol::kPixelVersionHeader, std::to_string(protocol::kPixelVersion));
   auto raced = co_await (client.request(url, std::move(request), protocol::kMaxMessageBytes) || stop.wait());
   if (raced.index() == 1 || stop.is_set()) co_return std::nullopt;
   co_return classify_lease(std::get<0>(raced));

@@ -38,6 +38,7 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
         authorized(http::make_request(http::Verb::put, target, tile.payload, http::kBinaryContentType));
     request.set(protocol::kWorkerHeader, config.name);
     request.set(protocol::kRenderMsHeader, std::to_string(tile.render_ms));
+    request.set(protocol::kPixelVersionHeader, std::to_string(protocol::kPixelVersion));
     auto raced = co_await (client.request(url, std::move(request), protocol::kMaxMessageBytes) || abandon.wait());
     if (raced.index() == 1 || abandon.is_set()) {
       tiles_abandoned.add();

@@ -33,6 +33,15 @@ TIMEOUT = float(os.environ.get("TIMEOUT", "5"))
 TOKEN = "flood-bench-token"
 
 
+def pixel_version():
+    """The pixel version the collector wants on leases, as `dtraced --version` prints it."""
+    out = subprocess.run([DTRACED, "--version"], capture_output=True, text=True, check=True).stdout
+    found = re.search(r"pixel version (\d+)", out)
+    if not found:
+        sys.exit(f"http_flood: no pixel version in `{DTRACED} --version`: {out.strip()}")
+    return found.group(1)
+
+
 def start_collector(work):
     token_file = os.path.join(work, "token")
     with open(token_file, "w") as f:
@@ -110,11 +119,12 @@ class Flood:
             c["sock"].close()
 
 
-def lease(port):
+def lease(port, version):
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=TIMEOUT)
     try:
         conn.request("POST", "/v1/lease", body=b'{"worker": "bench", "threads": 1}',
-                     headers={"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"})
+                     headers={"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json",
+                              "X-Dtraced-Pixel-Version": version})
         return str(conn.getresponse().status)
     except socket.timeout:
         return "timeout"
@@ -127,6 +137,7 @@ def lease(port):
 def main():
     if not os.access(DTRACED, os.X_OK):
         sys.exit(f"not found: {DTRACED} (build first, or set DTRACED)")
+    version = pixel_version()
     work = tempfile.mkdtemp(prefix="dtraced-flood-")
     proc, port = start_collector(work)
     flood = Flood(port)
@@ -135,7 +146,7 @@ def main():
         time.sleep(3)  # the flood is in place
         outcomes = {}
         for _ in range(LEASES):
-            result = lease(port)
+            result = lease(port, version)
             outcomes[result] = outcomes.get(result, 0) + 1
         served = outcomes.get("200", 0)
         print(f"flood: {FLOOD} unauthenticated connections (idle, slowloris, /healthz keep-alive), "

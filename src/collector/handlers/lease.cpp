@@ -57,6 +57,8 @@ http::Response lease_tile(Context& c, const http::Request& req, const Principal&
   // Lingering before the stop: nothing is leased any more (whatever else is queued resumes after
   // a restart), and every worker hears that this collector is going away.
   if (c.linger) return finished(c, req, name);
+  // A worker of another pixel version gets no tile: its pixels would not match the others'.
+  if (const auto refused = pixel_version_refusal(c, req, /*required=*/true)) return respond(*refused);
   const TimePoint now = c.clock.now();
   // Leases of a worker credential name it, so revoking it re-offers them at once.
   const LeaseResult result = c.queue.lease(now, who.role == Role::kWorker ? std::string_view(who.name) : "");

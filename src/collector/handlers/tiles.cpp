@@ -140,6 +140,11 @@ async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request
   const WorkerId worker = worker_id(req, who.role == Role::kWorker ? who.name : worker_name(req));
   c.counters.tile_upload_bytes.observe(double(req.body().size()));
   observe_render_time(c, req);
+  // A tile leased before an upgrade and rendered by the old renderer must not be stored.
+  if (const auto refused = pixel_version_refusal(c, req, /*required=*/false)) {
+    note_tile_upload(c, worker, TileOutcome::kRefused, 0);
+    co_return respond(*refused);
+  }
   const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req));
   if (!checked) {
     ++c.counters.tiles_refused;

@@ -136,4 +136,21 @@ http::Response list_workers(Context& c) {
   return json_answer(http::Status::ok, protocol::encode(list));
 }
 
+std::optional<Refusal> pixel_version_refusal(Context& c, const http::Request& req, bool required) {
+  const std::string_view value = header_value(req, protocol::kPixelVersionHeader);
+  if (value.empty() && !required) return std::nullopt;
+  const std::optional<std::uint32_t> version = protocol::parse_pixel_version_header(value);
+  if (version == protocol::kPixelVersion) return std::nullopt;
+  ++c.counters.pixel_version_refusals;
+  const std::string theirs =
+      version ? fmt::format("renders pixel version {}", *version)
+              : (value.empty() ? std::string("does not say its pixel version (an older dtraced, or not a worker)")
+                               : fmt::format("sent a malformed pixel version '{}'", value.substr(0, 32)));
+  return Refusal{http::Status::conflict,
+                 util::Error(fmt::format("{}: this worker {}, and this collector's images are rendered with pixel "
+                                         "version {}: run the same dtraced release on the collector and its workers",
+                                         protocol::kPixelVersionHeader, theirs, protocol::kPixelVersion)),
+                 {}};
+}
+
 }  // namespace dtraced::collector
