@@ -9,6 +9,7 @@
 #include <condition_variable>
 #include <cstring>
 #include <deque>
+#include <exception>
 #include <filesystem>
 #include <fstream>
 #include <memory>
@@ -239,7 +240,7 @@ class ObjectPipeline {
     start_batch();
     reader_ = std::thread([this] { run(); });
   }
-  ~ObjectPipeline() { finish(); }
+  ~ObjectPipeline() { stop_reader(); }
   ObjectPipeline(const ObjectPipeline&) = delete;
   ObjectPipeline& operator=(const ObjectPipeline&) = delete;
 
@@ -262,8 +263,15 @@ class ObjectPipeline {
     if (!reader_.joinable()) streamed_.bytes_before_piece = bytes;
     bytes_before_piece_ = bytes;
   }
-  // Parser thread: every element has been given; returns once all are read.
+  // Parser thread: every element has been given; returns once all are read, and throws here what
+  // reading them threw on the reader thread (std::bad_alloc), as reading inline would have.
   void finish() {
+    stop_reader();
+    if (error_) std::rethrow_exception(std::exchange(error_, nullptr));
+  }
+
+ private:
+  void stop_reader() {
     if (!reader_.joinable()) return;
     if (!filling_->values.empty()) {
       submit();
@@ -280,7 +288,6 @@ class ObjectPipeline {
     reader_.join();
   }
 
- private:
   static constexpr std::size_t kBatchElements = 2048;
   static constexpr std::size_t kBatches = 3;  // one filling, one being read, one spare
   // A batch's arena starts in a buffer of its own, reused batch after batch (its pages stay
@@ -323,9 +330,17 @@ class ObjectPipeline {
         b = ready_.front();
         ready_.pop_front();
       }
-      for (std::size_t k = 0; k < b->values.size(); ++k) {
-        streamed_.bytes_before_piece = b->bytes_before_piece[k];
-        streamed_.read(b->first + k, b->values[k]);
+      // After a throw the remaining batches are only released, so that the parser never waits
+      // for a free batch that does not come; finish() throws the error on the parser thread.
+      if (!error_) {
+        try {
+          for (std::size_t k = 0; k < b->values.size(); ++k) {
+            streamed_.bytes_before_piece = b->bytes_before_piece[k];
+            streamed_.read(b->first + k, b->values[k]);
+          }
+        } catch (...) {
+          error_ = std::current_exception();
+        }
       }
       b->values.clear();
       b->bytes_before_piece.clear();
@@ -349,6 +364,7 @@ class ObjectPipeline {
   std::vector<Batch*> free_;
   std::deque<Batch*> ready_;
   bool done_ = false;
+  std::exception_ptr error_;  // written by the reader thread, read after it is joined
   std::thread reader_;
 };
 
@@ -424,6 +440,18 @@ LoadResult load_scene_file(const std::string& path, const LoadOptions& options) 
   // Mesh files are named relative to the scene file, wherever the process runs from.
   LoadOptions with_base = options;
   with_base.base_dir = std::filesystem::path(path).parent_path().string();
+  // Only a regular file: a directory opens and then fails to read, and a pipe or a device could
+  // block the load for ever.
+  std::error_code status_error;
+  const std::filesystem::file_status status = std::filesystem::status(path, status_error);
+  if (!status_error && std::filesystem::exists(status) && !std::filesystem::is_regular_file(status)) {
+    LoadResult result;
+    result.errors.push_back({std::filesystem::is_directory(status)
+                                 ? std::string("is a directory, not a scene file")
+                                 : std::string("is not a regular file (a pipe, socket or device?)"),
+                             "", path});
+    return result;
+  }
   // Read and parsed a piece at a time: a 10M-sphere file is 3 GB, and its text is never held.
   std::ifstream in(path, std::ios::binary);
   if (!in) {
@@ -446,7 +474,7 @@ LoadResult load_scene_file(const std::string& path, const LoadOptions& options) 
           }
           if (got > 0 && !feeder.write(std::string_view(buffer.data(), got))) break;  // finish() reports it
         }
-        if (in.bad()) return util::Error("read error", "", path);
+        if (in.bad()) return util::Error(fmt::format("read error after {} bytes", total), "", path);
         return std::nullopt;
       });
 }
