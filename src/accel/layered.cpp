@@ -18,11 +18,12 @@ bool better(const Hit& b, const Hit& a) { return b.t < a.t || (b.t == a.t && b.s
 
 }  // namespace
 
-std::shared_ptr<const Layer> Layer::build(std::vector<Shape> shapes, std::vector<std::uint32_t> ids, Isa isa) {
+std::shared_ptr<const Layer> Layer::build(std::vector<Shape> shapes, std::vector<std::uint32_t> ids, Isa isa,
+                                          unsigned threads) {
   assert(ids.empty() || ids.size() == shapes.size());
   assert(std::is_sorted(ids.begin(), ids.end()) && std::adjacent_find(ids.begin(), ids.end()) == ids.end());
   auto layer = std::make_shared<Layer>();
-  layer->geometry = Geometry::build(std::move(shapes), isa);
+  layer->geometry = Geometry::build(std::move(shapes), isa, threads);
   layer->ids = std::move(ids);
   return layer;
 }

@@ -28,7 +28,9 @@ namespace dtraced::accel {
 struct Layer {
   // `ids[i]` is the scene-wide id of shapes[i]; strictly increasing, so that a layer's own tie
   // break (smallest index) is the scene's. Empty `ids` means shapes[i] has id i (one layer).
-  static std::shared_ptr<const Layer> build(std::vector<Shape> shapes, std::vector<std::uint32_t> ids, Isa isa);
+  // The BVH on up to `threads` threads (Geometry::build; 0: the CPUs this process may use).
+  static std::shared_ptr<const Layer> build(std::vector<Shape> shapes, std::vector<std::uint32_t> ids, Isa isa,
+                                            unsigned threads = 0);
 
   Geometry geometry;
   std::vector<std::uint32_t> ids;

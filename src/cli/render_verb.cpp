@@ -446,7 +446,7 @@ int run_render(const RenderArgs& args) {
   }
 
   const auto prepare_start = std::chrono::steady_clock::now();
-  run.prepared.emplace(render::AnimatedScene::prepare(desc, args.isa));
+  run.prepared.emplace(render::AnimatedScene::prepare(desc, args.isa, args.threads));
   run.prepare_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - prepare_start).count();
 
   std::vector<std::string> gif_frames;

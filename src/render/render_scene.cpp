@@ -212,7 +212,7 @@ math::Ray CameraF::generate(double fx, double fy, std::uint32_t width, std::uint
 }
 
 std::shared_ptr<const StaticPart> StaticPart::build(const scene::SceneDesc& desc, std::vector<bool> moving,
-                                                    accel::Isa isa) {
+                                                    accel::Isa isa, unsigned build_threads) {
   assert(moving.size() == desc.objects.size());
   auto part = std::make_shared<StaticPart>();
   std::vector<accel::Shape> shapes;
@@ -225,9 +225,10 @@ std::shared_ptr<const StaticPart> StaticPart::build(const scene::SceneDesc& desc
     for (std::size_t id = first; id < part->shape_count; ++id) ids.push_back(static_cast<std::uint32_t>(id));
   }
   assert(part->shape_count <= std::numeric_limits<std::uint32_t>::max());
-  part->layer = accel::Layer::build(std::move(shapes), std::move(ids), isa);
+  part->layer = accel::Layer::build(std::move(shapes), std::move(ids), isa, build_threads);
   part->moving = std::move(moving);
   part->isa = isa;
+  part->build_threads = build_threads;
   return part;
 }
 
@@ -276,8 +277,8 @@ RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart
   if (part == nullptr) {
     rs.geometry_ = accel::LayeredGeometry(accel::Geometry::build(std::move(shapes), isa, build_threads));
   } else {
-    rs.geometry_ =
-        accel::LayeredGeometry(part->layer, accel::Layer::build(std::move(shapes), std::move(ids), isa), shape_count);
+    rs.geometry_ = accel::LayeredGeometry(
+        part->layer, accel::Layer::build(std::move(shapes), std::move(ids), isa, part->build_threads), shape_count);
   }
   for (const scene::Light& l : desc.lights) {
     if (l.is_area()) {
@@ -308,20 +309,21 @@ RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart
   return rs;
 }
 
-AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, accel::Isa isa) {
+AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, accel::Isa isa, unsigned build_threads) {
   if (!scene::is_animated(desc)) {
     AnimatedScene out;
-    out.still_ = std::make_shared<const RenderScene>(RenderScene::build(desc, isa));
+    out.still_ = std::make_shared<const RenderScene>(RenderScene::build(desc, isa, build_threads));
     return out;
   }
-  return prepare(desc, scene::moving_objects(desc), isa);
+  return prepare(desc, scene::moving_objects(desc), isa, build_threads);
 }
 
-AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, std::vector<bool> moving, accel::Isa isa) {
+AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, std::vector<bool> moving, accel::Isa isa,
+                                     unsigned build_threads) {
   AnimatedScene out;
   out.desc_ = std::make_shared<const scene::SceneDesc>(desc);
   // Objects that do not move are the same at every time; time 0 is as good as any.
-  out.part_ = StaticPart::build(scene::scene_at(desc, 0.0), std::move(moving), isa);
+  out.part_ = StaticPart::build(scene::scene_at(desc, 0.0), std::move(moving), isa, build_threads);
   return out;
 }
 

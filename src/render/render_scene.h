@@ -92,18 +92,19 @@ struct StaticPart {
   std::shared_ptr<const accel::Layer> layer;  // the shapes of the other objects
   std::size_t shape_count = 0;                // of the whole scene
   accel::Isa isa = accel::Isa::kScalar;
+  unsigned build_threads = 0;  // for each frame's moving layer too (accel::Layer::build)
 
   // `moving` has one flag per object of `desc` (asserted); `desc` is any frame of the animation:
   // the objects that do not move are the same in all.
-  static std::shared_ptr<const StaticPart> build(const scene::SceneDesc& desc, std::vector<bool> moving,
-                                                 accel::Isa isa);
+  static std::shared_ptr<const StaticPart> build(const scene::SceneDesc& desc, std::vector<bool> moving, accel::Isa isa,
+                                                 unsigned build_threads = 0);
 };
 
 class RenderScene {
  public:
   // The description must have passed validation (scene::load_*); build asserts its invariants.
   // `isa` picks the traversal kernels (accel/isa.h); every choice renders the same bits. The BVH
-  // is built on up to `build_threads` threads (accel::Geometry::build; 0: every hardware thread),
+  // is built on up to `build_threads` threads (accel::Geometry::build; 0: the CPUs this process may use),
   // which changes nothing but the time it takes.
   static RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(),
                            unsigned build_threads = 0);
@@ -157,11 +158,13 @@ class RenderScene {
 class AnimatedScene {
  public:
   // A static scene (scene::is_animated false) is built once, as RenderScene::build; an animated
-  // one gets its StaticPart from scene::moving_objects.
-  static AnimatedScene prepare(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa());
+  // one gets its StaticPart from scene::moving_objects. The BVHs are built on up to
+  // `build_threads` threads (0: the CPUs this process may use): give the render's thread count.
+  static AnimatedScene prepare(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(),
+                               unsigned build_threads = 0);
   // An animated scene split by an explicit mask (one flag per object), whatever is_animated says.
   static AnimatedScene prepare(const scene::SceneDesc& desc, std::vector<bool> moving,
-                               accel::Isa isa = accel::best_isa());
+                               accel::Isa isa = accel::best_isa(), unsigned build_threads = 0);
 
   // The render-ready scene of frame n: scene::scene_at_frame, then the frame's moving layer (the
   // static layer shared). For a static scene, the one prepared RenderScene, whatever n. Render

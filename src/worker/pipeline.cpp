@@ -196,8 +196,8 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
     co_return outcome;
   }
   const std::size_t bytes = result.response.body().size();
-  auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa] {
-    return prepare_scene(body, digest, isa);
+  auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa, threads = config.threads] {
+    return prepare_scene(body, digest, isa, threads);
   };
   PreparedScene prepared = co_await async::on_pool(pool, std::move(prepare));
   if (!prepared.scene) {

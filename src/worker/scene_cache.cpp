@@ -89,7 +89,7 @@ void SceneCache::insert(const std::string& digest, FramesPtr scene) {
 
 bool SceneCache::contains(std::string_view digest) const { return index_.contains(digest); }
 
-PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa) {
+PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa, unsigned build_threads) {
   PreparedScene prepared;
   const std::string label = fmt::format("scene {}", digest);
   scene::LoadOptions options;
@@ -111,7 +111,8 @@ PreparedScene prepare_scene(std::string_view body, std::string_view digest, acce
     prepared.error = fmt::format("the body sent as {} is another scene (its digest is {})", label, actual);
     return prepared;
   }
-  prepared.scene = std::make_shared<const SceneFrames>(render::AnimatedScene::prepare(*loaded.scene, isa));
+  prepared.scene =
+      std::make_shared<const SceneFrames>(render::AnimatedScene::prepare(*loaded.scene, isa, build_threads));
   return prepared;
 }
 

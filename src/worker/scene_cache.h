@@ -104,6 +104,7 @@ struct PreparedScene {
 // not load, or that names another scene (tampered, truncated, or from a collector of another
 // version), is refused; so is one with a mesh "file": a worker reads nothing from its own disk
 // on a scene's behalf (canonical scenes carry their meshes inline).
-PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa);
+// The BVH is built on up to `build_threads` threads (0: the CPUs this process may use).
+PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa, unsigned build_threads = 0);
 
 }  // namespace dtraced::worker
