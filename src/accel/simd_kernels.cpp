@@ -609,8 +609,9 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       inv[a] = hn::LoadU(d, p.inv[a] + i);
     }
     const auto tmin = hn::LoadU(d, p.t_min + i);
-    const std::uint8_t mask_byte = std::uint8_t(mask >> i);
-    const auto active = hn::LoadMaskBits(d, &mask_byte);
+    // LoadMaskBits may read 8 bytes: the bits sit in the first, the rest are zero.
+    const std::uint8_t mask_bytes[8] = {std::uint8_t(mask >> i)};
+    const auto active = hn::LoadMaskBits(d, mask_bytes);
     const auto cull = hn::LoadU(d, p.cull + i);
     for (int c = 0; c < kNodeWidth; ++c) {
       if (node.child[c] == kEmptyChild) break;  // empty slots come last
