@@ -1,5 +1,6 @@
 // Tests for dtraced::scene: strict loading with located errors, the canonical form and digest,
 // the generated stress scene, and the shipped scenes/*.json.
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -526,6 +527,19 @@ TEST_CASE("file-level errors name the file", "[scene][files]") {
     CHECK(r.errors[0].path.empty());
     CHECK(r.errors[0].message.find("cannot open") != std::string::npos);
     CHECK(r.errors[0].to_string().rfind(missing + ": ", 0) == 0);
+  }
+  SECTION("a directory or a pipe, not a scene file") {
+    const std::string dir = std::filesystem::temp_directory_path().string();
+    const LoadResult r = load_scene_file(dir);
+    REQUIRE(r.errors.size() == 1);
+    CHECK(r.errors[0].file == dir);
+    CHECK(r.errors[0].message == "is a directory, not a scene file");
+    const std::string fifo = fmt::format("{}/dtraced-scene-fifo-{}", dir, ::getpid());
+    REQUIRE(::mkfifo(fifo.c_str(), 0600) == 0);
+    const LoadResult p = load_scene_file(fifo);  // would block for ever if it were opened
+    std::filesystem::remove(fifo);
+    REQUIRE(p.errors.size() == 1);
+    CHECK(p.errors[0].message.find("not a regular file") != std::string::npos);
   }
   SECTION("file over the size limit") {
     const TempFile file(SceneParts().json());
