@@ -160,6 +160,21 @@ Counts compare(const Geometry& ref, const Geometry& geo, const std::vector<Ray>&
   return c;
 }
 
+// Every SIMD isa's geometry of `shapes` (a tree, not the flat layout) answers every query of `rays`
+// as the scalar reference does, and more than 1 / `hit_share` of the rays hit.
+void check_tree_matches_scalar(const std::vector<Shape>& shapes, const std::vector<Ray>& rays, long hit_share) {
+  const Geometry ref = Geometry::build(shapes, Isa::kScalar);
+  for (const Isa isa : supported_isas()) {
+    if (isa == Isa::kScalar) continue;
+    const Geometry geo = Geometry::build(shapes, isa);
+    INFO("isa " << isa_name(isa));
+    CHECK(geo.stats().wide_nodes > 1);
+    const Counts c = compare(ref, geo, rays);
+    CHECK(c.hits > c.rays / hit_share);
+    CHECK(c.mismatches == 0);
+  }
+}
+
 }  // namespace
 
 TEST_CASE("small scenes: packets test every shape directly and answer as the scalar path", "[accel][small]") {
@@ -193,16 +208,7 @@ TEST_CASE("64 bounded shapes get the wide tree, and it answers as the scalar pat
   std::vector<Ray> rays = camera_rays(64, 32, {0, 2, -30});
   const std::vector<Ray> more = awkward_rays(rng, 6000);
   rays.insert(rays.end(), more.begin(), more.end());
-  const Geometry ref = Geometry::build(shapes, Isa::kScalar);
-  for (const Isa isa : supported_isas()) {
-    if (isa == Isa::kScalar) continue;
-    const Geometry geo = Geometry::build(shapes, isa);
-    INFO("isa " << isa_name(isa));
-    CHECK(geo.stats().wide_nodes > 1);
-    const Counts c = compare(ref, geo, rays);
-    CHECK(c.hits > c.rays / 20);
-    CHECK(c.mismatches == 0);
-  }
+  check_tree_matches_scalar(shapes, rays, 20);
 }
 
 TEST_CASE("a scene of planes alone, or one shape, on every isa", "[accel][small]") {
@@ -265,14 +271,5 @@ TEST_CASE("triangle hit records from the kernels' own edge functions equal the s
   }
   const std::vector<Ray> aimed = aimed_rays(rng, shapes, 2000);
   rays.insert(rays.end(), aimed.begin(), aimed.end());
-  const Geometry ref = Geometry::build(shapes, Isa::kScalar);
-  for (const Isa isa : supported_isas()) {
-    if (isa == Isa::kScalar) continue;
-    const Geometry geo = Geometry::build(shapes, isa);
-    INFO("isa " << isa_name(isa));
-    CHECK(geo.stats().wide_nodes > 1);
-    const Counts c = compare(ref, geo, rays);
-    CHECK(c.hits > c.rays / 2);
-    CHECK(c.mismatches == 0);
-  }
+  check_tree_matches_scalar(shapes, rays, 2);
 }
