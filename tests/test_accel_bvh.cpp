@@ -326,12 +326,14 @@ TEST_CASE("BVH build: the same tree on any number of threads", "[accel][bvh][thr
   for (int i = 0; i < 5000; ++i) shapes.push_back(sphere({3, 4, 5}, 0.25f + 0.001f * float(i % 7)));
   double x = 1.0;
   for (int i = 0; i < 200; ++i, x *= 0.7) shapes.push_back(sphere({float(x) - 10, 0, 0}, float(0.01 * x)));
+  std::uint64_t scalar_two_threads_hash = 0;
   for (const Isa isa : {Isa::kScalar, best_isa()}) {
     const Geometry one = Geometry::build(shapes, isa, 1);
     INFO("isa " << isa_name(isa) << ", nodes " << one.stats().nodes << ", depth " << one.stats().max_depth);
     CHECK(one.stats().nodes == 2 * one.stats().leaves - 1);
     CHECK(one.stats().nodes > 2 * (1u << 15) / 4);
-    for (const unsigned threads : {2u, 3u, 0u}) {
+    // 0 is "every CPU": on a 2-core machine the same as 2, elsewhere a count of its own.
+    for (const unsigned threads : {3u, 0u}) {
       const Geometry many = Geometry::build(shapes, isa, threads);
       INFO("threads " << threads);
       CHECK(many.stats().tree_hash == one.stats().tree_hash);
@@ -341,23 +343,28 @@ TEST_CASE("BVH build: the same tree on any number of threads", "[accel][bvh][thr
       CHECK(many.stats().outside == one.stats().outside);
       CHECK(many.stats().wide_nodes == one.stats().wide_nodes);
     }
-    // And the tree answers as brute force does.
+    // Two threads, and the tree answers as brute force does (1,000 rays against 125,000 shapes:
+    // the brute force is what makes this test slow under the sanitizers; the smaller scenes
+    // above test the tree against it with many more rays).
     const Geometry two = Geometry::build(shapes, isa, 2);
+    CHECK(two.stats().tree_hash == one.stats().tree_hash);
+    CHECK(two.stats().nodes == one.stats().nodes);
+    CHECK(two.stats().wide_nodes == one.stats().wide_nodes);
+    if (isa == Isa::kScalar) scalar_two_threads_hash = two.stats().tree_hash;
     long mismatches = 0, hits = 0;
-    for (int i = 0; i < 3000; ++i) {
+    for (int i = 0; i < 1000; ++i) {
       const Ray ray = make_ray(to_f(rng.in_cube(30.0)), unit_f(rng.unit()));
       Hit a, b;
       const bool fa = two.intersect(ray, a), fb = brute_force(shapes, ray, b);
       hits += fb;
       mismatches += fa != fb || (fa && !same_hit(a, b));
     }
-    CHECK(hits > 300);
+    CHECK(hits > 100);
     CHECK(mismatches == 0);
   }
   // A different tree gives a different hash (the hash can fail).
   std::vector<Shape> fewer(shapes.begin(), shapes.end() - 1);
-  CHECK(Geometry::build(fewer, Isa::kScalar, 2).stats().tree_hash !=
-        Geometry::build(shapes, Isa::kScalar, 2).stats().tree_hash);
+  CHECK(Geometry::build(fewer, Isa::kScalar, 2).stats().tree_hash != scalar_two_threads_hash);
 }
 
 TEST_CASE("Timing: 1280x720 camera rays into 100,000 spheres (reported, not asserted)", "[accel][timing]") {
