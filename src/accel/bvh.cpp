@@ -617,6 +617,13 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     const auto wide_start = std::chrono::steady_clock::now();
     if (g.prims_.size() >= kMinWidePrims) {
       g.wide_ = detail::collapse_to_wide(g);
+      // Every query now walks the wide tree (intersect, occluded and the packets take the wide
+      // path whenever it is not flat): the binary nodes and prims, 32 bytes a prim and as much
+      // again a node, are never read again.
+      if (!g.wide_.empty() && !detail::is_flat(g.wide_)) {
+        std::vector<Node>().swap(g.nodes_);
+        std::vector<Prim>().swap(g.prims_);
+      }
     } else {
       // Packets test the huge shapes in a second flat leaf (only planes stay beside it); single
       // rays keep the scalar walk, with the huge shapes beside the binary tree.
