@@ -235,3 +235,31 @@ TEST_CASE("a large sphere scene's shapes come back from the build bit for bit, a
   }
   CHECK(hits > 300);
 }
+
+TEST_CASE("objects map to their shapes whether or not meshes come first, or have no triangles",
+          "[scene][sink][render]") {
+  const std::string empty_mesh = R"({"type": "mesh", "obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\n"})";
+  const std::string tri_mesh = R"({"type": "mesh", "obj": "v 0 0 -3\nv 1 0 -3\nv 0 1 -3\nf 1 2 3\nf 1 3 2\n"})";
+  const std::string sphere = R"({"type": "sphere", "loc": [0, 0, -2], "radius": 0.5})";
+  for (const std::string& objects : {"[" + empty_mesh + ", " + std::string(kSphere) + ", " + sphere + "]",
+                                     "[" + sphere + ", " + tri_mesh + ", " + std::string(kSphere) + "]",
+                                     "[" + sphere + ", " + std::string(kSphere) + "]"}) {
+    INFO(objects);
+    SceneParts p;
+    p.objects = objects;
+    const SceneDesc desc = load_ok(p.json());
+    render::RenderSceneBuilder builder;
+    for (std::size_t i = 0; i < desc.objects.size(); ++i) builder.add(i, desc.objects[i]);
+    SceneDesc rest = desc;
+    rest.objects.clear();
+    const render::RenderScene rs = std::move(builder).build(rest, accel::Isa::kScalar, 1);
+    // Each shape's owner, from the objects' own shape counts.
+    std::vector<std::uint32_t> owner;
+    for (std::uint32_t i = 0; i < desc.objects.size(); ++i) {
+      const auto& o = desc.objects[i];
+      owner.insert(owner.end(), o.type == ObjectType::kMesh ? o.mesh->triangle_count() : 1, i);
+    }
+    REQUIRE(rs.geometry().shape_count() == owner.size());
+    for (std::uint32_t id = 0; id < owner.size(); ++id) CHECK(rs.object(id) == owner[id]);
+  }
+}

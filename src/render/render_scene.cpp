@@ -141,6 +141,7 @@ std::vector<std::pair<std::uint32_t, bool>> transparent_objects(const std::vecto
 
 // See RenderScene::camera_media(). `transparent`: (object index, is a mesh) of each transparent
 // object, in order; `first_shape[i]`: the first shape of object i.
+// `shape_object`: RenderScene::shape_object_ (empty: the identity).
 std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geometry, std::size_t object_count,
                                              const std::vector<std::pair<std::uint32_t, bool>>& transparent,
                                              const std::vector<std::uint32_t>& shape_object,
@@ -159,8 +160,8 @@ std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geome
   if (meshes) {
     math::Ray walk = probe;
     accel::Hit hit;
-    for (std::size_t n = 0; n < shape_object.size() && geometry.intersect(walk, hit); ++n) {
-      const std::uint32_t object = shape_object[hit.shape];
+    for (std::size_t n = 0; n < geometry.shape_count() && geometry.intersect(walk, hit); ++n) {
+      const std::uint32_t object = shape_object.empty() ? hit.shape : shape_object[hit.shape];
       ++crossings[object];
       last_t[object] = hit.t;
       walk.t_min = hit.t;
@@ -312,7 +313,8 @@ void RenderScene::finish(const scene::SceneDesc& desc, const std::vector<std::pa
     const Vec3f origin(camera_.position);
     // Each object's first shape id; only here, so a scene without glass never holds it.
     std::vector<std::uint32_t> first_shape(materials_.size());
-    for (std::size_t id = shape_object_.size(); id-- > 0;) first_shape[shape_object_[id]] = std::uint32_t(id);
+    for (std::size_t id = geometry_.shape_count(); id-- > 0;)
+      first_shape[object(std::uint32_t(id))] = std::uint32_t(id);
     camera_media_ = find_camera_media(geometry_, materials_.size(), transparent, shape_object_, first_shape, origin);
   }
 }
@@ -327,10 +329,6 @@ void RenderSceneBuilder::reserve(std::size_t objects) {
     shapes_.reserve(objects);
     util::advise_huge_pages_for(shapes_);
   }
-  if (objects > shape_object_.capacity()) {
-    shape_object_.reserve(objects);
-    util::advise_huge_pages_for(shape_object_);
-  }
 }
 
 void RenderSceneBuilder::reserve_exact(std::size_t objects, std::size_t shapes) {
@@ -339,7 +337,7 @@ void RenderSceneBuilder::reserve_exact(std::size_t objects, std::size_t shapes) 
     shapes_.reserve(shapes);
     util::advise_huge_pages_for(shapes_);
   }
-  if (shapes > shape_object_.capacity()) {
+  if (shapes != objects && shapes > shape_object_.capacity()) {
     shape_object_.reserve(shapes);
     util::advise_huge_pages_for(shape_object_);
   }
@@ -347,9 +345,17 @@ void RenderSceneBuilder::reserve_exact(std::size_t objects, std::size_t shapes) 
 
 void RenderSceneBuilder::add(std::size_t index, const scene::Object& o) {
   assert(index == materials_.size());
-  const std::size_t first = shape_object_.size();
+  const std::size_t first = shapes_.size();
+  const std::size_t count = shape_count_of(o);
+  if (!mapped_ && count != 1) {
+    // The first object that is not one shape: the ids so far were the object indices.
+    mapped_ = true;
+    shape_object_.reserve(std::max(shapes_.capacity(), first + count));
+    shape_object_.resize(first);
+    for (std::size_t id = 0; id < first; ++id) shape_object_[id] = static_cast<std::uint32_t>(id);
+  }
   append_shapes(o, shapes_);
-  shape_object_.resize(first + shape_count_of(o), static_cast<std::uint32_t>(index));
+  if (mapped_) shape_object_.resize(first + count, static_cast<std::uint32_t>(index));
   materials_.push_back(to_material(o.material));
   if (o.material.transparency > 0.0) {
     transparent_.push_back({static_cast<std::uint32_t>(index), o.type == scene::ObjectType::kMesh});

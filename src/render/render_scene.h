@@ -122,11 +122,11 @@ class RenderScene {
   // scene-wide either way.
   const accel::LayeredGeometry& geometry() const { return geometry_; }
   // The material of the object a shape belongs to.
-  const MaterialF& material(std::uint32_t shape) const { return materials_[shape_object_[shape]]; }
+  const MaterialF& material(std::uint32_t shape) const { return materials_[object(shape)]; }
   // The scene object (index into SceneDesc::objects) a shape belongs to: one shape per sphere,
   // box or plane, one per triangle of a mesh. Shapes of one object share its material, and a
   // closed mesh is one medium, entered through one triangle and left through another.
-  std::uint32_t object(std::uint32_t shape) const { return shape_object_[shape]; }
+  std::uint32_t object(std::uint32_t shape) const { return shape_object_.empty() ? shape : shape_object_[shape]; }
   std::size_t object_count() const { return materials_.size(); }
   const MaterialF& object_material(std::uint32_t object) const { return materials_[object]; }
   // Point lights, in scene order (area lights are not among them).
@@ -150,8 +150,10 @@ class RenderScene {
   void finish(const scene::SceneDesc& desc, const std::vector<std::pair<std::uint32_t, bool>>& transparent);
 
   accel::LayeredGeometry geometry_;
-  std::vector<MaterialF> materials_;         // one per scene object
-  std::vector<std::uint32_t> shape_object_;  // shape id -> object index: 4 bytes per triangle
+  std::vector<MaterialF> materials_;  // one per scene object
+  // Shape id -> object index: 4 bytes per triangle. Empty when every object is one shape (no
+  // meshes: the ids are the same), which saves 4 bytes a sphere.
+  std::vector<std::uint32_t> shape_object_;
   std::vector<PointLightF> lights_;
   std::vector<AreaLightF> area_lights_;
   SceneFeatures features_;
@@ -192,7 +194,10 @@ class RenderSceneBuilder final : public scene::ObjectSink {
 
   std::vector<accel::Shape> shapes_;
   std::vector<MaterialF> materials_;
+  // Empty while every object so far is one shape (RenderScene::shape_object_); filled from the
+  // first mesh (or other object of more or fewer shapes) on, which sets mapped_.
   std::vector<std::uint32_t> shape_object_;
+  bool mapped_ = false;
   // (object index, is a mesh) of each transparent object: what camera_media needs of them.
   std::vector<std::pair<std::uint32_t, bool>> transparent_;
   SceneFeatures features_;  // reflection and specular so far
