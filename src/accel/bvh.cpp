@@ -450,55 +450,65 @@ std::uint32_t stitch(int t, const std::vector<TopNode<Node>>& top, const std::ve
   return index;
 }
 
-// A scene's shapes held as bare spheres (16 bytes where a Shape takes 40) while its tree is built
-// and collapsed, with the few other shapes (planes) beside them; put back bit for bit after.
-struct HeldShapes {
-  std::vector<SphereShape> spheres;                     // by shape id; a dummy at the others' ids
+// While a large sphere scene's tree is collapsed, its shapes (40 bytes a sphere) are not held: the
+// spheres of the tree are in its prims, and then in the wide tree's sphere blocks, from which they
+// are put back bit for bit. Only the other shapes (planes, invalid shapes, the huge shapes beside
+// the tree) are set aside whole.
+struct SetAside {
   std::vector<std::pair<std::uint32_t, Shape>> others;  // (id, shape), in id order
-  std::size_t count = 0;
+  std::size_t count = 0;                                // shapes in all
 };
-// Most non-sphere shapes a held scene may have (they are kept whole, as 44 bytes each).
-constexpr std::size_t kMaxHeldOthers = 4096;
+// Most shapes a scene may set aside (44 bytes each); a scene with more keeps its shapes.
+constexpr std::size_t kMaxSetAside = 4096;
 
-// Whether `shapes` are all spheres but for at most kMaxHeldOthers planes.
-bool holdable(const std::vector<Shape>& shapes) {
+// Whether `shapes` are all spheres but for at most kMaxSetAside planes.
+bool can_set_aside(const std::vector<Shape>& shapes) {
   std::size_t others = 0;
   for (const Shape& s : shapes) {
     if (s.type == ShapeType::kSphere) continue;
-    if (s.type != ShapeType::kPlane || ++others > kMaxHeldOthers) return false;
+    if (s.type != ShapeType::kPlane || ++others > kMaxSetAside) return false;
   }
   return true;
 }
 
-HeldShapes hold(const std::vector<Shape>& shapes) {
-  HeldShapes h;
-  h.count = shapes.size();
-  h.spheres.reserve(shapes.size());
-  util::advise_huge_pages_for(h.spheres);  // first touches are costly page faults (util/huge_pages.h)
+// Sets aside every shape that is not a valid sphere of the tree (`outside`: sorted ids beside it).
+SetAside set_aside(const std::vector<Shape>& shapes, const std::vector<std::uint32_t>& outside) {
+  SetAside a;
+  a.count = shapes.size();
   for (std::uint32_t id = 0; id < shapes.size(); ++id) {
     const Shape& s = shapes[id];
-    if (s.type == ShapeType::kSphere) {
-      h.spheres.push_back(s.sphere);
-    } else {
-      h.spheres.emplace_back();
-      h.others.push_back({id, s});
+    if (s.type != ShapeType::kSphere || !detail::shape_is_valid(s) ||
+        std::binary_search(outside.begin(), outside.end(), id)) {
+      a.others.push_back({id, s});
     }
   }
-  return h;
+  return a;
 }
 
-std::vector<Shape> put_back(HeldShapes& h) {
+// The shapes again: the tree's spheres from `prims` or, once those are freed, from the wide tree's
+// sphere blocks, and the others from `a`.
+template <typename Prims>
+std::vector<Shape> put_back(SetAside& a, const detail::WideBvh& wide, const Prims& prims) {
   std::vector<Shape> shapes;
-  shapes.reserve(h.count);
-  util::advise_huge_pages_for(shapes);
-  Shape s;
-  s.type = ShapeType::kSphere;
-  for (const SphereShape& sphere : h.spheres) {
-    s.sphere = sphere;
-    shapes.push_back(s);
+  shapes.reserve(a.count);
+  util::advise_huge_pages_for(shapes);  // first touches are costly page faults (util/huge_pages.h)
+  shapes.resize(a.count);
+  const auto put = [&shapes](std::uint32_t id, float x, float y, float z, float r) {
+    Shape& s = shapes[id];
+    s.type = ShapeType::kSphere;
+    s.sphere = {{x, y, z}, r};
+  };
+  if (!prims.empty()) {
+    for (const auto& p : prims) put(p.id, p.data[0], p.data[1], p.data[2], p.data[3]);
+  } else {
+    for (const detail::SphereBlock& b : wide.spheres) {
+      for (int lane = 0; lane < detail::kWidth; ++lane) {
+        if (b.id[lane] != detail::kEmptyChild) put(b.id[lane], b.cx[lane], b.cy[lane], b.cz[lane], b.r[lane]);
+      }
+    }
   }
-  for (const auto& [id, shape] : h.others) shapes[id] = shape;
-  h = HeldShapes();
+  for (const auto& [id, shape] : a.others) shapes[id] = shape;
+  a = SetAside();
   return shapes;
 }
 
@@ -579,20 +589,21 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // Tested in id order, which the tie rule does not need but keeps the loop deterministic.
   std::sort(g.outside_.begin(), g.outside_.end());
 
-  // A large scene of spheres (and a few planes) that gets a wide tree: from here until the tree is
-  // collapsed and the binary nodes and prims are freed, the shapes are held as bare spheres, which
-  // lowers the build's peak by 24 bytes a sphere (1M spheres: 23 MiB). Nothing below reads a
-  // sphere's Shape but through `sphere_at`, and the collapse reads shapes only for triangles.
-  HeldShapes held;
-  const bool holding =
-      isa != Isa::kScalar && refs.size() >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) && holdable(g.shapes_);
-  if (holding) {
-    held = hold(g.shapes_);
+  // A large scene of spheres (and a few planes) that gets a wide tree: its shapes are not held
+  // while the tree is built and collapsed (SetAside): only bare spheres (16 bytes where a Shape
+  // takes 40) until the prims are made, then the prims and the wide tree's blocks hold them. The
+  // build's peak is lower by 24 to 40 bytes a sphere, depending on the phase.
+  const bool aside = isa != Isa::kScalar && refs.size() >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) &&
+                     can_set_aside(g.shapes_);
+  SetAside set;
+  std::vector<SphereShape> spheres;  // aside: each shape's sphere, by id, until the prims are made
+  if (aside) {
+    set = set_aside(g.shapes_, g.outside_);
+    spheres.reserve(g.shapes_.size());
+    util::advise_huge_pages_for(spheres);
+    for (const Shape& s : g.shapes_) spheres.push_back(s.type == ShapeType::kSphere ? s.sphere : SphereShape{});
     std::vector<Shape>().swap(g.shapes_);
   }
-  const auto sphere_at = [&](std::uint32_t id) -> const SphereShape& {
-    return holding ? held.spheres[id] : g.shapes_[id].sphere;
-  };
 
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;
@@ -631,8 +642,8 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     for (std::size_t i = c * kChunk; i < end; ++i) {
       Prim& p = g.prims_[i];
       p.id = order[i];
-      if (holding) {  // every prim is a sphere (the planes are outside the tree)
-        const SphereShape& sphere = sphere_at(order[i]);
+      if (aside) {  // every prim is a sphere (planes and invalid shapes are not in the tree)
+        const SphereShape& sphere = spheres[order[i]];
         p.type = ShapeType::kSphere;
         p.data[0] = sphere.center.x;
         p.data[1] = sphere.center.y;
@@ -663,6 +674,9 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
   });
   std::vector<std::uint32_t>().swap(order);
+  // Until put_back nothing reads shapes_: the collapse reads prims (and shapes only for
+  // triangles, which a scene set aside has none of).
+  std::vector<SphereShape>().swap(spheres);
 
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
   std::uint64_t hash = 0xcbf29ce484222325ull;
@@ -711,7 +725,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       }
       g.wide_ = detail::flat_wide(g.shapes_, groups);
     }
-    if (holding) g.shapes_ = put_back(held);  // after the nodes and prims are freed
+    if (aside) g.shapes_ = put_back(set, g.wide_, g.prims_);  // after the nodes and prims are freed
     g.stats_.wide_nodes = std::uint32_t(g.wide_.nodes.size());
     g.stats_.wide_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - wide_start).count();
   }
