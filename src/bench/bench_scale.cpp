@@ -7,7 +7,9 @@
 //   dtraced-bench-scale --write N FILE   writes scene::generate_sphere_field(N, 1) as canonical JSON
 //   dtraced-bench-scale FILE             loads FILE, builds, renders, prints one line of figures
 //   dtraced-bench-scale FILE --load-only only parses FILE (time and peak RSS), for profiles
-// Peak RSS (getrusage ru_maxrss) is read right after the render, before the extra timing builds.
+// Peak RSS is the largest of the peaks of the parse, the build and the render (VmHWM, reset
+// between them, each printed to stderr), read before the extra timing builds.
+// The objects are loaded straight into render-ready arrays (render::RenderSceneBuilder).
 // Times are wall time (steady_clock); the build figures are the median of --runs builds.
 //
 // Exit codes: 0 done; 1 the scene could not be written, loaded or built; 2 usage error.
@@ -18,6 +20,7 @@
 #include <chrono>
 #include <cstdint>
 #include <cstdio>
+#include <fstream>
 #include <string>
 #include <vector>
 
@@ -28,6 +31,7 @@
 #include "accel/isa.h"
 #include "render/local_render.h"
 #include "render/render_scene.h"
+#include "scene/animation.h"
 #include "scene/digest.h"
 #include "scene/generate.h"
 #include "scene/load.h"
@@ -48,6 +52,23 @@ double peak_rss_bytes() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
   return double(u.ru_maxrss) * 1024.0;  // kilobytes on Linux
+}
+
+// The peak RSS since the last reset_peak_rss() (VmHWM), in bytes; 0 where /proc has none.
+double phase_peak_bytes() {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) * 1024.0;  // "VmHWM:  123 kB"
+  }
+  return 0.0;
+}
+
+// Starts a new phase of phase_peak_bytes (Linux: "5" to clear_refs resets VmHWM to the current
+// RSS). getrusage's ru_maxrss, the figure the targets use, is not reset.
+void reset_peak_rss() {
+  std::ofstream clear("/proc/self/clear_refs");
+  clear << "5";
 }
 
 // CPU time of the process (every thread), user and system: on a shared machine the wall times
@@ -92,24 +113,36 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     // The pipeline as `dtraced render` runs it: load, build, render.
     auto start = Clock::now();
     const double cpu_start = cpu_seconds();
-    scene::LoadResult loaded = scene::load_scene_file(path);
+    // The objects go straight into the render-ready arrays (render::RenderSceneBuilder): the
+    // scene's description objects are never held.
+    render::RenderSceneBuilder builder;
+    scene::LoadOptions load_options;
+    load_options.object_sink = &builder;
+    reset_peak_rss();
+    scene::LoadResult loaded = scene::load_scene_file(path, load_options);
     if (!loaded.ok()) {
       fmt::print(stderr, "{}", scene::format_errors(loaded.errors));
       return 1;
     }
+    if (scene::is_animated(*loaded.scene)) {
+      fmt::print(stderr, "dtraced-bench-scale: {} is animated; give it a static scene\n", path);
+      return 1;
+    }
     const double parse_s = since(start);
     const double parse_cpu = cpu_seconds() - cpu_start;
-    const double parse_rss = peak_rss_bytes();
+    const double parse_rss = phase_peak_bytes();
     if (load_only) {
       fmt::print("parse {:.3f} s (cpu {:.3f} s)  peak RSS {:.1f} MiB  {} objects\n", parse_s, parse_cpu,
-                 parse_rss / (1 << 20), loaded.scene->objects.size());
+                 peak_rss_bytes() / (1 << 20), builder.object_count());
       return 0;
     }
-    for (const scene::Object& o : loaded.scene->objects) f.spheres += o.type == scene::ObjectType::kSphere;
+    reset_peak_rss();
     start = Clock::now();
-    const render::RenderScene rs = render::RenderScene::build(*loaded.scene, isa, threads);
+    const render::RenderScene rs = std::move(builder).build(*loaded.scene, isa, threads);
     const double scene_s = since(start);
-    const double build_rss = peak_rss_bytes();
+    const double build_rss = phase_peak_bytes();
+    for (const accel::Shape& s : rs.geometry().fixed()->geometry.shapes())
+      f.spheres += s.type == accel::ShapeType::kSphere;
     const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
     pipeline_build_s = st.seconds + st.wide_seconds;
     f.load_s = parse_s + (scene_s - pipeline_build_s);
@@ -120,15 +153,18 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     settings.error_target = 0.0;
     render::LocalOptions options;
     options.threads = threads;
+    reset_peak_rss();
     const render::LocalResult result = render::render_local(rs, settings, options);
     f.render_s = result.seconds;
-    f.rss = peak_rss_bytes();
+    const double render_rss = phase_peak_bytes();
+    // The peak over the phases (reset_peak_rss resets ru_maxrss too); without /proc, ru_maxrss.
+    f.rss = std::max({parse_rss, build_rss, render_rss});
+    if (f.rss == 0.0) f.rss = peak_rss_bytes();
     fmt::print(stderr,
                "load {:.3f} s (parse {:.3f}, cpu {:.3f}), pipeline build {:.3f} s on {} threads, render {:.3f} s; peak "
-               "RSS after "
-               "parse {:.1f} MiB, after build {:.1f} MiB\n",
+               "RSS of the parse {:.1f} MiB, of the build {:.1f} MiB, of the render {:.1f} MiB\n",
                f.load_s, parse_s, parse_cpu, pipeline_build_s, threads, f.render_s, parse_rss / (1 << 20),
-               build_rss / (1 << 20));
+               build_rss / (1 << 20), render_rss / (1 << 20));
 
     // The build alone, on 1 thread and on `threads`, from the same shapes.
     const std::vector<accel::Shape>& shapes = rs.geometry().fixed()->geometry.shapes();

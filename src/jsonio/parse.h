@@ -22,6 +22,7 @@
 #include <string_view>
 
 #include <boost/json/memory_resource.hpp>
+#include <boost/json/monotonic_resource.hpp>
 #include <boost/json/storage_ptr.hpp>
 #include <boost/json/value.hpp>
 
@@ -68,7 +69,9 @@ class StrictParser {
   // element after element). The caller owns `memory` and keeps it alive as long as the values
   // built on it; it may change it at any time, also from within the sink (then it applies from
   // the next element on).
-  void set_element_storage(boost::json::memory_resource* memory);
+  // A monotonic resource (its deallocation is a no-op, so destroying the values built on it costs
+  // nothing: Boost.JSON skips walking them).
+  void set_element_storage(boost::json::monotonic_resource* memory);
   // Whether an array under the split key was met (and its elements went to the sink).
   bool split_seen() const;
   // The next piece of the text. Returns false once the text has a syntax error (then stop

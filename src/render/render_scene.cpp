@@ -130,9 +130,20 @@ bool solid_contains(const accel::Shape& s, const Vec3f& o) {
   return false;
 }
 
-// See RenderScene::camera_media(). `first_shape[i]`: the first shape of object i.
-std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geometry,
-                                             const std::vector<scene::Object>& objects,
+// (object index, is a mesh) of each transparent object of `objects`, in order.
+std::vector<std::pair<std::uint32_t, bool>> transparent_objects(const std::vector<scene::Object>& objects) {
+  std::vector<std::pair<std::uint32_t, bool>> out;
+  for (std::uint32_t i = 0; i < objects.size(); ++i) {
+    if (objects[i].material.transparency > 0.0) out.push_back({i, objects[i].type == scene::ObjectType::kMesh});
+  }
+  return out;
+}
+
+// See RenderScene::camera_media(). `transparent`: (object index, is a mesh) of each transparent
+// object, in order; `first_shape[i]`: the first shape of object i.
+// `shape_object`: RenderScene::shape_object_ (empty: the identity).
+std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geometry, std::size_t object_count,
+                                             const std::vector<std::pair<std::uint32_t, bool>>& transparent,
                                              const std::vector<std::uint32_t>& shape_object,
                                              const std::vector<std::uint32_t>& first_shape, const Vec3f& camera) {
   // Any direction serves closed shapes; this one lies off every axis and diagonal, so a probe from
@@ -143,16 +154,14 @@ std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geome
   // Meshes: count the probe's crossings of each object, walking from hit to hit as a path through
   // an index-matched surface does (t_min moves to the hit, so a ray through an edge shared by two
   // triangles crosses once).
-  std::vector<std::uint32_t> crossings(objects.size(), 0);
-  std::vector<float> last_t(objects.size(), 0.0f);
-  const bool meshes = std::any_of(objects.begin(), objects.end(), [](const scene::Object& o) {
-    return o.type == scene::ObjectType::kMesh && o.material.transparency > 0.0;
-  });
+  std::vector<std::uint32_t> crossings(object_count, 0);
+  std::vector<float> last_t(object_count, 0.0f);
+  const bool meshes = std::any_of(transparent.begin(), transparent.end(), [](const auto& t) { return t.second; });
   if (meshes) {
     math::Ray walk = probe;
     accel::Hit hit;
-    for (std::size_t n = 0; n < shape_object.size() && geometry.intersect(walk, hit); ++n) {
-      const std::uint32_t object = shape_object[hit.shape];
+    for (std::size_t n = 0; n < geometry.shape_count() && geometry.intersect(walk, hit); ++n) {
+      const std::uint32_t object = shape_object.empty() ? hit.shape : shape_object[hit.shape];
       ++crossings[object];
       last_t[object] = hit.t;
       walk.t_min = hit.t;
@@ -163,9 +172,8 @@ std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geome
     std::uint32_t object;
   };
   std::vector<Medium> media;
-  for (std::uint32_t i = 0; i < objects.size(); ++i) {
-    if (!(objects[i].material.transparency > 0.0)) continue;
-    if (objects[i].type == scene::ObjectType::kMesh) {
+  for (const auto& [i, is_mesh] : transparent) {
+    if (is_mesh) {
       if (crossings[i] % 2 == 1) media.push_back({last_t[i], i});
       continue;
     }
@@ -233,79 +241,142 @@ std::shared_ptr<const StaticPart> StaticPart::build(const scene::SceneDesc& desc
 }
 
 RenderScene RenderScene::build(const scene::SceneDesc& desc, accel::Isa isa, unsigned build_threads) {
-  return assemble(desc, nullptr, isa, build_threads);
+  RenderSceneBuilder builder;
+  std::size_t shape_count = 0;
+  for (const scene::Object& o : desc.objects) shape_count += shape_count_of(o);
+  builder.reserve_exact(desc.objects.size(), shape_count);
+  return std::move(builder).build(desc, isa, build_threads);
 }
 
 RenderScene RenderScene::build_frame(const scene::SceneDesc& frame, const StaticPart& part) {
-  return assemble(frame, &part, part.isa, 0);
+  return assemble(frame, part);
 }
 
-// Without `part`, every shape goes into one Geometry (a static scene: today's single BVH); with
-// it, only the shapes of moving objects are built, into the frame's own layer.
-RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa,
-                                  unsigned build_threads) {
-  assert(part == nullptr || part->moving.size() == desc.objects.size());
+// Only the shapes of moving objects are built, into the frame's own layer; the others are part's.
+RenderScene RenderScene::assemble(const scene::SceneDesc& desc, const StaticPart& part) {
+  assert(part.moving.size() == desc.objects.size());
   RenderScene rs;
   std::size_t shape_count = 0;
   for (const scene::Object& o : desc.objects) shape_count += shape_count_of(o);
   // Shape ids are 32-bit (accel::Hit::shape); the loader's limits keep far below that.
   assert(shape_count <= std::numeric_limits<std::uint32_t>::max());
-  assert(part == nullptr || part->shape_count == shape_count);
-  std::vector<accel::Shape> shapes;  // all of them, or the moving ones
-  std::vector<std::uint32_t> ids;    // with a part: the scene-wide id of each of `shapes`
-  if (part == nullptr) shapes.reserve(shape_count);
+  assert(part.shape_count == shape_count);
+  std::vector<accel::Shape> shapes;  // the moving ones
+  std::vector<std::uint32_t> ids;    // the scene-wide id of each of `shapes`
   rs.shape_object_.reserve(shape_count);
   rs.materials_.reserve(desc.objects.size());
-  util::advise_huge_pages_for(shapes);  // first touches are costly page faults (util/huge_pages.h)
-  util::advise_huge_pages_for(rs.shape_object_);
+  util::advise_huge_pages_for(rs.shape_object_);  // first touches are costly page faults (util/huge_pages.h)
   util::advise_huge_pages_for(rs.materials_);
   for (std::size_t i = 0; i < desc.objects.size(); ++i) {
     const scene::Object& o = desc.objects[i];
     const std::size_t first = rs.shape_object_.size();
     const std::size_t end = first + shape_count_of(o);
-    if (part == nullptr || part->moving[i]) append_shapes(o, shapes);
-    if (part != nullptr && part->moving[i]) {
+    if (part.moving[i]) {
+      append_shapes(o, shapes);
       for (std::size_t id = first; id < end; ++id) ids.push_back(static_cast<std::uint32_t>(id));
     }
     rs.shape_object_.resize(end, static_cast<std::uint32_t>(i));
     rs.materials_.push_back(to_material(o.material));
-    rs.has_transparency_ = rs.has_transparency_ || o.material.transparency > 0.0;
     rs.features_.reflection = rs.features_.reflection || o.material.reflectivity > 0.0;
     rs.features_.specular = rs.features_.specular || o.material.specular > 0.0;
   }
+  const auto transparent = transparent_objects(desc.objects);
+  rs.has_transparency_ = !transparent.empty();
   rs.features_.refraction = rs.has_transparency_;
-  if (part == nullptr) {
-    rs.geometry_ = accel::LayeredGeometry(accel::Geometry::build(std::move(shapes), isa, build_threads));
-  } else {
-    rs.geometry_ = accel::LayeredGeometry(
-        part->layer, accel::Layer::build(std::move(shapes), std::move(ids), isa, part->build_threads), shape_count);
-  }
+  rs.geometry_ = accel::LayeredGeometry(
+      part.layer, accel::Layer::build(std::move(shapes), std::move(ids), part.isa, part.build_threads), shape_count);
+  rs.finish(desc, transparent);
+  return rs;
+}
+
+void RenderScene::finish(const scene::SceneDesc& desc, const std::vector<std::pair<std::uint32_t, bool>>& transparent) {
   for (const scene::Light& l : desc.lights) {
     if (l.is_area()) {
-      rs.area_lights_.push_back(to_area_light(l));
-      rs.features_.area_lights = true;
-      rs.features_.shadows = rs.features_.shadows || l.cast_shadows;
+      area_lights_.push_back(to_area_light(l));
+      features_.area_lights = true;
+      features_.shadows = features_.shadows || l.cast_shadows;
     } else {
-      rs.lights_.push_back({to_f(l.position), to_f(l.color * l.intensity)});
-      rs.features_.point_lights = true;
-      rs.features_.shadows = true;
+      lights_.push_back({to_f(l.position), to_f(l.color * l.intensity)});
+      features_.point_lights = true;
+      features_.shadows = true;
     }
   }
   const scene::Camera& c = desc.camera;
-  rs.camera_.position = c.position;
-  rs.camera_.forward = math::normalize(c.look_at - c.position);
-  rs.camera_.right = math::normalize(math::cross(rs.camera_.forward, c.up));
-  rs.camera_.up = math::cross(rs.camera_.right, rs.camera_.forward);
-  rs.camera_.tan_half_fov = std::tan(c.fov_deg * std::numbers::pi / 360.0);
-  assert(math::is_finite(rs.camera_.right));
-  if (rs.has_transparency_) {
+  camera_.position = c.position;
+  camera_.forward = math::normalize(c.look_at - c.position);
+  camera_.right = math::normalize(math::cross(camera_.forward, c.up));
+  camera_.up = math::cross(camera_.right, camera_.forward);
+  camera_.tan_half_fov = std::tan(c.fov_deg * std::numbers::pi / 360.0);
+  assert(math::is_finite(camera_.right));
+  if (has_transparency_) {
     // Where camera rays start (CameraF::generate).
-    const Vec3f origin(rs.camera_.position);
+    const Vec3f origin(camera_.position);
     // Each object's first shape id; only here, so a scene without glass never holds it.
-    std::vector<std::uint32_t> first_shape(desc.objects.size());
-    for (std::size_t id = rs.shape_object_.size(); id-- > 0;) first_shape[rs.shape_object_[id]] = std::uint32_t(id);
-    rs.camera_media_ = find_camera_media(rs.geometry_, desc.objects, rs.shape_object_, first_shape, origin);
+    std::vector<std::uint32_t> first_shape(materials_.size());
+    for (std::size_t id = geometry_.shape_count(); id-- > 0;)
+      first_shape[object(std::uint32_t(id))] = std::uint32_t(id);
+    camera_media_ = find_camera_media(geometry_, materials_.size(), transparent, shape_object_, first_shape, origin);
   }
+}
+
+void RenderSceneBuilder::reserve(std::size_t objects) {
+  // Spheres, boxes and planes are one shape each; a mesh's triangles grow the shapes beyond.
+  if (objects > materials_.capacity()) {
+    materials_.reserve(objects);
+    util::advise_huge_pages_for(materials_);  // first touches are costly page faults (util/huge_pages.h)
+  }
+  if (objects > shapes_.capacity()) {
+    shapes_.reserve(objects);
+    util::advise_huge_pages_for(shapes_);
+  }
+}
+
+void RenderSceneBuilder::reserve_exact(std::size_t objects, std::size_t shapes) {
+  reserve(objects);
+  if (shapes > shapes_.capacity()) {
+    shapes_.reserve(shapes);
+    util::advise_huge_pages_for(shapes_);
+  }
+  if (shapes != objects && shapes > shape_object_.capacity()) {
+    shape_object_.reserve(shapes);
+    util::advise_huge_pages_for(shape_object_);
+  }
+}
+
+void RenderSceneBuilder::add(std::size_t index, const scene::Object& o) {
+  assert(index == materials_.size());
+  const std::size_t first = shapes_.size();
+  const std::size_t count = shape_count_of(o);
+  if (!mapped_ && count != 1) {
+    // The first object that is not one shape: the ids so far were the object indices.
+    mapped_ = true;
+    shape_object_.reserve(std::max(shapes_.capacity(), first + count));
+    shape_object_.resize(first);
+    for (std::size_t id = 0; id < first; ++id) shape_object_[id] = static_cast<std::uint32_t>(id);
+  }
+  append_shapes(o, shapes_);
+  if (mapped_) shape_object_.resize(first + count, static_cast<std::uint32_t>(index));
+  materials_.push_back(to_material(o.material));
+  if (o.material.transparency > 0.0) {
+    transparent_.push_back({static_cast<std::uint32_t>(index), o.type == scene::ObjectType::kMesh});
+  }
+  features_.reflection = features_.reflection || o.material.reflectivity > 0.0;
+  features_.specular = features_.specular || o.material.specular > 0.0;
+}
+
+RenderScene RenderSceneBuilder::build(const scene::SceneDesc& desc, accel::Isa isa, unsigned build_threads) && {
+  for (const scene::Object& o : desc.objects) add(materials_.size(), o);
+  // Shape ids are 32-bit (accel::Hit::shape); the loader's limits keep far below that.
+  assert(shapes_.size() <= std::numeric_limits<std::uint32_t>::max());
+  RenderScene rs;
+  rs.materials_ = std::move(materials_);
+  rs.shape_object_ = std::move(shape_object_);
+  rs.features_ = features_;
+  rs.has_transparency_ = !transparent_.empty();
+  rs.features_.refraction = rs.has_transparency_;
+  rs.geometry_ = accel::LayeredGeometry(accel::Geometry::build(std::move(shapes_), isa, build_threads));
+  rs.finish(desc, transparent_);
+  *this = RenderSceneBuilder();
   return rs;
 }
 

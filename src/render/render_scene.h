@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "accel/geometry.h"
@@ -18,6 +19,7 @@
 #include "math/ray.h"
 #include "math/vec.h"
 #include "scene/description.h"
+#include "scene/load.h"
 
 namespace dtraced::render {
 
@@ -100,6 +102,8 @@ struct StaticPart {
                                                  unsigned build_threads = 0);
 };
 
+class RenderSceneBuilder;
+
 class RenderScene {
  public:
   // The description must have passed validation (scene::load_*); build asserts its invariants.
@@ -118,11 +122,11 @@ class RenderScene {
   // scene-wide either way.
   const accel::LayeredGeometry& geometry() const { return geometry_; }
   // The material of the object a shape belongs to.
-  const MaterialF& material(std::uint32_t shape) const { return materials_[shape_object_[shape]]; }
+  const MaterialF& material(std::uint32_t shape) const { return materials_[object(shape)]; }
   // The scene object (index into SceneDesc::objects) a shape belongs to: one shape per sphere,
   // box or plane, one per triangle of a mesh. Shapes of one object share its material, and a
   // closed mesh is one medium, entered through one triangle and left through another.
-  std::uint32_t object(std::uint32_t shape) const { return shape_object_[shape]; }
+  std::uint32_t object(std::uint32_t shape) const { return shape_object_.empty() ? shape : shape_object_[shape]; }
   std::size_t object_count() const { return materials_.size(); }
   const MaterialF& object_material(std::uint32_t object) const { return materials_[object]; }
   // Point lights, in scene order (area lights are not among them).
@@ -140,18 +144,63 @@ class RenderScene {
   const std::vector<std::uint32_t>& camera_media() const { return camera_media_; }
 
  private:
-  static RenderScene assemble(const scene::SceneDesc& desc, const StaticPart* part, accel::Isa isa,
-                              unsigned build_threads);
+  friend class RenderSceneBuilder;
+  static RenderScene assemble(const scene::SceneDesc& desc, const StaticPart& part);
+  // Lights, camera and camera media, after geometry_, materials_ and shape_object_.
+  void finish(const scene::SceneDesc& desc, const std::vector<std::pair<std::uint32_t, bool>>& transparent);
 
   accel::LayeredGeometry geometry_;
-  std::vector<MaterialF> materials_;         // one per scene object
-  std::vector<std::uint32_t> shape_object_;  // shape id -> object index: 4 bytes per triangle
+  std::vector<MaterialF> materials_;  // one per scene object
+  // Shape id -> object index: 4 bytes per triangle. Empty when every object is one shape (no
+  // meshes: the ids are the same), which saves 4 bytes a sphere.
+  std::vector<std::uint32_t> shape_object_;
   std::vector<PointLightF> lights_;
   std::vector<AreaLightF> area_lights_;
   SceneFeatures features_;
   CameraF camera_;
   bool has_transparency_ = false;
   std::vector<std::uint32_t> camera_media_;  // object indices, outermost first
+};
+
+// A static scene's RenderScene from its objects one at a time, as a load reads them
+// (scene::LoadOptions::object_sink), so that a large scene's description objects (144 bytes a
+// sphere) are never held: only the render-ready shape, material and owner (84 bytes a sphere)
+// are kept of each, and nothing of the description is alive during the BVH build. The same bits
+// as RenderScene::build of the description with those objects (which builds through it).
+//
+//   render::RenderSceneBuilder builder;
+//   scene::LoadOptions options;
+//   options.object_sink = &builder;
+//   scene::LoadResult loaded = scene::load_scene_file(path, options);
+//   if (loaded.ok() && !scene::is_animated(*loaded.scene))
+//     rs = std::move(builder).build(*loaded.scene, isa, threads);
+//
+// Thread-safety: one builder per scene, used by one thread at a time (the load's reader thread,
+// then the caller: the load joins its threads before it returns).
+class RenderSceneBuilder final : public scene::ObjectSink {
+ public:
+  void reserve(std::size_t objects) override;
+  void add(std::size_t index, const scene::Object& object) override;
+  // The scene: the objects added (in order; `index` must count up from 0, asserted), then those
+  // of `desc` (none after a load into this builder), and desc's camera and lights. Empties the
+  // builder.
+  RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(), unsigned build_threads = 0) &&;
+  std::size_t object_count() const { return materials_.size(); }
+
+ private:
+  friend class RenderScene;
+  // Room for exactly these many objects and shapes (RenderScene::build knows both).
+  void reserve_exact(std::size_t objects, std::size_t shapes);
+
+  std::vector<accel::Shape> shapes_;
+  std::vector<MaterialF> materials_;
+  // Empty while every object so far is one shape (RenderScene::shape_object_); filled from the
+  // first mesh (or other object of more or fewer shapes) on, which sets mapped_.
+  std::vector<std::uint32_t> shape_object_;
+  bool mapped_ = false;
+  // (object index, is a mesh) of each transparent object: what camera_media needs of them.
+  std::vector<std::pair<std::uint32_t, bool>> transparent_;
+  SceneFeatures features_;  // reflection and specular so far
 };
 
 // A scene description prepared for rendering any of its frames. Built once per description.

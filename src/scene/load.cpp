@@ -129,10 +129,13 @@ void read_list(SceneReader& s, jsonio::Fields& root, std::string_view key, std::
 // document never holds them all: a reader of their own keeps their errors, warnings and tracks
 // apart until read_scene puts them where reading them in place would have.
 struct StreamedObjects {
-  StreamedObjects(const std::string& file, const LoadOptions& options) : s(file, options) {}
+  StreamedObjects(const std::string& file, const LoadOptions& options) : s(file, options), sink(options.object_sink) {}
   SceneReader s;
+  ObjectSink* sink = nullptr;  // LoadOptions::object_sink: the objects go there, not to `objects`
   std::vector<Object> objects;
   std::size_t count = 0;  // elements met, also past kMaxObjects
+  std::size_t kept = 0;   // valid objects, in `objects` or given to the sink
+  std::size_t room = 0;   // objects.capacity(), or what the sink was last asked to reserve
   // The size of the whole text (0: unknown) and how much of it came before the piece being
   // parsed: the objects seen per byte so far predict how many there are in all.
   std::uint64_t total_bytes = 0;
@@ -148,8 +151,13 @@ struct StreamedObjects {
     if (s.r.failed()) {
       std::vector<Object>().swap(objects);  // the scene will not load: keep no memory for it
     } else if (element) {
-      if (objects.size() == objects.capacity()) grow();
-      objects.push_back(std::move(*element));
+      if (kept == room) grow();
+      ++kept;
+      if (sink != nullptr) {
+        sink->add(i, *element);
+      } else {
+        objects.push_back(std::move(*element));
+      }
     }
   }
 
@@ -159,14 +167,19 @@ struct StreamedObjects {
   // current piece, not those parsed), and pages of the array never written cost no memory.
   void grow() {
     constexpr std::uint64_t kMinSample = 8ull << 20;  // bytes: the piece's lag is then <= 1/8
-    std::size_t want = std::max<std::size_t>(16, 2 * objects.capacity());
+    std::size_t want = std::max<std::size_t>(16, 2 * room);
     if (total_bytes > 0 && bytes_before_piece >= kMinSample) {
-      const double per_byte = double(objects.size()) / double(bytes_before_piece);
+      const double per_byte = double(kept) / double(bytes_before_piece);
       const double predicted = per_byte * double(total_bytes) * 1.02 + 1024;
-      want = std::max(objects.size() + 1, std::size_t(std::min(predicted, double(kMaxObjects))));
-      if (want <= objects.size()) want = 2 * objects.capacity();  // more than predicted after all
+      want = std::max(kept + 1, std::size_t(std::min(predicted, double(kMaxObjects))));
+      if (want <= kept) want = 2 * room;  // more than predicted after all
     }
-    objects.reserve(std::min(want, kMaxObjects));
+    room = std::min(want, kMaxObjects);
+    if (sink != nullptr) {
+      sink->reserve(room);
+      return;
+    }
+    objects.reserve(room);
     util::advise_huge_pages_for(objects);  // first touches are costly page faults (util/huge_pages.h)
   }
 };
@@ -200,6 +213,12 @@ std::optional<SceneDesc> read_scene(SceneReader& s, const json::value& root_valu
   read_list(s, f, "scene_lights", kMaxLights, "lights", scene.lights, detail::read_light,
             "the scene has no lights: only reflections of the background will show");
   if (s.r.failed()) return std::nullopt;
+  if (ObjectSink* sink = s.options.object_sink; sink != nullptr && !scene.objects.empty()) {
+    // Read from the document (not streamed): handed over now, the same objects in the same order.
+    sink->reserve(scene.objects.size());
+    for (std::size_t i = 0; i < scene.objects.size(); ++i) sink->add(i, scene.objects[i]);
+    std::vector<Object>().swap(scene.objects);
+  }
   if (!s.animation.tracks.empty()) {
     sort_tracks(s.animation);
     scene.animation = std::make_shared<const Animation>(std::move(s.animation));

@@ -53,6 +53,22 @@ inline constexpr std::uint64_t kParallelLoadBytes = 4ull << 20;
 // ("/scene_objects/3/radius"), empty for problems with the file as a whole; to_string() gives
 // "FILE: /scene_objects/3/radius: must be > 0 (got -1)".
 
+// Where the objects of "scene_objects" can go instead of SceneDesc::objects (LoadOptions::object_sink):
+// a consumer that keeps only what it needs of each (render::RenderSceneBuilder keeps the render-
+// ready shape and material, 84 bytes a sphere where the description holds 144), so the
+// description of millions of objects is never held whole.
+class ObjectSink {
+ public:
+  virtual ~ObjectSink() = default;
+  // Room for about `objects` objects in all (a prediction from the objects per byte so far; it
+  // may be off either way). Called before add() needs it, a few times per load.
+  virtual void reserve(std::size_t objects) = 0;
+  // The next valid object of "scene_objects" (`index` its place there), in file order. One call
+  // at a time, on one thread (the load's reader thread for a large text), all before the load
+  // returns. After the load an object's problems may still fail it: then discard what was added.
+  virtual void add(std::size_t index, const Object& object) = 0;
+};
+
 struct LoadOptions {
   std::uint64_t max_bytes = kMaxSceneFileBytes;
   // Past this many errors the rest are counted in one final error; tests lower it.
@@ -68,6 +84,11 @@ struct LoadOptions {
   // A text of at least this many bytes has its objects read on a second thread while the first
   // parses on (same scene, same errors, in the same order, either way); tests lower it.
   std::uint64_t parallel_min_bytes = kParallelLoadBytes;
+  // Not null: every object goes to the sink as it is read, and the loaded SceneDesc::objects is
+  // empty (camera, render settings, lights and animation tracks are loaded as usual). For a
+  // static scene: the objects of an animated one (is_animated) went to the sink with their
+  // base values, so load such a scene again without a sink. Errors and warnings are the same.
+  ObjectSink* object_sink = nullptr;
 };
 
 struct LoadResult {
