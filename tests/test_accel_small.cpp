@@ -127,16 +127,22 @@ struct Counts {
   long rays = 0, hits = 0, mismatches = 0;
 };
 
-// Every query of `rays` (packets of 8 consecutive rays, with a lane mask that varies) through `geo`
+// Every query of `rays` (packets of N consecutive rays, with a lane mask that varies) through `geo`
 // against the scalar reference `ref`.
-Counts compare(const Geometry& ref, const Geometry& geo, const std::vector<Ray>& rays) {
+template <int N>
+Counts compare_n(const Geometry& ref, const Geometry& geo, const std::vector<Ray>& rays) {
   Counts c;
-  for (std::size_t base = 0; base + kPacketSize <= rays.size(); base += kPacketSize) {
-    const std::uint32_t valid = (base / kPacketSize) % 5 == 4 ? 0xa5u : 0xffu;
-    Hit hits[kPacketSize];
-    const std::uint32_t found = geo.intersect8(&rays[base], valid, hits);
-    const std::uint32_t blocked = geo.occluded8(&rays[base], valid);
-    for (std::uint32_t i = 0; i < std::uint32_t(kPacketSize); ++i) {
+  for (std::size_t base = 0; base + N <= rays.size(); base += N) {
+    const std::uint32_t all = (1u << N) - 1u;
+    const std::uint32_t valid = (base / N) % 5 == 4                        ? 0xa5a5u & all
+                                : (N > kPacketSize && (base / N) % 5 == 2) ? 0x0ff0u
+                                                                           : all;
+    Hit hits[N];
+    const std::uint32_t found =
+        N == kPacketSize ? geo.intersect8(&rays[base], valid, hits) : geo.intersect16(&rays[base], valid, hits);
+    const std::uint32_t blocked =
+        N == kPacketSize ? geo.occluded8(&rays[base], valid) : geo.occluded16(&rays[base], valid);
+    for (std::uint32_t i = 0; i < std::uint32_t(N); ++i) {
       if (!(valid >> i & 1u)) {
         c.mismatches += (found >> i & 1u) + (blocked >> i & 1u);
         continue;
@@ -151,12 +157,19 @@ Counts compare(const Geometry& ref, const Geometry& geo, const std::vector<Ray>&
       const int bad = ((w != g) || (w && !same_hit(want, got))) + ((w != p) || (w && !same_hit(want, hits[i]))) +
                       (ref.occluded(r) != w) + (geo.occluded(r) != w) + (bool(blocked >> i & 1u) != w);
       if (bad != 0 && ++c.mismatches <= 3) {
-        UNSCOPED_INFO("mismatch " << describe(r) << " ref=" << w << "/" << want.shape << "/" << want.t
-                                  << " single=" << g << "/" << got.shape << " packet=" << p << "/" << hits[i].shape
-                                  << "/" << hits[i].t);
+        UNSCOPED_INFO("mismatch (packets of " << N << ") " << describe(r) << " ref=" << w << "/" << want.shape << "/"
+                                              << want.t << " single=" << g << "/" << got.shape << " packet=" << p << "/"
+                                              << hits[i].shape << "/" << hits[i].t);
       }
     }
   }
+  return c;
+}
+
+// compare_n for packets of 8 and of 16 (rays and hits counted once, mismatches of both).
+Counts compare(const Geometry& ref, const Geometry& geo, const std::vector<Ray>& rays) {
+  Counts c = compare_n<kPacketSize>(ref, geo, rays);
+  c.mismatches += compare_n<kPacketSize16>(ref, geo, rays).mismatches;
   return c;
 }
 
