@@ -19,13 +19,13 @@
 // per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
 // active at a node (2 for both widths: 4 of 16 measured slower), those lanes finish that subtree
 // as single rays. A 16-ray packet shares a node's fixed costs (its planes, ordering the children,
-// the stack) between twice the rays: on 4x4-pixel camera blocks of a million-triangle mesh it
-// traces about 1.8x the rays per second of two 8-ray packets. A packet's per-lane constants
-// are computed a vector at a time (make_packet); its lanes as single rays only when a fallback
-// needs them. A nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so
-// Geometry builds the hit record from them instead of testing the triangle again (about 15 % of
-// a camera packet's time went to that second test and its ray constants). Tiny scenes come as a
-// flat layout (detail::flat_wide: one node over one or two leaves), which these same loops walk.
+// the stack) between twice the rays: on 4x4-pixel camera blocks (dtraced-bench-rays, avx512) it
+// traces about 1.3x the rays per second of two 8-ray packets on the mesh, 1.2x on the spheres. A packet's per-lane
+// constants are computed a vector at a time (make_packet); its lanes as single rays only when a fallback needs them. A
+// nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so Geometry builds the hit record
+// from them instead of testing the triangle again (about 15 % of a camera packet's time went to that second test and
+// its ray constants). Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two leaves), which
+// these same loops walk.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
