@@ -916,24 +916,26 @@ Outside outside_kind(const std::vector<Shape>& shapes, const std::vector<std::ui
 }
 }  // namespace
 
-std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const {
+// intersect8 and intersect16: N lanes through the kernels of that width.
+template <int N>
+std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* hits) const {
   std::uint32_t live = 0;
-  for (int i = 0; i < kPacketSize; ++i) {
+  for (int i = 0; i < N; ++i) {
     if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
   }
   if (live == 0) return 0;
   if (wide_.empty()) {
     std::uint32_t found = 0;
-    for (int i = 0; i < kPacketSize; ++i) {
+    for (int i = 0; i < N; ++i) {
       if ((live >> i & 1u) && intersect(rays[i], hits[i])) found |= 1u << i;
     }
     return found;
   }
-  float best_t[kPacketSize];
-  std::uint32_t best_id[kPacketSize];
+  float best_t[N];
+  std::uint32_t best_id[N];
   std::uint32_t found = 0;
   const Outside outside = outside_kind(shapes_, outside_, wide_);
-  for (int i = 0; i < kPacketSize; ++i) {
+  for (int i = 0; i < N; ++i) {
     best_t[i] = rays[i].t_max;
     best_id[i] = 0;
     if ((live >> i & 1u) && outside != Outside::kNone &&
@@ -943,18 +945,19 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
       found |= 1u << i;
     }
   }
-  detail::TriangleUvw uvw[kPacketSize];
-  const std::uint32_t tree = wide_kernels().intersect8(wide_, rays, live, best_t, best_id, uvw);
+  detail::TriangleUvw uvw[N];
+  const std::uint32_t tree = (N == kPacketSize ? wide_kernels().intersect8 : wide_kernels().intersect16)(
+      wide_, rays, live, best_t, best_id, uvw);
   found |= tree;
   // Sphere hits are finished together (their square roots and divisions overlap), the rest one
   // by one.
-  const Shape* sph_shape[kPacketSize];
-  std::uint32_t sph_id[kPacketSize];
-  const Ray* sph_ray[kPacketSize];
-  float sph_t[kPacketSize];
-  Hit* sph_hit[kPacketSize];
+  const Shape* sph_shape[N];
+  std::uint32_t sph_id[N];
+  const Ray* sph_ray[N];
+  float sph_t[N];
+  Hit* sph_hit[N];
   int spheres = 0;
-  for (int i = 0; i < kPacketSize; ++i) {
+  for (int i = 0; i < N; ++i) {
     if (found >> i & 1u) {
       const Shape& s = shapes_[best_id[i]];
       if (s.type == ShapeType::kSphere) {
@@ -972,26 +975,31 @@ std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hi
       }
     }
   }
-  if (spheres > 0) detail::finish_sphere_hits(sph_shape, sph_id, sph_ray, sph_t, sph_hit, spheres);
+  // finish_sphere_hits takes up to kPacketSize lanes at a time.
+  for (int k = 0; k < spheres; k += kPacketSize) {
+    detail::finish_sphere_hits(sph_shape + k, sph_id + k, sph_ray + k, sph_t + k, sph_hit + k,
+                               std::min(kPacketSize, spheres - k));
+  }
   return found;
 }
 
-std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
+template <int N>
+std::uint32_t Geometry::occluded_n(const Ray* rays, std::uint32_t valid) const {
   std::uint32_t live = 0;
-  for (int i = 0; i < kPacketSize; ++i) {
+  for (int i = 0; i < N; ++i) {
     if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
   }
   if (live == 0) return 0;
   if (wide_.empty()) {
     std::uint32_t blocked = 0;
-    for (int i = 0; i < kPacketSize; ++i) {
+    for (int i = 0; i < N; ++i) {
       if ((live >> i & 1u) && occluded(rays[i])) blocked |= 1u << i;
     }
     return blocked;
   }
   std::uint32_t blocked = 0;
   const Outside outside = outside_kind(shapes_, outside_, wide_);
-  for (int i = 0; i < kPacketSize; ++i) {
+  for (int i = 0; i < N; ++i) {
     float t = rays[i].t_max;
     std::uint32_t id = 0;
     if ((live >> i & 1u) && outside != Outside::kNone &&
@@ -1002,8 +1010,22 @@ std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
     }
   }
   const std::uint32_t rest = live & ~blocked;
-  if (rest != 0) blocked |= wide_kernels().occluded8(wide_, rays, rest);
+  if (rest != 0)
+    blocked |= (N == kPacketSize ? wide_kernels().occluded8 : wide_kernels().occluded16)(wide_, rays, rest);
   return blocked;
+}
+
+std::uint32_t Geometry::intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const {
+  return intersect_n<kPacketSize>(rays, valid, hits);
+}
+std::uint32_t Geometry::intersect16(const Ray* rays, std::uint32_t valid, Hit* hits) const {
+  return intersect_n<kPacketSize16>(rays, valid, hits);
+}
+std::uint32_t Geometry::occluded8(const Ray* rays, std::uint32_t valid) const {
+  return occluded_n<kPacketSize>(rays, valid);
+}
+std::uint32_t Geometry::occluded16(const Ray* rays, std::uint32_t valid) const {
+  return occluded_n<kPacketSize16>(rays, valid);
 }
 
 }  // namespace dtraced::accel

@@ -76,8 +76,9 @@ struct Shape {
 };
 static_assert(sizeof(Shape) == 40);
 
-// Rays traced together by intersect8 / occluded8.
+// Rays traced together by intersect8 / occluded8, and by intersect16 / occluded16.
 inline constexpr int kPacketSize = 8;
+inline constexpr int kPacketSize16 = 16;
 
 // The nearest surface a ray meets.
 struct Hit {
@@ -131,6 +132,10 @@ class Geometry {
   // are what packets are for; incoherent rays are faster one at a time.
   std::uint32_t intersect8(const Ray* rays, std::uint32_t valid, Hit* hits) const;
   std::uint32_t occluded8(const Ray* rays, std::uint32_t valid) const;
+  // The same for packets of kPacketSize16 rays (e.g. 4x4 camera pixels): one vector of 16 floats
+  // per box test on AVX-512.
+  std::uint32_t intersect16(const Ray* rays, std::uint32_t valid, Hit* hits) const;
+  std::uint32_t occluded16(const Ray* rays, std::uint32_t valid) const;
 
   const std::vector<Shape>& shapes() const { return shapes_; }
   const BuildStats& stats() const { return stats_; }
@@ -158,6 +163,10 @@ class Geometry {
   // the smaller id; updates best_t / best_id.
   bool outside_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const;
   const detail::Kernels& wide_kernels() const;
+  template <int N>
+  std::uint32_t intersect_n(const Ray* rays, std::uint32_t valid, Hit* hits) const;
+  template <int N>
+  std::uint32_t occluded_n(const Ray* rays, std::uint32_t valid) const;
 
   std::vector<Shape> shapes_;
   std::vector<Prim> prims_;             // bounded shapes in BVH leaf order

@@ -13,15 +13,19 @@
 // change an answer.
 //
 // Layouts: single rays test the 8 child boxes of a node in one 8-lane float vector (two on SSE4)
-// and a leaf's 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 rays in SoA arrays and test
-// one box, sphere or triangle against all 8 (one AVX2/AVX-512 vector, two SSE4 vectors), with a
+// and a leaf's 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 or 16 rays in SoA
+// arrays (the code is templated on the width kP) and test one box, sphere or triangle against all
+// of them (8: one AVX2/AVX-512 vector, two SSE4 vectors; 16: one AVX-512 vector of floats), with a
 // per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
-// active at a node, those lanes finish that subtree as single rays. A packet's per-lane constants
-// are computed a vector at a time (make_packet); its lanes as single rays only when a fallback
-// needs them. A nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so
-// Geometry builds the hit record from them instead of testing the triangle again (about 15 % of
-// a camera packet's time went to that second test and its ray constants). Tiny scenes come as a
-// flat layout (detail::flat_wide: one node over one or two leaves), which these same loops walk.
+// active at a node (2 for both widths: 4 of 16 measured slower), those lanes finish that subtree
+// as single rays. A 16-ray packet shares a node's fixed costs (its planes, ordering the children,
+// the stack) between twice the rays: on 4x4-pixel camera blocks (dtraced-bench-rays, avx512) it
+// traces about 1.3x the rays per second of two 8-ray packets on the mesh, 1.2x on the spheres. A packet's per-lane
+// constants are computed a vector at a time (make_packet); its lanes as single rays only when a fallback needs them. A
+// nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so Geometry builds the hit record
+// from them instead of testing the triangle again (about 15 % of a camera packet's time went to that second test and
+// its ray constants). Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two leaves), which
+// these same loops walk.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -44,6 +48,12 @@ namespace HWY_NAMESPACE {
 namespace hn = hwy::HWY_NAMESPACE;
 
 constexpr int kStackSize = (kNodeWidth - 1) * Geometry::kMaxDepth + kNodeWidth;
+constexpr int kMaxPacket = kPacketSize16;  // lanes of the widest packet
+
+// The first n (at most 16) bits StoreMaskBits wrote to mb.
+inline std::uint32_t low_bits(const std::uint8_t* mb, std::size_t n) {
+  return (std::uint32_t(mb[0]) | std::uint32_t(mb[1]) << 8) & ((1u << n) - 1u);
+}
 constexpr int kSwitch = 2;  // lanes at or below which a packet continues as single rays
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
@@ -91,7 +101,7 @@ inline std::uint32_t node_test1(const WideNode& node, const Single& s, float cul
     hn::StoreU(t0, d, t_near + i);
     std::uint8_t mb[8] = {};
     hn::StoreMaskBits(d, hn::Le(t0, lim), mb);
-    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    bits |= low_bits(mb, n) << i;
   }
   return bits;
 }
@@ -184,11 +194,11 @@ inline V triangle_t_error8(D d, V sax, V say, V sbx, V sby, V scx, V scy, V saz,
 // 8): the float ones, or for the lanes in `fallback` the double ones of triangle_t_double. A
 // lane that hit gets them exactly as triangle_t reports them; kept for the nearest hit only.
 struct LaneUvw {
-  alignas(64) float u[kPacketSize];
-  alignas(64) float v[kPacketSize];
-  alignas(64) float w[kPacketSize];
-  alignas(64) float det[kPacketSize];
-  TriangleUvw fb[kPacketSize];
+  alignas(64) float u[kMaxPacket];
+  alignas(64) float v[kMaxPacket];
+  alignas(64) float w[kMaxPacket];
+  alignas(64) float det[kMaxPacket];
+  TriangleUvw fb[kMaxPacket];
   std::uint32_t fallback = 0;
   TriangleUvw get(std::size_t i) const {
     if (fallback >> i & 1u) return fb[i];
@@ -241,12 +251,12 @@ template <class D, class M, class LaneRay>
 HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], float* t, LaneRay lane_ray, LaneUvw* uvw,
                                 std::size_t off) {
   if (hn::AllFalse(d, zero_edge)) return;
-  alignas(64) float l[9][kPacketSize];  // lanes of a single-ray block (4) or a packet (8)
+  alignas(64) float l[9][kMaxPacket];  // lanes of a single-ray block (4) or a packet (8 or 16)
   for (int j = 0; j < 9; ++j) hn::StoreU(v[j], d, l[j]);
   std::uint8_t mb[8] = {};
   hn::StoreMaskBits(d, zero_edge, mb);
   for (std::size_t k = 0; k < hn::Lanes(d); ++k) {
-    if (mb[0] >> k & 1u) {
+    if (low_bits(mb, hn::Lanes(d)) >> k & 1u) {
       const Single& s = lane_ray(k);
       TriangleUvw* out = nullptr;
       if (uvw != nullptr) {
@@ -424,8 +434,7 @@ bool Occluded1(const WideBvh& bvh, const RayPre& r, float t_min, float t_max) {
 // ---------------------------------------------------------------------------------------------
 // Packets of 8 rays.
 
-constexpr int kP = kPacketSize;
-
+template <int kP>
 struct alignas(64) Packet {
   float o[3][kP];
   float inv[3][kP];
@@ -469,7 +478,8 @@ struct alignas(64) Packet {
 // precompute() and set_shear() do per ray (1 / d, the sign bits, the shear axes chosen by the
 // same comparisons, d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz]), so every lane has the bits of the
 // single-ray constants.
-inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet& p, bool any_hit) {
+template <int kP>
+inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet<kP>& p, bool any_hit) {
   alignas(64) float dir[3][kP];
   for (int i = 0; i < kP; ++i) {
     // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
@@ -503,7 +513,7 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
       hn::StoreU(hn::IfThenElseZero(neg, one), d, p.negf[a] + i);
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, neg, mb);
-      neg_bits[a] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+      neg_bits[a] |= low_bits(mb, n) << i;
     }
     if (any_hit) hn::StoreU(hn::Mul(hn::LoadU(d, p.best + i), hn::Set(d, kFarScale)), d, p.cull + i);
     // set_shear: kz = ax > ay ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2); kx, ky the next two axes,
@@ -535,7 +545,7 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
     for (int k = 0; k < 6; ++k) {
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, axis_masks[k], mb);
-      axis_bits[k] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+      axis_bits[k] |= low_bits(mb, n) << i;
     }
   }
   // The sphere test's double copies and a = |d|^2, as make_single computes it.
@@ -578,7 +588,8 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
 // ray's instead of lane by lane, and when the lanes also share their origin (pinhole camera
 // packets), the plane-minus-origin differences of all 8 children are one vector subtraction per
 // plane (the same single rounding each lane would do).
-inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask, std::uint32_t* bits,
+template <int kP>
+inline void node_test8(const WideNode& node, const Packet<kP>& p, std::uint32_t mask, std::uint32_t* bits,
                        float (*dist)[kP]) {
   const hn::CappedTag<float, kP> d;
   using V = hn::Vec<decltype(d)>;
@@ -609,8 +620,8 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       inv[a] = hn::LoadU(d, p.inv[a] + i);
     }
     const auto tmin = hn::LoadU(d, p.t_min + i);
-    // LoadMaskBits may read 8 bytes: the bits sit in the first, the rest are zero.
-    const std::uint8_t mask_bytes[8] = {std::uint8_t(mask >> i)};
+    // LoadMaskBits may read 8 bytes: the bits sit in the first two, the rest are zero.
+    const std::uint8_t mask_bytes[8] = {std::uint8_t(mask >> i), std::uint8_t(mask >> (i + 8))};
     const auto active = hn::LoadMaskBits(d, mask_bytes);
     const auto cull = hn::LoadU(d, p.cull + i);
     for (int c = 0; c < kNodeWidth; ++c) {
@@ -642,7 +653,7 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
       hn::StoreU(t0, d, dist[c] + i);  // read only for the lanes of bits[c]
       std::uint8_t mb[8] = {};
       hn::StoreMaskBits(d, m, mb);
-      bits[c] |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+      bits[c] |= low_bits(mb, n) << i;
     }
   }
 }
@@ -650,8 +661,8 @@ inline void node_test8(const WideNode& node, const Packet& p, std::uint32_t mask
 // Applies candidate distances t[lane] of prim `id` to the lanes in `mask`; returns the lanes
 // that improved (nearest) or that are now blocked (any-hit). `uvw`: the candidate is a triangle
 // with these edge functions, kept for the lanes it becomes the best of.
-template <bool kAnyHit>
-inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::uint32_t mask,
+template <int kP, bool kAnyHit>
+inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std::uint32_t mask,
                             const LaneUvw* uvw = nullptr) {
   // Which lanes have t < best or t == best (a NaN t, a miss, is neither), a vector at a time;
   // most candidates miss every lane, and then nothing else is done.
@@ -662,10 +673,10 @@ inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::ui
     const auto tv = hn::LoadU(d, t + i), best = hn::LoadU(d, p.best + i);
     std::uint8_t mb[8] = {};
     hn::StoreMaskBits(d, hn::Lt(tv, best), mb);
-    lt |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    lt |= low_bits(mb, n) << i;
     if (!kAnyHit) {
       hn::StoreMaskBits(d, hn::Eq(tv, best), mb);
-      eq |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+      eq |= low_bits(mb, n) << i;
     }
   }
   if (kAnyHit) return lt & mask;
@@ -686,7 +697,8 @@ inline std::uint32_t apply8(Packet& p, const float* t, std::uint32_t id, std::ui
 }
 
 // One sphere against the 8 rays, in double exactly as sphere_t.
-inline void sphere8(const Packet& p, float cx, float cy, float cz, float radius, float* t) {
+template <int kP>
+inline void sphere8(const Packet<kP>& p, float cx, float cy, float cz, float radius, float* t) {
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const std::size_t n = hn::Lanes(dd);
@@ -705,7 +717,8 @@ inline void sphere8(const Packet& p, float cx, float cy, float cz, float radius,
 
 // One triangle (vertices v[vertex][axis]) against the 8 rays, exactly as triangle_t; each lane
 // picks its own shear axes. With `uvw`, the lanes' edge functions too.
-inline void triangle8(const Packet& p, const float (&v)[3][3], float* t, LaneUvw* uvw) {
+template <int kP>
+inline void triangle8(const Packet<kP>& p, const float (&v)[3][3], float* t, LaneUvw* uvw) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
@@ -767,7 +780,8 @@ inline void triangle8(const Packet& p, const float (&v)[3][3], float* t, LaneUvw
 // and far planes picked by each lane's direction sign, Max / Min in the order and with the NaN
 // rule of slab_span's comparisons (maxps / minps return their second operand when one is NaN, so
 // a NaN slab never constrains), then box_t's choice between the near and the far distance.
-inline void box8(const Packet& p, const float* b, float* t) {
+template <int kP>
+inline void box8(const Packet<kP>& p, const float* b, float* t) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
@@ -791,8 +805,8 @@ inline void box8(const Packet& p, const float* b, float* t) {
 
 // Tests a leaf against the lanes in `mask`. Returns the lanes that improved (nearest) or that are
 // blocked (any-hit).
-template <bool kAnyHit>
-inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, std::uint32_t mask) {
+template <int kP, bool kAnyHit>
+inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet<kP>& p, std::uint32_t mask) {
   std::uint32_t out = 0;
   alignas(64) float t[kP];
   for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
@@ -800,7 +814,7 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
     for (int j = 0; j < kWidth && mask != 0; ++j) {
       if (b.id[j] == kEmptyChild) break;
       sphere8(p, b.cx[j], b.cy[j], b.cz[j], b.r[j], t);
-      const std::uint32_t hit = apply8<kAnyHit>(p, t, b.id[j], mask);
+      const std::uint32_t hit = apply8<kP, kAnyHit>(p, t, b.id[j], mask);
       out |= hit;
       if (kAnyHit) mask &= ~hit;
     }
@@ -813,7 +827,7 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
                              {b.v[1][0][j], b.v[1][1][j], b.v[1][2][j]},
                              {b.v[2][0][j], b.v[2][1][j], b.v[2][2][j]}};
       triangle8(p, v, t, kAnyHit ? nullptr : &p.tri);
-      const std::uint32_t hit = apply8<kAnyHit>(p, t, b.id[j], mask, kAnyHit ? nullptr : &p.tri);
+      const std::uint32_t hit = apply8<kP, kAnyHit>(p, t, b.id[j], mask, kAnyHit ? nullptr : &p.tri);
       out |= hit;
       if (kAnyHit) mask &= ~hit;
     }
@@ -821,7 +835,7 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet& p, 
   for (std::uint32_t k = 0; k < leaf.box_count && mask != 0; ++k) {
     const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
     box8(p, bp.b, t);
-    const std::uint32_t hit = apply8<kAnyHit>(p, t, bp.id, mask);
+    const std::uint32_t hit = apply8<kP, kAnyHit>(p, t, bp.id, mask);
     out |= hit;
     if (kAnyHit) mask &= ~hit;
   }
@@ -836,6 +850,7 @@ struct Entry8 {
 };
 
 // Bits of the lanes i with a[i] <= b[i].
+template <int kP>
 inline std::uint32_t lanes_le(const float* a, const float* b) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
@@ -843,7 +858,7 @@ inline std::uint32_t lanes_le(const float* a, const float* b) {
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
     std::uint8_t mb[8] = {};
     hn::StoreMaskBits(d, hn::Le(hn::LoadU(d, a + i), hn::LoadU(d, b + i)), mb);
-    bits |= (std::uint32_t(mb[0]) & ((1u << n) - 1u)) << i;
+    bits |= low_bits(mb, n) << i;
   }
   return bits;
 }
@@ -851,8 +866,8 @@ inline std::uint32_t lanes_le(const float* a, const float* b) {
 // Packet traversal. A stack entry keeps each of its lanes' entry distance (nearest hits only), so
 // a pop drops exactly the lanes whose nearest hit found since is closer than their own entry
 // into the box: what testing the box again against the tightened interval would drop.
-template <bool kAnyHit>
-std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
+template <int kP, bool kAnyHit>
+std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
   Entry8 stack[kStackSize];
   alignas(64) float stack_dist[kAnyHit ? 1 : kStackSize][kP];
   int sp = 0;
@@ -877,7 +892,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
         }
       }
     } else if (cur & kLeafBit) {
-      const std::uint32_t hit = leaf8<kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], p, mask);
+      const std::uint32_t hit = leaf8<kP, kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], p, mask);
       result |= hit;
       if (kAnyHit) alive &= ~hit;
     } else {
@@ -913,7 +928,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
       if (sp == 0) return result;
       --sp;
       std::uint32_t m = stack[sp].mask & alive;
-      if (!kAnyHit) m &= lanes_le(stack_dist[sp], p.cull);
+      if (!kAnyHit) m &= lanes_le<kP>(stack_dist[sp], p.cull);
       if (m != 0) {
         cur = stack[sp].ref;
         mask = m;
@@ -923,16 +938,17 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet& p, std::uint32_t live) {
   }
 }
 
-std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
+template <int kP>
+std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
                          std::uint32_t* best_id, TriangleUvw* uvw) {
-  Packet p;
+  Packet<kP> p;
   make_packet(bvh, rays, valid, p, false);
   for (int i = 0; i < kP; ++i) {
     p.best[i] = (valid >> i & 1u) ? best_t[i] : -kInfF;
     p.id[i] = best_id[i];
     p.cull[i] = p.best[i] * kFarScale;
   }
-  const std::uint32_t improved = traverse8<false>(bvh, p, valid);
+  const std::uint32_t improved = traverse8<kP, false>(bvh, p, valid);
   for (int i = 0; i < kP; ++i) {
     if (improved >> i & 1u) {
       best_t[i] = p.best[i];
@@ -943,14 +959,20 @@ std::uint32_t Intersect8(const WideBvh& bvh, const math::Ray* rays, std::uint32_
   return improved;
 }
 
-std::uint32_t Occluded8(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid) {
-  Packet p;
+template <int kP>
+std::uint32_t OccludedN(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid) {
+  Packet<kP> p;
   make_packet(bvh, rays, valid, p, true);
-  return traverse8<true>(bvh, p, valid);
+  return traverse8<kP, true>(bvh, p, valid);
 }
 
 extern const Kernels kKernels;
-const Kernels kKernels = {&Intersect1, &Occluded1, &Intersect8, &Occluded8};
+const Kernels kKernels = {&Intersect1,
+                          &Occluded1,
+                          &IntersectN<kPacketSize>,
+                          &OccludedN<kPacketSize>,
+                          &IntersectN<kPacketSize16>,
+                          &OccludedN<kPacketSize16>};
 
 }  // namespace HWY_NAMESPACE
 }  // namespace dtraced::accel::detail

@@ -90,6 +90,10 @@ struct Kernels {
   std::uint32_t (*intersect8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
                               std::uint32_t* best_id, TriangleUvw* uvw);
   std::uint32_t (*occluded8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid);
+  // The same for packets of 16 (one AVX-512 vector of floats; two AVX2, four SSE4 vectors).
+  std::uint32_t (*intersect16)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
+                               std::uint32_t* best_id, TriangleUvw* uvw);
+  std::uint32_t (*occluded16)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid);
 };
 
 // The kernels compiled for `isa` (a SIMD isa that supported_isas() lists).

@@ -63,8 +63,10 @@ void fill1(const math::Ray& r, RTCRay& e) {
   e.flags = 0;
 }
 
-void fill8(const math::Ray* rays, std::uint32_t valid, RTCRay8& e, int* v) {
-  for (int i = 0; i < 8; ++i) {
+// RTCRay8 or RTCRay16 from N rays; v[i] is -1 for the lanes of `valid`, else 0.
+template <int N, class Packet>
+void fill_n(const math::Ray* rays, std::uint32_t valid, Packet& e, int* v) {
+  for (int i = 0; i < N; ++i) {
     const math::Ray& r = rays[i];
     v[i] = (valid >> i & 1u) ? -1 : 0;
     e.org_x[i] = r.o.x;
@@ -191,7 +193,7 @@ void EmbreeTracer::intersect8(const math::Ray* rays, std::uint32_t valid, std::u
   RTCIntersectContext ctx = context(coherent);
   alignas(32) RTCRayHit8 rh;
   alignas(32) int v[8];
-  fill8(rays, valid, rh.ray, v);
+  fill_n<8>(rays, valid, rh.ray, v);
   for (int i = 0; i < 8; ++i) {
     rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
@@ -217,9 +219,35 @@ void EmbreeTracer::occluded8(const math::Ray* rays, std::uint32_t valid, std::ui
   RTCIntersectContext ctx = context(coherent);
   alignas(32) RTCRay8 r;
   alignas(32) int v[8];
-  fill8(rays, valid, r, v);
+  fill_n<8>(rays, valid, r, v);
   rtcOccluded8(v, impl_->scene, &ctx, &r);
   for (int i = 0; i < 8; ++i) {
+    if (valid >> i & 1u) blocked[i] = r.tfar[i] < 0.0f ? 1u : 0u;
+  }
+}
+
+void EmbreeTracer::intersect16(const math::Ray* rays, std::uint32_t valid, std::uint32_t* ids, bool coherent) const {
+  RTCIntersectContext ctx = context(coherent);
+  alignas(64) RTCRayHit16 rh;
+  alignas(64) int v[16];
+  fill_n<16>(rays, valid, rh.ray, v);
+  for (int i = 0; i < 16; ++i) {
+    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+  }
+  rtcIntersect16(v, impl_->scene, &ctx, &rh);
+  for (int i = 0; i < 16; ++i) {
+    if (valid >> i & 1u) ids[i] = impl_->id(rh.hit.geomID[i], rh.hit.primID[i]);
+  }
+}
+
+void EmbreeTracer::occluded16(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const {
+  RTCIntersectContext ctx = context(coherent);
+  alignas(64) RTCRay16 r;
+  alignas(64) int v[16];
+  fill_n<16>(rays, valid, r, v);
+  rtcOccluded16(v, impl_->scene, &ctx, &r);
+  for (int i = 0; i < 16; ++i) {
     if (valid >> i & 1u) blocked[i] = r.tfar[i] < 0.0f ? 1u : 0u;
   }
 }

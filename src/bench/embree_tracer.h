@@ -8,7 +8,8 @@
 // Embree primitive: they are left out and counted in `skipped`, and the benchmark's scenes contain
 // none of them.
 //
-// Every call traces up to 8 rays (one of the benchmark's packets) and writes, per valid lane, the
+// Every call traces up to 8 rays (one of the benchmark's packets; 16, two packets, for the *16
+// calls) and writes, per valid lane, the
 // index of the Shape that was hit (kMissId on a miss) or 1/0 for occluded/free. Invalid lanes are
 // left alone.
 // Thread-safety: immutable after build; any number of threads may trace at once (rtcIntersect* and
@@ -47,6 +48,9 @@ class EmbreeTracer {
   // rtcOccluded1 per valid lane / one rtcOccluded8 call; writes 1 (occluded) or 0.
   void occluded1(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const;
   void occluded8(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const;
+  // One rtcIntersect16 / rtcOccluded16 call on 16 rays (two of the benchmark's packets).
+  void intersect16(const math::Ray* rays, std::uint32_t valid, std::uint32_t* ids, bool coherent) const;
+  void occluded16(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const;
 
   double build_seconds() const { return build_seconds_; }  // wall time of rtcCommitScene
   std::size_t skipped() const { return skipped_; }         // boxes and planes left out
