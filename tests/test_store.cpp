@@ -15,6 +15,7 @@
 
 namespace {
 using namespace dtraced::testing;
+using dtraced::store::CheckpointMode;
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------
@@ -332,4 +333,38 @@ TEST_CASE("state paths that are not what they should be", "[store]") {
     Store store = open_ok(tmp.path());
     CHECK(store.list_jobs().ok());
   }
+}
+
+TEST_CASE("a reuse checkpoint copies every frame and the next writes overwrite the WAL file", "[store][wal]") {
+  StoreDir tmp;
+  Store s = open_ok(tmp.path());
+  const std::int64_t job = make_job(s);
+  const std::string wal = tmp.db() + "-wal";
+  const auto write_batch = [&](std::uint32_t first) {
+    std::vector<TileWrite> w;
+    for (std::uint32_t t = first; t < first + 8; ++t) w.push_back(tile_write(job, t, kBenchTileBytes));
+    REQUIRE(s.insert_tiles(w).ok());
+  };
+  write_batch(0);
+  const auto grown = fs::file_size(wal);
+  REQUIRE(grown > 8 * kBenchTileBytes);
+
+  auto reuse = s.checkpoint(CheckpointMode::kReuse);
+  REQUIRE(reuse.ok());
+  CHECK(reuse.value().wal_frames > 0);
+  CHECK(reuse.value().copied_frames == reuse.value().wal_frames);
+  CHECK(reuse.value().complete);
+  CHECK_FALSE(reuse.value().truncated);
+  CHECK(fs::file_size(wal) == grown);  // kept, not truncated
+
+  // The same amount again starts over at the WAL's beginning: appended, the file would double.
+  write_batch(8);
+  CHECK(fs::file_size(wal) <= grown + grown / 8);
+
+  auto truncate = s.checkpoint(CheckpointMode::kTruncate);
+  REQUIRE(truncate.ok());
+  CHECK(truncate.value().truncated);
+  CHECK(truncate.value().complete);
+  CHECK(fs::file_size(wal) == 0);
+  CHECK(s.count_tiles(job).value() == 16);
 }

@@ -127,9 +127,14 @@ const image::ImageRGBf& output_pixels(const image::ImageRGBf& full, const std::o
 
 store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp) {
   assert(spp.empty() || spp.size() * 3 == rgb.size());
-  store::Blob blob(rgb.size_bytes() + spp.size_bytes());
-  if (!rgb.empty()) std::memcpy(blob.data(), rgb.data(), rgb.size_bytes());
-  if (!spp.empty()) std::memcpy(blob.data() + rgb.size_bytes(), spp.data(), spp.size_bytes());
+  // Appended, not sized first: sizing would zero every byte before the copy overwrites it (a
+  // pass over each stored tile on the event loop).
+  const auto* rgb_bytes = reinterpret_cast<const std::uint8_t*>(rgb.data());
+  const auto* spp_bytes = reinterpret_cast<const std::uint8_t*>(spp.data());
+  store::Blob blob;
+  blob.reserve(rgb.size_bytes() + spp.size_bytes());
+  blob.insert(blob.end(), rgb_bytes, rgb_bytes + rgb.size_bytes());
+  blob.insert(blob.end(), spp_bytes, spp_bytes + spp.size_bytes());
   return blob;
 }
 

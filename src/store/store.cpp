@@ -27,6 +27,8 @@ namespace fs = std::filesystem;
 // The page size of a new database file: SQLite's default. Tiles of tens of kilobytes live mostly
 // in overflow pages, but 16 and 64 KiB pages measured no faster for 49 KB tiles (the time goes
 // to the WAL fsync and the checkpoint copy, not to per-page overhead), and small rows stay compact.
+// Issue 16 tried 16 KiB again for 12 KB tiles (one page per tile instead of four): no gain above
+// the noise, and a tile with sample counts (16 KiB + its row) then takes two 16 KiB pages.
 constexpr int kPageSizeBytes = 4096;
 
 // The jobs table's columns, shared by the schema and the upgrade that rebuilds the table.
@@ -462,18 +464,24 @@ Status Store::Impl::keep_wal_files() {
   return {};
 }
 
-Result<CheckpointResult> Store::checkpoint() {
+Result<CheckpointResult> Store::checkpoint(CheckpointMode mode) {
   // A zero busy timeout: a reader in the way makes the checkpoint partial, never a wait on the
   // writer thread (acknowledgements would wait with it).
   sqlite3_busy_timeout(impl_->db, 0);
   CheckpointResult result;
-  const int rc = sqlite3_wal_checkpoint_v2(impl_->db, "main", SQLITE_CHECKPOINT_TRUNCATE, &result.wal_frames,
-                                           &result.copied_frames);
+  const int how = mode == CheckpointMode::kTruncate ? SQLITE_CHECKPOINT_TRUNCATE : SQLITE_CHECKPOINT_PASSIVE;
+  const int rc = sqlite3_wal_checkpoint_v2(impl_->db, "main", how, &result.wal_frames, &result.copied_frames);
   sqlite3_busy_timeout(impl_->db, impl_->busy_timeout_ms);
   if (rc == SQLITE_BUSY) return result;
   if (rc != SQLITE_OK) return impl_->error("checkpointing the WAL", rc);
-  // After a TRUNCATE checkpoint that succeeded, SQLite reports an empty log.
-  result.truncated = result.wal_frames == 0 && result.copied_frames == 0;
+  // After a TRUNCATE checkpoint that succeeded, SQLite reports an empty log; a PASSIVE one that
+  // copied every frame reports as many copied as there are.
+  if (mode == CheckpointMode::kTruncate) {
+    result.truncated = result.wal_frames == 0 && result.copied_frames == 0;
+    result.complete = result.truncated;
+  } else {
+    result.complete = result.copied_frames == result.wal_frames;
+  }
   return result;
 }
 

@@ -144,11 +144,21 @@ struct CommitResult {
 
 // What a checkpoint did: the WAL's frames before it, how many of them are in the database file
 // now, and whether the WAL file was emptied (every frame copied and no reader still using it).
+// `complete`: every frame is in the database file (after kTruncate, the same as `truncated`;
+// after kReuse, the next write starts the WAL over from its beginning).
 struct CheckpointResult {
   int wal_frames = 0;
   int copied_frames = 0;
   bool truncated = false;
+  bool complete = false;
 };
+
+// How Store::checkpoint leaves the WAL file. kTruncate empties it (wal_checkpoint(TRUNCATE): an
+// ftruncate and, on the next writes, the file's blocks allocated again). kReuse copies the frames
+// into the database and keeps the file (wal_checkpoint(PASSIVE)): once every frame is copied, the
+// next write transaction overwrites the WAL from its start, so a busy writer reuses the same
+// blocks instead of shrinking and regrowing the file; journal_size_limit still caps what stays.
+enum class CheckpointMode { kTruncate, kReuse };
 
 // What delete_job did: deleted (with how many tiles and whether the job's scene went with it),
 // or refused because the job is in `state`, which was not one of the states allowed.
@@ -302,14 +312,15 @@ class Store {
                                   std::string_view role, std::span<const std::uint8_t> token_sha256,
                                   std::int64_t now_unix);
 
-  // Copies the WAL into the database file and empties the WAL file (wal_checkpoint(TRUNCATE)),
+  // Copies the WAL into the database file and, with kTruncate, empties the WAL file
+  // (wal_checkpoint(TRUNCATE); kReuse keeps the file for the next writes, see CheckpointMode),
   // without waiting for other connections: while a reader still uses an older snapshot, it copies
-  // what it can and reports truncated = false, which is no error. SQLite's own checkpoints (every
+  // what it can and reports truncated = complete = false, which is no error. SQLite's own checkpoints (every
   // 1000 pages, PASSIVE) never shrink the file below journal_size_limit, and none runs while the
   // collector is idle; TileWriter calls this when idle and every few batches, so the WAL stays a
   // few batches long instead of growing with the job. An error is an I/O failure (a full disk:
   // copying into the database may need to grow it), naming the file; nothing is lost by it.
-  util::Result<CheckpointResult> checkpoint();
+  util::Result<CheckpointResult> checkpoint(CheckpointMode mode = CheckpointMode::kTruncate);
 
  private:
   struct Impl;

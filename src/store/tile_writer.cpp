@@ -97,13 +97,16 @@ void TileWriter::run() {
   std::vector<Item> batch;
   const auto has_work = [this] { return stopping_ || !queue_.empty(); };
   for (;;) {
-    if (writes_since_checkpoint_ >= std::max<std::size_t>(limits_.checkpoint_every_batches, 1)) checkpoint();
+    // Under load the WAL file is kept for the next writes; once idle (or stopping) it is emptied.
+    if (writes_since_checkpoint_ >= std::max<std::size_t>(limits_.checkpoint_every_batches, 1)) {
+      checkpoint(CheckpointMode::kReuse);
+    }
     if (writes_since_checkpoint_ > 0) {
       std::unique_lock lock(mu_);
       // The queue stayed empty for checkpoint_when_idle, or a stop left nothing to write.
       const bool idle = !wake_.wait_for(lock, limits_.checkpoint_when_idle, has_work) || queue_.empty();
       lock.unlock();
-      if (idle) checkpoint();
+      if (idle) checkpoint(CheckpointMode::kTruncate);
     }
     {
       std::unique_lock lock(mu_);
@@ -171,15 +174,15 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
   }
 }
 
-void TileWriter::checkpoint() {
+void TileWriter::checkpoint(CheckpointMode mode) {
   writes_since_checkpoint_ = 0;
-  auto result = store_.checkpoint();
+  auto result = store_.checkpoint(mode);
   {
     std::lock_guard lock(mu_);
     ++stats_.checkpoints;
     if (!result) {
       ++stats_.checkpoints_failed;
-    } else if (!result.value().truncated) {
+    } else if (!result.value().complete) {
       ++stats_.checkpoints_partial;
     }
   }

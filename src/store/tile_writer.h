@@ -10,7 +10,8 @@
 // tile of the batch gets kFailed and none is acknowledged; the thread goes on with the next batch.
 // The thread also checkpoints the WAL (WriterLimits::checkpoint_every_batches and
 // checkpoint_when_idle), so the -wal file stays a few batches long and is empty soon after the
-// writer goes idle.
+// writer goes idle. Under load the checkpoint keeps the file (CheckpointMode::kReuse: the next
+// batches overwrite its blocks instead of growing a truncated file again); the idle one empties it.
 //
 // Other writes (scenes, jobs, state changes) are posted as tasks: a task runs on the writer thread
 // with the Store, in order with the tiles submitted before and after it, each store call its own
@@ -80,7 +81,7 @@ struct WriterStats {
   std::uint64_t tasks_run = 0;
   std::uint64_t largest_batch = 0;
   std::uint64_t checkpoints = 0;          // attempted
-  std::uint64_t checkpoints_partial = 0;  // a reader kept the WAL from being emptied
+  std::uint64_t checkpoints_partial = 0;  // a reader kept some frames from being copied
   std::uint64_t checkpoints_failed = 0;   // an I/O error (a full disk)
   double write_seconds = 0;               // total time inside tile transactions (inserts + COMMIT)
   std::size_t pending_tiles = 0;
@@ -122,7 +123,7 @@ class TileWriter {
   void run();
   void write_tiles(std::vector<Item>& items, std::size_t begin, std::size_t end);
   void run_task(Item& item);
-  void checkpoint();
+  void checkpoint(CheckpointMode mode);
 
   Store store_;  // used by thread_ only
   const WriterLimits limits_;
