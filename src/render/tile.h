@@ -7,17 +7,19 @@
 //
 // Adaptive sampling (settings.error_target > 0): a pixel may stop at the checkpoints
 // n = min_samples, 2 min_samples, 4 min_samples, ... below settings.samples, once its estimated
-// relative standard error sqrt(max_c (s_c^2 / n) / (mean_c^2 + 0.01)) (s^2 the unbiased sample
-// variance of its own samples) is at most error_target; otherwise it takes all settings.samples.
-// At the first checkpoint (n = min_samples) a pixel stops only if its 8 neighbours in the image
-// pass the same test on their own first min_samples samples too: one pixel's samples can all
-// miss an edge that clips it, its neighbours' do not. The tile renders its one-pixel border for
-// that (TraceStats::border_rays). Later checkpoints read the pixel's own samples only. Every
-// decision reads samples that are a pure function of (seed, frame, pixel, sample index), so the
-// image stays the same bits under any tiling, thread count, packet mode, ISA or farm layout. A
-// checkpoint of n = 1 never stops a pixel (one sample has no variance estimate); a sample
-// dropped as NaN/Inf counts as a zero. Memory: an adaptive render keeps 53 bytes of running
-// state per pixel of the tile between its phases; a uniform one keeps a block's only.
+// relative standard error sqrt(max_c (v_c / (mean_c^2 + 0.01))) is at most error_target;
+// otherwise it takes all settings.samples. v_c estimates the variance of its mean: from 4 samples
+// up, from its own samples (the spread of its four quarters' means, or s^2/n). At the first
+// checkpoint (n = min_samples, 1 and 2 included) v_c is at least the variance of its 3x3
+// neighbourhood's means about their fitted plane: one pixel's samples can all miss an edge that
+// clips it, its neighbours' do not, and with 1 sample it has no estimate of its own. The tile
+// renders its one-pixel border for that (TraceStats::border_rays). A pixel that goes on keeps
+// that neighbourhood estimate as a prior, scaled by (min_samples / n)^1.5, so that later
+// checkpoints cannot stop it on a few own samples that agree by chance. Every decision reads
+// samples that are a pure function of (seed, frame, pixel, sample index), so the image stays the
+// same bits under any tiling, thread count, packet mode, ISA or farm layout. A sample dropped as
+// NaN/Inf counts as a zero. Memory: an adaptive render keeps 169 bytes of running state per pixel
+// of the tile between its phases; a uniform one keeps a block's only.
 // Thread-safe: any number of tiles may render at once over one shared RenderScene.
 #pragma once
 

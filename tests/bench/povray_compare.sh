@@ -36,7 +36,10 @@ RUNS=${RUNS:-5}
 REF_SPP=${REF_SPP:-256}
 REF_SEED=977 # not the scenes' own seed: a reference sharing the renders' samples would flatter them
 OUT=${OUT:-$root/build/bench-povray}
-LADDER=${LADDER:-"-s 2;-s 4;-s 8;-s 16;-s 32;-s 32 --min-samples 4 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.04;-s 32 --min-samples 4 --error-target 0.02;-s 64 --min-samples 4 --error-target 0.01"}
+# The ladder: uniform, then adaptive from a first checkpoint of 1 sample (the neighbourhood
+# decides, like POV-Ray's antialiasing threshold) up to tight targets; settings between -s 4 and
+# the adaptive ones at 4 so that the cheapest one reaching POV-Ray's error does not overshoot it.
+LADDER=${LADDER:-"-s 2;-s 4;-s 8;-s 16;-s 16 --min-samples 1 --error-target 0.08;-s 32 --min-samples 1 --error-target 0.16;-s 32 --min-samples 1 --error-target 0.12;-s 32 --min-samples 1 --error-target 0.08;-s 32 --min-samples 2 --error-target 0.12;-s 32 --min-samples 2 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.16;-s 32 --min-samples 4 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.04;-s 64 --min-samples 4 --error-target 0.01"}
 
 fail() {
   echo "povray_compare: $*" >&2
@@ -57,12 +60,18 @@ median() { printf '%s\n' "$@" | sort -g | awk '{ v[NR] = $1 } END { print (NR % 
 ratio() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.2f", a / b }'; }
 verdict() { awk -v r="$1" -v t="$2" 'BEGIN { print (r >= t) ? "MET" : "MISSED" }'; }
 
+# dtraced_line SCENE OUTPUT THREADS ARGS...: prints dtraced's "rendered ..." line.
+dtraced_line() {
+  local scene=$1 out=$2 t=$3
+  shift 3
+  "$DTRACED" render "$scene" -o "$out" --width "$WIDTH" --height "$HEIGHT" --bit-depth 16 -t "$t" "$@" 2>&1 |
+    grep '^rendered ' || fail "dtraced render $scene $* failed"
+}
+
 # dtraced_render SCENE OUTPUT THREADS ARGS...: prints the render phase in seconds.
 dtraced_render() {
-  local scene=$1 out=$2 t=$3 line
-  shift 3
-  line=$("$DTRACED" render "$scene" -o "$out" --width "$WIDTH" --height "$HEIGHT" --bit-depth 16 -t "$t" "$@" 2>&1 |
-    grep '^rendered ') || fail "dtraced render $scene $* failed"
+  local line
+  line=$(dtraced_line "$@") || exit 1
   sed -n 's/.* in \([0-9.]*\) s .*/\1/p' <<<"$line"
 }
 
@@ -110,11 +119,15 @@ for name in $SCENES; do
 
   # The equal-error ladder: every setting once at the top thread count, for its PSNR.
   IFS=';' read -r -a ladder <<<"$LADDER"
-  ladder_psnr=()
+  # Also its mean samples and rays per pixel: deterministic, so a cost that load cannot blur.
+  ladder_psnr=() ladder_cost=()
   for i in "${!ladder[@]}"; do
     read -r -a args <<<"${ladder[$i]}"
-    dtraced_render "$json" "$dir/dtraced-ladder-$i.png" "$top" "${args[@]}" >/dev/null
+    line=$(dtraced_line "$json" "$dir/dtraced-ladder-$i.png" "$top" "${args[@]}") || exit 1
     ladder_psnr+=("$(psnr "$dir/dtraced-ladder-$i.png" "$dref")")
+    spp=$(sed -n 's/.* at a mean \([0-9.]*\) of .*/\1/p; s/.* at \([0-9]*\) spp .*/\1/p' <<<"$line")
+    rays=$(sed -n 's/.*: \([0-9.]*\) M rays.*/\1/p' <<<"$line")
+    ladder_cost+=("$spp spp, $(awk -v r="$rays" -v n=$((WIDTH * HEIGHT)) 'BEGIN { printf "%.1f", r * 1e6 / n }') rays/pixel")
   done
 
   echo
@@ -169,7 +182,7 @@ for name in $SCENES; do
   # The reference's own noise is the 1-spp noise over REF_SPP: errors near this floor are not measurable.
   echo "dtraced reference noise floor: about $(awk -v p="$(psnr "$dir/dtraced-1spp.png" "$dref")" -v n="$REF_SPP" 'BEGIN { printf "%.1f", p + 10 * log(n) / log(10) }') dB PSNR"
   echo "dtraced ladder at $top threads (PSNR against its own reference):"
-  for i in "${!ladder[@]}"; do echo "  ${ladder[$i]}: ${ladder_psnr[$i]} dB"; done
+  for i in "${!ladder[@]}"; do echo "  ${ladder[$i]}: ${ladder_psnr[$i]} dB (${ladder_cost[$i]})"; done
 done
 echo
 echo "summary (POV-Ray time / dtraced time; targets: 3 without AA, 2 at equal error):"
