@@ -1,9 +1,12 @@
 // Closed-form checks of the Whitted integrator, Fresnel edge cases, determinism of the tiled
 // renderer, and bitwise equality of the packet and the per-pixel paths on every isa.
+#include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <iterator>
 #include <numbers>
 #include <optional>
+#include <vector>
 
 #include <catch2/catch.hpp>
 
@@ -284,7 +287,7 @@ TEST_CASE("Images are bitwise identical for any tile size and thread count", "[r
 namespace {
 
 // Renders `d` on every supported isa, per pixel and in packets, in tilings that leave partial 4x2
-// blocks at tile edges, and requires every image and every ray count to equal the reference:
+// and 4x4 blocks at tile edges, and requires every image and every ray count to equal the reference:
 // per pixel on the scalar isa in one tile. Returns the reference.
 Rendered check_packets_match_per_pixel(const scene::SceneDesc& d) {
   const render::RenderScene reference_scene = render::RenderScene::build(d, accel::Isa::kScalar);
@@ -299,7 +302,7 @@ Rendered check_packets_match_per_pixel(const scene::SceneDesc& d) {
       bool packets;
     };
     for (const Tiling t : {Tiling{w, h, false}, Tiling{w, h, true}, Tiling{13, 7, true}, Tiling{4, 2, true},
-                           Tiling{6, 5, true}, Tiling{13, 7, false}}) {
+                           Tiling{6, 5, true}, Tiling{5, 3, true}, Tiling{13, 7, false}}) {
       INFO("tiles " << t.tw << "x" << t.th << (t.packets ? " packets" : " per pixel"));
       require_identical(reference, render_tiled(rs, d.render, t.tw, t.th, t.packets));
     }
@@ -322,7 +325,7 @@ TEST_CASE("Packets render the bundled scenes bitwise like the per-pixel path on 
                            "hard/nested_glass.json", "hard/huge_ground.json", "hard/inside_glass.json"}) {
     INFO(name);
     scene::SceneDesc d = testing::load_bundled(name);
-    // Small and odd-sized: partial 4x2 blocks at the image's own right and bottom edges too.
+    // Small and odd-sized: partial 4x2 and 4x4 blocks at the image's own right and bottom edges too.
     d.render.width = 37;
     d.render.height = 23;
     d.render.samples = 2;
@@ -344,6 +347,62 @@ TEST_CASE("Packets render a generated sphere field bitwise like the per-pixel pa
   d.render.height = 15;
   check_packets_match_per_pixel(d);
   check_packets_match_per_pixel(without_transparency(d));
+}
+
+// 16-ray packets straight through trace_radiance16: every lane of a 4x4 camera block, under
+// masks that leave lanes out (a partial block at a tile edge, converged pixels), must be
+// trace_radiance's bits with the same ray count, on a static scene (one intersect16 /
+// occluded16 query) and on a frame whose moving objects are a second layer (two 8-ray halves).
+TEST_CASE("trace_radiance16 gives every lane trace_radiance's bits, one layer or two", "[render][packets]") {
+  scene::SceneDesc d = scene::generate_sphere_field(2000, 11);
+  d.render.width = 64;
+  d.render.height = 48;
+  std::vector<bool> moving(d.objects.size(), false);
+  for (std::size_t i = 0; i < moving.size(); i += 3) moving[i] = true;
+  for (const bool opaque : {false, true}) {
+    const scene::SceneDesc desc = opaque ? without_transparency(d) : d;
+    for (const accel::Isa isa : accel::supported_isas()) {
+      INFO("isa " << accel::isa_name(isa) << (opaque ? ", opaque" : ", with glass"));
+      const render::RenderScene whole = render::RenderScene::build(desc, isa);
+      const auto part = render::StaticPart::build(desc, moving, isa);
+      const render::RenderScene layered = render::RenderScene::build_frame(desc, *part);
+      REQUIRE(whole.geometry().moving() == nullptr);
+      REQUIRE(layered.geometry().moving() != nullptr);
+      const render::TraceLimits limits{Vec3f{0.1f, 0.2f, 0.3f}, 8};
+      int lanes_hit = 0;
+      for (const std::uint32_t valid : {0xffffu, 0x0f0fu, 0x7777u, 0x8001u, 0x00ffu, 0xff00u, 0x0001u, 0u}) {
+        for (std::uint32_t by = 0; by < d.render.height; by += 4) {
+          for (std::uint32_t bx = 0; bx < d.render.width; bx += 4) {
+            math::Ray rays[accel::kPacketSize16];
+            math::SampleKey keys[accel::kPacketSize16];
+            for (int i = 0; i < accel::kPacketSize16; ++i) {
+              const std::uint32_t x = bx + i % 4, y = by + i / 4;
+              rays[i] = whole.camera().generate(x + 0.25, y + 0.75, d.render.width, d.render.height);
+              keys[i] = math::SampleKey{7, 0, x, y, 1};
+            }
+            for (const render::RenderScene* rs : {&whole, &layered}) {
+              const Vec3f unset{-1, -1, -1};
+              Vec3f out[accel::kPacketSize16];
+              std::fill(std::begin(out), std::end(out), unset);
+              render::TraceStats packet_stats, single_stats;
+              render::trace_radiance16(*rs, rays, keys, valid, limits, packet_stats, out);
+              for (int i = 0; i < accel::kPacketSize16; ++i) {
+                INFO("block " << bx << "," << by << " lane " << i << " mask " << valid);
+                if (valid >> i & 1u) {
+                  REQUIRE(out[i] == render::trace_radiance(*rs, rays[i], keys[i], limits, single_stats));
+                  if (out[i] != limits.background) ++lanes_hit;
+                } else {
+                  REQUIRE(out[i] == unset);  // left alone
+                }
+              }
+              REQUIRE(packet_stats.rays == single_stats.rays);
+            }
+          }
+        }
+      }
+      REQUIRE(lanes_hit > 1000);  // the blocks meet the spheres, not just the background
+    }
+  }
 }
 
 TEST_CASE("Packets match per pixel with misses, lights behind and on surfaces, and many lights", "[render][packets]") {

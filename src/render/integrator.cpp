@@ -413,18 +413,57 @@ Vec3f trace_radiance_with(const RenderScene& scene, const math::Ray& ray, const 
   return tracer.trace(ray, 0, 1.0f, tracer.camera_media());
 }
 
-template <unsigned kF>
-void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys,
-                          std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
+// A packet of kN (8 or 16) rays through the geometry. 16-ray packets go to the one layer of a
+// static scene; two layers (an animated frame) have 8-ray queries only, so their 16 rays are
+// traced as two 8-ray halves: the same answers either way.
+template <int kN>
+std::uint32_t intersect_packet(const accel::LayeredGeometry& geometry, const math::Ray* rays, std::uint32_t valid,
+                               accel::Hit* hits) {
+  if constexpr (kN == accel::kPacketSize) {
+    return geometry.intersect8(rays, valid, hits);
+  } else {
+    static_assert(kN == 2 * accel::kPacketSize);
+    const accel::Layer* whole = geometry.fixed();
+    if (geometry.moving() == nullptr && whole != nullptr && whole->ids.empty()) {
+      return whole->geometry.intersect16(rays, valid, hits);
+    }
+    constexpr int kH = accel::kPacketSize;
+    constexpr std::uint32_t kHalf = (1u << kH) - 1;
+    const std::uint32_t lo = (valid & kHalf) != 0 ? geometry.intersect8(rays, valid & kHalf, hits) : 0;
+    const std::uint32_t hi = (valid >> kH) != 0 ? geometry.intersect8(rays + kH, valid >> kH, hits + kH) : 0;
+    return (lo & kHalf) | (hi & kHalf) << kH;
+  }
+}
+
+template <int kN>
+std::uint32_t occluded_packet(const accel::LayeredGeometry& geometry, const math::Ray* rays, std::uint32_t valid) {
+  if constexpr (kN == accel::kPacketSize) {
+    return geometry.occluded8(rays, valid);
+  } else {
+    static_assert(kN == 2 * accel::kPacketSize);
+    const accel::Layer* whole = geometry.fixed();
+    if (geometry.moving() == nullptr && whole != nullptr && whole->ids.empty()) {
+      return whole->geometry.occluded16(rays, valid);
+    }
+    constexpr int kH = accel::kPacketSize;
+    constexpr std::uint32_t kHalf = (1u << kH) - 1;
+    const std::uint32_t lo = (valid & kHalf) != 0 ? geometry.occluded8(rays, valid & kHalf) : 0;
+    const std::uint32_t hi = (valid >> kH) != 0 ? geometry.occluded8(rays + kH, valid >> kH) : 0;
+    return (lo & kHalf) | (hi & kHalf) << kH;
+  }
+}
+
+template <unsigned kF, int kN>
+void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys,
+                       std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
   using T = Tracer<kF>;
-  constexpr int kN = accel::kPacketSize;
   T tracer{scene, limits, stats};
   const accel::LayeredGeometry& geometry = scene.geometry();
   const MediumStack camera_media = tracer.camera_media();
 
   accel::Hit hits[kN];
   stats.rays += std::popcount(valid);
-  const std::uint32_t hit_mask = geometry.intersect8(rays, valid, hits) & valid;
+  const std::uint32_t hit_mask = intersect_packet<kN>(geometry, rays, valid, hits) & valid;
 
   // Shadow rays of the first hits towards the point lights as packets, one per light: occluded8
   // when the scene is opaque (a pure any-hit query); with transparent objects, intersect8 finds
@@ -462,7 +501,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
       // Lights are summed in scene order per lane, as Tracer::point_direct does; a blocked light
       // (visibility 0) adds nothing.
       if (!tracer.transparent_scene()) {
-        const std::uint32_t blocked = geometry.occluded8(shadow, cast);
+        const std::uint32_t blocked = occluded_packet<kN>(geometry, shadow, cast);
         for (int i = 0; i < kN; ++i) {
           if ((cast & ~blocked) >> i & 1u) {
             direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
@@ -471,7 +510,7 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
         continue;
       }
       typename T::KnownHit first[kN];
-      const std::uint32_t crossed = geometry.intersect8(shadow, cast, hits_scratch);
+      const std::uint32_t crossed = intersect_packet<kN>(geometry, shadow, cast, hits_scratch);
       for (int i = 0; i < kN; ++i) {
         if (!(cast >> i & 1u)) continue;
         first[i].found = crossed >> i & 1u;
@@ -496,8 +535,8 @@ void trace_radiance8_with(const RenderScene& scene, const math::Ray* rays, const
 // One instantiation per feature set, indexed by its bits (feature_bits).
 using RadianceFn = Vec3f (*)(const RenderScene&, const math::Ray&, const math::SampleKey&, const TraceLimits&,
                              TraceStats&);
-using Radiance8Fn = void (*)(const RenderScene&, const math::Ray*, const math::SampleKey*, std::uint32_t,
-                             const TraceLimits&, TraceStats&, Vec3f*);
+using RadiancePacketFn = void (*)(const RenderScene&, const math::Ray*, const math::SampleKey*, std::uint32_t,
+                                  const TraceLimits&, TraceStats&, Vec3f*);
 
 // Whether some scene has feature set kF: point lights always cast shadows, and shadows need a
 // light. The 24 other sets of the 64 are never derived; their entries run the generic path
@@ -512,11 +551,16 @@ constexpr std::array<RadianceFn, sizeof...(I)> radiance_table(std::index_sequenc
   return {&trace_radiance_with < derivable(I) ? unsigned(I) : kAllFeatures > ...};
 }
 template <std::size_t... I>
-constexpr std::array<Radiance8Fn, sizeof...(I)> radiance8_table(std::index_sequence<I...>) {
-  return {&trace_radiance8_with < derivable(I) ? unsigned(I) : kAllFeatures > ...};
+constexpr std::array<RadiancePacketFn, sizeof...(I)> radiance8_table(std::index_sequence<I...>) {
+  return {&trace_packet_with < derivable(I) ? unsigned(I) : kAllFeatures, accel::kPacketSize > ...};
+}
+template <std::size_t... I>
+constexpr std::array<RadiancePacketFn, sizeof...(I)> radiance16_table(std::index_sequence<I...>) {
+  return {&trace_packet_with < derivable(I) ? unsigned(I) : kAllFeatures, accel::kPacketSize16 > ...};
 }
 constexpr auto kRadianceFns = radiance_table(std::make_index_sequence<kAllFeatures + 1>{});
 constexpr auto kRadiance8Fns = radiance8_table(std::make_index_sequence<kAllFeatures + 1>{});
+constexpr auto kRadiance16Fns = radiance16_table(std::make_index_sequence<kAllFeatures + 1>{});
 static_assert(derivable(kAllFeatures) && derivable(0));
 
 unsigned path_features(const RenderScene& scene, const TraceLimits& limits) {
@@ -535,6 +579,13 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math
   valid &= (1u << accel::kPacketSize) - 1;
   if (valid == 0) return;
   kRadiance8Fns[path_features(scene, limits)](scene, rays, keys, valid, limits, stats, out);
+}
+
+void trace_radiance16(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys, std::uint32_t valid,
+                      const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
+  valid &= (1u << accel::kPacketSize16) - 1;
+  if (valid == 0) return;
+  kRadiance16Fns[path_features(scene, limits)](scene, rays, keys, valid, limits, stats, out);
 }
 
 }  // namespace dtraced::render
