@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "math/det_math.h"
+
 namespace dtraced::image {
 namespace {
 
@@ -30,7 +32,7 @@ double tone(ToneCurve curve, double x) {
 float display_value(const DisplayTransform& display, float linear) {
   // The identity is exactly the old clip, in float, so existing outputs keep their bytes.
   if (display.is_identity()) return linear > 0.0f ? std::min(linear, 1.0f) : 0.0f;
-  const double exposed = static_cast<double>(linear) * std::exp2(display.exposure);
+  const double exposed = static_cast<double>(linear) * math::det::exp2(display.exposure);
   return static_cast<float>(tone(display.tone, exposed));
 }
 

@@ -13,6 +13,7 @@
 #include <fmt/format.h>
 
 #include "image/codec.h"
+#include "math/det_math.h"
 #include "util/file.h"
 
 namespace dtraced::image {
@@ -21,8 +22,8 @@ namespace detail {
 // ---------------------------------------------------------------------------------------------
 // Transfer functions and quantisation, shared by every 8- and 16-bit codec.
 
-double srgb_encode(double v) { return v <= 0.0031308 ? 12.92 * v : 1.055 * std::pow(v, 1.0 / 2.4) - 0.055; }
-double srgb_decode(double v) { return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4); }
+double srgb_encode(double v) { return v <= 0.0031308 ? 12.92 * v : 1.055 * math::det::pow(v, 1.0 / 2.4) - 0.055; }
+double srgb_decode(double v) { return v <= 0.04045 ? v / 12.92 : math::det::pow((v + 0.055) / 1.055, 2.4); }
 
 std::uint32_t quantize(float display01, std::uint32_t max_code) {
   // The negated test also sends NaN to black: it has no brightness, and the cast below would be UB.
@@ -36,7 +37,7 @@ std::vector<float> decode_table(std::uint32_t max_code, const Transfer& transfer
   std::vector<float> table(std::size_t{max_code} + 1);
   for (std::uint32_t i = 0; i <= max_code; ++i) {
     const double v = static_cast<double>(i) / max_code;
-    table[i] = static_cast<float>(transfer.srgb ? srgb_decode(v) : std::pow(v, transfer.exponent));
+    table[i] = static_cast<float>(transfer.srgb ? srgb_decode(v) : math::det::pow(v, transfer.exponent));
   }
   return table;
 }

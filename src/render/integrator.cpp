@@ -7,6 +7,7 @@
 #include <numbers>
 #include <utility>
 
+#include "math/det_math.h"
 #include "math/rng.h"
 #include "render/light_sampling.h"
 #include "render/sampler.h"
@@ -231,7 +232,7 @@ struct Tracer {
       const Vec3f h = math::normalize(l + wo);
       const float cos_h = std::max(0.0f, math::dot(nf, h));
       const float spec =
-          m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*std::pow(cos_h, m.shininess);
+          m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*math::det::powf(cos_h, m.shininess);
       f += Vec3f{spec, spec, spec};
     }
     return f;

@@ -2,6 +2,7 @@
 
 #include <numbers>
 
+#include "math/det_math.h"
 namespace dtraced::render {
 
 namespace {
@@ -57,7 +58,8 @@ bool sample_area_light(const AreaLightF& a, const Vec3f& p, const Vec3f& nf, flo
     const float sin_t = std::sqrt(sin2_t);
     Vec3f t, b;
     tangent_frame(w, t, b);
-    out.l = math::normalize(t * (sin_t * std::cos(phi)) + b * (sin_t * std::sin(phi)) + w * cos_t);
+    const math::det::SinCos sc = math::det::sincos(phi);
+    out.l = math::normalize(t * (sin_t * float(sc.cos)) + b * (sin_t * float(sc.sin)) + w * cos_t);
     out.cos_l = math::dot(nf, out.l);
     if (!(out.cos_l > 0.0f)) return false;
     // The near intersection of the sampled direction with the sphere.
@@ -70,7 +72,8 @@ bool sample_area_light(const AreaLightF& a, const Vec3f& p, const Vec3f& nf, flo
   Vec3f q;
   if (a.shape == AreaShape::kDisk) {
     const float r = a.radius * std::sqrt(u1);
-    q = a.center + a.edge_u * (r * std::cos(phi)) + a.edge_v * (r * std::sin(phi));
+    const math::det::SinCos sc = math::det::sincos(phi);
+    q = a.center + a.edge_u * (r * float(sc.cos)) + a.edge_v * (r * float(sc.sin));
   } else {
     q = a.corner + a.edge_u * u1 + a.edge_v * u2;
   }

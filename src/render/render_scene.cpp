@@ -6,6 +6,7 @@
 #include <limits>
 #include <numbers>
 
+#include "math/det_math.h"
 #include "scene/animation.h"
 #include "util/huge_pages.h"
 
@@ -306,7 +307,7 @@ void RenderScene::finish(const scene::SceneDesc& desc, const std::vector<std::pa
   camera_.forward = math::normalize(c.look_at - c.position);
   camera_.right = math::normalize(math::cross(camera_.forward, c.up));
   camera_.up = math::cross(camera_.right, camera_.forward);
-  camera_.tan_half_fov = std::tan(c.fov_deg * std::numbers::pi / 360.0);
+  camera_.tan_half_fov = math::det::tan(c.fov_deg * std::numbers::pi / 360.0);
   assert(math::is_finite(camera_.right));
   if (has_transparency_) {
     // Where camera rays start (CameraF::generate).

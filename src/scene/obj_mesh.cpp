@@ -12,6 +12,8 @@
 
 #include <fmt/format.h>
 
+#include "math/det_math.h"
+
 namespace dtraced::scene {
 namespace {
 
@@ -21,8 +23,9 @@ using math::Vec3f;
 constexpr std::size_t kMaxErrorsPerMesh = 10;
 
 // sin and cos of an angle in degrees. Multiples of 90 degrees are exact (a quarter turn must map
-// an axis onto an axis, not onto 6e-17 off it); other angles go through libm in double, whose
-// result is then rounded to float with the rest of the transform.
+// an axis onto an axis, not onto 6e-17 off it); other angles, reduced to one turn, go through
+// math::det::sincos in double (the same bits on every host, unlike libm's), whose result is then
+// rounded to float with the rest of the transform.
 std::pair<double, double> sin_cos_deg(double deg) {
   const double turns = std::fmod(deg, 360.0);
   if (turns == std::floor(turns) && std::fmod(turns, 90.0) == 0.0) {
@@ -39,8 +42,8 @@ std::pair<double, double> sin_cos_deg(double deg) {
         break;
     }
   }
-  const double rad = deg * (std::numbers::pi / 180.0);
-  return {std::sin(rad), std::cos(rad)};
+  const math::det::SinCos sc = math::det::sincos(turns * (std::numbers::pi / 180.0));
+  return {sc.sin, sc.cos};
 }
 
 using Mat3 = std::array<std::array<double, 3>, 3>;
