@@ -51,6 +51,8 @@ TEST_CASE("det::log2 and det::exp2 are within a few ulps of the C library", "[ma
   CHECK(det::exp2(0.0) == 1.0);
   CHECK(det::exp2(10.0) == 1024.0);
   CHECK(det::exp2(-3.0) == 0.125);
+  CHECK(det::exp2(-1074.0) == std::numeric_limits<double>::denorm_min());
+  CHECK(det::exp2(1023.0) == std::ldexp(1.0, 1023));
   CHECK(det::log2(1.0) == 0.0);
   CHECK(det::log2(1024.0) == 10.0);
   CHECK(det::log2(0.0) == -std::numeric_limits<double>::infinity());

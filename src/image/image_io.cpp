@@ -22,7 +22,7 @@ namespace detail {
 // ---------------------------------------------------------------------------------------------
 // Transfer functions and quantisation, shared by every 8- and 16-bit codec.
 
-double srgb_encode(double v) { return v <= 0.0031308 ? 12.92 * v : 1.055 * math::det::pow(v, 1.0 / 2.4) - 0.055; }
+double srgb_encode(double v) { return v <= 0.0031308 ? 12.92 * v : 1.055 * math::det::pow_fast(v, 1.0 / 2.4) - 0.055; }
 double srgb_decode(double v) { return v <= 0.04045 ? v / 12.92 : math::det::pow((v + 0.055) / 1.055, 2.4); }
 
 std::uint32_t quantize(float display01, std::uint32_t max_code) {

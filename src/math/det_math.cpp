@@ -1,7 +1,9 @@
 #include "math/det_math.h"
 
 #include <array>
+#include <bit>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 
 namespace dtraced::math::det {
@@ -46,39 +48,119 @@ constexpr std::array<double, kTrigTerms + 1> kCosFactors = [] {
   return a;
 }();
 
+// floor(v) as an integer, for |v| < 2^62, without a call into the C library (baseline x86-64
+// has no rounding instruction, so std::floor is a call there): truncation, then one step down for
+// negative non-integers. Exact.
+long long floor_int(double v) {
+  const auto t = static_cast<long long>(v);
+  return static_cast<double>(t) > v ? t - 1 : t;
+}
+
+// p * 2^k, exactly (one rounding only where the result is subnormal), without ldexp's call.
+double scale2(double p, long long k) {
+  const auto power = [](long long e) { return std::bit_cast<double>(static_cast<std::uint64_t>(e + 1023) << 52); };
+  if (k > 1023) return p * power(1023) * power(k - 1023 > 1023 ? 1023 : k - 1023);
+  if (k < -1022) return p * power(-1022) * power(k + 1022 < -1022 ? -1022 : k + 1022);
+  return p * power(k);
+}
+
+// x = m 2^k exactly with m in [sqrt(1/2), sqrt(2)), for finite x > 0 (subnormals too).
+double split(double x, int& k) {
+  int bias = 0;
+  if (x < 2.2250738585072014e-308) {  // subnormal: make it normal first (exact)
+    x *= 18014398509481984.0;         // 2^54
+    bias = -54;
+  }
+  const auto bits = std::bit_cast<std::uint64_t>(x);
+  k = static_cast<int>((bits >> 52) & 0x7ff) - 1023 + bias;
+  double m = std::bit_cast<double>((bits & 0x000fffffffffffffull) | 0x3ff0000000000000ull);  // [1, 2)
+  if (m >= 2.0 * kSqrtHalf) {
+    m *= 0.5;
+    ++k;
+  }
+  return m;
+}
+
+// ln m for m in [sqrt(1/2), sqrt(2)): 2 atanh(s), s = (m - 1) / (m + 1), |s| < 0.1716, the odd
+// series to s^(2 terms - 1).
+double ln_reduced(double m, std::size_t terms) {
+  const double s = (m - 1.0) / (m + 1.0);
+  const double s2 = s * s;
+  double p = kOddInverses[terms - 1];
+  for (std::size_t i = terms - 1; i-- > 0;) p = p * s2 + kOddInverses[i];
+  return 2.0 * s * p;
+}
+
+// e^t for |t| <= 0.347 by the nested Taylor series to t^terms.
+double exp_reduced(double t, int terms) {
+  double p = 1.0;
+  for (int n = terms; n >= 1; --n) p = 1.0 + p * t * kInverses[static_cast<std::size_t>(n)];
+  return p;
+}
+
+// The terms of the full-precision functions: below 1e-18 truncation error.
+constexpr std::size_t kLnTerms = 13;
+constexpr int kExpFullTerms = kExpTerms;
+
+// powf's result is rounded to float, so it takes shorter series, evaluated by Estrin's scheme
+// (independent products, a short dependency chain): ln m to s^11 (truncation below 1e-10 of ln m)
+// and e^t to t^8 (below 3e-10 for |t| <= 0.347): a relative error below 1e-8 in the result for
+// exponents down to float's underflow, and below 1e-9 for those that matter (|y log2 x| < 16),
+// against float's 6e-8.
+double ln_reduced_float(double m) {
+  const double s = (m - 1.0) / (m + 1.0);
+  const double z = s * s;
+  const double z2 = z * z;
+  const double lo = (kOddInverses[0] + kOddInverses[1] * z) + z2 * (kOddInverses[2] + kOddInverses[3] * z);
+  const double hi = kOddInverses[4] + kOddInverses[5] * z;
+  return 2.0 * s * (lo + (z2 * z2) * hi);
+}
+
+// 1/n!, n = 0..8, each a product of exact-at-compile-time IEEE operations.
+constexpr std::array<double, 9> kInvFactorials = [] {
+  std::array<double, 9> a{};
+  a[0] = 1.0;
+  for (std::size_t n = 1; n < a.size(); ++n) a[n] = a[n - 1] / static_cast<double>(n);
+  return a;
+}();
+
+double exp_reduced_float(double t) {
+  const auto& c = kInvFactorials;
+  const double t2 = t * t;
+  const double t4 = t2 * t2;
+  const double p01 = c[0] + c[1] * t, p23 = c[2] + c[3] * t, p45 = c[4] + c[5] * t, p67 = c[6] + c[7] * t;
+  return (p01 + t2 * p23) + t4 * ((p45 + t2 * p67) + t4 * c[8]);
+}
+
+double log2_full(double x) {
+  int k = 0;
+  const double m = split(x, k);
+  return static_cast<double>(k) + ln_reduced(m, kLnTerms) * kInvLn2;
+}
+
+double exp2_full(double y) {
+  // 2^y = 2^k e^(f ln 2), k the nearest integer, |f| <= 1/2 (y - k is exact).
+  const long long k = floor_int(y + 0.5);
+  const double t = (y - static_cast<double>(k)) * kLn2;
+  return scale2(exp_reduced(t, kExpFullTerms), k);
+}
+
 }  // namespace
 
 double log2(double x) {
   if (std::isnan(x) || x < 0.0) return kNaN;
   if (x == 0.0) return -kInf;
   if (std::isinf(x)) return kInf;
-  // x = m 2^k exactly, m in [sqrt(1/2), sqrt(2)).
-  int k = 0;
-  double m = std::frexp(x, &k);
-  if (m < kSqrtHalf) {
-    m *= 2.0;
-    --k;
-  }
-  // ln m = 2 atanh(s), s = (m - 1) / (m + 1), |s| < 0.1716: the terms to s^25 leave < 1e-20.
-  const double s = (m - 1.0) / (m + 1.0);
-  const double s2 = s * s;
-  double p = kOddInverses.back();
-  for (std::size_t i = kOddInverses.size() - 1; i-- > 0;) p = p * s2 + kOddInverses[i];
-  const double ln_m = 2.0 * s * p;
-  return static_cast<double>(k) + ln_m * kInvLn2;
+  return log2_full(x);
 }
 
 double exp2(double y) {
   if (std::isnan(y)) return y;
   if (y > 1024.0) return kInf;
   if (y < -1075.0) return 0.0;
-  // 2^y = 2^k e^(f ln 2), k the nearest integer, |f| <= 1/2 (y - k is exact).
-  const double k = std::floor(y + 0.5);
-  const double t = (y - k) * kLn2;
-  // e^t = 1 + t (1 + t/2 (1 + t/3 (...))), |t| <= 0.347: the terms to t^18 leave < 1e-25.
-  double p = 1.0;
-  for (int n = kExpTerms; n >= 1; --n) p = 1.0 + p * t * kInverses[static_cast<std::size_t>(n)];
-  return std::ldexp(p, static_cast<int>(k));
+  // Whole powers of two exactly and at once (an exposure of 0 stops is the common case).
+  if (const long long k = floor_int(y); static_cast<double>(k) == y) return scale2(1.0, k);
+  return exp2_full(y);
 }
 
 double pow(double x, double y) {
@@ -89,12 +171,28 @@ double pow(double x, double y) {
   return exp2(y * log2(x));
 }
 
-float powf(float x, float y) { return static_cast<float>(pow(static_cast<double>(x), static_cast<double>(y))); }
+double pow_fast(double x, double y) {
+  if (std::isnan(x) || std::isnan(y) || x < 0.0) return kNaN;
+  if (y == 0.0 || x == 1.0) return 1.0;
+  if (x == 0.0) return y > 0.0 ? 0.0 : kInf;
+  if (std::isinf(x)) return y > 0.0 ? kInf : 0.0;
+  int k = 0;
+  const double m = split(x, k);
+  const double e = y * (static_cast<double>(k) + ln_reduced_float(m) * kInvLn2);
+  // Beyond float's range either way (2^-150 rounds to 0, 2^129 to infinity), and far outside
+  // what the shorter series are for.
+  if (e < -160.0) return 0.0;
+  if (e > 160.0) return kInf;
+  const long long n = floor_int(e + 0.5);
+  return scale2(exp_reduced_float((e - static_cast<double>(n)) * kLn2), n);
+}
+
+float powf(float x, float y) { return static_cast<float>(pow_fast(x, y)); }
 
 SinCos sincos(double x) {
   if (!(std::fabs(x) <= 1048576.0)) return {kNaN, kNaN};
   // x = k pi/2 + r, |r| <= pi/4 (plus rounding); k * kPio2Hi is exact.
-  const double k = std::floor(x * kTwoOverPi + 0.5);
+  const double k = static_cast<double>(floor_int(x * kTwoOverPi + 0.5));
   const double r = (x - k * kPio2Hi) - k * kPio2Lo;
   const double r2 = r * r;
   // sin r = r (1 - r^2/(2*3) (1 - r^2/(4*5) (...))), cos r = 1 - r^2/(1*2) (1 - r^2/(3*4) (...)):
