@@ -838,30 +838,27 @@ void print_targets(const BenchScene& s, const std::vector<Isa>& isas, const std:
   const Row* e16 = find_row(rows, "embree 16");
   const Row* best16 = best_row ? find_row(rows, best_row->tracer + " x16") : nullptr;
   fmt::print("\nTargets (1-thread medians; best isa = {}):\n", best_name);
-  print_ratio(fmt::format("camera: {} intersect8 / scalar single-ray intersect", best_name), best_row, scalar,
-              SetKind::kCamera, 3.0);
-  print_ratio(fmt::format("camera: {} intersect8 / embree rtcIntersect8 (coherent)", best_name), best_row, e8,
-              SetKind::kCamera, s.name == "mesh" ? 1.0 : 1.5);
-  print_ratio(fmt::format("camera: {} intersect8 / embree rtcIntersect16 (coherent)", best_name), best_row, e16,
-              SetKind::kCamera, s.name == "mesh" ? 1.0 : 1.5);
-  print_ratio(fmt::format("shadow: {} occluded8 / embree rtcOccluded8 (coherent)", best_name), best_row, e8,
-              SetKind::kShadow, 1.0);
-  print_ratio(fmt::format("shadow: {} occluded8 / embree rtcOccluded16 (coherent)", best_name), best_row, e16,
-              SetKind::kShadow, 1.0);
-  print_ratio(fmt::format("secondary: {} intersect / embree rtcIntersect1 (incoherent)", best_name), best_row, e1,
-              SetKind::kSecondary, 0.8);
-  // Our 16-ray packets against the same anchors; the issue takes the faster of our calls and the
-  // faster of Embree's.
-  print_ratio(fmt::format("camera: {} intersect16 / scalar single-ray intersect", best_name), best16, scalar,
-              SetKind::kCamera, 3.0);
-  print_ratio(fmt::format("camera: {} intersect16 / embree rtcIntersect8 (coherent)", best_name), best16, e8,
-              SetKind::kCamera, s.name == "mesh" ? 1.0 : 1.5);
-  print_ratio(fmt::format("camera: {} intersect16 / embree rtcIntersect16 (coherent)", best_name), best16, e16,
-              SetKind::kCamera, s.name == "mesh" ? 1.0 : 1.5);
-  print_ratio(fmt::format("shadow: {} occluded16 / embree rtcOccluded8 (coherent)", best_name), best16, e8,
-              SetKind::kShadow, 1.0);
-  print_ratio(fmt::format("shadow: {} occluded16 / embree rtcOccluded16 (coherent)", best_name), best16, e16,
-              SetKind::kShadow, 1.0);
+  const double camera_target = s.name == "mesh" ? 1.0 : 1.5;
+  // Our 8- and then 16-ray packets against the same anchors; the issue takes the faster of our
+  // calls and the faster of Embree's.
+  for (const auto& [ours, width] : {std::pair{best_row, 8}, std::pair{best16, 16}}) {
+    print_ratio(fmt::format("camera: {} intersect{} / scalar single-ray intersect", best_name, width), ours, scalar,
+                SetKind::kCamera, 3.0);
+    for (const auto& [embree, embree_width] : {std::pair{e8, 8}, std::pair{e16, 16}}) {
+      print_ratio(
+          fmt::format("camera: {} intersect{} / embree rtcIntersect{} (coherent)", best_name, width, embree_width),
+          ours, embree, SetKind::kCamera, camera_target);
+    }
+    for (const auto& [embree, embree_width] : {std::pair{e8, 8}, std::pair{e16, 16}}) {
+      print_ratio(
+          fmt::format("shadow: {} occluded{} / embree rtcOccluded{} (coherent)", best_name, width, embree_width), ours,
+          embree, SetKind::kShadow, 1.0);
+    }
+    if (width == 8) {
+      print_ratio(fmt::format("secondary: {} intersect / embree rtcIntersect1 (incoherent)", best_name), ours, e1,
+                  SetKind::kSecondary, 0.8);
+    }
+  }
   std::fflush(stdout);
 }
 

@@ -84,6 +84,36 @@ void fill_n(const math::Ray* rays, std::uint32_t valid, Packet& e, int* v) {
   }
 }
 
+// One N-ray packet through rtcIntersectN: the shape id of each lane of `valid` into ids.
+template <int N, class RayHit, class IntersectN, class Id>
+void intersect_packet(IntersectN intersect, RTCScene scene, RTCIntersectContext& ctx, const math::Ray* rays,
+                      std::uint32_t valid, std::uint32_t* ids, const Id& id) {
+  alignas(64) RayHit rh;
+  alignas(64) int v[N];
+  fill_n<N>(rays, valid, rh.ray, v);
+  for (int i = 0; i < N; ++i) {
+    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+  }
+  intersect(v, scene, &ctx, &rh);
+  for (int i = 0; i < N; ++i) {
+    if (valid >> i & 1u) ids[i] = id(rh.hit.geomID[i], rh.hit.primID[i]);
+  }
+}
+
+// One N-ray packet through rtcOccludedN: 1 for each lane of `valid` that is blocked.
+template <int N, class Ray, class OccludedN>
+void occluded_packet(OccludedN occluded, RTCScene scene, RTCIntersectContext& ctx, const math::Ray* rays,
+                     std::uint32_t valid, std::uint32_t* blocked) {
+  alignas(64) Ray r;
+  alignas(64) int v[N];
+  fill_n<N>(rays, valid, r, v);
+  occluded(v, scene, &ctx, &r);
+  for (int i = 0; i < N; ++i) {
+    if (valid >> i & 1u) blocked[i] = r.tfar[i] < 0.0f ? 1u : 0u;  // Embree sets tfar = -inf on a hit
+  }
+}
+
 }  // namespace
 
 std::string_view embree_quality_name(EmbreeQuality q) {
@@ -191,17 +221,8 @@ void EmbreeTracer::intersect1(const math::Ray* rays, std::uint32_t valid, std::u
 
 void EmbreeTracer::intersect8(const math::Ray* rays, std::uint32_t valid, std::uint32_t* ids, bool coherent) const {
   RTCIntersectContext ctx = context(coherent);
-  alignas(32) RTCRayHit8 rh;
-  alignas(32) int v[8];
-  fill_n<8>(rays, valid, rh.ray, v);
-  for (int i = 0; i < 8; ++i) {
-    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
-    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
-  }
-  rtcIntersect8(v, impl_->scene, &ctx, &rh);
-  for (int i = 0; i < 8; ++i) {
-    if (valid >> i & 1u) ids[i] = impl_->id(rh.hit.geomID[i], rh.hit.primID[i]);
-  }
+  intersect_packet<8, RTCRayHit8>(rtcIntersect8, impl_->scene, ctx, rays, valid, ids,
+                                  [this](unsigned g, unsigned p) { return impl_->id(g, p); });
 }
 
 void EmbreeTracer::occluded1(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const {
@@ -217,39 +238,18 @@ void EmbreeTracer::occluded1(const math::Ray* rays, std::uint32_t valid, std::ui
 
 void EmbreeTracer::occluded8(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const {
   RTCIntersectContext ctx = context(coherent);
-  alignas(32) RTCRay8 r;
-  alignas(32) int v[8];
-  fill_n<8>(rays, valid, r, v);
-  rtcOccluded8(v, impl_->scene, &ctx, &r);
-  for (int i = 0; i < 8; ++i) {
-    if (valid >> i & 1u) blocked[i] = r.tfar[i] < 0.0f ? 1u : 0u;
-  }
+  occluded_packet<8, RTCRay8>(rtcOccluded8, impl_->scene, ctx, rays, valid, blocked);
 }
 
 void EmbreeTracer::intersect16(const math::Ray* rays, std::uint32_t valid, std::uint32_t* ids, bool coherent) const {
   RTCIntersectContext ctx = context(coherent);
-  alignas(64) RTCRayHit16 rh;
-  alignas(64) int v[16];
-  fill_n<16>(rays, valid, rh.ray, v);
-  for (int i = 0; i < 16; ++i) {
-    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
-    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
-  }
-  rtcIntersect16(v, impl_->scene, &ctx, &rh);
-  for (int i = 0; i < 16; ++i) {
-    if (valid >> i & 1u) ids[i] = impl_->id(rh.hit.geomID[i], rh.hit.primID[i]);
-  }
+  intersect_packet<16, RTCRayHit16>(rtcIntersect16, impl_->scene, ctx, rays, valid, ids,
+                                    [this](unsigned g, unsigned p) { return impl_->id(g, p); });
 }
 
 void EmbreeTracer::occluded16(const math::Ray* rays, std::uint32_t valid, std::uint32_t* blocked, bool coherent) const {
   RTCIntersectContext ctx = context(coherent);
-  alignas(64) RTCRay16 r;
-  alignas(64) int v[16];
-  fill_n<16>(rays, valid, r, v);
-  rtcOccluded16(v, impl_->scene, &ctx, &r);
-  for (int i = 0; i < 16; ++i) {
-    if (valid >> i & 1u) blocked[i] = r.tfar[i] < 0.0f ? 1u : 0u;
-  }
+  occluded_packet<16, RTCRay16>(rtcOccluded16, impl_->scene, ctx, rays, valid, blocked);
 }
 
 }  // namespace dtraced::bench

@@ -100,7 +100,6 @@ double exp_reduced(double t, int terms) {
 
 // The terms of the full-precision functions: below 1e-18 truncation error.
 constexpr std::size_t kLnTerms = 13;
-constexpr int kExpFullTerms = kExpTerms;
 
 // powf's result is rounded to float, so it takes shorter series, evaluated by Estrin's scheme
 // (independent products, a short dependency chain): ln m to s^11 (truncation below 1e-10 of ln m)
@@ -142,7 +141,7 @@ double exp2_full(double y) {
   // 2^y = 2^k e^(f ln 2), k the nearest integer, |f| <= 1/2 (y - k is exact).
   const long long k = floor_int(y + 0.5);
   const double t = (y - static_cast<double>(k)) * kLn2;
-  return scale2(exp_reduced(t, kExpFullTerms), k);
+  return scale2(exp_reduced(t, kExpTerms), k);
 }
 
 }  // namespace
