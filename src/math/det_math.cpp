@@ -83,7 +83,7 @@ double split(double x, int& k) {
 
 // ln m for m in [sqrt(1/2), sqrt(2)): 2 atanh(s), s = (m - 1) / (m + 1), |s| < 0.1716, the odd
 // series to s^(2 terms - 1).
-double ln_reduced(double m, std::size_t terms) {
+constexpr double ln_reduced(double m, std::size_t terms) {
   const double s = (m - 1.0) / (m + 1.0);
   const double s2 = s * s;
   double p = kOddInverses[terms - 1];
@@ -92,7 +92,7 @@ double ln_reduced(double m, std::size_t terms) {
 }
 
 // e^t for |t| <= 0.347 by the nested Taylor series to t^terms.
-double exp_reduced(double t, int terms) {
+constexpr double exp_reduced(double t, int terms) {
   double p = 1.0;
   for (int n = terms; n >= 1; --n) p = 1.0 + p * t * kInverses[static_cast<std::size_t>(n)];
   return p;
@@ -101,34 +101,66 @@ double exp_reduced(double t, int terms) {
 // The terms of the full-precision functions: below 1e-18 truncation error.
 constexpr std::size_t kLnTerms = 13;
 
-// powf's result is rounded to float, so it takes shorter series, evaluated by Estrin's scheme
-// (independent products, a short dependency chain): ln m to s^11 (truncation below 1e-10 of ln m)
-// and e^t to t^8 (below 3e-10 for |t| <= 0.347): a relative error below 1e-8 in the result for
-// exponents down to float's underflow, and below 1e-9 for those that matter (|y log2 x| < 16),
-// against float's 6e-8.
-double ln_reduced_float(double m) {
-  const double s = (m - 1.0) / (m + 1.0);
-  const double z = s * s;
-  const double z2 = z * z;
-  const double lo = (kOddInverses[0] + kOddInverses[1] * z) + z2 * (kOddInverses[2] + kOddInverses[3] * z);
-  const double hi = kOddInverses[4] + kOddInverses[5] * z;
-  return 2.0 * s * (lo + (z2 * z2) * hi);
-}
+// pow_fast: tables instead of long series and without a division (the atanh series needs one).
+// log2 x = k + log2 c + ln(1 + u) / ln 2 with x = m 2^k, m in [1, 2), c the centre of m's
+// 1/128-wide interval and u = (m - c) / c, |u| < 2^-8 (m - c is exact; the product by 1/c rounds
+// once), ln(1 + u) to u^5 (truncation below 1e-15). 2^e = 2^(N/64) 2^g with N the nearest integer
+// to 64 e, |g| <= 1/128 (e - N/64 is exact), 2^(j/64) from a table, e^(g ln 2) to the 4th power
+// (below 1e-13). The tables are computed by the compiler with the full-precision series
+// (ln_reduced, exp_reduced) in IEEE double arithmetic, so every build holds the same bits.
+constexpr int kPowLogBits = 7;
+constexpr int kPowLogSize = 1 << kPowLogBits;
+constexpr int kPowExpBits = 6;
+constexpr int kPowExpSize = 1 << kPowExpBits;
 
-// 1/n!, n = 0..8, each a product of exact-at-compile-time IEEE operations.
-constexpr std::array<double, 9> kInvFactorials = [] {
-  std::array<double, 9> a{};
-  a[0] = 1.0;
-  for (std::size_t n = 1; n < a.size(); ++n) a[n] = a[n - 1] / static_cast<double>(n);
+// c_i = 1 + (i + 1/2) / 128 and, for it, 1/c_i and log2 c_i.
+struct PowLogEntry {
+  double centre, inverse, log2;
+};
+constexpr std::array<PowLogEntry, kPowLogSize> kPowLog = [] {
+  std::array<PowLogEntry, kPowLogSize> a{};
+  for (int i = 0; i < kPowLogSize; ++i) {
+    const double c = 1.0 + (static_cast<double>(i) + 0.5) / static_cast<double>(kPowLogSize);
+    const double l =
+        c >= 2.0 * kSqrtHalf ? 1.0 + ln_reduced(0.5 * c, kLnTerms) * kInvLn2 : ln_reduced(c, kLnTerms) * kInvLn2;
+    a[static_cast<std::size_t>(i)] = {c, 1.0 / c, l};
+  }
   return a;
 }();
 
-double exp_reduced_float(double t) {
-  const auto& c = kInvFactorials;
+// 2^(j/64), j = 0..63, by exp_reduced (t < 0.69 here: its 18 terms still leave < 1e-19).
+constexpr std::array<double, kPowExpSize> kPowExp = [] {
+  std::array<double, kPowExpSize> a{};
+  for (int j = 0; j < kPowExpSize; ++j)
+    a[static_cast<std::size_t>(j)] =
+        exp_reduced(static_cast<double>(j) / static_cast<double>(kPowExpSize) * kLn2, kExpTerms);
+  return a;
+}();
+
+// pow_fast for normal x > 0, x != 1, y finite and non-zero.
+double pow_fast_normal(double x, double y) {
+  const auto bits = std::bit_cast<std::uint64_t>(x);
+  const auto k = static_cast<double>(static_cast<int>((bits >> 52) & 0x7ff) - 1023);
+  const double m = std::bit_cast<double>((bits & 0x000fffffffffffffull) | 0x3ff0000000000000ull);
+  const PowLogEntry& entry = kPowLog[(bits >> (52 - kPowLogBits)) & (kPowLogSize - 1)];
+  const double u = (m - entry.centre) * entry.inverse;
+  const double u2 = u * u;
+  const double ln1p = u + u2 * ((-0.5 + u * (1.0 / 3.0)) + u2 * (-0.25 + u * 0.2));
+  const double e = y * ((k + entry.log2) + ln1p * kInvLn2);
+  // Beyond float's range either way (2^-150 rounds to 0, 2^129 to infinity).
+  if (!(e > -160.0)) return 0.0;
+  if (!(e < 160.0)) return kInf;
+  // N = 64 e rounded to the nearest integer (ties to even): adding 1.5 * 2^52 leaves it in the
+  // low bits of the sum's significand, exactly and without a branch.
+  constexpr double kShift = 6755399441055744.0;
+  const double shifted = e * static_cast<double>(kPowExpSize) + kShift;
+  const auto n = static_cast<long long>(std::bit_cast<std::uint64_t>(shifted) & 0x000fffffffffffffull) - (1ll << 51);
+  const double t = (e - static_cast<double>(n) * (1.0 / kPowExpSize)) * kLn2;
   const double t2 = t * t;
-  const double t4 = t2 * t2;
-  const double p01 = c[0] + c[1] * t, p23 = c[2] + c[3] * t, p45 = c[4] + c[5] * t, p67 = c[6] + c[7] * t;
-  return (p01 + t2 * p23) + t4 * ((p45 + t2 * p67) + t4 * c[8]);
+  const double p = (1.0 + t) + t2 * ((0.5 + t * (1.0 / 6.0)) + t2 * (1.0 / 24.0));
+  // n >> 6 is floor(n / 64) for negative n too (C++20 shifts are arithmetic); |n >> 6| <= 160.
+  const double power = std::bit_cast<double>(static_cast<std::uint64_t>((n >> kPowExpBits) + 1023) << 52);
+  return kPowExp[static_cast<std::size_t>(n & (kPowExpSize - 1))] * p * power;
 }
 
 double log2_full(double x) {
@@ -171,19 +203,14 @@ double pow(double x, double y) {
 }
 
 double pow_fast(double x, double y) {
+  if (x >= 2.2250738585072014e-308 && x < kInf && x != 1.0 && y != 0.0 && std::fabs(y) < kInf)
+    return pow_fast_normal(x, y);
   if (std::isnan(x) || std::isnan(y) || x < 0.0) return kNaN;
   if (y == 0.0 || x == 1.0) return 1.0;
   if (x == 0.0) return y > 0.0 ? 0.0 : kInf;
   if (std::isinf(x)) return y > 0.0 ? kInf : 0.0;
-  int k = 0;
-  const double m = split(x, k);
-  const double e = y * (static_cast<double>(k) + ln_reduced_float(m) * kInvLn2);
-  // Beyond float's range either way (2^-150 rounds to 0, 2^129 to infinity), and far outside
-  // what the shorter series are for.
-  if (e < -160.0) return 0.0;
-  if (e > 160.0) return kInf;
-  const long long n = floor_int(e + 0.5);
-  return scale2(exp_reduced_float((e - static_cast<double>(n)) * kLn2), n);
+  if (std::isinf(y)) return (x < 1.0) == (y > 0.0) ? 0.0 : kInf;
+  return pow(x, y);  // a subnormal x: the full-precision function
 }
 
 float powf(float x, float y) { return static_cast<float>(pow_fast(x, y)); }
