@@ -20,6 +20,8 @@
 #include "image/image_io.h"
 #include "protocol/messages.h"
 #include "protocol/worker_messages.h"
+#include "render/cost_map.h"
+#include "render/render_scene.h"
 #include "scene/load.h"
 #include "util/file.h"
 #include "util/token_file.h"
@@ -53,6 +55,22 @@ void print_status_line(const protocol::JobStatus& s) {
              protocol::to_string(s.state), s.priority, s.width, s.height, samples_text(s), s.tiles_done, s.tiles_total,
              format_seconds(s.elapsed_s), s.eta_s ? format_seconds(*s.eta_s) : "-", s.output, frames_text(s),
              s.no_worker_s ? fmt::format("  (no worker for {})", format_seconds(*s.no_worker_s)) : std::string());
+}
+
+// The cost pre-pass is skipped for scenes larger than this: building their BVH takes longer than
+// the order saves on a small farm, and a large job's tail is a small part of it.
+constexpr std::size_t kMaxCostPassObjects = 100'000;
+
+// The estimated cost of each tile of the job's first frame (render/cost_map.h), or nothing when the
+// scene is too large for a cheap pre-pass.
+std::vector<float> estimate_tile_costs(const protocol::JobSubmit& submit) {
+  if (submit.scene.objects.size() > kMaxCostPassObjects) return {};
+  scene::RenderSettings s = protocol::effective_settings(submit);
+  s.frame = protocol::frame_number(s, 0);
+  s.frames.reset();
+  const render::AnimatedScene prepared = render::AnimatedScene::prepare(submit.scene);
+  const std::shared_ptr<const render::RenderScene> frame = prepared.frame(s.frame);
+  return render::tile_cost_map(*frame, s, scene::tile_size_or_default(submit.overrides)).costs;
 }
 
 bool finished(protocol::JobState s) { return s == protocol::JobState::kDone || s == protocol::JobState::kCancelled; }
@@ -99,6 +117,7 @@ int run_submit(const ClientArgs& client, const SubmitArgs& args) {
       return kExitUsage;
     }
   }
+  if (args.cost_pass) submit.tile_costs = estimate_tile_costs(submit);
   std::string body = protocol::encode(submit);
   // Refused here with the reason, rather than by the collector as a bare 413.
   if (body.size() > protocol::kMaxJobSubmitBytes) {
