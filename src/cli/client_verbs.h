@@ -28,6 +28,9 @@ struct SubmitArgs {
   std::string output;  // empty: the collector picks job-<id>.png
   std::int32_t priority = 0;
   scene::Overrides overrides;  // of the scene's render block, plus tile size and PNG bit depth
+  // Send each tile's estimated cost (render/cost_map.h) so the collector leases the costliest
+  // tiles first; false (--no-cost-pass) leaves them in row order.
+  bool cost_pass = true;
 };
 int run_submit(const ClientArgs& client, const SubmitArgs& args);
 

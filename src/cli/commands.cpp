@@ -110,6 +110,8 @@ void add_client_commands(CLI::App& app, ClientCommands& c) {
   submit->add_option("--priority", c.submit.priority, "Higher runs first")
       ->check(CLI::Range(protocol::kMinPriority, protocol::kMaxPriority));
   add_override_flags(*submit, c.submit.overrides);
+  submit->add_flag("!--no-cost-pass", c.submit.cost_pass,
+                   "Send no tile cost estimates (a low-resolution pre-pass): the collector leases tiles in row order");
   c.submit_cmd = submit;
 
   c.list_cmd = add_client_subcommand(app, c.client, "list", "List the collector's jobs");

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <bit>
 #include <cassert>
+#include <cmath>
 #include <cstring>
 
 #include <fmt/format.h>
@@ -109,8 +110,40 @@ std::vector<TileIndex> skipped_tiles(const JobRecord& job) {
   return skipped;
 }
 
+std::vector<TileIndex> lease_order(std::span<const float> costs, std::uint32_t frames) {
+  std::vector<TileIndex> in_frame(costs.size());
+  for (TileIndex t = 0; t < in_frame.size(); ++t) in_frame[t] = t;
+  std::stable_sort(in_frame.begin(), in_frame.end(), [costs](TileIndex a, TileIndex b) { return costs[a] > costs[b]; });
+  std::vector<TileIndex> order;
+  order.reserve(in_frame.size() * frames);
+  const auto per_frame = static_cast<TileIndex>(costs.size());
+  for (std::uint32_t f = 0; f < frames; ++f) {
+    for (const TileIndex t : in_frame) order.push_back(f * per_frame + t);
+  }
+  return order;
+}
+
+store::Blob costs_to_blob(std::span<const float> costs) {
+  const auto* bytes = reinterpret_cast<const std::uint8_t*>(costs.data());
+  return store::Blob(bytes, bytes + costs.size_bytes());
+}
+
+std::optional<std::vector<float>> blob_to_costs(const store::Blob& blob, TileIndex per_frame) {
+  if (blob.size() != std::size_t{per_frame} * sizeof(float)) return std::nullopt;
+  std::vector<float> costs(per_frame);
+  if (per_frame != 0) std::memcpy(costs.data(), blob.data(), blob.size());
+  if (!std::all_of(costs.begin(), costs.end(), [](float c) { return std::isfinite(c) && c >= 0; })) {
+    return std::nullopt;
+  }
+  return costs;
+}
+
 bool queue_job(WorkQueue& queue, const JobRecord& job, std::span<const TileIndex> stored) {
-  return queue.add_job(job.id, job.priority, job.tile_indices, stored, skipped_tiles(job));
+  std::vector<TileIndex> order;
+  if (!job.tile_costs.empty() && std::uint64_t{job.tile_costs.size()} * job.frames_total == job.tile_indices) {
+    order = lease_order(job.tile_costs, job.frames_total);
+  }
+  return queue.add_job(job.id, job.priority, job.tile_indices, stored, skipped_tiles(job), order);
 }
 
 const image::ImageRGBf& output_pixels(const image::ImageRGBf& full, const std::optional<scene::TileRect>& crop,

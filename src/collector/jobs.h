@@ -78,6 +78,10 @@ struct JobRecord {
   // is never queued, leased, stored or counted, and the others keep their index in the full grid.
   std::optional<scene::TileRect> crop;
 
+  // Estimated cost of each tile of one frame's full grid (protocol::JobSubmit::tile_costs), the
+  // same for every frame; empty when none was sent: the tiles are then leased in row order.
+  std::vector<float> tile_costs;
+
   // Frames of the job (1 for a single frame; settings.frames->count() for a sequence) and tiles
   // it renders per frame (tiles_total = frames x tiles_per_frame). Tile indices run over the
   // whole grid of every frame, [0, tile_indices): tile_indices = tiles_total without a crop.
@@ -153,7 +157,18 @@ bool overlaps_crop(const scene::TileRect& tile, const std::optional<scene::TileR
 bool tile_of_job(const JobRecord& job, TileIndex tile);
 // The indices below tile_indices that are not the job's (none without a crop), ascending.
 std::vector<TileIndex> skipped_tiles(const JobRecord& job);
-// Adds the job to the queue (WorkQueue::add_job) with its skipped tiles and `stored` tiles.
+// The order in which a job's tiles are first leased: frame by frame (frames still complete in
+// order), and within a frame by descending cost, ties (and NaN, which validation keeps out) in
+// row order, so the costliest tiles start first and the job's tail is made of cheap tiles. A
+// permutation of [0, frames x costs.size()); empty when `costs` is.
+std::vector<TileIndex> lease_order(std::span<const float> costs, std::uint32_t frames);
+// Tile costs as the store keeps them (jobs' StoredJob::tile_costs): the float32 values' bytes in
+// host (little-endian) order; empty for none.
+store::Blob costs_to_blob(std::span<const float> costs);
+// The costs of a stored blob, or nullopt when it is not `per_frame` finite floats >= 0.
+std::optional<std::vector<float>> blob_to_costs(const store::Blob& blob, TileIndex per_frame);
+// Adds the job to the queue (WorkQueue::add_job) with its skipped tiles and `stored` tiles, in
+// lease_order of its tile costs when it has them (and they fit its grid), else in row order.
 bool queue_job(WorkQueue& queue, const JobRecord& job, std::span<const TileIndex> stored = {});
 
 // The pixels an output shows of a full frame: `full` itself without a crop, else the crop's

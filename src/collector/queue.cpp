@@ -20,6 +20,17 @@ Duration scaled(Duration d, double factor) {
   return Duration(static_cast<Duration::rep>(std::min(ticks, cap)));
 }
 
+// Whether `order` holds each of [0, n) exactly once.
+bool is_permutation_of_range(std::span<const TileIndex> order, TileIndex n) {
+  if (order.size() != n) return false;
+  std::vector<bool> seen(n, false);
+  for (const TileIndex t : order) {
+    if (t >= n || seen[t]) return false;
+    seen[t] = true;
+  }
+  return true;
+}
+
 }  // namespace
 
 util::Errors check_queue_config(const QueueConfig& c) {
@@ -51,8 +62,10 @@ util::Errors check_queue_config(const QueueConfig& c) {
 WorkQueue::WorkQueue(QueueConfig config) : config_(config) { assert(check_queue_config(config_).empty()); }
 
 bool WorkQueue::add_job(JobId id, std::int32_t priority, TileIndex tile_count,
-                        std::span<const TileIndex> already_stored, std::span<const TileIndex> skipped) {
+                        std::span<const TileIndex> already_stored, std::span<const TileIndex> skipped,
+                        std::span<const TileIndex> order) {
   if (tile_count == 0 || tile_count > kMaxQueueTiles || jobs_.contains(id)) return false;
+  if (!order.empty() && !is_permutation_of_range(order, tile_count)) return false;
   const auto out_of_range = [&](TileIndex t) { return t >= tile_count; };
   if (std::any_of(already_stored.begin(), already_stored.end(), out_of_range) ||
       std::any_of(skipped.begin(), skipped.end(), out_of_range)) {
@@ -77,8 +90,15 @@ bool WorkQueue::add_job(JobId id, std::int32_t priority, TileIndex tile_count,
   if (job.done()) {
     release_tiles(job);
   } else {
-    for (TileIndex t = 0; t < tile_count; ++t) {
-      if (!job.tiles[t].stored && !job.tiles[t].skipped) job.ring.push_back(t);
+    const auto unfinished = [&job](TileIndex t) { return !job.tiles[t].stored && !job.tiles[t].skipped; };
+    if (order.empty()) {
+      for (TileIndex t = 0; t < tile_count; ++t) {
+        if (unfinished(t)) job.ring.push_back(t);
+      }
+    } else {
+      for (const TileIndex t : order) {
+        if (unfinished(t)) job.ring.push_back(t);
+      }
     }
     active_.insert(order_key(id, job));
   }

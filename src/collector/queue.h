@@ -8,7 +8,9 @@
 //
 // Rules.
 //  - Jobs are served by priority (higher first), then by id (lower first: submission order).
-//  - Per job, a circular queue of unfinished tiles. lease() looks at the front tile; if it may be
+//  - Per job, a circular queue of unfinished tiles, in the lease order add_job was given (the
+//    costliest tiles of each frame first, collector/jobs.h lease_order), else ascending index
+//    (row order). lease() looks at the front tile; if it may be
 //    leased it is handed out, otherwise skipped; either way it is rotated to the back. The scan
 //    goes on through that job's whole queue, then to the next job; so a lower-priority job gets
 //    work while a higher one has only tiles out.
@@ -144,10 +146,12 @@ class WorkQueue {
   // cropped job's region) are no part of the job: never leased, not counted in its progress, and
   // tile_status says kNoSuchTile and complete() kJobGone for them while the job runs; the other
   // tiles keep their indices. False, changing nothing, when the id is in use, tile_count is 0 or
-  // above kMaxQueueTiles, an index is out of range, a tile is both stored and skipped, or every
-  // tile is skipped.
+  // above kMaxQueueTiles, an index is out of range, a tile is both stored and skipped, every
+  // tile is skipped, or `order` is neither empty nor a permutation of [0, tile_count). `order` is
+  // the order in which the tiles are first leased (stored and skipped ones are passed over);
+  // empty: ascending index.
   bool add_job(JobId job, std::int32_t priority, TileIndex tile_count, std::span<const TileIndex> already_stored = {},
-               std::span<const TileIndex> skipped = {});
+               std::span<const TileIndex> skipped = {}, std::span<const TileIndex> order = {});
 
   // The next tile to render, or nothing and when to ask again. `holder` names who takes it (a
   // worker credential), "" for nobody in particular.

@@ -6,6 +6,7 @@
 
 #include "scene/digest.h"
 #include "scene/tiling.h"
+#include "util/log.h"
 #include "util/sha256.h"
 
 namespace dtraced::collector {
@@ -36,6 +37,7 @@ store::StoredJob job_row(const PreparedJob& job, std::int64_t created_unix) {
   row.tile_size = job.tile_size;
   row.state = std::string(store::kJobQueued);
   row.created_unix = created_unix;
+  row.tile_costs = costs_to_blob(job.submit.tile_costs);
   return row;
 }
 
@@ -79,6 +81,16 @@ util::Result<JobRecord> record_from_row(const store::StoredJob& row) {
     const std::uint64_t per_frame = scene::TileGrid(rec.settings, row.tile_size).count();
     return util::Error(fmt::format("job {}: {} tiles x {} frames, outside [1, {}] tiles", row.id, per_frame,
                                    protocol::frame_count(rec.settings), protocol::kMaxTilesPerJob));
+  }
+  if (!row.tile_costs.empty()) {
+    // Checked at submission; a blob that no longer fits only loses the order (row order then).
+    auto costs = blob_to_costs(row.tile_costs, rec.tile_indices / rec.frames_total);
+    if (costs) {
+      rec.tile_costs = std::move(*costs);
+    } else {
+      util::log_warn("job {}: stored tile costs ({} bytes) do not fit its {} tiles per frame; leasing in row order",
+                     row.id, row.tile_costs.size(), rec.tile_indices / rec.frames_total);
+    }
   }
   rec.output = row.output.empty() ? default_output_name(rec.id, rec.frames_total) : row.output;
   rec.state = *state;

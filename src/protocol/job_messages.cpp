@@ -25,7 +25,7 @@ using namespace detail;
 // Indexed by JobState.
 constexpr std::array<std::string_view, 5> kJobStateNames = {"queued", "rendering", "done", "cancelled", "paused"};
 
-constexpr std::array<std::string_view, 4> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size"};
+constexpr std::array<std::string_view, 5> kSubmitOwnKeys = {"scene", "output", "priority", "tile_size", "tile_costs"};
 constexpr auto kSubmitKeys = jsonio::join_keys(jsonio::join_keys(kSubmitOwnKeys, scene::kRenderKeys),
                                                std::array<std::string_view, 2>{"png_bit_depth", "crop"});
 constexpr std::array<std::string_view, 2> kJobCreatedKeys = {"id", "digest"};
@@ -72,6 +72,28 @@ void read_overrides(Fields& f, scene::Overrides& o) {
   read_crop(f, o.crop);
 }
 
+// The optional "tile_costs": one finite number in [0, kMaxTileCost] per tile of a frame's grid.
+void read_tile_costs(Fields& f, std::size_t per_frame, std::vector<float>& out) {
+  const json::value* v = f.get("tile_costs", Need::kOptional);
+  if (v == nullptr) return;
+  Reader& r = f.reader();
+  const Path at = f.path("tile_costs");
+  const json::array* a = r.array(*v, at, kMaxTilesPerJob, "tile costs");
+  if (a == nullptr) return;
+  if (a->size() != per_frame) {
+    r.error(at, fmt::format("has {} costs; the job has {} tiles per frame (one cost each)", a->size(), per_frame));
+    return;
+  }
+  std::vector<float> costs;
+  costs.reserve(per_frame);
+  const std::size_t before = r.error_count();
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const std::optional<double> d = r.number((*a)[i], at.index(i), 0.0, double{kMaxTileCost});
+    costs.push_back(d ? static_cast<float>(*d) : 0.0f);
+  }
+  if (r.error_count() == before) out = std::move(costs);
+}
+
 void read_job_submit(Fields& f, JobSubmit& m) {
   read_submitted_scene(f, m.scene);
   read_output(f, m.output, Need::kOptional);
@@ -91,6 +113,7 @@ void read_job_submit(Fields& f, JobSubmit& m) {
                      fmt::format("a {}x{} image in tiles of {} is {} tiles{}, more than the limit of {}", s.width,
                                  s.height, tile_size, per_frame, times, kMaxTilesPerJob));
   }
+  if (per_frame <= kMaxTilesPerJob) read_tile_costs(f, static_cast<std::size_t>(per_frame), m.tile_costs);
   // A sequence's output is a pattern with the frame number (or a GIF, one file for all frames).
   if (frames > 1 && !m.output.empty()) {
     if (util::Status pattern = image::check_sequence_path(m.output, static_cast<std::uint32_t>(frames)); !pattern) {
@@ -222,6 +245,12 @@ std::string encode(const JobSubmit& m) {
   if (v.exposure) o["exposure"] = jsonio::exact_number(*v.exposure);
   if (v.tone) o["tone"] = image::to_string(*v.tone);
   if (v.crop) o["crop"] = crop_object(*v.crop);
+  if (!m.tile_costs.empty()) {
+    json::array costs;
+    costs.reserve(m.tile_costs.size());
+    for (const float c : m.tile_costs) costs.emplace_back(static_cast<double>(c));
+    o["tile_costs"] = std::move(costs);
+  }
   return jsonio::to_text(o);
 }
 

@@ -42,6 +42,8 @@ inline constexpr std::size_t kMaxMessageBytes = 64 << 10;
 // POST /v1/jobs carries a whole scene. Scenes for the farm are bounded tighter than scene files
 // (scene::kMaxSceneBytes): the collector holds, parses and stores every one of them.
 inline constexpr std::size_t kMaxJobSubmitBytes = 64 << 20;
+// Upper bound of one JobSubmit::tile_costs entry (finite in a float with room to sum).
+inline constexpr float kMaxTileCost = 1e30f;
 // GET /v1/jobs: at most kMaxListedJobs statuses of a few hundred bytes each.
 inline constexpr std::size_t kMaxJobListBytes = 16 << 20;
 inline constexpr std::size_t kMaxListedJobs = 10'000;
@@ -96,6 +98,12 @@ struct JobSubmit {
   // against the effective image size); each a top-level key of its own, absent when unset,
   // checked against the limits of scene files.
   scene::Overrides overrides;
+  // Estimated render cost of each tile of one frame's full grid (scene::TileGrid of the effective
+  // settings and tile size, crop-skipped tiles included), in any unit (render/cost_map.h counts
+  // rays): the collector leases the costliest tiles of each frame first. Empty when not sent
+  // ("tile_costs" absent): tiles are leased in row order. When sent: exactly tiles-per-frame
+  // finite numbers in [0, kMaxTileCost].
+  std::vector<float> tile_costs;
   bool operator==(const JobSubmit&) const = default;
 };
 

@@ -420,6 +420,13 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
       if (auto st = impl->migrate_v2(); !st) return st.error();
     }
   }
+  // Optional in every version (store.h): a file made before it existed gets it now, unchanged
+  // otherwise; no foreign key, so a dtraced that does not know it can still delete jobs.
+  if (auto st = impl->exec_rows(
+          "CREATE TABLE IF NOT EXISTS job_tile_costs(job INTEGER PRIMARY KEY NOT NULL, costs BLOB NOT NULL) STRICT");
+      !st) {
+    return st.error();
+  }
   if (options.max_database_bytes > 0) {
     auto page = impl->exec_rows("PRAGMA page_size");
     if (!page) return page.error();

@@ -12,6 +12,9 @@
 //        client_key TEXT UNIQUE NULL)
 //   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
 //   (what a pixels blob holds is the collector's business: collector/jobs.h, pixels_to_blob)
+//   job_tile_costs(job INTEGER PRIMARY KEY, costs BLOB)  -- optional per job (StoredJob::tile_costs);
+//        created at open when missing, in any version: a file without it reads as "no costs",
+//        and an older dtraced ignores it (no foreign key, so its delete_job still succeeds)
 //   credentials(name TEXT PRIMARY KEY, role TEXT, token_sha256 BLOB UNIQUE, created_unix,
 //        revoked_unix NULL)                       -- a revoked credential stays, revoked
 //   join_codes(secret_sha256 BLOB PRIMARY KEY, name_hint NULL, created_unix, expires_unix,
@@ -104,6 +107,9 @@ struct StoredJob {
   // Optional and unique: the one-shot collector stores a key derived from its command line so a
   // restart with the same command line finds the job instead of enqueueing a copy.
   std::optional<std::string> client_key;
+  // Optional: the job's tile cost estimates, opaque to the store (collector/submission.h);
+  // empty for none. Kept in job_tile_costs, written with the job and deleted with it.
+  Blob tile_costs;
 
   bool operator==(const StoredJob&) const = default;
 };

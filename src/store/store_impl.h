@@ -33,7 +33,8 @@ inline constexpr std::string_view kSqlCommit = "COMMIT";
 inline constexpr std::string_view kSqlRollback = "ROLLBACK";
 // The job queries select the columns in the order read_job expects.
 inline constexpr std::string_view kSelectJobs =
-    "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key "
+    "SELECT id, digest, settings_json, output, priority, tile_size, state, created_unix, finished_unix, client_key, "
+    "(SELECT costs FROM job_tile_costs WHERE job_tile_costs.job = jobs.id) "
     "FROM jobs ";
 
 inline std::string column_text(sqlite3_stmt* s, int i) {
@@ -61,6 +62,7 @@ inline StoredJob read_job(sqlite3_stmt* s) {
   job.created_unix = sqlite3_column_int64(s, 7);
   job.finished_unix = sqlite3_column_int64(s, 8);
   if (sqlite3_column_type(s, 9) != SQLITE_NULL) job.client_key = column_text(s, 9);
+  if (sqlite3_column_type(s, 10) != SQLITE_NULL) job.tile_costs = column_blob(s, 10);
   return job;
 }
 

@@ -57,6 +57,16 @@ Result<std::int64_t> Store::insert_job(const StoredJob& job) {
     if (rc != SQLITE_DONE) return impl_->error("inserting a job", rc);
   }
   const std::int64_t id = sqlite3_last_insert_rowid(impl_->db);
+  if (!job.tile_costs.empty()) {
+    // Like last_job_id below, in the caller's transaction if it has one; without, a crash between
+    // the two leaves a job without costs, which the collector leases in row order.
+    constexpr std::string_view kCosts = "INSERT INTO job_tile_costs(job, costs) VALUES (?1, ?2)";
+    auto q = impl_->query(kCosts);
+    if (!q) return q.error();
+    if (const int rc = q.value().bind(id).bind_blob(job.tile_costs).step(); rc != SQLITE_DONE) {
+      return impl_->error("storing a job's tile costs", rc);
+    }
+  }
   // Not in the insert's transaction unless the caller has one: a crash between the two leaves the
   // job itself as the highest id, which the insert above also looks at.
   constexpr std::string_view kRemember =
@@ -155,6 +165,14 @@ Result<Deletion> Store::delete_job(std::int64_t id, std::span<const std::string_
         return impl_->error(fmt::format("deleting the tiles of job {}", id), rc);
       }
       out.tiles = static_cast<std::uint64_t>(sqlite3_changes64(impl_->db));
+    }
+    {
+      constexpr std::string_view kSql = "DELETE FROM job_tile_costs WHERE job = ?1";
+      auto q = impl_->query(kSql);
+      if (!q) return q.error();
+      if (const int rc = q.value().bind(id).step(); rc != SQLITE_DONE) {
+        return impl_->error(fmt::format("deleting the tile costs of job {}", id), rc);
+      }
     }
     {
       constexpr std::string_view kSql = "DELETE FROM jobs WHERE id = ?1";

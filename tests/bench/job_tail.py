@@ -20,12 +20,20 @@ here) every POLL seconds. It prints, per tile size:
     lowers it too; compare the rows of one run).
 
 Where the expensive tiles are leased last, the last 10 % of the tiles take more than 10 % of
-the job; leased first (`--glass top`), less. The collector leases tiles in row order today.
+the job; leased first (`--glass top`), less.
+
+`--order` says how the collector leases: "row" submits with `--no-cost-pass` (row order), "cost"
+as `dtraced submit` does by default (a low-resolution pre-pass estimates each tile's cost, and
+the collector leases the costliest first), "both" (the default) alternates the two, run by run,
+so that both rows of a tile size come from the same minutes of a shared machine. The job's time
+runs from the start of `dtraced submit` (so it includes the pre-pass; "submit s" shows that part
+alone). For the cost order the benchmark prints a target line per tile size: the last 10 % of
+the tiles take at most 10 % of the job, MET or MISSED (medians).
 
 A benchmark, not a test: figures only; it fails only when it cannot run.
 
 Usage: tests/bench/job_tail.py [--dtraced build/src/cli/dtraced] [--workers 2] [--tiles 16,32,64]
-       [--runs 3] [--glass bottom|top] [--samples 2] [--keep]
+       [--runs 3] [--glass bottom|top] [--order both|row|cost] [--samples 2] [--keep]
 """
 
 import argparse
@@ -51,6 +59,8 @@ parser.add_argument("--tiles", default="16,32,64", help="tile sizes to measure, 
 parser.add_argument("--runs", type=int, default=3, help="runs per tile size (medians printed)")
 parser.add_argument("--glass", choices=["bottom", "top"], default="bottom",
                     help="where the expensive region is: leased last (bottom) or first (top)")
+parser.add_argument("--order", choices=["both", "row", "cost"], default="both",
+                    help="lease order: row (--no-cost-pass), cost (submit's pre-pass), or both alternating")
 parser.add_argument("--width", type=int, default=640)
 parser.add_argument("--height", type=int, default=360)
 parser.add_argument("--samples", type=int, default=2)
@@ -159,11 +169,14 @@ def workers_cpu():
     return sum(cpu_seconds(p.pid) for p in procs[1:])
 
 
-def run(url, token, scene_file, tile, index):
+def run(url, token, scene_file, tile, index, order):
     cpu0 = workers_cpu()
-    out = subprocess.run([args.dtraced, "submit", scene_file, "-o", f"tail-{tile}-{index}.png", "--tile-size",
-                          str(tile), "--collector", url, "--token-file", token], capture_output=True, text=True)
+    flags = ["--no-cost-pass"] if order == "row" else []
     t0 = time.monotonic()
+    out = subprocess.run([args.dtraced, "submit", scene_file, "-o", f"tail-{tile}-{order}-{index}.png",
+                          "--tile-size", str(tile), "--collector", url, "--token-file", token] + flags,
+                         capture_output=True, text=True)
+    submit_s = time.monotonic() - t0
     if out.returncode != 0:
         fail(f"submit failed: {out.stderr.strip()}")
     job = out.stdout.strip().split()[-1]
@@ -190,7 +203,7 @@ def run(url, token, scene_file, tile, index):
     job_s = times[-1][0]
     busy = (workers_cpu() - cpu0) / (args.workers * job_s)
     t90, t99 = first_at(0.9), first_at(0.99)
-    return total, job_s, job_s - t90, job_s - t99, busy
+    return total, job_s, job_s - t90, job_s - t99, busy, submit_s
 
 
 def main():
@@ -203,22 +216,46 @@ def main():
         procs.append(subprocess.Popen([args.dtraced, "--role", "worker", "--collector", url, "--token-file", token,
                                        "--threads", "1", "--name", f"tail-{i}"],
                                       stdout=subprocess.DEVNULL, stderr=log))
+    orders = ["row", "cost"] if args.order == "both" else [args.order]
+    load = os.getloadavg()
     print(f"job_tail: {args.width}x{args.height} at {args.samples} spp, glass cluster in the {args.glass} "
-          f"rows, {args.workers} workers x 1 thread, medians of {args.runs} runs")
+          f"rows, {args.workers} workers x 1 thread, medians of {args.runs} runs, "
+          f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} at the start")
     print()
-    print("| tile px | tiles | job s | last 10 % of tiles s | share of job | last 1 % s | share | workers busy |")
-    print("|--:|--:|--:|--:|--:|--:|--:|--:|")
+    print("| tile px | order | tiles | job s | submit s | last 10 % of tiles s | share of job | last 1 % s | share "
+          "| workers busy |")
+    print("|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|")
+    targets = []
     for tile in [int(t) for t in args.tiles.split(",")]:
-        rows = [run(url, token, scene_file, tile, i) for i in range(args.runs)]
-        total = rows[0][0]
-        job_s = statistics.median(r[1] for r in rows)
-        t10 = statistics.median(r[2] for r in rows)
-        t1 = statistics.median(r[3] for r in rows)
-        share10 = statistics.median(r[2] / r[1] for r in rows)
-        share1 = statistics.median(r[3] / r[1] for r in rows)
-        busy = statistics.median(r[4] for r in rows)
-        print(f"| {tile} | {total} | {job_s:.2f} | {t10:.2f} | {share10:.1%} | {t1:.2f} | {share1:.1%} | {busy:.0%} |",
-              flush=True)
+        rows = {o: [] for o in orders}
+        for i in range(args.runs):
+            for o in orders:  # alternating: both orders see the same load
+                rows[o].append(run(url, token, scene_file, tile, i, o))
+        job_medians = {}
+        for o in orders:
+            r_o = rows[o]
+            total = r_o[0][0]
+            job_s = statistics.median(r[1] for r in r_o)
+            t10 = statistics.median(r[2] for r in r_o)
+            t1 = statistics.median(r[3] for r in r_o)
+            share10 = statistics.median(r[2] / r[1] for r in r_o)
+            share1 = statistics.median(r[3] / r[1] for r in r_o)
+            busy = statistics.median(r[4] for r in r_o)
+            submit_s = statistics.median(r[5] for r in r_o)
+            job_medians[o] = job_s
+            print(f"| {tile} | {o} | {total} | {job_s:.2f} | {submit_s:.2f} | {t10:.2f} | {share10:.1%} | {t1:.2f} "
+                  f"| {share1:.1%} | {busy:.0%} |", flush=True)
+            if o == "cost":
+                verdict = "MET" if share10 <= 0.10 else "MISSED"
+                targets.append(f"{tile} px, cost order: last 10 % of tiles = {share10:.1%} of the job "
+                               f"(target <= 10 %): {verdict}")
+        if len(orders) == 2:
+            targets.append(f"{tile} px: cost order job time / row order job time = "
+                           f"{job_medians['cost'] / job_medians['row']:.2f}")
+    if targets:
+        print()
+        for line in targets:
+            print(line)
     stop_all()
 
 
