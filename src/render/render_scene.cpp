@@ -390,6 +390,12 @@ AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, accel::Isa is
   return prepare(desc, scene::moving_objects(desc), isa, build_threads);
 }
 
+AnimatedScene AnimatedScene::still(RenderScene scene) {
+  AnimatedScene out;
+  out.still_ = std::make_shared<const RenderScene>(std::move(scene));
+  return out;
+}
+
 AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, std::vector<bool> moving, accel::Isa isa,
                                      unsigned build_threads) {
   AnimatedScene out;

@@ -211,6 +211,9 @@ class AnimatedScene {
   // `build_threads` threads (0: the CPUs this process may use): give the render's thread count.
   static AnimatedScene prepare(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(),
                                unsigned build_threads = 0);
+  // A static scene built already (e.g. through a RenderSceneBuilder, while it loaded): every
+  // frame is `scene`.
+  static AnimatedScene still(RenderScene scene);
   // An animated scene split by an explicit mask (one flag per object), whatever is_animated says.
   static AnimatedScene prepare(const scene::SceneDesc& desc, std::vector<bool> moving,
                                accel::Isa isa = accel::best_isa(), unsigned build_threads = 0);

@@ -6,14 +6,28 @@
 
 #include <fmt/format.h>
 
+#include "scene/animation.h"
 #include "scene/digest.h"
 #include "scene/load.h"
+#include "util/sha256.h"
 
 namespace dtraced::worker {
 namespace {
 
 // Load errors quoted in a refusal: the first few say enough, and the message stays one log line.
 constexpr std::size_t kMaxQuotedErrors = 3;
+
+// Why a body that does not load is refused: its first few errors.
+std::string refusal(const std::string& label, const scene::LoadResult& loaded) {
+  std::string reasons;
+  for (std::size_t i = 0; i < loaded.errors.size() && i < kMaxQuotedErrors; ++i) {
+    reasons += (i == 0 ? "" : "; ") + loaded.errors[i].to_string();
+  }
+  if (loaded.errors.size() > kMaxQuotedErrors) {
+    reasons += fmt::format("; and {} more", loaded.errors.size() - kMaxQuotedErrors);
+  }
+  return fmt::format("the body sent as {} does not load: {}", label, reasons);
+}
 
 }  // namespace
 
@@ -94,16 +108,29 @@ PreparedScene prepare_scene(std::string_view body, std::string_view digest, acce
   const std::string label = fmt::format("scene {}", digest);
   scene::LoadOptions options;
   options.allow_mesh_files = false;
+  // A body that is the canonical text itself (what a collector serves) has the digest's SHA-256,
+  // and no other text can have it: then the scene needs no second serialisation to be checked,
+  // and a static one's objects go straight into the render-ready scene as they are read (the
+  // description of a large scene is never held whole).
+  if (util::sha256_hex(body) == digest) {
+    render::RenderSceneBuilder builder;
+    scene::LoadOptions streamed = options;
+    streamed.object_sink = &builder;
+    scene::LoadResult loaded = scene::load_scene_string(body, label, streamed);
+    if (!loaded.ok()) {
+      prepared.error = refusal(label, loaded);
+      return prepared;
+    }
+    if (!scene::is_animated(*loaded.scene)) {
+      prepared.scene = std::make_shared<const SceneFrames>(
+          render::AnimatedScene::still(std::move(builder).build(*loaded.scene, isa, build_threads)));
+      return prepared;
+    }
+    // Animated: its frames are built from the description, loaded again below with its objects.
+  }
   scene::LoadResult loaded = scene::load_scene_string(body, label, options);
   if (!loaded.ok()) {
-    std::string reasons;
-    for (std::size_t i = 0; i < loaded.errors.size() && i < kMaxQuotedErrors; ++i) {
-      reasons += (i == 0 ? "" : "; ") + loaded.errors[i].to_string();
-    }
-    if (loaded.errors.size() > kMaxQuotedErrors) {
-      reasons += fmt::format("; and {} more", loaded.errors.size() - kMaxQuotedErrors);
-    }
-    prepared.error = fmt::format("the body sent as {} does not load: {}", label, reasons);
+    prepared.error = refusal(label, loaded);
     return prepared;
   }
   const std::string actual = scene::scene_digest(*loaded.scene);
