@@ -10,6 +10,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
@@ -20,6 +21,7 @@
 #include "math/vec.h"
 #include "scene/description.h"
 #include "scene/load.h"
+#include "util/result.h"
 
 namespace dtraced::render {
 
@@ -186,6 +188,24 @@ class RenderSceneBuilder final : public scene::ObjectSink {
   // builder.
   RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(), unsigned build_threads = 0) &&;
   std::size_t object_count() const { return materials_.size(); }
+
+  // What build() needs of the objects added so far, for a binary cache of the scene
+  // (worker/scene_cache.h): views of the builder's arrays, valid until it changes.
+  struct Parts {
+    std::span<const accel::Shape> shapes;
+    std::span<const MaterialF> materials;
+    std::span<const std::uint32_t> shape_object;  // empty unless some object is not one shape
+    std::span<const std::pair<std::uint32_t, bool>> transparent;
+    SceneFeatures features;  // reflection and specular
+  };
+  Parts parts() const { return {shapes_, materials_, shape_object_, transparent_, features_}; }
+  // A builder holding these parts, as parts() gave them: build() then gives the same scene as the
+  // builder they came from. An error names what is inconsistent (counts, an owner or a
+  // transparent object out of range, an unknown shape type): the parts came from a file.
+  static util::Result<RenderSceneBuilder> from_parts(std::vector<accel::Shape> shapes, std::vector<MaterialF> materials,
+                                                     std::vector<std::uint32_t> shape_object,
+                                                     std::vector<std::pair<std::uint32_t, bool>> transparent,
+                                                     SceneFeatures features);
 
  private:
   friend class RenderScene;
