@@ -7,6 +7,9 @@
 //   dtraced-bench-scale --write N FILE   writes scene::generate_sphere_field(N, 1) as canonical JSON
 //   dtraced-bench-scale FILE             loads FILE, builds, renders, prints one line of figures
 //   dtraced-bench-scale FILE --load-only only parses FILE (time and peak RSS), for profiles
+//   dtraced-bench-scale FILE --cache-dir DIR   a worker's preparation of FILE (canonical JSON, as
+//                                        --write writes it) from its JSON, which writes the binary
+//                                        scene cache in DIR, then from that cache: load and build
 // Peak RSS is the largest of the peaks of the parse, the build and the render (VmHWM, reset
 // between them, each printed to stderr), read before the extra timing builds.
 // The objects are loaded straight into render-ready arrays (render::RenderSceneBuilder).
@@ -20,6 +23,7 @@
 #include <chrono>
 #include <cstdint>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <string>
 #include <vector>
@@ -36,6 +40,8 @@
 #include "scene/generate.h"
 #include "scene/load.h"
 #include "util/file.h"
+#include "util/sha256.h"
+#include "worker/scene_cache.h"
 
 #ifdef DTRACED_BENCH_EMBREE
 #include "bench/embree_tracer.h"
@@ -218,6 +224,40 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
   return 0;
 }
 
+// worker::prepare_scene of a canonical scene file twice: from its JSON (writing the cache file in
+// `dir`), then from the cache file. The load is the preparation less the BVH build.
+int measure_cache(const std::string& path, const std::string& dir, std::uint32_t threads) {
+  util::Result<std::string> text = util::read_file_limited(path, scene::kMaxSceneFileBytes);
+  if (!text) {
+    fmt::print(stderr, "dtraced-bench-scale: {}\n", text.error().to_string());
+    return 1;
+  }
+  const std::string digest = util::sha256_hex(*text);  // the file is canonical: its digest
+  std::filesystem::remove(worker::cached_scene_path(dir, digest));
+  double load[2] = {0, 0}, cpu[2] = {0, 0};
+  for (const int pass : {0, 1}) {
+    const auto start = Clock::now();
+    const double cpu_start = cpu_seconds();
+    const worker::PreparedScene prepared = worker::prepare_scene(*text, digest, accel::best_isa(), threads, dir);
+    const double all_s = since(start);
+    cpu[pass] = cpu_seconds() - cpu_start;
+    if (!prepared.scene || !prepared.warning.empty()) {
+      fmt::print(stderr, "dtraced-bench-scale: {}{}\n", prepared.error, prepared.warning);
+      return 1;
+    }
+    const accel::BuildStats& st = prepared.scene->frame(0)->geometry().fixed()->geometry.stats();
+    load[pass] = all_s - (st.seconds + st.wide_seconds);
+    fmt::print(stderr, "{}: prepare {:.3f} s (cpu {:.3f} s), of which the BVH build {:.3f} s\n",
+               pass == 0 ? "from JSON (and writing the cache)" : "from the cache file", all_s, cpu[pass],
+               st.seconds + st.wide_seconds);
+  }
+  fmt::print(
+      "worker scene load, {}: from JSON {:.3f} s (prepare cpu {:.3f} s), from the cache {:.3f} s (prepare cpu "
+      "{:.3f} s): {:.1f}x\n",
+      path, load[0], cpu[0], load[1], cpu[1], load[1] > 0 ? load[0] / load[1] : 0.0);
+  return 0;
+}
+
 }  // namespace
 }  // namespace dtraced::bench
 
@@ -237,7 +277,11 @@ int main(int argc, char** argv) {
   app.add_option("--height", height, "Render height")->check(CLI::Range(1u, 8192u));
   bool load_only = false;
   app.add_flag("--load-only", load_only, "Only parse FILE: its time and peak RSS (for profiling the load)");
+  std::string cache_dir;
+  app.add_option("--cache-dir", cache_dir,
+                 "Measure a worker's load of FILE from its JSON and then from the binary scene cache it writes here");
   CLI11_PARSE(app, argc, argv);
   if (write_count > 0) return dtraced::bench::write_scene(write_count, file);
+  if (!cache_dir.empty()) return dtraced::bench::measure_cache(file, cache_dir, threads);
   return dtraced::bench::measure(file, threads, runs, width, height, load_only);
 }

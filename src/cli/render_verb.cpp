@@ -28,9 +28,11 @@
 #include "render/local_render.h"
 #include "render/render_scene.h"
 #include "scene/animation.h"
+#include "scene/digest.h"
 #include "scene/load.h"
 #include "scene/tiling.h"
 #include "util/file.h"
+#include "util/sha256.h"
 
 namespace dtraced::cli {
 namespace {
@@ -163,13 +165,13 @@ struct Partial {
 };
 
 // OUT.partial continued (`resume`) or created; a partial file that is there is never replaced.
-// kExitOk, or the exit code with the problem on stderr.
+// `key` names the scene, settings and tile size (Run::partial_key). kExitOk, or the exit code with
+// the problem on stderr.
 // `say_fresh`: a --resume that finds no partial file says so (a single image; a sequence's frames
 // without one are simply the ones not started).
 int open_partial(const std::string& output, bool resume, bool say_fresh, const scene::SceneDesc& desc,
-                 std::uint32_t tile_size, Partial& p) {
+                 std::uint32_t tile_size, const std::string& key, Partial& p) {
   p.path = partial_path(output);
-  const std::string key = partial_key(desc, tile_size);
   std::error_code ec;
   if (!std::filesystem::exists(p.path, ec)) {
     if (resume && say_fresh) fmt::print(stderr, "{}: no partial render to resume; rendering from the start\n", p.path);
@@ -234,6 +236,18 @@ struct Run {
   bool features_printed = false;                    // the scene's features are printed once, with the first frame
   std::optional<render::AnimatedScene> prepared{};  // every frame's render-ready scene comes from here
   double prepare_s = 0;                             // its build time, not yet reported
+  // A static scene's objects were streamed into the render-ready scene while it loaded (the
+  // description holds none): this is their digest (scene::ObjectsDigest). Empty: the
+  // description holds its objects.
+  std::string objects_digest{};
+
+  // The key of a frame's partial file: cli::partial_key of the frame, or for a streamed scene the
+  // same over its description without objects and the objects' digest.
+  std::string partial_key(const scene::SceneDesc& frame) const {
+    if (objects_digest.empty()) return cli::partial_key(frame, tile_size);
+    return util::sha256_hex(
+        fmt::format("{}\nobjects {}\ntile_size {}", scene::scene_digest(frame), objects_digest, tile_size));
+  }
 };
 
 // Renders one frame (`desc` is that frame's static scene) to `image_path` (and `spp_path`, if
@@ -243,7 +257,8 @@ int render_frame(Run& run, const scene::SceneDesc& desc, const std::string& imag
   const RenderArgs& args = run.args;
   const scene::RenderSettings& s = desc.render;
   Partial partial;
-  if (const int code = open_partial(image_path, args.resume, run.frame_count == 1, desc, run.tile_size, partial);
+  if (const int code = open_partial(image_path, args.resume, run.frame_count == 1, desc, run.tile_size,
+                                    run.partial_key(desc), partial);
       code != kExitOk) {
     return code;
   }
@@ -383,7 +398,19 @@ int write_gif(const RenderArgs& args, const scene::RenderSettings& s, const std:
 }  // namespace
 
 int run_render(const RenderArgs& args) {
-  scene::LoadResult loaded = scene::load_scene_file(args.scene);
+  // A static scene's objects go straight into the render-ready scene as they are read (the
+  // description never holds them: a few times less memory for a large scene); an animated one is
+  // loaded again whole, since its frames are built from the description.
+  std::optional<render::RenderSceneBuilder> builder(std::in_place);
+  std::optional<scene::ObjectsDigest> objects(std::in_place, &*builder);
+  scene::LoadOptions streamed;
+  streamed.object_sink = &*objects;
+  scene::LoadResult loaded = scene::load_scene_file(args.scene, streamed);
+  if (loaded.ok() && scene::is_animated(*loaded.scene)) {
+    objects.reset();
+    builder.reset();
+    loaded = scene::load_scene_file(args.scene);
+  }
   if (!loaded.ok()) {
     report::print_errors(loaded);
     return kExitFailed;
@@ -396,6 +423,7 @@ int run_render(const RenderArgs& args) {
   if (const int usage = check_outputs(args, range.count()); usage != kExitOk) return usage;
   Run run{.args = args};
   run.tile_size = scene::tile_size_or_default(args.overrides);
+  if (objects) run.objects_digest = objects->hex();
   run.crop = args.overrides.crop;
   if (run.crop) {
     if (const util::Status inside = check_crop(*run.crop, desc.render.width, desc.render.height); !inside) {
@@ -446,7 +474,13 @@ int run_render(const RenderArgs& args) {
   }
 
   const auto prepare_start = std::chrono::steady_clock::now();
-  run.prepared.emplace(render::AnimatedScene::prepare(desc, args.isa, args.threads));
+  if (builder) {
+    objects.reset();
+    run.prepared.emplace(render::AnimatedScene::still(std::move(*builder).build(desc, args.isa, args.threads)));
+    builder.reset();
+  } else {
+    run.prepared.emplace(render::AnimatedScene::prepare(desc, args.isa, args.threads));
+  }
   run.prepare_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - prepare_start).count();
 
   std::vector<std::string> gif_frames;

@@ -133,10 +133,14 @@ class StrictHandler {
     return value_done();
   }
   bool on_double(double boost_value, json::string_view s, json::error_code&) {
-    number_part_.append(s.data(), s.size());
     begin_element();
-    stack().push_double(precise_double(number_part_, boost_value));
-    number_part_.clear();
+    if (number_part_.empty()) {  // the whole number in one piece (nearly always): no copy
+      stack().push_double(precise_double(std::string_view(s.data(), s.size()), boost_value));
+    } else {
+      number_part_.append(s.data(), s.size());
+      stack().push_double(precise_double(number_part_, boost_value));
+      number_part_.clear();
+    }
     return value_done();
   }
   bool on_bool(bool b, json::error_code&) {
@@ -173,7 +177,7 @@ class StrictHandler {
 
  private:
   // from_chars is correctly rounded; Boost 1.81's conversion is not (see the header).
-  static double precise_double(const std::string& text, double boost_value) {
+  static double precise_double(std::string_view text, double boost_value) {
     double d = 0;
     const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), d, std::chars_format::general);
     // On overflow/underflow from_chars leaves `d` alone; Boost's value (+-inf, or a value near

@@ -6,6 +6,8 @@
 #include <limits>
 #include <numbers>
 
+#include <fmt/format.h>
+
 #include "math/det_math.h"
 #include "scene/animation.h"
 #include "util/huge_pages.h"
@@ -365,6 +367,44 @@ void RenderSceneBuilder::add(std::size_t index, const scene::Object& o) {
   features_.specular = features_.specular || o.material.specular > 0.0;
 }
 
+util::Result<RenderSceneBuilder> RenderSceneBuilder::from_parts(std::vector<accel::Shape> shapes,
+                                                                std::vector<MaterialF> materials,
+                                                                std::vector<std::uint32_t> shape_object,
+                                                                std::vector<std::pair<std::uint32_t, bool>> transparent,
+                                                                SceneFeatures features) {
+  const std::size_t objects = materials.size();
+  if (shape_object.empty() ? shapes.size() != objects : shape_object.size() != shapes.size()) {
+    return util::Error{fmt::format("{} shapes, {} objects and {} owners do not fit together", shapes.size(), objects,
+                                   shape_object.size())};
+  }
+  for (std::size_t i = 0; i < shapes.size(); ++i) {
+    if (static_cast<std::uint8_t>(shapes[i].type) > static_cast<std::uint8_t>(accel::ShapeType::kTriangle)) {
+      return util::Error{fmt::format("shape {} has an unknown type", i)};
+    }
+  }
+  // Owners count up from 0 by at most one, as add() makes them, and end at the last object.
+  for (std::size_t i = 0; i < shape_object.size(); ++i) {
+    const std::uint32_t previous = i == 0 ? 0 : shape_object[i - 1];
+    if (shape_object[i] < previous || shape_object[i] > previous + 1 || (i == 0 && shape_object[0] != 0)) {
+      return util::Error{fmt::format("shape {} has owner {} after {}", i, shape_object[i], previous)};
+    }
+  }
+  if (!shape_object.empty() && shape_object.back() + std::size_t{1} != objects) {
+    return util::Error{fmt::format("the last shape's owner is not the last of {} objects", objects)};
+  }
+  for (const auto& [object, mesh] : transparent) {
+    if (object >= objects) return util::Error{fmt::format("transparent object {} of {}", object, objects)};
+  }
+  RenderSceneBuilder b;
+  b.mapped_ = !shape_object.empty();
+  b.shapes_ = std::move(shapes);
+  b.materials_ = std::move(materials);
+  b.shape_object_ = std::move(shape_object);
+  b.transparent_ = std::move(transparent);
+  b.features_ = features;
+  return b;
+}
+
 RenderScene RenderSceneBuilder::build(const scene::SceneDesc& desc, accel::Isa isa, unsigned build_threads) && {
   for (const scene::Object& o : desc.objects) add(materials_.size(), o);
   // Shape ids are 32-bit (accel::Hit::shape); the loader's limits keep far below that.
@@ -388,6 +428,12 @@ AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, accel::Isa is
     return out;
   }
   return prepare(desc, scene::moving_objects(desc), isa, build_threads);
+}
+
+AnimatedScene AnimatedScene::still(RenderScene scene) {
+  AnimatedScene out;
+  out.still_ = std::make_shared<const RenderScene>(std::move(scene));
+  return out;
 }
 
 AnimatedScene AnimatedScene::prepare(const scene::SceneDesc& desc, std::vector<bool> moving, accel::Isa isa,

@@ -10,6 +10,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <string>
 #include <utility>
 #include <vector>
@@ -20,6 +21,7 @@
 #include "math/vec.h"
 #include "scene/description.h"
 #include "scene/load.h"
+#include "util/result.h"
 
 namespace dtraced::render {
 
@@ -187,6 +189,24 @@ class RenderSceneBuilder final : public scene::ObjectSink {
   RenderScene build(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(), unsigned build_threads = 0) &&;
   std::size_t object_count() const { return materials_.size(); }
 
+  // What build() needs of the objects added so far, for a binary cache of the scene
+  // (worker/scene_cache.h): views of the builder's arrays, valid until it changes.
+  struct Parts {
+    std::span<const accel::Shape> shapes;
+    std::span<const MaterialF> materials;
+    std::span<const std::uint32_t> shape_object;  // empty unless some object is not one shape
+    std::span<const std::pair<std::uint32_t, bool>> transparent;
+    SceneFeatures features;  // reflection and specular
+  };
+  Parts parts() const { return {shapes_, materials_, shape_object_, transparent_, features_}; }
+  // A builder holding these parts, as parts() gave them: build() then gives the same scene as the
+  // builder they came from. An error names what is inconsistent (counts, an owner or a
+  // transparent object out of range, an unknown shape type): the parts came from a file.
+  static util::Result<RenderSceneBuilder> from_parts(std::vector<accel::Shape> shapes, std::vector<MaterialF> materials,
+                                                     std::vector<std::uint32_t> shape_object,
+                                                     std::vector<std::pair<std::uint32_t, bool>> transparent,
+                                                     SceneFeatures features);
+
  private:
   friend class RenderScene;
   // Room for exactly these many objects and shapes (RenderScene::build knows both).
@@ -211,6 +231,9 @@ class AnimatedScene {
   // `build_threads` threads (0: the CPUs this process may use): give the render's thread count.
   static AnimatedScene prepare(const scene::SceneDesc& desc, accel::Isa isa = accel::best_isa(),
                                unsigned build_threads = 0);
+  // A static scene built already (e.g. through a RenderSceneBuilder, while it loaded): every
+  // frame is `scene`.
+  static AnimatedScene still(RenderScene scene);
   // An animated scene split by an explicit mask (one flag per object), whatever is_animated says.
   static AnimatedScene prepare(const scene::SceneDesc& desc, std::vector<bool> moving,
                                accel::Isa isa = accel::best_isa(), unsigned build_threads = 0);

@@ -1,5 +1,6 @@
 #include "scene/digest.h"
 
+#include <cstring>
 #include <utility>
 
 #include <boost/json/array.hpp>
@@ -168,5 +169,68 @@ std::string canonical_json(const SceneDesc& desc) {
 }
 
 std::string scene_digest(const SceneDesc& desc) { return util::sha256_hex(canonical_json(desc)); }
+
+namespace {
+
+void put_bytes(std::string& out, const void* p, std::size_t n) { out.append(static_cast<const char*>(p), n); }
+void put(std::string& out, double d) { put_bytes(out, &d, sizeof d); }
+void put(std::string& out, const Vec3d& v) {
+  put(out, v.x);
+  put(out, v.y);
+  put(out, v.z);
+}
+void put(std::string& out, std::uint64_t n) { put_bytes(out, &n, sizeof n); }
+
+}  // namespace
+
+void ObjectsDigest::reserve(std::size_t objects) {
+  if (next_ != nullptr) next_->reserve(objects);
+}
+
+void ObjectsDigest::add(std::size_t index, const Object& object) {
+  // Every field the canonical form writes for a static object, in a fixed order.
+  chunk_.push_back(static_cast<char>(object.type));
+  switch (object.type) {
+    case ObjectType::kSphere:
+      put(chunk_, object.sphere.center);
+      put(chunk_, object.sphere.radius);
+      break;
+    case ObjectType::kBox:
+      put(chunk_, object.box.min);
+      put(chunk_, object.box.max);
+      break;
+    case ObjectType::kPlane:
+      put(chunk_, object.plane.point);
+      put(chunk_, object.plane.normal);
+      break;
+    case ObjectType::kMesh:
+      put(chunk_, std::uint64_t{object.mesh->obj.size()});
+      chunk_ += object.mesh->obj;
+      put(chunk_, object.mesh->translate);
+      put(chunk_, object.mesh->rotate_deg);
+      put(chunk_, object.mesh->scale);
+      break;
+  }
+  const Material& m = object.material;
+  put(chunk_, m.color);
+  for (const double d : {m.diffuse, m.specular, m.shininess, m.reflectivity, m.transparency, m.ior}) put(chunk_, d);
+  ++count_;
+  if (chunk_.size() >= kChunkBytes) flush();
+  if (next_ != nullptr) next_->add(index, object);
+}
+
+void ObjectsDigest::flush() {
+  const util::Sha256Digest d = util::sha256_bytes(chunk_);
+  put_bytes(digests_, d.data(), d.size());
+  chunk_.clear();
+}
+
+std::string ObjectsDigest::hex() const {
+  std::string all = digests_;
+  const util::Sha256Digest last = util::sha256_bytes(chunk_);
+  put_bytes(all, last.data(), last.size());
+  put(all, std::uint64_t{count_});
+  return util::sha256_hex(all);
+}
 
 }  // namespace dtraced::scene

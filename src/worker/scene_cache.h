@@ -26,6 +26,7 @@
 
 #include "render/render_scene.h"
 #include "render/tile.h"
+#include "util/result.h"
 
 namespace dtraced::worker {
 
@@ -93,9 +94,39 @@ class SceneCache {
 
 // A verified, prepared scene, or why the body was refused.
 struct PreparedScene {
-  FramesPtr scene;    // set on success
-  std::string error;  // set on failure
+  FramesPtr scene;      // set on success
+  std::string error;    // set on failure
+  std::string warning;  // a scene cache file that could not be read or written (the scene is fine)
 };
+
+// ---- binary scene cache ------------------------------------------------------------------------
+// A static scene in render-ready form (shapes, materials, owners, transparent objects, and the
+// description without its objects as canonical JSON), one file per digest, so that a worker that
+// meets the digest again skips the JSON parse (a few seconds for a million spheres). The BVH is
+// built again from the shapes: the same bits as from the JSON.
+//
+// Layout (host byte order: the file is this host's, never sent): a fixed header (magic,
+// kCacheVersion, a byte-order mark, the sizes of a shape and a material, the digest of the JSON
+// the scene came from, each section's length and SHA-256), then the sections. Reading checks
+// everything before it trusts a byte: the magic, version, layout and digest, each length against
+// its bound and the file's size, each section's SHA-256, and that the parts fit together
+// (render::RenderSceneBuilder::from_parts); any failure is an error naming the file.
+inline constexpr std::uint32_t kCacheVersion = 1;
+inline constexpr std::uint64_t kMaxCachedDescBytes = 16ull << 20;  // camera, settings, up to 10k lights
+
+// DIR/DIGEST.dtscene
+std::string cached_scene_path(const std::string& dir, std::string_view digest);
+
+// Writes the objects `builder` holds and `desc` (a static scene's description without objects:
+// camera, settings, lights) to `path` under `digest`, through a temporary file renamed over it.
+util::Status write_cached_scene(const std::string& path, std::string_view digest, const scene::SceneDesc& desc,
+                                const render::RenderSceneBuilder& builder);
+
+// The scene of a cache file written by write_cached_scene under `digest`, prepared with the
+// kernels of `isa` on up to `build_threads` threads; an error naming the file when it is
+// missing, truncated, corrupt, of another version or layout, or of another digest.
+util::Result<FramesPtr> read_cached_scene(const std::string& path, std::string_view digest, accel::Isa isa,
+                                          unsigned build_threads = 0);
 
 // Loads `body` (scene JSON as GET /v1/scenes/{digest} answers it), checks that the scene it
 // describes has the digest `digest` (scene_digest of the loaded scene, i.e. the SHA-256 of its
@@ -105,6 +136,10 @@ struct PreparedScene {
 // version), is refused; so is one with a mesh "file": a worker reads nothing from its own disk
 // on a scene's behalf (canonical scenes carry their meshes inline).
 // The BVH is built on up to `build_threads` threads (0: the CPUs this process may use).
-PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa, unsigned build_threads = 0);
+// With a `cache_dir`, a static scene is read from its cache file there when it has one (a file
+// that does not read is a warning, and the body is loaded instead), and written there after the
+// body's first load (a failure to write is a warning).
+PreparedScene prepare_scene(std::string_view body, std::string_view digest, accel::Isa isa, unsigned build_threads = 0,
+                            const std::string& cache_dir = {});
 
 }  // namespace dtraced::worker

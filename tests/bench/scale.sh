@@ -3,8 +3,10 @@
 # file to render-ready shapes), the BVH build on 1 and N threads (median of RUNS builds), a 1 spp
 # render, peak RSS and bytes per sphere, and Embree's build time for the same spheres on the same
 # threads when the build found Embree 3; the 1M (and 10M) lines mark the targets MET or
-# MISSED. Each scene is measured in a process of its own (dtraced-bench-scale, see its header), so
-# the peak RSS is the pipeline's alone. A benchmark, not a test: it fails only when it cannot run.
+# MISSED. Then a worker's load of the 100k and 1M scenes from their JSON and from the binary scene
+# cache (worker/scene_cache.h) it writes in DIR. Each scene is measured in a process of its own
+# (dtraced-bench-scale, see its header), so the peak RSS is the pipeline's alone. A benchmark, not
+# a test: it fails only when it cannot run.
 #
 # Usage, after the README's build (cmake -B build && cmake --build build):
 #   tests/bench/scale.sh            # 100k and 1M spheres (a few minutes on 2 cores)
@@ -33,4 +35,9 @@ for n in "${counts[@]}"; do
   file=$DIR/spheres-$n.json
   [[ -s $file ]] || "$BIN" --write "$n" "$file"
   "$BIN" "$file" --threads "$THREADS" --runs "$RUNS"
+  # A worker's load of the same scene from its JSON, then from the binary scene cache it wrote.
+  # (Not 10M: the worker's path holds the whole body, 3.2 GB, in memory.)
+  if [[ $n -lt 9999999 ]]; then
+    "$BIN" "$file" --threads "$THREADS" --cache-dir "$DIR"
+  fi
 done
