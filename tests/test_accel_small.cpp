@@ -4,8 +4,11 @@
 // scalar reference does (same shape, same t bits, same hit record) on every instruction set this
 // machine runs. Also packets whose lanes differ in direction signs, have zero or negative-zero
 // direction components or different dominant axes, which exercise the per-lane constants the
-// packet kernels compute a vector at a time, on a flat and on a tree layout.
+// packet kernels compute a vector at a time, on a flat and on a tree layout. And the encoding of
+// triangle-only leaves in their child references (kTriLeaf), with a scene that mixes such leaves,
+// mixed leaves and an oversized leaf of duplicates.
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -14,6 +17,7 @@
 
 #include "accel/geometry.h"
 #include "accel/isa.h"
+#include "accel/wide_bvh.h"
 #include "shape_builders.h"
 
 using namespace dtraced::accel;
@@ -344,4 +348,68 @@ TEST_CASE("rays grazing a sphere's silhouette: packets answer as the scalar path
   TestRng rng{16};
   for (int i = 0; i < 80; ++i) shapes.push_back(sphere(to_f(rng.in_cube(50.0) + Vec3d{0, -3000, 0}), 0.5f));
   check_tree_matches_scalar(shapes, rays, 4);
+}
+
+TEST_CASE("triangle-only leaves are described by their child reference; other leaves by their record",
+          "[accel][small]") {
+  using namespace dtraced::accel::detail;
+  SECTION("the kTriLeaf reference round-trips, and leaves it cannot describe get 0") {
+    WideLeaf tri;
+    tri.triangle_begin = 123456;
+    tri.triangle_blocks = 3;
+    const std::uint32_t ref = tri_leaf_ref(tri);
+    CHECK((ref & kLeafBit) != 0);
+    CHECK((ref & kTriLeaf) != 0);
+    const WideLeaf back = tri_leaf_of(ref);
+    CHECK(back.triangle_begin == 123456);
+    CHECK(back.triangle_blocks == 3);
+    CHECK(back.sphere_blocks == 0);
+    CHECK(back.box_count == 0);
+    WideLeaf most = tri;
+    most.triangle_begin = kTriLeafBeginMask;
+    most.triangle_blocks = std::uint16_t(kTriLeafMaxBlocks);
+    CHECK(tri_leaf_of(tri_leaf_ref(most)).triangle_begin == kTriLeafBeginMask);
+    CHECK(tri_leaf_of(tri_leaf_ref(most)).triangle_blocks == kTriLeafMaxBlocks);
+    WideLeaf with_sphere = tri;
+    with_sphere.sphere_blocks = 1;
+    CHECK(tri_leaf_ref(with_sphere) == 0);
+    WideLeaf with_box = tri;
+    with_box.box_count = 1;
+    CHECK(tri_leaf_ref(with_box) == 0);
+    WideLeaf too_many = tri;
+    too_many.triangle_blocks = std::uint16_t(kTriLeafMaxBlocks + 1);
+    CHECK(tri_leaf_ref(too_many) == 0);
+    WideLeaf too_far = tri;
+    too_far.triangle_begin = kTriLeafBeginMask + 1;
+    CHECK(tri_leaf_ref(too_far) == 0);
+    CHECK(tri_leaf_ref(WideLeaf{}) == 0);  // no prims at all
+  }
+  SECTION("a mesh with spheres and boxes among its triangles and 80 copies of one triangle") {
+    // Triangle-only leaves (the grid), mixed leaves (spheres and boxes resting on it) and a leaf the
+    // build cannot split (identical triangles: more blocks than the word holds, unless the build
+    // splits them by count) must all answer as the scalar path, nearest hits (ties to the smaller id)
+    // and any-hit, single rays and packets of 8 and 16, on every SIMD isa.
+    TestRng rng{33};
+    constexpr int kSide = 16;
+    constexpr float kStep = 0.5f;
+    auto at = [&](int x, int y) {
+      return Vec3f{float(x) * kStep, float(y) * kStep, float(0.05 * std::sin(x * 1.3) * std::cos(y * 0.7))};
+    };
+    std::vector<Shape> shapes;
+    for (int y = 0; y < kSide; ++y) {
+      for (int x = 0; x < kSide; ++x) {
+        shapes.push_back(triangle(at(x, y), at(x + 1, y), at(x + 1, y + 1)));
+        shapes.push_back(triangle(at(x, y), at(x + 1, y + 1), at(x, y + 1)));
+        if ((x * 7 + y * 3) % 11 == 0) shapes.push_back(sphere(at(x, y) + Vec3f{0.2f, 0.2f, 0.1f}, 0.12f));
+        if ((x * 5 + y) % 13 == 0) shapes.push_back(box(at(x, y), at(x, y) + Vec3f{0.15f, 0.1f, 0.2f}));
+      }
+    }
+    for (int i = 0; i < 80; ++i) shapes.push_back(triangle({2, 2, 1}, {3, 2, 1}, {2, 3, 1.5f}));
+    std::vector<Ray> rays = camera_rays(64, 32, {4, 4, 8});
+    // Looking down at the grid.
+    for (Ray& r : rays) r = make_ray(r.o, unit_f(Vec3d{r.d.x * 0.5, r.d.y * 0.5, -double(r.d.z)}));
+    const std::vector<Ray> aimed = aimed_rays(rng, shapes, 4000);
+    rays.insert(rays.end(), aimed.begin(), aimed.end());
+    check_tree_matches_scalar(shapes, rays, 4);
+  }
 }

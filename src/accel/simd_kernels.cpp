@@ -16,7 +16,7 @@
 // and a leaf's 4 spheres (double) or 4 triangles (float) at once. Packets hold 8 or 16 rays in SoA
 // arrays (the code is templated on the width kP) and test one box, sphere or triangle against all
 // of them (8: one AVX2/AVX-512 vector, two SSE4 vectors; 16: one AVX-512 vector of floats), with a
-// per-stack-entry lane mask, children visited nearest first; when at most kSwitch lanes remain
+// per-stack-entry lane mask, children visited nearest first (nearest-hit queries); when at most kSwitch lanes remain
 // active at a node (2 for both widths: 4 of 16 measured slower), those lanes finish that subtree
 // as single rays. A 16-ray packet shares a node's fixed costs (its planes, ordering the children,
 // the stack) between twice the rays: on 4x4-pixel camera blocks (dtraced-bench-rays, avx512) it
@@ -24,8 +24,15 @@
 // constants are computed a vector at a time (make_packet); its lanes as single rays only when a fallback needs them. A
 // nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so Geometry builds the hit record
 // from them instead of testing the triangle again (about 15 % of a camera packet's time went to that second test and
-// its ray constants). Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two leaves), which
-// these same loops walk.
+// its ray constants). A leaf of triangles only is described by its child reference itself (kTriLeaf), not only by
+// its WideLeaf record: one dependent load less per leaf. Tiny scenes come as a flat layout (detail::flat_wide: one
+// node over one or two leaves), which these same loops walk.
+//
+// Tried and dropped (issue 16, round 5): a frustum test of a node's 8 boxes against the packet's interval bounds
+// (lower and upper rounded corner products, exact since rounding is monotone) ahead of the lane-by-lane tests. On
+// 4x4 camera packets of the 1M-triangle mesh it cut the children tested lane by lane from 7.2 to 1.65 per node, yet
+// made 16-ray camera packets 7 % and 8-ray ones 15 % slower: the lane tests are not what a node costs. Prefetching
+// the children a node pushes, and leaving 16-ray packets at 1 or 3 live lanes instead of 2: within noise.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -364,6 +371,13 @@ struct Entry {
   float t_near;
 };
 
+// The leaf a reference (kLeafBit set) names: described by the reference itself (kTriLeaf) or by
+// its WideLeaf record.
+inline WideLeaf leaf_of(const WideBvh& bvh, std::uint32_t ref) {
+  if (ref & kTriLeaf) return tri_leaf_of(ref);
+  return bvh.leaves[ref & ~kLeafBit];
+}
+
 // Single-ray traversal of the subtree at `start` (a node index or kLeafBit | leaf). For nearest
 // hits, best_t / best_id are updated and the result says whether they were; for any-hit, best_t
 // is the ray's t_max and the result says whether something lies before it.
@@ -377,7 +391,7 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   float cull = best_t * kFarScale;
   while (true) {
     if (cur & kLeafBit) {
-      if (leaf1<kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], s, best_t, best_id, uvw)) {
+      if (leaf1<kAnyHit>(bvh, leaf_of(bvh, cur), s, best_t, best_id, uvw)) {
         if (kAnyHit) return true;
         improved = true;
         cull = best_t * kFarScale;
@@ -387,8 +401,10 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
       alignas(32) float t_near[kNodeWidth];
       std::uint32_t bits = node_test1(node, s, cull, t_near);
       if (bits != 0) {
-        // Order the hit children by entry distance: the nearest is visited now, the others
-        // pushed farthest first.
+        // Nearest hits order the hit children by entry distance: the nearest is visited now, the
+        // others pushed farthest first. Any-hit queries keep the node's order: any blocker ends
+        // them, and skipping the sort made 16-ray shadow packets on the 1M-triangle mesh about 3-8 %
+        // faster (neutral on the sphere field).
         Entry hit[kNodeWidth];
         int n = 0;
         while (bits != 0) {
@@ -396,7 +412,7 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
           bits &= bits - 1;
           Entry e{node.child[i], t_near[i]};
           int j = n++;
-          while (j > 0 && hit[j - 1].t_near < e.t_near) {
+          while (!kAnyHit && j > 0 && hit[j - 1].t_near < e.t_near) {
             hit[j] = hit[j - 1];
             --j;
           }
@@ -892,7 +908,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
         }
       }
     } else if (cur & kLeafBit) {
-      const std::uint32_t hit = leaf8<kP, kAnyHit>(bvh, bvh.leaves[cur & ~kLeafBit], p, mask);
+      const std::uint32_t hit = leaf8<kP, kAnyHit>(bvh, leaf_of(bvh, cur), p, mask);
       result |= hit;
       if (kAnyHit) alive &= ~hit;
     } else {
@@ -906,7 +922,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
         if (bits[c] == 0) continue;
         Entry8 e{node.child[c], bits[c], dist[c][std::countr_zero(bits[c])], c};
         int j = n++;
-        while (j > 0 && hit[j - 1].key < e.key) {
+        while (!kAnyHit && j > 0 && hit[j - 1].key < e.key) {
           hit[j] = hit[j - 1];
           --j;
         }

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cassert>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
 
 #include "accel/geometry.h"
@@ -121,6 +122,9 @@ WideBvh collapse_to_wide(const Geometry& g) {
     leaf.sphere_blocks = std::uint16_t((ns + kWidth - 1) / kWidth);
     leaf.triangle_blocks = std::uint16_t((nt + kWidth - 1) / kWidth);
     w.leaves.push_back(leaf);
+    if (const std::uint32_t ref = tri_leaf_ref(leaf); ref != 0) return ref;
+    // Plain leaf indices must stay below kTriLeaf (2^30 leaves: billions of prims).
+    if (w.leaves.size() > kTriLeaf) std::abort();
     return kLeafBit | std::uint32_t(w.leaves.size() - 1);
   };
 

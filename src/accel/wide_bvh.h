@@ -24,6 +24,15 @@ inline constexpr int kWidth = 4;      // prims per leaf block
 inline constexpr std::uint32_t kEmptyChild = 0xffffffffu;
 inline constexpr std::uint32_t kLeafBit = 0x80000000u;  // child refers to leaves[child & ~kLeafBit]
 
+// A leaf of triangles only is described in its child reference itself, so that traversal reaches
+// its blocks without first loading the WideLeaf record (a dependent load per leaf):
+// kLeafBit | kTriLeaf | blocks << kTriLeafShift | triangle_begin. Other leaves' indices stay below
+// kTriLeaf (2^30 leaves would need far more prims than memory holds; collapse_to_wide checks).
+inline constexpr std::uint32_t kTriLeaf = 0x40000000u;
+inline constexpr int kTriLeafShift = 26;
+inline constexpr std::uint32_t kTriLeafMaxBlocks = 15;                         // 4 bits
+inline constexpr std::uint32_t kTriLeafBeginMask = (1u << kTriLeafShift) - 1;  // first block < 2^26
+
 // One node, four cache lines. Per axis a, lo[a][i] / hi[a][i] bound child i; an empty slot has
 // lo = +inf, hi = -inf and child = kEmptyChild. Children are in the binary tree's depth-first
 // order, so a slot's index says nothing about distance: traversal sorts by entry distance.
@@ -63,6 +72,22 @@ struct BoxPrim {
   float b[6];  // lo x, y, z, hi x, y, z
   std::uint32_t id = 0;
 };
+
+// The child reference that describes `leaf` by itself (kTriLeaf), or 0 when it holds other prims
+// or does not fit the encoding (then the reference is kLeafBit | its index in WideBvh::leaves).
+inline std::uint32_t tri_leaf_ref(const WideLeaf& leaf) {
+  if (leaf.sphere_blocks != 0 || leaf.box_count != 0 || leaf.triangle_blocks == 0) return 0;
+  if (leaf.triangle_blocks > kTriLeafMaxBlocks || leaf.triangle_begin > kTriLeafBeginMask) return 0;
+  return kLeafBit | kTriLeaf | std::uint32_t(leaf.triangle_blocks) << kTriLeafShift | leaf.triangle_begin;
+}
+
+// The WideLeaf that a kTriLeaf reference describes.
+inline WideLeaf tri_leaf_of(std::uint32_t ref) {
+  WideLeaf leaf;
+  leaf.triangle_begin = ref & kTriLeafBeginMask;
+  leaf.triangle_blocks = std::uint16_t((ref & ~(kLeafBit | kTriLeaf)) >> kTriLeafShift);
+  return leaf;
+}
 
 struct WideBvh {
   std::vector<WideNode> nodes;  // nodes[0] is the root (when not empty)
