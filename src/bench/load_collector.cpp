@@ -28,6 +28,11 @@
 // guard it first checks that the job exists and is unfinished, and it stops at the first lease of
 // any other job rather than upload into it.
 //
+// With --next-lease each upload asks for the worker's next lease in the same exchange
+// (protocol::kNextLeaseHeader), as the real worker does: a tile then costs one request, not two,
+// and POST /v1/lease goes out only when an answer carried no lease (the first tile, a retry-after,
+// an error). Without it every tile is a lease and an upload (older workers).
+//
 // With --lease-only the simulated workers lease and never upload: the rate of bare requests, a
 // floor that separates the cost of HTTP from the cost of storing tiles (the leased tiles are
 // offered again once the collector's re-offer bound has passed).
@@ -127,6 +132,7 @@ struct Options {
   std::uint64_t job = 0;  // 0: no job, idle workers
   bool json = false;
   bool lease_only = false;
+  bool next_lease = false;           // uploads ask for the next lease (protocol::kNextLeaseHeader)
   std::uint32_t render_ms = 0;       // simulated render time of a tile
   std::uint32_t render_jitter = 20;  // percent, either side of render_ms
   std::uint32_t ramp_ms = 0;         // first requests spread over this long
@@ -162,6 +168,7 @@ class Latencies {
 
 struct Tally {
   std::uint64_t leases = 0;          // tiles leased
+  std::uint64_t upload_leases = 0;   // of which in the answer to an upload (--next-lease)
   std::uint64_t retry_after = 0;     // "nothing now" answers: the job had no tile to offer
   std::uint64_t stored = 0;          // 200 "stored": durably committed
   std::uint64_t already_done = 0;    // 200 "already_done"
@@ -183,6 +190,7 @@ struct Run {
   std::string authorization;
   std::uint64_t job = 0;  // 0: idle workers, no lease may be granted
   bool lease_only = false;
+  bool next_lease = false;
   std::uint32_t render_ms = 0;
   std::uint32_t render_jitter = 0;  // percent
   std::uint32_t ramp_ms = 0;
@@ -283,39 +291,49 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
     co_await pause_for(pause, std::chrono::milliseconds(uniform(run.rng)));
   }
 
+  // The next lease the last upload's answer carried (--next-lease).
+  std::optional<protocol::LeaseReply> offered;
   while (run.running()) {
     // ---- lease ----
     Clock::time_point sent = Clock::now();
     Tally* tp = &run.tally_for(sent);
-    http::ClientResult r = co_await exchange(
-        run, client, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
+    protocol::LeaseReply reply;
+    if (offered) {
+      reply = std::move(*offered);
+      offered.reset();
+    } else {
+      http::ClientResult r = co_await exchange(
+          run, client, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
+      Tally& t = *tp;
+      if (!r.ok()) {
+        ++t.network_errors;
+        run.note_problem("POST /v1/lease: " + r.message);
+        co_await pause_for(pause, kErrorPause);
+        continue;
+      }
+      t.lease.add(Clock::now() - sent);
+      if (r.response.result() == http::Status::service_unavailable) {
+        ++t.busy;
+        co_await pause_for(pause, kErrorPause);
+        continue;
+      }
+      auto decoded = protocol::decode_lease_reply(r.response.body());
+      if (r.response.result() != http::Status::ok || !decoded) {
+        ++t.http_errors;
+        run.note_problem("POST /v1/lease: " + quote(r.response));
+        co_await pause_for(pause, kErrorPause);
+        continue;
+      }
+      reply = std::move(decoded).value();
+    }
     Tally& t = *tp;
-    if (!r.ok()) {
-      ++t.network_errors;
-      run.note_problem("POST /v1/lease: " + r.message);
-      co_await pause_for(pause, kErrorPause);
-      continue;
-    }
-    t.lease.add(Clock::now() - sent);
-    if (r.response.result() == http::Status::service_unavailable) {
-      ++t.busy;
-      co_await pause_for(pause, kErrorPause);
-      continue;
-    }
-    auto reply = protocol::decode_lease_reply(r.response.body());
-    if (r.response.result() != http::Status::ok || !reply) {
-      ++t.http_errors;
-      run.note_problem("POST /v1/lease: " + quote(r.response));
-      co_await pause_for(pause, kErrorPause);
-      continue;
-    }
-    if (const auto* retry = std::get_if<protocol::RetryAfter>(&reply.value())) {
+    if (const auto* retry = std::get_if<protocol::RetryAfter>(&reply)) {
       ++t.retry_after;
       const auto left = run.deadline - Clock::now();
       co_await pause_for(pause, std::min<Clock::duration>(run.retry_wait(std::chrono::milliseconds(retry->ms)), left));
       continue;
     }
-    const protocol::Lease& lease = std::get<protocol::Lease>(reply.value());
+    const protocol::Lease lease = std::get<protocol::Lease>(std::move(reply));
     if (lease.job != run.job) {
       // Uploading made-up pixels into someone else's job would corrupt it.
       run.stop(run.job == 0
@@ -345,9 +363,10 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
     payload.rgb.assign(std::size_t{lease.rect.width} * lease.rect.height * 3, kPixelValue);
     http::Request put = http::make_request(http::Verb::put, fmt::format("/v1/jobs/{}/tiles/{}", lease.job, lease.tile),
                                            protocol::encode_tile_payload(payload), http::kBinaryContentType);
+    if (run.next_lease) put.set(protocol::kNextLeaseHeader, "1");
     sent = Clock::now();
     tp = &run.tally_for(sent);
-    r = co_await exchange(run, client, std::move(put), name);
+    http::ClientResult r = co_await exchange(run, client, std::move(put), name);
     Tally& u = *tp;
     if (!r.ok()) {
       ++u.network_errors;
@@ -362,14 +381,23 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
       co_await pause_for(pause, kErrorPause);
       continue;
     }
-    auto answer = protocol::decode_submit_result(r.response.body());
+    auto answer = protocol::decode_upload_answer(r.response.body());
     if ((status != http::Status::ok && status != http::Status::gone) || !answer) {
       ++u.http_errors;
       run.note_problem("PUT tile: " + quote(r.response));
       co_await pause_for(pause, kErrorPause);
       continue;
     }
-    switch (answer.value()) {
+    if (answer.value().next) {
+      if (!run.next_lease) {
+        ++u.http_errors;
+        run.note_problem("PUT tile: a next lease nobody asked for: " + quote(r.response));
+      } else {
+        offered = std::move(answer.value().next);
+        if (std::holds_alternative<protocol::Lease>(*offered)) ++u.upload_leases;
+      }
+    }
+    switch (answer.value().result) {
       case protocol::SubmitResult::kStored:
         ++u.stored;
         break;
@@ -414,6 +442,8 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
     j["already_done"] = t.already_done;
     j["job_gone"] = t.job_gone;
     j["lease_only"] = o.lease_only;
+    j["next_lease"] = o.next_lease;
+    j["upload_leases"] = t.upload_leases;
     j["keep_alive"] = o.keep_alive;
     j["tls"] = run.url.tls;
     j["connections_opened"] = client.connections_opened;
@@ -440,7 +470,8 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
   }
   fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} ({}){}, {}\n", o.workers, elapsed_s,
              run.url.to_string(), o.job == 0 ? "idle, no job" : fmt::format("job {}", o.job),
-             o.lease_only ? ", leases only" : "", o.keep_alive ? "kept-alive connections" : "a connection per request");
+             o.lease_only ? ", leases only" : (o.next_lease ? ", next lease in the upload's answer" : ""),
+             o.keep_alive ? "kept-alive connections" : "a connection per request");
   if (o.render_ms > 0 || o.ramp_ms > 0 || o.warmup_seconds > 0) {
     fmt::print("  farm            tiles take {} ms +/- {} %, first requests over {} ms, {} s warm-up not counted\n",
                o.render_ms, o.render_jitter, o.ramp_ms, o.warmup_seconds);
@@ -449,6 +480,7 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
   fmt::print("  already_done    {:>10}\n", t.already_done);
   fmt::print("  leases          {:>10}  {:>10.1f} /s  ({} retry_after answers; {:.1f} lease answers/s in all)\n",
              t.leases, lease_rate, t.retry_after, answer_rate);
+  if (o.next_lease) fmt::print("  leases in upload answers {:>10}\n", t.upload_leases);
   fmt::print("  errors          {:>10}  network, {} busy (503), {} other, {} job_gone\n", t.network_errors, t.busy,
              t.http_errors, t.job_gone);
   const auto line = [](std::string_view what, const Latencies& l) {
@@ -534,6 +566,7 @@ int run_load(const Options& o) {
   run.authorization = "Bearer " + *token;
   run.job = o.job;
   run.lease_only = o.lease_only;
+  run.next_lease = o.next_lease;
   run.render_ms = o.render_ms;
   run.render_jitter = o.render_jitter;
   run.ramp_ms = o.ramp_ms;
@@ -643,6 +676,8 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(std::uint32_t{1}, dtraced::bench::kMaxSeconds))
       ->capture_default_str();
   app.add_flag("--lease-only", o.lease_only, "Lease without uploading: the rate of bare requests");
+  app.add_flag("--next-lease", o.next_lease,
+               "Each upload asks for the next lease in its answer (X-Dtraced-Next-Lease), as the real worker does");
   app.add_option("--render-ms", o.render_ms, "Hold each leased tile this long before uploading it (simulated render)")
       ->check(CLI::Range(std::uint32_t{0}, dtraced::bench::kMaxRenderMs))
       ->capture_default_str();

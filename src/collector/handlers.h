@@ -47,6 +47,18 @@ async::Awaitable<http::Response> cancel_job(Context& c, JobId id);
 async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req, const Principal& who);
 
 http::Response lease_tile(Context& c, const http::Request& req, const Principal& who);
+// What POST /v1/lease answers: a lease or a retry-after; `finished` with protocol::kFinishedHeader.
+struct LeaseAnswer {
+  protocol::LeaseReply reply;
+  bool finished = false;
+};
+// POST /v1/lease's work after its body is decoded, shared with a tile upload that asks for its
+// next lease (protocol::kNextLeaseHeader): the registry's note, the lingering collector's
+// "finished", the pixel version check (the refusal), the queue.
+util::Result<LeaseAnswer, Refusal> grant_lease(Context& c, const http::Request& req, const Principal& who,
+                                               const protocol::LeaseRequest& request);
+// A grant as POST /v1/lease answers it.
+http::Response lease_answer(const LeaseAnswer& grant);
 // The name a worker is recorded under: the credential's for a worker credential, else `sent`.
 std::string recorded_worker_name(const Principal& who, std::string sent);
 
@@ -135,5 +147,8 @@ std::optional<Refusal> pixel_version_refusal(Context& c, const http::Request& re
 http::Response json_answer(http::Status status, std::string body);
 // A tile upload's answer: 410 for job_gone, else 200.
 http::Response submit_answer(protocol::SubmitResult result);
+// The same with the next lease the upload asked for (protocol::UploadAnswer); `grant` nullopt
+// when there is none to give (the answer is then submit_answer's).
+http::Response upload_answer(protocol::SubmitResult result, const std::optional<LeaseAnswer>& grant);
 
 }  // namespace dtraced::collector

@@ -229,6 +229,8 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_leases_total", "counter", "Tiles leased to workers.", m.queue.leases);
   w.one("dtraced_reoffers_total", "counter", "Leases of a tile that had been leased before.", m.queue.reoffers);
   w.one("dtraced_lease_retry_total", "counter", "Lease requests answered with retry_after_ms.", c.lease_retries);
+  w.one("dtraced_upload_lease_requests_total", "counter",
+        "Tile uploads answered with a verdict that asked for the next lease in the same exchange.", c.upload_leases);
   w.one("dtraced_pixel_version_refusals_total", "counter",
         "Leases and tiles refused (409) because the worker renders another pixel version.", c.pixel_version_refusals);
   w.one("dtraced_active_jobs", "gauge", "Jobs with tiles left to lease or store.", m.queue.active_jobs);

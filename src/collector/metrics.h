@@ -72,6 +72,7 @@ struct CollectorCounters {
   std::uint64_t tiles_refused = 0;    // 400: bad payload, wrong rectangle, non-finite pixels
   std::uint64_t tiles_job_gone = 0;   // 410
   std::uint64_t lease_retries = 0;    // "retry after" answers
+  std::uint64_t upload_leases = 0;    // tile uploads answered with a verdict that asked for the next lease
   // 409: a lease or a tile of another pixel version (protocol::kPixelVersionHeader).
   std::uint64_t pixel_version_refusals = 0;
   std::uint64_t restored_tile_leases = 0;

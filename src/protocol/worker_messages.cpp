@@ -19,6 +19,9 @@ namespace {
 namespace json = boost::json;
 using namespace detail;
 
+constexpr std::array<std::string_view, 2> kUploadAnswerKeys = {"result", "next"};
+constexpr std::array<SubmitResult, 3> kSubmitResults = {SubmitResult::kStored, SubmitResult::kAlreadyDone,
+                                                        SubmitResult::kJobGone};
 constexpr std::array<std::string_view, 3> kWorkerListKeys = {"recent_window_s", "quiet_after_s", "workers"};
 constexpr std::array<std::string_view, 14> kWorkerInfoKeys = {
     "name",   "peer",  "isa",        "threads",           "quiet",   "last_seen_s",  "first_seen_s",
@@ -91,6 +94,54 @@ std::optional<bool> parse_finished_header(std::string_view value) {
   if (value == "1") return true;
   if (value == "0") return false;
   return std::nullopt;
+}
+
+std::optional<std::uint32_t> parse_next_lease_header(std::string_view value) {
+  std::uint32_t threads = 0;
+  const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), threads);
+  if (value.empty() || ec != std::errc() || end != value.data() + value.size() || threads == 0 ||
+      threads > kMaxWorkerThreads) {
+    return std::nullopt;
+  }
+  return threads;
+}
+
+std::string encode(const UploadAnswer& m) {
+  if (!m.next) return encode(m.result);
+  // The lease reply as POST /v1/lease writes it, spliced in: one encoder for both.
+  std::string text = R"({"result":")";
+  text += to_string(m.result);
+  text += R"(","next":)";
+  text += encode(*m.next);
+  text += '}';
+  return text;
+}
+
+Decoded<UploadAnswer> decode_upload_answer(std::string_view text) {
+  std::optional<std::string> next_text;
+  auto decoded = decode_object<UploadAnswer>(
+      text, kMaxMessageBytes, kMaxMessageDepth, kUploadAnswerKeys, [&next_text](Fields& f, UploadAnswer& m) {
+        std::string result;
+        if (f.string("result", result, 32)) {
+          const auto it = std::find_if(kSubmitResults.begin(), kSubmitResults.end(),
+                                       [&](SubmitResult r) { return to_string(r) == result; });
+          if (it == kSubmitResults.end()) {
+            f.reader().error(f.path("result"), "must be stored, already_done or job_gone");
+          } else {
+            m.result = *it;
+          }
+        }
+        if (const json::value* next = f.get("next", Need::kOptional)) next_text = json::serialize(*next);
+      });
+  if (!decoded || !next_text) return decoded;
+  auto next = decode_lease_reply(*next_text);
+  if (!next) {
+    util::Errors errors = std::move(next).error();
+    for (util::Error& e : errors) e.path = "/next" + e.path;
+    return errors;
+  }
+  decoded.value().next = std::move(next).value();
+  return decoded;
 }
 
 std::string encode(const WorkerList& m) {

@@ -5,7 +5,10 @@
 // A worker names itself in kWorkerHeader (messages.h) and the lease request; it also sends its
 // instruction set in kIsaHeader and its pixel version in kPixelVersionHeader on lease requests,
 // and the time a tile took to render in kRenderMsHeader (and its pixel version) on tile uploads.
-// The collector, going away, says so in kFinishedHeader on its lease answers. Headers rather than
+// The collector, going away, says so in kFinishedHeader on its lease answers. A worker that
+// uploads a tile may ask for its next lease in the same exchange (kNextLeaseHeader): the answer to
+// the upload (UploadAnswer) then carries what POST /v1/lease would have answered, so a tile costs
+// one request instead of two. Headers rather than
 // body fields, so that a peer that does not know them ignores them (an unknown body key is
 // refused); the pixel version is the one a collector insists on.
 //
@@ -36,6 +39,17 @@ inline constexpr std::uint64_t kMaxRenderMs = 24ull * 3600 * 1000;
 // started with exit_when_done then stops. "0" or no header: it has not. Any other value is
 // ignored (read as "0"), so a garbled header never ends a worker.
 inline constexpr std::string_view kFinishedHeader = "X-Dtraced-Collector-Finished";
+// On PUT /v1/jobs/{id}/tiles/{tile}: "the next lease too, please". The value is the worker's
+// render thread count, a decimal integer in [1, kMaxWorkerThreads] (LeaseRequest::threads); its
+// name is kWorkerHeader's (or its credential's), its instruction set kIsaHeader's, its pixel
+// version kPixelVersionHeader's, as on POST /v1/lease. An answer to the upload that is a verdict
+// on the tile (stored, already_done, job_gone) then carries UploadAnswer::next, exactly what
+// POST /v1/lease would have answered (a lease, or a retry-after with kFinishedHeader when the
+// collector is going away); a refused or failed upload (4xx but 410, 5xx) carries none, and
+// neither does an answer when the lease itself would have been refused (no pixel version): the
+// worker then asks POST /v1/lease. Without the header (older workers) the answer is
+// encode(SubmitResult) as before; a garbled value counts as no header.
+inline constexpr std::string_view kNextLeaseHeader = "X-Dtraced-Next-Lease";
 // On POST /v1/lease (required) and tile uploads: the worker's pixel version, a decimal integer.
 // Two builds of the same pixel version give the same bits for the same scene and settings on
 // every host and instruction set; a change to the renderer that alters any pixel bumps
@@ -57,8 +71,23 @@ std::optional<std::string> parse_isa_header(std::string_view value);
 std::optional<std::uint64_t> parse_render_ms_header(std::string_view value);
 // The pixel version named by a kPixelVersionHeader value (1..2^32-1), or nullopt when it is not one.
 std::optional<std::uint32_t> parse_pixel_version_header(std::string_view value);
+// The thread count named by a kNextLeaseHeader value, or nullopt when it is not one.
+std::optional<std::uint32_t> parse_next_lease_header(std::string_view value);
 // Whether a kFinishedHeader value says "finished" ("1") or not ("0"); nullopt for anything else.
 std::optional<bool> parse_finished_header(std::string_view value);
+
+// The answer to a tile upload that asked for its next lease (kNextLeaseHeader):
+// {"result": "stored", "next": {"lease": {...}}} or {..., "next": {"retry_after_ms": N}}; "next"
+// is absent when the collector did not lease (an older collector, or a lease it would refuse), and
+// the body is then the plain encode(SubmitResult). Status 200, or 410 for job_gone.
+struct UploadAnswer {
+  SubmitResult result = SubmitResult::kStored;
+  std::optional<LeaseReply> next;
+  bool operator==(const UploadAnswer&) const = default;
+};
+std::string encode(const UploadAnswer& m);
+// Reads both forms (with and without "next").
+Decoded<UploadAnswer> decode_upload_answer(std::string_view body);
 
 struct WorkerInfo {
   std::string name;           // as in LeaseRequest::worker

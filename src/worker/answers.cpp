@@ -51,13 +51,18 @@ LeaseAnswer classify_lease(const http::ClientResult& result) {
     answer.error = fmt::format("malformed lease reply: {}", reply.error().front().to_string());
     return answer;
   }
-  if (auto* lease = std::get_if<protocol::Lease>(&reply.value())) {
+  return lease_answer(std::move(reply).value(), result.response);
+}
+
+LeaseAnswer lease_answer(protocol::LeaseReply reply, const http::Response& response) {
+  LeaseAnswer answer;
+  if (auto* lease = std::get_if<protocol::Lease>(&reply)) {
     answer.lease = std::move(*lease);
   } else {
-    answer.retry_after = std::chrono::milliseconds{std::get<protocol::RetryAfter>(reply.value()).ms};
-    const auto it = result.response.find(
-        boost::beast::string_view(protocol::kFinishedHeader.data(), protocol::kFinishedHeader.size()));
-    if (it != result.response.end()) {
+    answer.retry_after = std::chrono::milliseconds{std::get<protocol::RetryAfter>(reply).ms};
+    const auto it =
+        response.find(boost::beast::string_view(protocol::kFinishedHeader.data(), protocol::kFinishedHeader.size()));
+    if (it != response.end()) {
       const std::string_view value(it->value().data(), it->value().size());
       answer.collector_finished = protocol::parse_finished_header(value).value_or(false);
     }
@@ -70,15 +75,25 @@ SubmitAnswer classify_submit(const http::ClientResult& result) {
   const http::Response& response = result.response;
   const unsigned status = response.result_int();
   if (response.result() == http::Status::ok) {
-    const auto decoded = protocol::decode_submit_result(response.body());
+    auto decoded = protocol::decode_upload_answer(response.body());
     if (!decoded) {
       // Probably stored, but it cannot be known: sending it again is harmless (already done).
       return {SubmitVerdict::kRetry, fmt::format("malformed answer: {}", decoded.error().front().to_string())};
     }
-    if (decoded.value() == protocol::SubmitResult::kJobGone) return {SubmitVerdict::kJobGone, "job gone"};
-    return {SubmitVerdict::kAcknowledged, std::string(protocol::to_string(decoded.value()))};
+    protocol::UploadAnswer& upload = decoded.value();
+    SubmitAnswer answer{SubmitVerdict::kAcknowledged, std::string(protocol::to_string(upload.result))};
+    if (upload.result == protocol::SubmitResult::kJobGone) answer = {SubmitVerdict::kJobGone, "job gone"};
+    if (upload.next) answer.next = lease_answer(std::move(*upload.next), response);
+    return answer;
   }
-  if (response.result() == http::Status::gone) return {SubmitVerdict::kJobGone, describe_answer(response)};
+  if (response.result() == http::Status::gone) {
+    SubmitAnswer answer{SubmitVerdict::kJobGone, describe_answer(response)};
+    // The job is gone, not the farm's work: the answer may carry the next lease all the same.
+    if (auto decoded = protocol::decode_upload_answer(response.body()); decoded && decoded.value().next) {
+      answer.next = lease_answer(std::move(*decoded.value().next), response);
+    }
+    return answer;
+  }
   if (response.result() == http::Status::unauthorized) {
     return {SubmitVerdict::kRetry, fmt::format("credential rejected ({})", describe_answer(response)),
             /*token_rejected=*/true};

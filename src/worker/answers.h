@@ -2,7 +2,8 @@
 // worker, as pure functions of the exchange (README.md, "HTTP API"), tested without sockets.
 //
 // A lease answer is a lease, a "retry after", or a failure to retry with backoff. A submission's
-// answer is one of four verdicts: acknowledged, job gone, rejected (a bug: sending it again cannot
+// answer (which may carry the next lease the upload asked for, protocol::kNextLeaseHeader) is one
+// of four verdicts: acknowledged, job gone, rejected (a bug: sending it again cannot
 // help), or retry (network errors, 5xx, 401, 408, 429, and any answer that cannot be read).
 //
 // Stateless functions over values: thread-safe.
@@ -15,6 +16,7 @@
 #include <optional>
 #include <set>
 #include <string>
+#include <utility>
 
 #include "http/client.h"
 #include "http/types.h"
@@ -48,6 +50,9 @@ struct LeaseAnswer {
 
 // The meaning of the answer to POST /v1/lease.
 LeaseAnswer classify_lease(const http::ClientResult& result);
+// A lease reply (POST /v1/lease's, or an upload answer's "next") as a LeaseAnswer; `response`
+// holds the protocol::kFinishedHeader that a retry-after may come with.
+LeaseAnswer lease_answer(protocol::LeaseReply reply, const http::Response& response);
 
 enum class SubmitVerdict {
   kAcknowledged,  // stored or already done: the tile is safe
@@ -57,9 +62,15 @@ enum class SubmitVerdict {
 };
 
 struct SubmitAnswer {
+  SubmitAnswer() = default;
+  SubmitAnswer(SubmitVerdict v, std::string m, bool token = false)
+      : verdict(v), message(std::move(m)), token_rejected(token) {}
   SubmitVerdict verdict = SubmitVerdict::kRetry;
   std::string message;
   bool token_rejected = false;
+  // With kAcknowledged or kJobGone: the next lease (a lease or a retry-after) the answer carried,
+  // when the upload asked for one and the collector gave it (protocol::UploadAnswer).
+  std::optional<LeaseAnswer> next;
 };
 
 // The meaning of the answer to PUT /v1/jobs/{job}/tiles/{tile}.

@@ -54,6 +54,15 @@ class InHand {
       bytes_ += bytes;
     }
 
+    // The tile is acknowledged and its place goes to the next lease (the answer to its upload
+    // carried one): its bytes no longer count, its place in hand does.
+    void unhold() {
+      if (owner_ == nullptr) return;
+      owner_->bytes_.store(owner_->bytes_.load(std::memory_order_relaxed) - bytes_, std::memory_order_relaxed);
+      bytes_ = 0;
+      owner_->changed_.notify_all();
+    }
+
    private:
     friend class InHand;
     explicit Reservation(InHand* owner) : owner_(owner) {}

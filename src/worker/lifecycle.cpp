@@ -74,10 +74,11 @@ async::Awaitable<> Worker::Impl::main_loop(RunOptions options) {
   const std::uint64_t submitted = tiles_submitted.get();
   util::log_info(
       "worker {} stopped: {} tiles rendered, {} submitted, {} retries; {} dropped (job gone), {} rejected, "
-      "{} abandoned; {} leases dropped, {} lease failures; acknowledged {:.1f} ms after rendering on average, "
+      "{} abandoned; {} leases dropped, {} lease failures, {} leases in upload answers; acknowledged {:.1f} ms after "
+      "rendering on average, "
       "render slots waited {:.1f} s for room in hand (--max-unacknowledged {})",
       config.name, tiles_rendered.get(), submitted, submit_retries.get(), tiles_dropped.get(), tiles_rejected.get(),
-      tiles_abandoned.get(), leases_dropped.get(), lease_failures.get(),
+      tiles_abandoned.get(), leases_dropped.get(), lease_failures.get(), upload_leases.get(),
       submitted == 0 ? 0.0 : double(ack_ms.get()) / double(submitted), double(in_hand_wait_ms.get()) / 1000.0,
       config.max_unacknowledged);
 }

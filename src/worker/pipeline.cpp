@@ -26,24 +26,65 @@ namespace dtraced::worker {
 
 using namespace async::net::experimental::awaitable_operators;
 
-// One render thread's pipeline: while tile N renders on the pool, lease N + 1.
+// One render thread's pipeline: while tile N renders on the pool, lease N + 1. The upload of
+// tile N - 1 (spawned as N starts) asks for that lease in its answer, so that a tile costs one
+// request; POST /v1/lease asks only when the answer brought none.
 async::Awaitable<> Worker::Impl::slot() {
-  std::optional<Work> next = co_await acquire();
+  OfferPtr offered;  // the next lease the last hand-off's upload asks for
+  std::optional<Work> next = co_await acquire(nullptr);
   while (next && !stop.is_set()) {
     Work current = std::move(*next);
     next.reset();
     if (gone.contains(current.lease.job)) {
       leases_dropped.add();
-      next = co_await acquire();
+      next = co_await acquire(std::exchange(offered, nullptr));
       continue;
     }
-    next = co_await (render_and_hand_off(std::move(current)) && acquire());
+    OfferPtr from_upload = std::exchange(offered, nullptr);
+    next = co_await (render_and_hand_off(std::move(current), offered) && acquire(std::move(from_upload)));
   }
   // A lease held but not started is simply dropped: the collector offers it again.
   if (next) leases_dropped.add();
+  if (offered && offered->answer && offered->answer->lease) leases_dropped.add();
 }
 
-async::Awaitable<std::optional<Work>> Worker::Impl::acquire() {
+async::Awaitable<std::optional<Work>> Worker::Impl::take_offer(OfferPtr offered, bool& stopped) {
+  while (!offered->finished && !stop.is_set()) co_await (offered->done.wait() || stop.wait());
+  stopped = stop.is_set();
+  if (stopped || !offered->answer) co_return std::nullopt;
+  LeaseAnswer& answer = *offered->answer;
+  if (answer.retry_after) {
+    // As the same answer to POST /v1/lease: nothing now.
+    if (answer.collector_finished && note_collector_finished()) stopped = true;
+    if (!stopped && note_no_work()) stopped = true;
+    if (!stopped) lease_gate.idle_for(jittered_retry_after(*answer.retry_after, rng));
+    co_return std::nullopt;
+  }
+  upload_leases.add();
+  lease_gate.busy();
+  last_work_at = clock.now();
+  protocol::Lease lease = std::move(*answer.lease);
+  gone.remove(lease.job);
+  SceneOutcome scene = co_await ensure_scene(lease.digest);
+  if (!scene.scene) {
+    leases_dropped.add();
+    stopped = scene.stopped;
+    // POST /v1/lease asks next, and counts a failure that repeats (with its backoff).
+    if (const auto held_back = log_limiter.admit(fmt::format("scene {}", lease.digest), clock.now())) {
+      util::log_warn("dropping a lease of job {} from {}: {}{}", lease.job, url.to_string(), scene.error,
+                     held_back_suffix(*held_back));
+    }
+    co_return std::nullopt;
+  }
+  co_return Work{std::move(lease), std::move(scene.scene), std::move(offered->reservation)};
+}
+
+async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered) {
+  if (offered) {
+    bool stopped = false;
+    std::optional<Work> work = co_await take_offer(std::move(offered), stopped);
+    if (work || stopped) co_return work;
+  }
   for (;;) {
     if (in_hand.full() && !stop.is_set()) {
       const util::TimePoint from = clock.now();
@@ -213,7 +254,7 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
   co_return outcome;
 }
 
-async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
+async::Awaitable<> Worker::Impl::render_and_hand_off(Work work, OfferPtr& offered) {
   const protocol::Lease& lease = work.lease;
   // The pool reads the lease and the scene while this coroutine waits: both outlive the wait.
   // Timed on the render thread itself, so that waiting for a free thread does not count. The
@@ -253,14 +294,21 @@ async::Awaitable<> Worker::Impl::render_and_hand_off(Work work) {
   }
   tiles_held.add();
   work.reservation.hold(payload.size());
-  async::net::co_spawn(
-      io,
-      submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation), render_ms, clock.now()}),
-      [this](std::exception_ptr e) {
-        async::log_exception("submitting a tile", e);
-        tiles_held.remove();
-        in_hand.changed().notify_all();
-      });
+  // The next lease rides on this upload when a POST /v1/lease could go out freely now; it takes
+  // this tile's place in hand once the tile is acknowledged.
+  OfferPtr offer;
+  if (!stop.is_set() && lease_gate.open()) {
+    offer = std::make_shared<OfferedLease>(io.get_executor());
+    offered = offer;
+  }
+  async::net::co_spawn(io,
+                       submit(HeldTile{lease.job, lease.tile, std::move(payload), std::move(work.reservation),
+                                       render_ms, clock.now(), std::move(offer)}),
+                       [this](std::exception_ptr e) {
+                         async::log_exception("submitting a tile", e);
+                         tiles_held.remove();
+                         in_hand.changed().notify_all();
+                       });
 }
 
 }  // namespace dtraced::worker

@@ -91,6 +91,10 @@ class RetryGate {
   // The collector has work again: every request may go out at once.
   void busy();
 
+  // Whether requests go out freely now: no failures, refusals or idleness in force. A request
+  // made outside the gate (the next lease asked for in a tile's upload) is made only then.
+  bool open() const { return failures_ == 0 && refusals_ == 0 && !idle_; }
+
  private:
   struct Ticket;
 

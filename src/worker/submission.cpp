@@ -20,6 +20,13 @@ using namespace async::net::experimental::awaitable_operators;
 // period after a stop is over.
 async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
   const std::string target = fmt::format("/v1/jobs/{}/tiles/{}", tile.job, tile.tile);
+  // However this ends, the slot waiting for the next lease hears that no more is coming.
+  struct FinishOffer {
+    OfferPtr& offer;
+    ~FinishOffer() {
+      if (offer) offer->finish(std::nullopt);
+    }
+  } finish_offer{tile.offer};
   for (;;) {
     if (gone.contains(tile.job)) {
       tiles_dropped.add();
@@ -39,12 +46,27 @@ async::Awaitable<> Worker::Impl::submit(HeldTile tile) {
     request.set(protocol::kWorkerHeader, config.name);
     request.set(protocol::kRenderMsHeader, std::to_string(tile.render_ms));
     request.set(protocol::kPixelVersionHeader, std::to_string(protocol::kPixelVersion));
+    // Only the first attempt asks: a retry's answer may come after backoff, and the slot asks
+    // POST /v1/lease rather than wait for it.
+    const bool asks = tile.offer && !tile.offer->finished;
+    if (asks) {
+      request.set(protocol::kNextLeaseHeader, std::to_string(config.threads));
+      request.set(protocol::kIsaHeader, accel::isa_name(config.isa));
+    }
     auto raced = co_await (client.request(url, std::move(request), protocol::kMaxMessageBytes) || abandon.wait());
     if (raced.index() == 1 || abandon.is_set()) {
       tiles_abandoned.add();
       co_return;
     }
-    const SubmitAnswer answer = classify_submit(std::get<0>(raced));
+    SubmitAnswer answer = classify_submit(std::get<0>(raced));
+    if (asks) {
+      if (answer.next) {
+        // The tile is done with (acknowledged or its job gone): its place in hand goes to the lease.
+        tile.reservation.unhold();
+        tile.offer->reservation = std::move(tile.reservation);
+      }
+      tile.offer->finish(std::move(answer.next));
+    }
     if (answer.verdict != SubmitVerdict::kRetry) {
       if (const std::uint32_t ended = submit_gate.succeeded(*attempt); ended > 0) {
         util::log_info("the collector {} takes tiles again after {} failures", url.to_string(), ended);

@@ -113,6 +113,7 @@ WorkerStats Worker::stats() const {
   stats.submit_retries = s.submit_retries.get();
   stats.lease_failures = s.lease_failures.get();
   stats.leases_dropped = s.leases_dropped.get();
+  stats.upload_leases = s.upload_leases.get();
   stats.scenes_fetched = s.scenes_fetched.get();
   stats.scenes_rejected = s.scenes_rejected.get();
   stats.tiles_held = s.tiles_held.get();

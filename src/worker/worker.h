@@ -72,6 +72,7 @@ struct WorkerStats {
   std::uint64_t submit_retries = 0;   // failed submissions (the tile is kept and sent again)
   std::uint64_t lease_failures = 0;   // lease requests (or their scene fetch) that failed
   std::uint64_t leases_dropped = 0;   // leases given up unrendered (stop, job gone, bad scene)
+  std::uint64_t upload_leases = 0;    // leases that came in the answer to an upload (one request a tile)
   std::uint64_t scenes_fetched = 0;   // scenes fetched, verified and built
   std::uint64_t scenes_rejected = 0;  // fetched scene bodies that failed verification
   std::uint64_t tiles_held = 0;       // now: rendered, awaiting acknowledgement

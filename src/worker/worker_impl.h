@@ -47,6 +47,26 @@ struct Work {
   InHand::Reservation reservation;
 };
 
+// The next lease a tile's upload asks for (protocol::kNextLeaseHeader), handed from the
+// submission to the slot that renders after it. Finished once the upload's first answer came (or
+// the submission ended without one); `answer` is then the lease or retry-after it carried, if any.
+struct OfferedLease {
+  explicit OfferedLease(const async::Executor& executor) : done(executor) {}
+  void finish(std::optional<LeaseAnswer> got) {
+    if (finished) return;
+    answer = std::move(got);
+    finished = true;
+    done.notify_all();
+  }
+  async::Signal done;
+  bool finished = false;
+  std::optional<LeaseAnswer> answer;
+  // The lease's place in hand: the acknowledged tile's, handed over with the answer (so a lease
+  // that rides on an upload never makes the tiles in hand more than they were).
+  InHand::Reservation reservation;
+};
+using OfferPtr = std::shared_ptr<OfferedLease>;
+
 // A rendered tile awaiting its acknowledgement.
 struct HeldTile {
   std::uint64_t job = 0;
@@ -55,6 +75,7 @@ struct HeldTile {
   InHand::Reservation reservation;
   std::uint64_t render_ms = 0;  // sent as protocol::kRenderMsHeader
   util::TimePoint rendered_at;  // when its render ended: the acknowledgement's latency counts from here
+  OfferPtr offer;               // the next lease its upload asks for; null when it asks for none
 };
 
 struct SceneOutcome {
@@ -96,12 +117,19 @@ struct Worker::Impl {
   // ---- pipeline.cpp: lease, scene, render ----
 
   async::Awaitable<> slot();
-  async::Awaitable<std::optional<Work>> acquire();
+  // The next tile to render: the one `offered` brings (the answer to an upload), else from
+  // POST /v1/lease. nullopt when the worker stops.
+  async::Awaitable<std::optional<Work>> acquire(OfferPtr offered);
+  // What an upload's answer brought: the Work of its lease; nullopt with `stopped` false when the
+  // answer brought none (or a retry-after, which it obeys) and POST /v1/lease must ask.
+  async::Awaitable<std::optional<Work>> take_offer(OfferPtr offered, bool& stopped);
   // nullopt when the worker stopped first.
   async::Awaitable<std::optional<LeaseAnswer>> request_lease();
   async::Awaitable<SceneOutcome> ensure_scene(std::string digest);
   async::Awaitable<SceneOutcome> fetch_scene(std::string digest);
-  async::Awaitable<> render_and_hand_off(Work work);
+  // Renders `work` and spawns its submission; `offered` is set to the next lease its upload asks
+  // for, when a lease request could go out freely now (RetryGate::open).
+  async::Awaitable<> render_and_hand_off(Work work, OfferPtr& offered);
   void note_lease_failure(RetryGate::Attempt& attempt, const std::string& message, bool token_rejected);
   void note_lease_success(RetryGate::Attempt& attempt);
   // A lease answer said the collector has finished and is going away: with exit_when_done, begins
@@ -170,6 +198,7 @@ struct Worker::Impl {
   Counter submit_retries;
   Counter lease_failures;
   Counter leases_dropped;
+  Counter upload_leases;  // leases that came in the answer to an upload
   Counter scenes_fetched;
   Counter scenes_rejected;
   Counter tiles_held;

@@ -1,4 +1,4 @@
-// POST /v1/lease: the next tile to render, or when to ask again.
+// POST /v1/lease, and the next lease of a tile upload: the next tile to render, or when to ask again.
 #include <algorithm>
 #include <chrono>
 #include <cstdint>
@@ -14,21 +14,18 @@ namespace dtraced::collector {
 namespace {
 
 // The queue's suggestion, within what the protocol carries (at least 1 ms).
-http::Response retry_after(std::chrono::milliseconds suggested) {
+protocol::LeaseReply retry_after(std::chrono::milliseconds suggested) {
   const auto ms = std::min<std::int64_t>(std::max<std::int64_t>(suggested.count(), 1), protocol::kMaxRetryAfterMs);
-  return json_answer(http::Status::ok,
-                     protocol::encode(protocol::LeaseReply{protocol::RetryAfter{static_cast<std::uint32_t>(ms)}}));
+  return protocol::LeaseReply{protocol::RetryAfter{static_cast<std::uint32_t>(ms)}};
 }
 
 // A finished collector's answer: "retry after" (all an older worker reads) with kFinishedHeader.
 // The longest retry-after, so that a worker without exit_when_done does not hurry back to a
 // collector that is going away.
-http::Response finished(Context& c, const http::Request& req, std::string name) {
+LeaseAnswer finished(Context& c, const http::Request& req, std::string name) {
   linger_told(c, worker_id(req, std::move(name)));
-  http::Response res =
-      retry_after(std::chrono::duration_cast<std::chrono::milliseconds>(c.config.queue.max_retry_after));
-  res.set(protocol::kFinishedHeader, "1");
-  return res;
+  return LeaseAnswer{retry_after(std::chrono::duration_cast<std::chrono::milliseconds>(c.config.queue.max_retry_after)),
+                     /*finished=*/true};
 }
 
 // How much sooner than the queue's hint an idle worker may ask again: each worker the registry
@@ -46,19 +43,8 @@ std::chrono::milliseconds idle_wait(const Context& c, std::chrono::milliseconds 
   return std::min(queue_hint, fair);
 }
 
-}  // namespace
-
-http::Response lease_tile(Context& c, const http::Request& req, const Principal& who) {
-  auto request = protocol::decode_lease_request(req.body());
-  if (!request) return respond(decode_failure(request.error()));
-  // A worker credential is its own name, whatever the body says.
-  const std::string name = recorded_worker_name(who, request.value().worker);
-  note_lease_request(c, req, name, request.value());
-  // Lingering before the stop: nothing is leased any more (whatever else is queued resumes after
-  // a restart), and every worker hears that this collector is going away.
-  if (c.linger) return finished(c, req, name);
-  // A worker of another pixel version gets no tile: its pixels would not match the others'.
-  if (const auto refused = pixel_version_refusal(c, req, /*required=*/true)) return respond(*refused);
+// The queue's next tile for `who` (recorded as `name`), or when to ask again.
+protocol::LeaseReply pick_tile(Context& c, const Principal& who, const std::string& name) {
   const TimePoint now = c.clock.now();
   // Leases of a worker credential name it, so revoking it re-offers them at once.
   const LeaseResult result = c.queue.lease(now, who.role == Role::kWorker ? std::string_view(who.name) : "");
@@ -90,7 +76,36 @@ http::Response lease_tile(Context& c, const http::Request& req, const Principal&
   const TilePlace place = tile_place(*job, tile);
   lease.rect = place.rect;
   lease.settings = frame_settings(job->settings, place.frame_index);
-  return json_answer(http::Status::ok, protocol::encode(protocol::LeaseReply{std::move(lease)}));
+  return protocol::LeaseReply{std::move(lease)};
+}
+
+}  // namespace
+
+util::Result<LeaseAnswer, Refusal> grant_lease(Context& c, const http::Request& req, const Principal& who,
+                                               const protocol::LeaseRequest& request) {
+  // A worker credential is its own name, whatever the body says.
+  const std::string name = recorded_worker_name(who, request.worker);
+  note_lease_request(c, req, name, request);
+  // Lingering before the stop: nothing is leased any more (whatever else is queued resumes after
+  // a restart), and every worker hears that this collector is going away.
+  if (c.linger) return finished(c, req, name);
+  // A worker of another pixel version gets no tile: its pixels would not match the others'.
+  if (auto refused = pixel_version_refusal(c, req, /*required=*/true)) return std::move(*refused);
+  return LeaseAnswer{pick_tile(c, who, name), /*finished=*/false};
+}
+
+http::Response lease_answer(const LeaseAnswer& grant) {
+  http::Response res = json_answer(http::Status::ok, protocol::encode(grant.reply));
+  if (grant.finished) res.set(protocol::kFinishedHeader, "1");
+  return res;
+}
+
+http::Response lease_tile(Context& c, const http::Request& req, const Principal& who) {
+  auto request = protocol::decode_lease_request(req.body());
+  if (!request) return respond(decode_failure(request.error()));
+  auto grant = grant_lease(c, req, who, request.value());
+  if (!grant) return respond(grant.error());
+  return lease_answer(grant.value());
 }
 
 }  // namespace dtraced::collector

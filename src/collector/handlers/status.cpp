@@ -5,6 +5,7 @@
 
 #include "collector/handlers.h"
 #include "collector/metrics.h"
+#include "protocol/worker_messages.h"
 
 namespace dtraced::collector {
 
@@ -21,6 +22,14 @@ http::Response json_answer(http::Status status, std::string body) {
 http::Response submit_answer(protocol::SubmitResult result) {
   const http::Status status = result == protocol::SubmitResult::kJobGone ? http::Status::gone : http::Status::ok;
   return json_answer(status, protocol::encode(result));
+}
+
+http::Response upload_answer(protocol::SubmitResult result, const std::optional<LeaseAnswer>& grant) {
+  if (!grant) return submit_answer(result);
+  const http::Status status = result == protocol::SubmitResult::kJobGone ? http::Status::gone : http::Status::ok;
+  http::Response res = json_answer(status, protocol::encode(protocol::UploadAnswer{result, grant->reply}));
+  if (grant->finished) res.set(protocol::kFinishedHeader, "1");
+  return res;
 }
 
 }  // namespace dtraced::collector

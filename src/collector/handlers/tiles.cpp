@@ -1,4 +1,6 @@
-// PUT /v1/jobs/{id}/tiles/{tile}: a worker's result, acknowledged "stored" only once durable.
+// PUT /v1/jobs/{id}/tiles/{tile}: a worker's result, acknowledged "stored" only once durable; with
+// protocol::kNextLeaseHeader, the answer carries the worker's next lease too (after the commit).
+#include <chrono>
 #include <optional>
 #include <string>
 #include <utility>
@@ -34,14 +36,34 @@ std::string worker_name(const http::Request& req) {
 }
 
 // check_tile_payload, on the pool for a large body.
-async::Awaitable<util::Result<protocol::TilePayload, Refusal>> checked_payload(Context& c, http::Request req) {
-  if (req.body().size() <= kInlinePayloadBytes) co_return check_tile_payload(req.body());
+async::Awaitable<util::Result<protocol::TilePayload, Refusal>> checked_payload(Context& c, std::string body) {
+  if (body.size() <= kInlinePayloadBytes) co_return check_tile_payload(body);
   // In an optional: on_pool needs a default-constructible result.
-  auto check = [body = std::move(req.body())] { return std::optional(check_tile_payload(body)); };
+  auto check = [body = std::move(body)] { return std::optional(check_tile_payload(body)); };
   co_return *co_await async::on_pool(c.pool, std::move(check));
 }
 
-http::Response duplicate(Context& c, bool identical, JobId job, TileIndex tile, const WorkerId& worker) {
+// An upload's outcome: a verdict on the tile (stored, already_done, job_gone), which may carry the
+// next lease, or any other answer (a refusal, busy, an error), which never does.
+struct Outcome {
+  std::optional<protocol::SubmitResult> verdict;
+  http::Response other;
+};
+Outcome verdict(protocol::SubmitResult result) { return Outcome{result, {}}; }
+Outcome other(http::Response res) { return Outcome{std::nullopt, std::move(res)}; }
+
+// The lease request a tile upload makes with protocol::kNextLeaseHeader, nullopt without one (or
+// with a garbled one, which counts as none).
+std::optional<protocol::LeaseRequest> next_lease_request(const http::Request& req, const WorkerId& worker) {
+  const auto it =
+      req.find(boost::beast::string_view(protocol::kNextLeaseHeader.data(), protocol::kNextLeaseHeader.size()));
+  if (it == req.end()) return std::nullopt;
+  const auto threads = protocol::parse_next_lease_header(std::string_view(it->value().data(), it->value().size()));
+  if (!threads) return std::nullopt;
+  return protocol::LeaseRequest{worker.name, *threads};
+}
+
+Outcome duplicate(Context& c, bool identical, JobId job, TileIndex tile, const WorkerId& worker) {
   ++c.counters.tile_duplicates;
   note_tile_upload(c, worker, identical ? TileOutcome::kDuplicate : TileOutcome::kFaultyDuplicate, 0);
   if (!identical) {
@@ -49,7 +71,7 @@ http::Response duplicate(Context& c, bool identical, JobId job, TileIndex tile, 
     util::log_warn("collector: tile {} of job {} from worker '{}' ({}) differs from the stored result: faulty worker?",
                    tile, job, worker.name, peer_text(worker));
   }
-  return submit_answer(protocol::SubmitResult::kAlreadyDone);
+  return verdict(protocol::SubmitResult::kAlreadyDone);
 }
 
 // Camera rays (one per sample) of a stored tile, for the registry's recent counts.
@@ -70,20 +92,20 @@ void observe_render_time(Context& c, const http::Request& req) {
 }
 
 // The store committed the tile: it leaves the queue and enters the framebuffer.
-http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payload, const WorkerId& worker) {
+Outcome on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payload, const WorkerId& worker) {
   const CompleteResult completed = c.queue.complete(id, payload.tile, c.clock.now());
   JobRecord* job = c.find_job(id);
   if (completed == CompleteResult::kJobGone || job == nullptr || !job->unfinished()) {
     // Cancelled while the store wrote: the pixels are stored, and nobody wants them.
     ++c.counters.tiles_job_gone;
     note_tile_upload(c, worker, TileOutcome::kJobGone, 0);
-    return submit_answer(protocol::SubmitResult::kJobGone);
+    return verdict(protocol::SubmitResult::kJobGone);
   }
   if (completed == CompleteResult::kAlreadyDone) {
     util::log_error("collector: the store stored tile {} of job {}, which the queue had as done", payload.tile, id);
     ++c.counters.tile_duplicates;
     note_tile_upload(c, worker, TileOutcome::kDuplicate, 0);
-    return submit_answer(protocol::SubmitResult::kAlreadyDone);
+    return verdict(protocol::SubmitResult::kAlreadyDone);
   }
   note_tile_upload(c, worker, TileOutcome::kStored, tile_rays(payload, job->settings.samples));
   note_job_served(c, id);
@@ -100,12 +122,11 @@ http::Response on_tile_stored(Context& c, JobId id, const protocol::TilePayload&
   // The next frame to write may be complete now (frames are written in order, each as soon as it
   // and those before it are).
   if (!job->writing && frame_complete(*job, job->frames_written)) start_finish(c, id);
-  return submit_answer(protocol::SubmitResult::kStored);
+  return verdict(protocol::SubmitResult::kStored);
 }
 
 // The store decides (INSERT OR IGNORE: the first result wins, and a duplicate is compared with it).
-async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol::TilePayload& p,
-                                            const WorkerId& worker) {
+async::Awaitable<Outcome> store_tile(Context& c, JobId id, const protocol::TilePayload& p, const WorkerId& worker) {
   store::TileWrite write;
   write.job = static_cast<std::int64_t>(id);
   write.tile = p.tile;
@@ -115,7 +136,7 @@ async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol
   auto reply = co_await commit_tile(*c.writer, std::move(write));
   if (reply.status != store::SubmitStatus::kAccepted) {
     ++c.counters.store_busy;
-    co_return respond(busy("the store's queue is full; retry later"));
+    co_return other(respond(busy("the store's queue is full; retry later")));
   }
   const store::CommitResult& result = *reply.value;
   switch (result.outcome) {
@@ -125,31 +146,30 @@ async::Awaitable<http::Response> store_tile(Context& c, JobId id, const protocol
       co_return duplicate(c, result.identical, id, p.tile, worker);
     case store::TileOutcome::kRejected:
       util::log_error("collector: the store refused tile {} of job {}: {}", p.tile, id, result.error);
-      co_return http::make_error(http::Status::internal_server_error, "the store refused the tile");
+      co_return other(http::make_error(http::Status::internal_server_error, "the store refused the tile"));
     case store::TileOutcome::kFailed:
       break;
   }
   ++c.counters.store_busy;
   util::log_warn("collector: tile {} of job {} was not stored: {}", p.tile, id, result.error);
-  co_return respond(busy("the tile could not be stored; retry later"));
+  co_return other(respond(busy("the tile could not be stored; retry later")));
 }
 
-}  // namespace
-
-async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req, const Principal& who) {
-  const WorkerId worker = worker_id(req, who.role == Role::kWorker ? who.name : worker_name(req));
+// The upload's checks and its store round trip. Reads only the body of `req` (moved from); its
+// headers stay for the next lease.
+async::Awaitable<Outcome> upload(Context& c, const Route& route, http::Request& req, const WorkerId& worker) {
   c.counters.tile_upload_bytes.observe(double(req.body().size()));
   observe_render_time(c, req);
   // A tile leased before an upgrade and rendered by the old renderer must not be stored.
   if (const auto refused = pixel_version_refusal(c, req, /*required=*/false)) {
     note_tile_upload(c, worker, TileOutcome::kRefused, 0);
-    co_return respond(*refused);
+    co_return other(respond(*refused));
   }
-  const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req));
+  const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req.body()));
   if (!checked) {
     ++c.counters.tiles_refused;
     note_tile_upload(c, worker, TileOutcome::kRefused, 0);
-    co_return respond(checked.error());
+    co_return other(respond(checked.error()));
   }
   const protocol::TilePayload& p = checked.value();
   JobRecord* job = c.find_job(route.job);
@@ -157,12 +177,12 @@ async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request
   if (!action) {
     ++c.counters.tiles_refused;
     note_tile_upload(c, worker, TileOutcome::kRefused, 0);
-    co_return respond(action.error());
+    co_return other(respond(action.error()));
   }
   if (action.value() == TileAction::kJobGone) {
     ++c.counters.tiles_job_gone;
     note_tile_upload(c, worker, TileOutcome::kJobGone, 0);
-    co_return submit_answer(protocol::SubmitResult::kJobGone);
+    co_return verdict(protocol::SubmitResult::kJobGone);
   }
   if (!job->restored.empty() && job->restored[p.tile]) ++c.counters.restored_tile_submissions;
   if (job->unfinished() && c.queue.tile_status(job->id, p.tile) == TileStatus::kStored) {
@@ -173,8 +193,28 @@ async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request
     co_return duplicate(c, identical, job->id, p.tile, worker);
   }
   // Not stored yet, or the job is done and its pixels are only in the store.
-  if (!c.accepting_writes()) co_return respond(busy("the collector is stopping; retry later"));
+  if (!c.accepting_writes()) co_return other(respond(busy("the collector is stopping; retry later")));
   co_return co_await store_tile(c, route.job, p, worker);
+}
+
+}  // namespace
+
+async::Awaitable<http::Response> put_tile(Context& c, Route route, http::Request req, const Principal& who) {
+  const WorkerId worker = worker_id(req, who.role == Role::kWorker ? who.name : worker_name(req));
+  const std::optional<protocol::LeaseRequest> next = next_lease_request(req, worker);
+  Outcome outcome = co_await upload(c, route, req, worker);
+  if (!outcome.verdict) co_return std::move(outcome.other);
+  if (!next) co_return submit_answer(*outcome.verdict);
+  // The verdict is final (a stored tile is durable by now): the next lease, as POST /v1/lease
+  // would answer it; none when that would be a refusal (the worker then asks POST /v1/lease).
+  ++c.counters.upload_leases;
+  const TimePoint start = c.clock.now();
+  auto grant = grant_lease(c, req, who, *next);
+  std::optional<LeaseAnswer> given;
+  if (grant) given = std::move(grant).value();
+  http::Response res = upload_answer(*outcome.verdict, given);
+  c.counters.lease_seconds.observe(std::chrono::duration<double>(c.clock.now() - start).count());
+  co_return res;
 }
 
 }  // namespace dtraced::collector
