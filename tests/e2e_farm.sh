@@ -32,6 +32,22 @@ wait_tiles() {
   die "job $1 did not reach $2 stored tiles within ${DEADLINE}s (at ${done_:-?})"
 }
 
+# step_tiles ID N PID: lets the stopped process PID run in bursts of 20 ms, stopped between
+# them, until the job has at least N tiles stored; PID is stopped on return. However fast the
+# machine renders, the job moves by one burst at most between a check and what follows it.
+step_tiles() {
+  local t=0 done_
+  while [ $t -lt $((DEADLINE * 10)) ]; do
+    done_=$(job_field "$1" tiles_done)
+    [ -n "$done_" ] && [ "$done_" -ge "$2" ] && return 0
+    kill -CONT "$3"
+    sleep 0.02
+    kill -STOP "$3"
+    t=$((t + 1))
+  done
+  die "job $1 did not reach $2 stored tiles within $((DEADLINE * 10)) bursts (at ${done_:-?})"
+}
+
 wait_done() {
   local t=0 state
   while [ $t -lt $((DEADLINE * 10)) ]; do
@@ -108,11 +124,12 @@ port3=$PORT
 id=$(client submit "$SCENE" -o three.pfm "${LONG_ARGS[@]}") || die "submit failed"
 total=$(job_field "$id" tiles_total)
 start_worker w3 "$URL"
+kill -STOP "${WORKER_PIDS[0]}"
 for frac in 10 50 80; do
-  wait_tiles "$id" $((total * frac / 100))
-  # Freeze the worker the moment the mark is seen: however fast this machine renders, the job
-  # cannot finish between this check and the kill (it is resumed after the restart).
-  kill -STOP "${WORKER_PIDS[0]}"
+  # The worker runs in short bursts up to the mark and is stopped at it: however fast this
+  # machine renders (the last tiles are the cheapest: a job is leased costliest first), the job
+  # cannot finish before the kill. It runs again after the restart.
+  step_tiles "$id" $((total * frac / 100)) "${WORKER_PIDS[0]}"
   acked=$(job_field "$id" tiles_done)
   [ "$acked" -lt "$total" ] || die "the job finished before the kill at ${frac}%; make it longer"
   leased_again=$(metric dtraced_restored_tile_leases_total)
@@ -126,8 +143,8 @@ for frac in 10 50 80; do
   [ -n "$restored" ] && [ "$restored" -ge "$acked" ] &&
     ok "kill at ${frac}%: all $acked acknowledged tiles survived ($restored restored)" ||
     fail "kill at ${frac}%: $acked tiles were acknowledged but only ${restored:-?} restored"
-  kill -CONT "${WORKER_PIDS[0]}"
 done
+kill -CONT "${WORKER_PIDS[0]}"
 wait_done "$id"
 client fetch "$id" -o "$work/three.pfm" || die "fetch failed"
 cmp -s "$work/ref3.pfm" "$work/three.pfm" && ok "collector killed 3 times: the job completes, identical" ||

@@ -350,7 +350,7 @@ TEST_CASE("rays grazing a sphere's silhouette: packets answer as the scalar path
   check_tree_matches_scalar(shapes, rays, 4);
 }
 
-TEST_CASE("triangle-only leaves are described by their child reference; other leaves by their record",
+TEST_CASE("triangle-only leaves are described by their child reference, other leaves by their record",
           "[accel][small]") {
   using namespace dtraced::accel::detail;
   SECTION("the kTriLeaf reference round-trips, and leaves it cannot describe get 0") {

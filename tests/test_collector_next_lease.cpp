@@ -101,7 +101,7 @@ TEST_CASE("an upload that does not ask gets the plain answer and no lease", "[co
   CHECK(metric(h, &coll::CollectorCounters::upload_leases) == 0);
 }
 
-TEST_CASE("an upload refused gives no lease; a duplicate or a gone job's tile does", "[collector][next_lease]") {
+TEST_CASE("an upload refused gives no lease, a duplicate or a gone job's tile does", "[collector][next_lease]") {
   TempDir dir;
   Harness h(dir);
   const std::uint64_t job = h.submit();
@@ -161,7 +161,7 @@ TEST_CASE("an upload refused gives no lease; a duplicate or a gone job's tile do
   }
 }
 
-TEST_CASE("an upload answer with a next lease survives a round trip; its decoder names bad fields",
+TEST_CASE("an upload answer with a next lease survives a round trip and its decoder names bad fields",
           "[protocol][next_lease]") {
   protocol::Lease lease;
   lease.job = 3;

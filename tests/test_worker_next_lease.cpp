@@ -21,7 +21,7 @@ using namespace dtraced::testing;
 namespace worker = dtraced::worker;
 namespace http = dtraced::http;
 
-worker::WorkerConfig worker_config(std::uint16_t port, std::uint32_t threads) {
+worker::WorkerConfig worker_config(std::uint16_t port, std::uint32_t threads, std::uint32_t in_hand = 4) {
   worker::WorkerConfig config;
   config.collector_url = fmt::format("http://127.0.0.1:{}", port);
   config.token = std::string(kToken);
@@ -32,7 +32,7 @@ worker::WorkerConfig worker_config(std::uint16_t port, std::uint32_t threads) {
   config.timeouts = {kBound, kBound, kBound};
   config.backoff_initial = 2ms;
   config.backoff_max = 40ms;
-  config.max_unacknowledged = 4;
+  config.max_unacknowledged = in_hand;
   config.jitter_seed = 42;
   return config;
 }
@@ -47,15 +47,17 @@ http::ClientResult answered(http::Status status, std::string body, bool finished
 }  // namespace
 
 TEST_CASE("a worker takes its next lease from the answer to its upload", "[worker][next_lease]") {
-  const std::uint32_t threads = GENERATE(1u, 2u);
-  INFO(threads << " threads");
+  // With as many places in hand as threads, a slot's next lease can only be the one its own
+  // upload brings, in the place of the tile it acknowledges (the hand is full until then).
+  const auto [threads, in_hand] = GENERATE(table<std::uint32_t, std::uint32_t>({{1, 4}, {2, 4}, {1, 1}, {2, 2}}));
+  INFO(threads << " threads, " << in_hand << " tiles in hand");
   TempDir dir;
   Harness h(dir);
   const std::uint64_t job = h.submit();
   require_ok(h.collector.listen());
   h.start_loop();
 
-  auto created = worker::Worker::create(worker_config(h.collector.port(), threads));
+  auto created = worker::Worker::create(worker_config(h.collector.port(), threads, in_hand));
   REQUIRE(created.ok());
   std::unique_ptr<worker::Worker> w = std::move(created).value();
   std::thread runner([&] { w->run(); });

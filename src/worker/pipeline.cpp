@@ -41,7 +41,7 @@ async::Awaitable<> Worker::Impl::slot() {
       continue;
     }
     OfferPtr from_upload = std::exchange(offered, nullptr);
-    next = co_await (render_and_hand_off(std::move(current), offered) && acquire(std::move(from_upload)));
+    next = co_await (render_and_hand_off(std::move(current), offered) && acquire(std::move(from_upload), &offered));
   }
   // A lease held but not started is simply dropped: the collector offers it again.
   if (next) leases_dropped.add();
@@ -79,7 +79,7 @@ async::Awaitable<std::optional<Work>> Worker::Impl::take_offer(OfferPtr offered,
   co_return Work{std::move(lease), std::move(scene.scene), std::move(offered->reservation)};
 }
 
-async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered) {
+async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered, OfferPtr* pending) {
   if (offered) {
     bool stopped = false;
     std::optional<Work> work = co_await take_offer(std::move(offered), stopped);
@@ -88,7 +88,24 @@ async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered) {
   for (;;) {
     if (in_hand.full() && !stop.is_set()) {
       const util::TimePoint from = clock.now();
-      while (in_hand.full() && !stop.is_set()) co_await (in_hand.changed().wait() || stop.wait());
+      while (in_hand.full() && !stop.is_set()) {
+        // The tile this slot is rendering may be the one whose place the hand lacks: its upload's
+        // answer passes that place to the lease it carries, which only this wait can take.
+        if (pending != nullptr && *pending != nullptr) {
+          if ((*pending)->finished) {
+            bool stopped = false;
+            std::optional<Work> work = co_await take_offer(std::exchange(*pending, nullptr), stopped);
+            if (work || stopped) {
+              in_hand_wait_ms.add(ms_between(from, clock.now()));
+              co_return work;
+            }
+            continue;
+          }
+          co_await (in_hand.changed().wait() || (*pending)->done.wait() || stop.wait());
+        } else {
+          co_await (in_hand.changed().wait() || stop.wait());
+        }
+      }
       in_hand_wait_ms.add(ms_between(from, clock.now()));
     }
     std::optional<RetryGate::Attempt> attempt = co_await lease_gate.enter(stop);

@@ -118,8 +118,10 @@ struct Worker::Impl {
 
   async::Awaitable<> slot();
   // The next tile to render: the one `offered` brings (the answer to an upload), else from
-  // POST /v1/lease. nullopt when the worker stops.
-  async::Awaitable<std::optional<Work>> acquire(OfferPtr offered);
+  // POST /v1/lease. nullopt when the worker stops. `pending`, when given, is where the slot's
+  // current render puts the offer its own upload makes: while the hand is full, that offer's
+  // lease (which takes the uploaded tile's place) is taken from there.
+  async::Awaitable<std::optional<Work>> acquire(OfferPtr offered, OfferPtr* pending = nullptr);
   // What an upload's answer brought: the Work of its lease; nullopt with `stopped` false when the
   // answer brought none (or a retry-after, which it obeys) and POST /v1/lease must ask.
   async::Awaitable<std::optional<Work>> take_offer(OfferPtr offered, bool& stopped);
