@@ -73,5 +73,41 @@ expect "the collector logged the worker's first request" "$work/collector.log" \
 expect "the collector logged the refused token with the address" "$work/collector.log" \
   "refused a request for /v1/workers from 127.0.0.1: missing or wrong bearer token"
 
+# The scene cache on disk (--scene-cache-dir): a worker writes a static scene there after its
+# first load; the next worker on that directory reads it instead of fetching the JSON; a corrupt
+# file is reported, the JSON fetched and the file written again. Every image is the bits of a
+# local render.
+kill "${pids[1]}" && wait "${pids[1]}" 2>/dev/null
+"$DTRACED" render "$SCENES/snowman.json" -o "$work/ref.pfm" --width 64 --height 48 --samples 1 -q ||
+  fail "the local reference render"
+cache="$work/scene-cache"
+cached_job() { # cached_job NAME: one job rendered by a new worker NAME on the cache directory
+  "$DTRACED" --role worker --collector "$URL" --token-file "$work/token" --threads 1 --name "$1" \
+    --scene-cache-dir "$cache" 2>"$work/$1.log" &
+  local worker=$! job
+  pids+=("$worker")
+  job=$(client submit "$SCENES/snowman.json" --width 64 --height 48 --samples 1 --tile-size 16)
+  timeout "$DEADLINE" "$DTRACED" status "$job" --wait --collector "$URL" --token-file "$work/token" >/dev/null ||
+    fail "$1: the job did not finish within ${DEADLINE}s"
+  client fetch "$job" -o "$work/$1.pfm" >/dev/null 2>&1 || fail "$1: fetch"
+  kill "$worker" && wait "$worker" 2>/dev/null
+  cmp -s "$work/ref.pfm" "$work/$1.pfm" && ok "$1: the farm image is the local render's bits" ||
+    fail "$1: the farm image differs from the local render"
+}
+cached_job cache-first
+expect "the first worker fetched the scene" "$work/cache-first.log" "scene [0-9a-f]* fetched"
+files=("$cache"/*.dtscene)
+[ "${#files[@]}" = 1 ] && [ -s "${files[0]}" ] && ok "it left one cache file" || fail "cache files: ${files[*]}"
+cached_job cache-second
+expect "the next worker read the scene from the cache file" "$work/cache-second.log" "read from its cache file"
+if grep -q "scene [0-9a-f]* fetched" "$work/cache-second.log"; then fail "the next worker fetched the scene"; else
+  ok "the next worker did not fetch the scene"
+fi
+printf 'not a scene' >"${files[0]}"
+cached_job cache-corrupt
+expect "a corrupt cache file is reported, naming it" "$work/cache-corrupt.log" "warning: .*${files[0]##*/}"
+expect "and the scene is fetched instead" "$work/cache-corrupt.log" "scene [0-9a-f]* fetched"
+[ "$(stat -c %s "${files[0]}")" -gt 100 ] && ok "the cache file was written again" || fail "the cache file was not rewritten"
+
 echo "$passed passed, $failed failed"
 [ "$failed" = 0 ]

@@ -134,6 +134,7 @@ int run_worker_role(const CLI::App& app, const RoleArgs& a) {
   w.threads = a.threads;
   w.isa = a.kernels;
   if (a.scene_cache) w.scene_cache = *a.scene_cache;
+  w.scene_cache_dir = a.scene_cache_dir;
   if (a.grace_seconds) w.grace = std::chrono::seconds(*a.grace_seconds);
   if (a.connect_timeout_ms) w.timeouts.connect = std::chrono::milliseconds(*a.connect_timeout_ms);
   if (a.request_timeout_ms) {
@@ -296,6 +297,9 @@ void add_role_options(CLI::App& app, RoleArgs& a) {
                  "The collector's CA certificate (PEM) to trust for an https:// collector (dtraced enroll writes it)")
       ->group(kWorkerGroup);
   app.add_option("--name", a.name, "Worker name in the collector's logs (default HOST-PID; under Slurm HOST-JOB_TASK)")
+      ->group(kWorkerGroup);
+  app.add_option("--scene-cache-dir", a.scene_cache_dir,
+                 "Directory where static scenes are kept render-ready on disk by digest (default: none)")
       ->group(kWorkerGroup);
   add_number_flags(app, a, kWorkerGroup);
   // Also an option of `render` (main adds it there, bound to the same value).

@@ -23,6 +23,7 @@ struct RoleArgs {
   // collector
   std::string listen = "127.0.0.1:7878";
   std::string state_dir;
+  std::string scene_cache_dir;
   std::string output_dir;
   std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, idle_timeout_ms, reoffer_floor_ms,
       max_copies, shutdown_grace_ms, cpu_threads, worker_quiet_after_s, worker_forget_after_s, max_idle_connections,

@@ -115,6 +115,9 @@ util::Errors validate(const WorkerConfig& config) {
     add_problem(errors, "scene_cache",
                 fmt::format("must be in [1, {}] scenes (got {})", kMaxSceneCache, config.scene_cache));
   }
+  if (config.scene_cache_dir.size() > kMaxSceneCacheDirBytes) {
+    add_problem(errors, "scene_cache_dir", fmt::format("longer than {} bytes", kMaxSceneCacheDirBytes));
+  }
   if (const auto supported = accel::supported_isas();
       std::find(supported.begin(), supported.end(), config.isa) == supported.end()) {
     std::vector<std::string_view> names;

@@ -24,7 +24,8 @@ namespace dtraced::worker {
 // ---- limits --------------------------------------------------------------------------------
 
 inline constexpr std::size_t kMaxTokenBytes = 4096;
-inline constexpr std::uint32_t kMaxSceneCache = 1024;  // scenes kept built in memory
+inline constexpr std::uint32_t kMaxSceneCache = 1024;        // scenes kept built in memory
+inline constexpr std::size_t kMaxSceneCacheDirBytes = 4096;  // the length of scene_cache_dir (a path)
 inline constexpr std::chrono::seconds kMaxGrace{3600};
 inline constexpr std::chrono::milliseconds kMaxClientTimeout{10 * 60 * 1000};
 inline constexpr std::chrono::milliseconds kMaxBackoff{10 * 60 * 1000};
@@ -68,6 +69,10 @@ struct WorkerConfig {
   // which a Slurm allocation, a cpuset or taskset narrows). At most protocol::kMaxWorkerThreads.
   std::uint32_t threads = 0;
   std::uint32_t scene_cache = 8;  // built scenes kept (least recently used evicted); [1, kMaxSceneCache]
+  // Where static scenes are kept on disk in their render-ready binary form, by digest
+  // (scene_cache.h, write_cached_scene), so that a restarted worker or the next job of the same
+  // scene skips fetching and parsing its JSON. Empty: nowhere. Created at start when missing.
+  std::string scene_cache_dir;
   // Instruction set of the traversal kernels; one of accel::supported_isas(). Every choice
   // renders the same bits, so workers of one farm may differ.
   accel::Isa isa = accel::best_isa();

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <exception>
+#include <filesystem>
 #include <memory>
 #include <optional>
 #include <string>
@@ -238,6 +239,31 @@ async::Awaitable<SceneOutcome> Worker::Impl::ensure_scene(std::string digest) {
 
 async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
   SceneOutcome outcome;
+  // A static scene this worker has prepared before (this run or an earlier one) is on disk in its
+  // render-ready form: no fetch, no parse. A file that does not read is reported and replaced.
+  if (!config.scene_cache_dir.empty()) {
+    const std::string path = cached_scene_path(config.scene_cache_dir, digest);
+    std::error_code ec;
+    if (std::filesystem::exists(path, ec)) {
+      auto read = [&path, &digest, isa = config.isa, threads = config.threads] {
+        PreparedScene prepared;
+        if (util::Result<FramesPtr> cached = read_cached_scene(path, digest, isa, threads)) {
+          prepared.scene = std::move(*cached);
+        } else {
+          prepared.error = cached.error().to_string();
+        }
+        return prepared;
+      };
+      PreparedScene cached = co_await async::on_pool(pool, std::move(read));
+      if (cached.scene) {
+        scenes_fetched.add();
+        util::log_info("scene {} read from its cache file {} and built", digest, path);
+        outcome.scene = std::move(cached.scene);
+        co_return outcome;
+      }
+      util::log_warn("{}; fetching the scene instead", cached.error);
+    }
+  }
   http::Request request = authorized(http::make_request(http::Verb::get, fmt::format("/v1/scenes/{}", digest)));
   auto raced = co_await (client.request(url, std::move(request), scene::kMaxSceneBytes) || stop.wait());
   if (raced.index() == 1 || stop.is_set()) {
@@ -254,10 +280,10 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
     co_return outcome;
   }
   const std::size_t bytes = result.response.body().size();
-  auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa, threads = config.threads] {
-    return prepare_scene(body, digest, isa, threads);
-  };
+  auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa, threads = config.threads,
+                  &cache_dir = config.scene_cache_dir] { return prepare_scene(body, digest, isa, threads, cache_dir); };
   PreparedScene prepared = co_await async::on_pool(pool, std::move(prepare));
+  if (!prepared.warning.empty()) util::log_warn("scene {}: {}", digest, prepared.warning);
   if (!prepared.scene) {
     scenes_rejected.add();
     util::log_error("refusing scene {}: {}", digest, prepared.error);

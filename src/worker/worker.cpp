@@ -3,6 +3,7 @@
 #include <cassert>
 #include <cstdint>
 #include <exception>
+#include <filesystem>
 #include <memory>
 #include <optional>
 #include <random>
@@ -54,6 +55,14 @@ util::Result<std::unique_ptr<Worker>, util::Errors> Worker::create(const WorkerC
                                                                    const util::Clock& clock) {
   util::Errors problems = validate(config);
   if (!problems.empty()) return problems;
+  if (!config.scene_cache_dir.empty()) {
+    std::error_code ec;
+    std::filesystem::create_directories(config.scene_cache_dir, ec);
+    if (ec || !std::filesystem::is_directory(config.scene_cache_dir, ec)) {
+      return util::Errors{util::Error(fmt::format("scene_cache_dir: cannot create directory {}: {}",
+                                                  config.scene_cache_dir, ec ? ec.message() : "not a directory"))};
+    }
+  }
   util::Result<std::optional<http::ClientTls>> tls = load_client_tls(config);
   if (!tls) return util::Errors{tls.error()};
   return std::unique_ptr<Worker>(
