@@ -62,11 +62,7 @@ async::Awaitable<std::optional<Work>> Worker::Impl::take_offer(OfferPtr offered,
     co_return std::nullopt;
   }
   upload_leases.add();
-  lease_gate.busy();
-  last_work_at = clock.now();
-  protocol::Lease lease = std::move(*answer.lease);
-  gone.remove(lease.job);
-  SceneOutcome scene = co_await ensure_scene(lease.digest);
+  auto [lease, scene] = co_await begin_lease(std::move(*answer.lease));
   if (!scene.scene) {
     leases_dropped.add();
     stopped = scene.stopped;
@@ -78,6 +74,15 @@ async::Awaitable<std::optional<Work>> Worker::Impl::take_offer(OfferPtr offered,
     co_return std::nullopt;
   }
   co_return Work{std::move(lease), std::move(scene.scene), std::move(offered->reservation)};
+}
+
+async::Awaitable<std::pair<protocol::Lease, SceneOutcome>> Worker::Impl::begin_lease(protocol::Lease lease) {
+  lease_gate.busy();
+  last_work_at = clock.now();
+  // The collector is the authority: a job it leases out is not gone (any more).
+  gone.remove(lease.job);
+  SceneOutcome scene = co_await ensure_scene(lease.digest);
+  co_return std::pair{std::move(lease), std::move(scene)};
 }
 
 async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered, OfferPtr* pending) {
@@ -128,12 +133,7 @@ async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered, Of
       lease_gate.idle_for(jittered_retry_after(*answer.retry_after, rng));
       continue;
     }
-    lease_gate.busy();
-    last_work_at = clock.now();
-    protocol::Lease lease = std::move(*answer.lease);
-    // The collector is the authority: a job it leases out is not gone (any more).
-    gone.remove(lease.job);
-    SceneOutcome scene = co_await ensure_scene(lease.digest);
+    auto [lease, scene] = co_await begin_lease(std::move(*answer.lease));
     if (!scene.scene) {
       leases_dropped.add();
       if (scene.stopped) co_return std::nullopt;

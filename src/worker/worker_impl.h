@@ -125,6 +125,9 @@ struct Worker::Impl {
   // What an upload's answer brought: the Work of its lease; nullopt with `stopped` false when the
   // answer brought none (or a retry-after, which it obeys) and POST /v1/lease must ask.
   async::Awaitable<std::optional<Work>> take_offer(OfferPtr offered, bool& stopped);
+  // A lease the collector granted (to POST /v1/lease or in an upload's answer): marks the worker
+  // busy and the job not gone, and gets its scene ready (ensure_scene).
+  async::Awaitable<std::pair<protocol::Lease, SceneOutcome>> begin_lease(protocol::Lease lease);
   // nullopt when the worker stopped first.
   async::Awaitable<std::optional<LeaseAnswer>> request_lease();
   async::Awaitable<SceneOutcome> ensure_scene(std::string digest);
