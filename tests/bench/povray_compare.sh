@@ -40,7 +40,7 @@ OUT=${OUT:-$root/build/bench-povray}
 # The ladder: uniform, then adaptive from a first checkpoint of 1 sample (the neighbourhood
 # decides, like POV-Ray's antialiasing threshold) up to tight targets; settings between -s 4 and
 # the adaptive ones at 4 so that the cheapest one reaching POV-Ray's error does not overshoot it.
-LADDER=${LADDER:-"-s 2;-s 4;-s 8;-s 16;-s 16 --min-samples 1 --error-target 0.08;-s 32 --min-samples 1 --error-target 0.16;-s 32 --min-samples 1 --error-target 0.12;-s 32 --min-samples 1 --error-target 0.08;-s 32 --min-samples 2 --error-target 0.12;-s 32 --min-samples 2 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.16;-s 32 --min-samples 4 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.04;-s 64 --min-samples 4 --error-target 0.01"}
+LADDER=${LADDER:-"-s 2;-s 4;-s 8;-s 16;-s 16 --min-samples 1 --error-target 0.08;-s 32 --min-samples 1 --error-target 0.32;-s 32 --min-samples 1 --error-target 0.24;-s 32 --min-samples 1 --error-target 0.2;-s 32 --min-samples 1 --error-target 0.16;-s 32 --min-samples 1 --error-target 0.12;-s 32 --min-samples 1 --error-target 0.08;-s 32 --min-samples 2 --error-target 0.12;-s 32 --min-samples 2 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.16;-s 32 --min-samples 4 --error-target 0.08;-s 32 --min-samples 4 --error-target 0.04;-s 64 --min-samples 4 --error-target 0.01"}
 
 fail() {
   echo "povray_compare: $*" >&2
