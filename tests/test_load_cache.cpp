@@ -2,6 +2,7 @@
 // load is read back on the next job with the same digest and renders the same bits as from its
 // JSON; a cache file that is corrupt, truncated, of another version or of another scene is an
 // error naming the file, and prepare_scene then loads the JSON (and writes the cache again).
+#include <chrono>
 #include <cstdint>
 #include <cstring>
 #include <filesystem>
@@ -169,4 +170,25 @@ TEST_CASE("parts that do not fit together are refused", "[load][cache]") {
   accel::Shape odd = sphere;
   std::memset(static_cast<void*>(&odd), 9, 1);  // the type byte
   CHECK_FALSE(render::RenderSceneBuilder::from_parts({sphere, odd}, {m, m}, {}, {}, {}).ok());
+}
+
+TEST_CASE("the scene cache keeps its most recently used files and nothing else is touched", "[load][cache]") {
+  dtraced::testing::TempDir dir;
+  const std::filesystem::path root = dir.path();
+  const auto now = std::filesystem::file_time_type::clock::now();
+  for (int i = 0; i < 5; ++i) {
+    const std::filesystem::path file = root / ("scene" + std::to_string(i) + ".dtscene");
+    std::ofstream(file) << "x";
+    // scene4 is the most recently used, scene0 the least.
+    std::filesystem::last_write_time(file, now - std::chrono::hours(10 - i));
+  }
+  std::ofstream(root / "notes.txt") << "not a cache file";
+  std::filesystem::last_write_time(root / "notes.txt", now - std::chrono::hours(100));
+  CHECK(worker::prune_scene_cache(root.string(), 8) == 0);
+  CHECK(worker::prune_scene_cache(root.string(), 2) == 3);
+  CHECK_FALSE(std::filesystem::exists(root / "scene0.dtscene"));
+  CHECK_FALSE(std::filesystem::exists(root / "scene2.dtscene"));
+  CHECK(std::filesystem::exists(root / "scene3.dtscene"));
+  CHECK(std::filesystem::exists(root / "scene4.dtscene"));
+  CHECK(std::filesystem::exists(root / "notes.txt"));
 }

@@ -72,6 +72,7 @@ struct WorkerConfig {
   // Where static scenes are kept on disk in their render-ready binary form, by digest
   // (scene_cache.h, write_cached_scene), so that a restarted worker or the next job of the same
   // scene skips fetching and parsing its JSON. Empty: nowhere. Created at start when missing.
+  // Holds at most scene_cache files (the least recently used are removed).
   std::string scene_cache_dir;
   // Instruction set of the traversal kernels; one of accel::supported_isas(). Every choice
   // renders the same bits, so workers of one farm may differ.

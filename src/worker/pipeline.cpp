@@ -256,6 +256,8 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
       };
       PreparedScene cached = co_await async::on_pool(pool, std::move(read));
       if (cached.scene) {
+        // Recently used: the last to be pruned.
+        std::filesystem::last_write_time(path, std::filesystem::file_time_type::clock::now(), ec);
         scenes_fetched.add();
         util::log_info("scene {} read from its cache file {} and built", digest, path);
         outcome.scene = std::move(cached.scene);
@@ -284,6 +286,8 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
                   &cache_dir = config.scene_cache_dir] { return prepare_scene(body, digest, isa, threads, cache_dir); };
   PreparedScene prepared = co_await async::on_pool(pool, std::move(prepare));
   if (!prepared.warning.empty()) util::log_warn("scene {}: {}", digest, prepared.warning);
+  // The disk cache holds as many scenes as the memory cache (--scene-cache).
+  if (!config.scene_cache_dir.empty()) prune_scene_cache(config.scene_cache_dir, config.scene_cache);
   if (!prepared.scene) {
     scenes_rejected.add();
     util::log_error("refusing scene {}: {}", digest, prepared.error);

@@ -176,6 +176,23 @@ std::string cached_scene_path(const std::string& dir, std::string_view digest) {
   return (std::filesystem::path(dir) / fmt::format("{}.dtscene", digest)).string();
 }
 
+std::size_t prune_scene_cache(const std::string& dir, std::size_t keep) {
+  std::error_code ec;
+  std::vector<std::pair<std::filesystem::file_time_type, std::filesystem::path>> files;
+  for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
+    if (entry.path().extension() != ".dtscene" || !entry.is_regular_file(ec)) continue;
+    const auto when = entry.last_write_time(ec);
+    if (!ec) files.emplace_back(when, entry.path());
+  }
+  if (files.size() <= keep) return 0;
+  std::sort(files.begin(), files.end());  // oldest first
+  std::size_t removed = 0;
+  for (std::size_t i = 0; i < files.size() - keep; ++i) {
+    if (std::filesystem::remove(files[i].second, ec) && !ec) ++removed;
+  }
+  return removed;
+}
+
 util::Status write_cached_scene(const std::string& path, std::string_view digest, const scene::SceneDesc& desc,
                                 const render::RenderSceneBuilder& builder) {
   assert(desc.objects.empty() && desc.animation == nullptr);

@@ -117,6 +117,11 @@ inline constexpr std::uint64_t kMaxCachedDescBytes = 16ull << 20;  // camera, se
 // DIR/DIGEST.dtscene
 std::string cached_scene_path(const std::string& dir, std::string_view digest);
 
+// Keeps at most `keep` cache files (*.dtscene) in `dir`: the least recently used (oldest
+// modification time; the worker touches a file it reads) are removed. Other files are left alone.
+// Returns how many were removed; a file that cannot be removed is skipped.
+std::size_t prune_scene_cache(const std::string& dir, std::size_t keep);
+
 // Writes the objects `builder` holds and `desc` (a static scene's description without objects:
 // camera, settings, lights) to `path` under `digest`, through a temporary file renamed over it.
 util::Status write_cached_scene(const std::string& path, std::string_view digest, const scene::SceneDesc& desc,
