@@ -9,6 +9,7 @@
 
 #include <catch2/catch.hpp>
 
+#include "first_error.h"
 #include "protocol/messages.h"
 #include "render/cost_map.h"
 #include "render/render_scene.h"
@@ -45,11 +46,7 @@ std::string submit_body(std::string_view extra) {
   return "{\"scene\": " + std::string(kScene) + ", " + std::string(extra) + "}";
 }
 
-template <typename Decoded>
-std::string first_error(const Decoded& d) {
-  REQUIRE_FALSE(d.ok());
-  return d.error().front().path + ": " + d.error().front().message;
-}
+using dtraced::testing::first_error;
 
 // "[1, 1, ..., 1]" with n entries.
 std::string ones(std::size_t n) {

@@ -6,6 +6,7 @@
 
 #include <catch2/catch.hpp>
 
+#include "first_error.h"
 #include "protocol/messages.h"
 
 namespace {
@@ -24,12 +25,7 @@ std::string submit_body(std::string_view extra) {
   return "{\"scene\": " + std::string(kScene) + ", " + std::string(extra) + "}";
 }
 
-// "path: message" of the first error of a submission or of stored settings.
-template <typename Decoded>
-std::string first_error(const Decoded& d) {
-  REQUIRE_FALSE(d.ok());
-  return d.error().front().path + ": " + d.error().front().message;
-}
+using dtraced::testing::first_error;
 
 // Stored settings of a 64x48 image with `extra` keys.
 std::string settings_text(std::string_view extra) {
