@@ -91,31 +91,42 @@ async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered, Of
     std::optional<Work> work = co_await take_offer(std::move(offered), stopped);
     if (work || stopped) co_return work;
   }
+  // The lease that the upload of the tile this slot renders asks for (set once the render ends).
+  auto watched = [pending]() -> OfferedLease* { return pending != nullptr ? pending->get() : nullptr; };
+  std::optional<util::TimePoint> waiting_since;  // for room in hand
+  auto waited = [&] {
+    if (waiting_since) in_hand_wait_ms.add(ms_between(*std::exchange(waiting_since, std::nullopt), clock.now()));
+  };
   for (;;) {
-    if (in_hand.full() && !stop.is_set()) {
-      const util::TimePoint from = clock.now();
-      while (in_hand.full() && !stop.is_set()) {
-        // The tile this slot is rendering may be the one whose place the hand lacks: its upload's
-        // answer passes that place to the lease it carries, which only this wait can take.
-        if (pending != nullptr && *pending != nullptr) {
-          if ((*pending)->finished) {
-            bool stopped = false;
-            std::optional<Work> work = co_await take_offer(std::exchange(*pending, nullptr), stopped);
-            if (work || stopped) {
-              in_hand_wait_ms.add(ms_between(from, clock.now()));
-              co_return work;
-            }
-            continue;
-          }
-          co_await (in_hand.changed().wait() || (*pending)->done.wait() || stop.wait());
-        } else {
-          co_await (in_hand.changed().wait() || stop.wait());
-        }
+    // That lease holds the place of the tile its upload acknowledged, and only this slot takes
+    // it: taken as soon as it comes, full hand or not (a hand with room would otherwise ask the
+    // collector for more while the lease it already holds waits, and the collector, having leased
+    // the last tiles to this worker, would answer "retry" for as long as that lasts).
+    if (OfferedLease* offer = watched(); offer != nullptr && offer->finished) {
+      bool stopped = false;
+      std::optional<Work> work = co_await take_offer(std::exchange(*pending, nullptr), stopped);
+      if (work || stopped) {
+        waited();
+        co_return work;
       }
-      in_hand_wait_ms.add(ms_between(from, clock.now()));
+      continue;
     }
-    std::optional<RetryGate::Attempt> attempt = co_await lease_gate.enter(stop);
-    if (!attempt) co_return std::nullopt;
+    if (stop.is_set()) co_return std::nullopt;
+    if (in_hand.full()) {
+      if (!waiting_since) waiting_since = clock.now();
+      if (OfferedLease* offer = watched()) {
+        co_await (in_hand.changed().wait() || offer->done.wait() || stop.wait());
+      } else {
+        co_await (in_hand.changed().wait() || stop.wait());
+      }
+      continue;
+    }
+    waited();
+    std::optional<RetryGate::Attempt> attempt = co_await enter_lease_gate(watched());
+    if (!attempt) {
+      if (stop.is_set()) co_return std::nullopt;
+      continue;  // the watched lease came while the gate held this request
+    }
     if (in_hand.full()) continue;  // others filled it while this one waited at the gate
 
     InHand::Reservation reservation = in_hand.reserve();
@@ -143,6 +154,14 @@ async::Awaitable<std::optional<Work>> Worker::Impl::acquire(OfferPtr offered, Of
     note_lease_success(*attempt);
     co_return Work{std::move(lease), std::move(scene.scene), std::move(reservation)};
   }
+}
+
+async::Awaitable<std::optional<RetryGate::Attempt>> Worker::Impl::enter_lease_gate(OfferedLease* offer) {
+  if (offer == nullptr) co_return co_await lease_gate.enter(stop);
+  // An idle or failing collector holds requests at the gate; the offered lease may come meanwhile.
+  auto raced = co_await (lease_gate.enter(stop) || offer->done.wait());
+  if (raced.index() == 1) co_return std::nullopt;
+  co_return std::move(std::get<0>(raced));
 }
 
 void Worker::Impl::note_lease_failure(RetryGate::Attempt& attempt, const std::string& message, bool token_rejected) {

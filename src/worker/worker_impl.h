@@ -119,12 +119,14 @@ struct Worker::Impl {
   async::Awaitable<> slot();
   // The next tile to render: the one `offered` brings (the answer to an upload), else from
   // POST /v1/lease. nullopt when the worker stops. `pending`, when given, is where the slot's
-  // current render puts the offer its own upload makes: while the hand is full, that offer's
-  // lease (which takes the uploaded tile's place) is taken from there.
+  // current render puts the offer its own upload makes: that offer's lease (which takes the
+  // uploaded tile's place) is taken from there as soon as it comes, full hand or not.
   async::Awaitable<std::optional<Work>> acquire(OfferPtr offered, OfferPtr* pending = nullptr);
   // What an upload's answer brought: the Work of its lease; nullopt with `stopped` false when the
   // answer brought none (or a retry-after, which it obeys) and POST /v1/lease must ask.
   async::Awaitable<std::optional<Work>> take_offer(OfferPtr offered, bool& stopped);
+  // Waits at the lease gate; nullopt once stopping, or once `offer` (if any) has finished.
+  async::Awaitable<std::optional<RetryGate::Attempt>> enter_lease_gate(OfferedLease* offer);
   // A lease the collector granted (to POST /v1/lease or in an upload's answer): marks the worker
   // busy and the job not gone, and gets its scene ready (ensure_scene).
   async::Awaitable<std::pair<protocol::Lease, SceneOutcome>> begin_lease(protocol::Lease lease);
