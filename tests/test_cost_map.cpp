@@ -9,7 +9,7 @@
 
 #include <catch2/catch.hpp>
 
-#include "first_error.h"
+#include "decode_testing.h"
 #include "protocol/messages.h"
 #include "render/cost_map.h"
 #include "render/render_scene.h"
@@ -42,9 +42,7 @@ scene::SceneDesc load(std::string_view text) {
   return std::move(*loaded.scene);
 }
 
-std::string submit_body(std::string_view extra) {
-  return "{\"scene\": " + std::string(kScene) + ", " + std::string(extra) + "}";
-}
+std::string submit_body(std::string_view extra) { return dtraced::testing::submit_body(kScene, extra); }
 
 using dtraced::testing::first_error;
 

@@ -6,7 +6,7 @@
 
 #include <catch2/catch.hpp>
 
-#include "first_error.h"
+#include "decode_testing.h"
 #include "protocol/messages.h"
 
 namespace {
@@ -21,9 +21,7 @@ constexpr std::string_view kScene = R"({
   "scene_lights": [{"type": "point", "loc": [5, 5, 5], "intensity": 3}]
 })";
 
-std::string submit_body(std::string_view extra) {
-  return "{\"scene\": " + std::string(kScene) + ", " + std::string(extra) + "}";
-}
+std::string submit_body(std::string_view extra) { return dtraced::testing::submit_body(kScene, extra); }
 
 using dtraced::testing::first_error;
 

@@ -301,12 +301,17 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
     co_return outcome;
   }
   const std::size_t bytes = result.response.body().size();
+  // On the pool with the parse: the disk cache, written there, is pruned there too (a directory
+  // listing and removals are file-system work the event loop should not wait for). It holds as
+  // many scenes as the memory cache (--scene-cache).
   auto prepare = [body = std::move(result.response.body()), &digest, isa = config.isa, threads = config.threads,
-                  &cache_dir = config.scene_cache_dir] { return prepare_scene(body, digest, isa, threads, cache_dir); };
+                  &cache_dir = config.scene_cache_dir, keep = config.scene_cache] {
+    PreparedScene prepared = prepare_scene(body, digest, isa, threads, cache_dir);
+    if (!cache_dir.empty()) prune_scene_cache(cache_dir, keep);
+    return prepared;
+  };
   PreparedScene prepared = co_await async::on_pool(pool, std::move(prepare));
   if (!prepared.warning.empty()) util::log_warn("scene {}: {}", digest, prepared.warning);
-  // The disk cache holds as many scenes as the memory cache (--scene-cache).
-  if (!config.scene_cache_dir.empty()) prune_scene_cache(config.scene_cache_dir, config.scene_cache);
   if (!prepared.scene) {
     scenes_rejected.add();
     util::log_error("refusing scene {}: {}", digest, prepared.error);
