@@ -14,6 +14,7 @@
 #include <string>
 #include <system_error>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include <fmt/format.h>
@@ -236,6 +237,7 @@ struct Run {
   bool features_printed = false;                    // the scene's features are printed once, with the first frame
   std::optional<render::AnimatedScene> prepared{};  // every frame's render-ready scene comes from here
   double prepare_s = 0;                             // its build time, not yet reported
+  double load_s = 0;  // reading the file (for a static scene, into render-ready objects), not yet reported
   // A static scene's objects were streamed into the render-ready scene while it loaded (the
   // description holds none): this is their digest (scene::ObjectsDigest). Empty: the
   // description holds its objects.
@@ -269,6 +271,7 @@ int render_frame(Run& run, const scene::SceneDesc& desc, const std::string& imag
   const render::RenderScene& rs = *scene_of_frame;
   const double build_s =
       run.prepare_s + std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+  const double load_s = std::exchange(run.load_s, 0.0);
   run.prepare_s = 0;  // counted once, with the first frame rendered
 
   render::LocalOptions opts;
@@ -348,11 +351,12 @@ int render_frame(Run& run, const scene::SceneDesc& desc, const std::string& imag
                       double(total) / pixels, s.samples, s.error_target, 100.0 * double(early) / pixels);
   }
   fmt::print(stderr,
-             "rendered {}x{} at {} in {:.3f} s ({} threads, {}-px tiles, {} kernels; scene build {:.3f} s): {:.2f} "
-             "M rays, {:.2f} Mrays/s, {} NaN and {} Inf samples; wrote {}\n",
+             "rendered {}x{} at {} in {:.3f} s ({} threads, {}-px tiles, {} kernels; scene load {:.3f} s, build "
+             "{:.3f} s): {:.2f} M rays, {:.2f} Mrays/s, {} NaN and {} Inf samples; wrote {}\n",
              result.image.width, result.image.height, spp, result.seconds, result.threads, run.tile_size,
-             accel::isa_name(rs.geometry().isa()), build_s, mrays, result.seconds > 0 ? mrays / result.seconds : 0.0,
-             result.stats.nan_samples, result.stats.inf_samples, image_path);
+             accel::isa_name(rs.geometry().isa()), load_s, build_s, mrays,
+             result.seconds > 0 ? mrays / result.seconds : 0.0, result.stats.nan_samples, result.stats.inf_samples,
+             image_path);
   if (!run.features_printed) {
     run.features_printed = true;
     fmt::print(stderr, "scene features: {} (the tracer is specialised to them)\n",
@@ -405,6 +409,7 @@ int run_render(const RenderArgs& args) {
   std::optional<scene::ObjectsDigest> objects(std::in_place, &*builder);
   scene::LoadOptions streamed;
   streamed.object_sink = &*objects;
+  const auto load_start = std::chrono::steady_clock::now();
   scene::LoadResult loaded = scene::load_scene_file(args.scene, streamed);
   if (loaded.ok() && scene::is_animated(*loaded.scene)) {
     objects.reset();
@@ -422,6 +427,7 @@ int run_render(const RenderArgs& args) {
   // The outputs first: a render may take hours, and a typo in a path should not cost them.
   if (const int usage = check_outputs(args, range.count()); usage != kExitOk) return usage;
   Run run{.args = args};
+  run.load_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - load_start).count();
   run.tile_size = scene::tile_size_or_default(args.overrides);
   if (objects) run.objects_digest = objects->hex();
   run.crop = args.overrides.crop;
