@@ -31,6 +31,8 @@ set -uo pipefail
 export LC_ALL=C # EPOCHREALTIME and printf with a decimal point
 
 root=$(cd "$(dirname "$0")/../.." && pwd)
+# shellcheck source=bench_lib.sh
+. "$root/tests/bench/bench_lib.sh"
 DTRACED=${DTRACED:-$root/build/src/cli/dtraced}
 SCENE=${SCENE:-$root/scenes/showcase.json}
 WIDTH=${WIDTH:-960}
@@ -75,16 +77,6 @@ done
 work=$(mktemp -d)
 collector_pid=
 worker_pid=
-# Stops a process this script started: SIGTERM, then SIGKILL after 10 s.
-stop_pid() {
-  kill -TERM "$1" 2>/dev/null || return 0
-  for _ in $(seq 100); do
-    kill -0 "$1" 2>/dev/null || break
-    sleep 0.1
-  done
-  kill -9 "$1" 2>/dev/null
-  wait "$1" 2>/dev/null
-}
 cleanup() {
   [ -n "$worker_pid" ] && stop_pid "$worker_pid"
   [ -n "$collector_pid" ] && stop_pid "$collector_pid"
@@ -105,14 +97,7 @@ token=$(head -n1 "$work/token")
 "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$work/state" --token-file "$work/token" \
   --tls "$tls_flag" 2>"$work/collector.log" &
 collector_pid=$!
-port=
-for _ in $(seq $((START_DEADLINE * 10))); do
-  port=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/collector.log" | tail -n1)
-  [ -n "$port" ] && break
-  kill -0 "$collector_pid" 2>/dev/null || break
-  sleep 0.1
-done
-[ -n "$port" ] || fail "the collector did not start"
+port=$(listening_port "$work/collector.log" "$collector_pid" "$START_DEADLINE") || fail "the collector did not start"
 if [ "$TRANSPORT" = tls ]; then
   url="https://127.0.0.1:$port"
   ca=(--ca-file "$work/state/tls/ca.pem")

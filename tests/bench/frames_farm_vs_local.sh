@@ -30,6 +30,8 @@ export LC_ALL=C
 TIMEFORMAT='%3U %3S' # `time`: user and system CPU seconds of the local render
 
 root=$(cd "$(dirname "$0")/../.." && pwd)
+# shellcheck source=bench_lib.sh
+. "$root/tests/bench/bench_lib.sh"
 DTRACED=${DTRACED:-$root/build/src/cli/dtraced}
 SCENE=${SCENE:-$root/scenes/snowfall.json}
 WIDTH=${WIDTH:-320}
@@ -47,12 +49,6 @@ DEADLINE=600 # seconds a farm run may take
 
 work=$(mktemp -d)
 pids=()
-stop_pid() {
-  kill -TERM "$1" 2>/dev/null || return 0
-  for _ in $(seq 100); do kill -0 "$1" 2>/dev/null || break; sleep 0.1; done
-  kill -9 "$1" 2>/dev/null
-  wait "$1" 2>/dev/null
-}
 cleanup() {
   for p in "${pids[@]}"; do stop_pid "$p"; done
   if [ "${KEEP_LOGS:-0}" = 1 ]; then echo "logs kept in $work"; else rm -rf "$work"; fi
@@ -70,13 +66,7 @@ printf 'frames-%s-token\n' "$$" >"$work/token"
   2>"$work/collector.log" &
 pids+=($!)
 collector_pid=$!
-port=
-for _ in $(seq 300); do
-  port=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/collector.log" | tail -n1)
-  [ -n "$port" ] && break
-  sleep 0.1
-done
-[ -n "$port" ] || fail "the collector did not start"
+port=$(listening_port "$work/collector.log" "$collector_pid" 30) || fail "the collector did not start"
 url="http://127.0.0.1:$port"
 for w in $(seq "$WORKERS"); do
   "$DTRACED" --role worker --collector "$url" --token-file "$work/token" --threads 1 --name "bench-$w" \
