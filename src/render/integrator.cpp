@@ -103,6 +103,8 @@ struct LightSample {
 // there when the shadow rays went as packets, and the same for the mirror and refracted rays that
 // hit spawns. A nullptr child (and has_direct false) leaves that part to the tracer.
 struct Known {
+  explicit Known(const math::Ray& r) : ray(r) {}
+  math::Ray ray;       // the ray itself, as trace() would spawn it (a secondary ray's tracer takes it)
   bool found = false;  // the ray hits; `hit` is its nearest hit
   bool has_direct = false;
   accel::Hit hit;
@@ -418,8 +420,9 @@ struct Tracer {
         radiance += direct * m.local_weight;
       }
       if (b.mirror) {
-        const Vec3f lr = trace(spawn(hit, mirror_direction(ray, nf)), depth + 1, b.mirror_weight, media,
-                               k != nullptr ? k->mirror : nullptr);
+        const Known* kr = k != nullptr ? k->mirror : nullptr;
+        const Vec3f lr = trace(kr != nullptr ? kr->ray : spawn(hit, mirror_direction(ray, nf)), depth + 1,
+                               b.mirror_weight, media, kr);
         if (b.reflective) {
           radiance += math::mul(m.color, lr) * m.reflectivity;
           if (b.bends) radiance += lr * b.fresnel_w;
@@ -445,9 +448,9 @@ struct Tracer {
         return radiance + trace(cont, depth, weight * m.transparency, b.inside) * m.transparency;
       }
       if (b.refract) {
-        radiance +=
-            trace(spawn(hit, b.it.wt), depth + 1, b.refract_weight, b.inside, k != nullptr ? k->refracted : nullptr) *
-            b.refract_w;
+        const Known* kt = k != nullptr ? k->refracted : nullptr;
+        radiance += trace(kt != nullptr ? kt->ray : spawn(hit, b.it.wt), depth + 1, b.refract_weight, b.inside, kt) *
+                    b.refract_w;
       }
       return radiance;
     }
@@ -506,10 +509,9 @@ std::uint32_t occluded_packet(const accel::LayeredGeometry& geometry, const math
 // arguments Tracer::trace will be called with for it, and the parent's pointer to the record
 // (nullptr for a camera ray), cleared when the ray is left to the tracer after all.
 // A secondary ray's origin is found (Tracer::spawn) only once the ray goes into a packet: until
-// then `from` is the hit it leaves and ray.d its direction.
+// then `from` is the hit it leaves and known.ray.d its direction.
 struct Ahead {
   Known known;
-  math::Ray ray;
   const accel::Hit* from;
   MediumStack media;
   std::uint32_t depth;
@@ -578,10 +580,10 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   for (int i = 0; i < n; ++i) {
     Ahead& a = *ahead[i];
     if (a.from != nullptr) {
-      a.ray = T::spawn(*a.from, a.ray.d);
+      a.known.ray = T::spawn(*a.from, a.known.ray.d);
       a.from = nullptr;
     }
-    rays[i] = a.ray;
+    rays[i] = a.known.ray;
   }
   const std::uint32_t valid = (1u << n) - 1;
   const bool secondary = ahead[0]->depth > 0;
@@ -665,9 +667,6 @@ bool flat_geometry(const accel::LayeredGeometry& geometry) {
   return true;
 }
 
-// The octant of direction d: the signs of its components, as 3 bits.
-int octant(const Vec3f& d) { return (d.x < 0.0f ? 1 : 0) | (d.y < 0.0f ? 2 : 0) | (d.z < 0.0f ? 4 : 0); }
-
 template <unsigned kF, int kN>
 void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys,
                        std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
@@ -686,31 +685,19 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
   int count = 0;
   for (int i = 0; i < kN; ++i) {
     if (!(valid >> i & 1u)) continue;
-    Ahead* a = pool.emplace(Known{}, rays[i], nullptr, camera_media, 0u, 1.0f, nullptr);
+    Ahead* a = pool.emplace(Known{rays[i]}, nullptr, camera_media, 0u, 1.0f, nullptr);
     lane_known[i] = &a->known;
     level[count++] = a;
   }
   while (count > 0) {
-    // Packets of the level's rays: the camera rays always; secondary rays when enough of them go
-    // together, and, in a scene with a tree, only rays of one direction octant (rays that go
-    // different ways visit different nodes: one at a time is faster then). The rest are left to
-    // the lanes' tracers.
-    if (level[0]->depth > 0 && !flat) {
-      // Stable counting sort by octant.
-      int start[9] = {};
-      for (int j = 0; j < count; ++j) ++start[octant(level[j]->ray.d) + 1];
-      for (int o = 0; o < 8; ++o) start[o + 1] += start[o];
-      for (int j = 0; j < count; ++j) mirrors[start[octant(level[j]->ray.d)]++] = level[j];
-      std::copy(mirrors, mirrors + count, level);
-    }
+    // Packets of the level's rays: the camera rays always; secondary rays only where there is no
+    // tree (measured: in a scene with one, a packet's reflections and refractions part ways,
+    // and even grouped by direction octant they rarely fill a packet and cost more than they
+    // save), and then only when enough of them go together. The rest are left to the lanes'
+    // tracers.
     int kept = 0;
     for (int j = 0; j < count;) {
-      int end = std::min(count, j + kN);
-      if (level[j]->depth > 0 && !flat) {
-        const int o = octant(level[j]->ray.d);
-        end = j + 1;
-        while (end < count && end - j < kN && octant(level[end]->ray.d) == o) ++end;
-      }
+      const int end = std::min(count, j + kN);
       const int n = end - j;
       if (level[j]->depth > 0 && n < kMinAheadRays) {
         for (int r = j; r < end; ++r) *level[r]->link = nullptr;
@@ -722,6 +709,7 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
       j = end;
     }
     count = kept;
+    if (!flat) break;
 
     // The rays the hits cast, mirror rays first, then refracted ones: rays of one kind together.
     int nm = 0, nr = 0;
@@ -731,23 +719,23 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
       if (!k.found) continue;
       if constexpr (T::kArea) {
         Vec3f le;
-        if (tracer.emitter_before(a.ray, k.hit.t, le)) continue;  // trace() returns the light
+        if (tracer.emitter_before(k.ray, k.hit.t, le)) continue;  // trace() returns the light
       }
       const MaterialF& m = scene.material(k.hit.shape);
-      const Vec3f wo = -a.ray.d;
+      const Vec3f wo = -k.ray.d;
       const Vec3f nf = math::dot(wo, k.hit.n) >= 0.0f ? k.hit.n : -k.hit.n;
       const typename T::Branches b = tracer.branches(k.hit, m, wo, nf, a.depth, a.weight, a.media);
       if (b.mirror && !pool.full()) {
         math::Ray r;
-        r.d = T::mirror_direction(a.ray, nf);
-        Ahead* c = pool.emplace(Known{}, r, &k.hit, a.media, a.depth + 1, b.mirror_weight, &k.mirror);
+        r.d = T::mirror_direction(k.ray, nf);
+        Ahead* c = pool.emplace(Known{r}, &k.hit, a.media, a.depth + 1, b.mirror_weight, &k.mirror);
         k.mirror = &c->known;
         mirrors[nm++] = c;
       }
       if (b.refract && !pool.full()) {
         math::Ray r;
         r.d = b.it.wt;
-        Ahead* c = pool.emplace(Known{}, r, &k.hit, b.inside, a.depth + 1, b.refract_weight, &k.refracted);
+        Ahead* c = pool.emplace(Known{r}, &k.hit, b.inside, a.depth + 1, b.refract_weight, &k.refracted);
         k.refracted = &c->known;
         refracts[nr++] = c;
       }
