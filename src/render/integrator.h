@@ -18,8 +18,10 @@
 // path; both give the same bits.
 //
 // trace_radiance follows one camera ray; trace_radiance8 and trace_radiance16 follow up to 8 or 16
-// together, tracing their first hits (and the point lights' shadow rays there) as packets and
-// everything after per ray. All give every ray the same bits and count the same rays.
+// together, tracing their first hits (and the point lights' shadow rays there) as packets, then
+// level by level the mirror and refracted rays those hits cast (and their point-light shadow
+// rays) as packets while enough of them go together, and everything after per ray. All give
+// every ray the same bits and count the same rays.
 #pragma once
 
 #include <cstdint>
@@ -37,9 +39,14 @@ struct TraceStats {
   // Rays cast for the one-pixel border around a tile that adaptive sampling's first checkpoint
   // reads (render/tile.h); not in `rays`, which stays the same whatever the tiling.
   std::uint64_t border_rays = 0;
+  // Of `rays`: mirror and refracted rays, and their point-light shadow rays, that the packet path
+  // traced as packets (trace_radiance8/16); 0 on the per-ray path. What the packets reach, for
+  // tests and profiles; not part of a render's result.
+  std::uint64_t secondary_packet_rays = 0;
   std::uint64_t all_rays() const { return rays + border_rays; }
   void add(const TraceStats& o) {
     rays += o.rays;
+    secondary_packet_rays += o.secondary_packet_rays;
     nan_samples += o.nan_samples;
     inf_samples += o.inf_samples;
     border_rays += o.border_rays;
