@@ -471,6 +471,27 @@ Status Store::Impl::keep_wal_files() {
   return {};
 }
 
+Status Store::manage_checkpoints() {
+  if (impl_->wal_hook_installed) return {};
+  auto page = impl_->exec_rows("PRAGMA page_size");
+  if (!page) return page.error();
+  const std::uint64_t page_bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
+  if (page_bytes == 0) return Error{fmt::format("{}: cannot read the page size", impl_->path)};
+  constexpr std::uint64_t kWalFrameHeaderBytes = 24;
+  impl_->wal_frame_bytes = page_bytes + kWalFrameHeaderBytes;
+  // The hook remembers the WAL's length after each commit. Installing it replaces SQLite's own
+  // automatic checkpoints (which use the same hook), so nothing is checkpointed inside a COMMIT.
+  constexpr auto note_wal_frames = [](void* impl, sqlite3*, const char*, int frames) {
+    static_cast<Impl*>(impl)->wal_frames = frames > 0 ? static_cast<std::uint64_t>(frames) : 0;
+    return SQLITE_OK;
+  };
+  sqlite3_wal_hook(impl_->db, note_wal_frames, impl_.get());
+  impl_->wal_hook_installed = true;
+  return {};
+}
+
+std::uint64_t Store::wal_bytes() const { return impl_->wal_frames * impl_->wal_frame_bytes; }
+
 Result<CheckpointResult> Store::checkpoint(CheckpointMode mode) {
   // A zero busy timeout: a reader in the way makes the checkpoint partial, never a wait on the
   // writer thread (acknowledgements would wait with it).
@@ -489,6 +510,8 @@ Result<CheckpointResult> Store::checkpoint(CheckpointMode mode) {
   } else {
     result.complete = result.copied_frames == result.wal_frames;
   }
+  // Every frame is in the database file: the next commit starts the WAL over.
+  if (result.complete) impl_->wal_frames = 0;
   return result;
 }
 
