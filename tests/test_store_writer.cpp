@@ -256,22 +256,23 @@ TEST_CASE("a failed transaction fails every tile of the batch and stores none", 
   Callbacks callbacks;
   std::uint64_t stored_after = 0;
   SECTION("the database is full (a size cap stands in for the disk)") {
-    TileWriter writer(open_ok(tmp.path(), OpenOptions{.max_database_bytes = 256 * 1024}));
+    // An empty database of 16 KiB pages is about 200 KiB (a page or two per table and index).
+    TileWriter writer(open_ok(tmp.path(), OpenOptions{.max_database_bytes = 512 * 1024}));
     Gate gate;
     gate.close(writer);
-    for (std::uint32_t t = 0; t < 10; ++t) {  // ~480 KiB in one transaction
+    for (std::uint32_t t = 0; t < 20; ++t) {  // ~960 KiB in one transaction
       REQUIRE(writer.submit(tile_write(job, t, kBenchTileBytes), callbacks.done(t)) == SubmitStatus::kAccepted);
     }
     gate.open();
-    REQUIRE(callbacks.wait_for(10));
+    REQUIRE(callbacks.wait_for(20));
     for (const auto& [tile, rs] : callbacks.results()) {
       CHECK(rs.at(0).outcome == TileOutcome::kFailed);
       CHECK_THAT(rs.at(0).error, Contains("full"));
     }
-    CHECK(writer.stats().tiles_failed == 10);
+    CHECK(writer.stats().tiles_failed == 20);
     // The writer goes on: a batch that fits is stored.
     REQUIRE(writer.submit(tile_write(job, 0, kBenchTileBytes), callbacks.done(100)) == SubmitStatus::kAccepted);
-    REQUIRE(callbacks.wait_for(11));
+    REQUIRE(callbacks.wait_for(21));
     CHECK(callbacks.results()[100].at(0).outcome == TileOutcome::kStored);
     stored_after = 1;
   }

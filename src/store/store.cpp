@@ -24,12 +24,15 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// The page size of a new database file: SQLite's default. Tiles of tens of kilobytes live mostly
-// in overflow pages, but 16 and 64 KiB pages measured no faster for 49 KB tiles (the time goes
-// to the WAL fsync and the checkpoint copy, not to per-page overhead), and small rows stay compact.
-// Issue 16 tried 16 KiB again for 12 KB tiles (one page per tile instead of four): no gain above
-// the noise, and a tile with sample counts (16 KiB + its row) then takes two 16 KiB pages.
-constexpr int kPageSizeBytes = 4096;
+// The page size of a new database file (an existing file keeps its own). A 32-px tile (12,360
+// bytes of pixels) fits in one 16 KiB page: one WAL frame, two writes into the WAL and one page
+// copy at a checkpoint per tile, where 4 KiB pages need a row and three overflow pages (about
+// seven writes and four copies). That cut the collector's CPU per stored tile by ~14 % (issue 16,
+// with the WAL-size checkpoints; tests/bench/collector_capacity.sh, median of 6 A/B runs). Bytes
+// on disk stay about the same for tiles of 12 to 49 KB (+9 % for a 32-px tile with sample
+// counts: one overflow page and 2 KB of row on a shared leaf); an empty database is ~200 KiB.
+// Earlier measurements of 16 KiB under a heavy load average showed no gain above the noise.
+constexpr int kPageSizeBytes = 16384;
 
 // The jobs table's columns, shared by the schema and the upgrade that rebuilds the table.
 constexpr std::string_view kJobsColumnsSql = R"sql(
