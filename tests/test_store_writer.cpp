@@ -110,6 +110,44 @@ TEST_CASE("tasks run in submission order with the tiles around them", "[store][w
   CHECK(writer.stats().tasks_run == 3);
 }
 
+TEST_CASE("tiles queued together are one commit, and each is acknowledged only after it", "[store][writer]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  constexpr std::uint32_t kTiles = 50;
+  TileWriter writer(std::move(setup));
+  // Another connection, used only by the callbacks (they run one at a time on the writer thread):
+  // what it reads is what is on disk for everyone.
+  sqlite3* other = nullptr;
+  REQUIRE(sqlite3_open_v2(tmp.db().c_str(), &other, SQLITE_OPEN_READONLY, nullptr) == SQLITE_OK);
+  const auto committed_tiles = [&] {
+    sqlite3_stmt* s = nullptr;
+    REQUIRE(sqlite3_prepare_v2(other, "SELECT count(*) FROM tiles", -1, &s, nullptr) == SQLITE_OK);
+    REQUIRE(sqlite3_step(s) == SQLITE_ROW);
+    const auto n = sqlite3_column_int64(s, 0);
+    sqlite3_finalize(s);
+    return n;
+  };
+  Callbacks callbacks;
+  std::vector<std::int64_t> seen(kTiles, -1);
+  Gate gate;
+  gate.close(writer);
+  for (std::uint32_t t = 0; t < kTiles; ++t) {
+    auto done = [&, t, inner = callbacks.done(t)](CommitResult r) {
+      seen[t] = committed_tiles();
+      inner(std::move(r));
+    };
+    REQUIRE(writer.submit(tile_write(job, t, 1000), done) == SubmitStatus::kAccepted);
+  }
+  gate.open();
+  REQUIRE(callbacks.wait_for(kTiles));
+  writer.stop();
+  sqlite3_close(other);
+  CHECK(writer.stats().batches == 1);
+  CHECK(writer.stats().largest_batch == kTiles);
+  // Every acknowledgement came after the whole transaction was committed: all 50 were visible.
+  for (std::uint32_t t = 0; t < kTiles; ++t) CHECK(seen[t] == kTiles);
+}
+
 TEST_CASE("a transaction holds at most max_batch_tiles tiles", "[store][writer]") {
   StoreDir tmp;
   auto [setup, job] = seeded(tmp);
