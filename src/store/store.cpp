@@ -27,8 +27,9 @@ namespace fs = std::filesystem;
 // The page size of a new database file (an existing file keeps its own). A 32-px tile (12,360
 // bytes of pixels) fits in one 16 KiB page: one WAL frame, two writes into the WAL and one page
 // copy at a checkpoint per tile, where 4 KiB pages need a row and three overflow pages (about
-// seven writes and four copies). That cut the collector's CPU per stored tile by ~14 % (issue 16,
-// with the WAL-size checkpoints; tests/bench/collector_capacity.sh, median of 6 A/B runs). Bytes
+// seven writes and four copies). With the WAL-size checkpoints that cut the collector's CPU per
+// stored tile by ~11 % (issue 16: tests/bench/collector_capacity.sh, 64 TLS workers, median of 12
+// A/B ratios 0.89 on a busy machine, every one below 1). Bytes
 // on disk stay about the same for tiles of 12 to 49 KB (+9 % for a 32-px tile with sample
 // counts: one overflow page and 2 KB of row on a shared leaf); an empty database is ~200 KiB.
 // Earlier measurements of 16 KiB under a heavy load average showed no gain above the noise.
