@@ -8,12 +8,14 @@
 
 #include <boost/json/parse.hpp>
 
+#include "collector/credentials.h"
 #include "collector/queue.h"
 #include "collector/routes.h"
 #include "collector/web_access.h"
 #include "collector_testing.h"
 #include "page_testing.h"
 #include "protocol/credential_messages.h"
+#include "util/sha256.h"
 
 namespace {
 
@@ -310,6 +312,25 @@ TEST_CASE("roles: route_allows and credential names", "[collector][roles]") {
   CHECK_FALSE(coll::is_credential_name("a b"));
   CHECK_FALSE(coll::is_credential_name(std::string(65, 'a')));
   CHECK(coll::credential_role("operator") == std::nullopt);
+}
+
+TEST_CASE("roles: a token is looked up by its digest, for the operator and the table alike", "[collector][roles]") {
+  const coll::TokenCheck op("operator-token");
+  coll::CredentialTable table;
+  REQUIRE(table.add(coll::Credential{"w1", coll::Role::kWorker, 1, std::nullopt}, util::sha256_bytes("worker-token")));
+  REQUIRE(table.add(coll::Credential{"v1", coll::Role::kViewer, 1, 5}, util::sha256_bytes("viewer-token")));
+  CHECK(op.accepts_digest(util::sha256_bytes("operator-token")));
+  CHECK_FALSE(op.accepts_digest(util::sha256_bytes("worker-token")));
+  CHECK(table.find_digest(util::sha256_bytes("worker-token")) == table.find_token("worker-token"));
+  CHECK(table.find_digest(util::sha256_bytes("nobody")) == nullptr);
+  const auto who = [&](std::string_view token) { return coll::authenticate_token(token, op, table); };
+  CHECK(who("operator-token").kind == coll::Authentication::Kind::kLive);
+  CHECK(who("operator-token").who.role == coll::Role::kOperator);
+  CHECK(who("worker-token").kind == coll::Authentication::Kind::kLive);
+  CHECK(who("worker-token").who.name == "w1");
+  CHECK(who("viewer-token").kind == coll::Authentication::Kind::kRevoked);
+  CHECK(who("other").kind == coll::Authentication::Kind::kNone);
+  CHECK(who("").kind == coll::Authentication::Kind::kNone);
 }
 
 TEST_CASE("queue: release_holder forgets one holder's leases and puts their tiles first", "[collector][roles]") {

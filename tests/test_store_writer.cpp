@@ -110,6 +110,44 @@ TEST_CASE("tasks run in submission order with the tiles around them", "[store][w
   CHECK(writer.stats().tasks_run == 3);
 }
 
+TEST_CASE("tiles queued together are one commit, and each is acknowledged only after it", "[store][writer]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  constexpr std::uint32_t kTiles = 50;
+  TileWriter writer(std::move(setup));
+  // Another connection, used only by the callbacks (they run one at a time on the writer thread):
+  // what it reads is what is on disk for everyone.
+  sqlite3* other = nullptr;
+  REQUIRE(sqlite3_open_v2(tmp.db().c_str(), &other, SQLITE_OPEN_READONLY, nullptr) == SQLITE_OK);
+  const auto committed_tiles = [&] {
+    sqlite3_stmt* s = nullptr;
+    REQUIRE(sqlite3_prepare_v2(other, "SELECT count(*) FROM tiles", -1, &s, nullptr) == SQLITE_OK);
+    REQUIRE(sqlite3_step(s) == SQLITE_ROW);
+    const auto n = sqlite3_column_int64(s, 0);
+    sqlite3_finalize(s);
+    return n;
+  };
+  Callbacks callbacks;
+  std::vector<std::int64_t> seen(kTiles, -1);
+  Gate gate;
+  gate.close(writer);
+  for (std::uint32_t t = 0; t < kTiles; ++t) {
+    auto done = [&, t, inner = callbacks.done(t)](CommitResult r) {
+      seen[t] = committed_tiles();
+      inner(std::move(r));
+    };
+    REQUIRE(writer.submit(tile_write(job, t, 1000), done) == SubmitStatus::kAccepted);
+  }
+  gate.open();
+  REQUIRE(callbacks.wait_for(kTiles));
+  writer.stop();
+  sqlite3_close(other);
+  CHECK(writer.stats().batches == 1);
+  CHECK(writer.stats().largest_batch == kTiles);
+  // Every acknowledgement came after the whole transaction was committed: all 50 were visible.
+  for (std::uint32_t t = 0; t < kTiles; ++t) CHECK(seen[t] == kTiles);
+}
+
 TEST_CASE("a transaction holds at most max_batch_tiles tiles", "[store][writer]") {
   StoreDir tmp;
   auto [setup, job] = seeded(tmp);
@@ -128,41 +166,80 @@ TEST_CASE("a transaction holds at most max_batch_tiles tiles", "[store][writer]"
   CHECK(writer.stats().tiles_stored == 10);
 }
 
-TEST_CASE("the WAL stays a few batches long over many commits and is emptied when the writer is idle",
+namespace {
+
+// Submits `tiles` tiles of `bytes` each while the writer is held, then lets it write them all in
+// a row (never idle); returns the largest -wal file seen by any tile's callback (after its commit
+// and before the writer's next checkpoint).
+std::uintmax_t largest_wal_in_burst(TileWriter& writer, const std::string& wal, std::int64_t job, std::uint32_t tiles,
+                                    std::size_t bytes) {
+  Callbacks callbacks;
+  std::atomic<std::uintmax_t> largest{0};
+  Gate gate;
+  gate.close(writer);
+  for (std::uint32_t t = 0; t < tiles; ++t) {
+    auto done = [&, inner = callbacks.done(t)](CommitResult r) {
+      std::error_code ec;
+      const std::uintmax_t size = std::filesystem::file_size(wal, ec);
+      if (!ec && size > largest) largest = size;
+      inner(std::move(r));
+    };
+    REQUIRE(writer.submit(tile_write(job, t, bytes), done) == SubmitStatus::kAccepted);
+  }
+  gate.open();
+  REQUIRE(callbacks.wait_for(tiles));
+  return largest.load();
+}
+
+}  // namespace
+
+TEST_CASE("the WAL stays under its bound over a long burst and is emptied when the writer is idle",
           "[store][writer][wal]") {
   StoreDir tmp;
   auto [setup, job] = seeded(tmp);
   const std::string wal = setup.path() + "-wal";
-  constexpr std::uint32_t kTiles = 400;  // 100 transactions in a row, 6.4 MB of pixels
+  constexpr std::uint32_t kTiles = 1200;  // 150 transactions in a row, 19.7 MB of pixels
   constexpr std::size_t kBytes = 16 << 10;
-  constexpr WriterLimits kLimits{.max_batch_tiles = 4, .checkpoint_every_batches = 8};
+  constexpr std::uint64_t kBound = 1 << 20;
+  constexpr WriterLimits kLimits{.max_batch_tiles = 8, .checkpoint_wal_bytes = kBound};
   TileWriter writer(std::move(setup), kLimits);
-  Callbacks callbacks;
-  std::atomic<std::uintmax_t> largest_wal{0};
-  Gate gate;
-  gate.close(writer);  // every tile queued before the first batch: the writer is never idle
-  for (std::uint32_t t = 0; t < kTiles; ++t) {
-    auto done = [&, inner = callbacks.done(t)](CommitResult r) {
-      std::error_code ec;
-      const std::uintmax_t size = std::filesystem::file_size(wal, ec);
-      if (!ec && size > largest_wal) largest_wal = size;
-      inner(std::move(r));
-    };
-    REQUIRE(writer.submit(tile_write(job, t, kBytes), done) == SubmitStatus::kAccepted);
-  }
-  gate.open();
-  REQUIRE(callbacks.wait_for(kTiles));
+  const std::uintmax_t largest = largest_wal_in_burst(writer, wal, job, kTiles, kBytes);
   CHECK(writer.stats().tiles_stored == kTiles);
-  CHECK(writer.stats().batches == kTiles / 4);
-  // Eight batches of four 16 KiB tiles are 512 KiB of pixels; the WAL adds page headers and the
-  // b-tree pages. Without checkpoints of its own, SQLite lets it reach 1000 pages (4 MiB).
-  INFO("largest WAL: " << largest_wal.load() << " bytes");
-  CHECK(largest_wal.load() <= std::uintmax_t{1} << 20);
-  CHECK(writer.stats().checkpoints >= kTiles / 4 / kLimits.checkpoint_every_batches);
+  CHECK(writer.stats().batches == kTiles / 8);
+  // At most the bound plus one batch: eight 16 KiB tiles are 128 KiB of pixels; the WAL adds frame
+  // headers and the b-tree pages.
+  INFO("largest WAL: " << largest << " bytes");
+  CHECK(largest <= kBound + (256 << 10));
+  CHECK(largest >= kBound / 2);  // the bound is what checkpoints, not the batches
+  // 19.7 MB through a WAL of at most ~1.25 MiB: at least one checkpoint per 1.25 MiB.
+  CHECK(writer.stats().checkpoints >= kTiles * kBytes / (kBound + (256 << 10)));
   // Idle: the WAL file is emptied (its bytes are all in the database).
   CHECK(eventually([&] { return std::filesystem::file_size(wal) == 0; }));
   writer.stop();
   CHECK(writer.stats().checkpoints_failed == 0);
+  Store check = open_ok(tmp.path());
+  CHECK(check.count_tiles(job).value() == kTiles);
+}
+
+TEST_CASE("under the bound nothing is checkpointed while tiles keep coming, not even by SQLite",
+          "[store][writer][wal]") {
+  StoreDir tmp;
+  auto [setup, job] = seeded(tmp);
+  const std::string wal = setup.path() + "-wal";
+  // 400 tiles of 16 KiB: 6.4 MB of pixels, past SQLite's own automatic checkpoint (1000 pages,
+  // 4 MiB) and under the default bound of 16 MiB.
+  constexpr std::uint32_t kTiles = 400;
+  constexpr std::size_t kBytes = 16 << 10;
+  constexpr WriterLimits kLimits{.max_batch_tiles = 4, .checkpoint_when_idle = std::chrono::minutes(1)};
+  static_assert(kLimits.checkpoint_wal_bytes >= std::uint64_t{8} << 20);
+  TileWriter writer(std::move(setup), kLimits);
+  const std::uintmax_t largest = largest_wal_in_burst(writer, wal, job, kTiles, kBytes);
+  INFO("largest WAL: " << largest << " bytes");
+  CHECK(largest >= kTiles * kBytes);  // every tile's pages are still in the WAL
+  CHECK(writer.stats().checkpoints == 0);
+  writer.stop();  // the stop checkpoints what is left
+  CHECK(writer.stats().checkpoints == 1);
+  CHECK(std::filesystem::file_size(wal) == 0);
   Store check = open_ok(tmp.path());
   CHECK(check.count_tiles(job).value() == kTiles);
 }
@@ -173,7 +250,7 @@ TEST_CASE("a trickle of tiles is not checkpointed after every batch, and a stop 
   auto [setup, job] = seeded(tmp);
   const std::string wal = setup.path() + "-wal";
   // Idle for a minute before a checkpoint: the test never waits that long between tiles.
-  constexpr WriterLimits kLimits{.checkpoint_every_batches = 16, .checkpoint_when_idle = std::chrono::minutes(1)};
+  constexpr WriterLimits kLimits{.checkpoint_when_idle = std::chrono::minutes(1)};
   TileWriter writer(std::move(setup), kLimits);
   Callbacks callbacks;
   // One tile at a time, each acknowledged before the next is sent: the queue runs empty after
@@ -217,22 +294,23 @@ TEST_CASE("a failed transaction fails every tile of the batch and stores none", 
   Callbacks callbacks;
   std::uint64_t stored_after = 0;
   SECTION("the database is full (a size cap stands in for the disk)") {
-    TileWriter writer(open_ok(tmp.path(), OpenOptions{.max_database_bytes = 256 * 1024}));
+    // An empty database of 16 KiB pages is about 200 KiB (a page or two per table and index).
+    TileWriter writer(open_ok(tmp.path(), OpenOptions{.max_database_bytes = 512 * 1024}));
     Gate gate;
     gate.close(writer);
-    for (std::uint32_t t = 0; t < 10; ++t) {  // ~480 KiB in one transaction
+    for (std::uint32_t t = 0; t < 20; ++t) {  // ~960 KiB in one transaction
       REQUIRE(writer.submit(tile_write(job, t, kBenchTileBytes), callbacks.done(t)) == SubmitStatus::kAccepted);
     }
     gate.open();
-    REQUIRE(callbacks.wait_for(10));
+    REQUIRE(callbacks.wait_for(20));
     for (const auto& [tile, rs] : callbacks.results()) {
       CHECK(rs.at(0).outcome == TileOutcome::kFailed);
       CHECK_THAT(rs.at(0).error, Contains("full"));
     }
-    CHECK(writer.stats().tiles_failed == 10);
+    CHECK(writer.stats().tiles_failed == 20);
     // The writer goes on: a batch that fits is stored.
     REQUIRE(writer.submit(tile_write(job, 0, kBenchTileBytes), callbacks.done(100)) == SubmitStatus::kAccepted);
-    REQUIRE(callbacks.wait_for(11));
+    REQUIRE(callbacks.wait_for(21));
     CHECK(callbacks.results()[100].at(0).outcome == TileOutcome::kStored);
     stored_after = 1;
   }

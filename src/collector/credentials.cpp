@@ -176,7 +176,11 @@ bool CredentialTable::add(Credential credential, const util::Sha256Digest& token
 }
 
 const Credential* CredentialTable::find_token(std::string_view token) const {
-  const auto it = name_by_token_.find(util::sha256_bytes(token));
+  return find_digest(util::sha256_bytes(token));
+}
+
+const Credential* CredentialTable::find_digest(const util::Sha256Digest& token_sha256) const {
+  const auto it = name_by_token_.find(token_sha256);
   return it == name_by_token_.end() ? nullptr : find_name(it->second);
 }
 
@@ -225,12 +229,14 @@ Authentication authenticate_token(std::string_view token, const TokenCheck& oper
                                   const CredentialTable& table) {
   Authentication a;
   if (token.empty()) return a;
-  if (operator_token.accepts_token(token)) {
+  // One SHA-256 per token, for the operator's token and the table both.
+  const util::Sha256Digest digest = util::sha256_bytes(token);
+  if (operator_token.accepts_digest(digest)) {
     a.kind = Authentication::Kind::kLive;
     a.who = Principal{"", Role::kOperator};
     return a;
   }
-  const Credential* c = table.find_token(token);
+  const Credential* c = table.find_digest(digest);
   if (c == nullptr) return a;
   a.kind = c->revoked() ? Authentication::Kind::kRevoked : Authentication::Kind::kLive;
   a.who = Principal{c->name, c->role};

@@ -80,6 +80,8 @@ class CredentialTable {
   bool add(Credential credential, const util::Sha256Digest& token_sha256);
   // The credential whose token is `token`, revoked or not; nullptr for none.
   const Credential* find_token(std::string_view token) const;
+  // The same by the token's SHA-256.
+  const Credential* find_digest(const util::Sha256Digest& token_sha256) const;
   const Credential* find_name(std::string_view name) const;
   // Marks it revoked at `unix_s`; false when unknown or revoked already.
   bool revoke(std::string_view name, std::int64_t unix_s);

@@ -455,9 +455,12 @@ bool TokenCheck::accepts(const http::Request& req) const {
 }
 
 bool TokenCheck::accepts_token(std::string_view presented) const {
-  const util::Sha256Digest digest = util::sha256_bytes(presented);
-  const bool equal = CRYPTO_memcmp(digest.data(), expected_.data(), digest.size()) == 0;
+  const bool equal = accepts_digest(util::sha256_bytes(presented));
   return !presented.empty() && equal;
+}
+
+bool TokenCheck::accepts_digest(const util::Sha256Digest& presented_sha256) const {
+  return CRYPTO_memcmp(presented_sha256.data(), expected_.data(), presented_sha256.size()) == 0;
 }
 
 }  // namespace dtraced::collector

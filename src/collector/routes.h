@@ -145,6 +145,9 @@ class TokenCheck {
   bool accepts(const http::Request& req) const;
   // Whether `presented` is the token (the web page's sign-in), compared the same way.
   bool accepts_token(std::string_view presented) const;
+  // Whether a non-empty presented token with this SHA-256 is the token (for a caller that has the
+  // digest already: authenticate_token hashes a token once for this and the credential table).
+  bool accepts_digest(const util::Sha256Digest& presented_sha256) const;
 
  private:
   util::Sha256Digest expected_;

@@ -24,12 +24,16 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// The page size of a new database file: SQLite's default. Tiles of tens of kilobytes live mostly
-// in overflow pages, but 16 and 64 KiB pages measured no faster for 49 KB tiles (the time goes
-// to the WAL fsync and the checkpoint copy, not to per-page overhead), and small rows stay compact.
-// Issue 16 tried 16 KiB again for 12 KB tiles (one page per tile instead of four): no gain above
-// the noise, and a tile with sample counts (16 KiB + its row) then takes two 16 KiB pages.
-constexpr int kPageSizeBytes = 4096;
+// The page size of a new database file (an existing file keeps its own). A 32-px tile (12,360
+// bytes of pixels) fits in one 16 KiB page: one WAL frame, two writes into the WAL and one page
+// copy at a checkpoint per tile, where 4 KiB pages need a row and three overflow pages (about
+// seven writes and four copies). With the WAL-size checkpoints that cut the collector's CPU per
+// stored tile by ~11 % (issue 16: tests/bench/collector_capacity.sh, 64 TLS workers, median of 12
+// A/B ratios 0.89 on a busy machine, every one below 1). Bytes
+// on disk stay about the same for tiles of 12 to 49 KB (+9 % for a 32-px tile with sample
+// counts: one overflow page and 2 KB of row on a shared leaf); an empty database is ~200 KiB.
+// Earlier measurements of 16 KiB under a heavy load average showed no gain above the noise.
+constexpr int kPageSizeBytes = 16384;
 
 // The jobs table's columns, shared by the schema and the upgrade that rebuilds the table.
 constexpr std::string_view kJobsColumnsSql = R"sql(
@@ -471,6 +475,27 @@ Status Store::Impl::keep_wal_files() {
   return {};
 }
 
+Status Store::manage_checkpoints() {
+  if (impl_->wal_hook_installed) return {};
+  auto page = impl_->exec_rows("PRAGMA page_size");
+  if (!page) return page.error();
+  const std::uint64_t page_bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
+  if (page_bytes == 0) return Error{fmt::format("{}: cannot read the page size", impl_->path)};
+  constexpr std::uint64_t kWalFrameHeaderBytes = 24;
+  impl_->wal_frame_bytes = page_bytes + kWalFrameHeaderBytes;
+  // The hook remembers the WAL's length after each commit. Installing it replaces SQLite's own
+  // automatic checkpoints (which use the same hook), so nothing is checkpointed inside a COMMIT.
+  constexpr auto note_wal_frames = [](void* impl, sqlite3*, const char*, int frames) {
+    static_cast<Impl*>(impl)->wal_frames = frames > 0 ? static_cast<std::uint64_t>(frames) : 0;
+    return SQLITE_OK;
+  };
+  sqlite3_wal_hook(impl_->db, note_wal_frames, impl_.get());
+  impl_->wal_hook_installed = true;
+  return {};
+}
+
+std::uint64_t Store::wal_bytes() const { return impl_->wal_frames * impl_->wal_frame_bytes; }
+
 Result<CheckpointResult> Store::checkpoint(CheckpointMode mode) {
   // A zero busy timeout: a reader in the way makes the checkpoint partial, never a wait on the
   // writer thread (acknowledgements would wait with it).
@@ -489,6 +514,8 @@ Result<CheckpointResult> Store::checkpoint(CheckpointMode mode) {
   } else {
     result.complete = result.copied_frames == result.wal_frames;
   }
+  // Every frame is in the database file: the next commit starts the WAL over.
+  if (result.complete) impl_->wal_frames = 0;
   return result;
 }
 

@@ -321,12 +321,22 @@ class Store {
   // Copies the WAL into the database file and, with kTruncate, empties the WAL file
   // (wal_checkpoint(TRUNCATE); kReuse keeps the file for the next writes, see CheckpointMode),
   // without waiting for other connections: while a reader still uses an older snapshot, it copies
-  // what it can and reports truncated = complete = false, which is no error. SQLite's own checkpoints (every
-  // 1000 pages, PASSIVE) never shrink the file below journal_size_limit, and none runs while the
-  // collector is idle; TileWriter calls this when idle and every few batches, so the WAL stays a
-  // few batches long instead of growing with the job. An error is an I/O failure (a full disk:
+  // what it can and reports truncated = complete = false, which is no error. TileWriter turns
+  // SQLite's own checkpoints off (manage_checkpoints) and calls this when the WAL passes its bound
+  // (WriterLimits::checkpoint_wal_bytes), when idle and at stop, so the WAL stays bounded instead
+  // of growing with the job. An error is an I/O failure (a full disk:
   // copying into the database may need to grow it), naming the file; nothing is lost by it.
   util::Result<CheckpointResult> checkpoint(CheckpointMode mode = CheckpointMode::kTruncate);
+
+  // Turns SQLite's own checkpoints off (they run inside a COMMIT every 1000 pages, 4 MiB) and
+  // starts counting the WAL after each commit of this connection (sqlite3_wal_hook), so that the
+  // caller checkpoints by wal_bytes() instead. Whoever calls this must checkpoint, or the WAL grows
+  // without bound: TileWriter calls it on the Store it owns. Idempotent.
+  util::Status manage_checkpoints();
+  // The WAL's length after this connection's last commit (frames with their headers), as
+  // reported to the hook manage_checkpoints() installed, or 0 after a complete checkpoint since
+  // (the next commit starts the WAL over); always 0 without manage_checkpoints().
+  std::uint64_t wal_bytes() const;
 
  private:
   struct Impl;

@@ -126,6 +126,11 @@ struct Store::Impl {
   std::unordered_map<std::string_view, sqlite3_stmt*> statements;  // keys: the statements' text
   int busy_timeout_ms = 0;                      // OpenOptions::busy_timeout, restored after a checkpoint
   std::int64_t found_version = kSchemaVersion;  // of an existing file, read by check_schema
+  // Set by manage_checkpoints: the WAL's frames after the last commit (the hook's count) and the
+  // bytes of one frame (the page and its 24-byte header).
+  bool wal_hook_installed = false;
+  std::uint64_t wal_frames = 0;
+  std::uint64_t wal_frame_bytes = 0;
 
   Impl() = default;
   Impl(const Impl&) = delete;

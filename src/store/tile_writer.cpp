@@ -32,8 +32,13 @@ constexpr std::uint64_t WriterStats::*kOutcomeCounters[] = {&WriterStats::tiles_
 
 }  // namespace
 
-TileWriter::TileWriter(Store store, WriterLimits limits)
-    : store_(std::move(store)), limits_(limits), thread_([this] { run(); }) {}
+TileWriter::TileWriter(Store store, WriterLimits limits) : store_(std::move(store)), limits_(limits) {
+  // Without the hook SQLite keeps checkpointing inside COMMIT (every 4 MiB): slower, still bounded.
+  if (auto st = store_.manage_checkpoints(); !st) {
+    util::log_warn("store writer: {} (SQLite's own checkpoints stay on)", st.error().message);
+  }
+  thread_ = std::thread([this] { run(); });
+}
 
 TileWriter::~TileWriter() { stop(); }
 
@@ -98,7 +103,7 @@ void TileWriter::run() {
   const auto has_work = [this] { return stopping_ || !queue_.empty(); };
   for (;;) {
     // Under load the WAL file is kept for the next writes; once idle (or stopping) it is emptied.
-    if (writes_since_checkpoint_ >= std::max<std::size_t>(limits_.checkpoint_every_batches, 1)) {
+    if (writes_since_checkpoint_ > 0 && store_.wal_bytes() >= limits_.checkpoint_wal_bytes) {
       checkpoint(CheckpointMode::kReuse);
     }
     if (writes_since_checkpoint_ > 0) {

@@ -8,10 +8,11 @@
 // after its COMMIT returned are the callbacks of those tiles called. A fsync is paid per batch
 // rather than per tile, so the commit rate grows with the load. If the transaction fails, every
 // tile of the batch gets kFailed and none is acknowledged; the thread goes on with the next batch.
-// The thread also checkpoints the WAL (WriterLimits::checkpoint_every_batches and
-// checkpoint_when_idle), so the -wal file stays a few batches long and is empty soon after the
-// writer goes idle. Under load the checkpoint keeps the file (CheckpointMode::kReuse: the next
-// batches overwrite its blocks instead of growing a truncated file again); the idle one empties it.
+// The thread also checkpoints the WAL (WriterLimits::checkpoint_wal_bytes and
+// checkpoint_when_idle; SQLite's own checkpoints inside COMMIT are off), so the -wal file stays
+// bounded and is empty soon after the writer goes idle. Under load the checkpoint keeps the file
+// (CheckpointMode::kReuse: the next batches overwrite its blocks instead of growing a truncated file again); the idle
+// one empties it.
 //
 // Other writes (scenes, jobs, state changes) are posted as tasks: a task runs on the writer thread
 // with the Store, in order with the tiles submitted before and after it, each store call its own
@@ -51,16 +52,17 @@ struct WriterLimits {
   std::size_t max_pending_tiles = 4096;
   std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels + worker names
   std::size_t max_pending_tasks = 1024;
-  // A checkpoint (Store::checkpoint: the WAL copied into the database and emptied) after this
-  // many write transactions and tasks in a row, and once the queue has stayed empty for
-  // checkpoint_when_idle after a write: the WAL then holds at most this many batches (about
-  // max_batch_tiles * this many tiles), and none once the collector is idle, whatever the number
-  // of commits before.
-  std::size_t checkpoint_every_batches = 16;
-  // Why not at once when the queue runs empty: under a light, steady load (a few workers sending
-  // small tiles) it runs empty after nearly every batch, and a checkpoint there (two more fsyncs,
-  // on this thread) would double the time the next tiles wait for their acknowledgement.
-  // Durability does not depend on it: a committed WAL frame is as durable as the database file.
+  // The WAL's bound. SQLite's own checkpoints are off (Store::manage_checkpoints); the writer
+  // checkpoints (Store::checkpoint: the WAL copied into the database, the file kept for reuse)
+  // once the WAL has reached this many bytes, then when the queue has stayed empty for
+  // checkpoint_when_idle after a write (the file is emptied), and at stop. The check follows each
+  // batch, so the -wal file stays below this plus one batch's frames (a batch is at most
+  // max_batch_tiles tiles and the tasks between them); a reader holding an old snapshot can keep
+  // frames from being copied, and then the writer tries again after every batch. Each checkpoint
+  // costs two fsyncs and copies every page once however often it changed in between, so a larger
+  // bound means fewer, cheaper-per-tile checkpoints (a longer one now and then, during which
+  // acknowledgements wait), and more disk for the WAL.
+  std::uint64_t checkpoint_wal_bytes = std::uint64_t{16} << 20;
   std::chrono::milliseconds checkpoint_when_idle{200};
 };
 
@@ -135,11 +137,11 @@ class TileWriter {
   bool stopping_ = false;
   WriterStats stats_;  // pending_* count queued work plus the batch being written
 
-  std::size_t writes_since_checkpoint_ = 0;  // thread_ only
+  std::size_t writes_since_checkpoint_ = 0;  // thread_ only: since the last checkpoint
   bool checkpoint_failing_ = false;          // thread_ only: log a failure streak once
 
   std::mutex stop_mu_;  // serialises stop() so two callers do not both join
-  std::thread thread_;  // declared last: starts after every member above exists
+  std::thread thread_;  // declared last; started at the end of the constructor
 };
 
 }  // namespace dtraced::store

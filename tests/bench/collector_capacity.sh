@@ -30,7 +30,7 @@
 # build/src/bench/dtraced-load), RUN_SECONDS (10), WARMUP_SECONDS (1), WORKER_COUNTS ("16 64 256"),
 # FLOOR_WORKERS (64), FLOOR_IMAGE_SIDE (16384), IMAGE_WIDTH (16384), IMAGE_HEIGHT (8192),
 # TILE_SIZE (32), COLLECTOR_CPU (0), LOAD_CPU (1), MODES ("plain tls"), LEASE_STYLES ("separate
-# next"), KEEP_LOGS=1 to keep the
+# next"), FLOOR (1; 0 skips the HTTP floor's run, for quick A/B runs), KEEP_LOGS=1 to keep the
 # temporary directory.
 # Needs curl; taskset (util-linux) for pinning, else it runs unpinned and says so.
 set -uo pipefail
@@ -41,6 +41,7 @@ DTRACED_LOAD=${DTRACED_LOAD:-$root/build/src/bench/dtraced-load}
 RUN_SECONDS=${RUN_SECONDS:-10}
 WARMUP_SECONDS=${WARMUP_SECONDS:-1}
 FLOOR_WORKERS=${FLOOR_WORKERS:-64}
+FLOOR=${FLOOR:-1}
 # Bare leases run three to four times faster than lease + upload; the floor's job has the most
 # tiles a job may have (protocol::kMaxTilesPerJob at 32-px tiles), so that it does not run out of
 # never-leased tiles within the run. It stores nothing, so no framebuffer is allocated.
@@ -273,7 +274,7 @@ for mode in $MODES; do
   # The floor of HTTP alone: leases without uploads.
   floor=
   style=separate
-  if measure "$FLOOR_WORKERS" "$FLOOR_IMAGE_SIDE" "$FLOOR_IMAGE_SIDE" --lease-only; then
+  if [ "$FLOOR" != 0 ] && measure "$FLOOR_WORKERS" "$FLOOR_IMAGE_SIDE" "$FLOOR_IMAGE_SIDE" --lease-only; then
     floor=$(awk -v r="$(field leases_per_s)" -v p50="$(field lease_p50_ms)" -v p99="$(field lease_p99_ms)" \
       -v gen="$(field generator_cpu)" -v row="$ROW" 'BEGIN {
         split(row, c, "|")
