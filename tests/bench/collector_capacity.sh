@@ -36,6 +36,8 @@
 set -uo pipefail
 
 root=$(cd "$(dirname "$0")/../.." && pwd)
+# shellcheck source=bench_lib.sh
+. "$root/tests/bench/bench_lib.sh"
 DTRACED=${DTRACED:-$root/build/src/cli/dtraced}
 DTRACED_LOAD=${DTRACED_LOAD:-$root/build/src/bench/dtraced-load}
 RUN_SECONDS=${RUN_SECONDS:-10}
@@ -74,16 +76,7 @@ command -v curl >/dev/null || {
 
 work=$(mktemp -d)
 collector_pid=
-# Stops a process this script started: SIGTERM, then SIGKILL after 5 s.
-stop_pid() {
-  kill -TERM "$1" 2>/dev/null || return 0
-  for _ in $(seq 50); do
-    kill -0 "$1" 2>/dev/null || break
-    sleep 0.1
-  done
-  kill -9 "$1" 2>/dev/null
-  wait "$1" 2>/dev/null
-}
+STOP_WAIT_S=5 # stop_pid: SIGKILL after 5 s
 cleanup() {
   [ -n "$collector_pid" ] && stop_pid "$collector_pid"
   if [ "${KEEP_LOGS:-0}" = 1 ]; then echo "logs kept in $work"; else rm -rf "$work"; fi
@@ -91,15 +84,7 @@ cleanup() {
 trap cleanup EXIT
 trap 'exit 130' INT TERM
 
-pin_collector=()
-pin_load=()
-if command -v taskset >/dev/null && [ "$(nproc)" -ge 2 ]; then
-  pin_collector=(taskset -c "$COLLECTOR_CPU")
-  pin_load=(taskset -c "$LOAD_CPU")
-  pinning="collector on CPU $COLLECTOR_CPU, load generator on CPU $LOAD_CPU"
-else
-  pinning="NOT pinned (taskset missing or fewer than 2 CPUs): the figures are not one-core figures"
-fi
+pin_cpus "$COLLECTOR_CPU" "$LOAD_CPU"
 
 printf 'capacity-%s-token\n' "$$" >"$work/token"
 token=$(head -n1 "$work/token")
@@ -128,14 +113,7 @@ start_collector() {
   "${pin_collector[@]}" "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$state" \
     --token-file "$work/token" --max-connections 1024 --tls "$tls" 2>"$work/collector.log" &
   collector_pid=$!
-  port=
-  for _ in $(seq $((START_DEADLINE * 10))); do
-    port=$(sed -n 's/.*listening on .* port \([0-9][0-9]*\).*/\1/p' "$work/collector.log" | tail -n1)
-    [ -n "$port" ] && break
-    kill -0 "$collector_pid" 2>/dev/null || break
-    sleep 0.1
-  done
-  if [ -z "$port" ]; then
+  if ! port=$(listening_port "$work/collector.log" "$collector_pid" "$START_DEADLINE"); then
     echo "the collector did not start:" >&2
     tail -n 20 "$work/collector.log" >&2
     exit 1
