@@ -11,8 +11,8 @@
 // The thread also checkpoints the WAL (WriterLimits::checkpoint_wal_bytes and
 // checkpoint_when_idle; SQLite's own checkpoints inside COMMIT are off), so the -wal file stays
 // bounded and is empty soon after the writer goes idle. Under load the checkpoint keeps the file
-// (CheckpointMode::kReuse: the next batches overwrite its blocks instead of growing a truncated file again); the idle
-// one empties it.
+// (CheckpointMode::kReuse: the next batches overwrite its blocks instead of growing a truncated
+// file again); the idle one empties it.
 //
 // Other writes (scenes, jobs, state changes) are posted as tasks: a task runs on the writer thread
 // with the Store, in order with the tiles submitted before and after it, each store call its own
