@@ -432,11 +432,9 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
     return st.error();
   }
   if (options.max_database_bytes > 0) {
-    auto page = impl->exec_rows("PRAGMA page_size");
+    const Result<std::uint64_t> page = impl->page_size();
     if (!page) return page.error();
-    const std::uint64_t page_bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
-    if (page_bytes == 0) return Error{fmt::format("{}: cannot read the page size", path)};
-    const std::uint64_t pages = (options.max_database_bytes + page_bytes - 1) / page_bytes;
+    const std::uint64_t pages = (options.max_database_bytes + page.value() - 1) / page.value();
     if (auto st = impl->exec_rows(fmt::format("PRAGMA max_page_count = {}", pages)); !st) return st.error();
   }
   if (auto st = impl->set_config(SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 0, "checkpoint on close"); !st) {
@@ -477,12 +475,10 @@ Status Store::Impl::keep_wal_files() {
 
 Status Store::manage_checkpoints() {
   if (impl_->wal_hook_installed) return {};
-  auto page = impl_->exec_rows("PRAGMA page_size");
+  const Result<std::uint64_t> page = impl_->page_size();
   if (!page) return page.error();
-  const std::uint64_t page_bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
-  if (page_bytes == 0) return Error{fmt::format("{}: cannot read the page size", impl_->path)};
   constexpr std::uint64_t kWalFrameHeaderBytes = 24;
-  impl_->wal_frame_bytes = page_bytes + kWalFrameHeaderBytes;
+  impl_->wal_frame_bytes = page.value() + kWalFrameHeaderBytes;
   // The hook remembers the WAL's length after each commit. Installing it replaces SQLite's own
   // automatic checkpoints (which use the same hook), so nothing is checkpointed inside a COMMIT.
   constexpr auto note_wal_frames = [](void* impl, sqlite3*, const char*, int frames) {

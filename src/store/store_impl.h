@@ -194,6 +194,15 @@ struct Store::Impl {
     return result;
   }
 
+  // The database file's page size in bytes (never 0).
+  Result<std::uint64_t> page_size() {
+    auto page = exec_rows("PRAGMA page_size");
+    if (!page) return page.error();
+    const std::uint64_t bytes = page.value().empty() ? 0 : std::stoull(page.value()[0]);
+    if (bytes == 0) return Error{fmt::format("{}: cannot read the page size", path)};
+    return bytes;
+  }
+
   // Ends an open transaction after a failure. SQLite may already have rolled it back itself
   // (on SQLITE_FULL, SQLITE_IOERR, SQLITE_NOMEM), in which case there is nothing to do.
   void rollback() {
