@@ -268,6 +268,9 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
         PreparedScene prepared;
         if (util::Result<FramesPtr> cached = read_cached_scene(path, digest, isa, threads)) {
           prepared.scene = std::move(*cached);
+          // Recently used: the last to be pruned.
+          std::error_code touch_ec;
+          std::filesystem::last_write_time(path, std::filesystem::file_time_type::clock::now(), touch_ec);
         } else {
           prepared.error = cached.error().to_string();
         }
@@ -275,8 +278,6 @@ async::Awaitable<SceneOutcome> Worker::Impl::fetch_scene(std::string digest) {
       };
       PreparedScene cached = co_await async::on_pool(pool, std::move(read));
       if (cached.scene) {
-        // Recently used: the last to be pruned.
-        std::filesystem::last_write_time(path, std::filesystem::file_time_type::clock::now(), ec);
         scenes_fetched.add();
         util::log_info("scene {} read from its cache file {} and built", digest, path);
         outcome.scene = std::move(cached.scene);
