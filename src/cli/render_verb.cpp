@@ -416,6 +416,7 @@ int run_render(const RenderArgs& args) {
     builder.reset();
     loaded = scene::load_scene_file(args.scene);
   }
+  const double load_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - load_start).count();
   if (!loaded.ok()) {
     report::print_errors(loaded);
     return kExitFailed;
@@ -427,7 +428,7 @@ int run_render(const RenderArgs& args) {
   // The outputs first: a render may take hours, and a typo in a path should not cost them.
   if (const int usage = check_outputs(args, range.count()); usage != kExitOk) return usage;
   Run run{.args = args};
-  run.load_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - load_start).count();
+  run.load_s = load_s;
   run.tile_size = scene::tile_size_or_default(args.overrides);
   if (objects) run.objects_digest = objects->hex();
   run.crop = args.overrides.crop;
