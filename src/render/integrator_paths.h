@@ -1,0 +1,806 @@
+// The integrator's code paths (render/integrator.cpp's trace_radiance, trace_radiance8 and
+// trace_radiance16), shared by the two files that instantiate them: integrator.cpp for the scene
+// feature sets without point lights, integrator_lit.cpp for those with them. Each path is a
+// template over the feature set and the packet width, 40 sets in all. In one file they were the
+// render library's longest compile (28 s of CPU at -O3, 50-99 s in the sanitizer build), and the
+// libraries that depend on render waited for it with a core idle; in two they take 15 and 16 s
+// at -O3, on two cores at once. Not part of the render library's interface.
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <bit>
+#include <cassert>
+#include <cmath>
+#include <cstddef>
+#include <memory>
+#include <new>
+#include <numbers>
+#include <type_traits>
+#include <utility>
+
+#include "math/det_math.h"
+#include "math/rng.h"
+#include "render/integrator.h"
+#include "render/light_sampling.h"
+#include "render/sampler.h"
+#include "render/shading.h"
+
+namespace dtraced::render::paths {
+
+inline constexpr float kInvPi = std::numbers::inv_pi_v<float>;
+// An area light's sample index, key.sample * samples + s, stays below stratified_2d's 2^24.
+static_assert(std::uint64_t(scene::kMaxSamples) * scene::kMaxLightSamples <= (std::uint64_t(1) << 24));
+// Continuations through index-matched (eta == 1) surfaces do not consume depth, so they get
+// their own bound.
+inline constexpr int kMaxPassThroughs = 64;
+// Transparent surfaces a shadow ray may cross before the light counts as blocked.
+inline constexpr int kMaxShadowCrossings = 64;
+
+// The transparent objects a path is currently inside (scene object indices, so a closed mesh is
+// one medium whichever triangle the path crosses), innermost last. Bounded; an overflow only
+// loses the outermost entries' indices of refraction, never memory safety.
+struct MediumStack {
+  static constexpr int kCapacity = 16;
+  std::array<std::uint32_t, kCapacity> ids{};
+  int size = 0;
+
+  // Where every camera path starts: inside the objects that contain the camera.
+  static MediumStack at_camera(const RenderScene& s) {
+    MediumStack m;
+    for (const std::uint32_t id : s.camera_media()) m.push(id);
+    return m;
+  }
+
+  float current_ior(const RenderScene& s) const { return size == 0 ? 1.0f : s.object_material(ids[size - 1]).ior; }
+  bool contains(std::uint32_t id) const {
+    for (int i = 0; i < size; ++i)
+      if (ids[i] == id) return true;
+    return false;
+  }
+  void push(std::uint32_t id) {
+    if (size == kCapacity) {
+      std::copy(ids.begin() + 1, ids.end(), ids.begin());
+      --size;
+    }
+    ids[size++] = id;
+  }
+  void remove(std::uint32_t id) {
+    for (int i = size - 1; i >= 0; --i) {
+      if (ids[i] == id) {
+        std::copy(ids.begin() + i + 1, ids.begin() + size, ids.begin() + i);
+        --size;
+        return;
+      }
+    }
+  }
+};
+
+// The scene features (SceneFeatures) as the bits of a template argument: Tracer<kF> models only
+// the features in kF. A feature that is off is one the scene does not use, so skipping its code
+// changes no bits: every such branch would have been false at run time.
+enum FeatureBit : unsigned {
+  kReflection = 1u << 0,
+  kRefraction = 1u << 1,
+  kSpecular = 1u << 2,
+  kShadows = 1u << 3,
+  kAreaLights = 1u << 4,
+  kPointLights = 1u << 5,
+};
+inline constexpr unsigned kFeatureCount = 6;
+inline constexpr unsigned kAllFeatures = (1u << kFeatureCount) - 1;
+
+constexpr unsigned feature_bits(const SceneFeatures& f) {
+  return (f.reflection ? kReflection : 0u) | (f.refraction ? kRefraction : 0u) | (f.specular ? kSpecular : 0u) |
+         (f.shadows ? kShadows : 0u) | (f.area_lights ? kAreaLights : 0u) | (f.point_lights ? kPointLights : 0u);
+}
+static_assert(feature_bits(SceneFeatures::all()) == kAllFeatures);
+
+// A point light as seen from one hit point (see Tracer::light_setup).
+struct LightSample {
+  Vec3f to_light;      // light position - hit point
+  Vec3f l;             // unit direction towards the light
+  float dist2 = 0.0f;  // squared distance to the light, in float
+  float cos_l = 0.0f;  // dot(nf, l), > 0
+};
+
+// What the packet path already traced for one ray of a lane's path (the camera ray, or a mirror or
+// refracted ray its tracer will cast): whether and where it hits, the point-light direct light
+// there when the shadow rays went as packets, and the same for the mirror and refracted rays that
+// hit spawns. A nullptr child (and has_direct false) leaves that part to the tracer.
+struct Known {
+  explicit Known(const math::Ray& r) : ray(r) {}
+  math::Ray ray;       // the ray itself, as trace() would spawn it (a secondary ray's tracer takes it)
+  bool found = false;  // the ray hits; `hit` is its nearest hit
+  bool has_direct = false;
+  accel::Hit hit;
+  Vec3f direct;  // the point lights' sum (Tracer::point_direct) at the hit, when has_direct
+  const Known* mirror = nullptr;
+  const Known* refracted = nullptr;
+};
+
+template <unsigned kF>
+struct Tracer {
+  static constexpr bool kReflect = (kF & kReflection) != 0;
+  static constexpr bool kRefract = (kF & kRefraction) != 0;
+  static constexpr bool kSpec = (kF & kSpecular) != 0;
+  static constexpr bool kShadow = (kF & kShadows) != 0;
+  static constexpr bool kArea = (kF & kAreaLights) != 0;
+  static constexpr bool kPoint = (kF & kPointLights) != 0;
+
+  const RenderScene& scene;
+  const TraceLimits& limits;
+  TraceStats& stats;
+  // The pixel sample whose random numbers area-light sampling draws, and the next dimension to
+  // draw: advanced by 2 * samples per area light at every hit that gathers direct light, in the
+  // order the path visits them, so a sample's radiance is a pure function of (scene, key).
+  math::SampleKey key{};
+  std::uint32_t dim = kFirstIntegratorDim;
+
+  bool intersect(const math::Ray& ray, accel::Hit& hit) {
+    ++stats.rays;
+    return scene.geometry().intersect(ray, hit);
+  }
+
+  bool transparent_scene() const { return kRefract && scene.has_transparency(); }
+
+  // The media a camera path starts in; without refraction there are none to look up.
+  MediumStack camera_media() const { return kRefract ? MediumStack::at_camera(scene) : MediumStack{}; }
+
+  // Fraction of a light's emission that reaches the shadow ray's end. Opaque surfaces
+  // block. A transparent one passes transparency * (1 - F) at each crossing, the shadow ray going
+  // straight on (the usual Whitted approximation: no caustics). The indices on both sides come
+  // from the same media stack as camera paths use, so an index-matched interface (eta == 1)
+  // passes exactly `transparency`, and F is taken from the less dense side: for a straight ray
+  // the exit angle is not the refracted one, and evaluating it from the dense side would report
+  // total internal reflection where, by reciprocity, the true path transmits 1 - F(entry).
+  float transmittance(math::Ray ray, MediumStack media) {
+    if (!transparent_scene()) {
+      // Only opaque surfaces: any hit blocks, so the traversal may stop at the first one.
+      ++stats.rays;
+      return scene.geometry().occluded(ray) ? 0.0f : 1.0f;
+    }
+    return transmittance_walk(ray, media, nullptr);
+  }
+
+  // The crossings of a shadow ray through transparent surfaces. `first`, when given, is the
+  // outcome of the first intersection, already traced (and counted) by a packet: its `found`
+  // says whether it hit; the rest of the walk is the same code either way.
+  struct KnownHit {
+    bool found;
+    accel::Hit hit;
+  };
+  float transmittance_walk(math::Ray ray, MediumStack media, const KnownHit* first) {
+    float t = 1.0f;
+    for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
+      accel::Hit hit;
+      if (crossing == 0 && first != nullptr) {
+        if (!first->found) return t;
+        hit = first->hit;
+      } else if (!intersect(ray, hit)) {
+        return t;
+      }
+      const MaterialF& m = scene.material(hit.shape);
+      if (m.transparency <= 0.0f) return 0.0f;
+      const float eta = cross_interface(media, hit.shape);
+      if (eta != 1.0f) {
+        const Vec3f wo = -ray.d;
+        const Vec3f nf = math::dot(wo, hit.n) >= 0.0f ? hit.n : -hit.n;
+        const Interface it = dielectric_interface(wo, nf, eta >= 1.0f ? eta : 1.0f / eta);
+        t *= m.transparency * (1.0f - it.fresnel);
+      } else {
+        t *= m.transparency;
+      }
+      if (t <= 0.0f) return 0.0f;
+      // Same origin and direction, only past this surface: no new rounding enters.
+      ray.t_min = hit.t;
+    }
+    return 0.0f;
+  }
+
+  // Updates `media` for a path crossing transparent shape `shape` and returns the relative index
+  // of refraction n_after / n_before of that crossing.
+  float cross_interface(MediumStack& media, std::uint32_t shape) const {
+    const std::uint32_t id = scene.object(shape);
+    const float n_from = media.current_ior(scene);
+    if (media.contains(id)) {
+      media.remove(id);
+    } else {
+      media.push(id);
+    }
+    return media.current_ior(scene) / n_from;
+  }
+
+  // The geometry of one point light seen from a hit point, and the shadow ray towards it. False
+  // when the light cannot contribute (at the point itself, or below the shading normal), in which
+  // case no shadow ray is cast. Shared by the scalar and the packet path so both cast the very
+  // same shadow rays.
+  static bool light_setup(const accel::Hit& hit, const Vec3f& nf, const PointLightF& light, LightSample& ls,
+                          math::Ray& shadow) {
+    ls.to_light = light.position - hit.p;
+    ls.dist2 = math::dot(ls.to_light, ls.to_light);
+    if (ls.to_light == Vec3f{0, 0, 0} || std::isnan(ls.dist2)) return false;
+    ls.l = unit_towards(ls.to_light, ls.dist2);
+    ls.cos_l = math::dot(nf, ls.l);
+    if (!(ls.cos_l > 0.0f)) return false;
+    shadow = shadow_ray(hit, ls.l, light.position);
+    return true;
+  }
+
+  // A shadow ray from hit towards `target`, leaving along about `l`, ending at `end` times the
+  // distance to the target: lights are not surfaces the traversal could find. A point light ends
+  // at 1. An area light's sample ends at kAreaShadowEnd short of it, because area lights are
+  // usually mounted on a surface (a rect on a ceiling), and that surface's hit, computed in float
+  // at about the same distance, would otherwise shadow the light at random.
+  static constexpr float kAreaShadowEnd = 1.0f - 1e-4f;
+  static math::Ray shadow_ray(const accel::Hit& hit, const Vec3f& l, const Vec3f& target, float end = 1.0f) {
+    math::Ray shadow;
+    shadow.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, l);
+    const Vec3f seg = target - shadow.o;
+    const float seg_len = math::length(seg);
+    shadow.d = seg / seg_len;
+    shadow.t_max = seg_len * end;
+    return shadow;
+  }
+
+  // Lambert plus normalised Blinn-Phong: the BRDF for light arriving from unit direction l.
+  static Vec3f brdf(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const Vec3f& l) {
+    Vec3f f = m.color * (m.diffuse * kInvPi);
+    if (kSpec && m.specular > 0.0f) {
+      const Vec3f h = math::normalize(l + wo);
+      const float cos_h = std::max(0.0f, math::dot(nf, h));
+      const float spec =
+          m.specular * (m.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>)*math::det::powf(cos_h, m.shininess);
+      f += Vec3f{spec, spec, spec};
+    }
+    return f;
+  }
+
+  // Light reflected towards wo from one light whose shadow ray let `vis` (> 0) of it through.
+  static Vec3f light_contribution(const MaterialF& m, const Vec3f& wo, const Vec3f& nf, const PointLightF& light,
+                                  const LightSample& ls, float vis) {
+    const Vec3f f = brdf(m, wo, nf, ls.l);
+    const float e = vis * ls.cos_l / ls.dist2;  // irradiance per unit intensity
+    return light_term(math::mul(f, light.intensity) * e, ls.dist2 >= kMinNormal, f, light.intensity,
+                      [&] { return double(vis) * double(ls.cos_l) / length_squared_d(ls.to_light); });
+  }
+
+  // Whether a hit on material m gathers direct light at all.
+  static bool wants_direct(const MaterialF& m) {
+    return m.local_weight > 0.0f && (m.diffuse > 0.0f || (kSpec && m.specular > 0.0f));
+  }
+
+  // Direct light from the point lights, summed in scene order.
+  Vec3f point_direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf,
+                     const MediumStack& media) {
+    Vec3f sum{0, 0, 0};
+    if constexpr (kPoint) {
+      for (const PointLightF& light : scene.lights()) {
+        LightSample ls;
+        math::Ray shadow;
+        if (!light_setup(hit, nf, light, ls, shadow)) continue;
+        const float vis = transmittance(shadow, media);
+        if (vis <= 0.0f) continue;
+        sum += light_contribution(m, wo, nf, light, ls, vis);
+      }
+    }
+    return sum;
+  }
+
+  // Adds to `sum` the Monte Carlo estimate of each area light's direct light, in scene order,
+  // each the mean of its `samples` samples.
+  void add_area_direct(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf,
+                       const MediumStack& media, Vec3f& sum) {
+    if constexpr (kArea) {
+      for (const AreaLightF& a : scene.area_lights()) {
+        const std::uint32_t base = dim;
+        dim += 2 * a.samples;
+        Vec3f acc{0, 0, 0};
+        for (std::uint32_t s = 0; s < a.samples; ++s) {
+          // Point key.sample * samples + s of one stratified sequence: the light's samples of
+          // one pixel sample, and of the pixel's first 2^k samples, are stratified together.
+          const Sample2 u = stratified_2d(key, base, key.sample * a.samples + s);
+          AreaSample as;
+          if (!sample_area_light(a, hit.p, nf, u.u, u.v, as)) continue;
+          float vis = 1.0f;
+          if constexpr (kShadow) {
+            if (a.cast_shadows) vis = transmittance(shadow_ray(hit, as.l, as.point, kAreaShadowEnd), media);
+          }
+          if (vis <= 0.0f) continue;
+          const Vec3f f = brdf(m, wo, nf, as.l);
+          acc += light_term(math::mul(f, a.radiance) * (as.weight * vis), as.dist2 >= kMinNormal, f, a.radiance,
+                            [&] { return exact_weight(a, as) * double(vis); });
+        }
+        sum += acc / float(a.samples);
+      }
+    }
+  }
+
+  // Radiance of the nearest area light whose emitting surface `ray` reaches before t_limit.
+  bool emitter_before(math::Ray ray, float t_limit, Vec3f& le) const {
+    bool found = false;
+    if constexpr (kArea) {
+      ray.t_max = t_limit;
+      for (const AreaLightF& a : scene.area_lights()) {
+        float t;
+        if (!hit_emitter(a, ray, t)) continue;
+        ray.t_max = t;  // nearer lights only from now on
+        le = a.radiance;
+        found = true;
+      }
+    }
+    return found;
+  }
+
+  static math::Ray spawn(const accel::Hit& hit, const Vec3f& dir) {
+    math::Ray r;
+    r.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, dir);
+    r.d = dir;
+    return r;
+  }
+
+  // The direction of the mirror ray of `ray` at its hit (nf: the normal on the incoming side).
+  static Vec3f mirror_direction(const math::Ray& ray, const Vec3f& nf) { return math::normalize(reflect(ray.d, nf)); }
+
+  // The secondary rays a hit casts: at most one mirror ray and one refracted ray, and the weights
+  // trace() sums them with. Decided here for trace() and for the packet path alike, so both cast
+  // the very same rays.
+  struct Branches {
+    bool transparent = false;
+    MediumStack inside;  // the media past the surface (transparent only)
+    float eta = 1.0f;    // n_after / n_before across it
+    bool bends = false;  // transparent, eta != 1 and depth left: Fresnel reflection and refraction
+    Interface it;        // valid when bends
+    float fresnel_w = 0.0f;
+    bool reflective = false;  // the `reflectivity` lobe; its ray also carries the Fresnel reflection
+    bool mirror = false;      // a mirror ray is cast, with branch weight mirror_weight
+    float mirror_weight = 0.0f;
+    bool refract = false;  // a refracted ray (it.wt) is cast, with branch weight refract_weight
+    float refract_w = 0.0f;
+    float refract_weight = 0.0f;
+  };
+  Branches branches(const accel::Hit& hit, const MaterialF& m, const Vec3f& wo, const Vec3f& nf, std::uint32_t depth,
+                    float weight, const MediumStack& media) const {
+    Branches b;
+    const float cutoff = limits.min_branch_weight;
+    const bool deeper = depth < limits.max_depth;
+    b.transparent = kRefract && m.transparency > 0.0f;
+    b.inside = media;
+    b.eta = b.transparent ? cross_interface(b.inside, hit.shape) : 1.0f;
+    b.bends = b.transparent && b.eta != 1.0f && deeper;
+    if (b.bends) b.it = dielectric_interface(wo, nf, b.eta);
+    b.fresnel_w = b.bends ? m.transparency * b.it.fresnel : 0.0f;
+    b.reflective = kReflect && m.reflectivity > 0.0f && deeper;
+    if (b.reflective) {
+      // One ray for every lobe that reflects in the mirror direction: the `reflectivity` mirror
+      // (tinted by the colour) and, on glass, the Fresnel reflection.
+      const float mirror_w = b.bends ? m.reflectivity + b.fresnel_w : m.reflectivity;
+      b.mirror_weight = weight * mirror_w;
+      b.mirror = b.mirror_weight >= cutoff;
+    } else if (b.bends) {
+      b.mirror_weight = weight * b.fresnel_w;
+      b.mirror = b.mirror_weight >= cutoff;
+    }
+    if (b.bends) {
+      b.refract_w = m.transparency * (1.0f - b.it.fresnel);
+      b.refract_weight = weight * b.refract_w;
+      b.refract = b.it.refracts && b.refract_weight >= cutoff;
+    }
+    return b;
+  }
+
+  // `known`, given only for the rays of a packet, replaces this ray's intersection (and maybe the
+  // point-light direct sum), and through its children those of the secondary rays it spawns, by
+  // what the packet traversal found; all else is unchanged, so the result has the same bits
+  // either way.
+  Vec3f trace(math::Ray ray, std::uint32_t depth, float weight, MediumStack media, const Known* known = nullptr) {
+    for (int pass = 0; pass <= kMaxPassThroughs; ++pass) {
+      accel::Hit hit;
+      // Only the ray as given is known: a continuation past an index-matched surface is not.
+      const Known* k = pass == 0 ? known : nullptr;
+      bool found;
+      if (k != nullptr) {
+        found = k->found;
+        if (found) hit = k->hit;
+      } else {
+        found = intersect(ray, hit);
+      }
+      if constexpr (kArea) {
+        Vec3f le;
+        if (emitter_before(ray, found ? hit.t : ray.t_max, le)) return le;
+      }
+      if (!found) return limits.background;
+      const MaterialF& m = scene.material(hit.shape);
+      const Vec3f wo = -ray.d;
+      const bool front = math::dot(wo, hit.n) >= 0.0f;
+      const Vec3f nf = front ? hit.n : -hit.n;
+      // The relative index of refraction across this surface, the media beyond it, and the rays
+      // this hit casts.
+      const Branches b = branches(hit, m, wo, nf, depth, weight, media);
+
+      Vec3f radiance{0, 0, 0};
+      if (wants_direct(m)) {
+        // Point lights first (the packet path may have summed them already), then area lights.
+        Vec3f direct = k != nullptr && k->has_direct ? k->direct : point_direct(hit, m, wo, nf, media);
+        add_area_direct(hit, m, wo, nf, media, direct);
+        radiance += direct * m.local_weight;
+      }
+      if (b.mirror) {
+        const Known* kr = k != nullptr ? k->mirror : nullptr;
+        const Vec3f lr = trace(kr != nullptr ? kr->ray : spawn(hit, mirror_direction(ray, nf)), depth + 1,
+                               b.mirror_weight, media, kr);
+        if (b.reflective) {
+          radiance += math::mul(m.color, lr) * m.reflectivity;
+          if (b.bends) radiance += lr * b.fresnel_w;
+        } else {
+          radiance += lr * b.fresnel_w;
+        }
+      }
+      if (!b.transparent) return radiance;
+
+      if (b.eta == 1.0f) {
+        // Index-matched: the surface does not bend or reflect light. Continue the very same ray
+        // past it (no re-origin, no depth used), so a clear ior-1 object is exactly invisible.
+        if (m.transparency == 1.0f && radiance == Vec3f{0, 0, 0}) {
+          ray.t_min = hit.t;
+          media = b.inside;
+          continue;
+        }
+        // Partly transparent: recurse along the same ray. The branch weight shrinks by the
+        // transparency at each such surface, so the cut-off bounds this recursion.
+        if (weight * m.transparency < limits.min_branch_weight) return radiance;
+        math::Ray cont = ray;
+        cont.t_min = hit.t;
+        return radiance + trace(cont, depth, weight * m.transparency, b.inside) * m.transparency;
+      }
+      if (b.refract) {
+        const Known* kt = k != nullptr ? k->refracted : nullptr;
+        radiance += trace(kt != nullptr ? kt->ray : spawn(hit, b.it.wt), depth + 1, b.refract_weight, b.inside, kt) *
+                    b.refract_w;
+      }
+      return radiance;
+    }
+    return Vec3f{0, 0, 0};
+  }
+};
+
+template <unsigned kF>
+Vec3f trace_radiance_with(const RenderScene& scene, const math::Ray& ray, const math::SampleKey& key,
+                          const TraceLimits& limits, TraceStats& stats) {
+  Tracer<kF> tracer{scene, limits, stats, key};
+  return tracer.trace(ray, 0, 1.0f, tracer.camera_media());
+}
+
+// A packet of kN (8 or 16) rays through the geometry. 16-ray packets go to the one layer of a
+// static scene; two layers (an animated frame) have 8-ray queries only, so their 16 rays are
+// traced as two 8-ray halves: the same answers either way.
+template <int kN>
+std::uint32_t intersect_packet(const accel::LayeredGeometry& geometry, const math::Ray* rays, std::uint32_t valid,
+                               accel::Hit* hits) {
+  if constexpr (kN == accel::kPacketSize) {
+    return geometry.intersect8(rays, valid, hits);
+  } else {
+    static_assert(kN == 2 * accel::kPacketSize);
+    const accel::Layer* whole = geometry.fixed();
+    if (geometry.moving() == nullptr && whole != nullptr && whole->ids.empty()) {
+      return whole->geometry.intersect16(rays, valid, hits);
+    }
+    constexpr int kH = accel::kPacketSize;
+    constexpr std::uint32_t kHalf = (1u << kH) - 1;
+    const std::uint32_t lo = (valid & kHalf) != 0 ? geometry.intersect8(rays, valid & kHalf, hits) : 0;
+    const std::uint32_t hi = (valid >> kH) != 0 ? geometry.intersect8(rays + kH, valid >> kH, hits + kH) : 0;
+    return (lo & kHalf) | (hi & kHalf) << kH;
+  }
+}
+
+template <int kN>
+std::uint32_t occluded_packet(const accel::LayeredGeometry& geometry, const math::Ray* rays, std::uint32_t valid) {
+  if constexpr (kN == accel::kPacketSize) {
+    return geometry.occluded8(rays, valid);
+  } else {
+    static_assert(kN == 2 * accel::kPacketSize);
+    const accel::Layer* whole = geometry.fixed();
+    if (geometry.moving() == nullptr && whole != nullptr && whole->ids.empty()) {
+      return whole->geometry.occluded16(rays, valid);
+    }
+    constexpr int kH = accel::kPacketSize;
+    constexpr std::uint32_t kHalf = (1u << kH) - 1;
+    const std::uint32_t lo = (valid & kHalf) != 0 ? geometry.occluded8(rays, valid & kHalf) : 0;
+    const std::uint32_t hi = (valid >> kH) != 0 ? geometry.occluded8(rays + kH, valid >> kH) : 0;
+    return (lo & kHalf) | (hi & kHalf) << kH;
+  }
+}
+
+// A ray of some lane's path traced ahead of the lane's tracer as part of a packet: its record, the
+// arguments Tracer::trace will be called with for it, and the parent's pointer to the record
+// (nullptr for a camera ray), cleared when the ray is left to the tracer after all.
+// A secondary ray's origin is found (Tracer::spawn) only once the ray goes into a packet: until
+// then `from` is the hit it leaves and known.ray.d its direction.
+struct Ahead {
+  Known known;
+  const accel::Hit* from;
+  MediumStack media;
+  std::uint32_t depth;
+  float weight;
+  const Known** link;
+};
+
+// Room for up to N objects of type T, constructed one by one as they are needed (a packet's
+// records are many and mostly unused: zeroing them all costs more than tracing).
+template <typename T, int N>
+class Slots {
+ public:
+  Slots() {}
+  template <typename... Args>
+  T* emplace(Args&&... args) {
+    assert(used_ < N);
+    return std::construct_at(&slots_[used_++].value, std::forward<Args>(args)...);
+  }
+  bool full() const { return used_ == N; }
+
+ private:
+  union Slot {
+    Slot() {}
+    T value;
+  };
+  Slot slots_[N];
+  int used_ = 0;
+};
+
+// Room for N objects of T left uninitialised, for a packet's scratch arrays, which the code fills
+// before it reads them and which are too many to zero on every call. T must be an implicit-
+// lifetime type (an aggregate such as accel::Hit), so that the bytes hold T objects as soon as
+// they are written.
+template <typename T, int N>
+class Scratch {
+ public:
+  static_assert(std::is_trivially_copyable_v<T> && std::is_trivially_destructible_v<T>);
+  Scratch() {}
+  T* data() { return std::launder(reinterpret_cast<T*>(bytes_)); }
+  T& operator[](int i) { return data()[i]; }
+
+ private:
+  alignas(T) std::byte bytes_[sizeof(T) * N];
+};
+
+// The packet path traces at most this many rays ahead per lane (camera, mirror and refracted rays
+// together); further ones are left to the lanes' tracers. The records live on the stack: 16 lanes
+// take 256 of about 208 bytes. A glass path of depth 5 casts up to 63 rays, but a level whose
+// rays no longer fill packets ends the lookahead anyway (measured on whitted10: 16 per lane
+// traced 2.8 M rays ahead, 8 per lane 2.3 M, 4 per lane 1.9 M).
+inline constexpr int kAheadPerLane = 16;
+// Secondary rays go as a packet only this many or more at a time; fewer are left to the lanes'
+// tracers (a packet costs about the same however few of its lanes are live).
+inline constexpr int kMinAheadRays = 4;
+
+// Traces n <= kN rays ahead as one packet, filling their Known records: the nearest hits, then the
+// hits' shadow rays towards each point light as packets, one per light: occluded8 when the scene
+// is opaque (a pure any-hit query); with transparent objects, intersect8 finds every lane's first
+// crossing and Tracer::transmittance_walk continues from it one lane at a time (most shadow rays
+// end there: they reach the light or meet an opaque surface). Area lights are left to the lanes'
+// tracers, which add them after this sum as the scalar path does.
+template <unsigned kF, int kN>
+void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
+  using T = Tracer<kF>;
+  const RenderScene& scene = tracer.scene;
+  const accel::LayeredGeometry& geometry = scene.geometry();
+  math::Ray rays[kN];
+  Scratch<accel::Hit, kN> hits;
+  for (int i = 0; i < n; ++i) {
+    Ahead& a = *ahead[i];
+    if (a.from != nullptr) {
+      a.known.ray = T::spawn(*a.from, a.known.ray.d);
+      a.from = nullptr;
+    }
+    rays[i] = a.known.ray;
+  }
+  const std::uint32_t valid = (1u << n) - 1;
+  const bool secondary = ahead[0]->depth > 0;
+  tracer.stats.rays += std::uint32_t(n);
+  if (secondary) tracer.stats.secondary_packet_rays += std::uint32_t(n);
+  const std::uint32_t hit_mask = intersect_packet<kN>(geometry, rays, valid, hits.data()) & valid;
+
+  Scratch<Vec3f, kN> wo, nf, direct;
+  std::uint32_t direct_mask = 0;  // lanes whose point-light sum is gathered here
+  for (int i = 0; i < n; ++i) {
+    Known& k = ahead[i]->known;
+    k.found = hit_mask >> i & 1u;
+    if (!k.found) continue;
+    k.hit = hits[i];
+    if (!T::wants_direct(scene.material(hits[i].shape))) continue;
+    // A ray that meets an area light before its hit shows the light: Tracer::trace returns
+    // there, casting no shadow ray, so none is cast for it here either.
+    Vec3f le;
+    if (tracer.emitter_before(rays[i], hits[i].t, le)) continue;
+    // The same wo and nf as Tracer::trace computes for this hit.
+    wo[i] = -rays[i].d;
+    nf[i] = math::dot(wo[i], hits[i].n) >= 0.0f ? hits[i].n : -hits[i].n;
+    direct[i] = Vec3f{0, 0, 0};
+    direct_mask |= 1u << i;
+  }
+  if (direct_mask == 0) return;
+  Scratch<LightSample, kN> ls;
+  math::Ray shadow[kN];
+  Scratch<accel::Hit, kN> hits_scratch;
+  const std::size_t point_lights = T::kPoint ? scene.lights().size() : 0;
+  for (std::size_t li = 0; li < point_lights; ++li) {
+    const PointLightF& light = scene.lights()[li];
+    std::uint32_t cast = 0;
+    for (int i = 0; i < n; ++i) {
+      if ((direct_mask >> i & 1u) && T::light_setup(hits[i], nf[i], light, ls[i], shadow[i])) cast |= 1u << i;
+    }
+    if (cast == 0) continue;
+    tracer.stats.rays += std::popcount(cast);
+    if (secondary) tracer.stats.secondary_packet_rays += std::popcount(cast);
+    // Lights are summed in scene order per lane, as Tracer::point_direct does; a blocked light
+    // (visibility 0) adds nothing.
+    if (!tracer.transparent_scene()) {
+      const std::uint32_t blocked = occluded_packet<kN>(geometry, shadow, cast);
+      for (int i = 0; i < n; ++i) {
+        if ((cast & ~blocked) >> i & 1u) {
+          direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
+        }
+      }
+      continue;
+    }
+    Scratch<typename T::KnownHit, kN> first;
+    const std::uint32_t crossed = intersect_packet<kN>(geometry, shadow, cast, hits_scratch.data());
+    for (int i = 0; i < n; ++i) {
+      if (!(cast >> i & 1u)) continue;
+      first[i].found = crossed >> i & 1u;
+      if (first[i].found) first[i].hit = hits_scratch[i];
+      // The hit is seen from the media its ray travels in, as Tracer::trace has it.
+      const float vis = tracer.transmittance_walk(shadow[i], ahead[i]->media, &first[i]);
+      if (vis <= 0.0f) continue;
+      direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
+    }
+  }
+  for (int i = 0; i < n; ++i) {
+    if (!(direct_mask >> i & 1u)) continue;
+    ahead[i]->known.has_direct = true;
+    ahead[i]->known.direct = direct[i];
+  }
+}
+
+// The packet path: the camera rays and their first hits' point-light shadow rays as packets, then
+// level by level the mirror and refracted rays those hits cast (and their shadow rays), as long as
+// enough of them remain for a packet; then each lane's tracer follows its path with what was found
+// (Known), tracing the rest one ray at a time. The rays ahead are the ones Tracer::trace casts (the
+// same Tracer::branches decides them), so every lane gets the scalar path's bits and ray count.
+// Whether every query tests each shape directly (a scene of under 64 shapes has no tree; see
+// accel::Geometry::build): a packet then costs the same whichever way its rays go.
+inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
+  for (const accel::Layer* layer : {geometry.fixed(), geometry.moving()}) {
+    if (layer != nullptr && layer->geometry.stats().wide_nodes > 1) return false;
+  }
+  return true;
+}
+
+template <unsigned kF, int kN>
+void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys,
+                       std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
+  using T = Tracer<kF>;
+  T tracer{scene, limits, stats};
+  const MediumStack camera_media = tracer.camera_media();
+  const bool flat = flat_geometry(scene.geometry());
+  constexpr int kCapacity = kN * kAheadPerLane;
+
+  Slots<Ahead, kCapacity> pool;
+  // The rays of one level, and the next level's mirror and refracted rays.
+  Ahead* level[kCapacity];
+  Ahead* mirrors[kCapacity];
+  Ahead* refracts[kCapacity];
+  const Known* lane_known[kN] = {};
+  int count = 0;
+  for (int i = 0; i < kN; ++i) {
+    if (!(valid >> i & 1u)) continue;
+    Ahead* a = pool.emplace(Known{rays[i]}, nullptr, camera_media, 0u, 1.0f, nullptr);
+    lane_known[i] = &a->known;
+    level[count++] = a;
+  }
+  while (count > 0) {
+    // Packets of the level's rays: the camera rays always; secondary rays only where there is no
+    // tree (measured: in a scene with one, a packet's reflections and refractions part ways,
+    // and even grouped by direction octant they rarely fill a packet and cost more than they
+    // save), and then only when enough of them go together. The rest are left to the lanes'
+    // tracers.
+    int kept = 0;
+    for (int j = 0; j < count;) {
+      const int end = std::min(count, j + kN);
+      const int n = end - j;
+      if (level[j]->depth > 0 && n < kMinAheadRays) {
+        for (int r = j; r < end; ++r) *level[r]->link = nullptr;
+      } else {
+        trace_ahead<kF, kN>(tracer, level + j, n);
+        std::copy(level + j, level + end, level + kept);
+        kept += n;
+      }
+      j = end;
+    }
+    count = kept;
+    if (!flat) break;
+
+    // The rays the hits cast, mirror rays first, then refracted ones: rays of one kind together.
+    int nm = 0, nr = 0;
+    for (int j = 0; j < count && !pool.full(); ++j) {
+      Ahead& a = *level[j];
+      Known& k = a.known;
+      if (!k.found) continue;
+      if constexpr (T::kArea) {
+        Vec3f le;
+        if (tracer.emitter_before(k.ray, k.hit.t, le)) continue;  // trace() returns the light
+      }
+      const MaterialF& m = scene.material(k.hit.shape);
+      const Vec3f wo = -k.ray.d;
+      const Vec3f nf = math::dot(wo, k.hit.n) >= 0.0f ? k.hit.n : -k.hit.n;
+      const typename T::Branches b = tracer.branches(k.hit, m, wo, nf, a.depth, a.weight, a.media);
+      if (b.mirror && !pool.full()) {
+        math::Ray r;
+        r.d = T::mirror_direction(k.ray, nf);
+        Ahead* c = pool.emplace(Known{r}, &k.hit, a.media, a.depth + 1, b.mirror_weight, &k.mirror);
+        k.mirror = &c->known;
+        mirrors[nm++] = c;
+      }
+      if (b.refract && !pool.full()) {
+        math::Ray r;
+        r.d = b.it.wt;
+        Ahead* c = pool.emplace(Known{r}, &k.hit, b.inside, a.depth + 1, b.refract_weight, &k.refracted);
+        k.refracted = &c->known;
+        refracts[nr++] = c;
+      }
+    }
+    std::copy(mirrors, mirrors + nm, level);
+    std::copy(refracts, refracts + nr, level + nm);
+    count = nm + nr;
+  }
+
+  for (int i = 0; i < kN; ++i) {
+    if (!(valid >> i & 1u)) continue;
+    // Each lane's own random numbers, from the first dimension on, as trace_radiance has them.
+    T lane{scene, limits, stats, keys[i]};
+    out[i] = lane.trace(rays[i], 0, 1.0f, camera_media, lane_known[i]);
+  }
+}
+
+// One feature set's three paths. A set no scene has (derivable() false) has none: the dispatch
+// sends it to kAllFeatures, which models everything.
+using RadianceFn = Vec3f (*)(const RenderScene&, const math::Ray&, const math::SampleKey&, const TraceLimits&,
+                             TraceStats&);
+using RadiancePacketFn = void (*)(const RenderScene&, const math::Ray*, const math::SampleKey*, std::uint32_t,
+                                  const TraceLimits&, TraceStats&, Vec3f*);
+struct PathFns {
+  RadianceFn one = nullptr;
+  RadiancePacketFn eight = nullptr;
+  RadiancePacketFn sixteen = nullptr;
+};
+
+// Whether some scene has feature set kF: point lights always cast shadows, and shadows need a
+// light. The 24 other sets of the 64 are never derived; they get no instantiation (compile time).
+constexpr bool derivable(unsigned kF) {
+  const bool point = (kF & kPointLights) != 0, area = (kF & kAreaLights) != 0, shadows = (kF & kShadows) != 0;
+  return (!point || shadows) && (!shadows || point || area);
+}
+static_assert(derivable(kAllFeatures) && derivable(0));
+
+template <unsigned kF>
+constexpr PathFns path_fns() {
+  if constexpr (derivable(kF)) {
+    return {&trace_radiance_with<kF>, &trace_packet_with<kF, accel::kPacketSize>,
+            &trace_packet_with<kF, accel::kPacketSize16>};
+  } else {
+    return {};
+  }
+}
+
+// The paths of feature sets kBase to kBase + sizeof...(I) - 1.
+template <unsigned kBase, std::size_t... I>
+constexpr std::array<PathFns, sizeof...(I)> path_table(std::index_sequence<I...>) {
+  return {path_fns<kBase + unsigned(I)>()...};
+}
+
+// The paths of a derivable feature set without point lights (integrator.cpp) and with them
+// (integrator_lit.cpp).
+PathFns unlit_paths(unsigned features);
+PathFns lit_paths(unsigned features);
+
+}  // namespace dtraced::render::paths
