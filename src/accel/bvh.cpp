@@ -11,11 +11,16 @@
 #include <bit>
 #include <cassert>
 #include <chrono>
+#include <cstddef>
 #include <exception>
 #include <limits>
 #include <mutex>
 #include <thread>
 #include <utility>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #include "accel/geometry.h"
 #include "accel/kernels.h"
@@ -27,6 +32,7 @@ namespace dtraced::accel {
 namespace {
 
 constexpr int kBins = 32;
+static_assert(kBins <= 256, "a prim's bin is kept in a byte (Scratch::bins)");
 constexpr std::uint32_t kMaxLeafSize = 4;
 // Cost of visiting an interior node relative to testing one shape (SAH units).
 constexpr double kTraversalCost = 0.5;
@@ -54,6 +60,9 @@ struct BuildPrim {
   Vec3f centroid;
   std::uint32_t id = 0;
 };
+// BoxAccumulator reads 4 floats from each of bounds.lo, bounds.hi and centroid.
+static_assert(offsetof(BuildPrim, bounds) == 0 && offsetof(BuildPrim, centroid) == sizeof(Bounds3f) &&
+              sizeof(Bounds3f) == 6 * sizeof(float) && sizeof(BuildPrim) >= sizeof(Bounds3f) + 4 * sizeof(float));
 
 // A range of build prims still to become a node. `parent` is set for second children, whose index
 // must be written into their parent's `offset` when they are created; first children need no
@@ -121,14 +130,92 @@ struct RangeBounds {
   Bounds3f bounds, centroids;
 };
 
+// Bounds3f::extend for the build's passes over prims (their bounds and the bins), most of whose
+// time went to those minima and maxima: x, y and z in one SSE2 instruction where there is SSE2.
+// The same bits as Bounds3f::extend: _mm_min_ps(a, b) is a < b ? a : b in each lane, so
+// _mm_min_ps(new, held) keeps `held` unless `new` is below it, as std::min(held, new) does (for
+// +0 / -0 and NaN too), and likewise _mm_max_ps.
+#if defined(__SSE2__)
+class BoxAccumulator {
+ public:
+  // Reads the float after `lo` and after `hi` too (lane 3, ignored): both must be followed by
+  // one, as a BuildPrim's bounds and centroid are.
+  void extend(const Vec3f& lo, const Vec3f& hi) {
+    lo_ = _mm_min_ps(_mm_loadu_ps(&lo.x), lo_);
+    hi_ = _mm_max_ps(_mm_loadu_ps(&hi.x), hi_);
+  }
+  Bounds3f bounds() const {
+    alignas(16) float lo[4], hi[4];
+    _mm_store_ps(lo, lo_);
+    _mm_store_ps(hi, hi_);
+    Bounds3f b;
+    b.lo = {lo[0], lo[1], lo[2]};
+    b.hi = {hi[0], hi[1], hi[2]};
+    return b;
+  }
+
+ private:
+  __m128 lo_ = _mm_set1_ps(std::numeric_limits<float>::infinity());
+  __m128 hi_ = _mm_set1_ps(-std::numeric_limits<float>::infinity());
+};
+#else
+class BoxAccumulator {
+ public:
+  void extend(const Vec3f& lo, const Vec3f& hi) { b_.extend(Bounds3f{lo, hi}); }
+  Bounds3f bounds() const { return b_; }
+
+ private:
+  Bounds3f b_;
+};
+#endif
+
 struct Bins {
   std::array<Bounds3f, kBins> bounds;
   std::array<std::uint32_t, kBins> count{};
 };
 
+// What one thread's splits of ranges of up to `size` prims write as they go: each prim's bin
+// (bins[i - begin] for prim i), and the positions partition_by_bins swaps.
+struct Scratch {
+  explicit Scratch(std::size_t size) : bins(size), misplaced(size) {}
+  std::vector<std::uint8_t> bins;
+  std::vector<std::uint32_t> misplaced;
+};
+
+// std::partition of prims[begin, end) by bins[i - begin] <= best_k, in the order libstdc++ leaves
+// them (the tree depends on it), given `mid`, the number of prims that go left plus begin.
+// libstdc++'s partition for random-access iterators walks in from both ends and swaps the next prim
+// from the left that belongs right with the next prim from the right that belongs left until the
+// two meet, which is at `mid`: so the k-th prim of [begin, mid) that belongs right trades places
+// with the k-th prim of [mid, end), counted from the end, that belongs left, and nothing else
+// moves. In that form the loops that find them have no branch that depends on the prims, the bins
+// were found by the binning pass (std::partition computed each prim's bin again), and the order
+// no longer depends on the C++ library either. Tested: BVH build's tree hashes recorded with
+// std::partition.
+void partition_by_bins(BuildPrim* prims, std::uint32_t begin, std::uint32_t mid, std::uint32_t end,
+                       const std::uint8_t* bins, int best_k, std::uint32_t* misplaced) {
+  // Each loop writes a slot before it knows whether the prim counts; the first writes at most
+  // mid - begin slots, the second end - mid after the first's count: `misplaced` holds end - begin.
+  std::uint32_t left = 0;
+  for (std::uint32_t i = begin; i < mid; ++i) {
+    misplaced[left] = i;
+    left += bins[i - begin] > best_k;
+  }
+  std::uint32_t* const from_right = misplaced + left;
+  std::uint32_t right = 0;
+  for (std::uint32_t i = end; i-- > mid;) {
+    from_right[right] = i;
+    right += bins[i - begin] <= best_k;
+  }
+  assert(right == left);
+  for (std::uint32_t k = 0; k < left; ++k) std::swap(prims[misplaced[k]], prims[from_right[k]]);
+}
+
 // The outcome of looking at one range: a leaf, or a split at `mid` along `axis`. (Handing the
 // children their bounds from the bins, to save them a pass, was tried: tracking centroid bounds
-// per bin cost more than the pass.)
+// per bin cost more than the pass. Gathering them in the partition as it moved the prims was
+// tried too: the same bits take care, as the partition meets the right side's prims last to
+// first and +0 and -0 are equal bounds of different bits, and 1M spheres took 5 % more CPU.)
 struct Split {
   Bounds3f bounds;
   bool leaf = false;
@@ -144,7 +231,10 @@ class Splitter {
  public:
   Splitter(std::vector<BuildPrim>& refs, Isa isa) : refs_(refs), isa_(isa) {}
 
-  Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, bool chunked, unsigned threads) const {
+  // `scratch` (when not chunked) holds at least end - begin prims.
+  Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, bool chunked, unsigned threads,
+              Scratch* scratch = nullptr) const {
+    assert(chunked || (scratch && scratch->bins.size() >= end - begin));
     Split out;
     const RangeBounds rb = chunked ? range_bounds_chunked(begin, end, threads) : range_bounds(begin, end);
     out.bounds = rb.bounds;
@@ -164,9 +254,9 @@ class Splitter {
       return out;
     }
     const double scale = kBins / c_extent;
-    if (!chunked && n <= kSparseMax) return split_sparse(begin, end, rb.bounds, axis, c_lo, scale);
-    const Bins bins =
-        chunked ? bin_chunked(begin, end, axis, c_lo, scale, threads) : bin(begin, end, axis, c_lo, scale);
+    if (!chunked && n <= kSparseMax) return split_sparse(begin, end, rb.bounds, axis, c_lo, scale, *scratch);
+    const Bins bins = chunked ? bin_chunked(begin, end, axis, c_lo, scale, threads)
+                              : bin(begin, end, axis, c_lo, scale, scratch->bins.data());
     // SAH cost of splitting after bin k, scaled by the node's area to avoid a division (flat or
     // point-like nodes have zero area): kTraversalCost A + A_left n_left + A_right n_right.
     // Only splits between the first and the last non-empty bin have two non-empty sides; the
@@ -206,7 +296,13 @@ class Splitter {
     }
     if (best_k < 0) {
       out.mid = begin + n / 2;  // NaN costs (cannot happen for valid shapes): split in half
+    } else if (!chunked) {
+      out.mid = begin;
+      for (int k = 0; k <= best_k; ++k) out.mid += bins.count[k];
+      partition_by_bins(refs_.data(), begin, out.mid, end, scratch->bins.data(), best_k, scratch->misplaced.data());
     } else {
+      // The top levels keep std::partition: partition_by_bins would need a scratch as large as
+      // the range (5 bytes a prim), which would raise the build's peak memory.
       auto* first = refs_.data() + begin;
       auto* last = refs_.data() + end;
       out.mid = std::uint32_t(
@@ -227,7 +323,7 @@ class Splitter {
   // every split among the empty bins between them (same sides, same cost) and, like the sweep over
   // all bins, ties go to the lowest. Same decisions, same tree.
   Split split_sparse(std::uint32_t begin, std::uint32_t end, const Bounds3f& bounds, std::uint32_t axis, double c_lo,
-                     double scale) const {
+                     double scale, Scratch& scratch) const {
     Split out;
     out.bounds = bounds;
     out.axis = axis;
@@ -236,6 +332,7 @@ class Splitter {
     std::array<std::pair<int, std::uint32_t>, kSparseMax> items;
     for (std::uint32_t i = 0; i < n; ++i) {
       const std::pair<int, std::uint32_t> item{bin_of(refs_[begin + i].centroid[axis], c_lo, scale), begin + i};
+      scratch.bins[i] = std::uint8_t(item.first);
       std::uint32_t j = i;
       for (; j > 0 && items[j - 1].first > item.first; --j) items[j] = items[j - 1];
       items[j] = item;
@@ -267,6 +364,7 @@ class Splitter {
     const double node_area = area(bounds);
     double best_cost = std::numeric_limits<double>::infinity();
     int best_k = -1;
+    std::uint32_t best_left = 0;  // prims in groups [0, best group]
     acc = Bounds3f{};
     acc_n = 0;
     for (std::uint32_t g = groups - 1; g-- > 0;) {
@@ -276,6 +374,7 @@ class Splitter {
       if (cost <= best_cost) {
         best_cost = cost;
         best_k = bin_index[g];
+        best_left = n - acc_n;
       }
     }
     const double leaf_cost = (isa_ == Isa::kScalar ? double(n) : 1.0 + kSimdLeafSlope * (n - 1)) * node_area;
@@ -286,22 +385,21 @@ class Splitter {
     if (best_k < 0) {
       out.mid = begin + n / 2;
     } else {
-      out.mid = std::uint32_t(
-          std::partition(refs_.data() + begin, refs_.data() + end,
-                         [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
-          refs_.data());
+      out.mid = begin + best_left;
+      partition_by_bins(refs_.data(), begin, out.mid, end, scratch.bins.data(), best_k, scratch.misplaced.data());
     }
     assert(out.mid > begin && out.mid < end);
     return out;
   }
 
   RangeBounds range_bounds(std::size_t begin, std::size_t end) const {
-    RangeBounds rb;
+    BoxAccumulator bounds, centroids;
     for (std::size_t i = begin; i < end; ++i) {
-      rb.bounds.extend(refs_[i].bounds);
-      rb.centroids.extend(refs_[i].centroid);
+      const BuildPrim& p = refs_[i];
+      bounds.extend(p.bounds.lo, p.bounds.hi);
+      centroids.extend(p.centroid, p.centroid);
     }
-    return rb;
+    return {bounds.bounds(), centroids.bounds()};
   }
   RangeBounds range_bounds_chunked(std::size_t begin, std::size_t end, unsigned threads) const {
     std::vector<RangeBounds> parts(chunks_of(end - begin));
@@ -315,13 +413,19 @@ class Splitter {
     }
     return rb;
   }
-  Bins bin(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale) const {
+  // With `bin_at`, also each prim's bin: bin_at[i - begin] for prim i.
+  Bins bin(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale,
+           std::uint8_t* bin_at = nullptr) const {
     Bins bins;
+    std::array<BoxAccumulator, kBins> boxes;
     for (std::size_t i = begin; i < end; ++i) {
-      const int b = bin_of(refs_[i].centroid[axis], c_lo, scale);
+      const BuildPrim& p = refs_[i];
+      const int b = bin_of(p.centroid[axis], c_lo, scale);
       ++bins.count[b];
-      bins.bounds[b].extend(refs_[i].bounds);
+      boxes[b].extend(p.bounds.lo, p.bounds.hi);
+      if (bin_at) bin_at[i - begin] = std::uint8_t(b);
     }
+    for (int k = 0; k < kBins; ++k) bins.bounds[k] = boxes[k].bounds();
     return bins;
   }
   Bins bin_chunked(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale,
@@ -377,13 +481,14 @@ void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
   t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
   std::vector<Task> stack;
   stack.push_back({t.begin, t.end, t.depth, kNoParent});
+  Scratch scratch(t.end - t.begin);
   while (!stack.empty()) {
     const Task task = stack.back();
     stack.pop_back();
     const auto index = std::uint32_t(t.nodes.size());
     if (task.parent != kNoParent) t.nodes[task.parent].offset = index;
     t.max_depth = std::max(t.max_depth, task.depth);
-    const Split s = splitter.split(task.begin, task.end, task.depth, /* chunked = */ false, 1);
+    const Split s = splitter.split(task.begin, task.end, task.depth, /* chunked = */ false, 1, &scratch);
     fill_node(t.nodes.emplace_back(), s, task.begin, task.end);
     if (s.leaf) {
       ++t.leaves;
