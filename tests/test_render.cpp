@@ -287,6 +287,19 @@ TEST_CASE("Images are bitwise identical for any tile size and thread count", "[r
 
 namespace {
 
+// The 16 camera rays of the 4x4 pixel block whose top-left pixel is (bx, by), row by row, each
+// through (x + fx, y + fy), and their sample keys: `key` with the pixel's x and y.
+void block_rays(const render::CameraF& camera, std::uint32_t width, std::uint32_t height, std::uint32_t bx,
+                std::uint32_t by, double fx, double fy, math::SampleKey key, math::Ray* rays, math::SampleKey* keys) {
+  for (int i = 0; i < accel::kPacketSize16; ++i) {
+    const std::uint32_t x = bx + i % 4, y = by + i / 4;
+    rays[i] = camera.generate(x + fx, y + fy, width, height);
+    keys[i] = key;
+    keys[i].x = x;
+    keys[i].y = y;
+  }
+}
+
 // Renders `d` on every supported isa, per pixel and in packets, in tilings that leave partial 4x2
 // and 4x4 blocks at tile edges, and requires every image and every ray count to equal the reference:
 // per pixel on the scalar isa in one tile. Returns the reference.
@@ -376,11 +389,8 @@ TEST_CASE("trace_radiance16 gives every lane trace_radiance's bits, one layer or
           for (std::uint32_t bx = 0; bx < d.render.width; bx += 4) {
             math::Ray rays[accel::kPacketSize16];
             math::SampleKey keys[accel::kPacketSize16];
-            for (int i = 0; i < accel::kPacketSize16; ++i) {
-              const std::uint32_t x = bx + i % 4, y = by + i / 4;
-              rays[i] = whole.camera().generate(x + 0.25, y + 0.75, d.render.width, d.render.height);
-              keys[i] = math::SampleKey{7, 0, x, y, 1};
-            }
+            block_rays(whole.camera(), d.render.width, d.render.height, bx, by, 0.25, 0.75,
+                       math::SampleKey{7, 0, 0, 0, 1}, rays, keys);
             for (const render::RenderScene* rs : {&whole, &layered}) {
               const Vec3f unset{-1, -1, -1};
               Vec3f out[accel::kPacketSize16];
@@ -461,11 +471,8 @@ std::pair<std::uint64_t, std::uint64_t> check_lanes_match(const render::RenderSc
     for (std::uint32_t bx = 0; bx < d.render.width; bx += 4) {
       math::Ray cam[accel::kPacketSize16];
       math::SampleKey keys[accel::kPacketSize16];
-      for (int i = 0; i < accel::kPacketSize16; ++i) {
-        const std::uint32_t x = bx + i % 4, y = by + i / 4;
-        cam[i] = rs.camera().generate(x + 0.5, y + 0.5, d.render.width, d.render.height);
-        keys[i] = math::SampleKey{d.render.seed, 0, x, y, 0};
-      }
+      block_rays(rs.camera(), d.render.width, d.render.height, bx, by, 0.5, 0.5,
+                 math::SampleKey{d.render.seed, 0, 0, 0, 0}, cam, keys);
       Vec3f out16[accel::kPacketSize16], out8[accel::kPacketSize16];
       render::TraceStats stats16, stats8, single;
       render::trace_radiance16(rs, cam, keys, valid, limits, stats16, out16);
