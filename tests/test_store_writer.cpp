@@ -4,6 +4,7 @@
 // benchmark that prints figures only.
 #include <fcntl.h>
 #include <signal.h>
+#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -13,6 +14,7 @@
 #include <cstring>
 #include <filesystem>
 #include <future>
+#include <optional>
 #include <set>
 #include <string>
 #include <thread>
@@ -211,6 +213,11 @@ TEST_CASE("the WAL stays under its bound over a long burst and is emptied when t
   INFO("largest WAL: " << largest << " bytes");
   CHECK(largest <= kBound + (256 << 10));
   CHECK(largest >= kBound / 2);  // the bound is what checkpoints, not the batches
+  // Half the bound asks for a checkpoint beside the commits; a batch (~135 KiB) is less than half.
+  CHECK(writer.stats().checkpoints_background > 0);
+  WARN(fmt::format("{} checkpoints, {} of them beside the commits; the writer waited {:.3f} s for them",
+                   writer.stats().checkpoints, writer.stats().checkpoints_background,
+                   writer.stats().checkpoint_seconds));
   // 19.7 MB through a WAL of at most ~1.25 MiB: at least one checkpoint per 1.25 MiB.
   CHECK(writer.stats().checkpoints >= kTiles * kBytes / (kBound + (256 << 10)));
   // Idle: the WAL file is emptied (its bytes are all in the database).
@@ -221,21 +228,77 @@ TEST_CASE("the WAL stays under its bound over a long burst and is emptied when t
   CHECK(check.count_tiles(job).value() == kTiles);
 }
 
+TEST_CASE("a checkpoint connection copies the WAL while the writer's connection writes, which then starts it over",
+          "[store][writer][wal]") {
+  StoreDir tmp;
+  auto [writer, job] = seeded(tmp);
+  require_ok(writer.manage_checkpoints());
+  const std::string wal = writer.path() + "-wal";
+  auto opened = writer.open_checkpoint_connection();
+  if (!opened) FAIL(opened.error().message);
+  Store checkpointer = std::move(opened).value();
+  constexpr std::size_t kBytes = 16 << 10;
+  const auto insert = [&](Store& s, std::uint32_t first) {
+    std::vector<TileWrite> writes;
+    for (std::uint32_t t = first; t < first + 20; ++t) writes.push_back(tile_write(job, t, kBytes));
+    return s.insert_tiles(writes);
+  };
+  REQUIRE(insert(writer, 0).ok());
+  const std::uint64_t wal_after_first = writer.wal_bytes();
+  REQUIRE(wal_after_first > 20 * kBytes);
+
+  // A PASSIVE checkpoint neither waits for an open write transaction nor is refused by it: it
+  // copies what was committed before it.
+  int first_frames = 0;
+  require_ok(writer.transaction([&]() -> Status {
+    REQUIRE(insert(writer, 20).ok());
+    auto r = checkpointer.checkpoint(dtraced::store::CheckpointMode::kReuse);
+    if (!r) FAIL(r.error().message);
+    CHECK(r.value().complete);
+    CHECK(r.value().wal_frames > 0);
+    CHECK(r.value().copied_frames == r.value().wal_frames);
+    first_frames = r.value().wal_frames;
+    return {};
+  }));
+  // The commit came after that checkpoint: its frames are still to copy, so the WAL goes on
+  // growing until a checkpoint copies them too.
+  const std::uint64_t wal_after_second = writer.wal_bytes();
+  CHECK(wal_after_second > wal_after_first);
+  auto second = checkpointer.checkpoint(dtraced::store::CheckpointMode::kReuse);
+  if (!second) FAIL(second.error().message);
+  CHECK(second.value().complete);
+  CHECK(second.value().wal_frames > first_frames);
+  CHECK(second.value().copied_frames == second.value().wal_frames);
+  // Every frame is copied: the writer's next commit starts the WAL over from its beginning.
+  const std::uintmax_t file = std::filesystem::file_size(wal);
+  REQUIRE(insert(writer, 40).ok());
+  CHECK(writer.wal_bytes() < wal_after_second);
+  CHECK(std::filesystem::file_size(wal) == file);
+
+  // query_only: the checkpoint connection can change no row.
+  CHECK_FALSE(insert(checkpointer, 60).ok());
+  Store check = open_ok(tmp.path(), OpenOptions{.verify_integrity = false});
+  CHECK(check.count_tiles(job).value() == 60);
+}
+
 TEST_CASE("under the bound nothing is checkpointed while tiles keep coming, not even by SQLite",
           "[store][writer][wal]") {
   StoreDir tmp;
   auto [setup, job] = seeded(tmp);
   const std::string wal = setup.path() + "-wal";
-  // 400 tiles of 16 KiB: 6.4 MB of pixels, past SQLite's own automatic checkpoint (1000 pages,
-  // 4 MiB) and under the default bound of 16 MiB.
-  constexpr std::uint32_t kTiles = 400;
+  // 640 tiles of 16 KiB: 10.5 MB of pixels in about 1,260 frames of 16 KiB pages (a tile's row and
+  // its overflow page), past SQLite's own automatic checkpoint (1000 frames), and under half the
+  // bound, where the writer's background checkpoints would start.
+  constexpr std::uint32_t kTiles = 640;
   constexpr std::size_t kBytes = 16 << 10;
-  constexpr WriterLimits kLimits{.max_batch_tiles = 4, .checkpoint_when_idle = std::chrono::minutes(1)};
-  static_assert(kLimits.checkpoint_wal_bytes >= std::uint64_t{8} << 20);
+  constexpr WriterLimits kLimits{.max_batch_tiles = 4,
+                                 .checkpoint_wal_bytes = std::uint64_t{64} << 20,
+                                 .checkpoint_when_idle = std::chrono::minutes(1)};
   TileWriter writer(std::move(setup), kLimits);
   const std::uintmax_t largest = largest_wal_in_burst(writer, wal, job, kTiles, kBytes);
   INFO("largest WAL: " << largest << " bytes");
   CHECK(largest >= kTiles * kBytes);  // every tile's pages are still in the WAL
+  CHECK(largest >= 1000 * (16 << 10));
   CHECK(writer.stats().checkpoints == 0);
   writer.stop();  // the stop checkpoints what is left
   CHECK(writer.stats().checkpoints == 1);
@@ -267,6 +330,95 @@ TEST_CASE("a trickle of tiles is not checkpointed after every batch, and a stop 
   CHECK(std::filesystem::file_size(wal) == 0);
   Store check = open_ok(tmp.path());
   CHECK(check.count_tiles(job).value() == 10);
+}
+
+TEST_CASE("a failing checkpoint is logged once and retried, and no acknowledged tile is lost", "[store][writer][wal]") {
+  StoreDir tmp;
+  const std::int64_t job = job_in(tmp);
+  const std::string log = tmp.path() + "/stderr.log";
+  constexpr std::uint32_t kTiles = 200;
+  constexpr std::size_t kBytes = 16 << 10;
+  // The child's files may not grow past 1 MiB (RLIMIT_FSIZE, a full disk's stand-in, set in the
+  // child alone): once the database reaches it, checkpoints fail; the WAL cannot start over and
+  // grows to it too, and then commits fail. The limit is lifted once a commit failed.
+  ForkedChild child([&](int fd) {
+    const int log_fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    if (log_fd < 0 || ::dup2(log_fd, STDERR_FILENO) < 0) ::_exit(2);
+    ::signal(SIGXFSZ, SIG_IGN);  // a write past the limit fails with EFBIG instead
+    rlimit limit{};
+    if (::getrlimit(RLIMIT_FSIZE, &limit) != 0) ::_exit(3);
+    const rlimit unlimited = limit;
+    limit.rlim_cur = 1 << 20;
+    if (::setrlimit(RLIMIT_FSIZE, &limit) != 0) ::_exit(4);
+    auto opened = Store::open(tmp.path(), OpenOptions{.verify_integrity = false});
+    if (!opened) ::_exit(5);
+    std::optional<TileWriter> writer;
+    writer.emplace(std::move(opened).value(), WriterLimits{.checkpoint_wal_bytes = 256 << 10});
+    // One tile at a time, each reported (tile, outcome) once acknowledged.
+    const auto store_tile = [&](std::uint32_t tile) {
+      std::atomic<int> outcome{-1};
+      const SubmitStatus s = writer->submit(tile_write(job, tile, kBytes), [&](CommitResult r) {
+        const unsigned char report[5] = {static_cast<unsigned char>(tile), static_cast<unsigned char>(tile >> 8), 0, 0,
+                                         static_cast<unsigned char>(r.outcome)};
+        if (::write(fd, report, sizeof report) != sizeof report) ::_exit(6);
+        outcome = static_cast<int>(r.outcome);
+      });
+      if (s != SubmitStatus::kAccepted) ::_exit(7);
+      while (outcome < 0) std::this_thread::sleep_for(100us);
+      return static_cast<TileOutcome>(outcome.load());
+    };
+    std::vector<std::uint32_t> failed;
+    for (std::uint32_t tile = 0; tile < kTiles; ++tile) {
+      if (store_tile(tile) == TileOutcome::kFailed) failed.push_back(tile);
+      if (failed.size() == 1 && ::setrlimit(RLIMIT_FSIZE, &unlimited) != 0) ::_exit(8);
+    }
+    for (std::uint32_t tile : failed) {
+      if (store_tile(tile) != TileOutcome::kStored) ::_exit(9);
+    }
+    writer->stop();
+    const auto stats = writer->stats();
+    writer.reset();
+    const unsigned char summary[5] = {
+        0xff, 0xff, static_cast<unsigned char>(std::min<std::uint64_t>(stats.checkpoints_failed, 255)),
+        static_cast<unsigned char>(failed.size()), 0xff};
+    if (::write(fd, summary, sizeof summary) != sizeof summary) ::_exit(10);
+    ::pause();
+    ::_exit(11);
+  });
+  // The summary (0xff 0xff ...) comes last; a tile's second byte is 0.
+  std::string reports;
+  const auto summarised = [](const std::string& r) {
+    return r.size() >= 5 && r.size() % 5 == 0 && static_cast<unsigned char>(r[r.size() - 4]) == 0xff;
+  };
+  REQUIRE(child.read(reports, summarised, kWaitLimit));
+  child.kill_and_wait();
+  const auto byte = [&](std::size_t i) { return static_cast<unsigned char>(reports[i]); };
+  const std::size_t summary = reports.size() - 5;
+  const unsigned checkpoints_failed = byte(summary + 2), tiles_failed = byte(summary + 3);
+  INFO("checkpoints failed: " << checkpoints_failed << ", tiles failed once: " << tiles_failed);
+  CHECK(tiles_failed >= 1);        // the limit did stop commits
+  CHECK(checkpoints_failed >= 2);  // and checkpoints, more than once
+  std::set<std::uint32_t> stored;  // acknowledged as stored
+  for (std::size_t i = 0; i < summary; i += 5) {
+    const std::uint32_t tile = byte(i) | (std::uint32_t{byte(i + 1)} << 8);
+    const auto outcome = static_cast<TileOutcome>(byte(i + 4));
+    CHECK((outcome == TileOutcome::kStored || outcome == TileOutcome::kFailed));
+    if (outcome == TileOutcome::kStored) CHECK(stored.insert(tile).second);
+  }
+  CHECK(stored.size() == kTiles);
+  // Logged once for the whole streak of failures.
+  const std::string logged = file_bytes(log);
+  INFO(logged);
+  std::size_t warnings = 0;
+  for (std::size_t at = 0; (at = logged.find("logged once until one succeeds", at)) != std::string::npos; ++at) {
+    ++warnings;
+  }
+  CHECK(warnings == 1);
+  Store check = open_ok(tmp.path());
+  auto all = check.get_all_tiles(job);
+  REQUIRE(all.ok());
+  REQUIRE(all.value().size() == kTiles);
+  for (const StoredTile& t : all.value()) CHECK(t.pixels == make_pixels(job, t.tile, kBytes));
 }
 
 TEST_CASE("a rejected tile does not fail the rest of its batch", "[store][writer]") {

@@ -490,6 +490,39 @@ Status Store::manage_checkpoints() {
   return {};
 }
 
+Result<Store> Store::open_checkpoint_connection() const {
+  auto impl = std::make_unique<Impl>();
+  impl->path = impl_->path;
+  impl->busy_timeout_ms = impl_->busy_timeout_ms;
+  const int flags = SQLITE_OPEN_READWRITE | SQLITE_OPEN_NOMUTEX | SQLITE_OPEN_EXRESCODE;
+  if (const int rc = sqlite3_open_v2(impl->path.c_str(), &impl->db, flags, nullptr); rc != SQLITE_OK) {
+    return Error{fmt::format("{}: cannot open a checkpoint connection: {}", impl->path,
+                             impl->db != nullptr ? sqlite3_errmsg(impl->db) : sqlite3_errstr(rc))};
+  }
+  if (auto st = impl->set_config(SQLITE_DBCONFIG_NO_CKPT_ON_CLOSE, 1, "no checkpoint on close"); !st) {
+    return st.error();
+  }
+  if (const int rc = sqlite3_busy_timeout(impl->db, impl->busy_timeout_ms); rc != SQLITE_OK) {
+    return impl->error("setting the busy timeout", rc);
+  }
+  for (const char* pragma : {"PRAGMA query_only = ON", "PRAGMA synchronous = FULL"}) {
+    if (auto st = impl->exec_rows(pragma); !st) return st.error();
+  }
+  if (auto st = impl->exec_rows(fmt::format("PRAGMA journal_size_limit = {}", kJournalSizeLimitBytes)); !st) {
+    return st.error();
+  }
+  // Should this connection close last, the -wal and -shm files stay, as with the writer's.
+  if (auto st = impl->keep_wal_files(); !st) return st.error();
+  // Reading the journal mode opens the database and its WAL, which a checkpoint needs.
+  auto mode = impl->exec_rows("PRAGMA journal_mode");
+  if (!mode) return mode.error();
+  if (mode.value().size() != 1 || mode.value()[0] != "wal") {
+    return Error{fmt::format("{}: a checkpoint connection needs WAL journaling (journal mode is '{}')", impl->path,
+                             mode.value().empty() ? "?" : mode.value()[0])};
+  }
+  return Store(std::move(impl));
+}
+
 std::uint64_t Store::wal_bytes() const { return impl_->wal_frames * impl_->wal_frame_bytes; }
 
 Result<CheckpointResult> Store::checkpoint(CheckpointMode mode) {

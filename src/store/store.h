@@ -321,12 +321,23 @@ class Store {
   // Copies the WAL into the database file and, with kTruncate, empties the WAL file
   // (wal_checkpoint(TRUNCATE); kReuse keeps the file for the next writes, see CheckpointMode),
   // without waiting for other connections: while a reader still uses an older snapshot, it copies
-  // what it can and reports truncated = complete = false, which is no error. TileWriter turns
-  // SQLite's own checkpoints off (manage_checkpoints) and calls this when the WAL passes its bound
-  // (WriterLimits::checkpoint_wal_bytes), when idle and at stop, so the WAL stays bounded instead
-  // of growing with the job. An error is an I/O failure (a full disk:
+  // what it can and reports truncated = complete = false, which is no error. Frames committed by
+  // another connection after the checkpoint began are not counted in wal_frames: `complete` says
+  // that what it saw was copied. TileWriter turns SQLite's own checkpoints off
+  // (manage_checkpoints) and calls this as the WAL grows (WriterLimits::checkpoint_wal_bytes,
+  // mostly on open_checkpoint_connection's connection), when idle and at stop, so the WAL stays
+  // bounded instead of growing with the job. An error is an I/O failure (a full disk:
   // copying into the database may need to grow it), naming the file; nothing is lost by it.
   util::Result<CheckpointResult> checkpoint(CheckpointMode mode = CheckpointMode::kTruncate);
+
+  // Opens another connection to this Store's file for checkpoint() only (TileWriter's checkpoint
+  // thread): a PASSIVE checkpoint there copies committed frames while this connection goes on
+  // committing, where on this connection every commit waits for it. The file was verified when
+  // this Store opened it, so nothing is read but the journal mode (which must be WAL). The
+  // connection is query_only (no SQL through it changes the file; checkpoints are not SQL), uses
+  // this Store's busy timeout and synchronous=FULL (a checkpoint syncs the WAL before copying and
+  // the database after), and never checkpoints on close: the writer's connection does that.
+  util::Result<Store> open_checkpoint_connection() const;
 
   // Turns SQLite's own checkpoints off (they run inside a COMMIT every 1000 pages, 4 MiB) and
   // starts counting the WAL after each commit of this connection (sqlite3_wal_hook), so that the
@@ -334,8 +345,9 @@ class Store {
   // without bound: TileWriter calls it on the Store it owns. Idempotent.
   util::Status manage_checkpoints();
   // The WAL's length after this connection's last commit (frames with their headers), as
-  // reported to the hook manage_checkpoints() installed, or 0 after a complete checkpoint since
-  // (the next commit starts the WAL over); always 0 without manage_checkpoints().
+  // reported to the hook manage_checkpoints() installed, or 0 after a complete checkpoint on this
+  // connection since (the next commit starts the WAL over; one on another connection is seen at
+  // the next commit); always 0 without manage_checkpoints().
   std::uint64_t wal_bytes() const;
 
  private:

@@ -30,12 +30,26 @@ constexpr std::uint64_t WriterStats::*kOutcomeCounters[] = {&WriterStats::tiles_
                                                             &WriterStats::tiles_already_present,
                                                             &WriterStats::tiles_rejected, &WriterStats::tiles_failed};
 
+// A finished background checkpoint leaves the frames committed while it ran. When they are at most
+// this fraction of the bound (1 MiB of 16), the writer copies them itself; the wait is short (a
+// few dozen pages and two fsyncs) and lets the WAL start over. More, and another background
+// checkpoint copies them first.
+constexpr std::uint64_t kCatchUpFraction = 16;
+
 }  // namespace
 
 TileWriter::TileWriter(Store store, WriterLimits limits) : store_(std::move(store)), limits_(limits) {
   // Without the hook SQLite keeps checkpointing inside COMMIT (every 4 MiB): slower, still bounded.
   if (auto st = store_.manage_checkpoints(); !st) {
     util::log_warn("store writer: {} (SQLite's own checkpoints stay on)", st.error().message);
+  }
+  if (auto connection = store_.open_checkpoint_connection(); connection) {
+    background_ = true;
+    checkpointer_ = std::thread([this, c = std::move(connection).value()]() mutable { run_checkpoints(c); });
+  } else {
+    // Still bounded: the writer checkpoints on its own connection when the WAL reaches its bound.
+    util::log_warn("store writer: {} (checkpoints run on the writer thread; commits wait for them)",
+                   connection.error().message);
   }
   thread_ = std::thread([this] { run(); });
 }
@@ -91,6 +105,13 @@ void TileWriter::stop() {
     assert(std::this_thread::get_id() != thread_.get_id() && "stop() called from a writer callback");
     thread_.join();
   }
+  // The writer's last checkpoint waited for any background one; nothing can ask for another now.
+  {
+    std::lock_guard lock(checkpoint_mu_);
+    checkpointer_stopping_ = true;
+  }
+  checkpoint_cv_.notify_all();
+  if (checkpointer_.joinable()) checkpointer_.join();
 }
 
 WriterStats TileWriter::stats() const {
@@ -103,9 +124,7 @@ void TileWriter::run() {
   const auto has_work = [this] { return stopping_ || !queue_.empty(); };
   for (;;) {
     // Under load the WAL file is kept for the next writes; once idle (or stopping) it is emptied.
-    if (writes_since_checkpoint_ > 0 && store_.wal_bytes() >= limits_.checkpoint_wal_bytes) {
-      checkpoint(CheckpointMode::kReuse);
-    }
+    if (writes_since_checkpoint_ > 0) bound_wal();
     if (writes_since_checkpoint_ > 0) {
       std::unique_lock lock(mu_);
       // The queue stayed empty for checkpoint_when_idle, or a stop left nothing to write.
@@ -179,23 +198,85 @@ void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::s
   }
 }
 
+void TileWriter::bound_wal() {
+  const std::uint64_t wal = store_.wal_bytes();
+  const std::uint64_t bound = limits_.checkpoint_wal_bytes;
+  bool finished = false;  // the background checkpoint asked for last has finished since
+  if (background_asked_) {
+    std::lock_guard lock(checkpoint_mu_);
+    finished = !checkpoint_wanted_;
+  }
+  if (finished) background_asked_ = false;
+  if (wal >= bound) {
+    checkpoint(CheckpointMode::kReuse);
+    return;
+  }
+  if (!background_ || background_asked_ || wal < bound / 2) return;
+  // The background checkpoint copied at least what was committed when it was asked for; while it
+  // ran, commits went on, so the WAL cannot start over yet. When little came in meanwhile, the
+  // writer copies that now (a short wait), after which its next commit starts the WAL over;
+  // otherwise another background checkpoint chases it, copying less each time.
+  if (finished && wal <= background_asked_at_ + bound / kCatchUpFraction) {
+    checkpoint(CheckpointMode::kReuse);
+    return;
+  }
+  background_asked_at_ = wal;
+  background_asked_ = true;
+  {
+    std::lock_guard lock(checkpoint_mu_);
+    checkpoint_wanted_ = true;
+  }
+  checkpoint_cv_.notify_all();
+}
+
 void TileWriter::checkpoint(CheckpointMode mode) {
+  const auto start = std::chrono::steady_clock::now();
+  // One checkpoint at a time: a second one would find the WAL's checkpoint lock taken and do
+  // nothing, and TRUNCATE could not empty the file.
+  {
+    std::unique_lock lock(checkpoint_mu_);
+    checkpoint_cv_.wait(lock, [this] { return !checkpoint_wanted_; });
+  }
+  background_asked_ = false;
   writes_since_checkpoint_ = 0;
   auto result = store_.checkpoint(mode);
+  const std::chrono::duration<double> took = std::chrono::steady_clock::now() - start;
+  count_checkpoint(result, false, took.count());
+}
+
+void TileWriter::run_checkpoints(Store& connection) {
+  std::unique_lock lock(checkpoint_mu_);
+  for (;;) {
+    checkpoint_cv_.wait(lock, [this] { return checkpoint_wanted_ || checkpointer_stopping_; });
+    if (!checkpoint_wanted_) return;
+    lock.unlock();
+    count_checkpoint(connection.checkpoint(CheckpointMode::kReuse), true, 0);
+    lock.lock();
+    checkpoint_wanted_ = false;
+    checkpoint_cv_.notify_all();  // the writer may be waiting to checkpoint itself
+  }
+}
+
+void TileWriter::count_checkpoint(const util::Result<CheckpointResult>& result, bool background,
+                                  double writer_seconds) {
+  bool log = false;
   {
     std::lock_guard lock(mu_);
     ++stats_.checkpoints;
+    if (background) ++stats_.checkpoints_background;
+    stats_.checkpoint_seconds += writer_seconds;
     if (!result) {
       ++stats_.checkpoints_failed;
     } else if (!result.value().complete) {
       ++stats_.checkpoints_partial;
     }
+    log = !result && !checkpoint_failing_;
+    checkpoint_failing_ = !result;
   }
-  if (!result && !checkpoint_failing_) {
+  if (log) {
     util::log_warn("store writer: {} (retried after the next writes; logged once until one succeeds)",
                    result.error().message);
   }
-  checkpoint_failing_ = !result;
 }
 
 void TileWriter::run_task(Item& item) {

@@ -2,17 +2,24 @@
 // commit for tile results.
 //
 // Owns: a dedicated thread, the Store (connection) it was given, and a bounded queue of pending
-// work. The thread takes everything pending at once (up to WriterLimits::max_batch_tiles tiles)
-// and processes it in submission order; each run of consecutive tile writes becomes ONE
-// transaction (Store::insert_tiles: INSERT OR IGNORE, the first stored result wins), and only
-// after its COMMIT returned are the callbacks of those tiles called. A fsync is paid per batch
-// rather than per tile, so the commit rate grows with the load. If the transaction fails, every
-// tile of the batch gets kFailed and none is acknowledged; the thread goes on with the next batch.
-// The thread also checkpoints the WAL (WriterLimits::checkpoint_wal_bytes and
+// work; and a second thread with a second connection to the same file, for checkpoints only.
+// The thread takes everything pending at once (up to WriterLimits::max_batch_tiles tiles) and
+// processes it in submission order; each run of consecutive tile writes becomes ONE transaction
+// (Store::insert_tiles: INSERT OR IGNORE, the first stored result wins), and only after its
+// COMMIT returned are the callbacks of those tiles called. A fsync is paid per batch rather than
+// per tile, so the commit rate grows with the load. If the transaction fails, every tile of the
+// batch gets kFailed and none is acknowledged; the thread goes on with the next batch.
+// The WAL is checkpointed by the writer (WriterLimits::checkpoint_wal_bytes and
 // checkpoint_when_idle; SQLite's own checkpoints inside COMMIT are off), so the -wal file stays
-// bounded and is empty soon after the writer goes idle. Under load the checkpoint keeps the file
-// (CheckpointMode::kReuse: the next batches overwrite its blocks instead of growing a truncated
-// file again); the idle one empties it.
+// bounded and is empty soon after the writer goes idle. Under load, checkpoints run on the second
+// thread with its own connection (Store::open_checkpoint_connection), PASSIVE, so commits and
+// their acknowledgements go on while pages are copied; the file is kept (CheckpointMode::kReuse:
+// the next batches overwrite its blocks instead of growing a truncated file again). The WAL
+// starts over only at a commit that finds every frame copied, which commits made during the copy
+// prevent; so the writer itself copies the last few frames (a short wait), or, should the WAL
+// reach its bound, waits for the background checkpoint and copies what is left. The idle and
+// stop checkpoints (TRUNCATE: the file is emptied) run on the writer's connection, with nothing
+// else writing.
 //
 // Other writes (scenes, jobs, state changes) are posted as tasks: a task runs on the writer thread
 // with the Store, in order with the tiles submitted before and after it, each store call its own
@@ -27,8 +34,8 @@
 // Callbacks and tasks run on the writer thread, one at a time: they must be short (post to an
 // executor and return), must not throw (an exception is logged and swallowed), and must not call
 // stop() (it would join its own thread). They may call submit() and post().
-// stop() stops accepting work, drains and commits everything accepted, calls every callback, and
-// joins. The destructor calls stop().
+// stop() stops accepting work, drains and commits everything accepted, calls every callback,
+// empties the WAL, and joins both threads. The destructor calls stop().
 #pragma once
 
 #include <chrono>
@@ -52,16 +59,17 @@ struct WriterLimits {
   std::size_t max_pending_tiles = 4096;
   std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels + worker names
   std::size_t max_pending_tasks = 1024;
-  // The WAL's bound. SQLite's own checkpoints are off (Store::manage_checkpoints); the writer
-  // checkpoints (Store::checkpoint: the WAL copied into the database, the file kept for reuse)
-  // once the WAL has reached this many bytes, then when the queue has stayed empty for
-  // checkpoint_when_idle after a write (the file is emptied), and at stop. The check follows each
-  // batch, so the -wal file stays below this plus one batch's frames (a batch is at most
-  // max_batch_tiles tiles and the tasks between them); a reader holding an old snapshot can keep
-  // frames from being copied, and then the writer tries again after every batch. Each checkpoint
-  // costs two fsyncs and copies every page once however often it changed in between, so a larger
-  // bound means fewer, cheaper-per-tile checkpoints (a longer one now and then, during which
-  // acknowledgements wait), and more disk for the WAL.
+  // The WAL's bound. SQLite's own checkpoints are off (Store::manage_checkpoints). Once the WAL
+  // has reached half this many bytes, a background checkpoint copies it into the database while
+  // commits go on (Store::checkpoint, kReuse: the file is kept for reuse); then the writer copies
+  // the frames committed meanwhile (see the top of this file). Should the WAL reach this many
+  // bytes all the same, the writer stops committing until a checkpoint has copied every frame, so
+  // the -wal file stays below this plus one batch's frames (a batch is at most max_batch_tiles
+  // tiles and the tasks between them). A reader holding an old snapshot can keep frames from
+  // being copied, and then the writer tries again after every batch. When the queue has stayed
+  // empty for checkpoint_when_idle after a write, and at stop, the file is emptied. Each
+  // checkpoint costs two fsyncs and copies every page once however often it changed in between,
+  // so a larger bound means fewer, cheaper-per-tile checkpoints and more disk for the WAL.
   std::uint64_t checkpoint_wal_bytes = std::uint64_t{16} << 20;
   std::chrono::milliseconds checkpoint_when_idle{200};
 };
@@ -82,10 +90,14 @@ struct WriterStats {
   std::uint64_t busy_refusals = 0;
   std::uint64_t tasks_run = 0;
   std::uint64_t largest_batch = 0;
-  std::uint64_t checkpoints = 0;          // attempted
-  std::uint64_t checkpoints_partial = 0;  // a reader kept some frames from being copied
-  std::uint64_t checkpoints_failed = 0;   // an I/O error (a full disk)
-  double write_seconds = 0;               // total time inside tile transactions (inserts + COMMIT)
+  std::uint64_t checkpoints = 0;             // attempted, on either thread
+  std::uint64_t checkpoints_background = 0;  // of which on the checkpoint thread, beside commits
+  std::uint64_t checkpoints_partial = 0;     // a reader kept some frames from being copied
+  std::uint64_t checkpoints_failed = 0;      // an I/O error (a full disk)
+  double write_seconds = 0;                  // total time inside tile transactions (inserts + COMMIT)
+  // Time the writer thread spent checkpointing or waiting for a background checkpoint to end,
+  // when no commit could run (idle and stop checkpoints included).
+  double checkpoint_seconds = 0;
   std::size_t pending_tiles = 0;
   std::uint64_t pending_bytes = 0;
   std::size_t pending_tasks = 0;
@@ -125,23 +137,41 @@ class TileWriter {
   void run();
   void write_tiles(std::vector<Item>& items, std::size_t begin, std::size_t end);
   void run_task(Item& item);
+  // After writes: asks for a background checkpoint, or checkpoints on the writer's connection,
+  // as WriterLimits::checkpoint_wal_bytes says.
+  void bound_wal();
+  // On the writer's connection, once no background checkpoint runs.
   void checkpoint(CheckpointMode mode);
+  void run_checkpoints(Store& connection);  // checkpointer_'s loop
+  void count_checkpoint(const util::Result<CheckpointResult>& result, bool background, double writer_seconds);
 
   Store store_;  // used by thread_ only
   const WriterLimits limits_;
+  bool background_ = false;  // set before the threads start: checkpointer_ runs
 
   mutable std::mutex mu_;
   std::condition_variable wake_;  // signalled on new work and on stop
   // Guarded by mu_:
   std::deque<Item> queue_;
   bool stopping_ = false;
-  WriterStats stats_;  // pending_* count queued work plus the batch being written
+  WriterStats stats_;                // pending_* count queued work plus the batch being written
+  bool checkpoint_failing_ = false;  // log a failure streak once (checkpoints on either thread)
 
-  std::size_t writes_since_checkpoint_ = 0;  // thread_ only: since the last checkpoint
-  bool checkpoint_failing_ = false;          // thread_ only: log a failure streak once
+  // thread_ only: writes since its own last checkpoint; whether it asked for a background
+  // checkpoint it has not seen finish, and the WAL's bytes when it asked.
+  std::size_t writes_since_checkpoint_ = 0;
+  bool background_asked_ = false;
+  std::uint64_t background_asked_at_ = 0;
 
-  std::mutex stop_mu_;  // serialises stop() so two callers do not both join
-  std::thread thread_;  // declared last; started at the end of the constructor
+  std::mutex checkpoint_mu_;
+  std::condition_variable checkpoint_cv_;  // signalled when a checkpoint is wanted, done, or on stop
+  // Guarded by checkpoint_mu_: a background checkpoint is asked for or running; stop() was called.
+  bool checkpoint_wanted_ = false;
+  bool checkpointer_stopping_ = false;
+
+  std::mutex stop_mu_;        // serialises stop() so two callers do not both join
+  std::thread checkpointer_;  // the background checkpoints, with a connection of its own
+  std::thread thread_;        // declared last; started at the end of the constructor
 };
 
 }  // namespace dtraced::store
