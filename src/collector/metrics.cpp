@@ -293,6 +293,14 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_store_write_seconds_total", "counter", "Time spent inside tile transactions.", m.store.write_seconds);
   w.one("dtraced_store_checkpoints_total", "counter",
         "WAL checkpoints attempted by the store writer (each a few fsyncs besides the commits').", m.store.checkpoints);
+  w.one("dtraced_store_checkpoints_background_total", "counter",
+        "Of those, checkpoints run on the store's checkpoint thread while commits went on.",
+        m.store.checkpoints_background);
+  w.one("dtraced_store_checkpoints_failed_total", "counter",
+        "Checkpoints that failed with an I/O error (retried; no tile is lost).", m.store.checkpoints_failed);
+  w.one("dtraced_store_checkpoint_seconds_total", "counter",
+        "Time the store writer spent checkpointing or waiting for a checkpoint instead of committing.",
+        m.store.checkpoint_seconds);
   w.one("dtraced_store_tiles_failed_total", "counter", "Tiles whose transaction failed.", m.store.tiles_failed);
   w.one("dtraced_store_busy_total", "counter", "Requests answered 503 because the store was busy or failing.",
         c.store_busy);
