@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cassert>
 #include <cmath>
+#include <vector>
 
 #include "accel/geometry.h"
 #include "math/rng.h"
@@ -307,6 +308,101 @@ void render_phase(const TileContext& ctx, bool packets, TileSums& st, std::uint3
   }
 }
 
+// One camera sample to trace: pixel (x, y) of the image, sample index s.
+struct SampleJob {
+  std::uint32_t x = 0, y = 0, s = 0;
+};
+
+// Traces camera samples in packets of kN lanes whatever pixels they belong to: `next(job)` fills
+// the next sample and returns false when there is none; `take(job, radiance)` gets each result in
+// the order `next` gave them. Every lane of a packet gets the bits the scalar path gives its ray
+// (the integrator's promise), so this is trace_radiance sample by sample, only fewer calls.
+template <std::uint32_t kN, typename Next, typename Take>
+void trace_jobs(const TileContext& ctx, TraceStats& stats, Next&& next, Take&& take) {
+  static_assert(kN == accel::kPacketSize || kN == accel::kPacketSize16);
+  SampleJob jobs[kN];
+  math::Ray rays[kN];
+  math::SampleKey keys[kN];
+  Vec3f radiance[kN];
+  for (;;) {
+    std::uint32_t n = 0;
+    while (n < kN && next(jobs[n])) {
+      rays[n] = camera_ray(ctx.scene, ctx.settings, jobs[n].x, jobs[n].y, jobs[n].s);
+      keys[n] = sample_key(ctx.settings, jobs[n].x, jobs[n].y, jobs[n].s);
+      ++n;
+    }
+    if (n == 0) return;
+    const std::uint32_t valid = (1u << n) - 1;
+    if constexpr (kN == accel::kPacketSize16) {
+      trace_radiance16(ctx.scene, rays, keys, valid, ctx.limits, stats, radiance);
+    } else {
+      trace_radiance8(ctx.scene, rays, keys, valid, ctx.limits, stats, radiance);
+    }
+    for (std::uint32_t j = 0; j < n; ++j) take(jobs[j], radiance[j]);
+    if (n < kN) return;
+  }
+}
+
+// The sample count at which a pixel that has taken n samples is next judged: its next own
+// checkpoint, or `until`.
+std::uint32_t next_stop(const TileContext& ctx, std::uint32_t n, std::uint32_t until) {
+  for (std::uint32_t m = n + 1; m < until; ++m) {
+    if (ctx.own_checkpoint(m)) return m;
+  }
+  return until;
+}
+
+// The second phase of an adaptive tile in packets. After the first checkpoint most pixels have
+// stopped, and those that go on are scattered (edges, highlights, glass), so packets of one
+// sample index over a pixel block would run with a lane or two live. But between two of its
+// checkpoints a pixel takes every sample whatever they show, so those samples can be traced
+// together: the packets' lanes are (pixel, sample) pairs, a pixel's samples up to its next
+// checkpoint and then the next pixel's, pixels in block order (neighbours share packets). Each
+// pixel still sums its own samples in sample order and is judged at the same checkpoints from
+// the same sums: the same bits as render_pixels.
+template <std::uint32_t kBlockH>
+void refine_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, Tile& tile) {
+  constexpr std::uint32_t kN = kBlockW * kBlockH;
+  const TileRect& rect = tile.rect;
+  std::vector<std::uint32_t> pending;  // tile pixel indices, block by block
+  for (std::uint32_t by = 0; by < rect.height; by += kBlockH) {
+    for (std::uint32_t bx = 0; bx < rect.width; bx += kBlockW) {
+      for (std::uint32_t i = 0; i < kN; ++i) {
+        const std::uint32_t tx = bx + i % kBlockW, ty = by + i / kBlockW;
+        if (tx >= rect.width || ty >= rect.height) continue;
+        const std::uint32_t index = ty * rect.width + tx;
+        if (!st.done[index] && st.taken[index] < until) pending.push_back(index);
+      }
+    }
+  }
+  std::vector<std::uint32_t> stops;
+  while (!pending.empty()) {
+    // Every pending pixel goes to its next checkpoint (or to until) in this round.
+    stops.resize(pending.size());
+    for (std::size_t k = 0; k < pending.size(); ++k) stops[k] = next_stop(ctx, st.taken[pending[k]], until);
+    std::size_t k = 0;                       // the pending pixel whose samples are queued next
+    std::uint32_t s = st.taken[pending[0]];  // and its next sample
+    trace_jobs<kN>(
+        ctx, tile.stats,
+        [&](SampleJob& job) {
+          if (k == pending.size()) return false;
+          job = {rect.x0 + pending[k] % rect.width, rect.y0 + pending[k] / rect.width, s};
+          if (++s == stops[k] && ++k < pending.size()) s = st.taken[pending[k]];
+          return true;
+        },
+        [&](const SampleJob& job, const Vec3f& radiance) {
+          const std::uint32_t index = (job.y - rect.y0) * rect.width + (job.x - rect.x0);
+          accumulate(radiance, job.s, ctx.span0, st.sums[index], ctx.squares(), tile.stats);
+          const std::uint32_t n = job.s + 1;
+          st.taken[index] = n;
+          if (ctx.own_checkpoint(n) && converged(ctx.settings, st.sums[index], n, st.prior_of(index), ctx.first)) {
+            st.done[index] = 1;
+          }
+        });
+    std::erase_if(pending, [&](std::uint32_t index) { return st.done[index] || st.taken[index] >= until; });
+  }
+}
+
 // The means of a pixel's 3x3 neighbourhood (fewer at the image's edges), with their offsets
 // from the pixel.
 struct Neighbourhood {
@@ -360,7 +456,7 @@ double residual_variance(const Neighbourhood& nb) {
 // so a neighbour outside the tile (the one-pixel border) is rendered here for its first n samples
 // alone, with the same bits as its own tile gives it, and the decision does not depend on the
 // tiling.
-void first_checkpoint(const TileContext& ctx, TileSums& st, Tile& tile) {
+void first_checkpoint(const TileContext& ctx, bool packets, TileSums& st, Tile& tile) {
   const TileRect& rect = tile.rect;
   const scene::RenderSettings& settings = ctx.settings;
   const std::uint32_t n = ctx.first;
@@ -372,46 +468,87 @@ void first_checkpoint(const TileContext& ctx, TileSums& st, Tile& tile) {
   std::vector<const PixelSums*> grown(std::size_t(gw) * (gy1 - gy0), nullptr);
   std::vector<PixelSums> outside;
   outside.reserve(2 * std::size_t(gw) + 2 * std::size_t(gy1 - gy0));  // never reallocates: pointers stay valid
-  TraceStats border;
   for (std::uint32_t y = gy0; y < gy1; ++y) {
     for (std::uint32_t x = gx0; x < gx1; ++x) {
       const bool inside = x >= rect.x0 && x < rect.x0 + rect.width && y >= rect.y0 && y < rect.y0 + rect.height;
-      const PixelSums* sums = nullptr;
-      if (inside) {
-        sums = &st.sums[std::size_t(y - rect.y0) * rect.width + (x - rect.x0)];
-      } else {
-        PixelSums& p = outside.emplace_back();
-        for (std::uint32_t s = 0; s < n; ++s) {
-          accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, settings, x, y, s), sample_key(settings, x, y, s),
-                                    ctx.limits, border),
-                     s, ctx.span0, p, true, border);
-        }
-        sums = &p;
-      }
-      grown[std::size_t(y - gy0) * gw + (x - gx0)] = sums;
+      grown[std::size_t(y - gy0) * gw + (x - gx0)] =
+          inside ? &st.sums[std::size_t(y - rect.y0) * rect.width + (x - rect.x0)] : &outside.emplace_back();
     }
   }
+  // The border pixels' first n samples, pixel after pixel in the order above, in sample order.
+  TraceStats border;
+  std::size_t next_pixel = 0;  // index into outside
+  std::uint32_t next_sample = 0;
+  std::uint32_t bx = gx0, by = gy0;  // the grown region's pixel visited last
+  // Steps (bx, by) to the next border pixel of the grown region, row-major; false past the end.
+  const auto next_border = [&](std::uint32_t& x, std::uint32_t& y) {
+    for (; by < gy1; ++by, bx = gx0) {
+      for (; bx < gx1; ++bx) {
+        if (!(bx >= rect.x0 && bx < rect.x0 + rect.width && by >= rect.y0 && by < rect.y0 + rect.height)) {
+          x = bx++;
+          y = by;
+          return true;
+        }
+      }
+    }
+    return false;
+  };
+  std::uint32_t px = 0, py = 0;  // the border pixel being queued
+  bool have = next_border(px, py);
+  const auto next = [&](SampleJob& job) {
+    if (!have) return false;
+    job = {px, py, next_sample};
+    if (++next_sample == n) {
+      next_sample = 0;
+      have = next_border(px, py);
+    }
+    return true;
+  };
+  // Results come back in the same order: border pixel next_pixel, samples 0 to n - 1.
+  std::uint32_t taken = 0;
+  const auto take = [&](const SampleJob& job, const Vec3f& radiance) {
+    accumulate(radiance, job.s, ctx.span0, outside[next_pixel], true, border);
+    if (++taken == n) taken = 0, ++next_pixel;
+  };
+  if (packets && block_height(ctx.scene) == 4) {
+    trace_jobs<accel::kPacketSize16>(ctx, border, next, take);
+  } else if (packets) {
+    trace_jobs<accel::kPacketSize>(ctx, border, next, take);
+  } else {
+    for (SampleJob job; next(job);) {
+      take(job, trace_radiance(ctx.scene, camera_ray(ctx.scene, settings, job.x, job.y, job.s),
+                               sample_key(settings, job.x, job.y, job.s), ctx.limits, border));
+    }
+  }
+  assert(next_pixel == outside.size());
   // Border rays are extra work, not part of the image: their NaN/Inf samples belong to the
   // pixel's own tile, which counts them.
   tile.stats.border_rays += border.rays;
+  // Each grown pixel's mean per channel, once (each is in up to 9 neighbourhoods).
+  std::vector<double> means(grown.size() * 3);
+  for (std::size_t j = 0; j < grown.size(); ++j) {
+    for (int c = 0; c < 3; ++c) means[j * 3 + c] = grown[j]->sum[c] / double(n);
+  }
   const double limit2 = settings.error_target * settings.error_target;
   for (std::uint32_t ty = 0; ty < rect.height; ++ty) {
     for (std::uint32_t tx = 0; tx < rect.width; ++tx) {
       const std::uint32_t x = rect.x0 + tx, y = rect.y0 + ty;
       const std::size_t i = std::size_t(ty) * rect.width + tx;
       const PixelSums& own = st.sums[i];
+      // The neighbourhood, in a fixed order (rows, then columns): offsets, and where its means are.
+      Neighbourhood nb;
+      std::size_t at[9];
+      for (std::uint32_t ny = (y > gy0 ? y - 1 : y); ny <= std::min(y + 1, gy1 - 1); ++ny) {
+        for (std::uint32_t nx = (x > gx0 ? x - 1 : x); nx <= std::min(x + 1, gx1 - 1); ++nx) {
+          at[nb.count] = (std::size_t(ny - gy0) * gw + (nx - gx0)) * 3;
+          nb.dx[nb.count] = int(nx) - int(x);
+          nb.dy[nb.count] = int(ny) - int(y);
+          ++nb.count;
+        }
+      }
       bool pass = true;
       for (int c = 0; c < 3; ++c) {
-        // The neighbourhood's means, in a fixed order (rows, then columns).
-        Neighbourhood nb;
-        for (std::uint32_t ny = (y > gy0 ? y - 1 : y); ny <= std::min(y + 1, gy1 - 1); ++ny) {
-          for (std::uint32_t nx = (x > gx0 ? x - 1 : x); nx <= std::min(x + 1, gx1 - 1); ++nx) {
-            nb.value[nb.count] = grown[std::size_t(ny - gy0) * gw + (nx - gx0)]->sum[c] / double(n);
-            nb.dx[nb.count] = int(nx) - int(x);
-            nb.dy[nb.count] = int(ny) - int(y);
-            ++nb.count;
-          }
-        }
+        for (std::uint32_t j = 0; j < nb.count; ++j) nb.value[j] = means[at[j] + std::size_t(c)];
         double var = residual_variance(nb);
         st.prior[i * 3 + c] = float(var);
         if (n >= kMinOwnSamples) var = std::max(var, mean_variance(own, c, n));
@@ -450,8 +587,14 @@ Tile render_tile(const RenderScene& scene, const scene::RenderSettings& settings
   st.done.assign(pixels, 0);
   st.prior.assign(pixels * 3, 0.0f);
   render_phase(ctx, options.packets, st, ctx.first, tile);
-  first_checkpoint(ctx, st, tile);
-  render_phase(ctx, options.packets, st, settings.samples, tile);
+  first_checkpoint(ctx, options.packets, st, tile);
+  if (options.packets && block_height(scene) == 4) {
+    refine_packets<4>(ctx, st, settings.samples, tile);
+  } else if (options.packets) {
+    refine_packets<2>(ctx, st, settings.samples, tile);
+  } else {
+    render_phase(ctx, options.packets, st, settings.samples, tile);
+  }
   for (std::size_t i = 0; i < pixels; ++i) store(ctx, st.sums[i], st.taken[i], i, tile);
   return tile;
 }
