@@ -6,9 +6,11 @@ Usage: povray_scenes.py NAME OUTDIR [WIDTH HEIGHT]
   NAME  whitted10   ten spheres on a plane (diffuse, mirror, glass that also reflects), two
                     point lights: a Whitted scene of the kind dtraced started from
         spheres10k  10,000 spheres on a jittered grid (mostly diffuse, some mirror and glass)
-Writes OUTDIR/NAME.json and OUTDIR/NAME.pov. Both hold the same camera, objects and lights; the
-shading models are matched as far as POV-Ray's allow (see the notes in `pov_finish`). The scenes
-are a pure function of NAME (a fixed random seed), so every run compares the same pictures.
+Writes OUTDIR/NAME.json and OUTDIR/NAME.pov. Both hold the same camera, objects and lights and the
+same branch cut-off (BAILOUT); the shading models are matched as far as POV-Ray's allow (see the
+notes in `pov_finish`). Also OUTDIR/NAME-ref.json: the dtraced scene with dtraced's default
+cut-off (1e-6), for its converged reference, so that what the cut-off loses counts as error. The
+scenes are a pure function of NAME (a fixed random seed), so every run compares the same pictures.
 """
 
 import json
@@ -21,6 +23,9 @@ MAX_DEPTH = 5
 # FADE that is 2 FADE^2 / d^2 beyond a few FADE, so a light colour of I / (2 pi FADE^2) gives
 # dtraced's I / (pi d^2) (dtraced's Lambert term carries the 1 / pi; POV's diffuse does not).
 FADE = 0.01
+# A branch (reflected, refracted or seen through) whose weight on the pixel is below this is not
+# traced: POV-Ray's default adc_bailout, written to both scenes (dtraced's render.branch_cutoff).
+BAILOUT = 1.0 / 255.0
 
 
 def material(color, diffuse=1.0, specular=0.0, shininess=32.0, reflectivity=0.0, transparency=0.0, ior=1.5):
@@ -152,7 +157,8 @@ def to_pov(scene):
     out = [
         "// Written by tests/bench/povray_scenes.py: the same scene as the .json beside it.",
         "#version 3.7;",
-        "global_settings {{ assumed_gamma 1.0 max_trace_level {} adc_bailout 1/255 }}".format(render["max_depth"] + 1),
+        "global_settings {{ assumed_gamma 1.0 max_trace_level {} adc_bailout {:.17g} }}".format(
+            render["max_depth"] + 1, render.get("branch_cutoff", 1e-6)),
         "background {{ {} }}".format(rgb(render["background"])),
         "camera {{ perspective location {} look_at {} sky {} right x*{:.9g} up y angle {:.9g} }}".format(
             vec(cam["position"]), vec(cam["look_at"]), vec(cam["up"]), w / h, hfov),
@@ -172,8 +178,14 @@ def main(argv):
     scene = SCENES[name]()
     if len(argv) == 5:
         scene["render"]["width"], scene["render"]["height"] = int(argv[3]), int(argv[4])
+    scene["render"]["branch_cutoff"] = BAILOUT
     with open("{}/{}.json".format(outdir, name), "w") as f:
         json.dump(scene, f, indent=1)
+        f.write("\n")
+    reference = json.loads(json.dumps(scene))
+    del reference["render"]["branch_cutoff"]
+    with open("{}/{}-ref.json".format(outdir, name), "w") as f:
+        json.dump(reference, f, indent=1)
         f.write("\n")
     with open("{}/{}.pov".format(outdir, name), "w") as f:
         f.write(to_pov(scene))
