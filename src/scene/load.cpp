@@ -301,7 +301,7 @@ class ObjectPipeline {
   void element(std::size_t i, const jsonio::EventLog& log, jsonio::EventLog::Mark begin) {
     if (!reader_.joinable()) {
       streamed_.read(i, log, begin, log.mark());
-      inline_log_.clear();
+      reuse(inline_log_);
       return;
     }
     if (filling_->spans.empty()) filling_->first = i;
@@ -340,6 +340,17 @@ class ObjectPipeline {
     }
     ready_cv_.notify_one();
     reader_.join();
+  }
+
+  // A log is kept for the next elements, its memory too, unless an element (an inline mesh) made
+  // it large: that memory is returned rather than held to the end of the load.
+  static void reuse(jsonio::EventLog& log) {
+    constexpr std::size_t kKeepTextBytes = std::size_t(16) << 20;  // 2048 spheres: about 0.5 MiB
+    if (log.mark().text > kKeepTextBytes) {
+      log = jsonio::EventLog();
+    } else {
+      log.clear();
+    }
   }
 
   static constexpr std::size_t kBatchElements = 2048;
@@ -392,7 +403,7 @@ class ObjectPipeline {
           error_ = std::current_exception();
         }
       }
-      b->log.clear();
+      reuse(b->log);
       b->spans.clear();
       b->bytes_before_piece.clear();
       {
