@@ -444,6 +444,72 @@ TEST_CASE("StrictParser: pieces of any size, a split array handed over element b
   }
 }
 
+TEST_CASE("StrictParser: recorded elements build the values split_array hands over, with the same errors",
+          "[jsonio][stream]") {
+  // Strings with escapes and numbers that cross pieces arrive in parts; a duplicate key inside an
+  // element and one outside; every kind of value, nested, and as a whole element.
+  const std::string text =
+      "{\"a\": 1,\n \"items\": [{\"x\": [1, 2.5, -0.0, 1e-400, 18446744073709551615, -9223372036854775808],"
+      " \"k\\u00e9y\": \"s\\n\\u00e9 long enough to be cut\", \"d\": {}, \"d\": 2}, 7, 0.1, \"s\\u00e9\", [], null,"
+      " {\"y\": {\"z\": true, \"w\": false}}, 3.14159265358979323846e-300, [[[]]]],\n"
+      " \"b\": {\"items\": [1], \"b\": 2, \"b\": 3}, \"c\": [0.1]}";
+  const jsonio::Document whole = jsonio::parse_strict(text, 64, 10);
+  REQUIRE(whole.parsed);
+  REQUIRE(whole.errors.size() == 2);  // "d" in the first element, "b" in "b"
+  const json::array& items = whole.value.at("items").as_array();
+  for (const std::size_t piece : {std::size_t(1), std::size_t(3), std::size_t(7), text.size()}) {
+    INFO("piece " << piece);
+    jsonio::EventLog log;
+    jsonio::StrictParser parser(64, 10);
+    std::vector<std::pair<std::size_t, json::value>> got;
+    parser.record_elements("items", &log, [&](std::size_t i, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
+      CHECK(&l == &log);
+      got.push_back({i, l.build(begin, l.mark())});
+      if (i % 2 == 0) log.clear();  // the sink may clear the log
+    });
+    for (std::size_t at = 0; at < text.size(); at += piece)
+      REQUIRE(parser.write(std::string_view(text).substr(at, piece)));
+    const jsonio::Document doc = parser.finish();
+    REQUIRE(doc.parsed);
+    CHECK(parser.split_seen());
+    REQUIRE(got.size() == items.size());
+    for (std::size_t i = 0; i < got.size(); ++i) {
+      CHECK(got[i].first == i);
+      CHECK(json::serialize(got[i].second) == json::serialize(items[i]));
+    }
+    // Doubles to the bit (serialize would not tell -0 from a value that prints alike).
+    const json::array& x = got[0].second.at("x").as_array();
+    CHECK(std::bit_cast<std::uint64_t>(x[2].as_double()) == std::bit_cast<std::uint64_t>(-0.0));
+    CHECK(x[3] == items[0].at("x").as_array()[3]);
+    CHECK(got[2].second.as_double() == 0.1);
+    CHECK(got[7].second.as_double() == items[7].as_double());
+    CHECK(doc.value.at("items").as_array().empty());
+    CHECK(json::serialize(doc.value.at("b")) == json::serialize(whole.value.at("b")));
+    REQUIRE(doc.errors.size() == whole.errors.size());
+    for (std::size_t i = 0; i < doc.errors.size(); ++i) {
+      CHECK(doc.errors[i].message == whole.errors[i].message);
+      CHECK(doc.errors[i].path == whole.errors[i].path);
+    }
+  }
+  SECTION("a cursor walks an element's events, texts whole") {
+    jsonio::EventLog log;
+    jsonio::StrictParser parser(64, 10);
+    std::vector<std::string> seen;
+    parser.record_elements("items", &log, [&](std::size_t, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
+      jsonio::EventLog::Cursor c(l, begin, l.mark());
+      while (c.next()) seen.push_back(std::to_string(int(c.kind())) + ":" + std::string(c.text()));
+    });
+    const std::string_view small = R"({"items": [{"ab\u0063": [2.50, 3]}, "t"]})";
+    for (std::size_t at = 0; at < small.size(); at += 2) REQUIRE(parser.write(small.substr(at, 2)));
+    REQUIRE(parser.finish().parsed);
+    using K = jsonio::EventLog::Kind;
+    const auto k = [](K kind, std::string_view t = {}) { return std::to_string(int(kind)) + ":" + std::string(t); };
+    CHECK(seen == std::vector<std::string>{k(K::kObjectBegin), k(K::kKey, "abc"), k(K::kArrayBegin),
+                                           k(K::kDouble, "2.50"), k(K::kInt64), k(K::kArrayEnd), k(K::kObjectEnd),
+                                           k(K::kString, "t")});
+  }
+}
+
 TEST_CASE("StrictParser: a syntax error found in a later piece has the whole text's position", "[jsonio][stream]") {
   const std::string text = "{\"items\": [1,\n 2,\n 3 4]}";  // line 3, column 4
   const jsonio::Document whole = jsonio::parse_strict(text, 64, 10);

@@ -36,8 +36,27 @@ struct Frame {
   bool is_array = false;
   std::size_t index = 0;  // array: index of the element being read
   bool has_key = false;   // object: a key was read and its value is being read
-  std::string key;
-  std::vector<std::string> seen_keys;
+  // The key being read: the last of seen_text when it was new there (no copy), else `own_key`.
+  bool key_is_last_seen = false;
+  std::string own_key;
+  // The keys read so far, end to end (no string apiece: a large scene has millions of objects).
+  std::string seen_text;
+  std::vector<std::size_t> seen_ends;  // where each ends in seen_text
+
+  std::string_view key() const {
+    if (!key_is_last_seen) return own_key;
+    const std::size_t begin = seen_ends.size() > 1 ? seen_ends[seen_ends.size() - 2] : 0;
+    return std::string_view(seen_text).substr(begin, seen_ends.back() - begin);
+  }
+
+  bool seen(std::string_view key) const {
+    std::size_t begin = 0;
+    for (const std::size_t end : seen_ends) {
+      if (std::string_view(seen_text).substr(begin, end - begin) == key) return true;
+      begin = end;
+    }
+    return false;
+  }
 };
 
 // The basic_parser handler: builds the value with Boost's value_stack (as boost::json::parser
@@ -60,6 +79,12 @@ class StrictHandler {
     split_key_ = std::move(key);
     sink_ = std::move(sink);
   }
+  void record_elements(std::string key, EventLog* log, StrictParser::EventSink sink) {
+    split_key_ = std::move(key);
+    event_sink_ = std::move(sink);
+    log_ = log;
+  }
+  void set_event_log(EventLog* log) { log_ = log; }
   bool split_seen() const { return split_seen_; }
   void set_element_storage(json::monotonic_resource* memory) { element_storage_ = memory; }
 
@@ -69,16 +94,20 @@ class StrictHandler {
   bool on_array_begin(json::error_code&) {
     begin_element();
     // The split array: a root object's member under the split key.
-    if (sink_ && depth_ == 1 && !frames_[0].is_array && frames_[0].has_key && frames_[0].key == split_key_) {
+    if ((sink_ || event_sink_) && depth_ == 1 && !frames_[0].is_array && frames_[0].has_key &&
+        frames_[0].key() == split_key_) {
       in_split_ = true;
       split_seen_ = true;
     }
+    if (recording()) log_->add(EventLog::Kind::kArrayBegin);
     return open(/* is_array = */ true);
   }
   bool on_array_end(std::size_t n, json::error_code&) {
     if (in_split_ && !in_element_ && depth_ == kSplitDepth) {
       stack_.push_array(0);  // its elements went to the sink
       in_split_ = false;
+    } else if (recording()) {
+      log_->add(EventLog::Kind::kArrayEnd, n);
     } else {
       stack().push_array(n);
     }
@@ -86,33 +115,58 @@ class StrictHandler {
   }
   bool on_object_begin(json::error_code&) {
     begin_element();
+    if (recording()) log_->add(EventLog::Kind::kObjectBegin);
     return open(/* is_array = */ false);
   }
   bool on_object_end(std::size_t n, json::error_code&) {
-    stack().push_object(n);
+    if (recording()) {
+      log_->add(EventLog::Kind::kObjectEnd, n);
+    } else {
+      stack().push_object(n);
+    }
     return close();
   }
 
   bool on_string_part(json::string_view s, std::size_t, json::error_code&) {
     begin_element();
-    stack().push_chars(s);
+    if (recording()) {
+      log_->add_part(view(s));
+    } else {
+      stack().push_chars(s);
+    }
     return true;
   }
   bool on_string(json::string_view s, std::size_t, json::error_code&) {
     begin_element();
-    stack().push_string(s);
+    if (recording()) {
+      log_->add_text(EventLog::Kind::kString, view(s));
+    } else {
+      stack().push_string(s);
+    }
     return value_done();
   }
   bool on_key_part(json::string_view s, std::size_t, json::error_code&) {
-    stack().push_chars(s);
+    if (recording()) {
+      log_->add_part(view(s));
+    } else {
+      stack().push_chars(s);
+    }
     key_part_.append(s.data(), s.size());
     return true;
   }
   bool on_key(json::string_view s, std::size_t, json::error_code&) {
-    stack().push_key(s);
-    key_part_.append(s.data(), s.size());
-    key_read(std::move(key_part_));
-    key_part_.clear();
+    if (recording()) {
+      log_->add_text(EventLog::Kind::kKey, view(s));
+    } else {
+      stack().push_key(s);
+    }
+    if (key_part_.empty()) {  // the whole key in one piece (nearly always): no copy
+      key_read(view(s));
+    } else {
+      key_part_.append(s.data(), s.size());
+      key_read(key_part_);
+      key_part_.clear();
+    }
     return true;
   }
 
@@ -123,18 +177,33 @@ class StrictHandler {
   bool on_int64(std::int64_t i, json::string_view, json::error_code&) {
     number_part_.clear();
     begin_element();
-    stack().push_int64(i);
+    if (recording()) {
+      log_->add_int64(i);
+    } else {
+      stack().push_int64(i);
+    }
     return value_done();
   }
   bool on_uint64(std::uint64_t u, json::string_view, json::error_code&) {
     number_part_.clear();
     begin_element();
-    stack().push_uint64(u);
+    if (recording()) {
+      log_->add_uint64(u);
+    } else {
+      stack().push_uint64(u);
+    }
     return value_done();
   }
   bool on_double(double boost_value, json::string_view s, json::error_code&) {
     begin_element();
-    if (number_part_.empty()) {  // the whole number in one piece (nearly always): no copy
+    if (recording()) {
+      // Converted by the consumer (precise_double), from the text.
+      if (!number_part_.empty()) {
+        log_->add_part(number_part_);
+        number_part_.clear();
+      }
+      log_->add_text(EventLog::Kind::kDouble, view(s), boost_value);
+    } else if (number_part_.empty()) {  // the whole number in one piece (nearly always): no copy
       stack().push_double(precise_double(std::string_view(s.data(), s.size()), boost_value));
     } else {
       number_part_.append(s.data(), s.size());
@@ -145,12 +214,20 @@ class StrictHandler {
   }
   bool on_bool(bool b, json::error_code&) {
     begin_element();
-    stack().push_bool(b);
+    if (recording()) {
+      log_->add_bool(b);
+    } else {
+      stack().push_bool(b);
+    }
     return value_done();
   }
   bool on_null(json::error_code&) {
     begin_element();
-    stack().push_null();
+    if (recording()) {
+      log_->add(EventLog::Kind::kNull);
+    } else {
+      stack().push_null();
+    }
     return value_done();
   }
   // Comments are disabled in parse_options; these only satisfy the handler concept.
@@ -169,22 +246,16 @@ class StrictHandler {
         path += fmt::format("/{}", f.index);
       } else if (f.has_key) {
         path += '/';
-        path += printable(pointer_escape(f.key));
+        path += printable(pointer_escape(f.key()));
       }
     }
     return path;
   }
 
  private:
-  // from_chars is correctly rounded; Boost 1.81's conversion is not (see the header).
-  static double precise_double(std::string_view text, double boost_value) {
-    double d = 0;
-    const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), d, std::chars_format::general);
-    // On overflow/underflow from_chars leaves `d` alone; Boost's value (+-inf, or a value near
-    // zero) is then the right one, and the reader reports the out-of-range number by path.
-    if (ec != std::errc() || end != text.data() + text.size()) return boost_value;
-    return d;
-  }
+  static std::string_view view(json::string_view s) { return std::string_view(s.data(), s.size()); }
+  // Whether the value being read is an element of the split array recorded as events.
+  bool recording() const { return in_element_ && log_ != nullptr; }
 
   // Frames are reused rather than popped, so a large document does not reallocate key vectors
   // for every object.
@@ -194,8 +265,10 @@ class StrictHandler {
     f.is_array = is_array;
     f.index = 0;
     f.has_key = false;
-    f.key.clear();
-    f.seen_keys.clear();
+    f.key_is_last_seen = false;
+    f.own_key.clear();
+    f.seen_text.clear();
+    f.seen_ends.clear();
     return true;
   }
   bool close() {
@@ -203,16 +276,20 @@ class StrictHandler {
     return value_done();
   }
 
-  void key_read(std::string key) {
+  void key_read(std::string_view key) {
     Frame& f = frames_[depth_ - 1];
-    f.key = std::move(key);
     f.has_key = true;
-    if (f.seen_keys.size() >= kMaxTrackedKeys) return;
-    if (std::find(f.seen_keys.begin(), f.seen_keys.end(), f.key) != f.seen_keys.end()) {
-      if (errors_.size() < max_errors_)
-        errors_.push_back({fmt::format("duplicate key {}", quoted(f.key)), current_path()});
-    } else {
-      f.seen_keys.push_back(f.key);
+    if (f.seen_ends.size() < kMaxTrackedKeys && !f.seen(key)) {
+      f.seen_text.append(key.data(), key.size());
+      f.seen_ends.push_back(f.seen_text.size());
+      f.key_is_last_seen = true;
+      return;
+    }
+    f.own_key.assign(key.data(), key.size());
+    f.key_is_last_seen = false;
+    if (f.seen_ends.size() >= kMaxTrackedKeys) return;
+    if (errors_.size() < max_errors_) {
+      errors_.push_back({fmt::format("duplicate key {}", quoted(f.key())), current_path()});
     }
   }
 
@@ -222,10 +299,15 @@ class StrictHandler {
 
   json::value_stack& stack() { return in_element_ ? element_stack_ : stack_; }
 
-  // A value starts: if it is an element of the split array, it is built on its own stack.
+  // A value starts: if it is an element of the split array, it is built on its own stack (or
+  // recorded, from the log's end on).
   void begin_element() {
     if (!in_split_ || in_element_ || depth_ != kSplitDepth) return;
     in_element_ = true;
+    if (log_ != nullptr) {
+      element_begin_ = log_->mark();
+      return;
+    }
     // From the concrete monotonic_resource type, so that the storage_ptr knows deallocation is a
     // no-op: the values' destructors then return at once instead of walking every element.
     element_stack_.reset(json::storage_ptr(element_storage_ != nullptr ? element_storage_ : &element_memory_));
@@ -235,6 +317,10 @@ class StrictHandler {
   void end_element() {
     if (!in_element_ || depth_ != kSplitDepth) return;
     in_element_ = false;
+    if (log_ != nullptr) {
+      event_sink_(element_index_++, *log_, element_begin_);
+      return;
+    }
     {
       json::value element = element_stack_.release();
       sink_(element_index_++, element);
@@ -260,6 +346,9 @@ class StrictHandler {
   // being built.
   std::string split_key_;
   StrictParser::ElementSink sink_;
+  StrictParser::EventSink event_sink_;  // record_elements: the elements go here as events in log_
+  EventLog* log_ = nullptr;
+  EventLog::Mark element_begin_;
   bool split_seen_ = false;
   bool in_split_ = false;
   bool in_element_ = false;
@@ -285,6 +374,63 @@ std::string describe_parse_error(const json::error_code& ec, std::size_t max_dep
 }
 
 }  // namespace
+
+double precise_double(std::string_view text, double boost_value) {
+  // from_chars is correctly rounded; Boost 1.81's conversion is not (see the header).
+  double d = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), d, std::chars_format::general);
+  // On overflow/underflow from_chars leaves `d` alone; Boost's value (+-inf, or a value near
+  // zero) is then the right one, and the reader reports the out-of-range number by path.
+  if (ec != std::errc() || end != text.data() + text.size()) return boost_value;
+  return d;
+}
+
+void EventLog::grow_text(std::size_t more) {
+  text_.resize(std::max({std::size_t(4096), 2 * text_.size(), text_size_ + more}));
+}
+
+json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const {
+  // The value_stack the parser's handler builds with, fed the same events: the same value.
+  json::value_stack stack(storage);
+  stack.reset(std::move(storage));
+  Cursor c(*this, from, to);
+  while (c.next()) {
+    const Event& e = c.event();
+    switch (e.kind()) {
+      case Kind::kObjectBegin:
+      case Kind::kArrayBegin:
+        break;
+      case Kind::kObjectEnd:
+        stack.push_object(e.size());
+        break;
+      case Kind::kArrayEnd:
+        stack.push_array(e.size());
+        break;
+      case Kind::kKey:
+        stack.push_key(c.text());
+        break;
+      case Kind::kString:
+        stack.push_string(c.text());
+        break;
+      case Kind::kInt64:
+        stack.push_int64(e.i);
+        break;
+      case Kind::kUint64:
+        stack.push_uint64(e.u);
+        break;
+      case Kind::kDouble:
+        stack.push_double(precise_double(c.text(), e.d));
+        break;
+      case Kind::kBool:
+        stack.push_bool(e.b);
+        break;
+      case Kind::kNull:
+        stack.push_null();
+        break;
+    }
+  }
+  return stack.release();
+}
 
 Utf8Sequence utf8_at(std::string_view text, std::size_t i) {
   const auto c = static_cast<unsigned char>(text[i]);
@@ -432,6 +578,12 @@ void StrictParser::split_array(std::string root_key, ElementSink sink) {
 
 bool StrictParser::split_seen() const { return impl_->parser.handler().split_seen(); }
 
+void StrictParser::record_elements(std::string root_key, EventLog* log, EventSink sink) {
+  impl_->parser.handler().record_elements(std::move(root_key), log, std::move(sink));
+}
+
+void StrictParser::set_event_log(EventLog* log) { impl_->parser.handler().set_event_log(log); }
+
 void StrictParser::set_element_storage(boost::json::monotonic_resource* memory) {
   impl_->parser.handler().set_element_storage(memory);
 }
@@ -446,11 +598,15 @@ bool StrictParser::write(std::string_view piece) {
     im.fail(piece, consumed, ec);
     return false;
   }
-  const std::size_t last = piece.rfind('\n');
-  if (last != std::string_view::npos) {
-    im.line += static_cast<std::size_t>(std::count(piece.begin(), piece.end(), '\n'));
-    im.line_start = im.offset + last + 1;
+  // Found forwards, by memchr: rfind goes back a byte at a time, and std::count widens every byte,
+  // which through a 1 MiB piece without a newline (a scene written on one line) took 8 % and then
+  // 6 % of a large scene's parsing thread.
+  std::size_t last = std::string_view::npos;
+  for (std::size_t at = piece.find('\n'); at != std::string_view::npos; at = piece.find('\n', at + 1)) {
+    ++im.line;
+    last = at;
   }
+  if (last != std::string_view::npos) im.line_start = im.offset + last + 1;
   im.offset += piece.size();
   return true;
 }

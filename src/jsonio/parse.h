@@ -16,10 +16,13 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
+#include <cstring>
 #include <functional>
 #include <memory>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include <boost/json/memory_resource.hpp>
 #include <boost/json/monotonic_resource.hpp>
@@ -45,6 +48,133 @@ struct Document {
 Document parse_strict(std::string_view text, std::size_t max_depth, std::size_t max_errors,
                       boost::json::storage_ptr storage = {});
 
+// The double parse_strict gives for the JSON number `text` that Boost converted to `boost_value`:
+// std::from_chars's, correctly rounded, or Boost's where from_chars has none (out of range).
+double precise_double(std::string_view text, double boost_value);
+
+// The parse events of a split array's elements, recorded in order instead of built into values
+// (StrictParser::record_elements): a consumer can read an element of a shape it knows straight
+// from the events, and build the value (build) of any other, the value parse_strict would have
+// built. Keys and strings are whole (their parts joined); a number keeps Boost's value, and a
+// double its text too, so that precise_double converts it on the consumer's thread.
+class EventLog {
+ public:
+  enum class Kind : std::uint8_t {
+    kObjectBegin,
+    kObjectEnd,  // size(): the object's key count
+    kArrayBegin,
+    kArrayEnd,  // size(): the array's element count
+    kKey,       // size(): its text's length, as for kString and kDouble
+    kString,
+    kInt64,
+    kUint64,
+    kDouble,
+    kBool,
+    kNull,
+  };
+  struct Event {
+    std::uint64_t kind_size = 0;  // the kind in the low 8 bits, the size above
+    union {
+      double d;
+      std::int64_t i;
+      std::uint64_t u;
+      bool b;
+    };
+    Kind kind() const { return static_cast<Kind>(kind_size & 0xff); }
+    std::uint64_t size() const { return kind_size >> 8; }
+  };
+  // A place in the log: an element starts at one and ends at the next (or at the log's end).
+  struct Mark {
+    std::size_t event = 0;
+    std::size_t text = 0;
+  };
+
+  // The events from one mark to another, in order; text() is the current event's text (a key,
+  // a string or a double's digits), empty for the others.
+  class Cursor {
+   public:
+    Cursor(const EventLog& log, Mark from, Mark to) : log_(log), at_(from), end_(to.event) {}
+    // The next event, or false at the end.
+    bool next() {
+      if (at_.event == end_) return false;
+      at_.text += text_size_;
+      event_ = &log_.events_[at_.event++];
+      const Kind k = event_->kind();
+      text_size_ = k == Kind::kKey || k == Kind::kString || k == Kind::kDouble ? event_->size() : 0;
+      return true;
+    }
+    // The next event, when it is of kind `k`.
+    bool next(Kind k) { return next() && event_->kind() == k; }
+    bool done() const { return at_.event == end_; }
+    const Event& event() const { return *event_; }
+    Kind kind() const { return event_->kind(); }
+    std::string_view text() const { return std::string_view(log_.text_.data() + at_.text, text_size_); }
+
+   private:
+    const EventLog& log_;
+    Mark at_;
+    std::size_t end_;
+    const Event* event_ = nullptr;
+    std::size_t text_size_ = 0;
+  };
+
+  Mark mark() const { return {events_.size(), text_size_}; }
+  bool empty() const { return events_.empty(); }
+  // Forgets every event; keeps the memory.
+  void clear() {
+    events_.clear();
+    text_size_ = 0;
+    pending_ = 0;
+  }
+  // The value of the events from `from` to `to` (one whole value), on `storage`.
+  boost::json::value build(Mark from, Mark to, boost::json::storage_ptr storage = {}) const;
+
+  // Recording (the parser's handler).
+  void add(Kind k, std::uint64_t size = 0) { events_.push_back(make(k, size)); }
+  void add_int64(std::int64_t i) {
+    Event& e = events_.emplace_back(make(Kind::kInt64, 0));
+    e.i = i;
+  }
+  void add_uint64(std::uint64_t u) {
+    Event& e = events_.emplace_back(make(Kind::kUint64, 0));
+    e.u = u;
+  }
+  void add_bool(bool b) {
+    Event& e = events_.emplace_back(make(Kind::kBool, 0));
+    e.b = b;
+  }
+  // A part of the next key's, string's or double's text.
+  void add_part(std::string_view part) {
+    if (text_.size() - text_size_ < part.size()) grow_text(part.size());
+    std::memcpy(text_.data() + text_size_, part.data(), part.size());
+    text_size_ += part.size();
+    pending_ += part.size();
+  }
+  // A key, string or double whose text ends with `last` (after the parts added before).
+  void add_text(Kind k, std::string_view last, double d = 0) {
+    add_part(last);
+    Event& e = events_.emplace_back(make(k, pending_));
+    e.d = d;
+    pending_ = 0;
+  }
+
+ private:
+  static Event make(Kind k, std::uint64_t size) {
+    Event e;
+    e.kind_size = (size << 8) | static_cast<std::uint64_t>(k);
+    e.u = 0;
+    return e;
+  }
+  void grow_text(std::size_t more);
+
+  std::vector<Event> events_;
+  // The texts, end to end: the first text_size_ bytes of text_ (whose size is its capacity, so
+  // that an append is one memcpy, not std::string's out-of-line append).
+  std::vector<char> text_;
+  std::size_t text_size_ = 0;
+  std::size_t pending_ = 0;  // bytes of text added as parts of the next event
+};
+
 // parse_strict for text that arrives in pieces (a large file read a block at a time), with one
 // more feature for documents too large to hold as a tree: the elements of one array just below the
 // root object (e.g. "scene_objects") can be handed to a callback one at a time, as each completes,
@@ -62,9 +192,19 @@ class StrictParser {
   StrictParser(const StrictParser&) = delete;
   StrictParser& operator=(const StrictParser&) = delete;
 
+  // Called with each element of the split array as its events in `log`, from `begin` to the log's
+  // end (record_elements).
+  using EventSink = std::function<void(std::size_t index, const EventLog& log, EventLog::Mark begin)>;
+
   // Elements of the array under `root_key` of the root object go to `sink`, not into the document.
   // Call before the first write.
   void split_array(std::string root_key, ElementSink sink);
+  // The same, but the elements are recorded into `log` (the caller's, alive while the parser
+  // writes to it; the sink may clear it, or give another with set_event_log, after an element)
+  // and handed over as events: no value is built for them. The same errors (a duplicate key in
+  // an element too) as split_array. Call before the first write.
+  void record_elements(std::string root_key, EventLog* log, EventSink sink);
+  void set_event_log(EventLog* log);
   // Where the next elements of the split array are built (null: the parser's own memory, reused
   // element after element). The caller owns `memory` and keeps it alive as long as the values
   // built on it; it may change it at any time, also from within the sink (then it applies from

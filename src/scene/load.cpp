@@ -140,6 +140,28 @@ struct StreamedObjects {
   // parsed: the objects seen per byte so far predict how many there are in all.
   std::uint64_t total_bytes = 0;
   std::uint64_t bytes_before_piece = 0;
+  // Where the values of elements read by read_object are built, the first 64 KiB of each.
+  static constexpr std::size_t kValueBuffer = std::size_t(64) << 10;
+  std::unique_ptr<unsigned char[]> value_buffer = std::make_unique_for_overwrite<unsigned char[]>(kValueBuffer);
+
+  // Element `i`, recorded by the parser from `from` to `to` in `log`: a sphere of the common shape
+  // is read from the events (detail::read_plain_sphere); any other element, or a sphere with a
+  // problem, is built into a value and read by read_object, which reports its problems.
+  void read(std::size_t i, const jsonio::EventLog& log, jsonio::EventLog::Mark from, jsonio::EventLog::Mark to) {
+    if (i >= kMaxObjects) {
+      ++count;
+      return;  // one error at the end, as for a document
+    }
+    if (std::optional<Object> sphere = detail::read_plain_sphere(log, from, to)) {
+      ++count;
+      keep(i, std::move(sphere));
+      return;
+    }
+    // A fresh arena for each value (Boost 1.81's release() would keep its grown block size).
+    json::monotonic_resource arena(value_buffer.get(), kValueBuffer);
+    const json::value v = log.build(from, to, &arena);
+    read(i, v);
+  }
 
   void read(std::size_t i, const json::value& v) {
     ++count;
@@ -147,7 +169,11 @@ struct StreamedObjects {
     const Path root;
     const Path at = root.key("scene_objects");
     s.index = static_cast<std::uint32_t>(i);
-    auto element = detail::read_object(s, v, at.index(i));
+    keep(i, detail::read_object(s, v, at.index(i)));
+  }
+
+  // The end of reading element `i`: `element` read (nullopt: it had problems, reported).
+  void keep(std::size_t i, std::optional<Object> element) {
     if (s.r.failed()) {
       std::vector<Object>().swap(objects);  // the scene will not load: keep no memory for it
     } else if (element) {
@@ -244,17 +270,24 @@ namespace {
 constexpr std::size_t kReadPiece = std::size_t(1) << 20;  // bytes per read of a scene file
 
 // The objects' half of a load, on a thread of its own for a large text: the parser (the calling
-// thread) builds each element of "scene_objects" in the arena of a batch (no copy), and the reader
-// thread turns whole batches into objects, in order, while the parser reads on. Every object is read by the one
-// StreamedObjects::read, in file order, so the objects, errors, warnings and tracks are the same
-// as reading them inline, which is what a small text does (LoadOptions::parallel_min_bytes).
+// thread) records the events of each element of "scene_objects" in the log of a batch (no value
+// is built), and the reader thread turns whole batches into objects, in order, while the parser
+// reads on; the reader thread also converts the doubles, so the two threads share the work. Every
+// object is read by the one StreamedObjects::read, in file order, so the objects, errors, warnings
+// and tracks are the same as reading them inline, which is what a small text does
+// (LoadOptions::parallel_min_bytes).
 class ObjectPipeline {
  public:
-  // Declared before the parser, so that the arenas outlive the values it may still hold.
+  // Declared before the parser, so that the logs outlive its use of them.
   explicit ObjectPipeline(StreamedObjects& streamed) : streamed_(streamed) {}
-  // Threaded: elements are built in batch arenas and read on a thread of the pipeline's own.
-  void start(jsonio::StrictParser& parser) {
+  // The elements of "scene_objects" go from `parser` to the pipeline; `threaded`: they are
+  // recorded in batches and read on a thread of the pipeline's own.
+  void attach(jsonio::StrictParser& parser, bool threaded) {
     parser_ = &parser;
+    parser.record_elements(
+        "scene_objects", &inline_log_,
+        [this](std::size_t i, const jsonio::EventLog& log, jsonio::EventLog::Mark begin) { element(i, log, begin); });
+    if (!threaded) return;
     for (auto& b : batches_) free_.push_back(b.get());
     start_batch();
     reader_ = std::thread([this] { run(); });
@@ -263,16 +296,18 @@ class ObjectPipeline {
   ObjectPipeline(const ObjectPipeline&) = delete;
   ObjectPipeline& operator=(const ObjectPipeline&) = delete;
 
-  // Parser thread: one element, built in the filling batch's arena when threaded.
-  void element(std::size_t i, json::value& v) {
+  // Parser thread: one element, from `begin` to the end of `log` (the filling batch's when
+  // threaded).
+  void element(std::size_t i, const jsonio::EventLog& log, jsonio::EventLog::Mark begin) {
     if (!reader_.joinable()) {
-      streamed_.read(i, v);
+      streamed_.read(i, log, begin, log.mark());
+      reuse(inline_log_);
       return;
     }
-    if (filling_->values.empty()) filling_->first = i;
-    filling_->values.push_back(std::move(v));
+    if (filling_->spans.empty()) filling_->first = i;
+    filling_->spans.push_back({begin, log.mark()});
     filling_->bytes_before_piece.push_back(bytes_before_piece_);
-    if (filling_->values.size() == kBatchElements) {
+    if (filling_->spans.size() == kBatchElements) {
       submit();
       start_batch();
     }
@@ -292,7 +327,7 @@ class ObjectPipeline {
  private:
   void stop_reader() {
     if (!reader_.joinable()) return;
-    if (!filling_->values.empty()) {
+    if (!filling_->spans.empty()) {
       submit();
     } else {
       std::lock_guard lock(mutex_);
@@ -307,29 +342,36 @@ class ObjectPipeline {
     reader_.join();
   }
 
+  // A log is kept for the next elements, its memory too, unless an element (an inline mesh) made
+  // it large: that memory is returned rather than held to the end of the load.
+  static void reuse(jsonio::EventLog& log) {
+    constexpr std::size_t kKeepTextBytes = std::size_t(16) << 20;  // 2048 spheres: about 0.5 MiB
+    if (log.mark().text > kKeepTextBytes) {
+      log = jsonio::EventLog();
+    } else {
+      log.clear();
+    }
+  }
+
   static constexpr std::size_t kBatchElements = 2048;
   static constexpr std::size_t kBatches = 3;  // one filling, one being read, one spare
-  // A batch's arena starts in a buffer of its own, reused batch after batch (its pages stay
-  // mapped); a batch of larger elements (inline meshes) continues on the heap.
-  static constexpr std::size_t kArenaBytes = std::size_t(4) << 20;
+  // A batch's log keeps its memory batch after batch (its pages stay mapped).
   struct Batch {
-    std::unique_ptr<unsigned char[]> buffer = std::make_unique_for_overwrite<unsigned char[]>(kArenaBytes);
-    // New per batch: Boost 1.81's release() keeps the grown block size, which then doubles
-    // batch after batch until an allocation fails.
-    std::unique_ptr<json::monotonic_resource> arena =
-        std::make_unique<json::monotonic_resource>(buffer.get(), kArenaBytes);
-    std::vector<json::value> values;
-    std::size_t first = 0;                          // index of values[0] in "scene_objects"
-    std::vector<std::uint64_t> bytes_before_piece;  // per value, when it was parsed
+    jsonio::EventLog log;
+    // Where each element starts and ends in `log` (after a syntax error, the log goes on with
+    // the events of an element never completed).
+    std::vector<std::pair<jsonio::EventLog::Mark, jsonio::EventLog::Mark>> spans;
+    std::size_t first = 0;                          // index of the first element in "scene_objects"
+    std::vector<std::uint64_t> bytes_before_piece;  // per element, when it was parsed
   };
 
-  // The next elements are built in a free batch's arena (waiting for the reader to free one).
+  // The next elements are recorded in a free batch's log (waiting for the reader to free one).
   void start_batch() {
     std::unique_lock lock(mutex_);
     free_cv_.wait(lock, [this] { return !free_.empty(); });
     filling_ = free_.back();
     free_.pop_back();
-    parser_->set_element_storage(filling_->arena.get());
+    parser_->set_event_log(&filling_->log);
   }
   void submit() {
     {
@@ -353,17 +395,17 @@ class ObjectPipeline {
       // for a free batch that does not come; finish() throws the error on the parser thread.
       if (!error_) {
         try {
-          for (std::size_t k = 0; k < b->values.size(); ++k) {
+          for (std::size_t k = 0; k < b->spans.size(); ++k) {
             streamed_.bytes_before_piece = b->bytes_before_piece[k];
-            streamed_.read(b->first + k, b->values[k]);
+            streamed_.read(b->first + k, b->log, b->spans[k].first, b->spans[k].second);
           }
         } catch (...) {
           error_ = std::current_exception();
         }
       }
-      b->values.clear();
+      reuse(b->log);
+      b->spans.clear();
       b->bytes_before_piece.clear();
-      b->arena = std::make_unique<json::monotonic_resource>(b->buffer.get(), kArenaBytes);
       {
         std::lock_guard lock(mutex_);
         free_.push_back(b);
@@ -372,8 +414,9 @@ class ObjectPipeline {
     }
   }
 
-  StreamedObjects& streamed_;               // touched only by the reader thread while it runs
-  jsonio::StrictParser* parser_ = nullptr;  // threaded
+  StreamedObjects& streamed_;  // touched only by the reader thread while it runs
+  jsonio::StrictParser* parser_ = nullptr;
+  jsonio::EventLog inline_log_;  // not threaded: one element at a time
   std::array<std::unique_ptr<Batch>, kBatches> batches_ = {std::make_unique<Batch>(), std::make_unique<Batch>(),
                                                            std::make_unique<Batch>()};
   Batch* filling_ = nullptr;  // parser thread
@@ -415,8 +458,7 @@ LoadResult load_streaming(const std::string& file_name, const LoadOptions& optio
     json::monotonic_resource arena;
     ObjectPipeline pipeline(streamed);
     jsonio::StrictParser parser(kMaxJsonDepth, options.max_errors > 0 ? options.max_errors - 1 : 0, &arena);
-    if (total_bytes >= options.parallel_min_bytes) pipeline.start(parser);
-    parser.split_array("scene_objects", [&pipeline](std::size_t i, json::value& v) { pipeline.element(i, v); });
+    pipeline.attach(parser, total_bytes >= options.parallel_min_bytes);
     Feeder feeder{parser, pipeline};
     if (std::optional<util::Error> failed = feed(feeder)) {
       LoadResult result;

@@ -561,7 +561,144 @@ class ObjectReader {
   jsonio::Reader& r_;
 };
 
+// ---- plain spheres from parse events (read_plain_sphere) ---------------------------------------
+// Each check below is one read_object makes on a sphere; a value that fails it sends the element
+// to read_object, which reports it.
+
+using jsonio::EventLog;
+
+// The next event as read_float would read it: a finite number within the float range, -0 as +0.
+std::optional<double> plain_float(EventLog::Cursor& c) {
+  if (!c.next()) return std::nullopt;
+  double d = 0;
+  switch (c.kind()) {
+    case EventLog::Kind::kInt64:
+      d = static_cast<double>(c.event().i);
+      break;
+    case EventLog::Kind::kUint64:
+      d = static_cast<double>(c.event().u);
+      break;
+    case EventLog::Kind::kDouble:
+      d = jsonio::precise_double(c.text(), c.event().d);
+      break;
+    default:
+      return std::nullopt;
+  }
+  if (!std::isfinite(d) || std::abs(d) > kFloatMax) return std::nullopt;
+  return d == 0 ? 0.0 : d;
+}
+
+// [x, y, z] of plain_float (read_vec3); an object (an animation track) is not plain.
+bool plain_vec3(EventLog::Cursor& c, Vec3d& out) {
+  if (!c.next(EventLog::Kind::kArrayBegin)) return false;
+  for (std::size_t i = 0; i < 3; ++i) {
+    const std::optional<double> d = plain_float(c);
+    if (!d) return false;
+    out[i] = *d;
+  }
+  return c.next(EventLog::Kind::kArrayEnd);
+}
+
+// A number in [lo, hi] (float_in).
+bool plain_float_in(EventLog::Cursor& c, double lo, double hi, double& out) {
+  const std::optional<double> d = plain_float(c);
+  if (!d || !(*d >= lo && *d <= hi)) return false;
+  out = *d;
+  return true;
+}
+
+// read_material's checks, each key once.
+bool plain_material(EventLog::Cursor& c, Material& m) {
+  if (!c.next(EventLog::Kind::kObjectBegin)) return false;
+  unsigned seen = 0;
+  while (c.next()) {
+    if (c.kind() == EventLog::Kind::kObjectEnd) {
+      return m.reflectivity + m.transparency <= 1 + kEnergySlack;
+    }
+    const std::string_view key = c.text();  // a key: an object holds keys and values
+    std::size_t k = 0;
+    while (k < kMaterialKeys.size() && kMaterialKeys[k] != key) ++k;
+    if (k == kMaterialKeys.size() || (seen & (1u << k)) != 0) return false;
+    seen |= 1u << k;
+    bool ok = false;
+    switch (k) {
+      case 0:  // color: albedo(), each channel in [0, kMaxAlbedo]
+        ok = plain_vec3(c, m.color) && m.color.x >= 0 && m.color.y >= 0 && m.color.z >= 0 && m.color.x <= kMaxAlbedo &&
+             m.color.y <= kMaxAlbedo && m.color.z <= kMaxAlbedo;
+        break;
+      case 1:
+        ok = plain_float_in(c, 0, 1, m.diffuse);
+        break;
+      case 2:
+        ok = plain_float_in(c, 0, 1, m.specular);
+        break;
+      case 3:
+        ok = plain_float_in(c, 0, kMaxShininess, m.shininess);
+        break;
+      case 4:
+        ok = plain_float_in(c, 0, 1, m.reflectivity);
+        break;
+      case 5:
+        ok = plain_float_in(c, 0, 1, m.transparency);
+        break;
+      case 6:  // ior: size_in(kMinIor, kMaxIor), positive first
+        ok = plain_float_in(c, kMinIor, kMaxIor, m.ior) && m.ior > 0;
+        break;
+    }
+    if (!ok) return false;
+  }
+  return false;
+}
+
 }  // namespace
+
+std::optional<Object> read_plain_sphere(const jsonio::EventLog& log, jsonio::EventLog::Mark from,
+                                        jsonio::EventLog::Mark to) {
+  EventLog::Cursor c(log, from, to);
+  if (!c.next(EventLog::Kind::kObjectBegin)) return std::nullopt;
+  // As read_object builds it.
+  Object out;
+  out.type = ObjectType::kSphere;
+  out.sphere = Sphere{};
+  constexpr unsigned kType = 1, kLoc = 2, kRadius = 4, kMaterial = 8;
+  unsigned seen = 0;
+  bool closed = false;
+  while (c.next()) {
+    if (c.kind() == EventLog::Kind::kObjectEnd) {
+      closed = true;
+      break;
+    }
+    const std::string_view key = c.text();
+    unsigned bit = 0;
+    bool ok = false;
+    if (key == "type") {
+      bit = kType;
+      ok = c.next(EventLog::Kind::kString) && c.text() == kObjectTypeNames[0];
+    } else if (key == "loc") {
+      bit = kLoc;
+      ok = plain_vec3(c, out.sphere.center);
+    } else if (key == "radius") {
+      bit = kRadius;
+      // positive_float(): > 0 and a normal float.
+      const std::optional<double> r = plain_float(c);
+      ok = r && *r > 0 && normal_as_float(*r);
+      if (ok) out.sphere.radius = *r;
+    } else if (key == "material") {
+      bit = kMaterial;
+      ok = plain_material(c, out.material);
+    }
+    if (!ok || (seen & bit) != 0) return std::nullopt;
+    seen |= bit;
+  }
+  if (!closed || !c.done() || (seen & (kType | kLoc | kRadius)) != (kType | kLoc | kRadius)) {
+    return std::nullopt;
+  }
+  // read_sphere: the bounds are finite floats.
+  for (std::size_t i = 0; i < 3; ++i) {
+    if (!std::isfinite(static_cast<float>(std::abs(out.sphere.center[i]) + out.sphere.radius))) return std::nullopt;
+  }
+  return out;
+}
 
 std::optional<Object> read_object(SceneReader& s, const json::value& v, const Path& at) {
   return ObjectReader(s).object(s.r.object(v, at), at);

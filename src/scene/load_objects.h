@@ -13,6 +13,7 @@
 
 #include <boost/json/value.hpp>
 
+#include "jsonio/parse.h"
 #include "jsonio/reader.h"
 #include "scene/animation.h"
 #include "scene/description.h"
@@ -55,5 +56,14 @@ struct SceneReader {
 // One element of "scene_objects" / "scene_lights", or nullopt after reporting its problems.
 std::optional<Object> read_object(SceneReader& s, const boost::json::value& v, const jsonio::Path& at);
 std::optional<Light> read_light(SceneReader& s, const boost::json::value& v, const jsonio::Path& at);
+
+// The object read_object would read, without a word, from the element of "scene_objects" whose
+// parse events are `from` to `to` in `log`, when it is a sphere of the common shape: the keys
+// "type" ("sphere"), "loc" and "radius" and maybe "material", each once, with plain numbers (no
+// animation) and nothing else, every value valid. Nullopt for anything else, a problem included:
+// then read_object reads the element's value and reports it. Reports nothing; the sphere's bits
+// are read_object's (the same conversion, the same -0 to +0).
+std::optional<Object> read_plain_sphere(const jsonio::EventLog& log, jsonio::EventLog::Mark from,
+                                        jsonio::EventLog::Mark to);
 
 }  // namespace dtraced::scene::detail
