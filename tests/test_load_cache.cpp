@@ -3,15 +3,18 @@
 // JSON; a cache file that is corrupt, truncated, of another version or of another scene is an
 // error naming the file, and prepare_scene then loads the JSON (and writes the cache again).
 #include <chrono>
+#include <cstddef>
 #include <cstdint>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <new>
 #include <string>
 #include <vector>
 
 #include <catch2/catch.hpp>
 
+#include "accel/geometry.h"
 #include "accel/isa.h"
 #include "render/render_scene.h"
 #include "render/tile.h"
@@ -191,4 +194,46 @@ TEST_CASE("the scene cache keeps its most recently used files and nothing else i
   CHECK(std::filesystem::exists(root / "scene3.dtscene"));
   CHECK(std::filesystem::exists(root / "scene4.dtscene"));
   CHECK(std::filesystem::exists(root / "notes.txt"));
+}
+
+TEST_CASE("a shape's bytes do not depend on what its memory held before", "[load][cache]") {
+  // The cache file holds shapes as they are in memory, and its checksums cover them: two workers
+  // writing the same scene must write the same bytes. Build shapes in memory filled with 0xAB
+  // and check every byte that no member holds is zero.
+  for (const accel::ShapeType type :
+       {accel::ShapeType::kSphere, accel::ShapeType::kBox, accel::ShapeType::kPlane, accel::ShapeType::kTriangle}) {
+    alignas(accel::Shape) unsigned char memory[sizeof(accel::Shape)];
+    // Volatile: a memset before the placement new is a dead store the optimiser may drop.
+    volatile unsigned char* fill = memory;
+    for (std::size_t i = 0; i < sizeof memory; ++i) fill[i] = 0xAB;
+    accel::Shape* s = new (memory) accel::Shape();
+    s->type = type;
+    std::size_t used = 0;  // bytes of the union the member holds
+    switch (type) {
+      case accel::ShapeType::kSphere:
+        s->sphere = {{1, 2, 3}, 4};
+        used = sizeof(accel::SphereShape);
+        break;
+      case accel::ShapeType::kBox:
+        s->box = {{0, 0, 0}, {1, 1, 1}};
+        used = sizeof(accel::BoxShape);
+        break;
+      case accel::ShapeType::kPlane:
+        s->plane = {{0, 0, 0}, {0, 1, 0}};
+        used = sizeof(accel::PlaneShape);
+        break;
+      case accel::ShapeType::kTriangle:
+        s->triangle = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+        used = sizeof(accel::TriangleShape);
+        break;
+    }
+    accel::Shape copy = *s;  // what a vector of shapes holds
+    unsigned char bytes[sizeof(accel::Shape)];
+    std::memcpy(bytes, &copy, sizeof bytes);
+    const std::size_t member = offsetof(accel::Shape, sphere);
+    INFO("shape type " << int(type));
+    for (std::size_t i = sizeof(accel::ShapeType); i < member; ++i) CHECK(int(bytes[i]) == 0);
+    for (std::size_t i = member + used; i < sizeof bytes; ++i) CHECK(int(bytes[i]) == 0);
+    s->~Shape();
+  }
 }

@@ -64,14 +64,20 @@ enum class ShapeType : std::uint8_t { kSphere, kBox, kPlane, kTriangle };
 // One shape: `type` says which member holds it. The members share their storage (40 bytes where
 // one field per type took 104: at 10M spheres that is 640 MB), so set `type` and assign the
 // member whole (`s.type = ShapeType::kBox; s.box = {lo, hi};`) and read only that member.
+// Every byte of a Shape is set, padding included: shapes are written to files as they are (the
+// worker's scene cache) and checksummed, which must not depend on what the memory held before.
+// The constructor zeroes the whole union, then makes the sphere (radius 1) its member; a member
+// assigned later leaves the bytes past its end as they were.
 struct Shape {
-  Shape() : sphere() {}
+  Shape() : bytes_{} { sphere = SphereShape{}; }
   ShapeType type = ShapeType::kSphere;
+  std::uint8_t padding_[3] = {};
   union {
     SphereShape sphere;
     BoxShape box;
     PlaneShape plane;
     TriangleShape triangle;
+    std::uint8_t bytes_[sizeof(TriangleShape)];
   };
 };
 static_assert(sizeof(Shape) == 40);
