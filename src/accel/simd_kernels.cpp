@@ -480,9 +480,21 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  LaneUvw tri;               // edge functions of the latest triangle8 (nearest hits only)
-  TriangleUvw best_uvw[kP];  // those of each lane's best, when it is a triangle
-  bool uniform_signs;        // every lane has the direction signs sign[0..2]
+  LaneUvw tri;  // edge functions of the latest triangle8 (nearest hits only)
+  // Those of each lane's best, when it is a triangle: the float ones of a packet test in bu, bv, bw,
+  // bdet (lanes of uvw_soa, set a vector at a time), others (double fallback, single rays) in
+  // best_uvw.
+  alignas(64) float bu[kP];
+  alignas(64) float bv[kP];
+  alignas(64) float bw[kP];
+  alignas(64) float bdet[kP];
+  std::uint32_t uvw_soa;
+  TriangleUvw best_uvw[kP];
+  TriangleUvw best_of(int i) const {
+    if (uvw_soa >> i & 1u) return {double(bu[i]), double(bv[i]), double(bw[i]), double(bdet[i])};
+    return best_uvw[i];
+  }
+  bool uniform_signs;  // every lane has the direction signs sign[0..2]
   std::uint32_t sign[3];
   bool uniform_axes;  // every lane has the shear axes axis[0..2] (kx, ky, kz)
   std::uint32_t axis[3];
@@ -579,11 +591,12 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
       axis_bits[k] |= low_bits(mb, n) << i;
     }
   }
-  // The sphere test's double copies and a = |d|^2, as make_single computes it.
+  // The sphere test's double copies and a = |d|^2, as make_single computes it (only sphere8
+  // reads them: a tree without spheres skips them).
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const std::size_t nd = hn::Lanes(dd);
-  for (std::size_t i = 0; i < std::size_t(kP); i += nd) {
+  for (std::size_t i = 0; i < (bvh.spheres.empty() ? 0 : std::size_t(kP)); i += nd) {
     hn::Vec<decltype(dd)> dv[3];
     for (int a = 0; a < 3; ++a) {
       dv[a] = hn::PromoteTo(dd, hn::LoadU(df, dir[a] + i));
@@ -711,18 +724,46 @@ inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std
     }
   }
   if (kAnyHit) return lt & mask;
+  if (((lt | eq) & mask) == 0) return 0;
+  // better(): t < best, or t == best and id < best id, a vector at a time (ids compared as signed
+  // after flipping the top bit: the unsigned order).
+  const hn::RebindToUnsigned<decltype(d)> du;
+  const hn::RebindToSigned<decltype(d)> di;
+  const auto top = hn::Set(du, 0x80000000u);
+  const auto idv = hn::Set(du, id);
+  const auto ids = hn::BitCast(di, hn::Xor(idv, top));
   std::uint32_t out = 0;
-  std::uint32_t m = (lt | eq) & mask;
-  while (m != 0) {
-    const int i = std::countr_zero(m);
-    m &= m - 1;
-    if (better(t[i], id, p.best[i], p.id[i])) {
-      p.best[i] = t[i];
-      p.id[i] = id;
-      p.cull[i] = t[i] * kFarScale;
-      if (uvw != nullptr) p.best_uvw[i] = uvw->get(std::size_t(i));
-      out |= 1u << i;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto tv = hn::LoadU(d, t + i), best = hn::LoadU(d, p.best + i);
+    const auto old_id = hn::LoadU(du, p.id + i);
+    const auto id_lt = hn::RebindMask(d, hn::Lt(ids, hn::BitCast(di, hn::Xor(old_id, top))));
+    const auto active = hn::RebindMask(d, hn::TestBit(hn::Set(du, mask), hn::Load(du, kLaneBit + i)));
+    const auto win = hn::And(active, hn::Or(hn::Lt(tv, best), hn::And(hn::Eq(tv, best), id_lt)));
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, win, mb);
+    const std::uint32_t bits = low_bits(mb, n);
+    if (bits == 0) continue;
+    out |= bits << i;
+    hn::StoreU(hn::IfThenElse(win, tv, best), d, p.best + i);
+    hn::StoreU(hn::IfThenElse(win, hn::Mul(tv, hn::Set(d, kFarScale)), hn::LoadU(d, p.cull + i)), d, p.cull + i);
+    hn::StoreU(hn::IfThenElse(hn::RebindMask(du, win), idv, old_id), du, p.id + i);
+    if (uvw != nullptr) {
+      float* const dst[4] = {p.bu + i, p.bv + i, p.bw + i, p.bdet + i};
+      const float* const src[4] = {uvw->u + i, uvw->v + i, uvw->w + i, uvw->det + i};
+      for (int k = 0; k < 4; ++k)
+        hn::StoreU(hn::IfThenElse(win, hn::LoadU(d, src[k]), hn::LoadU(d, dst[k])), d, dst[k]);
     }
+  }
+  if (uvw == nullptr) {
+    p.uvw_soa &= ~out;
+    return out;
+  }
+  // The rare lanes whose edge functions came from the double fallback keep them in best_uvw.
+  p.uvw_soa |= out & ~uvw->fallback;
+  for (std::uint32_t m = out & uvw->fallback; m != 0; m &= m - 1) {
+    const int i = std::countr_zero(m);
+    p.best_uvw[i] = uvw->fb[i];
+    p.uvw_soa &= ~(1u << i);
   }
   return out;
 }
@@ -919,6 +960,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
             alive &= ~(1u << i);
           } else {
             p.cull[i] = p.best[i] * kFarScale;
+            p.uvw_soa &= ~(1u << i);
           }
         }
       }
@@ -1142,6 +1184,7 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
             alive &= ~(1u << i);
           } else {
             p.cull[i] = p.best[i] * kFarScale;
+            p.uvw_soa &= ~(1u << i);
           }
         }
       }
@@ -1211,12 +1254,13 @@ std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_
     p.id[i] = best_id[i];
     p.cull[i] = p.best[i] * kFarScale;
   }
+  p.uvw_soa = 0;
   const std::uint32_t improved = traverse_packet<kP, false>(bvh, p, valid);
   for (int i = 0; i < kP; ++i) {
     if (improved >> i & 1u) {
       best_t[i] = p.best[i];
       best_id[i] = p.id[i];
-      uvw[i] = p.best_uvw[i];
+      uvw[i] = p.best_of(i);
     }
   }
   return improved;
