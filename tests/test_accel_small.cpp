@@ -414,14 +414,15 @@ TEST_CASE("triangle-only leaves are described by their child reference, other le
   }
 }
 
-TEST_CASE("coherent 16-ray packets (shared direction signs) answer as the scalar path", "[accel][small]") {
-  // 16-ray packets whose lanes share their direction signs take a traversal of the packet as a
+TEST_CASE("coherent packets (shared direction signs) answer as the scalar path", "[accel][small]") {
+  // Packets whose lanes share their direction signs take a traversal of the packet as a
   // whole: a frustum of the lanes' origins and inverse directions bounds each child's entry and
   // exit distances, and a stack entry keeps one entry distance for all its lanes. Exercise the
   // bounds where they are loosest or degenerate: lanes from scattered origins with their own
   // t_min and t_max (shadow-like), a direction component exactly +0 or -0 in every lane (an
   // infinite inverse: that axis bounds nothing), lanes that start inside boxes, and the pinhole
-  // camera's shared origin; nearest hits (ties to the smaller id) and any-hit, on every SIMD isa.
+  // camera's shared origin; nearest hits (ties to the smaller id) and any-hit, packets of 16 and
+  // their halves as packets of 8, on every SIMD isa.
   TestRng rng{41};
   const std::vector<Shape> shapes = small_scene(rng, 1500, true);
   std::vector<Ray> rays = camera_rays(64, 32, {0, 2, -30});

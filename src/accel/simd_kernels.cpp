@@ -28,13 +28,15 @@
 // its WideLeaf record: one dependent load less per leaf. Tiny scenes come as a flat layout (detail::flat_wide: one
 // node over one or two leaves), which these same loops walk.
 //
-// 16-ray packets whose lanes share their direction signs (camera and shadow packets nearly always do) are traversed
+// Packets whose lanes share their direction signs (camera and shadow packets nearly always do) are traversed
 // as a whole instead (traverse_coherent, the scheme of Embree's coherent packets): one frustum test of a node's 8
 // boxes, lane tests of only the children it passes, hit children ordered and pushed by the frustum's entry distance
 // with their lane mask (no per-lane distance stack), lanes culled lazily on pop. Against the per-lane traversal
 // (dtraced-bench-rays, 1 thread, both alternated in one process, 7 rounds, medians), mesh camera / shadow: avx512
 // 1.09x / 1.12x, avx2 1.13x / 1.27x, sse4 1.26x / 1.35x; sphere field 1.09x / 1.18x, 1.12x / 1.26x, 1.26x / 1.98x.
-// 8-ray packets keep the per-lane traversal.
+// The same for 8-ray packets (alternated likewise, 6-8 rounds), camera / shadow: mesh avx512 1.26x / 1.29x, avx2
+// 1.09x / 1.10x, sse4 1.26x / 1.38x; sphere field avx512 1.12x / 1.21x, sse4 1.14x / 1.33x. Packets with mixed
+// direction signs keep the per-lane traversal (traverse8).
 //
 // Tried and dropped (issue 16, round 5): the same frustum test ahead of the per-lane traversal (its child sort, its
 // per-lane distance stack): on 4x4 camera packets of the 1M-triangle mesh it cut the children tested lane by lane
@@ -1014,7 +1016,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Coherent traversal of a packet as a whole (16-ray packets; Embree's scheme for coherent
+// Coherent traversal of a packet as a whole (Embree's scheme for coherent
 // packets): a node's 8 boxes are first tested against the packet's frustum, bounds over all its
 // lanes of the slab distances, in one vector; only the children it passes are tested lane by
 // lane, giving each child its mask of lanes. Hit children are visited near first by the
@@ -1238,11 +1240,11 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
   }
 }
 
-// The coherent traversal for 16-ray packets whose lanes share their direction signs; others
-// take the per-lane one.
+// The coherent traversal for packets whose lanes share their direction signs; others take the
+// per-lane one.
 template <int kP, bool kAnyHit>
 std::uint32_t traverse_packet(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
-  if (kP == kPacketSize16 && p.uniform_signs) return traverse_coherent<kP, kAnyHit>(bvh, p, live);
+  if (p.uniform_signs) return traverse_coherent<kP, kAnyHit>(bvh, p, live);
   return traverse8<kP, kAnyHit>(bvh, p, live);
 }
 
