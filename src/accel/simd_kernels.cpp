@@ -1031,7 +1031,6 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
 // Only packets whose lanes share the direction signs get here (the lanes' near plane is then the
 // same box face), and an axis where some lane's direction is exactly zero (an infinite inverse:
 // the lane's slab distance can be NaN, which the lane test skips) does not constrain the frustum.
-template <int kP>
 struct Frustum {
   float o_lo[3], o_hi[3];
   float inv_lo[3], inv_hi[3];
@@ -1040,7 +1039,7 @@ struct Frustum {
 };
 
 template <int kP>
-inline Frustum<kP> make_frustum(const Packet<kP>& p) {
+inline Frustum make_frustum(const Packet<kP>& p) {
   // Over every lane: dead lanes hold a copy of a live one.
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
@@ -1053,7 +1052,7 @@ inline Frustum<kP> make_frustum(const Packet<kP>& p) {
     lo = hn::GetLane(hn::MinOfLanes(d, vlo));
     hi = hn::GetLane(hn::MaxOfLanes(d, vhi));
   };
-  Frustum<kP> f;
+  Frustum f;
   for (int a = 0; a < 3; ++a) {
     lo_hi(p.o[a], f.o_lo[a], f.o_hi[a]);
     lo_hi(p.inv[a], f.inv_lo[a], f.inv_hi[a]);
@@ -1073,7 +1072,7 @@ struct EntryC {
 // The frustum test of a node's children: returns the children some lane may enter, with the
 // frustum's entry distance of each in t_near[c]. `cull_hi` bounds the lanes' cull distances.
 template <int kP>
-inline std::uint32_t frustum_test(const WideNode& node, const Packet<kP>& p, const Frustum<kP>& f, float cull_hi,
+inline std::uint32_t frustum_test(const WideNode& node, const Packet<kP>& p, const Frustum& f, float cull_hi,
                                   float* t_near) {
   const hn::CappedTag<float, kNodeWidth> d8;
   const std::size_t n8 = hn::Lanes(d8);
@@ -1168,7 +1167,7 @@ inline std::uint32_t lanes_within(float t, const float* cull) {
 
 template <int kP, bool kAnyHit>
 std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
-  const Frustum<kP> f = make_frustum(p);
+  const Frustum f = make_frustum(p);
   float cull_hi = cull_max(p);  // updated when a lane's cull distance shrinks
   EntryC stack[kStackSize];
   int sp = 0;
