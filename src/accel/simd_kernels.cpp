@@ -43,7 +43,8 @@
 // from 7.2 to 1.65 per node, yet made 16-ray camera packets 7 % and 8-ray ones 15 % slower. In the first version of
 // the coherent traversal, a scalar loop over the lanes for the largest cull distance at every node (now kept up to
 // date only when a lane's hit improves) and a scalar frustum set-up made it 4 % (camera) and 6 % (shadow) slower than
-// the per-lane one. Prefetching the children a node pushes, and leaving 16-ray packets at 1 or 3 live lanes (or, in
+// the per-lane one. Prefetching the children a node pushes in the per-lane traversal (the coherent one
+// prefetches every child it enters: prefetch_child), and leaving 16-ray packets at 1 or 3 live lanes (or, in
 // the coherent traversal, 0 or 1) instead of 2: within noise.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
@@ -1165,6 +1166,20 @@ inline std::uint32_t lanes_within(float t, const float* cull) {
   return bits;
 }
 
+// Asks for the cache lines of a child some lane enters, as soon as the lane test says so: a node's
+// 4 lines, or a triangle leaf's first block (3 lines). The nearest child is visited next, and its
+// misses then overlap the rest of this node's work (16-ray mesh packets, avx512, alternated in
+// one process, 8 rounds each: camera 1.02-1.05x, shadow 1.06-1.09x; the sphere field 1.01x).
+inline void prefetch_child(const WideBvh& bvh, std::uint32_t ref) {
+  if (!(ref & kLeafBit)) {
+    const char* q = reinterpret_cast<const char*>(&bvh.nodes[ref]);
+    for (int k = 0; k < 4; ++k) __builtin_prefetch(q + 64 * k);
+  } else if (ref & kTriLeaf) {
+    const char* q = reinterpret_cast<const char*>(&bvh.triangles[ref & kTriLeafBeginMask]);
+    for (int k = 0; k < 3; ++k) __builtin_prefetch(q + 64 * k);
+  }
+}
+
 template <int kP, bool kAnyHit>
 std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
   const Frustum f = make_frustum(p);
@@ -1210,6 +1225,7 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
         const std::uint32_t bits = child_lanes(node, p, c, mask);
         if (bits == 0) continue;
         EntryC e{node.child[c], bits, t_near[c]};
+        prefetch_child(bvh, e.ref);
         int j = n++;
         while (!kAnyHit && j > 0 && hit[j - 1].t_near < e.t_near) {
           hit[j] = hit[j - 1];
