@@ -28,11 +28,24 @@
 // its WideLeaf record: one dependent load less per leaf. Tiny scenes come as a flat layout (detail::flat_wide: one
 // node over one or two leaves), which these same loops walk.
 //
-// Tried and dropped (issue 16, round 5): a frustum test of a node's 8 boxes against the packet's interval bounds
-// (lower and upper rounded corner products, exact since rounding is monotone) ahead of the lane-by-lane tests. On
-// 4x4 camera packets of the 1M-triangle mesh it cut the children tested lane by lane from 7.2 to 1.65 per node, yet
-// made 16-ray camera packets 7 % and 8-ray ones 15 % slower: the lane tests are not what a node costs. Prefetching
-// the children a node pushes, and leaving 16-ray packets at 1 or 3 live lanes instead of 2: within noise.
+// Packets whose lanes share their direction signs (camera and shadow packets nearly always do) are traversed
+// as a whole instead (traverse_coherent, the scheme of Embree's coherent packets): one frustum test of a node's 8
+// boxes, lane tests of only the children it passes, hit children ordered and pushed by the frustum's entry distance
+// with their lane mask (no per-lane distance stack), lanes culled lazily on pop. Against the per-lane traversal
+// (dtraced-bench-rays, 1 thread, both alternated in one process, 7 rounds, medians), mesh camera / shadow: avx512
+// 1.09x / 1.12x, avx2 1.13x / 1.27x, sse4 1.26x / 1.35x; sphere field 1.09x / 1.18x, 1.12x / 1.26x, 1.26x / 1.98x.
+// The same for 8-ray packets (alternated likewise, 6-8 rounds), camera / shadow: mesh avx512 1.26x / 1.29x, avx2
+// 1.09x / 1.10x, sse4 1.26x / 1.38x; sphere field avx512 1.12x / 1.21x, sse4 1.14x / 1.33x. Packets with mixed
+// direction signs keep the per-lane traversal (traverse8).
+//
+// Tried and dropped (issue 16, round 5): the same frustum test ahead of the per-lane traversal (its child sort, its
+// per-lane distance stack): on 4x4 camera packets of the 1M-triangle mesh it cut the children tested lane by lane
+// from 7.2 to 1.65 per node, yet made 16-ray camera packets 7 % and 8-ray ones 15 % slower. In the first version of
+// the coherent traversal, a scalar loop over the lanes for the largest cull distance at every node (now kept up to
+// date only when a lane's hit improves) and a scalar frustum set-up made it 4 % (camera) and 6 % (shadow) slower than
+// the per-lane one. Prefetching the children a node pushes in the per-lane traversal (the coherent one
+// prefetches every child it enters: prefetch_child), and leaving 16-ray packets at 1 or 3 live lanes (or, in
+// the coherent traversal, 0 or 1) instead of 2: within noise.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -61,6 +74,11 @@ constexpr int kMaxPacket = kPacketSize16;  // lanes of the widest packet
 inline std::uint32_t low_bits(const std::uint8_t* mb, std::size_t n) {
   return (std::uint32_t(mb[0]) | std::uint32_t(mb[1]) << 8) & ((1u << n) - 1u);
 }
+// Bit i of every lane i (the lane masks of a packet as a vector mask).
+alignas(64) inline constexpr std::uint32_t kLaneBit[16] = {1u << 0,  1u << 1,  1u << 2,  1u << 3, 1u << 4,  1u << 5,
+                                                           1u << 6,  1u << 7,  1u << 8,  1u << 9, 1u << 10, 1u << 11,
+                                                           1u << 12, 1u << 13, 1u << 14, 1u << 15};
+
 constexpr int kSwitch = 2;  // lanes at or below which a packet continues as single rays
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
@@ -465,9 +483,21 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  LaneUvw tri;               // edge functions of the latest triangle8 (nearest hits only)
-  TriangleUvw best_uvw[kP];  // those of each lane's best, when it is a triangle
-  bool uniform_signs;        // every lane has the direction signs sign[0..2]
+  LaneUvw tri;  // edge functions of the latest triangle8 (nearest hits only)
+  // Those of each lane's best, when it is a triangle: the float ones of a packet test in bu, bv, bw,
+  // bdet (lanes of uvw_soa, set a vector at a time), others (double fallback, single rays) in
+  // best_uvw.
+  alignas(64) float bu[kP];
+  alignas(64) float bv[kP];
+  alignas(64) float bw[kP];
+  alignas(64) float bdet[kP];
+  std::uint32_t uvw_soa;
+  TriangleUvw best_uvw[kP];
+  TriangleUvw best_of(int i) const {
+    if (uvw_soa >> i & 1u) return {double(bu[i]), double(bv[i]), double(bw[i]), double(bdet[i])};
+    return best_uvw[i];
+  }
+  bool uniform_signs;  // every lane has the direction signs sign[0..2]
   std::uint32_t sign[3];
   bool uniform_axes;  // every lane has the shear axes axis[0..2] (kx, ky, kz)
   std::uint32_t axis[3];
@@ -564,11 +594,12 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
       axis_bits[k] |= low_bits(mb, n) << i;
     }
   }
-  // The sphere test's double copies and a = |d|^2, as make_single computes it.
+  // The sphere test's double copies and a = |d|^2, as make_single computes it (only sphere8
+  // reads them: a tree without spheres skips them).
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const std::size_t nd = hn::Lanes(dd);
-  for (std::size_t i = 0; i < std::size_t(kP); i += nd) {
+  for (std::size_t i = 0; i < (bvh.spheres.empty() ? 0 : std::size_t(kP)); i += nd) {
     hn::Vec<decltype(dd)> dv[3];
     for (int a = 0; a < 3; ++a) {
       dv[a] = hn::PromoteTo(dd, hn::LoadU(df, dir[a] + i));
@@ -696,18 +727,46 @@ inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std
     }
   }
   if (kAnyHit) return lt & mask;
+  if (((lt | eq) & mask) == 0) return 0;
+  // better(): t < best, or t == best and id < best id, a vector at a time (ids compared as signed
+  // after flipping the top bit: the unsigned order).
+  const hn::RebindToUnsigned<decltype(d)> du;
+  const hn::RebindToSigned<decltype(d)> di;
+  const auto top = hn::Set(du, 0x80000000u);
+  const auto idv = hn::Set(du, id);
+  const auto ids = hn::BitCast(di, hn::Xor(idv, top));
   std::uint32_t out = 0;
-  std::uint32_t m = (lt | eq) & mask;
-  while (m != 0) {
-    const int i = std::countr_zero(m);
-    m &= m - 1;
-    if (better(t[i], id, p.best[i], p.id[i])) {
-      p.best[i] = t[i];
-      p.id[i] = id;
-      p.cull[i] = t[i] * kFarScale;
-      if (uvw != nullptr) p.best_uvw[i] = uvw->get(std::size_t(i));
-      out |= 1u << i;
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto tv = hn::LoadU(d, t + i), best = hn::LoadU(d, p.best + i);
+    const auto old_id = hn::LoadU(du, p.id + i);
+    const auto id_lt = hn::RebindMask(d, hn::Lt(ids, hn::BitCast(di, hn::Xor(old_id, top))));
+    const auto active = hn::RebindMask(d, hn::TestBit(hn::Set(du, mask), hn::Load(du, kLaneBit + i)));
+    const auto win = hn::And(active, hn::Or(hn::Lt(tv, best), hn::And(hn::Eq(tv, best), id_lt)));
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, win, mb);
+    const std::uint32_t bits = low_bits(mb, n);
+    if (bits == 0) continue;
+    out |= bits << i;
+    hn::StoreU(hn::IfThenElse(win, tv, best), d, p.best + i);
+    hn::StoreU(hn::IfThenElse(win, hn::Mul(tv, hn::Set(d, kFarScale)), hn::LoadU(d, p.cull + i)), d, p.cull + i);
+    hn::StoreU(hn::IfThenElse(hn::RebindMask(du, win), idv, old_id), du, p.id + i);
+    if (uvw != nullptr) {
+      float* const dst[4] = {p.bu + i, p.bv + i, p.bw + i, p.bdet + i};
+      const float* const src[4] = {uvw->u + i, uvw->v + i, uvw->w + i, uvw->det + i};
+      for (int k = 0; k < 4; ++k)
+        hn::StoreU(hn::IfThenElse(win, hn::LoadU(d, src[k]), hn::LoadU(d, dst[k])), d, dst[k]);
     }
+  }
+  if (uvw == nullptr) {
+    p.uvw_soa &= ~out;
+    return out;
+  }
+  // The rare lanes whose edge functions came from the double fallback keep them in best_uvw.
+  p.uvw_soa |= out & ~uvw->fallback;
+  for (std::uint32_t m = out & uvw->fallback; m != 0; m &= m - 1) {
+    const int i = std::countr_zero(m);
+    p.best_uvw[i] = uvw->fb[i];
+    p.uvw_soa &= ~(1u << i);
   }
   return out;
 }
@@ -732,9 +791,11 @@ inline void sphere8(const Packet<kP>& p, float cx, float cy, float cz, float rad
 }
 
 // One triangle (vertices v[vertex][axis]) against the 8 rays, exactly as triangle_t; each lane
-// picks its own shear axes. With `uvw`, the lanes' edge functions too.
+// picks its own shear axes. With `uvw`, the lanes' edge functions too. Forced inline: GCC left it
+// out of leaf8, whose candidate distances and edge functions then went through memory (16-ray
+// mesh camera packets 1.10x, shadow 1.04x inlined).
 template <int kP>
-inline void triangle8(const Packet<kP>& p, const float (&v)[3][3], float* t, LaneUvw* uvw) {
+HWY_INLINE void triangle8(const Packet<kP>& p, const float (&v)[3][3], float* t, LaneUvw* uvw) {
   const hn::CappedTag<float, kP> d;
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d), inf = hn::Set(d, kInfF), nan = hn::Set(d, std::numeric_limits<float>::quiet_NaN());
@@ -904,6 +965,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
             alive &= ~(1u << i);
           } else {
             p.cull[i] = p.best[i] * kFarScale;
+            p.uvw_soa &= ~(1u << i);
           }
         }
       }
@@ -954,6 +1016,253 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
   }
 }
 
+// ---------------------------------------------------------------------------------------------
+// Coherent traversal of a packet as a whole (Embree's scheme for coherent
+// packets): a node's 8 boxes are first tested against the packet's frustum, bounds over all its
+// lanes of the slab distances, in one vector; only the children it passes are tested lane by
+// lane, giving each child its mask of lanes. Hit children are visited near first by the
+// frustum's entry distance, and pushed as (child, lane mask, that distance): no per-lane distance
+// stack. On a pop a lane is dropped when its nearest hit found since is closer than the entry's
+// distance (a bound on every lane's own entry distance, so it never drops a lane the lane test
+// would keep).
+//
+// The bounds are exact for every lane: rounding is monotone, so for a near plane b and an
+// origin o in [o_lo, o_hi] the lane's rounded b - o lies in [fl(b - o_hi), fl(b - o_lo)], and
+// its rounded product with 1 / d in [inv_lo, inv_hi] lies between the rounded corner products.
+// Only packets whose lanes share the direction signs get here (the lanes' near plane is then the
+// same box face), and an axis where some lane's direction is exactly zero (an infinite inverse:
+// the lane's slab distance can be NaN, which the lane test skips) does not constrain the frustum.
+struct Frustum {
+  float o_lo[3], o_hi[3];
+  float inv_lo[3], inv_hi[3];
+  bool finite[3];  // inv_lo and inv_hi finite: the axis constrains the frustum
+  float t_min;     // smallest t_min of the lanes
+};
+
+template <int kP>
+inline Frustum make_frustum(const Packet<kP>& p) {
+  // Over every lane: dead lanes hold a copy of a live one.
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  const auto lo_hi = [&](const float* v, float& lo, float& hi) {
+    auto vlo = hn::LoadU(d, v), vhi = vlo;
+    for (std::size_t i = n; i < std::size_t(kP); i += n) {
+      vlo = hn::Min(vlo, hn::LoadU(d, v + i));
+      vhi = hn::Max(vhi, hn::LoadU(d, v + i));
+    }
+    lo = hn::GetLane(hn::MinOfLanes(d, vlo));
+    hi = hn::GetLane(hn::MaxOfLanes(d, vhi));
+  };
+  Frustum f;
+  for (int a = 0; a < 3; ++a) {
+    lo_hi(p.o[a], f.o_lo[a], f.o_hi[a]);
+    lo_hi(p.inv[a], f.inv_lo[a], f.inv_hi[a]);
+    f.finite[a] = std::abs(f.inv_lo[a]) < kInfF && std::abs(f.inv_hi[a]) < kInfF;
+  }
+  float unused = 0;
+  lo_hi(p.t_min, f.t_min, unused);
+  return f;
+}
+
+struct EntryC {
+  std::uint32_t ref;
+  std::uint32_t mask;
+  float t_near;  // no lane of the mask enters the box before this
+};
+
+// The frustum test of a node's children: returns the children some lane may enter, with the
+// frustum's entry distance of each in t_near[c]. `cull_hi` bounds the lanes' cull distances.
+template <int kP>
+inline std::uint32_t frustum_test(const WideNode& node, const Packet<kP>& p, const Frustum& f, float cull_hi,
+                                  float* t_near) {
+  const hn::CappedTag<float, kNodeWidth> d8;
+  const std::size_t n8 = hn::Lanes(d8);
+  const auto zero = hn::Zero(d8);
+  std::uint32_t bits = 0;
+  for (std::size_t i = 0; i < std::size_t(kNodeWidth); i += n8) {
+    auto lo = hn::Set(d8, f.t_min);
+    auto hi = hn::Set(d8, kInfF);
+    for (int a = 0; a < 3; ++a) {
+      if (!f.finite[a]) continue;
+      const float* nb = p.sign[a] ? node.hi[a] : node.lo[a];
+      const float* fb = p.sign[a] ? node.lo[a] : node.hi[a];
+      const auto vn = hn::LoadU(d8, nb + i), vf = hn::LoadU(d8, fb + i);
+      // Near: the smallest lane product. Rising in b - o when 1 / d > 0 (take the smallest
+      // difference), falling when 1 / d < 0 (the largest); then the smallest product is with
+      // inv_lo where that difference is >= 0, with inv_hi where it is negative.
+      const auto rn = hn::Sub(vn, hn::Set(d8, p.sign[a] ? f.o_lo[a] : f.o_hi[a]));
+      const auto rn_pos = hn::Ge(rn, zero);
+      const auto tn = hn::Mul(rn, hn::IfThenElse(rn_pos, hn::Set(d8, f.inv_lo[a]), hn::Set(d8, f.inv_hi[a])));
+      // Far: the largest lane product, mirror image.
+      const auto rf = hn::Sub(vf, hn::Set(d8, p.sign[a] ? f.o_hi[a] : f.o_lo[a]));
+      const auto rf_pos = hn::Ge(rf, zero);
+      const auto tf = hn::Mul(rf, hn::IfThenElse(rf_pos, hn::Set(d8, f.inv_hi[a]), hn::Set(d8, f.inv_lo[a])));
+      lo = hn::Max(tn, lo);
+      hi = hn::Min(tf, hi);
+    }
+    hi = hn::Min(hn::Mul(hi, hn::Set(d8, kFarScale)), hn::Set(d8, cull_hi));
+    hn::StoreU(lo, d8, t_near + i);
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d8, hn::Le(lo, hi), mb);
+    bits |= low_bits(mb, n8) << i;
+  }
+  // Empty slots (lo = +inf, hi = -inf) fail the test: +inf - o is +inf, and so is every product.
+  return bits;
+}
+
+// The lane test of child c for the lanes in `mask` (node_test8's arithmetic for one child).
+template <int kP>
+inline std::uint32_t child_lanes(const WideNode& node, const Packet<kP>& p, int c, std::uint32_t mask) {
+  const hn::CappedTag<float, kP> d;
+  const hn::RebindToUnsigned<decltype(d)> du;
+  const std::size_t n = hn::Lanes(d);
+  const auto scale = hn::Set(d, kFarScale);
+  std::uint32_t bits = 0;
+  float nb[3], fb[3];
+  for (int a = 0; a < 3; ++a) {
+    nb[a] = p.sign[a] ? node.hi[a][c] : node.lo[a][c];
+    fb[a] = p.sign[a] ? node.lo[a][c] : node.hi[a][c];
+  }
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto active = hn::RebindMask(d, hn::TestBit(hn::Set(du, mask), hn::Load(du, kLaneBit + i)));
+    auto t0 = hn::LoadU(d, p.t_min + i);
+    auto tf = hn::Set(d, kInfF);
+    for (int a = 0; a < 3; ++a) {
+      const auto o = hn::LoadU(d, p.o[a] + i), inv = hn::LoadU(d, p.inv[a] + i);
+      t0 = hn::Max(hn::Mul(hn::Sub(hn::Set(d, nb[a]), o), inv), t0);  // NaN skipped, see node_test1
+      tf = hn::Min(hn::Mul(hn::Sub(hn::Set(d, fb[a]), o), inv), tf);
+    }
+    const auto m = hn::And(active, hn::Le(t0, hn::Min(hn::Mul(tf, scale), hn::LoadU(d, p.cull + i))));
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, m, mb);
+    bits |= low_bits(mb, n) << i;
+  }
+  return bits;
+}
+
+// The largest cull distance of the packet's lanes (dead lanes included: a bound is all the
+// frustum needs).
+template <int kP>
+inline float cull_max(const Packet<kP>& p) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  auto m = hn::LoadU(d, p.cull);
+  for (std::size_t i = n; i < std::size_t(kP); i += n) m = hn::Max(m, hn::LoadU(d, p.cull + i));
+  return hn::GetLane(hn::MaxOfLanes(d, m));
+}
+
+// Bits of the lanes i with t <= cull[i].
+template <int kP>
+inline std::uint32_t lanes_within(float t, const float* cull) {
+  const hn::CappedTag<float, kP> d;
+  const std::size_t n = hn::Lanes(d);
+  std::uint32_t bits = 0;
+  const auto tv = hn::Set(d, t);
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(d, hn::Le(tv, hn::LoadU(d, cull + i)), mb);
+    bits |= low_bits(mb, n) << i;
+  }
+  return bits;
+}
+
+// Asks for the cache lines of a child some lane enters, as soon as the lane test says so: a node's
+// 4 lines, or a triangle leaf's first block (3 lines). The nearest child is visited next, and its
+// misses then overlap the rest of this node's work (16-ray mesh packets, avx512, alternated in
+// one process, 8 rounds each: camera 1.02-1.05x, shadow 1.06-1.09x; the sphere field 1.01x).
+inline void prefetch_child(const WideBvh& bvh, std::uint32_t ref) {
+  if (!(ref & kLeafBit)) {
+    const char* q = reinterpret_cast<const char*>(&bvh.nodes[ref]);
+    for (int k = 0; k < 4; ++k) __builtin_prefetch(q + 64 * k);
+  } else if (ref & kTriLeaf) {
+    const char* q = reinterpret_cast<const char*>(&bvh.triangles[ref & kTriLeafBeginMask]);
+    for (int k = 0; k < 3; ++k) __builtin_prefetch(q + 64 * k);
+  }
+}
+
+template <int kP, bool kAnyHit>
+std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
+  const Frustum f = make_frustum(p);
+  float cull_hi = cull_max(p);  // updated when a lane's cull distance shrinks
+  EntryC stack[kStackSize];
+  int sp = 0;
+  std::uint32_t cur = 0;
+  std::uint32_t mask = live;
+  std::uint32_t result = 0;    // nearest: lanes that improved; any-hit: lanes blocked
+  std::uint32_t alive = live;  // any-hit: lanes not yet blocked
+  while (true) {
+    if (std::popcount(mask) <= kSwitch) {
+      std::uint32_t m = mask;
+      while (m != 0) {
+        const int i = std::countr_zero(m);
+        m &= m - 1;
+        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i])) {
+          result |= 1u << i;
+          if (kAnyHit) {
+            alive &= ~(1u << i);
+          } else {
+            p.cull[i] = p.best[i] * kFarScale;
+            p.uvw_soa &= ~(1u << i);
+          }
+        }
+      }
+      if (!kAnyHit) cull_hi = cull_max(p);
+    } else if (cur & kLeafBit) {
+      const std::uint32_t hit = leaf8<kP, kAnyHit>(bvh, leaf_of(bvh, cur), p, mask);
+      result |= hit;
+      if (kAnyHit) alive &= ~hit;
+      if (!kAnyHit && hit != 0) cull_hi = cull_max(p);
+    } else {
+      const WideNode& node = bvh.nodes[cur];
+      alignas(64) float t_near[kNodeWidth];
+      std::uint32_t fm = frustum_test(node, p, f, cull_hi, t_near);
+      EntryC hit[kNodeWidth];
+      int n = 0;
+      while (fm != 0) {
+        const int c = std::countr_zero(fm);
+        fm &= fm - 1;
+        if (node.child[c] == kEmptyChild) break;  // empty slots come last
+        const std::uint32_t bits = child_lanes(node, p, c, mask);
+        if (bits == 0) continue;
+        EntryC e{node.child[c], bits, t_near[c]};
+        prefetch_child(bvh, e.ref);
+        int j = n++;
+        while (!kAnyHit && j > 0 && hit[j - 1].t_near < e.t_near) {
+          hit[j] = hit[j - 1];
+          --j;
+        }
+        hit[j] = e;
+      }
+      if (n > 0) {
+        for (int i = 0; i < n - 1; ++i) stack[sp++] = hit[i];
+        cur = hit[n - 1].ref;
+        mask = hit[n - 1].mask;
+        continue;
+      }
+    }
+    if (kAnyHit && alive == 0) return result;
+    while (true) {
+      if (sp == 0) return result;
+      --sp;
+      std::uint32_t m = stack[sp].mask & alive;
+      if (!kAnyHit && m != 0) m &= lanes_within<kP>(stack[sp].t_near, p.cull);
+      if (m != 0) {
+        cur = stack[sp].ref;
+        mask = m;
+        break;
+      }
+    }
+  }
+}
+
+// The coherent traversal for packets whose lanes share their direction signs; others take the
+// per-lane one.
+template <int kP, bool kAnyHit>
+std::uint32_t traverse_packet(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
+  if (p.uniform_signs) return traverse_coherent<kP, kAnyHit>(bvh, p, live);
+  return traverse8<kP, kAnyHit>(bvh, p, live);
+}
+
 template <int kP>
 std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
                          std::uint32_t* best_id, TriangleUvw* uvw) {
@@ -964,12 +1273,13 @@ std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_
     p.id[i] = best_id[i];
     p.cull[i] = p.best[i] * kFarScale;
   }
-  const std::uint32_t improved = traverse8<kP, false>(bvh, p, valid);
+  p.uvw_soa = 0;
+  const std::uint32_t improved = traverse_packet<kP, false>(bvh, p, valid);
   for (int i = 0; i < kP; ++i) {
     if (improved >> i & 1u) {
       best_t[i] = p.best[i];
       best_id[i] = p.id[i];
-      uvw[i] = p.best_uvw[i];
+      uvw[i] = p.best_of(i);
     }
   }
   return improved;
@@ -979,7 +1289,7 @@ template <int kP>
 std::uint32_t OccludedN(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid) {
   Packet<kP> p;
   make_packet(bvh, rays, valid, p, true);
-  return traverse8<kP, true>(bvh, p, valid);
+  return traverse_packet<kP, true>(bvh, p, valid);
 }
 
 extern const Kernels kKernels;
