@@ -940,6 +940,26 @@ inline std::uint32_t lanes_le(const float* a, const float* b) {
   return bits;
 }
 
+// Finishes the subtree `node` for the lanes of `mask` one ray at a time (a packet with few live
+// lanes left): a lane whose ray improves (nearest) or is blocked (any-hit) joins `result`; any-hit
+// lanes blocked leave `alive`.
+template <int kP, bool kAnyHit>
+inline void finish_singles(const WideBvh& bvh, Packet<kP>& p, std::uint32_t node, std::uint32_t mask,
+                           std::uint32_t& result, std::uint32_t& alive) {
+  for (std::uint32_t m = mask; m != 0; m &= m - 1) {
+    const int i = std::countr_zero(m);
+    if (traverse1<kAnyHit>(bvh, p.lane(i), node, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i])) {
+      result |= 1u << i;
+      if (kAnyHit) {
+        alive &= ~(1u << i);
+      } else {
+        p.cull[i] = p.best[i] * kFarScale;
+        p.uvw_soa &= ~(1u << i);
+      }
+    }
+  }
+}
+
 // Packet traversal. A stack entry keeps each of its lanes' entry distance (nearest hits only), so
 // a pop drops exactly the lanes whose nearest hit found since is closer than their own entry
 // into the box: what testing the box again against the tightened interval would drop.
@@ -955,20 +975,7 @@ std::uint32_t traverse8(const WideBvh& bvh, Packet<kP>& p, std::uint32_t live) {
   while (true) {
     if (std::popcount(mask) <= kSwitch) {
       // Few lanes left here: finish this subtree one ray at a time.
-      std::uint32_t m = mask;
-      while (m != 0) {
-        const int i = std::countr_zero(m);
-        m &= m - 1;
-        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i])) {
-          result |= 1u << i;
-          if (kAnyHit) {
-            alive &= ~(1u << i);
-          } else {
-            p.cull[i] = p.best[i] * kFarScale;
-            p.uvw_soa &= ~(1u << i);
-          }
-        }
-      }
+      finish_singles<kP, kAnyHit>(bvh, p, cur, mask, result, alive);
     } else if (cur & kLeafBit) {
       const std::uint32_t hit = leaf8<kP, kAnyHit>(bvh, leaf_of(bvh, cur), p, mask);
       result |= hit;
@@ -1192,20 +1199,7 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
   std::uint32_t alive = live;  // any-hit: lanes not yet blocked
   while (true) {
     if (std::popcount(mask) <= kSwitch) {
-      std::uint32_t m = mask;
-      while (m != 0) {
-        const int i = std::countr_zero(m);
-        m &= m - 1;
-        if (traverse1<kAnyHit>(bvh, p.lane(i), cur, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i])) {
-          result |= 1u << i;
-          if (kAnyHit) {
-            alive &= ~(1u << i);
-          } else {
-            p.cull[i] = p.best[i] * kFarScale;
-            p.uvw_soa &= ~(1u << i);
-          }
-        }
-      }
+      finish_singles<kP, kAnyHit>(bvh, p, cur, mask, result, alive);
       if (!kAnyHit) cull_hi = cull_max(p);
     } else if (cur & kLeafBit) {
       const std::uint32_t hit = leaf8<kP, kAnyHit>(bvh, leaf_of(bvh, cur), p, mask);
