@@ -468,47 +468,28 @@ void first_checkpoint(const TileContext& ctx, bool packets, TileSums& st, Tile& 
   std::vector<const PixelSums*> grown(std::size_t(gw) * (gy1 - gy0), nullptr);
   std::vector<PixelSums> outside;
   outside.reserve(2 * std::size_t(gw) + 2 * std::size_t(gy1 - gy0));  // never reallocates: pointers stay valid
+  std::vector<SampleJob> at;  // where each border pixel is (sample 0), in the order of `outside`
+  at.reserve(outside.capacity());
   for (std::uint32_t y = gy0; y < gy1; ++y) {
     for (std::uint32_t x = gx0; x < gx1; ++x) {
       const bool inside = x >= rect.x0 && x < rect.x0 + rect.width && y >= rect.y0 && y < rect.y0 + rect.height;
+      if (!inside) at.push_back({x, y, 0});
       grown[std::size_t(y - gy0) * gw + (x - gx0)] =
           inside ? &st.sums[std::size_t(y - rect.y0) * rect.width + (x - rect.x0)] : &outside.emplace_back();
     }
   }
-  // The border pixels' first n samples, pixel after pixel in the order above, in sample order.
+  // The border pixels' first n samples, pixel after pixel, each in sample order; the results
+  // come back in the same order.
   TraceStats border;
-  std::size_t next_pixel = 0;  // index into outside
-  std::uint32_t next_sample = 0;
-  std::uint32_t bx = gx0, by = gy0;  // the grown region's pixel visited last
-  // Steps (bx, by) to the next border pixel of the grown region, row-major; false past the end.
-  const auto next_border = [&](std::uint32_t& x, std::uint32_t& y) {
-    for (; by < gy1; ++by, bx = gx0) {
-      for (; bx < gx1; ++bx) {
-        if (!(bx >= rect.x0 && bx < rect.x0 + rect.width && by >= rect.y0 && by < rect.y0 + rect.height)) {
-          x = bx++;
-          y = by;
-          return true;
-        }
-      }
-    }
-    return false;
-  };
-  std::uint32_t px = 0, py = 0;  // the border pixel being queued
-  bool have = next_border(px, py);
+  std::size_t queued = 0, summed = 0;  // samples handed out and summed, n per border pixel
   const auto next = [&](SampleJob& job) {
-    if (!have) return false;
-    job = {px, py, next_sample};
-    if (++next_sample == n) {
-      next_sample = 0;
-      have = next_border(px, py);
-    }
+    if (queued == at.size() * n) return false;
+    job = at[queued / n];
+    job.s = std::uint32_t(queued++ % n);
     return true;
   };
-  // Results come back in the same order: border pixel next_pixel, samples 0 to n - 1.
-  std::uint32_t taken = 0;
   const auto take = [&](const SampleJob& job, const Vec3f& radiance) {
-    accumulate(radiance, job.s, ctx.span0, outside[next_pixel], true, border);
-    if (++taken == n) taken = 0, ++next_pixel;
+    accumulate(radiance, job.s, ctx.span0, outside[summed++ / n], true, border);
   };
   if (packets && block_height(ctx.scene) == 4) {
     trace_jobs<accel::kPacketSize16>(ctx, border, next, take);
@@ -520,7 +501,7 @@ void first_checkpoint(const TileContext& ctx, bool packets, TileSums& st, Tile& 
                                sample_key(settings, job.x, job.y, job.s), ctx.limits, border));
     }
   }
-  assert(next_pixel == outside.size());
+  assert(summed == outside.size() * n);
   // Border rays are extra work, not part of the image: their NaN/Inf samples belong to the
   // pixel's own tile, which counts them.
   tile.stats.border_rays += border.rays;
