@@ -346,8 +346,10 @@ void trace_jobs(const TileContext& ctx, TraceStats& stats, Next&& next, Take&& t
 // The sample count at which a pixel that has taken n samples is next judged: its next own
 // checkpoint, or `until`.
 std::uint32_t next_stop(const TileContext& ctx, std::uint32_t n, std::uint32_t until) {
-  for (std::uint32_t m = n + 1; m < until; ++m) {
-    if (ctx.own_checkpoint(m)) return m;
+  // Checkpoints are min_samples * 2^k (scene::is_checkpoint): at most 32 candidates, not one per
+  // sample count.
+  for (std::uint64_t m = ctx.settings.min_samples; m < until; m *= 2) {
+    if (m > n && ctx.own_checkpoint(std::uint32_t(m))) return std::uint32_t(m);
   }
   return until;
 }
