@@ -729,6 +729,37 @@ TEST_CASE("Scene files are read and parsed in pieces: same scene, same errors", 
     options.max_bytes = 100;
     CHECK(load_scene_file(TempFile(canonical).path(), options).errors.size() == 1);
   }
+  SECTION("a large file's objects read on a second thread: the same scene, the same errors") {
+    LoadOptions threaded, inline_only;
+    threaded.parallel_min_bytes = 0;
+    inline_only.parallel_min_bytes = std::numeric_limits<std::uint64_t>::max();
+    const auto same = [&](const std::string& text, const LoadOptions& a, const LoadOptions& b) {
+      const TempFile file(text);
+      const LoadResult r = load_scene_file(file.path(), a);
+      const LoadResult q = load_scene_file(file.path(), b);
+      REQUIRE(r.errors.size() == q.errors.size());
+      for (std::size_t i = 0; i < r.errors.size(); ++i) CHECK(r.errors[i].to_string() == q.errors[i].to_string());
+      return r;
+    };
+    const LoadResult ok = same(canonical, threaded, inline_only);
+    REQUIRE(ok.ok());
+    CHECK(*ok.scene == desc);
+    std::string bad = canonical;
+    bad.replace(bad.rfind("\"radius\":"), 9, "\"radius\":-");
+    CHECK(same(bad, threaded, inline_only).errors.size() == 1);
+    // Over the limit in the second piece: the one error.
+    LoadOptions small_threaded = threaded, small_inline = inline_only;
+    small_threaded.max_bytes = small_inline.max_bytes = (std::size_t(3) << 20) / 2;
+    const LoadResult big = same(canonical, small_threaded, small_inline);
+    REQUIRE(big.errors.size() == 1);
+    CHECK(big.errors[0].message.find("larger than the limit") != std::string::npos);
+    // A syntax error in the first piece comes before the limit.
+    std::string broken = canonical;
+    broken.replace(broken.find("\"radius\":"), 9, "\"radius\"::");
+    const LoadResult syntax = same(broken, small_threaded, small_inline);
+    REQUIRE(syntax.errors.size() == 1);
+    CHECK(syntax.errors[0].message.find("invalid JSON") != std::string::npos);
+  }
 }
 
 namespace {
