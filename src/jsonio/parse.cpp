@@ -407,10 +407,11 @@ void EventLog::grow_text(std::size_t more) {
   text_.resize(std::max({std::size_t(4096), 2 * text_.size(), text_size_ + more}));
 }
 
-json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const {
+json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage, std::size_t* keys) const {
   // The value_stack the parser's handler builds with, fed the same events: the same value.
   json::value_stack stack(storage);
   stack.reset(std::move(storage));
+  std::size_t key_count = 0;
   Cursor c(*this, from, to);
   while (c.next()) {
     const Event& e = c.event();
@@ -426,6 +427,7 @@ json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const
         break;
       case Kind::kKey:
         stack.push_key(c.text());
+        ++key_count;
         break;
       case Kind::kString:
         stack.push_string(c.text());
@@ -447,6 +449,7 @@ json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const
         break;
     }
   }
+  if (keys != nullptr) *keys = key_count;
   return stack.release();
 }
 

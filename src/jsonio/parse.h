@@ -128,8 +128,11 @@ class EventLog {
     text_size_ = 0;
     pending_ = 0;
   }
-  // The value of the events from `from` to `to` (one whole value), on `storage`.
-  boost::json::value build(Mark from, Mark to, boost::json::storage_ptr storage = {}) const;
+  // The value of the events from `from` to `to` (one whole value), on `storage`; `keys` (if not
+  // null) gets the number of keys in the events. The value keeps the last of duplicate keys, so
+  // it holds fewer keys than that exactly when the events have a duplicate key.
+  boost::json::value build(Mark from, Mark to, boost::json::storage_ptr storage = {},
+                           std::size_t* keys = nullptr) const;
   // The duplicate keys in the events from `from` to `to` (one value, or the start of one that a
   // syntax error cut short), reported as StrictParser reports those of a document: "duplicate key
   // ..." at the key's JSON Pointer, which here starts with `path` (the value's own), appended to
