@@ -462,9 +462,16 @@ TEST_CASE("StrictParser: recorded elements build the values split_array hands ov
     jsonio::EventLog log;
     jsonio::StrictParser parser(64, 10);
     std::vector<std::pair<std::size_t, json::value>> got;
+    dtraced::util::Errors duplicates;  // the elements' (the parser leaves them to the consumer), and of which
+    std::vector<std::size_t> duplicate_elements;
     parser.record_elements("items", &log, [&](std::size_t i, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
       CHECK(&l == &log);
-      got.push_back({i, l.build(begin, l.mark())});
+      std::size_t keys = 0;
+      got.push_back({i, l.build(begin, l.mark(), {}, &keys)});
+      // The value keeps one of a duplicate key: fewer keys than the events have.
+      if (i == 0) CHECK((keys == 4 && got.back().second.as_object().size() == 3));
+      CHECK(l.duplicate_keys(begin, l.mark(), "/items/" + std::to_string(i), 10, duplicates) == (i == 0));
+      duplicate_elements.resize(duplicates.size(), i);
       if (i % 2 == 0) log.clear();  // the sink may clear the log
     });
     for (std::size_t at = 0; at < text.size(); at += piece)
@@ -485,11 +492,71 @@ TEST_CASE("StrictParser: recorded elements build the values split_array hands ov
     CHECK(got[7].second.as_double() == items[7].as_double());
     CHECK(doc.value.at("items").as_array().empty());
     CHECK(json::serialize(doc.value.at("b")) == json::serialize(whole.value.at("b")));
-    REQUIRE(doc.errors.size() == whole.errors.size());
-    for (std::size_t i = 0; i < doc.errors.size(); ++i) {
-      CHECK(doc.errors[i].message == whole.errors[i].message);
-      CHECK(doc.errors[i].path == whole.errors[i].path);
+    // The parser's own ("b", after every element) and the elements', in the document's order.
+    REQUIRE(doc.errors.size() == 1);
+    REQUIRE(parser.error_elements() == std::vector<std::size_t>{items.size()});
+    REQUIRE(duplicate_elements == std::vector<std::size_t>{0});
+    CHECK(duplicates[0].message == whole.errors[0].message);
+    CHECK(duplicates[0].path == whole.errors[0].path);
+    CHECK(doc.errors[0].message == whole.errors[1].message);
+    CHECK(doc.errors[0].path == whole.errors[1].path);
+    CHECK_FALSE(parser.open_element());
+  }
+  SECTION("an element cut short by a syntax error: its duplicate keys, then the error at its path") {
+    const std::string cut = "{\"items\": [1, {\"a\": {\"b\": 1, \"b\": [2, 3]}, \"a\": 4, \"c\": [5,, 6]}]}";
+    const jsonio::Document cut_whole = jsonio::parse_strict(cut, 64, 10);
+    REQUIRE(cut_whole.errors.size() == 3);  // "b", "a", the syntax error
+    for (const std::size_t piece : {std::size_t(1), std::size_t(4), cut.size()}) {
+      INFO("piece " << piece);
+      jsonio::EventLog log;
+      jsonio::StrictParser parser(64, 10);
+      std::size_t elements = 0;
+      parser.record_elements("items", &log, [&](std::size_t, const jsonio::EventLog&, jsonio::EventLog::Mark) {
+        ++elements;
+        log.clear();
+      });
+      for (std::size_t at = 0; at < cut.size(); at += piece) {
+        if (!parser.write(std::string_view(cut).substr(at, piece))) break;
+      }
+      const jsonio::Document doc = parser.finish();
+      REQUIRE_FALSE(doc.parsed);
+      CHECK(elements == 1);
+      CHECK(parser.error_elements().empty());
+      const auto open = parser.open_element();
+      REQUIRE(open);
+      CHECK(open->second == 1);
+      dtraced::util::Errors errors;
+      CHECK(log.duplicate_keys(open->first, log.mark(), "/items/1", 10, errors));
+      REQUIRE(doc.errors.size() == 1);
+      errors.push_back(doc.errors[0]);
+      REQUIRE(errors.size() == cut_whole.errors.size());
+      for (std::size_t i = 0; i < errors.size(); ++i) {
+        CHECK(errors[i].message == cut_whole.errors[i].message);
+        CHECK(errors[i].path == cut_whole.errors[i].path);
+      }
+      // At most as many as asked for.
+      dtraced::util::Errors one;
+      CHECK(log.duplicate_keys(open->first, log.mark(), "/items/1", 1, one));
+      CHECK(one.size() == 1);
     }
+  }
+  SECTION("past 64 keys an object's duplicates are not tracked, as in a document") {
+    std::string many = "{\"items\": [{";
+    for (int k = 0; k < 64; ++k) many += "\"k" + std::to_string(k) + "\": 0, ";
+    many += "\"k0\": 1}, {\"x\": 0, \"x\": 0}]}";
+    const jsonio::Document many_whole = jsonio::parse_strict(many, 64, 10);
+    REQUIRE(many_whole.errors.size() == 1);
+    jsonio::EventLog log;
+    jsonio::StrictParser parser(64, 10);
+    dtraced::util::Errors errors;
+    parser.record_elements("items", &log, [&](std::size_t i, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
+      l.duplicate_keys(begin, l.mark(), "/items/" + std::to_string(i), 10, errors);
+    });
+    REQUIRE(parser.write(many));
+    REQUIRE(parser.finish().parsed);
+    REQUIRE(errors.size() == 1);
+    CHECK(errors[0].message == many_whole.errors[0].message);
+    CHECK(errors[0].path == many_whole.errors[0].path);
   }
   SECTION("a cursor walks an element's events, texts whole") {
     jsonio::EventLog log;

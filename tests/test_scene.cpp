@@ -617,6 +617,63 @@ TEST_CASE("objects are read on a second thread for a large text: same scene, sam
   }
 }
 
+TEST_CASE("duplicate keys come first, in document order, inside objects or not: as the document's parse gives them",
+          "[scene][stream]") {
+  // The parser checks duplicate keys outside "scene_objects"; those inside an element are found
+  // by the loader (StrictParser::record_elements), off the parsing thread, and put in between.
+  const dtraced::scene::SceneDesc desc = generate_sphere_field(7000, 5);
+  std::string text = dtraced::scene::canonical_json(desc);
+  const auto insert_before = [&text](std::string_view key, std::size_t nth, std::string_view what) {
+    std::size_t at = 0;
+    for (std::size_t n = 0; n <= nth; ++n) at = text.find(key, n == 0 ? 0 : at + 1);
+    REQUIRE(at != std::string::npos);
+    text.insert(at, what);
+  };
+  insert_before("\"fov\":", 0, "\"fov\":40,");                       // the camera
+  insert_before("\"normal\":", 0, "\"normal\":[0,1,0],");            // the plane: not a plain sphere
+  insert_before("\"diffuse\":", 10, "\"diffuse\":0.5,");             // a sphere's material
+  insert_before("\"radius\":", 3000, "\"radius\":1,\"radius\":2,");  // twice in one sphere
+  insert_before("\"intensity\":", 0, "\"intensity\":1,");            // a light, after the objects
+  LoadOptions threaded, inline_only;
+  threaded.parallel_min_bytes = 0;
+  inline_only.parallel_min_bytes = std::numeric_limits<std::uint64_t>::max();
+  for (const std::size_t max_errors : {std::size_t(1000), std::size_t(4), std::size_t(2)}) {
+    INFO("max_errors " << max_errors);
+    threaded.max_errors = inline_only.max_errors = max_errors;
+    const dtraced::jsonio::Document whole = dtraced::jsonio::parse_strict(text, 64, max_errors - 1);
+    REQUIRE(whole.parsed);
+    REQUIRE(whole.errors.size() == std::min<std::size_t>(6, max_errors - 1));
+    for (const LoadOptions* options : {&threaded, &inline_only}) {
+      const LoadResult r = load_scene_string(text, "x.json", *options);
+      REQUIRE(r.errors.size() >= whole.errors.size());
+      for (std::size_t i = 0; i < whole.errors.size(); ++i) {
+        CHECK(r.errors[i].message == whole.errors[i].message);
+        CHECK(r.errors[i].path == whole.errors[i].path);
+      }
+    }
+  }
+  SECTION("and a syntax error in an object after a duplicate key in it: the same errors, the syntax error last") {
+    threaded.max_errors = inline_only.max_errors = dtraced::scene::kMaxReportedErrors;
+    insert_before("\"loc\":", 5000, "\"loc\":[0,0,7],");
+    text.insert(text.find("\"radius\":", text.find("\"loc\":[0,0,7],")), ",");  // the same object's
+    const dtraced::jsonio::Document whole =
+        dtraced::jsonio::parse_strict(text, 64, dtraced::scene::kMaxReportedErrors - 1);
+    REQUIRE_FALSE(whole.parsed);
+    // The camera's, the plane's, three in objects and one in the object cut short; the syntax error.
+    REQUIRE(whole.errors.size() == 7);
+    CHECK(whole.errors[5].message == "duplicate key \"loc\"");
+    CHECK(whole.errors[6].path == whole.errors[5].path.substr(0, whole.errors[5].path.size() - 4));
+    for (const LoadOptions* options : {&threaded, &inline_only}) {
+      const LoadResult r = load_scene_string(text, "x.json", *options);
+      REQUIRE(r.errors.size() == whole.errors.size());
+      for (std::size_t i = 0; i < whole.errors.size(); ++i) {
+        CHECK(r.errors[i].message == whole.errors[i].message);
+        CHECK(r.errors[i].path == whole.errors[i].path);
+      }
+    }
+  }
+}
+
 TEST_CASE("an object holds one geometry in shared storage", "[scene]") {
   STATIC_REQUIRE(sizeof(dtraced::scene::Object) <= 144);
   dtraced::scene::Object a, b;
@@ -671,6 +728,37 @@ TEST_CASE("Scene files are read and parsed in pieces: same scene, same errors", 
     LoadOptions options;
     options.max_bytes = 100;
     CHECK(load_scene_file(TempFile(canonical).path(), options).errors.size() == 1);
+  }
+  SECTION("a large file's objects read on a second thread: the same scene, the same errors") {
+    LoadOptions threaded, inline_only;
+    threaded.parallel_min_bytes = 0;
+    inline_only.parallel_min_bytes = std::numeric_limits<std::uint64_t>::max();
+    const auto same = [&](const std::string& text, const LoadOptions& a, const LoadOptions& b) {
+      const TempFile file(text);
+      const LoadResult r = load_scene_file(file.path(), a);
+      const LoadResult q = load_scene_file(file.path(), b);
+      REQUIRE(r.errors.size() == q.errors.size());
+      for (std::size_t i = 0; i < r.errors.size(); ++i) CHECK(r.errors[i].to_string() == q.errors[i].to_string());
+      return r;
+    };
+    const LoadResult ok = same(canonical, threaded, inline_only);
+    REQUIRE(ok.ok());
+    CHECK(*ok.scene == desc);
+    std::string bad = canonical;
+    bad.replace(bad.rfind("\"radius\":"), 9, "\"radius\":-");
+    CHECK(same(bad, threaded, inline_only).errors.size() == 1);
+    // Over the limit in the second piece: the one error.
+    LoadOptions small_threaded = threaded, small_inline = inline_only;
+    small_threaded.max_bytes = small_inline.max_bytes = (std::size_t(3) << 20) / 2;
+    const LoadResult big = same(canonical, small_threaded, small_inline);
+    REQUIRE(big.errors.size() == 1);
+    CHECK(big.errors[0].message.find("larger than the limit") != std::string::npos);
+    // A syntax error in the first piece comes before the limit.
+    std::string broken = canonical;
+    broken.replace(broken.find("\"radius\":"), 9, "\"radius\"::");
+    const LoadResult syntax = same(broken, small_threaded, small_inline);
+    REQUIRE(syntax.errors.size() == 1);
+    CHECK(syntax.errors[0].message.find("invalid JSON") != std::string::npos);
   }
 }
 

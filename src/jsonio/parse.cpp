@@ -39,6 +39,11 @@ struct Frame {
   // The key being read: the last of seen_text when it was new there (no copy), else `own_key`.
   bool key_is_last_seen = false;
   std::string own_key;
+  // A frame of a recorded element: its key is the log's text that ends log_key_end bytes in
+  // (no copy, and no duplicate check: see StrictParser::record_elements).
+  bool key_in_log = false;
+  std::size_t log_key_end = 0;
+  std::size_t log_key_size = 0;
   // The keys read so far, end to end (no string apiece: a large scene has millions of objects).
   std::string seen_text;
   std::vector<std::size_t> seen_ends;  // where each ends in seen_text
@@ -148,18 +153,23 @@ class StrictHandler {
   bool on_key_part(json::string_view s, std::size_t, json::error_code&) {
     if (recording()) {
       log_->add_part(view(s));
-    } else {
-      stack().push_chars(s);
+      return true;
     }
+    stack().push_chars(s);
     key_part_.append(s.data(), s.size());
     return true;
   }
   bool on_key(json::string_view s, std::size_t, json::error_code&) {
     if (recording()) {
-      log_->add_text(EventLog::Kind::kKey, view(s));
-    } else {
-      stack().push_key(s);
+      const std::size_t size = log_->add_text(EventLog::Kind::kKey, view(s));
+      Frame& f = frames_[depth_ - 1];
+      f.has_key = true;
+      f.key_in_log = true;
+      f.log_key_end = log_->mark().text;
+      f.log_key_size = size;
+      return true;
     }
+    stack().push_key(s);
     if (key_part_.empty()) {  // the whole key in one piece (nearly always): no copy
       key_read(view(s));
     } else {
@@ -236,6 +246,11 @@ class StrictHandler {
 
   json::value release() { return stack_.release(); }
   util::Errors& errors() { return errors_; }
+  const std::vector<std::size_t>& error_elements() const { return error_elements_; }
+  std::optional<std::pair<EventLog::Mark, std::size_t>> open_element() const {
+    if (!in_element_ || log_ == nullptr) return std::nullopt;
+    return std::pair(element_begin_, element_index_);
+  }
 
   // JSON Pointer of the value being read now (or of the container, between values).
   std::string current_path() const {
@@ -246,7 +261,7 @@ class StrictHandler {
         path += fmt::format("/{}", f.index);
       } else if (f.has_key) {
         path += '/';
-        path += printable(pointer_escape(f.key()));
+        path += printable(pointer_escape(f.key_in_log ? log_->text_before(f.log_key_end, f.log_key_size) : f.key()));
       }
     }
     return path;
@@ -266,6 +281,7 @@ class StrictHandler {
     f.index = 0;
     f.has_key = false;
     f.key_is_last_seen = false;
+    f.key_in_log = false;
     f.own_key.clear();
     f.seen_text.clear();
     f.seen_ends.clear();
@@ -290,6 +306,7 @@ class StrictHandler {
     if (f.seen_ends.size() >= kMaxTrackedKeys) return;
     if (errors_.size() < max_errors_) {
       errors_.push_back({fmt::format("duplicate key {}", quoted(f.key())), current_path()});
+      error_elements_.push_back(element_index_);
     }
   }
 
@@ -363,6 +380,7 @@ class StrictHandler {
   std::string key_part_;
   std::string number_part_;
   util::Errors errors_;
+  std::vector<std::size_t> error_elements_;  // per error: element_index_ then
   std::size_t max_errors_;
 };
 
@@ -389,10 +407,11 @@ void EventLog::grow_text(std::size_t more) {
   text_.resize(std::max({std::size_t(4096), 2 * text_.size(), text_size_ + more}));
 }
 
-json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const {
+json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage, std::size_t* keys) const {
   // The value_stack the parser's handler builds with, fed the same events: the same value.
   json::value_stack stack(storage);
   stack.reset(std::move(storage));
+  std::size_t key_count = 0;
   Cursor c(*this, from, to);
   while (c.next()) {
     const Event& e = c.event();
@@ -408,6 +427,7 @@ json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const
         break;
       case Kind::kKey:
         stack.push_key(c.text());
+        ++key_count;
         break;
       case Kind::kString:
         stack.push_string(c.text());
@@ -429,7 +449,72 @@ json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage) const
         break;
     }
   }
+  if (keys != nullptr) *keys = key_count;
   return stack.release();
+}
+
+bool EventLog::duplicate_keys(Mark from, Mark to, std::string_view path, std::size_t max_errors,
+                              util::Errors& out) const {
+  // The parser's Frame and key_read, on the events: the same keys tracked, the same paths.
+  struct Level {
+    bool is_array = false;
+    std::size_t index = 0;
+    bool has_key = false;
+    std::string_view key;
+    std::vector<std::string_view> seen;
+  };
+  std::vector<Level> levels;
+  bool found = false;
+  const auto value_done = [&levels] {
+    if (levels.empty()) return;
+    Level& l = levels.back();
+    if (l.is_array) {
+      ++l.index;
+    } else {
+      l.has_key = false;
+    }
+  };
+  Cursor c(*this, from, to);
+  while (c.next()) {
+    switch (c.kind()) {
+      case Kind::kObjectBegin:
+      case Kind::kArrayBegin:
+        levels.push_back({c.kind() == Kind::kArrayBegin, 0, false, {}, {}});
+        break;
+      case Kind::kObjectEnd:
+      case Kind::kArrayEnd:
+        levels.pop_back();
+        value_done();
+        break;
+      case Kind::kKey: {
+        Level& l = levels.back();
+        l.has_key = true;
+        l.key = c.text();
+        if (l.seen.size() >= kMaxTrackedKeys) break;
+        if (std::find(l.seen.begin(), l.seen.end(), l.key) == l.seen.end()) {
+          l.seen.push_back(l.key);
+          break;
+        }
+        found = true;
+        if (out.size() >= max_errors) break;
+        std::string at(path);
+        for (const Level& up : levels) {
+          if (up.is_array) {
+            at += fmt::format("/{}", up.index);
+          } else if (up.has_key) {
+            at += '/';
+            at += printable(pointer_escape(up.key));
+          }
+        }
+        out.push_back({fmt::format("duplicate key {}", quoted(l.key)), std::move(at)});
+        break;
+      }
+      default:
+        value_done();
+        break;
+    }
+  }
+  return found;
 }
 
 Utf8Sequence utf8_at(std::string_view text, std::size_t i) {
@@ -583,6 +668,15 @@ void StrictParser::record_elements(std::string root_key, EventLog* log, EventSin
 }
 
 void StrictParser::set_event_log(EventLog* log) { impl_->parser.handler().set_event_log(log); }
+
+const std::vector<std::size_t>& StrictParser::error_elements() const {
+  return impl_->parser.handler().error_elements();
+}
+
+std::optional<std::pair<EventLog::Mark, std::size_t>> StrictParser::open_element() const {
+  if (!impl_->failed) return std::nullopt;
+  return impl_->parser.handler().open_element();
+}
 
 void StrictParser::set_element_storage(boost::json::monotonic_resource* memory) {
   impl_->parser.handler().set_element_storage(memory);

@@ -20,8 +20,10 @@
 #include <cstring>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include <boost/json/memory_resource.hpp>
@@ -126,8 +128,21 @@ class EventLog {
     text_size_ = 0;
     pending_ = 0;
   }
-  // The value of the events from `from` to `to` (one whole value), on `storage`.
-  boost::json::value build(Mark from, Mark to, boost::json::storage_ptr storage = {}) const;
+  // The value of the events from `from` to `to` (one whole value), on `storage`; `keys` (if not
+  // null) gets the number of keys in the events. The value keeps the last of duplicate keys, so
+  // it holds fewer keys than that exactly when the events have a duplicate key.
+  boost::json::value build(Mark from, Mark to, boost::json::storage_ptr storage = {},
+                           std::size_t* keys = nullptr) const;
+  // The duplicate keys in the events from `from` to `to` (one value, or the start of one that a
+  // syntax error cut short), reported as StrictParser reports those of a document: "duplicate key
+  // ..." at the key's JSON Pointer, which here starts with `path` (the value's own), appended to
+  // `out` while it holds fewer than `max_errors`. Returns whether there was one.
+  bool duplicate_keys(Mark from, Mark to, std::string_view path, std::size_t max_errors, util::Errors& out) const;
+  // The `size` bytes of text that end `end` bytes into the log (a recorded key: StrictParser's
+  // path of a syntax error).
+  std::string_view text_before(std::size_t end, std::size_t size) const {
+    return std::string_view(text_.data() + end - size, size);
+  }
 
   // Recording (the parser's handler).
   void add(Kind k, std::uint64_t size = 0) { events_.push_back(make(k, size)); }
@@ -150,12 +165,15 @@ class EventLog {
     text_size_ += part.size();
     pending_ += part.size();
   }
-  // A key, string or double whose text ends with `last` (after the parts added before).
-  void add_text(Kind k, std::string_view last, double d = 0) {
+  // A key, string or double whose text ends with `last` (after the parts added before); returns
+  // the size of its whole text.
+  std::size_t add_text(Kind k, std::string_view last, double d = 0) {
     add_part(last);
-    Event& e = events_.emplace_back(make(k, pending_));
+    const std::size_t size = pending_;
+    Event& e = events_.emplace_back(make(k, size));
     e.d = d;
     pending_ = 0;
+    return size;
   }
 
  private:
@@ -201,10 +219,21 @@ class StrictParser {
   void split_array(std::string root_key, ElementSink sink);
   // The same, but the elements are recorded into `log` (the caller's, alive while the parser
   // writes to it; the sink may clear it, or give another with set_event_log, after an element)
-  // and handed over as events: no value is built for them. The same errors (a duplicate key in
-  // an element too) as split_array. Call before the first write.
+  // and handed over as events: no value is built for them. The same errors as split_array but
+  // one kind: duplicate keys inside an element are left to the consumer, which knows most
+  // elements have none (a sphere read from the events has each key once) and checks the others
+  // with EventLog::duplicate_keys, off the parsing thread; it puts them among the parser's own
+  // errors by error_elements(), and finds those of an element a syntax error cut short from
+  // open_element(). Call before the first write.
   void record_elements(std::string root_key, EventLog* log, EventSink sink);
   void set_event_log(EventLog* log);
+  // For each error of the document (finish()) but a syntax error: how many elements of the split
+  // array had begun before it, so that a consumer's errors of element i go before the parser's
+  // errors with a count above i, and after the others.
+  const std::vector<std::size_t>& error_elements() const;
+  // After a syntax error inside an element being recorded: where it began in the log being
+  // written then (it runs to that log's end) and its index. Nullopt otherwise.
+  std::optional<std::pair<EventLog::Mark, std::size_t>> open_element() const;
   // Where the next elements of the split array are built (null: the parser's own memory, reused
   // element after element). The caller owns `memory` and keeps it alive as long as the values
   // built on it; it may change it at any time, also from within the sink (then it applies from

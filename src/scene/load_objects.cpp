@@ -70,6 +70,27 @@ bool normal_as_float(double d) { return std::fpclassify(static_cast<float>(d)) =
 using Keys = std::span<const std::string_view>;
 constexpr std::array<std::string_view, 7> kMaterialKeys = {"color",        "diffuse",      "specular", "shininess",
                                                            "reflectivity", "transparency", "ior"};
+// The material's plain numbers and their ranges, kMaterialKeys[1] to [5] in that order: the one
+// table both read_material and the events' fast path (plain_material) check against.
+struct MaterialRange {
+  std::string_view key;
+  double lo, hi;
+  double Material::*field;
+};
+constexpr std::array<MaterialRange, 5> kMaterialRanges = {{
+    {"diffuse", 0, 1, &Material::diffuse},
+    {"specular", 0, 1, &Material::specular},
+    {"shininess", 0, kMaxShininess, &Material::shininess},
+    {"reflectivity", 0, 1, &Material::reflectivity},
+    {"transparency", 0, 1, &Material::transparency},
+}};
+constexpr bool ranges_follow_color() {
+  for (std::size_t i = 0; i < kMaterialRanges.size(); ++i) {
+    if (kMaterialRanges[i].key != kMaterialKeys[i + 1]) return false;
+  }
+  return kMaterialKeys[0] == "color" && kMaterialKeys[kMaterialRanges.size() + 1] == "ior";
+}
+static_assert(ranges_follow_color());
 constexpr std::array<std::string_view, 4> kSphereKeys = {"type", "loc", "radius", "material"};
 constexpr std::array<std::string_view, 6> kBoxKeys = {"type", "loc", "size", "min", "max", "material"};
 constexpr std::array<std::string_view, 4> kPlaneKeys = {"type", "loc", "normal", "material"};
@@ -210,11 +231,9 @@ class ObjectReader {
     jsonio::Fields f(r_, *o, at, kMaterialKeys, kKeyAliases);
     const std::size_t errors_before = r_.error_count();
     animatable(f, "color", m.color, Need::kOptional, Target::kMaterialColor, albedo());
-    f.read("diffuse", m.diffuse, Need::kOptional, float_in(0, 1));
-    f.read("specular", m.specular, Need::kOptional, float_in(0, 1));
-    f.read("shininess", m.shininess, Need::kOptional, float_in(0, kMaxShininess));
-    f.read("reflectivity", m.reflectivity, Need::kOptional, float_in(0, 1));
-    f.read("transparency", m.transparency, Need::kOptional, float_in(0, 1));
+    for (const MaterialRange& range : kMaterialRanges) {
+      f.read(range.key, m.*range.field, Need::kOptional, float_in(range.lo, range.hi));
+    }
     f.read("ior", m.ior, Need::kOptional,
            size_in(kMinIor, kMaxIor, "2^-31 to 2^31: refraction squares ratios of iors"));
     if (r_.error_count() == errors_before && m.reflectivity + m.transparency > 1 + kEnergySlack) {
@@ -621,29 +640,14 @@ bool plain_material(EventLog::Cursor& c, Material& m) {
     if (k == kMaterialKeys.size() || (seen & (1u << k)) != 0) return false;
     seen |= 1u << k;
     bool ok = false;
-    switch (k) {
-      case 0:  // color: albedo(), each channel in [0, kMaxAlbedo]
-        ok = plain_vec3(c, m.color) && m.color.x >= 0 && m.color.y >= 0 && m.color.z >= 0 && m.color.x <= kMaxAlbedo &&
-             m.color.y <= kMaxAlbedo && m.color.z <= kMaxAlbedo;
-        break;
-      case 1:
-        ok = plain_float_in(c, 0, 1, m.diffuse);
-        break;
-      case 2:
-        ok = plain_float_in(c, 0, 1, m.specular);
-        break;
-      case 3:
-        ok = plain_float_in(c, 0, kMaxShininess, m.shininess);
-        break;
-      case 4:
-        ok = plain_float_in(c, 0, 1, m.reflectivity);
-        break;
-      case 5:
-        ok = plain_float_in(c, 0, 1, m.transparency);
-        break;
-      case 6:  // ior: size_in(kMinIor, kMaxIor), positive first
-        ok = plain_float_in(c, kMinIor, kMaxIor, m.ior) && m.ior > 0;
-        break;
+    if (k == 0) {  // color: albedo(), each channel in [0, kMaxAlbedo]
+      ok = plain_vec3(c, m.color) && m.color.x >= 0 && m.color.y >= 0 && m.color.z >= 0 && m.color.x <= kMaxAlbedo &&
+           m.color.y <= kMaxAlbedo && m.color.z <= kMaxAlbedo;
+    } else if (k <= kMaterialRanges.size()) {
+      const MaterialRange& range = kMaterialRanges[k - 1];
+      ok = plain_float_in(c, range.lo, range.hi, m.*range.field);
+    } else {  // ior: size_in(kMinIor, kMaxIor), positive first
+      ok = plain_float_in(c, kMinIor, kMaxIor, m.ior) && m.ior > 0;
     }
     if (!ok) return false;
   }
