@@ -24,9 +24,10 @@
 // constants are computed a vector at a time (make_packet); its lanes as single rays only when a fallback needs them. A
 // nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so Geometry builds the hit record
 // from them instead of testing the triangle again (about 15 % of a camera packet's time went to that second test and
-// its ray constants). A leaf of triangles only is described by its child reference itself (kTriLeaf), not only by
-// its WideLeaf record: one dependent load less per leaf. Tiny scenes come as a flat layout (detail::flat_wide: one
-// node over one or two leaves), which these same loops walk.
+// its ray constants). A leaf of triangles only, or of one sphere block, is described by its child reference itself
+// (kTriLeaf), not only by its WideLeaf record: one dependent load less per leaf, and its blocks prefetched as a lane
+// enters it. Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two leaves), which these same
+// loops walk.
 //
 // Packets whose lanes share their direction signs (camera and shadow packets nearly always do) are traversed
 // as a whole instead (traverse_coherent, the scheme of Embree's coherent packets): one frustum test of a node's 8
@@ -1234,6 +1235,11 @@ inline void prefetch_child(const WideBvh& bvh, std::uint32_t ref) {
   if (!(ref & kLeafBit)) {
     const char* q = reinterpret_cast<const char*>(&bvh.nodes[ref]);
     for (int k = 0; k < 4; ++k) __builtin_prefetch(q + 64 * k);
+  } else if ((ref & kTriLeaf) && tri_leaf_blocks(ref) == 0) {
+    // A sphere block (80 bytes, 16-aligned: at most two lines).
+    const char* q = reinterpret_cast<const char*>(&bvh.spheres[ref & kTriLeafBeginMask]);
+    __builtin_prefetch(q);
+    __builtin_prefetch(q + sizeof(SphereBlock) - 1);
   } else if (ref & kTriLeaf) {
     const char* q = reinterpret_cast<const char*>(&bvh.triangles[ref & kTriLeafBeginMask]);
     for (int k = 0; k < 3; ++k) __builtin_prefetch(q + 64 * k);
