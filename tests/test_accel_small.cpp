@@ -5,8 +5,8 @@
 // machine runs. Also packets whose lanes differ in direction signs, have zero or negative-zero
 // direction components or different dominant axes, which exercise the per-lane constants the
 // packet kernels compute a vector at a time, on a flat and on a tree layout. And the encoding of
-// triangle-only leaves in their child references (kTriLeaf), with a scene that mixes such leaves,
-// mixed leaves and an oversized leaf of duplicates.
+// triangle-only and one-sphere-block leaves in their child references (kTriLeaf), with a scene that
+// mixes such leaves, mixed leaves and an oversized leaf of duplicates.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -350,7 +350,7 @@ TEST_CASE("rays grazing a sphere's silhouette: packets answer as the scalar path
   check_tree_matches_scalar(shapes, rays, 4);
 }
 
-TEST_CASE("triangle-only leaves are described by their child reference, other leaves by their record",
+TEST_CASE("triangle-only and one-sphere-block leaves are described by their child reference, others by their record",
           "[accel][small]") {
   using namespace dtraced::accel::detail;
   SECTION("the kTriLeaf reference round-trips, and leaves it cannot describe get 0") {
@@ -383,6 +383,32 @@ TEST_CASE("triangle-only leaves are described by their child reference, other le
     too_far.triangle_begin = kTriLeafBeginMask + 1;
     CHECK(tri_leaf_ref(too_far) == 0);
     CHECK(tri_leaf_ref(WideLeaf{}) == 0);  // no prims at all
+  }
+  SECTION("a leaf of one sphere block round-trips too, with a block count of 0; other sphere leaves get 0") {
+    WideLeaf sph;
+    sph.sphere_begin = 654321;
+    sph.sphere_blocks = 1;
+    const std::uint32_t ref = tri_leaf_ref(sph);
+    CHECK((ref & kLeafBit) != 0);
+    CHECK((ref & kTriLeaf) != 0);
+    CHECK(tri_leaf_blocks(ref) == 0);
+    const WideLeaf back = tri_leaf_of(ref);
+    CHECK(back.sphere_begin == 654321);
+    CHECK(back.sphere_blocks == 1);
+    CHECK(back.triangle_blocks == 0);
+    CHECK(back.box_count == 0);
+    WideLeaf last = sph;
+    last.sphere_begin = kTriLeafBeginMask;
+    CHECK(tri_leaf_of(tri_leaf_ref(last)).sphere_begin == kTriLeafBeginMask);
+    WideLeaf two = sph;
+    two.sphere_blocks = 2;
+    CHECK(tri_leaf_ref(two) == 0);
+    WideLeaf too_far = sph;
+    too_far.sphere_begin = kTriLeafBeginMask + 1;
+    CHECK(tri_leaf_ref(too_far) == 0);
+    WideLeaf with_box = sph;
+    with_box.box_count = 1;
+    CHECK(tri_leaf_ref(with_box) == 0);
   }
   SECTION("a mesh with spheres and boxes among its triangles and 80 copies of one triangle") {
     // Triangle-only leaves (the grid), mixed leaves (spheres and boxes resting on it) and a leaf the

@@ -24,9 +24,10 @@
 // constants are computed a vector at a time (make_packet); its lanes as single rays only when a fallback needs them. A
 // nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so Geometry builds the hit record
 // from them instead of testing the triangle again (about 15 % of a camera packet's time went to that second test and
-// its ray constants). A leaf of triangles only is described by its child reference itself (kTriLeaf), not only by
-// its WideLeaf record: one dependent load less per leaf. Tiny scenes come as a flat layout (detail::flat_wide: one
-// node over one or two leaves), which these same loops walk.
+// its ray constants). A leaf of triangles only, or of one sphere block, is described by its child reference itself
+// (kTriLeaf), not only by its WideLeaf record: one dependent load less per leaf, and its blocks prefetched as a lane
+// enters it. Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two leaves), which these same
+// loops walk.
 //
 // Packets whose lanes share their direction signs (camera and shadow packets nearly always do) are traversed
 // as a whole instead (traverse_coherent, the scheme of Embree's coherent packets): one frustum test of a node's 8
@@ -145,20 +146,20 @@ HWY_INLINE SphereConsts<DD, DF> sphere_consts(DD dd, DF df) {
   return {hn::Zero(dd), hn::Set(dd, std::numeric_limits<double>::quiet_NaN()), hn::Set(df, kInfF),
           hn::Set(df, std::numeric_limits<float>::quiet_NaN())};
 }
-template <class DD, class DF, class VD, class VF>
-HWY_INLINE void sphere_lanes(DD dd, DF df, const SphereConsts<DD, DF>& k, VD fx, VD fy, VD fz, VD dx, VD dy, VD dz,
-                             VD a, VD rr, VF tmin, float* t) {
-  const auto zero = k.zero, nan = k.nan;
-  const auto inf = k.inf, nanf = k.nanf;
+// The discriminant part (disc / 4 = a r^2 - |f x d|^2); lanes with disc >= 0 may hit.
+template <class VD>
+HWY_INLINE VD sphere_disc(VD fx, VD fy, VD fz, VD dx, VD dy, VD dz, VD a, VD rr) {
   const auto cx = hn::Sub(hn::Mul(fy, dz), hn::Mul(fz, dy));
   const auto cy = hn::Sub(hn::Mul(fz, dx), hn::Mul(fx, dz));
   const auto cz = hn::Sub(hn::Mul(fx, dy), hn::Mul(fy, dx));
-  const auto disc = hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(cx, cx), hn::Mul(cy, cy)), hn::Mul(cz, cz)));
-  const auto ok = hn::Ge(disc, zero);
-  if (hn::AllFalse(dd, ok)) {  // most sphere tests miss: skip the square root and divisions
-    hn::StoreU(nanf, df, t);
-    return;
-  }
+  return hn::Sub(hn::Mul(a, rr), hn::Add(hn::Add(hn::Mul(cx, cx), hn::Mul(cy, cy)), hn::Mul(cz, cz)));
+}
+// The rest, for lanes `ok` (disc >= 0): each lane's chosen float root or NaN.
+template <class DD, class DF, class VD, class VF>
+HWY_INLINE VF sphere_root(DD /*dd*/, DF df, const SphereConsts<DD, DF>& k, hn::Mask<DD> ok, VD disc, VD fx, VD fy,
+                          VD fz, VD dx, VD dy, VD dz, VD a, VD rr, VF tmin) {
+  const auto zero = k.zero, nan = k.nan;
+  const auto inf = k.inf, nanf = k.nanf;
   const auto bq = hn::Add(hn::Add(hn::Mul(fx, dx), hn::Mul(fy, dy)), hn::Mul(fz, dz));
   const auto c = hn::Sub(hn::Add(hn::Add(hn::Mul(fx, fx), hn::Mul(fy, fy)), hn::Mul(fz, fz)), rr);
   const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(hn::IfThenElse(ok, disc, zero)), bq)));
@@ -171,7 +172,18 @@ HWY_INLINE void sphere_lanes(DD dd, DF df, const SphereConsts<DD, DF>& k, VD fx,
   const auto t1 = hn::DemoteTo(df, hi);
   const auto use0 = hn::And(hn::Gt(t0, tmin), hn::Lt(t0, inf));
   const auto use1 = hn::And(hn::Gt(t1, tmin), hn::Lt(t1, inf));
-  hn::StoreU(hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf)), df, t);
+  return hn::IfThenElse(use0, t0, hn::IfThenElse(use1, t1, nanf));
+}
+template <class DD, class DF, class VD, class VF>
+HWY_INLINE void sphere_lanes(DD dd, DF df, const SphereConsts<DD, DF>& k, VD fx, VD fy, VD fz, VD dx, VD dy, VD dz,
+                             VD a, VD rr, VF tmin, float* t) {
+  const auto disc = sphere_disc(fx, fy, fz, dx, dy, dz, a, rr);
+  const auto ok = hn::Ge(disc, k.zero);
+  if (hn::AllFalse(dd, ok)) {  // most sphere tests miss: skip the square root and divisions
+    hn::StoreU(k.nanf, df, t);
+    return;
+  }
+  hn::StoreU(sphere_root(dd, df, k, ok, disc, fx, fy, fz, dx, dy, dz, a, rr, tmin), df, t);
 }
 
 // Sphere roots of one ray against a block of 4 spheres, in double exactly as sphere_roots and
@@ -594,7 +606,7 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
       axis_bits[k] |= low_bits(mb, n) << i;
     }
   }
-  // The sphere test's double copies and a = |d|^2, as make_single computes it (only sphere8
+  // The sphere test's double copies and a = |d|^2, as make_single computes it (only sphere_apply
   // reads them: a tree without spheres skips them).
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
@@ -771,23 +783,66 @@ inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std
   return out;
 }
 
-// One sphere against the 8 rays, in double exactly as sphere_t.
-template <int kP>
-inline void sphere8(const Packet<kP>& p, float cx, float cy, float cz, float radius, float* t) {
+// One sphere against the packet's lanes in `mask`, in double exactly as sphere_t, with apply8's
+// rule applied as each chunk of lanes (one double vector) is done: returns the lanes that
+// improved (nearest) or that are blocked (any-hit). The candidate distances stay in registers: a
+// double vector's roots demote to half a float vector, and storing them by halves for apply8 to
+// load as one vector stalled every sphere test on a failed store forward (the hottest spot of
+// 16-ray sphere packets on avx512). A pinhole packet's f = o - c is the same for every lane:
+// computed once, with the same single rounding each lane would do.
+template <int kP, bool kAnyHit>
+HWY_INLINE std::uint32_t sphere_apply(Packet<kP>& p, float cx, float cy, float cz, float radius, std::uint32_t id,
+                                      std::uint32_t mask) {
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
+  const hn::RebindToUnsigned<decltype(df)> du;
+  const hn::RebindToSigned<decltype(df)> di;
   const std::size_t n = hn::Lanes(dd);
-  const auto ccx = hn::Set(dd, double(cx)), ccy = hn::Set(dd, double(cy)), ccz = hn::Set(dd, double(cz));
   const auto rad = hn::Set(dd, double(radius));
   const auto rr = hn::Mul(rad, rad);
   const auto k = sphere_consts(dd, df);
+  const bool shared = p.uniform_origin;
+  const auto sfx = hn::Set(dd, double(p.o[0][0]) - double(cx));
+  const auto sfy = hn::Set(dd, double(p.o[1][0]) - double(cy));
+  const auto sfz = hn::Set(dd, double(p.o[2][0]) - double(cz));
+  const auto maskv = hn::Set(du, mask);
+  std::uint32_t out = 0;
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
-    const auto fx = hn::Sub(hn::LoadU(dd, p.od[0] + i), ccx);
-    const auto fy = hn::Sub(hn::LoadU(dd, p.od[1] + i), ccy);
-    const auto fz = hn::Sub(hn::LoadU(dd, p.od[2] + i), ccz);
+    auto fx = sfx, fy = sfy, fz = sfz;
+    if (!shared) {
+      fx = hn::Sub(hn::LoadU(dd, p.od[0] + i), hn::Set(dd, double(cx)));
+      fy = hn::Sub(hn::LoadU(dd, p.od[1] + i), hn::Set(dd, double(cy)));
+      fz = hn::Sub(hn::LoadU(dd, p.od[2] + i), hn::Set(dd, double(cz)));
+    }
     const auto dx = hn::LoadU(dd, p.dd[0] + i), dy = hn::LoadU(dd, p.dd[1] + i), dz = hn::LoadU(dd, p.dd[2] + i);
-    sphere_lanes(dd, df, k, fx, fy, fz, dx, dy, dz, hn::LoadU(dd, p.a + i), rr, hn::LoadU(df, p.t_min + i), t + i);
+    const auto a = hn::LoadU(dd, p.a + i);
+    const auto disc = sphere_disc(fx, fy, fz, dx, dy, dz, a, rr);
+    const auto ok = hn::Ge(disc, k.zero);
+    if (hn::AllFalse(dd, ok)) continue;  // most sphere tests miss: skip the roots
+    const auto tv = sphere_root(dd, df, k, ok, disc, fx, fy, fz, dx, dy, dz, a, rr, hn::LoadU(df, p.t_min + i));
+    const auto best = hn::LoadU(df, p.best + i);
+    const auto active = hn::RebindMask(df, hn::TestBit(maskv, hn::Load(du, kLaneBit + i)));
+    auto win = hn::And(active, hn::Lt(tv, best));
+    if (!kAnyHit) {
+      // better(): t < best, or t == best and id < best id (compared as signed after flipping the
+      // top bit: the unsigned order).
+      const auto top = hn::Set(du, 0x80000000u);
+      const auto idv = hn::Set(du, id);
+      const auto old_id = hn::LoadU(du, p.id + i);
+      const auto id_lt =
+          hn::RebindMask(df, hn::Lt(hn::BitCast(di, hn::Xor(idv, top)), hn::BitCast(di, hn::Xor(old_id, top))));
+      win = hn::Or(win, hn::And(active, hn::And(hn::Eq(tv, best), id_lt)));
+      if (hn::AllFalse(df, win)) continue;
+      hn::StoreU(hn::IfThenElse(win, tv, best), df, p.best + i);
+      hn::StoreU(hn::IfThenElse(win, hn::Mul(tv, hn::Set(df, kFarScale)), hn::LoadU(df, p.cull + i)), df, p.cull + i);
+      hn::StoreU(hn::IfThenElse(hn::RebindMask(du, win), idv, old_id), du, p.id + i);
+    }
+    std::uint8_t mb[8] = {};
+    hn::StoreMaskBits(df, win, mb);
+    out |= low_bits(mb, n) << i;
   }
+  if (!kAnyHit) p.uvw_soa &= ~out;
+  return out;
 }
 
 // One triangle (vertices v[vertex][axis]) against the 8 rays, exactly as triangle_t; each lane
@@ -890,8 +945,7 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet<kP>&
     const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
     for (int j = 0; j < kWidth && mask != 0; ++j) {
       if (b.id[j] == kEmptyChild) break;
-      sphere8(p, b.cx[j], b.cy[j], b.cz[j], b.r[j], t);
-      const std::uint32_t hit = apply8<kP, kAnyHit>(p, t, b.id[j], mask);
+      const std::uint32_t hit = sphere_apply<kP, kAnyHit>(p, b.cx[j], b.cy[j], b.cz[j], b.r[j], b.id[j], mask);
       out |= hit;
       if (kAnyHit) mask &= ~hit;
     }
@@ -1181,6 +1235,11 @@ inline void prefetch_child(const WideBvh& bvh, std::uint32_t ref) {
   if (!(ref & kLeafBit)) {
     const char* q = reinterpret_cast<const char*>(&bvh.nodes[ref]);
     for (int k = 0; k < 4; ++k) __builtin_prefetch(q + 64 * k);
+  } else if ((ref & kTriLeaf) && tri_leaf_blocks(ref) == 0) {
+    // A sphere block (80 bytes, 16-aligned: at most two lines).
+    const char* q = reinterpret_cast<const char*>(&bvh.spheres[ref & kTriLeafBeginMask]);
+    __builtin_prefetch(q);
+    __builtin_prefetch(q + sizeof(SphereBlock) - 1);
   } else if (ref & kTriLeaf) {
     const char* q = reinterpret_cast<const char*>(&bvh.triangles[ref & kTriLeafBeginMask]);
     for (int k = 0; k < 3; ++k) __builtin_prefetch(q + 64 * k);

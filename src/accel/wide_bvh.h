@@ -26,8 +26,11 @@ inline constexpr std::uint32_t kLeafBit = 0x80000000u;  // child refers to leave
 
 // A leaf of triangles only is described in its child reference itself, so that traversal reaches
 // its blocks without first loading the WideLeaf record (a dependent load per leaf):
-// kLeafBit | kTriLeaf | blocks << kTriLeafShift | triangle_begin. Other leaves' indices stay below
-// kTriLeaf (2^30 leaves would need far more prims than memory holds; collapse_to_wide checks).
+// kLeafBit | kTriLeaf | blocks << kTriLeafShift | triangle_begin. A leaf of one block of spheres
+// (and nothing else: nearly every leaf of a sphere scene) likewise, with a block count of 0:
+// kLeafBit | kTriLeaf | sphere_begin; traversal can then also prefetch its block as soon as a lane
+// enters it. Other leaves' indices stay below kTriLeaf (2^30 leaves would need far more prims than
+// memory holds; collapse_to_wide checks).
 inline constexpr std::uint32_t kTriLeaf = 0x40000000u;
 inline constexpr int kTriLeafShift = 26;
 inline constexpr std::uint32_t kTriLeafMaxBlocks = 15;                         // 4 bits
@@ -73,19 +76,34 @@ struct BoxPrim {
   std::uint32_t id = 0;
 };
 
-// The child reference that describes `leaf` by itself (kTriLeaf), or 0 when it holds other prims
-// or does not fit the encoding (then the reference is kLeafBit | its index in WideBvh::leaves).
+// The child reference that describes `leaf` by itself (kTriLeaf: triangles only, or one block of
+// spheres only), or 0 when it holds other prims or does not fit the encoding (then the reference
+// is kLeafBit | its index in WideBvh::leaves).
 inline std::uint32_t tri_leaf_ref(const WideLeaf& leaf) {
-  if (leaf.sphere_blocks != 0 || leaf.box_count != 0 || leaf.triangle_blocks == 0) return 0;
+  if (leaf.box_count != 0) return 0;
+  if (leaf.sphere_blocks != 0) {
+    if (leaf.sphere_blocks != 1 || leaf.triangle_blocks != 0 || leaf.sphere_begin > kTriLeafBeginMask) return 0;
+    return kLeafBit | kTriLeaf | leaf.sphere_begin;
+  }
+  if (leaf.triangle_blocks == 0) return 0;
   if (leaf.triangle_blocks > kTriLeafMaxBlocks || leaf.triangle_begin > kTriLeafBeginMask) return 0;
   return kLeafBit | kTriLeaf | std::uint32_t(leaf.triangle_blocks) << kTriLeafShift | leaf.triangle_begin;
 }
 
+// The number of triangle blocks of a kTriLeaf reference: 0 for a leaf of one sphere block.
+inline std::uint32_t tri_leaf_blocks(std::uint32_t ref) { return (ref & ~(kLeafBit | kTriLeaf)) >> kTriLeafShift; }
+
 // The WideLeaf that a kTriLeaf reference describes.
 inline WideLeaf tri_leaf_of(std::uint32_t ref) {
   WideLeaf leaf;
+  const std::uint32_t blocks = tri_leaf_blocks(ref);
+  if (blocks == 0) {
+    leaf.sphere_begin = ref & kTriLeafBeginMask;
+    leaf.sphere_blocks = 1;
+    return leaf;
+  }
   leaf.triangle_begin = ref & kTriLeafBeginMask;
-  leaf.triangle_blocks = std::uint16_t((ref & ~(kLeafBit | kTriLeaf)) >> kTriLeafShift);
+  leaf.triangle_blocks = std::uint16_t(blocks);
   return leaf;
 }
 
