@@ -198,3 +198,44 @@ TEST_CASE("an upload answer with a next lease survives a round trip and its deco
     CHECK_FALSE(protocol::parse_next_lease_header(bad));
   }
 }
+
+TEST_CASE("a lease's answer is the protocol's encoding of it, in POST /v1/lease and in an upload answer",
+          "[collector][next_lease]") {
+  // The collector writes a lease's JSON itself, with the job's settings encoded once per frame:
+  // it must be the protocol encoder's text byte for byte, whatever the settings carry.
+  TempDir dir;
+  Harness h(dir);
+  const std::uint64_t plain = h.submit();
+  const std::uint64_t sequence =
+      h.submit(R"(, "frames": {"first": 4, "last": 8, "step": 2}, "output": "seq.gif", "fps": 10, "tone": "reinhard",)"
+               R"( "exposure": 0.5, "background": [0.1, 0.25, 1e-7], "seed": 9)");
+  const std::uint64_t adaptive = h.submit(R"(, "error_target": 0.03125, "min_samples": 2)");
+  std::set<std::uint64_t> jobs;
+  std::set<std::uint32_t> frames;
+  for (int i = 0; i < 10 * static_cast<int>(kTiles); ++i) {
+    const Response res = h.call(Verb::post, "/v1/lease", R"({"worker": "test", "threads": 1})");
+    REQUIRE(res.result() == Status::ok);
+    auto reply = protocol::decode_lease_reply(res.body());
+    REQUIRE(reply.ok());
+    CHECK(res.body() == protocol::encode(reply.value()));
+    const auto* l = std::get_if<protocol::Lease>(&reply.value());
+    if (l == nullptr) break;
+    jobs.insert(l->job);
+    frames.insert(l->settings.frame);
+    // The fake payload has no sample counts, which an adaptive job's tiles need.
+    if (l->job == adaptive) continue;
+    // Stored with the next lease in the answer: the splice of the result and the lease's text.
+    const Response up = h.collector.handle_sync(upload(*l, "1"));
+    REQUIRE(up.result() == Status::ok);
+    const protocol::UploadAnswer answer = decoded(up);
+    CHECK(up.body() == protocol::encode(answer));
+    REQUIRE(answer.next);
+    if (const auto* next = std::get_if<protocol::Lease>(&*answer.next)) {
+      jobs.insert(next->job);
+      frames.insert(next->settings.frame);
+    }
+  }
+  // Both jobs, and frames of the sequence other than the first (a new frame's settings).
+  CHECK(jobs == std::set<std::uint64_t>{plain, sequence, adaptive});
+  CHECK(frames.size() >= 3);
+}

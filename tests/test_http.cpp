@@ -8,6 +8,7 @@
 #include <future>
 #include <memory>
 #include <optional>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -28,6 +29,7 @@
 #include <boost/asio/write.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
 #include <boost/beast/http/read.hpp>
+#include <boost/beast/http/write.hpp>
 #include <boost/json/parse.hpp>
 #include <boost/json/value.hpp>
 #include <catch2/catch.hpp>
@@ -488,4 +490,57 @@ TEST_CASE("server: a header check answers before the body is read, or lowers the
   REQUIRE(failed);
   CHECK(failed->result() == Status::internal_server_error);
   CHECK(handled == 1);
+}
+
+namespace {
+
+// Every byte the server sends back for `request` (which asks for Connection: close), up to its
+// close; "" when it does not close within kBound.
+std::string raw_exchange(std::uint16_t port, const std::string& request) {
+  net::io_context io;
+  tcp::socket socket(io);
+  socket.connect(tcp::endpoint(net::ip::make_address("127.0.0.1"), port));
+  net::write(socket, net::buffer(request));
+  std::string got;
+  error_code result = net::error::timed_out;
+  net::async_read(socket, net::dynamic_buffer(got), [&](const error_code& ec, std::size_t) { result = ec; });
+  io.run_for(kBound);
+  return result == net::error::eof ? got : std::string();
+}
+
+// The answers of the test below, before the server adds its own fields.
+Response wire_answer(std::string_view target) {
+  if (target == "/small") {
+    Response res = dtraced::http::make_text_response(Status::ok, R"({"result":"stored"})", "application/json");
+    res.set("X-Dtraced-Test", "one, two");
+    return res;
+  }
+  if (target == "/reason") {
+    Response res = dtraced::http::make_text_response(Status::accepted, "later");
+    res.reason("Taken For Later");
+    return res;
+  }
+  if (target == "/large") return dtraced::http::make_binary_response(Status::ok, std::string(20'000, 'L'));
+  return dtraced::http::make_error(Status::not_found, "no such route", "");
+}
+
+}  // namespace
+
+TEST_CASE("server: an answer's bytes are what Beast's serializer writes, small or large", "[http]") {
+  // Small answers are serialised by the server itself (one buffer, one write); larger ones by
+  // Beast. Either way the wire carries the same bytes as Beast's serializer makes of the message.
+  TestServer server(generous_limits(),
+                    [](Request req) -> net::awaitable<Response> { co_return wire_answer(req.target()); });
+  for (const std::string_view target : {"/small", "/reason", "/large", "/missing"}) {
+    INFO(target);
+    Response expected = wire_answer(target);
+    expected.prepare_payload();
+    expected.version(11);
+    expected.keep_alive(false);
+    std::ostringstream text;
+    text << expected;
+    const std::string got =
+        raw_exchange(server.port(), fmt::format("GET {} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n", target));
+    CHECK(got == text.str());
+  }
 }

@@ -51,6 +51,8 @@ http::Response lease_tile(Context& c, const http::Request& req, const Principal&
 struct LeaseAnswer {
   protocol::LeaseReply reply;
   bool finished = false;
+  // `reply` as protocol::encode writes it (grant_lease fills it; when empty it is encoded then).
+  std::string text;
 };
 // POST /v1/lease's work after its body is decoded, shared with a tile upload that asks for its
 // next lease (protocol::kNextLeaseHeader): the registry's note, the lingering collector's

@@ -116,6 +116,15 @@ struct JobRecord {
   // Who holds each outstanding lease (the latest holder), at most kMaxLeaseHolders tiles.
   std::map<TileIndex, std::string> leased_by;
 
+  // The settings of the frame last leased, as a lease carries them (handlers/lease.cpp): encoded
+  // once rather than rebuilt as a JSON object for every lease. Keyed by the settings themselves,
+  // so a change of frame (or of settings) re-encodes them.
+  struct LeaseSettingsText {
+    scene::RenderSettings settings;
+    std::string text;
+  };
+  std::optional<LeaseSettingsText> lease_settings_text;
+
   // Progress of this process, for the ETA.
   std::optional<TimePoint> first_lease;
   TileIndex stored_this_run = 0;

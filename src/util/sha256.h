@@ -1,4 +1,4 @@
-// dtraced::util SHA-256 through OpenSSL's libcrypto. Stateless: thread-safe.
+// dtraced::util SHA-256 through OpenSSL's libcrypto. Thread-safe (one digest context per thread).
 #pragma once
 
 #include <array>

@@ -5,9 +5,16 @@
 #include <string>
 #include <utility>
 
+#include <boost/json/serialize.hpp>
+#include <boost/json/string_view.hpp>
+#include <boost/json/value.hpp>
+#include <fmt/format.h>
+
 #include "collector/handlers.h"
 #include "collector/stop.h"
+#include "jsonio/write.h"
 #include "protocol/worker_messages.h"
+#include "scene/scene_json.h"
 #include "util/log.h"
 
 namespace dtraced::collector {
@@ -19,13 +26,19 @@ protocol::LeaseReply retry_after(std::chrono::milliseconds suggested) {
   return protocol::LeaseReply{protocol::RetryAfter{static_cast<std::uint32_t>(ms)}};
 }
 
+// A reply that is not a lease, encoded.
+LeaseAnswer answer(protocol::LeaseReply reply, bool finished) {
+  std::string text = protocol::encode(reply);
+  return LeaseAnswer{std::move(reply), finished, std::move(text)};
+}
+
 // A finished collector's answer: "retry after" (all an older worker reads) with kFinishedHeader.
 // The longest retry-after, so that a worker without exit_when_done does not hurry back to a
 // collector that is going away.
 LeaseAnswer finished(Context& c, const http::Request& req, std::string name) {
   linger_told(c, worker_id(req, std::move(name)));
-  return LeaseAnswer{retry_after(std::chrono::duration_cast<std::chrono::milliseconds>(c.config.queue.max_retry_after)),
-                     /*finished=*/true};
+  return answer(retry_after(std::chrono::duration_cast<std::chrono::milliseconds>(c.config.queue.max_retry_after)),
+                /*finished=*/true);
 }
 
 // How much sooner than the queue's hint an idle worker may ask again: each worker the registry
@@ -43,8 +56,28 @@ std::chrono::milliseconds idle_wait(const Context& c, std::chrono::milliseconds 
   return std::min(queue_hint, fair);
 }
 
+// The lease's settings as text, from the job's cache (JobRecord::lease_settings_text): encoding
+// them was a JSON object of a dozen keys built and serialised for every lease.
+const std::string& settings_text(JobRecord& job, const scene::RenderSettings& settings) {
+  auto& cached = job.lease_settings_text;
+  if (!cached || !(cached->settings == settings)) {
+    std::string text = jsonio::to_text(boost::json::value(scene::render_settings_object(settings)));
+    cached = JobRecord::LeaseSettingsText{settings, std::move(text)};
+  }
+  return cached->text;
+}
+
+// protocol::encode of a LeaseReply holding `lease`, byte for byte (a test compares the two), with
+// the settings' text given.
+std::string encode_lease(const protocol::Lease& lease, std::string_view settings) {
+  return fmt::format(
+      R"({{"lease":{{"job":{},"digest":{},"tile":{},"x":{},"y":{},"width":{},"height":{},"settings":{}}}}})", lease.job,
+      boost::json::serialize(boost::json::string_view(lease.digest.data(), lease.digest.size())), lease.tile,
+      lease.rect.x0, lease.rect.y0, lease.rect.width, lease.rect.height, settings);
+}
+
 // The queue's next tile for `who` (recorded as `name`), or when to ask again.
-protocol::LeaseReply pick_tile(Context& c, const Principal& who, const std::string& name) {
+LeaseAnswer pick_tile(Context& c, const Principal& who, const std::string& name) {
   const TimePoint now = c.clock.now();
   // Leases of a worker credential name it, so revoking it re-offers them at once.
   const LeaseResult result = c.queue.lease(now, who.role == Role::kWorker ? std::string_view(who.name) : "");
@@ -55,7 +88,7 @@ protocol::LeaseReply pick_tile(Context& c, const Principal& who, const std::stri
                       result.grant->job);
     }
     ++c.counters.lease_retries;
-    return retry_after(idle_wait(c, result.retry_after));
+    return answer(retry_after(idle_wait(c, result.retry_after)), /*finished=*/false);
   }
   const TileIndex tile = result.grant->tile;
   if (!job->restored.empty() && job->restored[tile]) {
@@ -76,7 +109,8 @@ protocol::LeaseReply pick_tile(Context& c, const Principal& who, const std::stri
   const TilePlace place = tile_place(*job, tile);
   lease.rect = place.rect;
   lease.settings = frame_settings(job->settings, place.frame_index);
-  return protocol::LeaseReply{std::move(lease)};
+  std::string text = encode_lease(lease, settings_text(*job, lease.settings));
+  return LeaseAnswer{protocol::LeaseReply{std::move(lease)}, /*finished=*/false, std::move(text)};
 }
 
 }  // namespace
@@ -91,11 +125,11 @@ util::Result<LeaseAnswer, Refusal> grant_lease(Context& c, const http::Request& 
   if (c.linger) return finished(c, req, name);
   // A worker of another pixel version gets no tile: its pixels would not match the others'.
   if (auto refused = pixel_version_refusal(c, req, /*required=*/true)) return std::move(*refused);
-  return LeaseAnswer{pick_tile(c, who, name), /*finished=*/false};
+  return pick_tile(c, who, name);
 }
 
 http::Response lease_answer(const LeaseAnswer& grant) {
-  http::Response res = json_answer(http::Status::ok, protocol::encode(grant.reply));
+  http::Response res = json_answer(http::Status::ok, grant.text.empty() ? protocol::encode(grant.reply) : grant.text);
   if (grant.finished) res.set(protocol::kFinishedHeader, "1");
   return res;
 }

@@ -1,4 +1,5 @@
 // GET /healthz and GET /metrics, and the answers the handler files share.
+#include <string>
 #include <utility>
 
 #include <boost/json/value.hpp>
@@ -27,7 +28,19 @@ http::Response submit_answer(protocol::SubmitResult result) {
 http::Response upload_answer(protocol::SubmitResult result, const std::optional<LeaseAnswer>& grant) {
   if (!grant) return submit_answer(result);
   const http::Status status = result == protocol::SubmitResult::kJobGone ? http::Status::gone : http::Status::ok;
-  http::Response res = json_answer(status, protocol::encode(protocol::UploadAnswer{result, grant->reply}));
+  if (grant->text.empty()) {
+    http::Response res = json_answer(status, protocol::encode(protocol::UploadAnswer{result, grant->reply}));
+    if (grant->finished) res.set(protocol::kFinishedHeader, "1");
+    return res;
+  }
+  // protocol::encode(UploadAnswer)'s splice, with the lease reply already encoded (a test
+  // compares the two).
+  std::string body = R"({"result":")";
+  body += protocol::to_string(result);
+  body += R"(","next":)";
+  body += grant->text;
+  body += '}';
+  http::Response res = json_answer(status, std::move(body));
   if (grant->finished) res.set(protocol::kFinishedHeader, "1");
   return res;
 }
