@@ -21,6 +21,7 @@
 #include <boost/asio/ssl/context.hpp>
 #include <boost/asio/ssl/stream_base.hpp>
 #include <boost/asio/write.hpp>
+#include <boost/beast/core/buffers_range.hpp>
 #include <boost/beast/core/detect_ssl.hpp>
 #include <boost/beast/core/error.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
@@ -31,7 +32,7 @@
 #include <boost/beast/http/field.hpp>
 #include <boost/beast/http/parser.hpp>
 #include <boost/beast/http/read.hpp>
-#include <boost/beast/http/status.hpp>
+#include <boost/beast/http/serializer.hpp>
 #include <boost/beast/http/write.hpp>
 #include <boost/beast/ssl/ssl_stream.hpp>
 #include <openssl/ssl.h>
@@ -100,42 +101,29 @@ std::optional<Response> answer_read_error(const error_code& ec, const ServerLimi
 
 bool expects_continue(const Request& req) { return beast::iequals(req[bhttp::field::expect], "100-continue"); }
 
-// Answers whose body is at most this are written as one buffer, the header and body serialised
-// together: on TLS one SSL_write, one record and one sendmsg, without Beast's serializer and its
-// four layers of composed operations, which cost more than the copy of a small body (most
-// answers: a tile's verdict with the next lease is under 1 KB). Header and body stay within one
-// 16 KiB TLS record. Larger answers (images) are written by Beast, without copying the body.
+// Answers whose body is at most this are written as one buffer, which Beast's serializer fills
+// synchronously: on TLS one SSL_write, one record and one sendmsg, without the four layers of
+// composed operations of bhttp::async_write (serializer, write_op, write_some_op and flat_stream's
+// write_op), which cost more than the copy of a small body (most answers: a tile's verdict with
+// the next lease is under 1 KB). Header and body stay within one 16 KiB TLS record. Larger
+// answers (images) are written by bhttp::async_write, without a copy of the body.
 constexpr std::size_t kOneBufferBodyBytes = 8 * 1024;
 
-// `res` as bhttp::async_write would put it on the wire (status line, fields in order, the blank
-// line, the body), or nullopt when it is over kOneBufferBodyBytes or chunked.
-std::optional<std::string> one_buffer(const Response& res) {
+// `res` as bhttp::async_write puts it on the wire, serialised by Beast into one string; nullopt
+// when the body is over kOneBufferBodyBytes or chunked, or the serializer fails.
+std::optional<std::string> one_buffer(Response& res) {
   if (res.body().size() > kOneBufferBodyBytes || res.chunked()) return std::nullopt;
-  const unsigned version = res.version();
-  const unsigned code = res.result_int();
-  const auto reason = res.reason().empty() ? bhttp::obsolete_reason(res.result()) : res.reason();
+  bhttp::serializer<false, bhttp::string_body> sr{res};
   std::string out;
   out.reserve(256 + res.body().size());
-  // "HTTP/X.Y ### reason\r\n", as Beast's fields writer makes it.
-  out += "HTTP/";
-  out += static_cast<char>('0' + version / 10);
-  out += '.';
-  out += static_cast<char>('0' + version % 10);
-  out += ' ';
-  out += static_cast<char>('0' + code / 100);
-  out += static_cast<char>('0' + (code / 10) % 10);
-  out += static_cast<char>('0' + code % 10);
-  out += ' ';
-  out.append(reason.data(), reason.size());
-  out += "\r\n";
-  for (const auto& field : res) {
-    out.append(field.name_string().data(), field.name_string().size());
-    out += ": ";
-    out.append(field.value().data(), field.value().size());
-    out += "\r\n";
+  error_code ec;
+  while (!ec && !sr.is_done()) {
+    sr.next(ec, [&](error_code&, const auto& buffers) {
+      for (const auto b : beast::buffers_range_ref(buffers)) out.append(static_cast<const char*>(b.data()), b.size());
+      sr.consume(beast::buffer_bytes(buffers));
+    });
   }
-  out += "\r\n";
-  out += res.body();
+  if (ec) return std::nullopt;
   return out;
 }
 
