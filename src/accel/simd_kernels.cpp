@@ -46,7 +46,8 @@
 // date only when a lane's hit improves) and a scalar frustum set-up made it 4 % (camera) and 6 % (shadow) slower than
 // the per-lane one. Prefetching the children a node pushes in the per-lane traversal (the coherent one
 // prefetches every child it enters: prefetch_child), and leaving 16-ray packets at 1 or 3 live lanes (or, in
-// the coherent traversal, 0 or 1) instead of 2: within noise.
+// the coherent traversal, 0 or 1) instead of 2: within noise (the coherent traversal now leaves at 1:
+// kSwitchCoherent).
 //
 // Tried and dropped (Dec 4, sphere field, avx512, 16-ray camera packets against the same code without the change,
 // processes alternated, 8-10 rounds each, medians of per-round ratios, load average 4-7): in the coherent traversal
@@ -92,6 +93,12 @@ alignas(64) inline constexpr std::uint32_t kLaneBit[16] = {1u << 0,  1u << 1,  1
                                                            1u << 12, 1u << 13, 1u << 14, 1u << 15};
 
 constexpr int kSwitch = 2;  // lanes at or below which a packet continues as single rays
+// The same for the coherent traversal: only a lone lane leaves the packet. Measured again after
+// the packet set-up moved into registers (the round 6 comparison was within noise): 1 against 2,
+// dtraced-bench-rays' rays through a driver, avx512, the two alternated, medians of per-round
+// ratios at load 3-5: sphere field camera 16 rays 1.04x (20 rounds), 8 rays 1.08x (8), mesh
+// camera 16 rays 1.07x and 8 rays 1.04x (5-6), shadow rays 1.00-1.01x.
+constexpr int kSwitchCoherent = 1;
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
 // ---------------------------------------------------------------------------------------------
@@ -1317,7 +1324,7 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
   std::uint32_t result = 0;    // nearest: lanes that improved; any-hit: lanes blocked
   std::uint32_t alive = live;  // any-hit: lanes not yet blocked
   while (true) {
-    if (std::popcount(mask) <= kSwitch) {
+    if (std::popcount(mask) <= kSwitchCoherent) {
       finish_singles<kP, kAnyHit>(bvh, p, cur, mask, result, alive);
       if (!kAnyHit) cull_hi = cull_max(p);
     } else if (cur & kLeafBit) {
