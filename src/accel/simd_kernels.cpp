@@ -97,7 +97,8 @@ constexpr int kSwitch = 2;  // lanes at or below which a packet continues as sin
 // the packet set-up moved into registers (the round 6 comparison was within noise): 1 against 2,
 // dtraced-bench-rays' rays through a driver, avx512, the two alternated, medians of per-round
 // ratios at load 3-5: sphere field camera 16 rays 1.04x (20 rounds), 8 rays 1.08x (8), mesh
-// camera 16 rays 1.07x and 8 rays 1.04x (5-6), shadow rays 1.00-1.01x.
+// camera 16 rays 1.07x and 8 rays 1.04x (5-6), shadow rays 1.00-1.01x. 0 (a lone lane stays in
+// the packet) against 1: sphere field camera 16 rays 1.05x (14 rounds, 0.69-1.43), mesh 0.94x (5).
 constexpr int kSwitchCoherent = 1;
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
