@@ -46,12 +46,24 @@
 // date only when a lane's hit improves) and a scalar frustum set-up made it 4 % (camera) and 6 % (shadow) slower than
 // the per-lane one. Prefetching the children a node pushes in the per-lane traversal (the coherent one
 // prefetches every child it enters: prefetch_child), and leaving 16-ray packets at 1 or 3 live lanes (or, in
-// the coherent traversal, 0 or 1) instead of 2: within noise.
+// the coherent traversal, 0 or 1) instead of 2: within noise (the coherent traversal now leaves at 1:
+// kSwitchCoherent).
+//
+// Tried and dropped (Dec 4, sphere field, avx512, 16-ray camera packets against the same code without the change,
+// processes alternated, 8-10 rounds each, medians of per-round ratios, load average 4-7): in the coherent traversal
+// of a packet that shares its origin, taking the lane tests' plane-minus-origin differences from the frustum test
+// (exact there, since the origin bounds are the origin) instead of subtracting per lane: 0.99x; an inner frustum test
+// (the largest entry and smallest exit distance of any lane, from the corner products) that lets the children every
+// lane enters skip their lane tests, with the smallest cull distance kept beside the largest: 0.95x; copying a lane's
+// edge functions out only when its best is a triangle (a separate mask for the single-ray ones): 0.98x; prefetching
+// every child the frustum test passes, before the lane tests: 1.00x. For single rays (mesh secondary rays, 16
+// rounds), prefetching every child a node test passes: 1.00-1.02x.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
 #include <bit>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <cstdlib>
 #include <limits>
@@ -81,6 +93,13 @@ alignas(64) inline constexpr std::uint32_t kLaneBit[16] = {1u << 0,  1u << 1,  1
                                                            1u << 12, 1u << 13, 1u << 14, 1u << 15};
 
 constexpr int kSwitch = 2;  // lanes at or below which a packet continues as single rays
+// The same for the coherent traversal: only a lone lane leaves the packet. Measured again after
+// the packet set-up moved into registers (the round 6 comparison was within noise): 1 against 2,
+// dtraced-bench-rays' rays through a driver, avx512, the two alternated, medians of per-round
+// ratios at load 3-5: sphere field camera 16 rays 1.04x (20 rounds), 8 rays 1.08x (8), mesh
+// camera 16 rays 1.07x and 8 rays 1.04x (5-6), shadow rays 1.00-1.01x. 0 (a lone lane stays in
+// the packet) against 1: sphere field camera 16 rays 1.05x (14 rounds, 0.69-1.43), mesh 0.94x (5).
+constexpr int kSwitchCoherent = 1;
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
 // ---------------------------------------------------------------------------------------------
@@ -483,6 +502,7 @@ bool Occluded1(const WideBvh& bvh, const RayPre& r, float t_min, float t_max) {
 template <int kP>
 struct alignas(64) Packet {
   float o[3][kP];
+  float d[3][kP];
   float inv[3][kP];
   float negf[3][kP];  // 1 where the direction's sign bit is set, else 0
   float t_min[kP];
@@ -515,57 +535,105 @@ struct alignas(64) Packet {
   std::uint32_t axis[3];
   bool uniform_origin;  // every lane has the origin of lane 0, bit for bit (pinhole camera packets)
   // The same rays as single rays (the fallback below kSwitch lanes, zero edge functions, boxes),
-  // made on first use: most packets never need them.
-  const math::Ray* rays;
-  bool shear;  // precompute's `shear` argument
-  int src[kP];
+  // made on first use (most packets never need them) from the lanes' constants above, which have
+  // the bits precompute() and make_single() give: no division again.
   mutable std::uint32_t ready;  // lanes of `single` made
   mutable Single single[kP];
 
   const Single& lane(int i) const {
     if (!(ready >> i & 1u)) {
-      const math::Ray& ray = rays[src[i]];
-      single[i] = make_single(precompute(ray, shear), ray.t_min);
+      Single& s = single[i];
+      RayPre& r = s.r;
+      for (std::uint32_t a = 0; a < 3; ++a) {
+        r.o[a] = o[a][i];
+        r.d[a] = d[a][i];
+        r.inv_d[a] = inv[a][i];
+        r.neg[a] = negf[a][i] != 0.0f ? 1u : 0u;
+        r.near_idx[a] = r.neg[a] ? 3 + a : a;
+        r.far_idx[a] = r.neg[a] ? a : 3 + a;
+      }
+      r.kx = kx0[i] != 0.0f ? 0u : kx1[i] != 0.0f ? 1u : 2u;
+      r.ky = ky0[i] != 0.0f ? 0u : ky1[i] != 0.0f ? 1u : 2u;
+      r.kz = kz0[i] != 0.0f ? 0u : kz1[i] != 0.0f ? 1u : 2u;
+      r.sx = sx[i];
+      r.sy = sy[i];
+      r.sz = sz[i];
+      s.t_min = t_min[i];
+      const double dx = r.d[0], dy = r.d[1], dz = r.d[2];
+      s.a = dx * dx + dy * dy + dz * dz;
       ready |= 1u << i;
     }
     return single[i];
   }
 };
 
+// Fields 0-7 of the rays rays[0 .. n) (o.x, o.y, o.z, d.x, d.y, d.z, t_min, t_max), n the lanes of
+// d, as vectors of n lanes. Loaded whole and transposed in registers (each ray as four pairs of
+// floats, deinterleaved as 64-bit values, then split into even and odd floats): written lane by
+// lane into the packet and read back as vectors, every such read failed its store forward.
+static_assert(sizeof(math::Ray) == 8 * sizeof(float) && offsetof(math::Ray, o) == 0 &&
+              offsetof(math::Ray, d) == 3 * sizeof(float) && offsetof(math::Ray, t_min) == 6 * sizeof(float) &&
+              offsetof(math::Ray, t_max) == 7 * sizeof(float));
+template <class D>
+HWY_INLINE void load_rays(D d, const math::Ray* rays, hn::Vec<D> (&f)[8]) {
+#if HWY_TARGET == HWY_SCALAR
+  // One lane: the fields themselves.
+  const float* r = &rays[0].o.x;
+  for (int k = 0; k < 8; ++k) f[k] = hn::Set(d, r[k]);
+#else
+  const hn::Repartition<std::uint64_t, D> d64;
+  const std::size_t half = hn::Lanes(d64);  // rays per LoadInterleaved4
+  hn::Vec<decltype(d64)> lo[4], hi[4];      // lo[k]: pair k (fields 2k, 2k + 1) of the first half's rays
+  const auto* w = reinterpret_cast<const std::uint64_t*>(rays);
+  hn::LoadInterleaved4(d64, w, lo[0], lo[1], lo[2], lo[3]);
+  hn::LoadInterleaved4(d64, w + 4 * half, hi[0], hi[1], hi[2], hi[3]);
+  for (int k = 0; k < 4; ++k) {
+    f[2 * k] = hn::ConcatEven(d, hn::BitCast(d, hi[k]), hn::BitCast(d, lo[k]));
+    f[2 * k + 1] = hn::ConcatOdd(d, hn::BitCast(d, hi[k]), hn::BitCast(d, lo[k]));
+  }
+#endif
+}
+
 // The packet's per-lane constants, computed a vector of lanes at a time with the very operations
 // precompute() and set_shear() do per ray (1 / d, the sign bits, the shear axes chosen by the
 // same comparisons, d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz]), so every lane has the bits of the
-// single-ray constants.
+// single-ray constants. Reads all kP rays (the packet's array), live or not.
 template <int kP>
 inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t live, Packet<kP>& p, bool any_hit) {
-  alignas(64) float dir[3][kP];
-  for (int i = 0; i < kP; ++i) {
-    // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
-    // results are masked off.
-    const int src = (live >> i & 1u) ? i : std::countr_zero(live);
-    const math::Ray& ray = rays[src];
-    p.src[i] = src;
-    for (int a = 0; a < 3; ++a) {
-      p.o[a][i] = ray.o[a];
-      dir[a][i] = ray.d[a];
-    }
-    p.t_min[i] = ray.t_min;
-    if (any_hit) p.best[i] = ray.t_max;
-  }
-  p.rays = rays;
-  p.shear = bvh.has_triangles;
   p.ready = 0;
 
   const hn::CappedTag<float, kP> d;
   const hn::RebindToSigned<decltype(d)> di;
+  const hn::RebindToUnsigned<decltype(d)> du;
   const std::size_t n = hn::Lanes(d);
   const auto one = hn::Set(d, 1.0f), zero = hn::Zero(d);
+  // Dead lanes get a harmless ray (the first live one) so no lane computes on garbage; their
+  // results are masked off.
+  const math::Ray& first = rays[std::countr_zero(live)];
+  const float first_fields[8] = {first.o.x, first.o.y, first.o.z,   first.d.x,
+                                 first.d.y, first.d.z, first.t_min, first.t_max};
   std::uint32_t neg_bits[3] = {0, 0, 0};
   std::uint32_t axis_bits[6] = {0, 0, 0, 0, 0, 0};  // kx0, kx1, ky0, ky1, kz0, kz1
+  bool same_origin = true;
+  const hn::Vec<decltype(du)> o0[3] = {hn::Set(du, std::bit_cast<std::uint32_t>(first_fields[0])),
+                                       hn::Set(du, std::bit_cast<std::uint32_t>(first_fields[1])),
+                                       hn::Set(du, std::bit_cast<std::uint32_t>(first_fields[2]))};
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    hn::Vec<decltype(d)> f[8];
+    load_rays(d, rays + i, f);
+    const std::uint32_t lanes = n >= 32 ? ~0u : (1u << n) - 1u;
+    if ((live >> i & lanes) != lanes) {
+      // LoadMaskBits may read 8 bytes: the bits sit in the first two, the rest are zero.
+      const std::uint8_t live_bytes[8] = {std::uint8_t(live >> i), std::uint8_t(live >> (i + 8))};
+      const auto keep = hn::LoadMaskBits(d, live_bytes);
+      for (int k = 0; k < 8; ++k) f[k] = hn::IfThenElse(keep, f[k], hn::Set(d, first_fields[k]));
+    }
     hn::Vec<decltype(d)> dv[3];
     for (int a = 0; a < 3; ++a) {
-      dv[a] = hn::LoadU(d, dir[a] + i);
+      hn::StoreU(f[a], d, p.o[a] + i);
+      same_origin = same_origin && hn::AllTrue(du, hn::Eq(hn::BitCast(du, f[a]), o0[a]));
+      dv[a] = f[3 + a];
+      hn::StoreU(dv[a], d, p.d[a] + i);
       hn::StoreU(hn::Div(one, dv[a]), d, p.inv[a] + i);
       const auto neg = hn::RebindMask(d, hn::Lt(hn::BitCast(di, dv[a]), hn::Zero(di)));
       hn::StoreU(hn::IfThenElseZero(neg, one), d, p.negf[a] + i);
@@ -573,7 +641,11 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
       hn::StoreMaskBits(d, neg, mb);
       neg_bits[a] |= low_bits(mb, n) << i;
     }
-    if (any_hit) hn::StoreU(hn::Mul(hn::LoadU(d, p.best + i), hn::Set(d, kFarScale)), d, p.cull + i);
+    hn::StoreU(f[6], d, p.t_min + i);
+    if (any_hit) {
+      hn::StoreU(f[7], d, p.best + i);
+      hn::StoreU(hn::Mul(f[7], hn::Set(d, kFarScale)), d, p.cull + i);
+    }
     // set_shear: kz = ax > ay ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2); kx, ky the next two axes,
     // swapped when d[kz] < 0.
     const auto ax = hn::Abs(dv[0]), ay = hn::Abs(dv[1]), az = hn::Abs(dv[2]);
@@ -614,7 +686,7 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
   for (std::size_t i = 0; i < (bvh.spheres.empty() ? 0 : std::size_t(kP)); i += nd) {
     hn::Vec<decltype(dd)> dv[3];
     for (int a = 0; a < 3; ++a) {
-      dv[a] = hn::PromoteTo(dd, hn::LoadU(df, dir[a] + i));
+      dv[a] = hn::PromoteTo(dd, hn::LoadU(df, p.d[a] + i));
       hn::StoreU(dv[a], dd, p.dd[a] + i);
       hn::StoreU(hn::PromoteTo(dd, hn::LoadU(df, p.o[a] + i)), dd, p.od[a] + i);
     }
@@ -632,11 +704,7 @@ inline void make_packet(const WideBvh& bvh, const math::Ray* rays, std::uint32_t
     p.uniform_axes = p.uniform_axes && (is0 == 0 || is0 == kAll) && (is1 == 0 || is1 == kAll);
     p.axis[k] = (is0 & 1u) ? 0u : (is1 & 1u) ? 1u : 2u;
   }
-  p.uniform_origin = true;
-  for (int a = 0; a < 3; ++a) {
-    const std::uint32_t o0 = std::bit_cast<std::uint32_t>(p.o[a][0]);
-    for (int i = 1; i < kP; ++i) p.uniform_origin = p.uniform_origin && std::bit_cast<std::uint32_t>(p.o[a][i]) == o0;
-  }
+  p.uniform_origin = same_origin;
 }
 
 // Which of the 8 lanes in `mask` enter each child box of the node (bits[c]) and each such lane's
@@ -1257,7 +1325,7 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
   std::uint32_t result = 0;    // nearest: lanes that improved; any-hit: lanes blocked
   std::uint32_t alive = live;  // any-hit: lanes not yet blocked
   while (true) {
-    if (std::popcount(mask) <= kSwitch) {
+    if (std::popcount(mask) <= kSwitchCoherent) {
       finish_singles<kP, kAnyHit>(bvh, p, cur, mask, result, alive);
       if (!kAnyHit) cull_hi = cull_max(p);
     } else if (cur & kLeafBit) {
@@ -1321,10 +1389,17 @@ std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_
                          std::uint32_t* best_id, TriangleUvw* uvw) {
   Packet<kP> p;
   make_packet(bvh, rays, valid, p, false);
-  for (int i = 0; i < kP; ++i) {
-    p.best[i] = (valid >> i & 1u) ? best_t[i] : -kInfF;
-    p.id[i] = best_id[i];
-    p.cull[i] = p.best[i] * kFarScale;
+  // A vector at a time: the traversal reads them as vectors at once, and values stored lane by
+  // lane do not forward to a vector load.
+  const hn::CappedTag<float, kP> d;
+  const hn::RebindToUnsigned<decltype(d)> du;
+  const std::size_t n = hn::Lanes(d);
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const std::uint8_t valid_bytes[8] = {std::uint8_t(valid >> i), std::uint8_t(valid >> (i + 8))};
+    const auto best = hn::IfThenElse(hn::LoadMaskBits(d, valid_bytes), hn::LoadU(d, best_t + i), hn::Set(d, -kInfF));
+    hn::StoreU(best, d, p.best + i);
+    hn::StoreU(hn::Mul(best, hn::Set(d, kFarScale)), d, p.cull + i);
+    hn::StoreU(hn::LoadU(du, best_id + i), du, p.id + i);
   }
   p.uvw_soa = 0;
   const std::uint32_t improved = traverse_packet<kP, false>(bvh, p, valid);
