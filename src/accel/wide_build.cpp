@@ -49,27 +49,40 @@ WideBvh collapse_to_wide(const Geometry& g) {
   WideBvh w;
   const auto& nodes = g.nodes_;
   if (nodes.empty()) return w;
+  // A leaf that its child reference describes (tri_leaf_ref: one block of spheres, or triangles
+  // only) is never looked up in `leaves`, so it gets no WideLeaf record (20 bytes a leaf: 6 MB
+  // of a scene of 1M spheres). Except in a tree of a few binary interior nodes, which may
+  // collapse to one wide node: the records then keep telling is_flat that it is no flat layout
+  // (a wide node takes at most seven binary interior nodes, so eight make two wide nodes).
+  const std::size_t binary_leaves =
+      std::size_t(std::count_if(nodes.begin(), nodes.end(), [](const auto& node) { return node.count > 0; }));
+  const bool every_record = nodes.size() - binary_leaves < 8;
   // Exact sizes up front: growing these vectors by doubling copied and first-touched every block
   // twice. Leaves and blocks are counted from the binary leaves (a pass over the prims, which
   // are in leaf order); a wide node holds at least two binary interior nodes' children, so the
-  // binary interior count bounds the wide count.
+  // binary interior count bounds the wide count. The records are counted for the leaves whose
+  // kind of content cannot be described by their reference (those whose first block lies past
+  // what a reference can name, 2^26 blocks in, grow the array).
   {
-    std::size_t leaves = 0, sphere_blocks = 0, triangle_blocks = 0, boxes = 0;
+    std::size_t records = 0, sphere_blocks = 0, triangle_blocks = 0, boxes = 0;
     for (const auto& node : nodes) {
       if (node.count == 0) continue;
-      ++leaves;
-      std::size_t ns = 0, nt = 0;
+      std::size_t ns = 0, nt = 0, nb = 0;
       for (std::uint32_t k = 0; k < node.count; ++k) {
         const ShapeType type = g.prims_[node.offset + k].type;
         ns += type == ShapeType::kSphere;
         nt += type == ShapeType::kTriangle;
-        boxes += type == ShapeType::kBox;
+        nb += type == ShapeType::kBox;
       }
-      sphere_blocks += (ns + kWidth - 1) / kWidth;
-      triangle_blocks += (nt + kWidth - 1) / kWidth;
+      const std::size_t sb = (ns + kWidth - 1) / kWidth, tb = (nt + kWidth - 1) / kWidth;
+      const bool described = nb == 0 && (sb != 0 ? sb == 1 && tb == 0 : tb != 0 && tb <= kTriLeafMaxBlocks);
+      records += every_record || !described;
+      sphere_blocks += sb;
+      triangle_blocks += tb;
+      boxes += nb;
     }
-    w.nodes.reserve(nodes.size() - leaves + 1);
-    w.leaves.reserve(leaves);
+    w.nodes.reserve(nodes.size() - binary_leaves + 1);
+    w.leaves.reserve(records);
     w.spheres.reserve(sphere_blocks);
     w.triangles.reserve(triangle_blocks);
     w.boxes.reserve(boxes);
@@ -82,7 +95,7 @@ WideBvh collapse_to_wide(const Geometry& g) {
     util::advise_huge_pages_for(w.spheres);
     util::advise_huge_pages_for(w.triangles);
     util::advise_huge_pages_for(w.boxes);
-    util::advise_huge_pages(w.nodes.data(), (nodes.size() - leaves) / 7 * sizeof(WideNode));
+    util::advise_huge_pages(w.nodes.data(), (nodes.size() - binary_leaves) / 7 * sizeof(WideNode));
   }
 
   auto make_leaf = [&](std::uint32_t bin_index) {
@@ -132,8 +145,10 @@ WideBvh collapse_to_wide(const Geometry& g) {
     }
     leaf.sphere_blocks = std::uint16_t((ns + kWidth - 1) / kWidth);
     leaf.triangle_blocks = std::uint16_t((nt + kWidth - 1) / kWidth);
+    const std::uint32_t ref = tri_leaf_ref(leaf);
+    if (ref != 0 && !every_record) return ref;
     w.leaves.push_back(leaf);
-    if (const std::uint32_t ref = tri_leaf_ref(leaf); ref != 0) return ref;
+    if (ref != 0) return ref;
     // Plain leaf indices must stay below kTriLeaf (2^30 leaves: billions of prims).
     if (w.leaves.size() > kTriLeaf) std::abort();
     return kLeafBit | std::uint32_t(w.leaves.size() - 1);
