@@ -4,11 +4,17 @@
 // the largest surface area until it has eight (Wald et al., "Getting rid of packets", 2008; the
 // usual collapse of Embree and tinybvh). The binary tree's SAH decisions are kept; only the
 // layout changes, so both trees hold exactly the same prims in their leaves.
+#if defined(__linux__)
+#include <sys/mman.h>
+#include <unistd.h>
+#endif
+
 #include <algorithm>
 #include <cassert>
 #include <cmath>
 #include <cstdlib>
 #include <limits>
+#include <vector>
 
 #include "accel/geometry.h"
 #include "accel/kernels.h"
@@ -42,6 +48,62 @@ TriangleBlock empty_triangle_block() {
   for (std::uint32_t& id : b.id) id = kEmptyChild;
   return b;
 }
+
+// Gives back the pages of an array read once, as soon as every element on them has been read
+// (madvise MADV_DONTNEED: they read as zeros after, and cost no memory). The array is split into
+// regions of kRegion elements; a region's whole pages go back when its last element is read.
+// Does nothing where `on` is false, the array is small, or madvise is missing.
+class ReadOnce {
+ public:
+  ReadOnce(const void* data, std::size_t count, std::size_t element_bytes, bool on)
+      : data_(static_cast<const unsigned char*>(data)), count_(count), element_bytes_(element_bytes) {
+#if defined(__linux__) && defined(MADV_DONTNEED)
+    if (on && count * element_bytes >= kMinBytes) {
+      left_.resize((count + kRegion - 1) / kRegion);
+      for (std::size_t r = 0; r < left_.size(); ++r) left_[r] = std::uint32_t(std::min(kRegion, count - r * kRegion));
+      page_ = std::size_t(sysconf(_SC_PAGESIZE));
+    }
+#else
+    (void)on;
+#endif
+  }
+
+  // Elements [first, first + n) have been read, each once.
+  void read(std::size_t first, std::size_t n) {
+    if (left_.empty()) return;
+    while (n > 0) {
+      const std::size_t r = first / kRegion;
+      const std::size_t here = std::min(n, (r + 1) * kRegion - first);
+      assert(left_[r] >= here);
+      left_[r] -= std::uint32_t(here);
+      if (left_[r] == 0) release(r);
+      first += here;
+      n -= here;
+    }
+  }
+
+ private:
+  static constexpr std::size_t kRegion = std::size_t(1) << 15;    // 1 MiB of 32-byte prims
+  static constexpr std::size_t kMinBytes = std::size_t(1) << 20;  // a set-aside scene has more
+
+  void release(std::size_t r) const {
+#if defined(__linux__) && defined(MADV_DONTNEED)
+    const auto begin = reinterpret_cast<std::uintptr_t>(data_ + r * kRegion * element_bytes_);
+    const auto end = reinterpret_cast<std::uintptr_t>(data_ + std::min(count_, (r + 1) * kRegion) * element_bytes_);
+    const std::uintptr_t first = (begin + page_ - 1) & ~(page_ - 1);
+    const std::uintptr_t last = end & ~(page_ - 1);
+    if (last > first) madvise(reinterpret_cast<void*>(first), last - first, MADV_DONTNEED);  // errors ignored
+#else
+    (void)r;
+#endif
+  }
+
+  const unsigned char* data_;
+  std::size_t count_;
+  std::size_t element_bytes_;
+  std::size_t page_ = 4096;
+  std::vector<std::uint32_t> left_;  // per region, the elements not read yet
+};
 
 }  // namespace
 
@@ -97,6 +159,13 @@ WideBvh collapse_to_wide(const Geometry& g) {
     util::advise_huge_pages_for(w.boxes);
     util::advise_huge_pages(w.nodes.data(), (nodes.size() - binary_leaves) / 7 * sizeof(WideNode));
   }
+  // A build with its shapes set aside (Geometry::build of a large sphere scene: no shapes held
+  // while it collapses) frees the binary nodes and prims once the tree is collapsed, and reads
+  // the spheres back from the wide tree's blocks, not from the prims: nothing reads a prim after
+  // the collapse has, so the prims' pages go back as the leaves are made. The prims and the
+  // wide tree are then never held whole together (the 1M-sphere scene's build peaked there).
+  // Not for a tree that may collapse to one node (is_flat: the build then keeps its prims).
+  ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), g.shapes_.empty() && !every_record);
 
   auto make_leaf = [&](std::uint32_t bin_index) {
     const auto& node = nodes[bin_index];
@@ -143,6 +212,7 @@ WideBvh collapse_to_wide(const Geometry& g) {
         }
       }
     }
+    prims_read.read(node.offset, node.count);
     leaf.sphere_blocks = std::uint16_t((ns + kWidth - 1) / kWidth);
     leaf.triangle_blocks = std::uint16_t((nt + kWidth - 1) / kWidth);
     const std::uint32_t ref = tri_leaf_ref(leaf);
