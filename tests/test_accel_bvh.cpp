@@ -418,9 +418,9 @@ TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the re
   // A SIMD build of 2^15 spheres or more holds no Shape array while it builds (bvh.cpp's SetAside):
   // the spheres are put back from the wide tree's blocks, the planes, invalid spheres and huge
   // spheres from what was set aside, and the prims' pages are given back as the collapse reads
-  // them (wide_build.cpp's ReadOnce: two regions here). Every byte of every shape must come
-  // back, the queries must be exact, and the tree must be the one recorded before the build's
-  // memory was reordered (this hash).
+  // them (wide_build.cpp's ReadOnce). Every byte of every shape must come back, the queries must
+  // be exact, and the tree must be the one recorded before the build's memory was reordered (this
+  // hash).
   TestRng rng{7};
   std::vector<Shape> shapes;
   for (int i = 0; i < 36000; ++i) {

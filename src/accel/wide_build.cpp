@@ -50,59 +50,68 @@ TriangleBlock empty_triangle_block() {
 }
 
 // Gives back the pages of an array read once, as soon as every element on them has been read
-// (madvise MADV_DONTNEED: they read as zeros after, and cost no memory). The array is split into
-// regions of kRegion elements; a region's whole pages go back when its last element is read.
+// (madvise MADV_DONTNEED: they read as zeros after, and cost no memory). The array's memory is
+// counted in blocks of 2 MiB aligned as a huge page is (util/huge_pages.h: the large arrays are
+// advised to use them), so that a block goes back whole: giving back part of a huge page splits
+// it, which made the collapse of 1M spheres a quarter slower with 1 MiB regions of elements.
 // Does nothing where `on` is false, the array is small, or madvise is missing.
 class ReadOnce {
  public:
   ReadOnce(const void* data, std::size_t count, std::size_t element_bytes, bool on)
-      : data_(static_cast<const unsigned char*>(data)), count_(count), element_bytes_(element_bytes) {
+      : begin_(reinterpret_cast<std::uintptr_t>(data)), element_bytes_(element_bytes) {
 #if defined(__linux__) && defined(MADV_DONTNEED)
     if (on && count * element_bytes >= kMinBytes) {
-      left_.resize((count + kRegion - 1) / kRegion);
-      for (std::size_t r = 0; r < left_.size(); ++r) left_[r] = std::uint32_t(std::min(kRegion, count - r * kRegion));
-      page_ = std::size_t(sysconf(_SC_PAGESIZE));
+      end_ = begin_ + count * element_bytes;
+      base_ = begin_ & ~(kBlock - 1);
+      left_.resize((end_ - 1 - base_) / kBlock + 1);
+      for (std::size_t b = 0; b < left_.size(); ++b) {
+        const std::uintptr_t lo = std::max(begin_, base_ + b * kBlock);
+        const std::uintptr_t hi = std::min(end_, base_ + (b + 1) * kBlock);
+        left_[b] = std::uint32_t(hi - lo);
+      }
+      page_ = std::uintptr_t(sysconf(_SC_PAGESIZE));
     }
 #else
+    (void)count;
     (void)on;
 #endif
   }
 
   // Elements [first, first + n) have been read, each once.
   void read(std::size_t first, std::size_t n) {
-    if (left_.empty()) return;
-    while (n > 0) {
-      const std::size_t r = first / kRegion;
-      const std::size_t here = std::min(n, (r + 1) * kRegion - first);
-      assert(left_[r] >= here);
-      left_[r] -= std::uint32_t(here);
-      if (left_[r] == 0) release(r);
-      first += here;
-      n -= here;
+    if (left_.empty() || n == 0) return;
+    std::uintptr_t lo = begin_ + first * element_bytes_;
+    const std::uintptr_t hi = lo + n * element_bytes_;
+    while (lo < hi) {
+      const std::size_t b = (lo - base_) / kBlock;
+      const std::uintptr_t here = std::min(hi, base_ + (b + 1) * kBlock) - lo;
+      assert(left_[b] >= here);
+      left_[b] -= std::uint32_t(here);
+      if (left_[b] == 0) release(b);
+      lo += here;
     }
   }
 
  private:
-  static constexpr std::size_t kRegion = std::size_t(1) << 15;    // 1 MiB of 32-byte prims
-  static constexpr std::size_t kMinBytes = std::size_t(1) << 20;  // a set-aside scene has more
+  static constexpr std::uintptr_t kBlock = std::uintptr_t(2) << 20;  // a huge page
+  static constexpr std::size_t kMinBytes = std::size_t(1) << 20;     // a set-aside scene has more
 
-  void release(std::size_t r) const {
+  // The pages of block b that hold the array and nothing else.
+  void release(std::size_t b) const {
 #if defined(__linux__) && defined(MADV_DONTNEED)
-    const auto begin = reinterpret_cast<std::uintptr_t>(data_ + r * kRegion * element_bytes_);
-    const auto end = reinterpret_cast<std::uintptr_t>(data_ + std::min(count_, (r + 1) * kRegion) * element_bytes_);
-    const std::uintptr_t first = (begin + page_ - 1) & ~(page_ - 1);
-    const std::uintptr_t last = end & ~(page_ - 1);
-    if (last > first) madvise(reinterpret_cast<void*>(first), last - first, MADV_DONTNEED);  // errors ignored
+    const std::uintptr_t lo = (std::max(begin_, base_ + b * kBlock) + page_ - 1) & ~(page_ - 1);
+    const std::uintptr_t hi = std::min(end_, base_ + (b + 1) * kBlock) & ~(page_ - 1);
+    if (hi > lo) madvise(reinterpret_cast<void*>(lo), hi - lo, MADV_DONTNEED);  // a hint: errors ignored
 #else
-    (void)r;
+    (void)b;
 #endif
   }
 
-  const unsigned char* data_;
-  std::size_t count_;
+  std::uintptr_t begin_ = 0, end_ = 0;  // the array's bytes
+  std::uintptr_t base_ = 0;             // the start of the block holding begin_
   std::size_t element_bytes_;
-  std::size_t page_ = 4096;
-  std::vector<std::uint32_t> left_;  // per region, the elements not read yet
+  std::uintptr_t page_ = 4096;
+  std::vector<std::uint32_t> left_;  // per block, the array's bytes in it not read yet
 };
 
 }  // namespace
