@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <numbers>
 #include <string>
 #include <vector>
@@ -410,6 +411,50 @@ TEST_CASE("BVH build: the same tree as recorded, signed zeros too", "[accel][bvh
       // The SAH's leaf cost differs between the scalar and the SIMD kernels; all SIMD sets share it.
       CHECK(geo.stats().tree_hash == (isa == Isa::kScalar ? scalar_hash : simd_hash));
     }
+  }
+}
+
+TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the recorded tree", "[accel][bvh][threads]") {
+  // A SIMD build of 2^15 spheres or more holds no Shape array while it builds (bvh.cpp's SetAside):
+  // the spheres are put back from the wide tree's blocks, the planes, invalid spheres and huge
+  // spheres from what was set aside, and the prims' pages are given back as the collapse reads
+  // them (wide_build.cpp's ReadOnce). Every byte of every shape must come back, the queries must
+  // be exact, and the tree must be the one recorded before the build's memory was reordered (this
+  // hash).
+  TestRng rng{7};
+  std::vector<Shape> shapes;
+  for (int i = 0; i < 36000; ++i) {
+    shapes.push_back(sphere(to_f(rng.in_cube(20.0)), float(rng.log_uniform(0.01, 1.5))));
+    if (i % 9000 == 17) shapes.push_back(plane({0, float(i) * -1e-3f - 25.0f, 0}, {0, 1, 0}));
+    if (i % 12000 == 5) shapes.push_back(sphere(to_f(rng.in_cube(20.0)), i % 2 == 0 ? 0.0f : -1.0f));  // invalid
+    if (i % 18000 == 11) shapes.push_back(sphere(to_f(rng.in_cube(5.0)), 400.0f));  // huge: beside the tree
+  }
+  std::vector<Shape> with_box = shapes;  // a box: no set-aside, the shapes are held as they are
+  with_box.push_back(box({-1, -1, -1}, {1, 1, 1}));
+  const std::uint64_t simd_hash = 0x0911f182e5874ac5;
+  for (const Isa isa : supported_isas()) {
+    if (isa == Isa::kScalar) continue;
+    for (const unsigned threads : {1u, 2u}) {
+      const Geometry geo = Geometry::build(shapes, isa, threads);
+      INFO("isa " << isa_name(isa) << ", threads " << threads << ", tree " << std::hex << geo.stats().tree_hash);
+      CHECK(geo.stats().tree_hash == simd_hash);
+      CHECK(geo.stats().outside == 4 + 2);  // the planes and the huge spheres
+      REQUIRE(geo.shapes().size() == shapes.size());
+      CHECK(std::memcmp(geo.shapes().data(), shapes.data(), shapes.size() * sizeof(Shape)) == 0);
+      long mismatches = 0, hits = 0;
+      for (int i = 0; i < 500; ++i) {
+        const Ray ray = make_ray(to_f(rng.in_cube(30.0)), unit_f(rng.unit()));
+        Hit a, b;
+        const bool fa = geo.intersect(ray, a), fb = brute_force(shapes, ray, b);
+        hits += fb;
+        mismatches += fa != fb || (fa && !same_hit(a, b));
+      }
+      CHECK(hits > 100);
+      CHECK(mismatches == 0);
+    }
+    const Geometry held = Geometry::build(with_box, isa, 2);
+    REQUIRE(held.shapes().size() == with_box.size());
+    CHECK(std::memcmp(held.shapes().data(), with_box.data(), with_box.size() * sizeof(Shape)) == 0);
   }
 }
 

@@ -535,8 +535,10 @@ int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, 
 }
 
 // Appends top node `t` and everything below it to `nodes` in depth-first order; returns its index.
+// Each subtree's nodes are freed once copied, so that the two copies of the nodes are never all
+// alive at once.
 template <typename Node>
-std::uint32_t stitch(int t, const std::vector<TopNode<Node>>& top, const std::vector<Subtree<Node>>& subtrees,
+std::uint32_t stitch(int t, const std::vector<TopNode<Node>>& top, std::vector<Subtree<Node>>& subtrees,
                      std::vector<Node>& nodes) {
   const auto index = std::uint32_t(nodes.size());
   const TopNode<Node>& tn = top[t];
@@ -545,6 +547,7 @@ std::uint32_t stitch(int t, const std::vector<TopNode<Node>>& top, const std::ve
       if (n.count == 0) n.offset += index;
       nodes.push_back(n);
     }
+    std::vector<Node>().swap(subtrees[tn.subtree].nodes);
     return index;
   }
   nodes.push_back(tn.node);
@@ -574,20 +577,6 @@ bool can_set_aside(const std::vector<Shape>& shapes) {
     if (s.type != ShapeType::kPlane || ++others > kMaxSetAside) return false;
   }
   return true;
-}
-
-// Sets aside every shape that is not a valid sphere of the tree (`outside`: sorted ids beside it).
-SetAside set_aside(const std::vector<Shape>& shapes, const std::vector<std::uint32_t>& outside) {
-  SetAside a;
-  a.count = shapes.size();
-  for (std::uint32_t id = 0; id < shapes.size(); ++id) {
-    const Shape& s = shapes[id];
-    if (s.type != ShapeType::kSphere || !detail::shape_is_valid(s) ||
-        std::binary_search(outside.begin(), outside.end(), id)) {
-      a.others.push_back({id, s});
-    }
-  }
-  return a;
 }
 
 // The shapes again: the tree's spheres from `prims` or, once those are freed, from the wide tree's
@@ -627,32 +616,68 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   Geometry g;
   g.shapes_ = std::move(shapes);
 
-  // Bounds of every shape, in chunks (in parallel for large scenes); the planes and invalid
-  // shapes are dropped after, in id order.
-  std::vector<BuildPrim> refs;
-  refs.reserve(g.shapes_.size());
-  util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
-  refs.resize(g.shapes_.size());
-  std::vector<std::uint8_t> kind(g.shapes_.size());  // 0 invalid, 1 plane, 2 bounded
-  parallel_for(chunks_of(g.shapes_.size()), g.shapes_.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
-    const std::size_t end = std::min(g.shapes_.size(), (c + 1) * kChunk);
+  // What each shape is (0 invalid, 1 plane, 2 bounded), in chunks (in parallel for large scenes).
+  const std::size_t n = g.shapes_.size();
+  const unsigned shape_threads = n >= kParallelGrain ? threads : 1;
+  std::vector<std::uint8_t> kind(n);
+  parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
+    const std::size_t end = std::min(n, (c + 1) * kChunk);
     for (std::size_t id = c * kChunk; id < end; ++id) {
       const Shape& s = g.shapes_[id];
-      if (!detail::shape_is_valid(s)) continue;
-      if (s.type == ShapeType::kPlane) {
-        kind[id] = 1;
-        continue;
-      }
-      kind[id] = 2;
-      const Bounds3f b = shape_bounds(s);
+      kind[id] = !detail::shape_is_valid(s) ? 0 : s.type == ShapeType::kPlane ? 1 : 2;
+    }
+  });
+  const auto bounded = std::size_t(std::count(kind.begin(), kind.end(), std::uint8_t{2}));
+
+  // A large scene of spheres (and a few planes) that gets a wide tree holds no Shape array while
+  // its tree is built and collapsed (SetAside): only bare spheres (16 bytes where a Shape takes
+  // 40) until the prims are made, then the prims and the wide tree's blocks hold them. They are
+  // set aside before the build prims (40 bytes) are made from them, so that the shapes and the
+  // build prims are never alive together. Enough spheres that, even after the huge ones leave
+  // the tree (kMaxOutside at most), it is far above kMinWidePrims: it gets a wide tree. Whether
+  // a scene is set aside changes its memory, not its tree or its shapes.
+  const bool aside = isa != Isa::kScalar && bounded >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) &&
+                     can_set_aside(g.shapes_);
+  SetAside set;
+  std::vector<SphereShape> spheres;  // aside: each shape's sphere, by id, until the prims are made
+  if (aside) {
+    set.count = n;
+    spheres.reserve(n);
+    util::advise_huge_pages_for(spheres);  // first touches are costly page faults (util/huge_pages.h)
+    for (std::uint32_t id = 0; id < n; ++id) {
+      const Shape& s = g.shapes_[id];
+      spheres.push_back(s.type == ShapeType::kSphere ? s.sphere : SphereShape{});
+      if (kind[id] != 2) set.others.push_back({id, s});  // planes and invalid spheres
+    }
+    std::vector<Shape>().swap(g.shapes_);
+  }
+  // The shape whose bounds a build prim takes: a set-aside sphere is made whole again for it.
+  const auto bounds_of = [&](std::size_t id) {
+    if (!aside) return shape_bounds(g.shapes_[id]);
+    Shape s;
+    s.sphere = spheres[id];
+    return shape_bounds(s);
+  };
+
+  // Bounds of every bounded shape, in chunks; the planes and invalid shapes are dropped after, in
+  // id order.
+  std::vector<BuildPrim> refs;
+  refs.reserve(n);
+  util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
+  refs.resize(n);
+  parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
+    const std::size_t end = std::min(n, (c + 1) * kChunk);
+    for (std::size_t id = c * kChunk; id < end; ++id) {
+      if (kind[id] != 2) continue;
+      const Bounds3f b = bounds_of(id);
       refs[id] = {b, b.centroid(), std::uint32_t(id)};
     }
   });
   {
     std::size_t k = 0;
-    for (std::uint32_t id = 0; id < g.shapes_.size(); ++id) {
+    for (std::uint32_t id = 0; id < n; ++id) {
       if (kind[id] == 0) continue;
-      g.has_triangles_ = g.has_triangles_ || g.shapes_[id].type == ShapeType::kTriangle;
+      if (!aside) g.has_triangles_ = g.has_triangles_ || g.shapes_[id].type == ShapeType::kTriangle;
       if (kind[id] == 1) {
         g.outside_.push_back(id);
       } else {
@@ -682,7 +707,13 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       std::vector<bool> out(refs.size(), false);
       for (const auto& h : huge) {
         out[h.second] = true;
-        g.outside_.push_back(refs[h.second].id);
+        const std::uint32_t id = refs[h.second].id;
+        g.outside_.push_back(id);
+        if (aside) {  // beside the tree, so not in its blocks: set aside whole
+          Shape s;
+          s.sphere = spheres[id];
+          set.others.push_back({id, s});
+        }
       }
       std::size_t k = 0;
       for (std::size_t i = 0; i < refs.size(); ++i) {
@@ -693,31 +724,23 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   }
   // Tested in id order, which the tie rule does not need but keeps the loop deterministic.
   std::sort(g.outside_.begin(), g.outside_.end());
-
-  // A large scene of spheres (and a few planes) that gets a wide tree: its shapes are not held
-  // while the tree is built and collapsed (SetAside): only bare spheres (16 bytes where a Shape
-  // takes 40) until the prims are made, then the prims and the wide tree's blocks hold them. The
-  // build's peak is lower by 24 to 40 bytes a sphere, depending on the phase.
-  const bool aside = isa != Isa::kScalar && refs.size() >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) &&
-                     can_set_aside(g.shapes_);
-  SetAside set;
-  std::vector<SphereShape> spheres;  // aside: each shape's sphere, by id, until the prims are made
-  if (aside) {
-    set = set_aside(g.shapes_, g.outside_);
-    spheres.reserve(g.shapes_.size());
-    util::advise_huge_pages_for(spheres);
-    for (const Shape& s : g.shapes_) spheres.push_back(s.type == ShapeType::kSphere ? s.sphere : SphereShape{});
-    std::vector<Shape>().swap(g.shapes_);
-  }
+  std::sort(set.others.begin(), set.others.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
 
   std::uint32_t leaves = 0;
   std::uint32_t max_depth = 0;
+  // Once the tree is built only the ids of the build prims are left to use: those are kept (4
+  // bytes a prim) and the rest (40) freed before the nodes are stitched and the prims (32) made,
+  // which lowers the build's peak.
+  std::vector<std::uint32_t> order;
   if (!refs.empty()) {
     const Splitter splitter(refs, isa);
     std::vector<TopNode<Node>> top;
     std::vector<Subtree<Node>> subtrees;
     split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, top, subtrees);
     parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
+    order.resize(refs.size());
+    for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
+    std::vector<BuildPrim>().swap(refs);
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
     g.nodes_.reserve(total);
@@ -733,12 +756,6 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       max_depth = std::max(max_depth, t.max_depth);
     }
   }
-
-  // Only the ids of the build prims are left to use: keep those (4 bytes a prim) and free the
-  // rest (40) before the prims (32) are allocated, which lowers the build's peak.
-  std::vector<std::uint32_t> order(refs.size());
-  for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
-  std::vector<BuildPrim>().swap(refs);
   g.prims_.reserve(order.size());
   util::advise_huge_pages_for(g.prims_);
   g.prims_.resize(order.size());

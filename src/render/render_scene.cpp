@@ -142,13 +142,21 @@ std::vector<std::pair<std::uint32_t, bool>> transparent_objects(const std::vecto
   return out;
 }
 
+// The first shape of `object`, which has one at least: shape ids follow the objects' order, so
+// `shape_object` (RenderScene::shape_object_, empty for the identity) never decreases.
+std::uint32_t first_shape_of(const std::vector<std::uint32_t>& shape_object, std::uint32_t object) {
+  if (shape_object.empty()) return object;
+  return std::uint32_t(std::lower_bound(shape_object.begin(), shape_object.end(), object) - shape_object.begin());
+}
+
 // See RenderScene::camera_media(). `transparent`: (object index, is a mesh) of each transparent
-// object, in order; `first_shape[i]`: the first shape of object i.
-// `shape_object`: RenderScene::shape_object_ (empty: the identity).
+// object, in order; `shape_object`: RenderScene::shape_object_ (empty: the identity).
+// Nothing per object or per shape is allocated unless a transparent mesh needs its crossings
+// counted: for a scene of 1M spheres, some of glass, that was 12 MB faulted in during the load
+// and kept by the allocator through the render.
 std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geometry, std::size_t object_count,
                                              const std::vector<std::pair<std::uint32_t, bool>>& transparent,
-                                             const std::vector<std::uint32_t>& shape_object,
-                                             const std::vector<std::uint32_t>& first_shape, const Vec3f& camera) {
+                                             const std::vector<std::uint32_t>& shape_object, const Vec3f& camera) {
   // Any direction serves closed shapes; this one lies off every axis and diagonal, so a probe from
   // a camera placed on a round coordinate does not run along the edges of a mesh laid out on a grid.
   math::Ray probe;
@@ -157,10 +165,12 @@ std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geome
   // Meshes: count the probe's crossings of each object, walking from hit to hit as a path through
   // an index-matched surface does (t_min moves to the hit, so a ray through an edge shared by two
   // triangles crosses once).
-  std::vector<std::uint32_t> crossings(object_count, 0);
-  std::vector<float> last_t(object_count, 0.0f);
+  std::vector<std::uint32_t> crossings;
+  std::vector<float> last_t;
   const bool meshes = std::any_of(transparent.begin(), transparent.end(), [](const auto& t) { return t.second; });
   if (meshes) {
+    crossings.assign(object_count, 0);
+    last_t.assign(object_count, 0.0f);
     math::Ray walk = probe;
     accel::Hit hit;
     for (std::size_t n = 0; n < geometry.shape_count() && geometry.intersect(walk, hit); ++n) {
@@ -180,10 +190,11 @@ std::vector<std::uint32_t> find_camera_media(const accel::LayeredGeometry& geome
       if (crossings[i] % 2 == 1) media.push_back({last_t[i], i});
       continue;
     }
-    const accel::Shape& shape = geometry.shape(first_shape[i]);
+    const std::uint32_t first = first_shape_of(shape_object, i);
+    const accel::Shape& shape = geometry.shape(first);
     if (!solid_contains(shape, camera)) continue;
     accel::Hit exit;
-    const bool found = accel::intersect_shape(shape, first_shape[i], probe, exit);
+    const bool found = accel::intersect_shape(shape, first, probe, exit);
     media.push_back({found ? exit.t : std::numeric_limits<float>::infinity(), i});
   }
   // Outermost (farthest exit) first; ties in scene order.
@@ -314,11 +325,7 @@ void RenderScene::finish(const scene::SceneDesc& desc, const std::vector<std::pa
   if (has_transparency_) {
     // Where camera rays start (CameraF::generate).
     const Vec3f origin(camera_.position);
-    // Each object's first shape id; only here, so a scene without glass never holds it.
-    std::vector<std::uint32_t> first_shape(materials_.size());
-    for (std::size_t id = geometry_.shape_count(); id-- > 0;)
-      first_shape[object(std::uint32_t(id))] = std::uint32_t(id);
-    camera_media_ = find_camera_media(geometry_, materials_.size(), transparent, shape_object_, first_shape, origin);
+    camera_media_ = find_camera_media(geometry_, materials_.size(), transparent, shape_object_, origin);
   }
 }
 

@@ -308,7 +308,10 @@ std::string format_errors(const util::Errors& errors) {
 
 namespace {
 
-constexpr std::size_t kReadPiece = std::size_t(1) << 20;  // bytes per read of a scene file
+// Bytes per read of a scene file. A piece is copied from the page cache and then parsed while it
+// is still in the core's cache: 256 KiB pieces took the parser thread about 3 % less CPU than
+// 1 MiB ones (1M spheres, 20 alternated pairs; 128 KiB gained nothing more).
+constexpr std::size_t kReadPiece = std::size_t(1) << 18;
 
 // The objects' half of a load, on a thread of its own for a large text: the parser (the calling
 // thread) records the events of each element of "scene_objects" in the log of a batch (no value
