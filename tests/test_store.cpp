@@ -16,6 +16,7 @@
 namespace {
 using namespace dtraced::testing;
 using dtraced::store::CheckpointMode;
+using dtraced::store::TilePixels;
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------
@@ -170,6 +171,34 @@ TEST_CASE("tiles: first result wins, duplicates compared, missing job rejected a
   CHECK(all.value()[1].pixels == make_pixels(job, 5, 1000));
   CHECK(all.value()[2].tile == 4294967295u);
   CHECK(all.value()[2].pixels.empty());
+}
+
+TEST_CASE("a tile's pixels can be a slice of the payload they came in", "[store]") {
+  StoreDir tmp;
+  Store store = open_ok(tmp.path());
+  const std::int64_t job = make_job(store);
+  const Blob pixels = make_pixels(job, 7, 3000);
+  // A header, the pixels, a trailer: only the pixels are stored.
+  const auto with_payload = [&](std::uint32_t tile, const Blob& bytes) {
+    TileWrite w = tile_write(job, tile, 0);
+    w.pixels = TilePixels(std::string(40, 'h') + std::string(bytes.begin(), bytes.end()) + std::string(32, 't'), 40,
+                          bytes.size());
+    CHECK(w.pixels.size() == bytes.size());
+    CHECK(w.pixels.held_bytes() == 40 + bytes.size() + 32);
+    CHECK(Blob(w.pixels.bytes().begin(), w.pixels.bytes().end()) == bytes);
+    return w;
+  };
+  Blob other = pixels;
+  other[100] ^= 1;
+  std::vector<TileWrite> writes{with_payload(7, pixels), with_payload(7, pixels), with_payload(7, other)};
+  auto r = store.insert_tiles(writes);
+  REQUIRE(r.ok());
+  CHECK(r.value()[0].outcome == TileOutcome::kStored);
+  CHECK(r.value()[1].outcome == TileOutcome::kAlreadyPresent);
+  CHECK(r.value()[1].identical);
+  CHECK(r.value()[2].outcome == TileOutcome::kAlreadyPresent);
+  CHECK_FALSE(r.value()[2].identical);
+  CHECK(store.get_tile(job, 7).value()->pixels == pixels);
 }
 
 TEST_CASE("transaction() commits together or not at all", "[store]") {

@@ -57,7 +57,7 @@ struct WriterLimits {
   // growth between checkpoints. Past a few hundred tiles, larger batches gain little.
   std::size_t max_batch_tiles = 512;
   std::size_t max_pending_tiles = 4096;
-  std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels + worker names
+  std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels (TilePixels::held_bytes) + worker names
   std::size_t max_pending_tasks = 1024;
   // The WAL's bound. SQLite's own checkpoints are off (Store::manage_checkpoints). Once the WAL
   // has reached half this many bytes, a background checkpoint copies it into the database while
@@ -132,7 +132,7 @@ class TileWriter {
     Done done;
     Task task;  // set for a task, empty for a tile
   };
-  static std::uint64_t cost_bytes(const TileWrite& w) { return w.pixels.size() + w.worker.size(); }
+  static std::uint64_t cost_bytes(const TileWrite& w) { return w.pixels.held_bytes() + w.worker.size(); }
 
   void run();
   void write_tiles(std::vector<Item>& items, std::size_t begin, std::size_t end);
