@@ -217,6 +217,15 @@ TEST_CASE("duplicates are answered already_done, and different pixels count as f
   CHECK(metric(h, &coll::CollectorCounters::tile_duplicates) == 2);
   // The first result stays.
   CHECK(fetch_pfm(h, job).rgb == expected_image(job, 32, 24, 8, {leases[0].tile}).rgb);
+  // The store holds the pixels as pixels_to_blob lays them out (the upload's own bytes went there).
+  {
+    auto opened = dtraced::store::Store::open(h.config.state_dir, {.verify_integrity = false});
+    REQUIRE(opened.ok());
+    const auto stored = opened.value().get_tile(static_cast<std::int64_t>(job), leases[0].tile);
+    REQUIRE(stored.ok());
+    REQUIRE(stored.value());
+    CHECK(stored.value()->pixels == coll::pixels_to_blob(fake_pixels(job, leases[0].tile, leases[0].rect)));
+  }
 
   // Once the job is done its pixels are in the store only: duplicates are compared there.
   for (std::size_t i = 1; i < leases.size(); ++i) h.put_ok(leases[i]);

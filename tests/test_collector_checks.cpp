@@ -295,6 +295,41 @@ TEST_CASE("a tile payload with a negative pixel is refused, naming the pixel, bu
   CHECK(coll::check_tile_payload(protocol::encode_tile_payload(minus_zero)).ok());
 }
 
+TEST_CASE("a tile's pixels pass exactly when finite and not below zero, wherever the bad one is",
+          "[collector][checks]") {
+  // The check looks at bit patterns; every edge of the rule, as the first, a middle and the last value.
+  constexpr float kMax = std::numeric_limits<float>::max();
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  const float passing[] = {0.0f, -0.0f, std::numeric_limits<float>::denorm_min(), std::numeric_limits<float>::min(),
+                           1.0f, kMax};
+  const float failing[] = {kInf,
+                           -kInf,
+                           std::numeric_limits<float>::quiet_NaN(),
+                           -std::numeric_limits<float>::quiet_NaN(),
+                           std::numeric_limits<float>::signaling_NaN(),
+                           -std::numeric_limits<float>::denorm_min(),
+                           -std::numeric_limits<float>::min(),
+                           -1.0f,
+                           -kMax};
+  const protocol::TilePayload base = tile_payload(5);
+  for (const std::size_t at : {std::size_t{0}, base.rgb.size() / 2 + 1, base.rgb.size() - 1}) {
+    for (const float v : passing) {
+      protocol::TilePayload p = base;
+      p.rgb[at] = v;
+      INFO("value " << v << " at " << at);
+      CHECK(coll::check_tile_payload(protocol::encode_tile_payload(p)).ok());
+    }
+    for (const float v : failing) {
+      protocol::TilePayload p = base;
+      p.rgb[at] = v;
+      INFO("value " << v << " at " << at);
+      const auto refused = coll::check_tile_payload(protocol::encode_tile_payload(p));
+      REQUIRE_FALSE(refused.ok());
+      CHECK(refused.error().error.path == "/pixels");
+    }
+  }
+}
+
 TEST_CASE("a tile upload is checked against its URL, then its job: range, rectangle, sample counts",
           "[collector][checks]") {
   coll::JobRecord job = job_record();

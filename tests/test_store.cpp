@@ -2,20 +2,28 @@
 // without touching them (other schema version, missing tables, not a database, corrupt pages).
 // The writer thread, durability across SIGKILL and the commit benchmark are in
 // test_store_writer.cpp.
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/vfs.h>
+#include <unistd.h>
+
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 #include <random>
 #include <string>
 #include <vector>
 
 #include <catch2/catch.hpp>
 #include <fmt/format.h>
+#include <linux/magic.h>
 
 #include "store_testing.h"
 
 namespace {
 using namespace dtraced::testing;
 using dtraced::store::CheckpointMode;
+using dtraced::store::TilePixels;
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------
@@ -170,6 +178,34 @@ TEST_CASE("tiles: first result wins, duplicates compared, missing job rejected a
   CHECK(all.value()[1].pixels == make_pixels(job, 5, 1000));
   CHECK(all.value()[2].tile == 4294967295u);
   CHECK(all.value()[2].pixels.empty());
+}
+
+TEST_CASE("a tile's pixels can be a slice of the payload they came in", "[store]") {
+  StoreDir tmp;
+  Store store = open_ok(tmp.path());
+  const std::int64_t job = make_job(store);
+  const Blob pixels = make_pixels(job, 7, 3000);
+  // A header, the pixels, a trailer: only the pixels are stored.
+  const auto with_payload = [&](std::uint32_t tile, const Blob& bytes) {
+    TileWrite w = tile_write(job, tile, 0);
+    w.pixels = TilePixels(std::string(40, 'h') + std::string(bytes.begin(), bytes.end()) + std::string(32, 't'), 40,
+                          bytes.size());
+    CHECK(w.pixels.size() == bytes.size());
+    CHECK(w.pixels.held_bytes() == 40 + bytes.size() + 32);
+    CHECK(Blob(w.pixels.bytes().begin(), w.pixels.bytes().end()) == bytes);
+    return w;
+  };
+  Blob other = pixels;
+  other[100] ^= 1;
+  std::vector<TileWrite> writes{with_payload(7, pixels), with_payload(7, pixels), with_payload(7, other)};
+  auto r = store.insert_tiles(writes);
+  REQUIRE(r.ok());
+  CHECK(r.value()[0].outcome == TileOutcome::kStored);
+  CHECK(r.value()[1].outcome == TileOutcome::kAlreadyPresent);
+  CHECK(r.value()[1].identical);
+  CHECK(r.value()[2].outcome == TileOutcome::kAlreadyPresent);
+  CHECK_FALSE(r.value()[2].identical);
+  CHECK(store.get_tile(job, 7).value()->pixels == pixels);
 }
 
 TEST_CASE("transaction() commits together or not at all", "[store]") {
@@ -333,6 +369,55 @@ TEST_CASE("state paths that are not what they should be", "[store]") {
     Store store = open_ok(tmp.path());
     CHECK(store.list_jobs().ok());
   }
+}
+
+namespace {
+
+// How many of the file's pages the kernel holds in its page cache (mincore), or nullopt where
+// that says nothing (tmpfs keeps every page) or cannot be read.
+std::optional<std::size_t> cached_pages(const std::string& path, std::size_t& pages) {
+  struct statfs info {};
+  if (::statfs(path.c_str(), &info) != 0 || info.f_type == TMPFS_MAGIC) return std::nullopt;
+  const std::size_t size = fs::file_size(path);
+  const auto page = static_cast<std::size_t>(::sysconf(_SC_PAGESIZE));
+  pages = (size + page - 1) / page;
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return std::nullopt;
+  void* map = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, fd, 0);
+  ::close(fd);
+  if (map == MAP_FAILED) return std::nullopt;
+  std::vector<unsigned char> resident(pages);
+  const int rc = ::mincore(map, size, resident.data());
+  ::munmap(map, size);
+  if (rc != 0) return std::nullopt;
+  std::size_t cached = 0;
+  for (const unsigned char r : resident) cached += r & 1;
+  return cached;
+}
+
+}  // namespace
+
+TEST_CASE("a checkpoint leaves the pages it copied out of the page cache", "[store][wal]") {
+  StoreDir tmp;
+  Store s = open_ok(tmp.path());
+  const std::int64_t job = make_job(s);
+  std::vector<TileWrite> w;
+  for (std::uint32_t t = 0; t < 64; ++t) w.push_back(tile_write(job, t, kBenchTileBytes));
+  REQUIRE(s.insert_tiles(w).ok());
+  auto copied = s.checkpoint(CheckpointMode::kReuse);
+  REQUIRE(copied.ok());
+  REQUIRE(copied.value().complete);
+  std::size_t pages = 0;
+  const auto cached = cached_pages(tmp.db(), pages);
+  if (!cached) {
+    WARN("the page cache of " << tmp.db() << " cannot be told here (tmpfs?); not checked");
+    return;
+  }
+  // 64 tiles of 48 KiB: about 3 MiB copied into the file, and synced, so none need stay cached.
+  INFO(*cached << " of " << pages << " pages cached");
+  REQUIRE(pages > 700);
+  CHECK(*cached < pages / 4);
+  CHECK(s.count_tiles(job).value() == 64);  // read back from the disk
 }
 
 TEST_CASE("a reuse checkpoint copies every frame and the next writes overwrite the WAL file", "[store][wal]") {

@@ -170,6 +170,86 @@ TEST_CASE("a transaction holds at most max_batch_tiles tiles", "[store][writer]"
 
 namespace {
 
+// A writer that just committed a batch of `first` tiles, and gathers the next batch for a long
+// time (so only a full batch, a task or stop() ends a gather within the test's wait limits).
+struct Gathering {
+  explicit Gathering(StoreDir& tmp, std::uint32_t first) {
+    auto [setup, id] = seeded(tmp);
+    job = id;
+    writer.emplace(std::move(setup), WriterLimits{.checkpoint_when_idle = std::chrono::minutes(10),
+                                                  .gather_wait = std::chrono::minutes(10)});
+    Gate gate;
+    gate.close(*writer);
+    for (std::uint32_t t = 0; t < first; ++t) submit(t);
+    gate.open();
+    REQUIRE(callbacks.wait_for(first));
+    REQUIRE(writer->stats().batches == 1);
+  }
+  void submit(std::uint32_t tile) {
+    REQUIRE(writer->submit(tile_write(job, tile, 100), callbacks.done(tile)) == SubmitStatus::kAccepted);
+  }
+  // Submits one tile and returns once the writer waits for more.
+  void start_gather(std::uint32_t tile) {
+    const std::uint64_t before = writer->stats().gather_waits;
+    submit(tile);
+    REQUIRE(eventually([&] { return writer->stats().gather_waits == before + 1; }));
+  }
+
+  std::int64_t job = 0;
+  Callbacks callbacks;
+  std::optional<TileWriter> writer;
+};
+
+}  // namespace
+
+TEST_CASE("under load the writer waits for as many tiles as its last batch held, then writes them together",
+          "[store][writer]") {
+  StoreDir tmp;
+  Gathering g(tmp, 8);
+  g.start_gather(8);
+  // Seven more make eight: one transaction, without waiting out gather_wait.
+  for (std::uint32_t t = 9; t < 16; ++t) g.submit(t);
+  REQUIRE(g.callbacks.wait_for(16));
+  const auto stats = g.writer->stats();
+  CHECK(stats.batches == 2);
+  CHECK(stats.largest_batch == 8);
+  CHECK(stats.tiles_stored == 16);
+  CHECK(stats.gather_timeouts == 0);
+  // A single tile in flight (the last batch held one) is written at once: nothing to gather.
+  g.writer->stop();
+  StoreDir other;
+  Gathering lone(other, 1);
+  lone.submit(1);
+  REQUIRE(lone.callbacks.wait_for(2));
+  CHECK(lone.writer->stats().gather_waits == 0);
+  CHECK(lone.writer->stats().batches == 2);
+}
+
+TEST_CASE("a task or a stop ends the writer's wait for a fuller batch", "[store][writer]") {
+  StoreDir tmp;
+  Gathering g(tmp, 4);
+  g.start_gather(4);
+  std::promise<void> ran;
+  REQUIRE(g.writer->post([&](Store&) { ran.set_value(); }) == SubmitStatus::kAccepted);
+  REQUIRE(ran.get_future().wait_for(kWaitLimit) == std::future_status::ready);
+  REQUIRE(g.callbacks.wait_for(5));
+  CHECK(g.writer->stats().tiles_stored == 5);
+
+  CHECK(g.writer->stats().gather_timeouts == 0);
+
+  StoreDir other;
+  Gathering stopped(other, 4);
+  stopped.start_gather(4);
+  stopped.writer->stop();  // writes and acknowledges the tile it was waiting with
+  CHECK(stopped.callbacks.count() == 5);
+  CHECK(stopped.writer->stats().tiles_stored == 5);
+  CHECK(stopped.writer->stats().gather_timeouts == 0);
+  Store check = open_ok(other.path());
+  CHECK(check.count_tiles(stopped.job).value() == 5);
+}
+
+namespace {
+
 // Submits `tiles` tiles of `bytes` each while the writer is held, then lets it write them all in
 // a row (never idle); returns the largest -wal file seen by any tile's callback (after its commit
 // and before the writer's next checkpoint).

@@ -100,6 +100,7 @@ std::vector<WorkerId> WorkerRegistry::sweep(TimePoint now) {
     }
     ++it;
   }
+  std::sort(went_quiet.begin(), went_quiet.end());
   return went_quiet;
 }
 
@@ -129,8 +130,9 @@ std::vector<WorkerView> WorkerRegistry::list(TimePoint now) const {
     }
     out.push_back(std::move(v));
   }
-  std::stable_sort(out.begin(), out.end(),
-                   [](const WorkerView& a, const WorkerView& b) { return a.since_last_seen < b.since_last_seen; });
+  std::sort(out.begin(), out.end(), [](const WorkerView& a, const WorkerView& b) {
+    return a.since_last_seen != b.since_last_seen ? a.since_last_seen < b.since_last_seen : a.id < b.id;
+  });
   return out;
 }
 

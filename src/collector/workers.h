@@ -25,10 +25,11 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <list>
-#include <map>
 #include <string>
 #include <string_view>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
@@ -143,7 +144,15 @@ class WorkerRegistry {
     std::uint64_t refused = 0;
     std::array<Bucket, kRecentBuckets> recent{};
   };
-  using Map = std::map<WorkerId, Entry>;
+  struct IdHash {
+    std::size_t operator()(const WorkerId& id) const {
+      const std::size_t h = std::hash<std::string>{}(id.name);
+      return h ^ (std::hash<std::string>{}(id.peer) + 0x9e3779b97f4a7c15ULL + (h << 6) + (h >> 2));
+    }
+  };
+  // Hashed: every request looks its sender up (a std::map's string compares showed in profiles).
+  // Its order is not the registry's: list() and sweep() sort what they return.
+  using Map = std::unordered_map<WorkerId, Entry, IdHash>;
 
   // The entry of `id`, created (evicting the least recently seen past the cap) when new; `fresh`
   // says which. Marks it seen at `now` and moves it to the front of recency_.

@@ -64,6 +64,7 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "util/result.h"
@@ -121,11 +122,37 @@ struct StoredTile {
   std::int64_t stored_unix = 0;
 };
 
+// A tile's pixels as the store is given them: bytes of their own, or a slice of a tile upload's
+// body, kept whole so that the pixels reach the database without being copied out of it first (a
+// 12 KB allocation and copy a tile on the collector's loop).
+class TilePixels {
+ public:
+  TilePixels() = default;
+  TilePixels(Blob bytes) : blob_(std::move(bytes)) {}  // implicit: a Blob is the plain case
+  // payload[offset, offset + size); the slice must lie within the payload (asserted).
+  TilePixels(std::string payload, std::size_t offset, std::size_t size);
+
+  // The bytes stored.
+  std::span<const std::uint8_t> bytes() const {
+    if (payload_.empty()) return blob_;
+    return std::span(reinterpret_cast<const std::uint8_t*>(payload_.data()) + offset_, size_);
+  }
+  std::size_t size() const { return payload_.empty() ? blob_.size() : size_; }
+  // What it holds in memory (a payload's header and checksum too).
+  std::uint64_t held_bytes() const { return blob_.size() + payload_.size(); }
+
+ private:
+  Blob blob_;
+  std::string payload_;
+  std::size_t offset_ = 0;
+  std::size_t size_ = 0;
+};
+
 // One tile result to store. The first stored result for (job, tile) wins.
 struct TileWrite {
   std::int64_t job = 0;
   std::uint32_t tile = 0;
-  Blob pixels;
+  TilePixels pixels;
   std::string worker;
   std::int64_t stored_unix = 0;
 };

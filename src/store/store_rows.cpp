@@ -3,6 +3,7 @@
 #include <sqlite3.h>
 
 #include <algorithm>
+#include <cassert>
 #include <string>
 #include <utility>
 #include <vector>
@@ -218,14 +219,24 @@ Result<SpaceUse> Store::reclaim_space() {
   return space_use();
 }
 
+TilePixels::TilePixels(std::string payload, std::size_t offset, std::size_t size)
+    : payload_(std::move(payload)), offset_(offset), size_(size) {
+  assert(offset <= payload_.size() && size <= payload_.size() - offset);
+}
+
 Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
   {
     constexpr std::string_view kSql =
         "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
     auto q = query(kSql);
     if (!q) return q.error();
-    const int rc =
-        q.value().bind(w.job).bind(std::int64_t{w.tile}).bind_blob(w.pixels).bind(w.worker).bind(w.stored_unix).step();
+    const int rc = q.value()
+                       .bind(w.job)
+                       .bind(std::int64_t{w.tile})
+                       .bind_blob(w.pixels.bytes())
+                       .bind(w.worker)
+                       .bind(w.stored_unix)
+                       .step();
     if (rc == SQLITE_DONE) {
       if (sqlite3_changes64(db) == 1) return CommitResult{TileOutcome::kStored, false, {}};
     } else if ((rc & 0xff) == SQLITE_CONSTRAINT && sqlite3_get_autocommit(db) == 0) {
@@ -245,7 +256,8 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
   sqlite3_stmt* s = q.value().get();
   const void* stored = sqlite3_column_blob(s, 0);
   const auto n = static_cast<std::size_t>(sqlite3_column_bytes(s, 0));
-  const bool identical = n == w.pixels.size() && (n == 0 || std::memcmp(stored, w.pixels.data(), n) == 0);
+  const std::span<const std::uint8_t> bytes = w.pixels.bytes();
+  const bool identical = n == bytes.size() && (n == 0 || std::memcmp(stored, bytes.data(), n) == 0);
   return CommitResult{TileOutcome::kAlreadyPresent, identical, {}};
 }
 

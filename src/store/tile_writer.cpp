@@ -59,6 +59,7 @@ TileWriter::~TileWriter() { stop(); }
 SubmitStatus TileWriter::submit(TileWrite write, Done done) {
   assert(done);
   const std::uint64_t bytes = cost_bytes(write);
+  bool wake = false;
   {
     std::lock_guard lock(mu_);
     if (stopping_) return SubmitStatus::kStopped;
@@ -73,8 +74,10 @@ SubmitStatus TileWriter::submit(TileWrite write, Done done) {
     ++stats_.pending_tiles;
     stats_.pending_bytes += bytes;
     queue_.push_back(Item{std::move(write), std::move(done), {}});
+    // A writer gathering a batch wakes once, when it is complete, not once per tile.
+    wake = gather_target_ == 0 || stats_.pending_tiles >= gather_target_;
   }
-  wake_.notify_one();
+  if (wake) wake_.notify_one();
   return SubmitStatus::kAccepted;
 }
 
@@ -136,13 +139,16 @@ void TileWriter::run() {
       std::unique_lock lock(mu_);
       wake_.wait(lock, has_work);
       if (queue_.empty()) return;  // stopping, and everything accepted has been handled
+      const std::size_t max_tiles = std::max<std::size_t>(limits_.max_batch_tiles, 1);
+      gather(lock, std::min(last_batch_tiles_, max_tiles));
       // Everything pending, up to max_batch_tiles tiles (tasks come along in their places).
       std::size_t tiles = 0;
-      while (!queue_.empty() && (queue_.front().task || tiles < std::max<std::size_t>(limits_.max_batch_tiles, 1))) {
+      while (!queue_.empty() && (queue_.front().task || tiles < max_tiles)) {
         if (!queue_.front().task) ++tiles;
         batch.push_back(std::move(queue_.front()));
         queue_.pop_front();
       }
+      last_batch_tiles_ = tiles;
     }
     // Submission order is kept: tasks run where they were posted, and each run of tiles between
     // them is one transaction.
@@ -160,6 +166,16 @@ void TileWriter::run() {
     }
     batch.clear();
   }
+}
+
+void TileWriter::gather(std::unique_lock<std::mutex>& lock, std::size_t target) {
+  // Nothing is being written now, so pending_tiles and pending_tasks are what is queued.
+  const auto enough = [&] { return stopping_ || stats_.pending_tasks > 0 || stats_.pending_tiles >= target; };
+  if (limits_.gather_wait.count() <= 0 || target <= 1 || enough()) return;
+  ++stats_.gather_waits;
+  gather_target_ = target;
+  if (!wake_.wait_for(lock, limits_.gather_wait, enough)) ++stats_.gather_timeouts;
+  gather_target_ = 0;
 }
 
 void TileWriter::write_tiles(std::vector<Item>& items, std::size_t begin, std::size_t end) {

@@ -57,7 +57,7 @@ struct WriterLimits {
   // growth between checkpoints. Past a few hundred tiles, larger batches gain little.
   std::size_t max_batch_tiles = 512;
   std::size_t max_pending_tiles = 4096;
-  std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels + worker names
+  std::uint64_t max_pending_bytes = std::uint64_t{256} << 20;  // pixels (TilePixels::held_bytes) + worker names
   std::size_t max_pending_tasks = 1024;
   // The WAL's bound. SQLite's own checkpoints are off (Store::manage_checkpoints). Once the WAL
   // has reached half this many bytes, a background checkpoint copies it into the database while
@@ -72,6 +72,13 @@ struct WriterLimits {
   // so a larger bound means fewer, cheaper-per-tile checkpoints and more disk for the WAL.
   std::uint64_t checkpoint_wal_bytes = std::uint64_t{16} << 20;
   std::chrono::milliseconds checkpoint_when_idle{200};
+  // Group commit under load. A commit costs more than its tiles' pages (an fsync, and the B-tree,
+  // pointer-map and header pages written again each time), so fewer, larger commits store a tile
+  // for less. When the writer finds fewer tiles pending than its last batch held, it waits up to
+  // this long for as many before it writes (tasks and stop() do not wait): a steady load then
+  // keeps its batch size instead of the writer starting on the first tile that arrives, and a
+  // load that fell off costs each commit this much latency at most. 0: write what is pending.
+  std::chrono::microseconds gather_wait{1500};
 };
 
 enum class SubmitStatus {
@@ -90,6 +97,8 @@ struct WriterStats {
   std::uint64_t busy_refusals = 0;
   std::uint64_t tasks_run = 0;
   std::uint64_t largest_batch = 0;
+  std::uint64_t gather_waits = 0;            // batches the writer waited for (WriterLimits::gather_wait)
+  std::uint64_t gather_timeouts = 0;         // of which ended before as many tiles as the last batch came
   std::uint64_t checkpoints = 0;             // attempted, on either thread
   std::uint64_t checkpoints_background = 0;  // of which on the checkpoint thread, beside commits
   std::uint64_t checkpoints_partial = 0;     // a reader kept some frames from being copied
@@ -132,9 +141,12 @@ class TileWriter {
     Done done;
     Task task;  // set for a task, empty for a tile
   };
-  static std::uint64_t cost_bytes(const TileWrite& w) { return w.pixels.size() + w.worker.size(); }
+  static std::uint64_t cost_bytes(const TileWrite& w) { return w.pixels.held_bytes() + w.worker.size(); }
 
   void run();
+  // Under mu_, with tiles queued and none being written: waits up to WriterLimits::gather_wait
+  // until `target` tiles are queued (or a task, or stop()).
+  void gather(std::unique_lock<std::mutex>& lock, std::size_t target);
   void write_tiles(std::vector<Item>& items, std::size_t begin, std::size_t end);
   void run_task(Item& item);
   // After writes: asks for a background checkpoint, or checkpoints on the writer's connection,
@@ -156,10 +168,14 @@ class TileWriter {
   bool stopping_ = false;
   WriterStats stats_;                // pending_* count queued work plus the batch being written
   bool checkpoint_failing_ = false;  // log a failure streak once (checkpoints on either thread)
+  // While the writer gathers a batch: the tiles it waits for (submit() wakes it at this many);
+  // 0 otherwise.
+  std::size_t gather_target_ = 0;
 
   // thread_ only: writes since its own last checkpoint; whether it asked for a background
   // checkpoint it has not seen finish, and the WAL's bytes when it asked.
   std::size_t writes_since_checkpoint_ = 0;
+  std::size_t last_batch_tiles_ = 0;  // tiles of the last batch taken
   bool background_asked_ = false;
   std::uint64_t background_asked_at_ = 0;
 

@@ -1,5 +1,6 @@
 // PUT /v1/jobs/{id}/tiles/{tile}: a worker's result, acknowledged "stored" only once durable; with
 // protocol::kNextLeaseHeader, the answer carries the worker's next lease too (after the commit).
+#include <bit>
 #include <chrono>
 #include <optional>
 #include <string>
@@ -12,6 +13,7 @@
 #include "collector/handlers.h"
 #include "collector/lifecycle.h"
 #include "collector/writer_bridge.h"
+#include "protocol/tile_payload.h"
 #include "protocol/worker_messages.h"
 #include "util/log.h"
 
@@ -35,12 +37,32 @@ std::string worker_name(const http::Request& req) {
   return name.empty() ? std::string("unknown") : name;
 }
 
-// check_tile_payload, on the pool for a large body.
-async::Awaitable<util::Result<protocol::TilePayload, Refusal>> checked_payload(Context& c, std::string body) {
+// check_tile_payload, on the pool for a large body. `body` stays the caller's (it may become the
+// stored blob); a large one goes to the pool and comes back.
+async::Awaitable<util::Result<protocol::TilePayload, Refusal>> checked_payload(Context& c, std::string& body) {
   if (body.size() <= kInlinePayloadBytes) co_return check_tile_payload(body);
-  // In an optional: on_pool needs a default-constructible result.
-  auto check = [body = std::move(body)] { return std::optional(check_tile_payload(body)); };
-  co_return *co_await async::on_pool(c.pool, std::move(check));
+  // In an optional: on_pool needs a default-constructible result. The pool owns the body while it
+  // reads it, so nothing it reads can go away under it.
+  auto check = [owned = std::move(body)]() mutable {
+    auto result = check_tile_payload(owned);
+    return std::optional(std::pair(std::move(result), std::move(owned)));
+  };
+  auto checked = *co_await async::on_pool(c.pool, std::move(check));
+  body = std::move(checked.second);
+  co_return std::move(checked.first);
+}
+
+// The tile's blob as the store keeps it (pixels_to_blob's bytes): on a little-endian host these
+// are the payload's own bytes between its header and its checksum, so the body itself is stored.
+void set_stored_pixels(store::TileWrite& write, const protocol::TilePayload& p, std::string body) {
+  const std::size_t bytes = (p.rgb.size() + p.spp.size()) * 4;
+  if constexpr (std::endian::native == std::endian::little) {
+    if (body.size() == protocol::kTileHeaderBytes + bytes + protocol::kTileChecksumBytes) {
+      write.pixels = store::TilePixels(std::move(body), protocol::kTileHeaderBytes, bytes);
+      return;
+    }
+  }
+  write.pixels = pixels_to_blob(p.rgb, p.spp);
 }
 
 // An upload's outcome: a verdict on the tile (stored, already_done, job_gone), which may carry the
@@ -126,11 +148,12 @@ Outcome on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payloa
 }
 
 // The store decides (INSERT OR IGNORE: the first result wins, and a duplicate is compared with it).
-async::Awaitable<Outcome> store_tile(Context& c, JobId id, const protocol::TilePayload& p, const WorkerId& worker) {
+async::Awaitable<Outcome> store_tile(Context& c, JobId id, const protocol::TilePayload& p, std::string body,
+                                     const WorkerId& worker) {
   store::TileWrite write;
   write.job = static_cast<std::int64_t>(id);
   write.tile = p.tile;
-  write.pixels = pixels_to_blob(p.rgb, p.spp);
+  set_stored_pixels(write, p, std::move(body));
   write.worker = fmt::format("epoch={} worker={}", c.epoch, worker.name);
   write.stored_unix = c.clock.unix_seconds();
   auto reply = co_await commit_tile(*c.writer, std::move(write));
@@ -165,7 +188,8 @@ async::Awaitable<Outcome> upload(Context& c, const Route& route, http::Request& 
     note_tile_upload(c, worker, TileOutcome::kRefused, 0);
     co_return other(respond(*refused));
   }
-  const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, std::move(req.body()));
+  std::string body = std::move(req.body());
+  const util::Result<protocol::TilePayload, Refusal> checked = co_await checked_payload(c, body);
   if (!checked) {
     ++c.counters.tiles_refused;
     note_tile_upload(c, worker, TileOutcome::kRefused, 0);
@@ -194,7 +218,7 @@ async::Awaitable<Outcome> upload(Context& c, const Route& route, http::Request& 
   }
   // Not stored yet, or the job is done and its pixels are only in the store.
   if (!c.accepting_writes()) co_return other(respond(busy("the collector is stopping; retry later")));
-  co_return co_await store_tile(c, route.job, p, worker);
+  co_return co_await store_tile(c, route.job, p, std::move(body), worker);
 }
 
 }  // namespace
