@@ -322,6 +322,8 @@ TEST_CASE("/metrics has build info, process figures, histograms, every response 
   CHECK_THAT(text, Catch::Contains("# TYPE dtraced_store_checkpoints_total counter"));
   CHECK_THAT(text, Catch::Contains("# TYPE dtraced_store_checkpoints_background_total counter"));
   CHECK_THAT(text, Catch::Contains("# TYPE dtraced_store_checkpoint_seconds_total counter"));
+  CHECK_THAT(text, Catch::Contains("# TYPE dtraced_store_gather_waits_total counter"));
+  CHECK_THAT(text, Catch::Contains("# TYPE dtraced_store_gather_timeouts_total counter"));
   CHECK_THAT(text, Catch::Contains("dtraced_http_responses_total{class=\"2xx\"}"));
   CHECK_THAT(text, Catch::Contains("dtraced_workers{state=\"active\"} 30"));
   // The 20 most recent by name, the 10 oldest as other.

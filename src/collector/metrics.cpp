@@ -301,6 +301,12 @@ std::string format_metrics(const MetricsSnapshot& m) {
   w.one("dtraced_store_checkpoint_seconds_total", "counter",
         "Time the store writer spent checkpointing or waiting for a checkpoint instead of committing.",
         m.store.checkpoint_seconds);
+  // With tiles arriving the writer waits up to 1.5 ms for a batch as large as the last one; many
+  // timeouts against waits means it waits for tiles that do not come (acknowledgements pay that).
+  w.one("dtraced_store_gather_waits_total", "counter",
+        "Tile transactions the store writer delayed to gather a larger batch.", m.store.gather_waits);
+  w.one("dtraced_store_gather_timeouts_total", "counter",
+        "Of those, the ones whose wait ended before the batch was as large as the last one.", m.store.gather_timeouts);
   w.one("dtraced_store_tiles_failed_total", "counter", "Tiles whose transaction failed.", m.store.tiles_failed);
   w.one("dtraced_store_busy_total", "counter", "Requests answered 503 because the store was busy or failing.",
         c.store_busy);

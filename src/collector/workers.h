@@ -37,14 +37,15 @@
 
 namespace dtraced::collector {
 
-// Heap bytes one known worker costs, measured: 100,000 entries with 21-byte names and IPv4 peers
+// Heap bytes one known worker costs, measured on the hashed registry (node, recency list entry
+// and its share of the bucket array): 100,000 entries with 21-byte names and IPv4 peers
 // (Slurm-style HOST-JOB_TASK names), malloc's in-use bytes (mallinfo2) before and after, divided.
-// The longest names and peers (protocol::kMaxWorkerNameBytes, kMaxPeerBytes) add up to ~190 more.
-inline constexpr std::size_t kWorkerEntryBytes = 528;
+// The longest names and peers (protocol::kMaxWorkerNameBytes, kMaxPeerBytes) add 192 more.
+inline constexpr std::size_t kWorkerEntryBytes = 512;
 // The default cap: six times a 10,000-worker farm, so that a farm that size, its restarts and
 // further arrays under new names (Slurm names are HOST-JOB_TASK: a new array is new names) stay
-// listed until forget_after instead of evicting each other; 65,536 x kWorkerEntryBytes = 33 MiB
-// at most (46 MiB with the longest names).
+// listed until forget_after instead of evicting each other; 65,536 x kWorkerEntryBytes = 32 MiB
+// at most (44 MiB with the longest names).
 inline constexpr std::size_t kDefaultMaxWorkers = 65'536;
 // The largest cap the configuration accepts (--max-workers): about 0.5 GiB of registry at most.
 inline constexpr std::size_t kMaxMaxWorkers = 1'000'000;
