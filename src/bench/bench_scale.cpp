@@ -111,7 +111,7 @@ struct Figures {
 };
 
 int measure(const std::string& path, std::uint32_t threads, int runs, std::uint32_t width, std::uint32_t height,
-            bool load_only) {
+            bool load_only, bool threaded_load) {
   Figures f;
   const accel::Isa isa = accel::best_isa();
   double pipeline_build_s = 0.0;
@@ -124,6 +124,9 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     render::RenderSceneBuilder builder;
     scene::LoadOptions load_options;
     load_options.object_sink = &builder;
+    // The objects read on a second thread while the first parses (scene::kParallelLoadBytes says
+    // why that is not the default): for comparing the two on another machine.
+    if (threaded_load) load_options.parallel_min_bytes = 0;
     reset_peak_rss();
     scene::LoadResult loaded = scene::load_scene_file(path, load_options);
     if (!loaded.ok()) {
@@ -277,11 +280,13 @@ int main(int argc, char** argv) {
   app.add_option("--height", height, "Render height")->check(CLI::Range(1u, 8192u));
   bool load_only = false;
   app.add_flag("--load-only", load_only, "Only parse FILE: its time and peak RSS (for profiling the load)");
+  bool threaded_load = false;
+  app.add_flag("--threaded-load", threaded_load, "Read FILE's objects on a second thread while the first parses");
   std::string cache_dir;
   app.add_option("--cache-dir", cache_dir,
                  "Measure a worker's load of FILE from its JSON and then from the binary scene cache it writes here");
   CLI11_PARSE(app, argc, argv);
   if (write_count > 0) return dtraced::bench::write_scene(write_count, file);
   if (!cache_dir.empty()) return dtraced::bench::measure_cache(file, cache_dir, threads);
-  return dtraced::bench::measure(file, threads, runs, width, height, load_only);
+  return dtraced::bench::measure(file, threads, runs, width, height, load_only, threaded_load);
 }
