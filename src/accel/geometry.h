@@ -131,7 +131,9 @@ class Geometry {
   // True if any shape is hit with t in (ray.t_min, ray.t_max) (shadow rays); stops at the first.
   bool occluded(const Ray& ray) const;
 
-  // Packets of kPacketSize rays: lane i is traced when bit i of `valid` is set. intersect8 fills
+  // Packets of kPacketSize rays: lane i is traced when bit i of `valid` is set. `rays` must point
+  // at kPacketSize readable rays (kPacketSize16 for the 16-ray calls) whatever `valid` says: the
+  // kernels load the packet whole and ignore the dead lanes' values. intersect8 fills
   // hits[i] for each lane that hits and returns the mask of those lanes; occluded8 returns the
   // mask of valid lanes that are occluded. Each lane's answer is exactly intersect / occluded of
   // that ray alone. Coherent rays (camera rays of a pixel block, shadow rays towards one point)
