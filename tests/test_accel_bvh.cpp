@@ -46,6 +46,23 @@ std::vector<Shape> random_scene(TestRng& rng, int n) {
   return shapes;
 }
 
+// `rays` random rays from inside a cube of half-size 30 through `geo`, each against the brute-force
+// answer over `shapes`: how many hit, and how many differ (a hit on another shape or another t).
+struct Agreement {
+  long hits = 0, mismatches = 0;
+};
+Agreement agree_with_brute_force(const Geometry& geo, const std::vector<Shape>& shapes, TestRng& rng, int rays) {
+  Agreement out;
+  for (int i = 0; i < rays; ++i) {
+    const Ray ray = make_ray(to_f(rng.in_cube(30.0)), unit_f(rng.unit()));
+    Hit a, b;
+    const bool fa = geo.intersect(ray, a), fb = brute_force(shapes, ray, b);
+    out.hits += fb;
+    out.mismatches += fa != fb || (fa && !same_hit(a, b));
+  }
+  return out;
+}
+
 }  // namespace
 
 TEST_CASE("BVH equals brute force: same shape, same t bits", "[accel][bvh]") {
@@ -353,16 +370,9 @@ TEST_CASE("BVH build: the same tree on any number of threads", "[accel][bvh][thr
     CHECK(two.stats().nodes == one.stats().nodes);
     CHECK(two.stats().wide_nodes == one.stats().wide_nodes);
     if (isa == Isa::kScalar) scalar_two_threads_hash = two.stats().tree_hash;
-    long mismatches = 0, hits = 0;
-    for (int i = 0; i < 1000; ++i) {
-      const Ray ray = make_ray(to_f(rng.in_cube(30.0)), unit_f(rng.unit()));
-      Hit a, b;
-      const bool fa = two.intersect(ray, a), fb = brute_force(shapes, ray, b);
-      hits += fb;
-      mismatches += fa != fb || (fa && !same_hit(a, b));
-    }
-    CHECK(hits > 100);
-    CHECK(mismatches == 0);
+    const Agreement agreed = agree_with_brute_force(two, shapes, rng, 1000);
+    CHECK(agreed.hits > 100);
+    CHECK(agreed.mismatches == 0);
   }
   // A different tree gives a different hash (the hash can fail).
   std::vector<Shape> fewer(shapes.begin(), shapes.end() - 1);
@@ -441,16 +451,9 @@ TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the re
       CHECK(geo.stats().outside == 4 + 2);  // the planes and the huge spheres
       REQUIRE(geo.shapes().size() == shapes.size());
       CHECK(std::memcmp(geo.shapes().data(), shapes.data(), shapes.size() * sizeof(Shape)) == 0);
-      long mismatches = 0, hits = 0;
-      for (int i = 0; i < 500; ++i) {
-        const Ray ray = make_ray(to_f(rng.in_cube(30.0)), unit_f(rng.unit()));
-        Hit a, b;
-        const bool fa = geo.intersect(ray, a), fb = brute_force(shapes, ray, b);
-        hits += fb;
-        mismatches += fa != fb || (fa && !same_hit(a, b));
-      }
-      CHECK(hits > 100);
-      CHECK(mismatches == 0);
+      const Agreement agreed = agree_with_brute_force(geo, shapes, rng, 500);
+      CHECK(agreed.hits > 100);
+      CHECK(agreed.mismatches == 0);
     }
     const Geometry held = Geometry::build(with_box, isa, 2);
     REQUIRE(held.shapes().size() == with_box.size());
