@@ -165,7 +165,7 @@ class Geometry {
     ShapeType type = ShapeType::kSphere;
   };
 
-  friend detail::WideBvh detail::collapse_to_wide(const Geometry& g);
+  friend detail::WideBvh detail::collapse_to_wide(const Geometry& g, bool prims_read_once);
 
   // Nearest hit below best_t among the shapes outside the tree (planes and huge shapes), ties to
   // the smaller id; updates best_t / best_id.

@@ -116,7 +116,7 @@ class ReadOnce {
 
 }  // namespace
 
-WideBvh collapse_to_wide(const Geometry& g) {
+WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once) {
   WideBvh w;
   const auto& nodes = g.nodes_;
   if (nodes.empty()) return w;
@@ -168,13 +168,11 @@ WideBvh collapse_to_wide(const Geometry& g) {
     util::advise_huge_pages_for(w.boxes);
     util::advise_huge_pages(w.nodes.data(), (nodes.size() - binary_leaves) / 7 * sizeof(WideNode));
   }
-  // A build with its shapes set aside (Geometry::build of a large sphere scene: no shapes held
-  // while it collapses) frees the binary nodes and prims once the tree is collapsed, and reads
-  // the spheres back from the wide tree's blocks, not from the prims: nothing reads a prim after
-  // the collapse has, so the prims' pages go back as the leaves are made. The prims and the
-  // wide tree are then never held whole together (the 1M-sphere scene's build peaked there).
-  // Not for a tree that may collapse to one node (is_flat: the build then keeps its prims).
-  ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), g.shapes_.empty() && !every_record);
+  // With prims_read_once nothing reads a prim after the collapse has, so the prims' pages go back
+  // as the leaves are made: the prims and the wide tree are then never held whole together (the
+  // 1M-sphere scene's build peaked there). Not for a tree that may collapse to one node (is_flat:
+  // the build then keeps its prims).
+  ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), prims_read_once && !every_record);
 
   auto make_leaf = [&](std::uint32_t bin_index) {
     const auto& node = nodes[bin_index];

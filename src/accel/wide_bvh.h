@@ -142,7 +142,10 @@ struct Kernels {
 // The kernels compiled for `isa` (a SIMD isa that supported_isas() lists).
 const Kernels& kernels_for(Isa isa);
 
-// The 8-wide tree of a built Geometry (collapsed from its binary BVH).
-WideBvh collapse_to_wide(const Geometry& g);
+// The 8-wide tree of a built Geometry (collapsed from its binary BVH). `prims_read_once`: the
+// caller frees g's binary nodes and prims after it (a build with its shapes set aside, which reads
+// its spheres back from the wide tree's blocks), so the collapse gives the prims' pages back as it
+// reads them; it still keeps them for a tree that may collapse to one node (is_flat).
+WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once);
 
 }  // namespace dtraced::accel::detail
