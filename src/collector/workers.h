@@ -33,6 +33,8 @@
 #include <utility>
 #include <vector>
 
+#include <boost/container_hash/hash.hpp>
+
 #include "collector/queue.h"
 
 namespace dtraced::collector {
@@ -147,8 +149,9 @@ class WorkerRegistry {
   };
   struct IdHash {
     std::size_t operator()(const WorkerId& id) const {
-      const std::size_t h = std::hash<std::string>{}(id.name);
-      return h ^ (std::hash<std::string>{}(id.peer) + 0x9e3779b97f4a7c15ULL + (h << 6) + (h >> 2));
+      std::size_t h = std::hash<std::string>{}(id.name);
+      boost::hash_combine(h, id.peer);
+      return h;
     }
   };
   // Hashed: every request looks its sender up (a std::map's string compares showed in profiles).
