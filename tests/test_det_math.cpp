@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <vector>
 
 #include <catch2/catch.hpp>
 
@@ -89,6 +90,44 @@ TEST_CASE("det::pow and det::powf follow the C library and its special values", 
   CHECK(std::isnan(det::pow(-2.0, 2.0)));
   CHECK(det::powf(0.0f, 64.0f) == 0.0f);
   CHECK(det::powf(1.0f, 512.0f) == 1.0f);
+}
+
+// The packet path's specular lobes go through the array form: it must be powf, bit for bit,
+// ordinary cosines and every special case alike, also in place.
+TEST_CASE("det::powf over arrays gives each entry det::powf's bits", "[math][det]") {
+  constexpr float kInfF = std::numeric_limits<float>::infinity();
+  const float special_x[] = {0.0f,
+                             -0.0f,
+                             1.0f,
+                             -0.5f,
+                             kInfF,
+                             std::numeric_limits<float>::quiet_NaN(),
+                             std::numeric_limits<float>::denorm_min(),
+                             1e-30f,
+                             0.999999f,
+                             3.0f};
+  const float special_y[] = {0.0f, 1.0f, 16.0f, 512.0f, -2.0f, kInfF, -kInfF, std::numeric_limits<float>::quiet_NaN()};
+  std::vector<float> x, y;
+  for (const float a : special_x) {
+    for (const float b : special_y) x.push_back(a), y.push_back(b);
+  }
+  for (int i = 0; i < 5000; ++i) {
+    x.push_back((static_cast<float>(i) + 0.5f) / 5000.0f);
+    y.push_back(1.0f + static_cast<float>((i * 7919) % 1024));
+  }
+  std::vector<float> out(x.size()), in_place = x;
+  det::powf(x.data(), y.data(), out.data(), static_cast<int>(x.size()));
+  det::powf(in_place.data(), y.data(), in_place.data(), static_cast<int>(x.size()));
+  int differ = 0;
+  for (std::size_t i = 0; i < x.size(); ++i) {
+    const auto want = std::bit_cast<std::uint32_t>(det::powf(x[i], y[i]));
+    if (std::bit_cast<std::uint32_t>(out[i]) != want || std::bit_cast<std::uint32_t>(in_place[i]) != want) {
+      FAIL_CHECK("x " << x[i] << ", y " << y[i]);
+      ++differ;
+    }
+  }
+  CHECK(differ == 0);
+  det::powf(x.data(), y.data(), out.data(), 0);  // nothing to do
 }
 
 TEST_CASE("det::pow_fast is within 1e-12 of x^y over float's range, and keeps pow's special values", "[math][det]") {

@@ -215,6 +215,16 @@ double pow_fast(double x, double y) {
 
 float powf(float x, float y) { return static_cast<float>(pow_fast(x, y)); }
 
+void powf(const float* x, const float* y, float* out, int n) {
+  for (int i = 0; i < n; ++i) {
+    const double xd = x[i], yd = y[i];
+    // pow_fast's own test for its common case, and pow_fast_normal inlined here.
+    out[i] = xd >= 2.2250738585072014e-308 && xd < kInf && xd != 1.0 && yd != 0.0 && std::fabs(yd) < kInf
+                 ? static_cast<float>(pow_fast_normal(xd, yd))
+                 : static_cast<float>(pow_fast(xd, yd));
+  }
+}
+
 SinCos sincos(double x) {
   if (!(std::fabs(x) <= 1048576.0)) return {kNaN, kNaN};
   // x = k pi/2 + r, |r| <= pi/4 (plus rounding); k * kPio2Hi is exact.

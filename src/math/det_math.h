@@ -28,6 +28,9 @@ double pow(double x, double y);
 double pow_fast(double x, double y);
 // pow_fast rounded to float once: the specular lobe's cos^shininess.
 float powf(float x, float y);
+// out[i] = powf(x[i], y[i]) for i < n, the same bits: the specular lobes of a packet's lanes in one
+// call, without powf's two calls per lane (out may alias x or y).
+void powf(const float* x, const float* y, float* out, int n);
 
 struct SinCos {
   double sin;

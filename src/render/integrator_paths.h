@@ -20,6 +20,7 @@
 #include <utility>
 
 #include "math/det_math.h"
+#include "math/float_util.h"
 #include "math/rng.h"
 #include "render/integrator.h"
 #include "render/light_sampling.h"
@@ -563,6 +564,154 @@ class Scratch {
   alignas(T) std::byte bytes_[sizeof(T) * N];
 };
 
+// The point lights at a packet's shading points (trace_ahead), a light at a time over arrays of
+// the lanes that gather direct light (m of them, packed: entry j is packet lane lane[j]), instead
+// of Tracer::light_setup, shadow_ray and light_contribution lane by lane: no calls per lane, and
+// loops over plain float arrays. Every entry goes through the float operations of those functions
+// in their order (the build forbids contraction), so it gets their bits; the rare entries they
+// treat specially (a squared distance below kMinNormal, a term that light_term would clamp) are
+// handed to those functions themselves.
+template <unsigned kF, int kN>
+struct PacketLights {
+  using T = Tracer<kF>;
+  int m = 0;
+  int lane[kN];
+  const accel::Hit* hit[kN];
+  const MaterialF* mat[kN];
+  Vec3f wo_of[kN], nf_of[kN];
+  // The shading points: p, p_error, the geometric normal n, nf and wo.
+  float px[kN], py[kN], pz[kN], ex[kN], ey[kN], ez[kN], gx[kN], gy[kN], gz[kN];
+  float fx[kN], fy[kN], fz[kN], wx[kN], wy[kN], wz[kN];
+  // Their materials: Lambert's color * (diffuse / pi), and for the entries in spec_mask the
+  // specular lobe's factor specular * (shininess + 8) / (8 pi) and its exponent.
+  float lam_r[kN], lam_g[kN], lam_b[kN], spec_scale[kN], shininess[kN];
+  std::uint32_t spec_mask = 0;
+  // The sums (Tracer::point_direct's), in scene order of the lights.
+  float sum_r[kN], sum_g[kN], sum_b[kN];
+  // One light: light_setup's LightSample per entry, and the entries set up by light_setup itself.
+  float tx[kN], ty[kN], tz[kN], d2[kN], lx[kN], ly[kN], lz[kN], cos_l[kN];
+  std::uint32_t slow = 0;
+
+  void add_lane(int i, const accel::Hit& h, const MaterialF& mt, const Vec3f& wo, const Vec3f& nf) {
+    const int j = m++;
+    lane[j] = i;
+    hit[j] = &h;
+    mat[j] = &mt;
+    wo_of[j] = wo;
+    nf_of[j] = nf;
+    px[j] = h.p.x, py[j] = h.p.y, pz[j] = h.p.z;
+    ex[j] = h.p_error.x, ey[j] = h.p_error.y, ez[j] = h.p_error.z;
+    gx[j] = h.n.x, gy[j] = h.n.y, gz[j] = h.n.z;
+    fx[j] = nf.x, fy[j] = nf.y, fz[j] = nf.z;
+    wx[j] = wo.x, wy[j] = wo.y, wz[j] = wo.z;
+    const float kd = mt.diffuse * kInvPi;  // brdf's first line: color * (diffuse * kInvPi)
+    lam_r[j] = mt.color.x * kd, lam_g[j] = mt.color.y * kd, lam_b[j] = mt.color.z * kd;
+    if (T::kSpec && mt.specular > 0.0f) {
+      spec_mask |= 1u << j;
+      spec_scale[j] = mt.specular * (mt.shininess + 8.0f) / (8.0f * std::numbers::pi_v<float>);
+      shininess[j] = mt.shininess;
+    }
+    sum_r[j] = sum_g[j] = sum_b[j] = 0.0f;
+  }
+
+  LightSample sample(int j) const {
+    LightSample ls;
+    ls.to_light = {tx[j], ty[j], tz[j]};
+    ls.l = {lx[j], ly[j], lz[j]};
+    ls.dist2 = d2[j];
+    ls.cos_l = cos_l[j];
+    return ls;
+  }
+
+  // light_setup for every entry: returns the entries that cast a shadow ray, written to shadow[j].
+  std::uint32_t setup(const PointLightF& light, math::Ray* shadow) {
+    const float qx = light.position.x, qy = light.position.y, qz = light.position.z;
+    std::uint32_t cast = 0;
+    slow = 0;
+    for (int j = 0; j < m; ++j) {
+      const float vx = qx - px[j], vy = qy - py[j], vz = qz - pz[j];
+      const float dd = vx * vx + vy * vy + vz * vz;
+      tx[j] = vx, ty[j] = vy, tz[j] = vz, d2[j] = dd;
+      if (!(dd >= kMinNormal)) {  // at the light, NaN, or unit_towards' double case
+        slow |= 1u << j;
+        continue;
+      }
+      const float dist = std::sqrt(dd);
+      const float ux = vx / dist, uy = vy / dist, uz = vz / dist;
+      const float c = fx[j] * ux + fy[j] * uy + fz[j] * uz;
+      lx[j] = ux, ly[j] = uy, lz[j] = uz, cos_l[j] = c;
+      if (!(c > 0.0f)) continue;
+      cast |= 1u << j;
+      // shadow_ray: accel::offset_ray_origin, then the segment to the light (end 1).
+      const float d = std::abs(gx[j]) * ex[j] + std::abs(gy[j]) * ey[j] + std::abs(gz[j]) * ez[j];
+      float ox = gx[j] * d, oy = gy[j] * d, oz = gz[j] * d;
+      if (ux * gx[j] + uy * gy[j] + uz * gz[j] < 0.0f) ox = -ox, oy = -oy, oz = -oz;
+      math::Ray& r = shadow[j];
+      r.o = {away(px[j] + ox, ox), away(py[j] + oy, oy), away(pz[j] + oz, oz)};
+      const float sx = qx - r.o.x, sy = qy - r.o.y, sz = qz - r.o.z;
+      const float len = std::sqrt(sx * sx + sy * sy + sz * sz);
+      r.d = {sx / len, sy / len, sz / len};
+      r.t_min = 0.0f;
+      r.t_max = len * 1.0f;
+    }
+    for (std::uint32_t s = slow; s != 0; s &= s - 1) {
+      const int j = std::countr_zero(s);
+      LightSample ls;
+      if (T::light_setup(*hit[j], nf_of[j], light, ls, shadow[j])) {
+        cast |= 1u << j;
+        tx[j] = ls.to_light.x, ty[j] = ls.to_light.y, tz[j] = ls.to_light.z, d2[j] = ls.dist2;
+        lx[j] = ls.l.x, ly[j] = ls.l.y, lz[j] = ls.l.z, cos_l[j] = ls.cos_l;
+      }
+    }
+    return cast;
+  }
+
+  // offset_ray_origin's last step: po one float further from p, in the offset's direction.
+  static float away(float po, float offset) {
+    if (offset > 0.0f) return math::next_float_up(po);
+    if (offset < 0.0f) return math::next_float_down(po);
+    return po;
+  }
+
+  // Adds light_contribution(vis[j]) to the sums of the entries in `lit` (set up by setup()).
+  void add(const PointLightF& light, std::uint32_t lit, const float* vis) {
+    float fr[kN], fg[kN], fb[kN];
+    Scratch<float, kN> pow_x, pow_y;  // the first np entries are written before powf reads them
+    int pow_of[kN];
+    int np = 0;
+    for (std::uint32_t s = lit; s != 0; s &= s - 1) {
+      const int j = std::countr_zero(s);
+      fr[j] = lam_r[j], fg[j] = lam_g[j], fb[j] = lam_b[j];
+      if (!(spec_mask >> j & 1u)) continue;
+      // brdf's half vector: normalize(l + wo), and max(0, dot(nf, h)).
+      const float hx = lx[j] + wx[j], hy = ly[j] + wy[j], hz = lz[j] + wz[j];
+      const float hl = std::sqrt(hx * hx + hy * hy + hz * hz);
+      const float c = fx[j] * (hx / hl) + fy[j] * (hy / hl) + fz[j] * (hz / hl);
+      pow_x[np] = std::max(0.0f, c);
+      pow_y[np] = shininess[j];
+      pow_of[np++] = j;
+    }
+    math::det::powf(pow_x.data(), pow_y.data(), pow_x.data(), np);
+    for (int k = 0; k < np; ++k) {
+      const int j = pow_of[k];
+      const float spec = spec_scale[j] * pow_x[k];
+      fr[j] += spec, fg[j] += spec, fb[j] += spec;
+    }
+    const float ir = light.intensity.x, ig = light.intensity.y, ib = light.intensity.z;
+    for (std::uint32_t s = lit; s != 0; s &= s - 1) {
+      const int j = std::countr_zero(s);
+      const float e = vis[j] * cos_l[j] / d2[j];
+      const float cr = fr[j] * ir * e, cg = fg[j] * ig * e, cb = fb[j] * ib * e;
+      if (d2[j] >= kMinNormal && cr <= kMaxLightTerm && cg <= kMaxLightTerm && cb <= kMaxLightTerm) {
+        sum_r[j] += cr, sum_g[j] += cg, sum_b[j] += cb;
+      } else {  // light_term's exact case
+        const Vec3f c = T::light_contribution(*mat[j], wo_of[j], nf_of[j], light, sample(j), vis[j]);
+        sum_r[j] += c.x, sum_g[j] += c.y, sum_b[j] += c.z;
+      }
+    }
+  }
+};
+
 // The packet path traces at most this many rays ahead per lane (camera, mirror and refracted rays
 // together); further ones are left to the lanes' tracers. The records live on the stack: 16 lanes
 // take 256 of about 208 bytes. A glass path of depth 5 casts up to 63 rays, but a level whose
@@ -600,65 +749,60 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   if (secondary) tracer.stats.secondary_packet_rays += std::uint32_t(n);
   const std::uint32_t hit_mask = intersect_packet<kN>(geometry, rays, valid, hits.data()) & valid;
 
-  Scratch<Vec3f, kN> wo, nf, direct;
-  std::uint32_t direct_mask = 0;  // lanes whose point-light sum is gathered here
+  PacketLights<kF, kN> pl;
   for (int i = 0; i < n; ++i) {
     Known& k = ahead[i]->known;
     k.found = hit_mask >> i & 1u;
     if (!k.found) continue;
     k.hit = hits[i];
-    if (!T::wants_direct(scene.material(hits[i].shape))) continue;
+    const MaterialF& m = scene.material(hits[i].shape);
+    if (!T::wants_direct(m)) continue;
     // A ray that meets an area light before its hit shows the light: Tracer::trace returns
     // there, casting no shadow ray, so none is cast for it here either.
     Vec3f le;
     if (tracer.emitter_before(rays[i], hits[i].t, le)) continue;
     // The same wo and nf as Tracer::trace computes for this hit.
-    wo[i] = -rays[i].d;
-    nf[i] = math::dot(wo[i], hits[i].n) >= 0.0f ? hits[i].n : -hits[i].n;
-    direct[i] = Vec3f{0, 0, 0};
-    direct_mask |= 1u << i;
+    const Vec3f wo = -rays[i].d;
+    const Vec3f nf = math::dot(wo, hits[i].n) >= 0.0f ? hits[i].n : -hits[i].n;
+    pl.add_lane(i, k.hit, m, wo, nf);
   }
-  if (direct_mask == 0) return;
-  Scratch<LightSample, kN> ls;
-  math::Ray shadow[kN];
+  if (pl.m == 0) return;
+  math::Ray shadow[kN];  // initialised: the packet queries may load the lanes they do not test
   Scratch<accel::Hit, kN> hits_scratch;
+  float vis[kN];
   const std::size_t point_lights = T::kPoint ? scene.lights().size() : 0;
   for (std::size_t li = 0; li < point_lights; ++li) {
     const PointLightF& light = scene.lights()[li];
-    std::uint32_t cast = 0;
-    for (int i = 0; i < n; ++i) {
-      if ((direct_mask >> i & 1u) && T::light_setup(hits[i], nf[i], light, ls[i], shadow[i])) cast |= 1u << i;
-    }
+    // Entry j of the arrays is lane pl.lane[j]; the packet queries take the entries as lanes.
+    const std::uint32_t cast = pl.setup(light, shadow);
     if (cast == 0) continue;
     tracer.stats.rays += std::popcount(cast);
     if (secondary) tracer.stats.secondary_packet_rays += std::popcount(cast);
     // Lights are summed in scene order per lane, as Tracer::point_direct does; a blocked light
     // (visibility 0) adds nothing.
     if (!tracer.transparent_scene()) {
-      const std::uint32_t blocked = occluded_packet<kN>(geometry, shadow, cast);
-      for (int i = 0; i < n; ++i) {
-        if ((cast & ~blocked) >> i & 1u) {
-          direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], 1.0f);
-        }
-      }
+      const std::uint32_t lit = cast & ~occluded_packet<kN>(geometry, shadow, cast);
+      for (std::uint32_t s = lit; s != 0; s &= s - 1) vis[std::countr_zero(s)] = 1.0f;
+      pl.add(light, lit, vis);
       continue;
     }
-    Scratch<typename T::KnownHit, kN> first;
     const std::uint32_t crossed = intersect_packet<kN>(geometry, shadow, cast, hits_scratch.data());
-    for (int i = 0; i < n; ++i) {
-      if (!(cast >> i & 1u)) continue;
-      first[i].found = crossed >> i & 1u;
-      if (first[i].found) first[i].hit = hits_scratch[i];
+    std::uint32_t lit = 0;
+    for (std::uint32_t s = cast; s != 0; s &= s - 1) {
+      const int j = std::countr_zero(s);
+      typename T::KnownHit first;
+      first.found = crossed >> j & 1u;
+      if (first.found) first.hit = hits_scratch[j];
       // The hit is seen from the media its ray travels in, as Tracer::trace has it.
-      const float vis = tracer.transmittance_walk(shadow[i], ahead[i]->media, &first[i]);
-      if (vis <= 0.0f) continue;
-      direct[i] += T::light_contribution(scene.material(hits[i].shape), wo[i], nf[i], light, ls[i], vis);
+      vis[j] = tracer.transmittance_walk(shadow[j], ahead[pl.lane[j]]->media, &first);
+      if (vis[j] > 0.0f) lit |= 1u << j;
     }
+    pl.add(light, lit, vis);
   }
-  for (int i = 0; i < n; ++i) {
-    if (!(direct_mask >> i & 1u)) continue;
-    ahead[i]->known.has_direct = true;
-    ahead[i]->known.direct = direct[i];
+  for (int j = 0; j < pl.m; ++j) {
+    Known& k = ahead[pl.lane[j]]->known;
+    k.has_direct = true;
+    k.direct = Vec3f{pl.sum_r[j], pl.sum_g[j], pl.sum_b[j]};
   }
 }
 
