@@ -932,17 +932,12 @@ bool Geometry::intersect(const Ray& ray, Hit& hit) const {
   if (!wide_.empty() && !detail::is_flat(wide_)) {
     float best_t = ray.t_max;
     std::uint32_t best_id = 0;
-    detail::TriangleUvw uvw{};
+    bool finished = false;
     const bool found = outside_hit(r, ray.t_min, best_t, best_id);
-    const bool tree = wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id, uvw);
+    const bool tree = wide_kernels().intersect1(wide_, r, ray.t_min, best_t, best_id, hit, finished);
     if (!found && !tree) return false;
-    const Shape& s = shapes_[best_id];
-    if (tree && s.type == ShapeType::kTriangle) {
-      // The kernel kept the winning test's edge functions: no second test.
-      detail::finish_triangle_hit(s.triangle, best_id, best_t, uvw, hit);
-    } else {
-      detail::finish_hit(s, best_id, ray, r, best_t, hit);
-    }
+    // A triangle of the tree: the kernel wrote the record (no second test, no load of the shape).
+    if (!(tree && finished)) detail::finish_hit(shapes_[best_id], best_id, ray, r, best_t, hit);
     return true;
   }
 
@@ -1067,10 +1062,12 @@ std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* h
       found |= 1u << i;
     }
   }
-  detail::TriangleUvw uvw[N];
+  std::uint32_t finished = 0;
   const std::uint32_t tree = (N == kPacketSize ? wide_kernels().intersect8 : wide_kernels().intersect16)(
-      wide_, rays, live, best_t, best_id, uvw);
+      wide_, rays, live, best_t, best_id, hits, finished);
   found |= tree;
+  // The tree's triangle hits (and sphere hits of packet tests) come finished from the kernel.
+  const std::uint32_t rest = found & ~(tree & finished);
   // Sphere hits are finished together (their square roots and divisions overlap), the rest one
   // by one.
   const Shape* sph_shape[N];
@@ -1080,7 +1077,7 @@ std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* h
   Hit* sph_hit[N];
   int spheres = 0;
   for (int i = 0; i < N; ++i) {
-    if (found >> i & 1u) {
+    if (rest >> i & 1u) {
       const Shape& s = shapes_[best_id[i]];
       if (s.type == ShapeType::kSphere) {
         sph_shape[spheres] = &s;
@@ -1089,9 +1086,6 @@ std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* h
         sph_t[spheres] = best_t[i];
         sph_hit[spheres] = &hits[i];
         ++spheres;
-      } else if (s.type == ShapeType::kTriangle && (tree >> i & 1u)) {
-        // The kernel kept the winning test's edge functions: no second test, no shear constants.
-        detail::finish_triangle_hit(s.triangle, best_id[i], best_t[i], uvw[i], hits[i]);
       } else {
         detail::finish_hit(s, best_id[i], rays[i], detail::precompute_for(rays[i], s.type), best_t[i], hits[i]);
       }

@@ -274,7 +274,8 @@ void finish_triangle_hit(const TriangleShape& tri, std::uint32_t id, float t, co
   // in double; the bound gamma(7) sum |b_i v_i| covers it with room to spare. A float bound is the
   // right kind here, unlike a sphere's: the barycentrics come from the float edge functions
   // (double only in the rare zero-edge fallback), so they sum to 1 only to float precision and
-  // the point leaves the triangle's plane by float-sized amounts.
+  // the point leaves the triangle's plane by float-sized amounts. The packet kernels repeat this
+  // operation for operation (simd_kernels.cpp, finish_triangles).
   hit.t = t;
   hit.shape = id;
   // u weighs a, v weighs b, w weighs c (each is the edge function opposite its vertex).
@@ -292,7 +293,8 @@ void finish_sphere_hits(const Shape* const* shapes, const std::uint32_t* ids, co
                         Hit* const* hits, int n) {
   // finish_hit's sphere case, stage by stage over the lanes: the same operations in the same
   // order (so the same bits), but the lanes' independent square roots and divisions overlap
-  // instead of each waiting for the previous lane's chain.
+  // instead of each waiting for the previous lane's chain. The packet kernels repeat this too
+  // (simd_kernels.cpp, finish_spheres).
   constexpr int kMax = kPacketSize;
   double f[3][kMax], d[3][kMax], c[3][kMax], rad[kMax], disc[kMax], a[kMax], bq[kMax], cc[kMax], td[kMax];
   n = std::min(n, kMax);

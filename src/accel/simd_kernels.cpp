@@ -22,12 +22,16 @@
 // the stack) between twice the rays: on 4x4-pixel camera blocks (dtraced-bench-rays, avx512) it
 // traces about 1.3x the rays per second of two 8-ray packets on the mesh, 1.2x on the spheres. A packet's per-lane
 // constants are computed a vector at a time (make_packet); its lanes as single rays only when a fallback needs them. A
-// nearest-hit query keeps the edge functions of its best triangle test (LaneUvw), so Geometry builds the hit record
-// from them instead of testing the triangle again (about 15 % of a camera packet's time went to that second test and
-// its ray constants). A leaf of triangles only, or of one sphere block, is described by its child reference itself
-// (kTriLeaf), not only by its WideLeaf record: one dependent load less per leaf, and its blocks prefetched as a lane
-// enters it. Tiny scenes come as a flat layout (detail::flat_wide: one node over one or two leaves), which these same
-// loops walk.
+// nearest-hit query keeps the edge functions of its best triangle test (LaneUvw) and the slot of its best prim in the
+// leaf blocks, and writes the hit record itself (finish_triangles, finish_spheres; Intersect1 for a triangle): the
+// vertices or the sphere come from a block the packet has just tested, not from the Shape (a cache miss per hit at 1M
+// triangles), and a packet's lanes are finished a double vector at a time, their divisions and square roots
+// overlapping. Against Geometry finishing them lane by lane from the Shape (dtraced-bench-rays, avx512, 1 thread,
+// the two binaries alternated, 5 pairs, medians of per-pair ratios, load 6-8): mesh camera 8 / 16 rays 1.11x / 1.11x,
+// secondary rays 1.08x; sphere field camera 1.04x / 1.14x. A leaf of triangles only, or of one sphere block, is
+// described by its child reference itself (kTriLeaf), not only by its WideLeaf record: one dependent load less per
+// leaf, and its blocks prefetched as a lane enters it. Tiny scenes come as a flat layout (detail::flat_wide: one node
+// over one or two leaves), which these same loops walk.
 //
 // Packets whose lanes share their direction signs (camera and shadow packets nearly always do) are traversed
 // as a whole instead (traverse_coherent, the scheme of Embree's coherent packets): one frustum test of a node's 8
@@ -360,32 +364,38 @@ inline bool better(float t, std::uint32_t id, float best_t, std::uint32_t best_i
   return t < best_t || (t == best_t && id < best_id);
 }
 
-// One candidate (t, id) of a leaf test. kAnyHit: true when it blocks (t < best_t). Otherwise
-// applies the nearest-hit rule to best_t / best_id and records an improvement.
+// The triangle slot (block index * kWidth + lane) of a best hit that is not a triangle.
+constexpr std::uint32_t kNoSlot = 0xffffffffu;
+
+// One candidate (t, id) of a leaf test that is not a triangle. kAnyHit: true when it blocks
+// (t < best_t). Otherwise applies the nearest-hit rule to best_t / best_id and records an
+// improvement (the best is then no triangle: *slot = kNoSlot).
 template <bool kAnyHit>
-inline bool consider1(float t, std::uint32_t id, float& best_t, std::uint32_t& best_id, bool& improved) {
+inline bool consider1(float t, std::uint32_t id, float& best_t, std::uint32_t& best_id, bool& improved,
+                      std::uint32_t* slot) {
   if (kAnyHit) return t < best_t;
   if (better(t, id, best_t, best_id)) {
     best_t = t;
     best_id = id;
     improved = true;
+    *slot = kNoSlot;
   }
   return false;
 }
 
 // Tests a leaf. kAnyHit: returns true at the first prim with t < best_t. Otherwise updates
-// best_t / best_id (and *uvw when a triangle becomes the best) and returns whether anything
-// improved.
+// best_t / best_id (and *uvw and *slot when a triangle becomes the best, *slot = kNoSlot when
+// another prim does) and returns whether anything improved.
 template <bool kAnyHit>
 inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, float& best_t, std::uint32_t& best_id,
-                  TriangleUvw* uvw) {
+                  TriangleUvw* uvw, std::uint32_t* slot) {
   bool improved = false;
   alignas(64) float t[kWidth];
   for (std::uint32_t k = 0; k < leaf.sphere_blocks; ++k) {
     const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
     spheres1(b, s, t);
     for (int i = 0; i < kWidth; ++i) {
-      if (consider1<kAnyHit>(t[i], b.id[i], best_t, best_id, improved)) return true;
+      if (consider1<kAnyHit>(t[i], b.id[i], best_t, best_id, improved, slot)) return true;
     }
   }
   for (std::uint32_t k = 0; k < leaf.triangle_blocks; ++k) {
@@ -404,13 +414,14 @@ inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, flo
           best_id = b.id[i];
           improved = true;
           *uvw = lu.get(std::size_t(i));
+          *slot = (leaf.triangle_begin + k) * std::uint32_t(kWidth) + std::uint32_t(i);
         }
       }
     }
   }
   for (std::uint32_t k = 0; k < leaf.box_count; ++k) {
     const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
-    if (consider1<kAnyHit>(box_t(bp.b, s.r, s.t_min), bp.id, best_t, best_id, improved)) return true;
+    if (consider1<kAnyHit>(box_t(bp.b, s.r, s.t_min), bp.id, best_t, best_id, improved, slot)) return true;
   }
   return improved;
 }
@@ -428,11 +439,12 @@ inline WideLeaf leaf_of(const WideBvh& bvh, std::uint32_t ref) {
 }
 
 // Single-ray traversal of the subtree at `start` (a node index or kLeafBit | leaf). For nearest
-// hits, best_t / best_id are updated and the result says whether they were; for any-hit, best_t
-// is the ray's t_max and the result says whether something lies before it.
+// hits, best_t / best_id are updated (with *uvw and *slot as leaf1 says) and the result says
+// whether they were; for any-hit, best_t is the ray's t_max and the result says whether something
+// lies before it.
 template <bool kAnyHit>
 bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& best_t, std::uint32_t& best_id,
-               TriangleUvw* uvw) {
+               TriangleUvw* uvw, std::uint32_t* slot) {
   Entry stack[kStackSize];
   int sp = 0;
   std::uint32_t cur = start;
@@ -440,7 +452,7 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   float cull = best_t * kFarScale;
   while (true) {
     if (cur & kLeafBit) {
-      if (leaf1<kAnyHit>(bvh, leaf_of(bvh, cur), s, best_t, best_id, uvw)) {
+      if (leaf1<kAnyHit>(bvh, leaf_of(bvh, cur), s, best_t, best_id, uvw, slot)) {
         if (kAnyHit) return true;
         improved = true;
         cull = best_t * kFarScale;
@@ -484,16 +496,31 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   }
 }
 
-bool Intersect1(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id,
-                TriangleUvw& uvw) {
+// The triangle of a slot, as its Shape holds it (the blocks keep the vertices bit for bit).
+inline TriangleShape slot_triangle(const WideBvh& bvh, std::uint32_t slot) {
+  const TriangleBlock& b = bvh.triangles[slot / std::uint32_t(kWidth)];
+  const std::uint32_t lane = slot % std::uint32_t(kWidth);
+  TriangleShape tri;
+  Vec3f* v[3] = {&tri.v0, &tri.v1, &tri.v2};
+  for (int vert = 0; vert < 3; ++vert) *v[vert] = Vec3f{b.v[vert][0][lane], b.v[vert][1][lane], b.v[vert][2][lane]};
+  return tri;
+}
+
+bool Intersect1(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id, Hit& hit,
+                bool& finished) {
   const Single s = make_single(r, t_min);
-  return traverse1<false>(bvh, s, 0, best_t, best_id, &uvw);
+  TriangleUvw uvw{};
+  std::uint32_t slot = kNoSlot;
+  const bool improved = traverse1<false>(bvh, s, 0, best_t, best_id, &uvw, &slot);
+  finished = improved && slot != kNoSlot;
+  if (finished) finish_triangle_hit(slot_triangle(bvh, slot), best_id, best_t, uvw, hit);
+  return improved;
 }
 
 bool Occluded1(const WideBvh& bvh, const RayPre& r, float t_min, float t_max) {
   const Single s = make_single(r, t_min);
   std::uint32_t unused = 0;
-  return traverse1<true>(bvh, s, 0, t_max, unused, nullptr);
+  return traverse1<true>(bvh, s, 0, t_max, unused, nullptr, nullptr);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -515,7 +542,7 @@ struct alignas(64) Packet {
   // Triangle shear per lane: the selection masks for kx, ky, kz (1 where the axis is 0 / 1).
   float kx0[kP], kx1[kP], ky0[kP], ky1[kP], kz0[kP], kz1[kP];
   float sx[kP], sy[kP], sz[kP];
-  LaneUvw tri;  // edge functions of the latest triangle8 (nearest hits only)
+  LaneUvw tri_uvw;  // edge functions of the latest triangle8 (nearest hits only)
   // Those of each lane's best, when it is a triangle: the float ones of a packet test in bu, bv, bw,
   // bdet (lanes of uvw_soa, set a vector at a time), others (double fallback, single rays) in
   // best_uvw.
@@ -525,6 +552,11 @@ struct alignas(64) Packet {
   alignas(64) float bdet[kP];
   std::uint32_t uvw_soa;
   TriangleUvw best_uvw[kP];
+  // Lanes whose best is a triangle, lanes whose best is a sphere of a packet test, and the slot
+  // of either (its block's index * kWidth + lane) per lane.
+  std::uint32_t tri;
+  std::uint32_t sph;
+  alignas(64) std::uint32_t slot[kP];
   TriangleUvw best_of(int i) const {
     if (uvw_soa >> i & 1u) return {double(bu[i]), double(bv[i]), double(bw[i]), double(bdet[i])};
     return best_uvw[i];
@@ -790,7 +822,7 @@ inline void node_test8(const WideNode& node, const Packet<kP>& p, std::uint32_t 
 // with these edge functions, kept for the lanes it becomes the best of.
 template <int kP, bool kAnyHit>
 inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std::uint32_t mask,
-                            const LaneUvw* uvw = nullptr) {
+                            const LaneUvw* uvw = nullptr, std::uint32_t slot = kNoSlot) {
   // Which lanes have t < best or t == best (a NaN t, a miss, is neither), a vector at a time;
   // most candidates miss every lane, and then nothing else is done.
   const hn::CappedTag<float, kP> d;
@@ -835,12 +867,16 @@ inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std
       const float* const src[4] = {uvw->u + i, uvw->v + i, uvw->w + i, uvw->det + i};
       for (int k = 0; k < 4; ++k)
         hn::StoreU(hn::IfThenElse(win, hn::LoadU(d, src[k]), hn::LoadU(d, dst[k])), d, dst[k]);
+      hn::StoreU(hn::IfThenElse(hn::RebindMask(du, win), hn::Set(du, slot), hn::LoadU(du, p.slot + i)), du, p.slot + i);
     }
   }
+  p.sph &= ~out;
   if (uvw == nullptr) {
     p.uvw_soa &= ~out;
+    p.tri &= ~out;
     return out;
   }
+  p.tri |= out;
   // The rare lanes whose edge functions came from the double fallback keep them in best_uvw.
   p.uvw_soa |= out & ~uvw->fallback;
   for (std::uint32_t m = out & uvw->fallback; m != 0; m &= m - 1) {
@@ -860,7 +896,7 @@ inline std::uint32_t apply8(Packet<kP>& p, const float* t, std::uint32_t id, std
 // computed once, with the same single rounding each lane would do.
 template <int kP, bool kAnyHit>
 HWY_INLINE std::uint32_t sphere_apply(Packet<kP>& p, float cx, float cy, float cz, float radius, std::uint32_t id,
-                                      std::uint32_t mask) {
+                                      std::uint32_t mask, std::uint32_t slot) {
   const hn::CappedTag<double, kP> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const hn::RebindToUnsigned<decltype(df)> du;
@@ -904,12 +940,17 @@ HWY_INLINE std::uint32_t sphere_apply(Packet<kP>& p, float cx, float cy, float c
       hn::StoreU(hn::IfThenElse(win, tv, best), df, p.best + i);
       hn::StoreU(hn::IfThenElse(win, hn::Mul(tv, hn::Set(df, kFarScale)), hn::LoadU(df, p.cull + i)), df, p.cull + i);
       hn::StoreU(hn::IfThenElse(hn::RebindMask(du, win), idv, old_id), du, p.id + i);
+      hn::StoreU(hn::IfThenElse(hn::RebindMask(du, win), hn::Set(du, slot), hn::LoadU(du, p.slot + i)), du, p.slot + i);
     }
     std::uint8_t mb[8] = {};
     hn::StoreMaskBits(df, win, mb);
     out |= low_bits(mb, n) << i;
   }
-  if (!kAnyHit) p.uvw_soa &= ~out;
+  if (!kAnyHit) {
+    p.uvw_soa &= ~out;
+    p.tri &= ~out;
+    p.sph |= out;
+  }
   return out;
 }
 
@@ -1013,7 +1054,9 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet<kP>&
     const SphereBlock& b = bvh.spheres[leaf.sphere_begin + k];
     for (int j = 0; j < kWidth && mask != 0; ++j) {
       if (b.id[j] == kEmptyChild) break;
-      const std::uint32_t hit = sphere_apply<kP, kAnyHit>(p, b.cx[j], b.cy[j], b.cz[j], b.r[j], b.id[j], mask);
+      const std::uint32_t hit =
+          sphere_apply<kP, kAnyHit>(p, b.cx[j], b.cy[j], b.cz[j], b.r[j], b.id[j], mask,
+                                    (leaf.sphere_begin + k) * std::uint32_t(kWidth) + std::uint32_t(j));
       out |= hit;
       if (kAnyHit) mask &= ~hit;
     }
@@ -1025,8 +1068,10 @@ inline std::uint32_t leaf8(const WideBvh& bvh, const WideLeaf& leaf, Packet<kP>&
       const float v[3][3] = {{b.v[0][0][j], b.v[0][1][j], b.v[0][2][j]},
                              {b.v[1][0][j], b.v[1][1][j], b.v[1][2][j]},
                              {b.v[2][0][j], b.v[2][1][j], b.v[2][2][j]}};
-      triangle8(p, v, t, kAnyHit ? nullptr : &p.tri);
-      const std::uint32_t hit = apply8<kP, kAnyHit>(p, t, b.id[j], mask, kAnyHit ? nullptr : &p.tri);
+      triangle8(p, v, t, kAnyHit ? nullptr : &p.tri_uvw);
+      const std::uint32_t hit =
+          apply8<kP, kAnyHit>(p, t, b.id[j], mask, kAnyHit ? nullptr : &p.tri_uvw,
+                              (leaf.triangle_begin + k) * std::uint32_t(kWidth) + std::uint32_t(j));
       out |= hit;
       if (kAnyHit) mask &= ~hit;
     }
@@ -1070,13 +1115,16 @@ inline void finish_singles(const WideBvh& bvh, Packet<kP>& p, std::uint32_t node
                            std::uint32_t& result, std::uint32_t& alive) {
   for (std::uint32_t m = mask; m != 0; m &= m - 1) {
     const int i = std::countr_zero(m);
-    if (traverse1<kAnyHit>(bvh, p.lane(i), node, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i])) {
+    if (traverse1<kAnyHit>(bvh, p.lane(i), node, p.best[i], p.id[i], kAnyHit ? nullptr : &p.best_uvw[i],
+                           kAnyHit ? nullptr : &p.slot[i])) {
       result |= 1u << i;
       if (kAnyHit) {
         alive &= ~(1u << i);
       } else {
         p.cull[i] = p.best[i] * kFarScale;
         p.uvw_soa &= ~(1u << i);
+        p.tri = (p.tri & ~(1u << i)) | (p.slot[i] != kNoSlot ? 1u << i : 0u);
+        p.sph &= ~(1u << i);
       }
     }
   }
@@ -1384,9 +1432,150 @@ std::uint32_t traverse_packet(const WideBvh& bvh, Packet<kP>& p, std::uint32_t l
   return traverse8<kP, kAnyHit>(bvh, p, live);
 }
 
+// finish_triangle_hit for the lanes `lanes` of a packet whose best is a triangle (Packet::tri), a
+// vector of lanes at a time in double: the same operations in the same order (IEEE division and
+// square root, no fused ones), so the same bits, but the lanes' six divisions and square root
+// each overlap instead of waiting on one divider lane by lane (they were most of a mesh camera
+// packet's hit records). The vertices come from the leaf blocks, which the packet has just tested.
+template <int kP>
+inline void finish_triangles(const WideBvh& bvh, const Packet<kP>& p, std::uint32_t lanes, Hit* hits) {
+  const hn::CappedTag<double, kP> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const std::size_t n = hn::Lanes(dd);
+  // Per lane: the edge functions (u, v, w, det) and the vertices (v[vertex][axis]); lanes not
+  // finished get a harmless triangle.
+  alignas(64) double e[4][kP];
+  alignas(64) float v[3][3][kP];
+  for (int i = 0; i < kP; ++i) {
+    if (lanes >> i & 1u) {
+      const TriangleUvw uvw = p.best_of(i);
+      e[0][i] = uvw.u;
+      e[1][i] = uvw.v;
+      e[2][i] = uvw.w;
+      e[3][i] = uvw.det;
+      const TriangleBlock& b = bvh.triangles[p.slot[i] / std::uint32_t(kWidth)];
+      const std::uint32_t lane = p.slot[i] % std::uint32_t(kWidth);
+      for (int k = 0; k < 3; ++k)
+        for (int a = 0; a < 3; ++a) v[k][a][i] = b.v[k][a][lane];
+    } else {
+      for (int k = 0; k < 4; ++k) e[k][i] = 1.0;
+      for (int k = 0; k < 3; ++k)
+        for (int a = 0; a < 3; ++a) v[k][a][i] = float(k == a);
+    }
+  }
+  alignas(64) float out[9][kP];  // p, p_error, n per axis
+  const auto g7 = hn::Set(df, math::gamma(7));
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    const auto det = hn::Load(dd, e[3] + i);
+    const hn::Vec<decltype(dd)> bary[3] = {hn::Div(hn::Load(dd, e[0] + i), det), hn::Div(hn::Load(dd, e[1] + i), det),
+                                           hn::Div(hn::Load(dd, e[2] + i), det)};
+    hn::Vec<decltype(dd)> vd[3][3];
+    for (int k = 0; k < 3; ++k)
+      for (int a = 0; a < 3; ++a) vd[k][a] = hn::PromoteTo(dd, hn::LoadU(df, v[k][a] + i));
+    for (int a = 0; a < 3; ++a) {
+      const auto x0 = hn::Mul(bary[0], vd[0][a]), x1 = hn::Mul(bary[1], vd[1][a]), x2 = hn::Mul(bary[2], vd[2][a]);
+      hn::StoreU(hn::DemoteTo(df, hn::Add(hn::Add(x0, x1), x2)), df, out[a] + i);
+      const auto sum_abs = hn::Add(hn::Add(hn::Abs(x0), hn::Abs(x1)), hn::Abs(x2));
+      hn::StoreU(hn::Mul(g7, hn::DemoteTo(df, sum_abs)), df, out[3 + a] + i);
+    }
+    // triangle_normal_d: cross(v1 - v0, v2 - v0), then normalize: each component / its length.
+    hn::Vec<decltype(dd)> e1[3], e2[3];
+    for (int a = 0; a < 3; ++a) {
+      e1[a] = hn::Sub(vd[1][a], vd[0][a]);
+      e2[a] = hn::Sub(vd[2][a], vd[0][a]);
+    }
+    const hn::Vec<decltype(dd)> nv[3] = {hn::Sub(hn::Mul(e1[1], e2[2]), hn::Mul(e1[2], e2[1])),
+                                         hn::Sub(hn::Mul(e1[2], e2[0]), hn::Mul(e1[0], e2[2])),
+                                         hn::Sub(hn::Mul(e1[0], e2[1]), hn::Mul(e1[1], e2[0]))};
+    const auto len = hn::Sqrt(hn::Add(hn::Add(hn::Mul(nv[0], nv[0]), hn::Mul(nv[1], nv[1])), hn::Mul(nv[2], nv[2])));
+    for (int a = 0; a < 3; ++a) hn::StoreU(hn::DemoteTo(df, hn::Div(nv[a], len)), df, out[6 + a] + i);
+  }
+  for (std::uint32_t m = lanes; m != 0; m &= m - 1) {
+    const int i = std::countr_zero(m);
+    Hit& hit = hits[i];
+    hit.t = p.best[i];
+    hit.shape = p.id[i];
+    hit.p = Vec3f{out[0][i], out[1][i], out[2][i]};
+    hit.p_error = Vec3f{out[3][i], out[4][i], out[5][i]};
+    hit.n = Vec3f{out[6][i], out[7][i], out[8][i]};
+  }
+}
+
+// finish_sphere_hits (finish_hit's sphere case) for the lanes `lanes` of a packet whose best is a
+// sphere a packet test found (Packet::sph), a vector of lanes at a time in double with the same
+// operations in the same order: the roots again, the one sphere_t chose, the point projected onto
+// the sphere. The sphere comes from its leaf block, the ray from the packet's double copies.
+template <int kP>
+inline void finish_spheres(const WideBvh& bvh, const Packet<kP>& p, std::uint32_t lanes, Hit* hits) {
+  const hn::CappedTag<double, kP> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const std::size_t n = hn::Lanes(dd);
+  alignas(64) float sc[4][kP];  // center x, y, z, radius per lane; lanes not finished get a unit sphere
+  for (int i = 0; i < kP; ++i) {
+    if (lanes >> i & 1u) {
+      const SphereBlock& b = bvh.spheres[p.slot[i] / std::uint32_t(kWidth)];
+      const std::uint32_t lane = p.slot[i] % std::uint32_t(kWidth);
+      sc[0][i] = b.cx[lane];
+      sc[1][i] = b.cy[lane];
+      sc[2][i] = b.cz[lane];
+      sc[3][i] = b.r[lane];
+    } else {
+      sc[0][i] = sc[1][i] = sc[2][i] = 0.0f;
+      sc[3][i] = 1.0f;
+    }
+  }
+  alignas(64) float out[9][kP];                       // p, p_error, n per axis
+  const auto err_d = hn::Set(dd, math::gamma_d(16));  // geometry.cpp's kSphereDoubleError
+  const auto g1 = hn::Set(df, math::gamma(1));
+  const auto inf = hn::Set(dd, std::numeric_limits<double>::infinity());
+  for (std::size_t i = 0; i < std::size_t(kP); i += n) {
+    hn::Vec<decltype(dd)> c[3], f[3], dv[3];
+    for (int a = 0; a < 3; ++a) {
+      c[a] = hn::PromoteTo(dd, hn::LoadU(df, sc[a] + i));
+      f[a] = hn::Sub(hn::LoadU(dd, p.od[a] + i), c[a]);
+      dv[a] = hn::LoadU(dd, p.dd[a] + i);
+    }
+    const auto rad = hn::PromoteTo(dd, hn::LoadU(df, sc[3] + i));
+    const auto rr = hn::Mul(rad, rad);
+    const auto a = hn::LoadU(dd, p.a + i);
+    const auto disc = sphere_disc(f[0], f[1], f[2], dv[0], dv[1], dv[2], a, rr);
+    const auto bq = hn::Add(hn::Add(hn::Mul(f[0], dv[0]), hn::Mul(f[1], dv[1])), hn::Mul(f[2], dv[2]));
+    const auto cc = hn::Sub(hn::Add(hn::Add(hn::Mul(f[0], f[0]), hn::Mul(f[1], f[1])), hn::Mul(f[2], f[2])), rr);
+    const auto q = hn::Neg(hn::Add(bq, hn::CopySign(hn::Sqrt(disc), bq)));
+    const auto r0 = hn::Div(cc, q), r1 = hn::Div(q, a);
+    const auto swap = hn::Gt(r0, r1);
+    const auto t0 = hn::IfThenElse(swap, r1, r0), t1 = hn::IfThenElse(swap, r0, r1);
+    // sphere_t's test of the float root, on its exact double image: float(t0) > t_min && < inf.
+    const auto t0f = hn::PromoteTo(dd, hn::DemoteTo(df, t0));
+    const auto use0 = hn::And(hn::Gt(t0f, hn::PromoteTo(dd, hn::LoadU(df, p.t_min + i))), hn::Lt(t0f, inf));
+    const auto td = hn::IfThenElse(use0, t0, t1);
+    hn::Vec<decltype(dd)> pl[3];
+    for (int k = 0; k < 3; ++k) pl[k] = hn::Add(f[k], hn::Mul(td, dv[k]));
+    const auto len = hn::Sqrt(hn::Add(hn::Add(hn::Mul(pl[0], pl[0]), hn::Mul(pl[1], pl[1])), hn::Mul(pl[2], pl[2])));
+    const auto scale = hn::Div(rad, len);
+    for (int k = 0; k < 3; ++k) {
+      pl[k] = hn::Mul(pl[k], scale);
+      hn::StoreU(hn::DemoteTo(df, hn::Div(pl[k], rad)), df, out[6 + k] + i);
+      const auto pk = hn::DemoteTo(df, hn::Add(c[k], pl[k]));
+      hn::StoreU(pk, df, out[k] + i);
+      const auto e = hn::DemoteTo(df, hn::Mul(err_d, hn::Add(hn::Abs(pl[k]), hn::Abs(c[k]))));
+      hn::StoreU(hn::Add(e, hn::Mul(g1, hn::Abs(pk))), df, out[3 + k] + i);
+    }
+  }
+  for (std::uint32_t m = lanes; m != 0; m &= m - 1) {
+    const int i = std::countr_zero(m);
+    Hit& hit = hits[i];
+    hit.t = p.best[i];
+    hit.shape = p.id[i];
+    hit.p = Vec3f{out[0][i], out[1][i], out[2][i]};
+    hit.p_error = Vec3f{out[3][i], out[4][i], out[5][i]};
+    hit.n = Vec3f{out[6][i], out[7][i], out[8][i]};
+  }
+}
+
 template <int kP>
 std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
-                         std::uint32_t* best_id, TriangleUvw* uvw) {
+                         std::uint32_t* best_id, Hit* hits, std::uint32_t& finished) {
   Packet<kP> p;
   make_packet(bvh, rays, valid, p, false);
   // A vector at a time: the traversal reads them as vectors at once, and values stored lane by
@@ -1402,14 +1591,19 @@ std::uint32_t IntersectN(const WideBvh& bvh, const math::Ray* rays, std::uint32_
     hn::StoreU(hn::LoadU(du, best_id + i), du, p.id + i);
   }
   p.uvw_soa = 0;
+  p.tri = 0;
+  p.sph = 0;
   const std::uint32_t improved = traverse_packet<kP, false>(bvh, p, valid);
   for (int i = 0; i < kP; ++i) {
     if (improved >> i & 1u) {
       best_t[i] = p.best[i];
       best_id[i] = p.id[i];
-      uvw[i] = p.best_of(i);
     }
   }
+  const std::uint32_t tri = improved & p.tri, sph = improved & p.sph;
+  if (tri != 0) finish_triangles(bvh, p, tri, hits);
+  if (sph != 0) finish_spheres(bvh, p, sph, hits);
+  finished = tri | sph;
   return improved;
 }
 

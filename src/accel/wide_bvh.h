@@ -16,8 +16,7 @@ class Geometry;
 
 namespace dtraced::accel::detail {
 
-struct RayPre;       // kernels.h
-struct TriangleUvw;  // kernels.h
+struct RayPre;  // kernels.h
 
 inline constexpr int kNodeWidth = 8;  // children per node (one AVX2/AVX-512 vector, two SSE4)
 inline constexpr int kWidth = 4;      // prims per leaf block
@@ -119,23 +118,26 @@ struct WideBvh {
 
 // What one instruction set provides. The planes and the final hit record are handled by Geometry
 // around these calls; `best_t`/`best_id` carry in the planes' result and come back as the nearest
-// hit over planes and tree (ties to the smaller id). When the tree's nearest hit is a triangle,
-// `uvw` receives its edge functions exactly as triangle_t reports them (finish_triangle_hit builds
-// the hit record from them); otherwise it is left alone.
+// hit over planes and tree (ties to the smaller id). When the tree's nearest hit is a triangle
+// (or, for packets, a sphere a packet test found), the kernel writes the hit record itself
+// (finish_hit's bits, from the edge functions of the winning test and the prim in the leaf block
+// it just tested: no second test, and no load of the Shape, which at a million triangles was a
+// cache miss per hit) and says so in `finished`; other hits are left to Geometry.
 struct Kernels {
-  // Single ray: updates best_t / best_id (and uvw); returns true if the tree held a nearer hit.
-  // `r` is precompute(ray, bvh.has_triangles).
-  bool (*intersect1)(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id,
-                     TriangleUvw& uvw);
+  // Single ray: updates best_t / best_id; returns true if the tree held a nearer hit. `r` is
+  // precompute(ray, bvh.has_triangles). `finished`: `hit` holds the record.
+  bool (*intersect1)(const WideBvh& bvh, const RayPre& r, float t_min, float& best_t, std::uint32_t& best_id, Hit& hit,
+                     bool& finished);
   bool (*occluded1)(const WideBvh& bvh, const RayPre& r, float t_min, float t_max);
-  // Packet of 8: lanes with bit set in `valid`; per lane best_t / best_id / uvw[lane] as above.
-  // Returns the mask of lanes whose best came from the tree.
+  // Packet of 8: lanes with bit set in `valid`; per lane best_t / best_id / hits[lane] as above.
+  // Returns the mask of lanes whose best came from the tree; `finished` the mask of those whose
+  // hits[lane] the kernel wrote.
   std::uint32_t (*intersect8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
-                              std::uint32_t* best_id, TriangleUvw* uvw);
+                              std::uint32_t* best_id, Hit* hits, std::uint32_t& finished);
   std::uint32_t (*occluded8)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid);
   // The same for packets of 16 (one AVX-512 vector of floats; two AVX2, four SSE4 vectors).
   std::uint32_t (*intersect16)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid, float* best_t,
-                               std::uint32_t* best_id, TriangleUvw* uvw);
+                               std::uint32_t* best_id, Hit* hits, std::uint32_t& finished);
   std::uint32_t (*occluded16)(const WideBvh& bvh, const math::Ray* rays, std::uint32_t valid);
 };
 
