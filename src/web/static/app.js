@@ -179,6 +179,10 @@
   });
 
   $('signout').addEventListener('click', async () => {
+    // No poll may reach the collector once the session is gone: it would be answered 401 (and
+    // under load one in flight often was). Stop the pollers and let their steps finish first.
+    stopPolling();
+    await Promise.all(pollers.map((p) => p.quiet()));
     try {
       await fetch('/ui/session', {method: 'DELETE', credentials: 'same-origin',
                                   headers: {'X-Dtraced-CSRF': csrf || ''}});
@@ -194,6 +198,7 @@
       this.timer = null;
       this.running = false;
       this.busy = false;
+      this.settled = Promise.resolve();  // resolves when the step in flight, if any, has ended
     }
     start() {
       this.running = true;
@@ -214,6 +219,8 @@
       this.timer = null;
       if (this.busy || !this.running || document.hidden) return;
       this.busy = true;
+      let ended;
+      this.settled = new Promise((resolve) => { ended = resolve; });
       let next = POLL_MS;
       try {
         next = await this.step();
@@ -223,8 +230,13 @@
         markConnected(this.name, false, e.message);
       } finally {
         this.busy = false;
+        ended();
       }
       this.kick(next);
+    }
+    // Resolves once no step of this poller is in flight.
+    async quiet() {
+      while (this.busy) await this.settled;
     }
   }
 
