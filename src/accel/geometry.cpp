@@ -18,24 +18,6 @@ using math::next_float_up;
 
 namespace detail {
 
-namespace {
-
-// The part of a sphere hit's error bound that comes from double arithmetic, per unit of
-// |local point| + |centre| on each axis. The point is computed in double, so its bound is made of
-// double roundings (pbrt-v4's gamma(5) |p| is the bound of the same steps in float, which for a
-// sphere of radius 1e6 is 0.3: shadow rays then start 0.3 above a ground sphere and small objects
-// lose their shadows). Re-projecting the local point onto the sphere, pl * (r / |pl|), leaves each
-// coordinate within gamma_d(5) |pl_i| of a point exactly on it (pbrt-v4's analysis, with double's
-// epsilon); adding the centre rounds once more, eps_d (|c_i| + |pl_i|). An origin offset by the
-// bound must also be seen as outside (or inside) by the next ray's own sphere test, whose
-// c = |f|^2 - r^2 carries about 2.5 eps_d r of radial uncertainty (f = o - c rounded, three
-// squares and two sums); the offset along n is at least the bound times r / (|pl| + |c|) <= 1
-// per axis, so 6 + 3 roundings are needed. gamma_d(16) leaves room for rounding the bound itself.
-// Rounding the point to float is the separate gamma(1) |p_i| term.
-constexpr double kSphereDoubleError = math::gamma_d(16);
-
-}  // namespace
-
 bool shape_is_valid(const Shape& shape) {
   switch (shape.type) {
     case ShapeType::kSphere: {

@@ -26,6 +26,20 @@ inline constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
 // crosses is never rejected.
 inline constexpr float kFarScale = 1.0f + 2.0f * math::gamma(3);
 
+// The part of a sphere hit's error bound that comes from double arithmetic, per unit of
+// |local point| + |centre| on each axis. The point is computed in double, so its bound is made of
+// double roundings (pbrt-v4's gamma(5) |p| is the bound of the same steps in float, which for a
+// sphere of radius 1e6 is 0.3: shadow rays then start 0.3 above a ground sphere and small objects
+// lose their shadows). Re-projecting the local point onto the sphere, pl * (r / |pl|), leaves each
+// coordinate within gamma_d(5) |pl_i| of a point exactly on it (pbrt-v4's analysis, with double's
+// epsilon); adding the centre rounds once more, eps_d (|c_i| + |pl_i|). An origin offset by the
+// bound must also be seen as outside (or inside) by the next ray's own sphere test, whose
+// c = |f|^2 - r^2 carries about 2.5 eps_d r of radial uncertainty (f = o - c rounded, three
+// squares and two sums); the offset along n is at least the bound times r / (|pl| + |c|) <= 1
+// per axis, so 6 + 3 roundings are needed. gamma_d(16) leaves room for rounding the bound itself.
+// Rounding the point to float is the separate gamma(1) |p_i| term.
+inline constexpr double kSphereDoubleError = math::gamma_d(16);
+
 // A ray with its per-ray constants: the inverse direction (a zero component gives +-inf with the
 // sign of the zero) and, per axis, the index into a 6-float [lo, hi] array of the near and far
 // slab coordinates.

@@ -1432,6 +1432,20 @@ std::uint32_t traverse_packet(const WideBvh& bvh, Packet<kP>& p, std::uint32_t l
   return traverse8<kP, kAnyHit>(bvh, p, live);
 }
 
+// The hit records of the lanes `lanes` from a finish's per-axis rows: p, p_error and n.
+template <int kP>
+inline void write_hits(const Packet<kP>& p, std::uint32_t lanes, const float (&out)[9][kP], Hit* hits) {
+  for (std::uint32_t m = lanes; m != 0; m &= m - 1) {
+    const int i = std::countr_zero(m);
+    Hit& hit = hits[i];
+    hit.t = p.best[i];
+    hit.shape = p.id[i];
+    hit.p = Vec3f{out[0][i], out[1][i], out[2][i]};
+    hit.p_error = Vec3f{out[3][i], out[4][i], out[5][i]};
+    hit.n = Vec3f{out[6][i], out[7][i], out[8][i]};
+  }
+}
+
 // finish_triangle_hit for the lanes `lanes` of a packet whose best is a triangle (Packet::tri), a
 // vector of lanes at a time in double: the same operations in the same order (IEEE division and
 // square root, no fused ones), so the same bits, but the lanes' six divisions and square root
@@ -1490,15 +1504,7 @@ inline void finish_triangles(const WideBvh& bvh, const Packet<kP>& p, std::uint3
     const auto len = hn::Sqrt(hn::Add(hn::Add(hn::Mul(nv[0], nv[0]), hn::Mul(nv[1], nv[1])), hn::Mul(nv[2], nv[2])));
     for (int a = 0; a < 3; ++a) hn::StoreU(hn::DemoteTo(df, hn::Div(nv[a], len)), df, out[6 + a] + i);
   }
-  for (std::uint32_t m = lanes; m != 0; m &= m - 1) {
-    const int i = std::countr_zero(m);
-    Hit& hit = hits[i];
-    hit.t = p.best[i];
-    hit.shape = p.id[i];
-    hit.p = Vec3f{out[0][i], out[1][i], out[2][i]};
-    hit.p_error = Vec3f{out[3][i], out[4][i], out[5][i]};
-    hit.n = Vec3f{out[6][i], out[7][i], out[8][i]};
-  }
+  write_hits(p, lanes, out, hits);
 }
 
 // finish_sphere_hits (finish_hit's sphere case) for the lanes `lanes` of a packet whose best is a
@@ -1524,8 +1530,8 @@ inline void finish_spheres(const WideBvh& bvh, const Packet<kP>& p, std::uint32_
       sc[3][i] = 1.0f;
     }
   }
-  alignas(64) float out[9][kP];                       // p, p_error, n per axis
-  const auto err_d = hn::Set(dd, math::gamma_d(16));  // geometry.cpp's kSphereDoubleError
+  alignas(64) float out[9][kP];  // p, p_error, n per axis
+  const auto err_d = hn::Set(dd, kSphereDoubleError);
   const auto g1 = hn::Set(df, math::gamma(1));
   const auto inf = hn::Set(dd, std::numeric_limits<double>::infinity());
   for (std::size_t i = 0; i < std::size_t(kP); i += n) {
@@ -1562,15 +1568,7 @@ inline void finish_spheres(const WideBvh& bvh, const Packet<kP>& p, std::uint32_
       hn::StoreU(hn::Add(e, hn::Mul(g1, hn::Abs(pk))), df, out[3 + k] + i);
     }
   }
-  for (std::uint32_t m = lanes; m != 0; m &= m - 1) {
-    const int i = std::countr_zero(m);
-    Hit& hit = hits[i];
-    hit.t = p.best[i];
-    hit.shape = p.id[i];
-    hit.p = Vec3f{out[0][i], out[1][i], out[2][i]};
-    hit.p_error = Vec3f{out[3][i], out[4][i], out[5][i]};
-    hit.n = Vec3f{out[6][i], out[7][i], out[8][i]};
-  }
+  write_hits(p, lanes, out, hits);
 }
 
 template <int kP>
