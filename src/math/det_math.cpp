@@ -202,9 +202,14 @@ double pow(double x, double y) {
   return exp2(y * log2(x));
 }
 
+// pow_fast's common case, which pow_fast_normal computes: a normal, finite x other than 1 and a
+// finite, non-zero y.
+static bool pow_fast_is_normal(double x, double y) {
+  return x >= 2.2250738585072014e-308 && x < kInf && x != 1.0 && y != 0.0 && std::fabs(y) < kInf;
+}
+
 double pow_fast(double x, double y) {
-  if (x >= 2.2250738585072014e-308 && x < kInf && x != 1.0 && y != 0.0 && std::fabs(y) < kInf)
-    return pow_fast_normal(x, y);
+  if (pow_fast_is_normal(x, y)) return pow_fast_normal(x, y);
   if (std::isnan(x) || std::isnan(y) || x < 0.0) return kNaN;
   if (y == 0.0 || x == 1.0) return 1.0;
   if (x == 0.0) return y > 0.0 ? 0.0 : kInf;
@@ -219,9 +224,7 @@ void powf(const float* x, const float* y, float* out, int n) {
   for (int i = 0; i < n; ++i) {
     const double xd = x[i], yd = y[i];
     // pow_fast's own test for its common case, and pow_fast_normal inlined here.
-    out[i] = xd >= 2.2250738585072014e-308 && xd < kInf && xd != 1.0 && yd != 0.0 && std::fabs(yd) < kInf
-                 ? static_cast<float>(pow_fast_normal(xd, yd))
-                 : static_cast<float>(pow_fast(xd, yd));
+    out[i] = static_cast<float>(pow_fast_is_normal(xd, yd) ? pow_fast_normal(xd, yd) : pow_fast(xd, yd));
   }
 }
 
