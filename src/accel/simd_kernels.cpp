@@ -62,6 +62,19 @@
 // edge functions out only when its best is a triangle (a separate mask for the single-ray ones): 0.98x; prefetching
 // every child the frustum test passes, before the lane tests: 1.00x. For single rays (mesh secondary rays, 16
 // rounds), prefetching every child a node test passes: 1.00-1.02x.
+//
+// Tried and dropped (issue 16, round 13): quantised nodes (wide_bvh.h's WideNode) of two cache lines (Embree's
+// compressed node: per axis a float origin and a power-of-two step, 8-bit child planes origin + float(q) * step, each q
+// stepped outward at build time until that float expression contains the true plane, so the hits keep their bits; every
+// isa's tests passed, tree unchanged). On the 1M-triangle mesh (dtraced-bench-rays, avx512, 1 thread, alternated with
+// the float node, 5 pairs, load 7-8): secondary rays 0.84x (every pair below 0.96), 16-ray camera and shadow packets
+// 0.975x and 0.94x, 8-ray ones 0.94x and 0.95x; in 2 more pairs with Embree, secondary / rtcIntersect1 0.66 ->
+// 0.55-0.58, camera x16 / rtcIntersect16 0.75-0.81 -> 0.69-0.70, shadow x16 / rtcOccluded16 0.87 -> 0.77-0.79. Float
+// nodes holding the dequantised (looser) boxes, 4 pairs: secondary 0.97x (the unchanged scalar path 0.98x in the same
+// pairs), 16-ray camera and shadow 0.955x and 0.97x. So the single-ray loss is the dequantisation's latency (convert,
+// multiply, add before the slab arithmetic, on every node's path to its child), which the halved node memory did not
+// win back (a node's first load was 10 % of the walk); the packets' is mostly the looser boxes. Forcing triangles1
+// inline into leaf1 (it is called out of line, with a vzeroupper): secondary 0.99x (8 pairs).
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
