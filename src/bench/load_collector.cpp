@@ -12,6 +12,11 @@
 // is measured. An https:// collector needs --ca-file. Nothing renders: by default the simulated
 // workers answer as fast as the collector lets them.
 //
+// With --slots N each simulated worker runs N lease/upload loops at once under one name, as the
+// real worker runs one slot per render thread (worker/worker.h): a worker of N threads has up to N
+// tiles in flight, and its lease requests say threads = N. Each slot chains its own next lease
+// (--next-lease). The default, 1, is one tile in flight per worker, the figures of earlier runs.
+//
 // A farm rather than a flood: --render-ms N makes each simulated worker hold every leased tile for
 // N ms (uniform within +/- --render-jitter percent) before it uploads, as a worker rendering it
 // would; --ramp-ms spreads the workers' first requests over that long, as a farm's workers start
@@ -64,6 +69,7 @@
 #include <random>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -95,6 +101,9 @@ using Clock = std::chrono::steady_clock;
 // Each simulated worker holds a connection (a file descriptor) and a coroutine frame (a few KiB):
 // 20,000 fit the open-file limits of most systems once the soft limit is raised.
 constexpr std::uint32_t kMaxWorkers = 20'000;
+// Slots of one simulated worker (its render threads); workers x slots is bounded by kMaxWorkers too,
+// as each slot may hold a connection.
+constexpr std::uint32_t kMaxSlots = 256;
 // Descriptors beyond one per simulated worker: stdio, the io_context's own, the files read.
 constexpr rlim_t kSpareFds = 64;
 // A simulated tile takes at most ten minutes; ramp-up and warm-up are bounded alike.
@@ -128,6 +137,7 @@ struct Options {
   std::string ca_file;  // for an https:// collector
   bool keep_alive = true;
   std::uint32_t workers = 64;
+  std::uint32_t slots = 1;  // lease/upload loops per simulated worker, as a worker's render threads
   std::uint32_t seconds = 10;
   std::uint64_t job = 0;  // 0: no job, idle workers
   bool json = false;
@@ -191,6 +201,7 @@ struct Run {
   std::uint64_t job = 0;  // 0: idle workers, no lease may be granted
   bool lease_only = false;
   bool next_lease = false;
+  std::uint32_t slots = 1;
   std::uint32_t render_ms = 0;
   std::uint32_t render_jitter = 0;  // percent
   std::uint32_t ramp_ms = 0;
@@ -281,9 +292,10 @@ net::awaitable<util::Status> check_job(const Run& run) {
   co_return util::Status();
 }
 
+// One slot of simulated worker `index`: its slots share its name and its connections.
 net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
   const std::string name = fmt::format("dtraced-load-{}-{}", ::getpid(), index);
-  const std::string lease_body = protocol::encode(protocol::LeaseRequest{name, 1});
+  const std::string lease_body = protocol::encode(protocol::LeaseRequest{name, run.slots});
   net::steady_timer pause(co_await net::this_coro::executor);
   http::Client& client = run.own_clients.empty() ? *run.client : *run.own_clients[index];
   if (run.ramp_ms > 0) {
@@ -412,6 +424,18 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
   }
 }
 
+// This thread's seconds on a CPU and waiting for one (Linux: /proc/thread-self/schedstat); the rest
+// of the wall time it slept, waiting for answers. Nothing where the file cannot be read.
+std::optional<std::pair<double, double>> sched_seconds() {
+  std::FILE* f = std::fopen("/proc/thread-self/schedstat", "r");
+  if (f == nullptr) return std::nullopt;
+  unsigned long long on_cpu = 0, waiting = 0;
+  const int n = std::fscanf(f, "%llu %llu", &on_cpu, &waiting);
+  std::fclose(f);
+  if (n != 2) return std::nullopt;
+  return std::pair{on_cpu / 1e9, waiting / 1e9};
+}
+
 double cpu_seconds() {
   rusage usage{};
   ::getrusage(RUSAGE_SELF, &usage);
@@ -419,7 +443,10 @@ double cpu_seconds() {
   return seconds(usage.ru_utime) + seconds(usage.ru_stime);
 }
 
-void report(const Options& o, const Run& run, const http::ClientStats& client, double elapsed_s, double cpu_s) {
+// idle: the share of the run this process slept waiting for the collector (NaN if unknown); near 0,
+// the generator rather than the collector was the limit, even on a core shared with others.
+void report(const Options& o, const Run& run, const http::ClientStats& client, double elapsed_s, double cpu_s,
+            double idle) {
   const Tally& t = run.tally;
   const double rate = elapsed_s > 0 ? static_cast<double>(t.stored) / elapsed_s : 0;
   const double lease_rate = elapsed_s > 0 ? static_cast<double>(t.leases) / elapsed_s : 0;
@@ -430,6 +457,7 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
     const auto ms = [](double v) { return std::isnan(v) ? boost::json::value(nullptr) : boost::json::value(v); };
     boost::json::object j;
     j["workers"] = o.workers;
+    j["slots"] = o.slots;
     j["job"] = o.job;
     j["idle"] = o.job == 0;
     j["render_ms"] = o.render_ms;
@@ -463,13 +491,15 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
     j["upload_p90_ms"] = ms(t.upload.percentile_ms(90));
     j["upload_p99_ms"] = ms(t.upload.percentile_ms(99));
     j["generator_cpu"] = elapsed_s > 0 ? cpu_s / elapsed_s : 0;
+    j["generator_idle"] = ms(idle);
     j["stopped"] = run.reason;
     j["first_problem"] = t.first_problem;
     fmt::print("{}\n", jsonio::to_text(j));
     return;
   }
-  fmt::print("dtraced-load: {} simulated workers for {:.2f} s against {} ({}){}, {}\n", o.workers, elapsed_s,
-             run.url.to_string(), o.job == 0 ? "idle, no job" : fmt::format("job {}", o.job),
+  fmt::print("dtraced-load: {} simulated workers{} for {:.2f} s against {} ({}){}, {}\n", o.workers,
+             o.slots > 1 ? fmt::format(" x {} slots", o.slots) : "", elapsed_s, run.url.to_string(),
+             o.job == 0 ? "idle, no job" : fmt::format("job {}", o.job),
              o.lease_only ? ", leases only" : (o.next_lease ? ", next lease in the upload's answer" : ""),
              o.keep_alive ? "kept-alive connections" : "a connection per request");
   if (o.render_ms > 0 || o.ramp_ms > 0 || o.warmup_seconds > 0) {
@@ -492,7 +522,8 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
   line("upload latency", t.upload);
   fmt::print("  connections     {:>10}  opened ({} TLS handshakes, {} requests reused a connection)\n",
              client.connections_opened, client.tls_handshakes, client.reuses);
-  fmt::print("  generator CPU   {:.2f} of one core\n", elapsed_s > 0 ? cpu_s / elapsed_s : 0);
+  fmt::print("  generator CPU   {:.2f} of one core, idle {:.2f} of the run\n", elapsed_s > 0 ? cpu_s / elapsed_s : 0,
+             idle);
   if (!t.first_problem.empty()) fmt::print("  first problem: {}\n", t.first_problem);
   if (t.retry_after > 0 && o.job != 0 && o.render_ms == 0) {
     fmt::print(
@@ -504,8 +535,8 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
 
 // Raises the soft open-file limit to one descriptor per simulated worker plus a margin, within the
 // hard limit; an error when the hard limit is below that (the run would fail to connect).
-util::Status raise_fd_limit(std::uint32_t workers) {
-  const rlim_t want = static_cast<rlim_t>(workers) + kSpareFds;
+util::Status raise_fd_limit(std::uint32_t connections) {
+  const rlim_t want = static_cast<rlim_t>(connections) + kSpareFds;
   rlimit limit{};
   if (::getrlimit(RLIMIT_NOFILE, &limit) != 0) {
     return util::Error{fmt::format("getrlimit(RLIMIT_NOFILE): {}", std::strerror(errno))};
@@ -513,9 +544,9 @@ util::Status raise_fd_limit(std::uint32_t workers) {
   if (limit.rlim_cur != RLIM_INFINITY && limit.rlim_cur >= want) return util::Status();
   if (limit.rlim_max != RLIM_INFINITY && limit.rlim_max < want) {
     return util::Error{fmt::format(
-        "--workers {} needs {} open files, but the hard limit (RLIMIT_NOFILE, ulimit -Hn) is {}: raise it or use "
-        "fewer workers",
-        workers, want, limit.rlim_max)};
+        "{} connections need {} open files, but the hard limit (RLIMIT_NOFILE, ulimit -Hn) is {}: raise it or use "
+        "fewer workers or slots",
+        connections, want, limit.rlim_max)};
   }
   limit.rlim_cur = want;
   if (::setrlimit(RLIMIT_NOFILE, &limit) != 0) {
@@ -535,7 +566,13 @@ int run_load(const Options& o) {
     fmt::print(stderr, "--token-file: {}\n", token.error().to_string());
     return 2;
   }
-  if (util::Status fds = raise_fd_limit(o.workers); !fds) {
+  if (o.workers * std::uint64_t{o.slots} > kMaxWorkers) {
+    fmt::print(stderr, "--workers x --slots: at most {} in all\n", kMaxWorkers);
+    return 2;
+  }
+  // One connection per slot at most: each slot has one request in flight.
+  const std::uint32_t loops = o.workers * o.slots;
+  if (util::Status fds = raise_fd_limit(loops); !fds) {
     fmt::print(stderr, "dtraced-load: {}\n", fds.error().to_string());
     return 1;
   }
@@ -558,8 +595,8 @@ int run_load(const Options& o) {
     }
     client_options.tls = std::move(tls);
   }
-  // Kept alive: every simulated worker's connection may wait idle while it pauses.
-  client_options.max_idle_connections = o.keep_alive ? o.workers : 0;
+  // Kept alive: every slot's connection may wait idle while it pauses.
+  client_options.max_idle_connections = o.keep_alive ? loops : 0;
   client_options.max_requests_per_connection = o.keep_alive ? client_options.max_requests_per_connection : 1;
   Run run;
   run.url = *url;
@@ -567,6 +604,7 @@ int run_load(const Options& o) {
   run.job = o.job;
   run.lease_only = o.lease_only;
   run.next_lease = o.next_lease;
+  run.slots = o.slots;
   run.render_ms = o.render_ms;
   run.render_jitter = o.render_jitter;
   run.ramp_ms = o.ramp_ms;
@@ -598,9 +636,10 @@ int run_load(const Options& o) {
 
   io.restart();
   if (o.render_ms > 0 || o.job == 0) {
-    // A farm: each worker keeps its own connection between its requests, however long it pauses.
+    // A farm: each worker keeps its own connections (one per slot) between its requests, however
+    // long it pauses.
     http::ClientOptions own = client_options;
-    own.max_idle_connections = o.keep_alive ? 1 : 0;
+    own.max_idle_connections = o.keep_alive ? o.slots : 0;
     own_clients.reserve(o.workers);
     for (std::uint32_t i = 0; i < o.workers; ++i) {
       own_clients.push_back(std::make_unique<http::Client>(io.get_executor(), own));
@@ -608,11 +647,13 @@ int run_load(const Options& o) {
     }
   }
   const double cpu_before = cpu_seconds();
+  const auto sched_before = sched_seconds();
   run.start = Clock::now();
   run.measure_from = run.start + std::chrono::seconds(o.warmup_seconds);
   run.deadline = run.measure_from + std::chrono::seconds(o.seconds);
   run.last_answer = run.measure_from;
-  for (std::uint32_t i = 0; i < o.workers; ++i) {
+  for (std::uint32_t n = 0; n < loops; ++n) {
+    const std::uint32_t i = n % o.workers;  // slot n / workers of worker i: first slots start first
     net::co_spawn(io, simulated_worker(run, i), [&run, i](std::exception_ptr e) {
       run.last_answer = std::max(run.last_answer, Clock::now());
       if (!e) return;
@@ -630,6 +671,12 @@ int run_load(const Options& o) {
   // overstate it: spread over the run's full length instead.
   const double total = std::chrono::duration<double>(run.last_answer - run.start).count();
   const double cpu = total > 0 ? (cpu_seconds() - cpu_before) * elapsed / total : 0;
+  const auto sched_after = sched_seconds();
+  const double idle =
+      sched_before && sched_after && total > 0
+          ? std::max(0.0, 1 - (sched_after->first - sched_before->first + sched_after->second - sched_before->second) /
+                                  std::chrono::duration<double>(Clock::now() - run.start).count())
+          : std::nan("");
   run.tally.lease.finish();
   run.tally.upload.finish();
   http::ClientStats stats = client.stats();
@@ -642,7 +689,7 @@ int run_load(const Options& o) {
     stats.tls_handshakes += one.tls_handshakes;
     stats.tls_failures += one.tls_failures;
   }
-  report(o, run, stats, elapsed, cpu);
+  report(o, run, stats, elapsed, cpu, idle);
   if (run.stopped) {
     fmt::print(stderr, "dtraced-load: stopped early: {}\n", run.reason);
     return 1;
@@ -674,6 +721,11 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--seconds", o.seconds, "Length of the run")
       ->check(CLI::Range(std::uint32_t{1}, dtraced::bench::kMaxSeconds))
+      ->capture_default_str();
+  app.add_option("--slots", o.slots,
+                 "Lease/upload loops per simulated worker, all under its name (a worker's render threads: each "
+                 "has a tile in flight)")
+      ->check(CLI::Range(std::uint32_t{1}, dtraced::bench::kMaxSlots))
       ->capture_default_str();
   app.add_flag("--lease-only", o.lease_only, "Lease without uploading: the rate of bare requests");
   app.add_flag("--next-lease", o.next_lease,

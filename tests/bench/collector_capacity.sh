@@ -15,6 +15,10 @@
 # scene's cost is irrelevant. A last run leases without uploading: the rate of bare requests, the
 # floor that HTTP alone sets.
 #
+# Each simulated worker has SLOTS tiles in flight (dtraced-load --slots): 1 by default, as in the
+# figures of earlier rounds; the real worker has one slot per render thread, so a 4-thread worker
+# is SLOTS=4. SLOTS may list several counts ("1 2 4"): each is a row per worker count.
+#
 # Each row runs twice, once per lease style (LEASE_STYLES): "separate" is a POST /v1/lease and a
 # PUT of the tile per tile (workers before the next lease rode on the upload's answer), "next"
 # asks for the next lease in the upload's answer (dtraced-load --next-lease, as the real worker
@@ -29,7 +33,7 @@
 # Environment: DTRACED and DTRACED_LOAD (binaries; default build/src/cli/dtraced and
 # build/src/bench/dtraced-load), RUN_SECONDS (10), WARMUP_SECONDS (1), WORKER_COUNTS ("16 64 256"),
 # FLOOR_WORKERS (64), FLOOR_IMAGE_SIDE (16384), IMAGE_WIDTH (16384), IMAGE_HEIGHT (8192),
-# TILE_SIZE (32), COLLECTOR_CPU (0), LOAD_CPU (1), MODES ("plain tls"), LEASE_STYLES ("separate
+# TILE_SIZE (32), SLOTS ("1"), COLLECTOR_CPU (0), LOAD_CPU (1), MODES ("plain tls"), LEASE_STYLES ("separate
 # next"), FLOOR (1; 0 skips the HTTP floor's run, for quick A/B runs), KEEP_LOGS=1 to keep the
 # temporary directory.
 # Needs curl; taskset (util-linux) for pinning, else it runs unpinned and says so.
@@ -54,6 +58,7 @@ WORKER_COUNTS=${WORKER_COUNTS:-"16 64 256"}
 IMAGE_WIDTH=${IMAGE_WIDTH:-16384}
 IMAGE_HEIGHT=${IMAGE_HEIGHT:-8192}
 TILE_SIZE=${TILE_SIZE:-32}
+SLOTS=${SLOTS:-1}
 MODES=${MODES:-"plain tls"}
 LEASE_STYLES=${LEASE_STYLES:-"separate next"}
 COLLECTOR_CPU=${COLLECTOR_CPU:-0}
@@ -141,6 +146,10 @@ metric() { curl -sf "${curl_tls[@]}" -H "Authorization: Bearer $token" "$url/met
 # CPU seconds the collector used so far, all its threads (utime + stime from /proc/PID/stat).
 ticks=$(getconf CLK_TCK)
 collector_cpu() { awk -v t="$ticks" '{ sub(/.*\) /, ""); printf "%.3f", ($12 + $13) / t }' "/proc/$collector_pid/stat"; }
+# The event loop's (the collector's main thread's) seconds on a CPU and waiting for one, so far
+# (/proc/PID/task/PID/schedstat, in ns): the rest of the wall time it slept, waiting for work. A
+# loop that never sleeps is the limit, whatever share of the core other processes took.
+loop_sched() { awk '{ printf "%.6f %.6f", $1 / 1e9, $2 / 1e9 }' "/proc/$collector_pid/task/$collector_pid/schedstat"; }
 # Busy CPU seconds of one core so far, whoever ran there (/proc/stat: user nice system irq softirq
 # steal), so that the table can show how much of the collector's core other processes took.
 core_busy() {
@@ -155,11 +164,12 @@ echo "job per run: ${IMAGE_WIDTH}x${IMAGE_HEIGHT} in ${TILE_SIZE}-px tiles" \
 echo
 rows=()
 problems=0
-# measure WORKERS WIDTH HEIGHT [dtraced-load flags...]: a fresh collector and a WIDTH x HEIGHT job,
-# a warm-up, then the measured run. Sets ROW (a table row) or returns 1.
+# measure WORKERS SLOTS WIDTH HEIGHT [dtraced-load flags...]: a fresh collector and a WIDTH x
+# HEIGHT job, a warm-up, then the measured run. Sets ROW (a table row) or returns 1.
 measure() {
-  local workers=$1 width=$2 height=$3 id rc cpu0 cpu1 core0 core1 b0 b1 s0 s1 w0 w1 key v first
-  shift 3
+  local workers=$1 slots=$2 width=$3 height=$4 id rc cpu0 cpu1 core0 core1 b0 b1 s0 s1 w0 w1 key v first
+  local l0 l1 t0 t1
+  shift 4
   ROW=
   rm -f "$work/load.json"
   start_collector
@@ -172,7 +182,8 @@ measure() {
   # 16384 x 8192, zeroed on the collector's event loop, which stalls it for a while), once per
   # job; the figures are for the steady state that follows.
   timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
-    --job "$id" --workers "$workers" --seconds "$WARMUP_SECONDS" "${transport[@]}" "$@" >/dev/null 2>"$work/load.err"
+    --job "$id" --workers "$workers" --slots "$slots" --seconds "$WARMUP_SECONDS" "${transport[@]}" "$@" \
+    >/dev/null 2>"$work/load.err"
   rc=$?
   if [ "$rc" = 0 ]; then
     b0=$(metric dtraced_store_commit_batches_total)
@@ -181,9 +192,14 @@ measure() {
     ck0=$(metric dtraced_store_checkpoint_seconds_total)
     cpu0=$(collector_cpu)
     core0=$(core_busy "$COLLECTOR_CPU")
+    l0=$(loop_sched)
+    t0=$(date +%s.%N)
     timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
-      --job "$id" --workers "$workers" --seconds "$RUN_SECONDS" --json "${transport[@]}" "$@" >"$work/load.json" 2>"$work/load.err"
+      --job "$id" --workers "$workers" --slots "$slots" --seconds "$RUN_SECONDS" --json "${transport[@]}" "$@" \
+      >"$work/load.json" 2>"$work/load.err"
     rc=$?
+    t1=$(date +%s.%N)
+    l1=$(loop_sched)
     cpu1=$(collector_cpu)
     core1=$(core_busy "$COLLECTOR_CPU")
     b1=$(metric dtraced_store_commit_batches_total)
@@ -193,16 +209,16 @@ measure() {
   fi
   stop_collector
   if [ "$rc" != 0 ] || [ ! -s "$work/load.json" ]; then
-    echo "dtraced-load with $workers workers $* failed (exit $rc):" >&2
+    echo "dtraced-load with $workers workers x $slots slots $* failed (exit $rc):" >&2
     cat "$work/load.err" >&2
     problems=$((problems + 1))
     return 1
   fi
-  ROW=$(awk -v w="$workers" -v style="$style" -v rate="$(field stored_per_s)" -v p50="$(field lease_p50_ms)" \
+  ROW=$(awk -v w="$workers" -v n="$slots" -v style="$style" -v rate="$(field stored_per_s)" -v p50="$(field lease_p50_ms)" \
     -v p99="$(field lease_p99_ms)" -v u50="$(field upload_p50_ms)" -v u99="$(field upload_p99_ms)" \
-    -v el="$(field elapsed_s)" -v c0="$cpu0" -v c1="$cpu1" -v gen="$(field generator_cpu)" \
+    -v el="$(field elapsed_s)" -v c0="$cpu0" -v c1="$cpu1" -v gen="$(field generator_cpu)" -v gidle="$(field generator_idle)" \
     -v b0="$b0" -v b1="$b1" -v s0="$s0" -v s1="$s1" -v w0="$w0" -v w1="$w1" -v k0="$core0" -v k1="$core1" \
-    -v q0="${ck0:-0}" -v q1="${ck1:-0}" \
+    -v q0="${ck0:-0}" -v q1="${ck1:-0}" -v l0="$l0" -v l1="$l1" -v t0="$t0" -v t1="$t1" \
     'BEGIN {
       batches = b1 - b0
       per_commit = 0
@@ -211,18 +227,27 @@ measure() {
       if (rate > 0) cpu_us = 1e6 * (c1 - c0) / (rate * el)
       others = (k1 - k0 - (c1 - c0)) / el
       if (others < 0) others = 0
-      printf "| %d | %s | %.0f | %.2f | %.2f | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.1f | %.0f%% | %.0f%% |",
-        w, style, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, others, gen, per_commit, 100 * (w1 - w0) / el,
-        100 * (q1 - q0) / el
+      split(l0, a, " ")
+      split(l1, b, " ")
+      idle = 0
+      if (t1 > t0) idle = 1 - ((b[1] - a[1]) + (b[2] - a[2])) / (t1 - t0)
+      if (idle < 0) idle = 0
+      printf "| %d | %d | %s | %.0f | %.2f | %.2f | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.2f | %.1f | %.0f%% | %.0f%% |",
+        w, n, style, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, others, idle, gen, gidle, per_commit,
+        100 * (w1 - w0) / el, 100 * (q1 - q0) / el
     }')
   for key in busy http_errors network_errors retry_after; do
     v=$(field "$key")
-    [ -n "$v" ] && [ "$v" != 0 ] && echo "note: $workers workers $*: $key = $v"
+    [ -n "$v" ] && [ "$v" != 0 ] && echo "note: $workers workers x $slots slots $*: $key = $v"
   done
   first=$(field first_problem)
-  [ -n "$first" ] && echo "note: $workers workers $*: first problem: $first"
-  awk -v g="$(field generator_cpu)" 'BEGIN { if (g < 0.85) exit 1; printf "%.2f", g }' >"$work/gen" &&
-    echo "note: $workers workers $*: the load generator used $(cat "$work/gen") of its core: near its own limit, so the rate is a lower bound"
+  [ -n "$first" ] && echo "note: $workers workers x $slots slots $*: first problem: $first"
+  # Near its limit: most of its core, or (on a core shared with others) hardly ever idle.
+  awk -v g="$(field generator_cpu)" -v i="$(field generator_idle)" 'BEGIN {
+    if (g < 0.85 && (i == "null" || i > 0.05)) exit 1
+    printf "%.2f of its core%s", g, (i == "null" ? "" : sprintf(", idle %.2f of the run", i))
+  }' >"$work/gen" &&
+    echo "note: $workers workers x $slots slots $*: the load generator used $(cat "$work/gen"): near its own limit, so the rate is a lower bound"
   return 0
 }
 
@@ -238,34 +263,36 @@ for mode in $MODES; do
   esac
   rows=()
   for workers in $WORKER_COUNTS; do
-    for style in $LEASE_STYLES; do
-      case $style in
-        separate) style_flags=() ;;
-        next) style_flags=(--next-lease) ;;
-        *)
-          echo "LEASE_STYLES: unknown style $style (separate or next)" >&2
-          exit 1
-          ;;
-      esac
-      if measure "$workers" "$IMAGE_WIDTH" "$IMAGE_HEIGHT" "${style_flags[@]}"; then
-        rows+=("$ROW")
-        stored[$mode,$workers,$style]=$(field stored_per_s)
-      fi
+    for slots in $SLOTS; do
+      for style in $LEASE_STYLES; do
+        case $style in
+          separate) style_flags=() ;;
+          next) style_flags=(--next-lease) ;;
+          *)
+            echo "LEASE_STYLES: unknown style $style (separate or next)" >&2
+            exit 1
+            ;;
+        esac
+        if measure "$workers" "$slots" "$IMAGE_WIDTH" "$IMAGE_HEIGHT" "${style_flags[@]}"; then
+          rows+=("$ROW")
+          stored[$mode,$workers,$slots,$style]=$(field stored_per_s)
+        fi
+      done
     done
   done
   # The floor of HTTP alone: leases without uploads.
   floor=
   style=separate
-  if [ "$FLOOR" != 0 ] && measure "$FLOOR_WORKERS" "$FLOOR_IMAGE_SIDE" "$FLOOR_IMAGE_SIDE" --lease-only; then
+  if [ "$FLOOR" != 0 ] && measure "$FLOOR_WORKERS" 1 "$FLOOR_IMAGE_SIDE" "$FLOOR_IMAGE_SIDE" --lease-only; then
     floor=$(awk -v r="$(field leases_per_s)" -v p50="$(field lease_p50_ms)" -v p99="$(field lease_p99_ms)" \
       -v gen="$(field generator_cpu)" -v row="$ROW" 'BEGIN {
         split(row, c, "|")
-        cpu = c[9] + 0
-        others = c[11] + 0
+        cpu = c[10] + 0
+        others = c[12] + 0
         us = 0
         if (r > 0) us = 1e6 * cpu / r
-        printf "%.0f requests/s, lease p50 %.2f ms, p99 %.2f ms, collector CPU %.2f (%.0f us a request), others on its core %.2f, generator CPU %.2f",
-          r, p50, p99, cpu, us, others, gen
+        printf "%.0f requests/s, lease p50 %.2f ms, p99 %.2f ms, collector CPU %.2f (%.0f us a request), others on its core %.2f, event loop idle %.2f, generator CPU %.2f",
+          r, p50, p99, cpu, us, others, c[13] + 0, gen
       }')
   fi
   echo
@@ -275,46 +302,55 @@ for mode in $MODES; do
     echo "plain: plain HTTP, one connection per request"
   fi
   echo
-  echo "| workers | lease | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | generator CPU | tiles/commit | in tile txns | in checkpoints |"
-  echo "|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+  echo "| workers | slots | lease | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | loop idle | generator CPU | generator idle | tiles/commit | in tile txns | in checkpoints |"
+  echo "|--:|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
   for row in "${rows[@]}"; do echo "$row"; done
   [ -n "$floor" ] && echo && echo "HTTP floor, $FLOOR_WORKERS workers leasing without uploading: $floor"
 done
 echo
+echo "slots: tiles each simulated worker has in flight at once (a real worker's render threads)."
 echo "lease: separate = POST /v1/lease then PUT the tile (2 requests a tile); next = the next lease in the"
 echo "upload's answer (X-Dtraced-Next-Lease; 1 request a tile; lease latency then only counts the POSTs that"
 echo "were still needed). CPU columns: cores busy (1.00 = the whole pinned core). us/tile: collector CPU time per stored tile (its"
 echo "lease and its upload). others on its core: busy time of the collector's core not charged to the collector"
 echo "(other processes, interrupts); well above 0.05 means the machine was not quiet enough for a one-core figure."
+echo "loop idle: share of the run the event loop slept waiting for work (neither on a CPU nor waiting for one);"
+echo "near 0 means the collector, not its workers, is the limit, however much of the core others took."
+echo "generator idle: the same for dtraced-load's one thread; near 0, the generator was the limit."
 echo "in tile txns: wall time the store writer spent inside tile transactions (inserts + COMMIT with fsync), as a"
 echo "share of the run. in checkpoints: wall time the writer spent checkpointing or waiting for the checkpoint"
 echo "thread instead of committing, as a share of the run. Target (issue 16): >= 10000 stored/s over TLS with 64 workers."
 if [[ " $LEASE_STYLES " == *" separate "* && " $LEASE_STYLES " == *" next "* ]]; then
   echo
-  echo "| transport | workers | separate: stored/s | next lease in the answer: stored/s | next / separate | >= 10000/s |"
-  echo "|:--|--:|--:|--:|--:|:-:|"
+  echo "| transport | workers | slots | separate: stored/s | next lease in the answer: stored/s | next / separate | >= 10000/s |"
+  echo "|:--|--:|--:|--:|--:|--:|:-:|"
   for mode in $MODES; do
     for workers in $WORKER_COUNTS; do
-      awk -v m="$mode" -v w="$workers" -v a="${stored[$mode,$workers,separate]:-0}" \
-        -v b="${stored[$mode,$workers,next]:-0}" 'BEGIN {
-        r = 0
-        if (a > 0) r = b / a
-        printf "| %s | %d | %.0f | %.0f | %.2f | %s |\n", m, w, a, b, r, (b >= 10000 ? "MET" : "MISSED")
-      }'
+      for slots in $SLOTS; do
+        awk -v m="$mode" -v w="$workers" -v n="$slots" -v a="${stored[$mode,$workers,$slots,separate]:-0}" \
+          -v b="${stored[$mode,$workers,$slots,next]:-0}" 'BEGIN {
+          r = 0
+          if (a > 0) r = b / a
+          printf "| %s | %d | %d | %.0f | %.0f | %.2f | %s |\n", m, w, n, a, b, r, (b >= 10000 ? "MET" : "MISSED")
+        }'
+      done
     done
   done
 fi
 if [[ " $MODES " == *" plain "* && " $MODES " == *" tls "* ]]; then
   style=${LEASE_STYLES%% *}
   echo
-  echo "| workers | plain, a connection per request: stored/s | TLS with keep-alive: stored/s | TLS+keep-alive / plain | target >= 1 |"
-  echo "|--:|--:|--:|--:|:-:|"
+  echo "| workers | slots | plain, a connection per request: stored/s | TLS with keep-alive: stored/s | TLS+keep-alive / plain | target >= 1 |"
+  echo "|--:|--:|--:|--:|--:|:-:|"
   for workers in $WORKER_COUNTS; do
-    awk -v w="$workers" -v p="${stored[plain,$workers,$style]:-0}" -v t="${stored[tls,$workers,$style]:-0}" 'BEGIN {
-      r = 0
-      if (p > 0) r = t / p
-      printf "| %d | %.0f | %.0f | %.2f | %s |\n", w, p, t, r, (r >= 1 ? "MET" : "MISSED")
-    }'
+    for slots in $SLOTS; do
+      awk -v w="$workers" -v n="$slots" -v p="${stored[plain,$workers,$slots,$style]:-0}" \
+        -v t="${stored[tls,$workers,$slots,$style]:-0}" 'BEGIN {
+        r = 0
+        if (p > 0) r = t / p
+        printf "| %d | %d | %.0f | %.0f | %.2f | %s |\n", w, n, p, t, r, (r >= 1 ? "MET" : "MISSED")
+      }'
+    done
   done
 fi
 [ "$problems" = 0 ]
