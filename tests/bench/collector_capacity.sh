@@ -106,17 +106,20 @@ cat >"$work/scene.json" <<'EOF'
 }
 EOF
 
-# start_collector: a fresh collector on a fresh state directory, pinned; sets collector_pid and url.
-# Every run gets its own, so that each row starts from the same empty database.
+# start_collector CONNECTIONS: a fresh collector on a fresh state directory, pinned; sets
+# collector_pid and url. Every run gets its own, so that each row starts from the same empty
+# database. CONNECTIONS: the simulated workers' slots, each of which may hold a connection.
 collectors=0
 start_collector() {
-  local state port
+  local state port cap=1024
   collectors=$((collectors + 1))
   state="$work/state-$collectors"
   # The default connection cap (256) would refuse some of 256 simulated workers' connections while
-  # earlier ones close; the cap is not what this measures.
+  # earlier ones close; the cap is not what this measures: at least 1024, and room for every slot's
+  # connection and the script's own requests.
+  [ "$1" -gt $((cap - 64)) ] && cap=$(($1 + 64))
   "${pin_collector[@]}" "$DTRACED" --role collector --listen 127.0.0.1:0 --state-dir "$state" \
-    --token-file "$work/token" --max-connections 1024 --tls "$tls" 2>"$work/collector.log" &
+    --token-file "$work/token" --max-connections "$cap" --tls "$tls" 2>"$work/collector.log" &
   collector_pid=$!
   if ! port=$(listening_port "$work/collector.log" "$collector_pid" "$START_DEADLINE"); then
     echo "the collector did not start:" >&2
@@ -172,7 +175,7 @@ measure() {
   shift 4
   ROW=
   rm -f "$work/load.json"
-  start_collector
+  start_collector $((workers * slots))
   id=$(client submit "$work/scene.json" -o capacity.pfm --width "$width" --height "$height" \
     --tile-size "$TILE_SIZE") || {
     echo "submit failed" >&2
