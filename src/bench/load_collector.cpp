@@ -20,7 +20,9 @@
 // A farm rather than a flood: --render-ms N makes each simulated worker hold every leased tile for
 // N ms (uniform within +/- --render-jitter percent) before it uploads, as a worker rendering it
 // would; --ramp-ms spreads the workers' first requests over that long, as a farm's workers start
-// at different times; --warmup-seconds runs before the measured window and is not counted. A
+// at different times; --warmup-seconds runs before the measured window and is not counted (its
+// connections and TLS handshakes stay for the window; a line on stderr says when the window opens,
+// so that a script can sample the collector's counters then). A
 // "nothing now" answer (retry_after_ms) is obeyed as the real worker obeys it: a wait drawn
 // uniformly from [asked, 1.5 x asked], never less than 50 ms. Without --job the workers are idle
 // workers of a farm with no work: every lease must come back "nothing now", and the figures are
@@ -652,6 +654,13 @@ int run_load(const Options& o) {
   run.measure_from = run.start + std::chrono::seconds(o.warmup_seconds);
   run.deadline = run.measure_from + std::chrono::seconds(o.seconds);
   run.last_answer = run.measure_from;
+  net::steady_timer window(io);
+  if (o.warmup_seconds > 0) {
+    window.expires_at(run.measure_from);
+    window.async_wait([](boost::system::error_code ec) {
+      if (!ec) fmt::print(stderr, "dtraced-load: the measured window opens\n");
+    });
+  }
   for (std::uint32_t n = 0; n < loops; ++n) {
     const std::uint32_t i = n % o.workers;  // slot n / workers of worker i: first slots start first
     net::co_spawn(io, simulated_worker(run, i), [&run, i](std::exception_ptr e) {

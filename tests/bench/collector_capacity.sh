@@ -11,7 +11,8 @@
 # keep-alive), "tls" is HTTPS with the collector's private CA and kept-alive connections (the
 # workers now). Each run gets a fresh job of many small tiles (a 16384 x 8192 image of a
 # one-sphere scene in 32-pixel tiles: 131,072 tiles of 12 KiB) on a fresh collector and database, a
-# 1 s warm-up that is not measured, then RUN_SECONDS measured. The collector never renders, so the
+# 1 s warm-up run that is not measured, then a run whose own 1 s warm-up (its connections) is not
+# measured either, then RUN_SECONDS measured. The collector never renders, so the
 # scene's cost is irrelevant. A last run leases without uploading: the rate of bare requests, the
 # floor that HTTP alone sets.
 #
@@ -171,7 +172,7 @@ problems=0
 # HEIGHT job, a warm-up, then the measured run. Sets ROW (a table row) or returns 1.
 measure() {
   local workers=$1 slots=$2 width=$3 height=$4 id rc cpu0 cpu1 core0 core1 b0 b1 s0 s1 w0 w1 key v first
-  local l0 l1 t0 t1
+  local l0 l1 t0 t1 load_pid
   shift 4
   ROW=
   rm -f "$work/load.json"
@@ -189,17 +190,26 @@ measure() {
     >/dev/null 2>"$work/load.err"
   rc=$?
   if [ "$rc" = 0 ]; then
+    # The measured run has a warm-up of its own, so that its connections (and TLS handshakes: one
+    # per slot) are made before the window opens; the counters are sampled when it says so.
+    : >"$work/load.err"
+    timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
+      --job "$id" --workers "$workers" --slots "$slots" --seconds "$RUN_SECONDS" \
+      --warmup-seconds "$WARMUP_SECONDS" --json "${transport[@]}" "$@" >"$work/load.json" 2>"$work/load.err" &
+    load_pid=$!
+    while [ "$WARMUP_SECONDS" -gt 0 ] && kill -0 "$load_pid" 2>/dev/null &&
+      ! grep -q "measured window opens" "$work/load.err"; do sleep 0.01; done
+    # The CPU counters first: the window is already running, and a request to /metrics takes a
+    # while (a TLS handshake on a busy core).
+    t0=$(date +%s.%N)
+    l0=$(loop_sched)
+    cpu0=$(collector_cpu)
+    core0=$(core_busy "$COLLECTOR_CPU")
     b0=$(metric dtraced_store_commit_batches_total)
     s0=$(metric dtraced_tiles_stored_total)
     w0=$(metric dtraced_store_write_seconds_total)
     ck0=$(metric dtraced_store_checkpoint_seconds_total)
-    cpu0=$(collector_cpu)
-    core0=$(core_busy "$COLLECTOR_CPU")
-    l0=$(loop_sched)
-    t0=$(date +%s.%N)
-    timeout "$RUN_DEADLINE" "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" \
-      --job "$id" --workers "$workers" --slots "$slots" --seconds "$RUN_SECONDS" --json "${transport[@]}" "$@" \
-      >"$work/load.json" 2>"$work/load.err"
+    wait "$load_pid"
     rc=$?
     t1=$(date +%s.%N)
     l1=$(loop_sched)
@@ -235,7 +245,10 @@ measure() {
       idle = 0
       if (t1 > t0) idle = 1 - ((b[1] - a[1]) + (b[2] - a[2])) / (t1 - t0)
       if (idle < 0) idle = 0
-      printf "| %d | %d | %s | %.0f | %.2f | %.2f | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.2f | %.1f | %.0f%% | %.0f%% |",
+      # A latency without samples (no POST /v1/lease in the window with the next lease) is null.
+      p50 = p50 == "null" ? "-" : sprintf("%.2f", p50)
+      p99 = p99 == "null" ? "-" : sprintf("%.2f", p99)
+      printf "| %d | %d | %s | %.0f | %s | %s | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.2f | %.1f | %.0f%% | %.0f%% |",
         w, n, style, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, others, idle, gen, gidle, per_commit,
         100 * (w1 - w0) / el, 100 * (q1 - q0) / el
     }')
