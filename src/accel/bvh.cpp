@@ -211,6 +211,19 @@ void partition_by_bins(BuildPrim* prims, std::uint32_t begin, std::uint32_t mid,
   for (std::uint32_t k = 0; k < left; ++k) std::swap(prims[misplaced[k]], prims[from_right[k]]);
 }
 
+// The prims of a sparse range (split_sparse) whose bin is `b`, as a mask (bit i: prim i).
+std::uint32_t prims_in_bin(const std::array<std::uint8_t, kSparseMax>& bin_at, int b) {
+  static_assert(kSparseMax == 16, "one SSE2 comparison covers the range");
+#if defined(__SSE2__)
+  const __m128i bins = _mm_load_si128(reinterpret_cast<const __m128i*>(bin_at.data()));
+  return std::uint32_t(_mm_movemask_epi8(_mm_cmpeq_epi8(bins, _mm_set1_epi8(char(b)))));
+#else
+  std::uint32_t mask = 0;
+  for (std::size_t i = 0; i < bin_at.size(); ++i) mask |= std::uint32_t(bin_at[i] == b) << i;
+  return mask;
+#endif
+}
+
 // The outcome of looking at one range: a leaf, or a split at `mid` along `axis`. (Handing the
 // children their bounds from the bins, to save them a pass, was tried: tracking centroid bounds
 // per bin cost more than the pass. Gathering them in the partition as it moved the prims was
@@ -328,29 +341,33 @@ class Splitter {
     out.bounds = bounds;
     out.axis = axis;
     const std::uint32_t n = end - begin;
-    // (bin, prim) in bin order, prims in index order within a bin (insertion sort: stable).
-    std::array<std::pair<int, std::uint32_t>, kSparseMax> items;
+    // Each prim's bin (a byte; lanes past n hold 0xff, no bin) and the set of non-empty bins.
+    const BuildPrim* const prims = refs_.data() + begin;
+    alignas(16) std::array<std::uint8_t, kSparseMax> bin_at;
+    bin_at.fill(0xff);
+    std::uint32_t occupied = 0;
     for (std::uint32_t i = 0; i < n; ++i) {
-      const std::pair<int, std::uint32_t> item{bin_of(refs_[begin + i].centroid[axis], c_lo, scale), begin + i};
-      scratch.bins[i] = std::uint8_t(item.first);
-      std::uint32_t j = i;
-      for (; j > 0 && items[j - 1].first > item.first; --j) items[j] = items[j - 1];
-      items[j] = item;
+      const int b = bin_of(prims[i].centroid[axis], c_lo, scale);
+      bin_at[i] = std::uint8_t(b);
+      occupied |= 1u << b;
     }
-    // The non-empty bins: their index, count and bounds.
+    std::copy_n(bin_at.begin(), n, scratch.bins.begin());
+    // The non-empty bins in bin order: their index, count and bounds (gathered in prim order).
     std::array<int, kSparseMax> bin_index;
     std::array<std::uint32_t, kSparseMax> count;
     std::array<Bounds3f, kSparseMax> bin_bounds;
     std::uint32_t groups = 0;
-    for (std::uint32_t i = 0; i < n; ++i) {
-      if (groups == 0 || bin_index[groups - 1] != items[i].first) {
-        bin_index[groups] = items[i].first;
-        count[groups] = 0;
-        bin_bounds[groups] = Bounds3f{};
-        ++groups;
+    for (; occupied != 0; occupied &= occupied - 1, ++groups) {
+      const int b = std::countr_zero(occupied);
+      std::uint32_t members = prims_in_bin(bin_at, b);  // bit i: prim i
+      bin_index[groups] = b;
+      count[groups] = std::uint32_t(std::popcount(members));
+      BoxAccumulator box;
+      for (; members != 0; members &= members - 1) {
+        const BuildPrim& p = prims[std::countr_zero(members)];
+        box.extend(p.bounds.lo, p.bounds.hi);
       }
-      ++count[groups - 1];
-      bin_bounds[groups - 1].extend(refs_[items[i].second].bounds);
+      bin_bounds[groups] = box.bounds();
     }
     // Split after group g (g + 1 < groups): the sweeps of split() over these groups.
     std::array<double, kSparseMax> left_cost;
