@@ -16,6 +16,7 @@
 #include <limits>
 #include <mutex>
 #include <thread>
+#include <tuple>
 #include <utility>
 
 #if defined(__SSE2__)
@@ -359,13 +360,13 @@ class Splitter {
     std::uint32_t groups = 0;
     for (; occupied != 0; occupied &= occupied - 1, ++groups) {
       const int b = std::countr_zero(occupied);
-      std::uint32_t members = prims_in_bin(bin_at, b);  // bit i: prim i
       bin_index[groups] = b;
-      count[groups] = std::uint32_t(std::popcount(members));
+      count[groups] = 0;  // counted here: std::popcount is a library call without -mpopcnt
       BoxAccumulator box;
-      for (; members != 0; members &= members - 1) {
-        const BuildPrim& p = prims[std::countr_zero(members)];
+      for (std::uint32_t members = prims_in_bin(bin_at, b); members != 0; members &= members - 1) {
+        const BuildPrim& p = prims[std::countr_zero(members)];  // bit i: prim i
         box.extend(p.bounds.lo, p.bounds.hi);
+        ++count[groups];
       }
       bin_bounds[groups] = box.bounds();
     }
@@ -492,29 +493,39 @@ void fill_node(Node& node, const Split& s, std::uint32_t begin, std::uint32_t en
   }
 }
 
-// Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread.
+// Appends the tree of refs[begin, end) to `nodes` depth first, on the calling thread; interior
+// nodes' `offset`s are indices into `nodes`. Returns how many leaves it made and the deepest depth.
 template <typename Node>
-void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
-  t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
+std::pair<std::uint32_t, std::uint32_t> build_range(const Splitter& splitter, std::uint32_t begin, std::uint32_t end,
+                                                    std::uint32_t depth, std::vector<Node>& nodes, Scratch& scratch) {
+  std::uint32_t leaves = 0, max_depth = 0;
   std::vector<Task> stack;
-  stack.push_back({t.begin, t.end, t.depth, kNoParent});
-  Scratch scratch(t.end - t.begin);
+  stack.push_back({begin, end, depth, kNoParent});
   while (!stack.empty()) {
     const Task task = stack.back();
     stack.pop_back();
-    const auto index = std::uint32_t(t.nodes.size());
-    if (task.parent != kNoParent) t.nodes[task.parent].offset = index;
-    t.max_depth = std::max(t.max_depth, task.depth);
+    const auto index = std::uint32_t(nodes.size());
+    if (task.parent != kNoParent) nodes[task.parent].offset = index;
+    max_depth = std::max(max_depth, task.depth);
     const Split s = splitter.split(task.begin, task.end, task.depth, /* chunked = */ false, 1, &scratch);
-    fill_node(t.nodes.emplace_back(), s, task.begin, task.end);
+    fill_node(nodes.emplace_back(), s, task.begin, task.end);
     if (s.leaf) {
-      ++t.leaves;
+      ++leaves;
       continue;
     }
     // LIFO: the first child is popped next and so lands at index + 1.
     stack.push_back({s.mid, task.end, task.depth + 1, index});
     stack.push_back({task.begin, s.mid, task.depth + 1, kNoParent});
   }
+  return {leaves, max_depth};
+}
+
+// Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread.
+template <typename Node>
+void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
+  t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
+  Scratch scratch(t.end - t.begin);
+  std::tie(t.leaves, t.max_depth) = build_range(splitter, t.begin, t.end, t.depth, t.nodes, scratch);
 }
 
 // The levels above kParallelGrain: one node each (`subtree` < 0), or a range left to a subtree.
@@ -549,6 +560,32 @@ int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, 
     top[index].second = second;
   }
   return index;
+}
+
+// On one thread: the tree split_top, build_subtree and stitch make, each node appended to `nodes`
+// as it is made, in the order stitch would copy it (split_top's levels chunked as there, so their
+// bounds come out of the same operations): no subtree nodes to fill and copy. `nodes` should not
+// reallocate (reserve the most nodes the range can make).
+template <typename Node>
+void build_in_place(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, std::uint32_t depth,
+                    std::vector<Node>& nodes, Scratch& scratch, std::uint32_t& leaves, std::uint32_t& max_depth) {
+  if (end - begin < kParallelGrain) {
+    const auto [l, d] = build_range(splitter, begin, end, depth, nodes, scratch);
+    leaves += l;
+    max_depth = std::max(max_depth, d);
+    return;
+  }
+  const Split s = splitter.split(begin, end, depth, /* chunked = */ true, 1);
+  const auto index = std::uint32_t(nodes.size());
+  fill_node(nodes.emplace_back(), s, begin, end);
+  max_depth = std::max(max_depth, depth);
+  if (s.leaf) {
+    ++leaves;
+    return;
+  }
+  build_in_place(splitter, begin, s.mid, depth + 1, nodes, scratch, leaves, max_depth);  // lands at index + 1
+  nodes[index].offset = std::uint32_t(nodes.size());
+  build_in_place(splitter, s.mid, end, depth + 1, nodes, scratch, leaves, max_depth);
 }
 
 // Appends top node `t` and everything below it to `nodes` in depth-first order; returns its index.
@@ -749,7 +786,20 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // bytes a prim) and the rest (40) freed before the nodes are stitched and the prims (32) made,
   // which lowers the build's peak.
   std::vector<std::uint32_t> order;
-  if (!refs.empty()) {
+  if (!refs.empty() && threads == 1) {
+    // One thread: no subtrees to stitch, the nodes go straight into place (at most 2 n - 1 of
+    // them: the reserved pages that are not used are never touched).
+    const Splitter splitter(refs, isa);
+    g.nodes_.reserve(2 * refs.size() - 1);
+    util::advise_huge_pages_for(g.nodes_);
+    {
+      Scratch scratch(std::min<std::size_t>(refs.size(), kParallelGrain));
+      build_in_place(splitter, 0, std::uint32_t(refs.size()), 0, g.nodes_, scratch, leaves, max_depth);
+    }
+    order.resize(refs.size());
+    for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
+    std::vector<BuildPrim>().swap(refs);
+  } else if (!refs.empty()) {
     const Splitter splitter(refs, isa);
     std::vector<TopNode<Node>> top;
     std::vector<Subtree<Node>> subtrees;
