@@ -145,6 +145,18 @@ class BoxAccumulator {
     lo_ = _mm_min_ps(_mm_loadu_ps(&lo.x), lo_);
     hi_ = _mm_max_ps(_mm_loadu_ps(&hi.x), hi_);
   }
+  void merge(const BoxAccumulator& o) {
+    lo_ = _mm_min_ps(o.lo_, lo_);
+    hi_ = _mm_max_ps(o.hi_, hi_);
+  }
+  // area(bounds()) to the bit (the same operations in double), without going through memory.
+  double area() const {
+    if ((_mm_movemask_ps(_mm_cmpgt_ps(lo_, hi_)) & 7) != 0) return 0.0;  // empty
+    const __m128d e_xy = _mm_sub_pd(_mm_cvtps_pd(hi_), _mm_cvtps_pd(lo_));
+    const __m128d e_zw = _mm_sub_pd(_mm_cvtps_pd(_mm_movehl_ps(hi_, hi_)), _mm_cvtps_pd(_mm_movehl_ps(lo_, lo_)));
+    const double ex = _mm_cvtsd_f64(e_xy), ey = _mm_cvtsd_f64(_mm_unpackhi_pd(e_xy, e_xy)), ez = _mm_cvtsd_f64(e_zw);
+    return 2.0 * (ex * ey + ey * ez + ez * ex);
+  }
   Bounds3f bounds() const {
     alignas(16) float lo[4], hi[4];
     _mm_store_ps(lo, lo_);
@@ -163,6 +175,8 @@ class BoxAccumulator {
 class BoxAccumulator {
  public:
   void extend(const Vec3f& lo, const Vec3f& hi) { b_.extend(Bounds3f{lo, hi}); }
+  void merge(const BoxAccumulator& o) { b_.extend(o.b_); }
+  double area() const { return dtraced::accel::area(b_); }
   Bounds3f bounds() const { return b_; }
 
  private:
@@ -170,8 +184,11 @@ class BoxAccumulator {
 };
 #endif
 
+// Each bin's bounds stay in an accumulator, which the SAH sweeps merge and measure without making
+// a Bounds3f of it: the same minima and maxima in the same order as Bounds3f::extend, and
+// BoxAccumulator::area is area() to the bit, so the same costs.
 struct Bins {
-  std::array<Bounds3f, kBins> bounds;
+  std::array<BoxAccumulator, kBins> bounds;
   std::array<std::uint32_t, kBins> count{};
 };
 
@@ -279,23 +296,23 @@ class Splitter {
     while (bins.count[first_bin] == 0) ++first_bin;
     while (bins.count[last_bin] == 0) --last_bin;
     std::array<double, kBins - 1> left_cost{};
-    Bounds3f acc;
+    BoxAccumulator acc;
     std::uint32_t acc_n = 0;
     for (int k = first_bin; k < last_bin; ++k) {
-      acc.extend(bins.bounds[k]);
+      acc.merge(bins.bounds[k]);
       acc_n += bins.count[k];
-      left_cost[k] = acc_n == 0 ? -1.0 : area(acc) * acc_n;  // -1: empty side, not a split
+      left_cost[k] = acc_n == 0 ? -1.0 : acc.area() * acc_n;  // -1: empty side, not a split
     }
     const double node_area = area(rb.bounds);
     double best_cost = std::numeric_limits<double>::infinity();
     int best_k = -1;
-    acc = Bounds3f{};
+    acc = BoxAccumulator();
     acc_n = 0;
     for (int k = last_bin - 1; k >= first_bin; --k) {
-      acc.extend(bins.bounds[k + 1]);
+      acc.merge(bins.bounds[k + 1]);
       acc_n += bins.count[k + 1];
       if (acc_n == 0 || left_cost[k] < 0.0) continue;
-      const double cost = kTraversalCost * node_area + left_cost[k] + area(acc) * acc_n;
+      const double cost = kTraversalCost * node_area + left_cost[k] + acc.area() * acc_n;
       if (cost <= best_cost) {
         best_cost = cost;
         best_k = k;
@@ -356,39 +373,38 @@ class Splitter {
     // The non-empty bins in bin order: their index, count and bounds (gathered in prim order).
     std::array<int, kSparseMax> bin_index;
     std::array<std::uint32_t, kSparseMax> count;
-    std::array<Bounds3f, kSparseMax> bin_bounds;
+    std::array<BoxAccumulator, kSparseMax> bin_bounds;
     std::uint32_t groups = 0;
     for (; occupied != 0; occupied &= occupied - 1, ++groups) {
       const int b = std::countr_zero(occupied);
       bin_index[groups] = b;
       count[groups] = 0;  // counted here: std::popcount is a library call without -mpopcnt
-      BoxAccumulator box;
+      BoxAccumulator& box = bin_bounds[groups];
       for (std::uint32_t members = prims_in_bin(bin_at, b); members != 0; members &= members - 1) {
         const BuildPrim& p = prims[std::countr_zero(members)];  // bit i: prim i
         box.extend(p.bounds.lo, p.bounds.hi);
         ++count[groups];
       }
-      bin_bounds[groups] = box.bounds();
     }
     // Split after group g (g + 1 < groups): the sweeps of split() over these groups.
     std::array<double, kSparseMax> left_cost;
-    Bounds3f acc;
+    BoxAccumulator acc;
     std::uint32_t acc_n = 0;
     for (std::uint32_t g = 0; g + 1 < groups; ++g) {
-      acc.extend(bin_bounds[g]);
+      acc.merge(bin_bounds[g]);
       acc_n += count[g];
-      left_cost[g] = area(acc) * acc_n;
+      left_cost[g] = acc.area() * acc_n;
     }
     const double node_area = area(bounds);
     double best_cost = std::numeric_limits<double>::infinity();
     int best_k = -1;
     std::uint32_t best_left = 0;  // prims in groups [0, best group]
-    acc = Bounds3f{};
+    acc = BoxAccumulator();
     acc_n = 0;
     for (std::uint32_t g = groups - 1; g-- > 0;) {
-      acc.extend(bin_bounds[g + 1]);
+      acc.merge(bin_bounds[g + 1]);
       acc_n += count[g + 1];
-      const double cost = kTraversalCost * node_area + left_cost[g] + area(acc) * acc_n;
+      const double cost = kTraversalCost * node_area + left_cost[g] + acc.area() * acc_n;
       if (cost <= best_cost) {
         best_cost = cost;
         best_k = bin_index[g];
@@ -435,15 +451,14 @@ class Splitter {
   Bins bin(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale,
            std::uint8_t* bin_at = nullptr) const {
     Bins bins;
-    std::array<BoxAccumulator, kBins> boxes;
+    const BuildPrim* const prims = refs_.data();
     for (std::size_t i = begin; i < end; ++i) {
-      const BuildPrim& p = refs_[i];
+      const BuildPrim& p = prims[i];
       const int b = bin_of(p.centroid[axis], c_lo, scale);
       ++bins.count[b];
-      boxes[b].extend(p.bounds.lo, p.bounds.hi);
+      bins.bounds[b].extend(p.bounds.lo, p.bounds.hi);
       if (bin_at) bin_at[i - begin] = std::uint8_t(b);
     }
-    for (int k = 0; k < kBins; ++k) bins.bounds[k] = boxes[k].bounds();
     return bins;
   }
   Bins bin_chunked(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale,
@@ -455,7 +470,7 @@ class Splitter {
     Bins bins;
     for (const Bins& p : parts) {
       for (int k = 0; k < kBins; ++k) {
-        bins.bounds[k].extend(p.bounds[k]);
+        bins.bounds[k].merge(p.bounds[k]);
         bins.count[k] += p.count[k];
       }
     }
