@@ -13,6 +13,7 @@
 #include <cassert>
 #include <cmath>
 #include <cstddef>
+#include <limits>
 #include <memory>
 #include <new>
 #include <numbers>
@@ -578,7 +579,6 @@ struct PacketLights {
   int lane[kN];
   const accel::Hit* hit[kN];
   const MaterialF* mat[kN];
-  Vec3f wo_of[kN], nf_of[kN];
   // The shading points: p, p_error, the geometric normal n, nf and wo.
   float px[kN], py[kN], pz[kN], ex[kN], ey[kN], ez[kN], gx[kN], gy[kN], gz[kN];
   float fx[kN], fy[kN], fz[kN], wx[kN], wy[kN], wz[kN];
@@ -597,8 +597,6 @@ struct PacketLights {
     lane[j] = i;
     hit[j] = &h;
     mat[j] = &mt;
-    wo_of[j] = wo;
-    nf_of[j] = nf;
     px[j] = h.p.x, py[j] = h.p.y, pz[j] = h.p.z;
     ex[j] = h.p_error.x, ey[j] = h.p_error.y, ez[j] = h.p_error.z;
     gx[j] = h.n.x, gy[j] = h.n.y, gz[j] = h.n.z;
@@ -613,6 +611,11 @@ struct PacketLights {
     }
     sum_r[j] = sum_g[j] = sum_b[j] = 0.0f;
   }
+
+  // An entry's wo and nf as vectors, for the functions that handle the rare entries (kept as
+  // components only: copying whole vectors in add_lane waited on their components' stores).
+  Vec3f wo_of(int j) const { return {wx[j], wy[j], wz[j]}; }
+  Vec3f nf_of(int j) const { return {fx[j], fy[j], fz[j]}; }
 
   LightSample sample(int j) const {
     LightSample ls;
@@ -657,7 +660,7 @@ struct PacketLights {
     for (std::uint32_t s = slow; s != 0; s &= s - 1) {
       const int j = std::countr_zero(s);
       LightSample ls;
-      if (T::light_setup(*hit[j], nf_of[j], light, ls, shadow[j])) {
+      if (T::light_setup(*hit[j], nf_of(j), light, ls, shadow[j])) {
         cast |= 1u << j;
         tx[j] = ls.to_light.x, ty[j] = ls.to_light.y, tz[j] = ls.to_light.z, d2[j] = ls.dist2;
         lx[j] = ls.l.x, ly[j] = ls.l.y, lz[j] = ls.l.z, cos_l[j] = ls.cos_l;
@@ -705,7 +708,7 @@ struct PacketLights {
       if (d2[j] >= kMinNormal && cr <= kMaxLightTerm && cg <= kMaxLightTerm && cb <= kMaxLightTerm) {
         sum_r[j] += cr, sum_g[j] += cg, sum_b[j] += cb;
       } else {  // light_term's exact case
-        const Vec3f c = T::light_contribution(*mat[j], wo_of[j], nf_of[j], light, sample(j), vis[j]);
+        const Vec3f c = T::light_contribution(*mat[j], wo_of(j), nf_of(j), light, sample(j), vis[j]);
         sum_r[j] += c.x, sum_g[j] += c.y, sum_b[j] += c.z;
       }
     }
@@ -737,11 +740,22 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   Scratch<accel::Hit, kN> hits;
   for (int i = 0; i < n; ++i) {
     Ahead& a = *ahead[i];
+    math::Ray& r = a.known.ray;
     if (a.from != nullptr) {
-      a.known.ray = T::spawn(*a.from, a.known.ray.d);
+      // Tracer::spawn, written field by field into both copies: a ray built whole and then copied
+      // made the copy's wide loads wait for the narrow stores that built it.
+      const Vec3f o = accel::offset_ray_origin(a.from->p, a.from->p_error, a.from->n, r.d);
+      r.o = o;
+      r.t_min = 0.0f;
+      r.t_max = std::numeric_limits<float>::infinity();
       a.from = nullptr;
+      rays[i].o = o;
+      rays[i].d = r.d;
+      rays[i].t_min = 0.0f;
+      rays[i].t_max = std::numeric_limits<float>::infinity();
+    } else {
+      rays[i] = r;
     }
-    rays[i] = a.known.ray;
   }
   const std::uint32_t valid = (1u << n) - 1;
   const bool secondary = ahead[0]->depth > 0;
