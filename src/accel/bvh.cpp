@@ -65,6 +65,15 @@ struct BuildPrim {
 static_assert(offsetof(BuildPrim, bounds) == 0 && offsetof(BuildPrim, centroid) == sizeof(Bounds3f) &&
               sizeof(Bounds3f) == 6 * sizeof(float) && sizeof(BuildPrim) >= sizeof(Bounds3f) + 4 * sizeof(float));
 
+// The build prims' shape ids in their final order; frees the prims (40 bytes each, against 4 for
+// the id), so that what comes after the tree is built runs with the smaller peak.
+std::vector<std::uint32_t> take_ids(std::vector<BuildPrim>& refs) {
+  std::vector<std::uint32_t> ids(refs.size());
+  for (std::size_t i = 0; i < refs.size(); ++i) ids[i] = refs[i].id;
+  std::vector<BuildPrim>().swap(refs);
+  return ids;
+}
+
 // A range of build prims still to become a node. `parent` is set for second children, whose index
 // must be written into their parent's `offset` when they are created; first children need no
 // patch because they directly follow their parent.
@@ -811,18 +820,14 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       Scratch scratch(std::min<std::size_t>(refs.size(), kParallelGrain));
       build_in_place(splitter, 0, std::uint32_t(refs.size()), 0, g.nodes_, scratch, leaves, max_depth);
     }
-    order.resize(refs.size());
-    for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
-    std::vector<BuildPrim>().swap(refs);
+    order = take_ids(refs);
   } else if (!refs.empty()) {
     const Splitter splitter(refs, isa);
     std::vector<TopNode<Node>> top;
     std::vector<Subtree<Node>> subtrees;
     split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, top, subtrees);
     parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
-    order.resize(refs.size());
-    for (std::size_t i = 0; i < refs.size(); ++i) order[i] = refs[i].id;
-    std::vector<BuildPrim>().swap(refs);
+    order = take_ids(refs);
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
     g.nodes_.reserve(total);
