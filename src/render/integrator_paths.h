@@ -334,9 +334,13 @@ struct Tracer {
     return found;
   }
 
+  // Where a ray leaving `hit` along `dir` starts: past the hit point's rounding error.
+  static Vec3f spawn_origin(const accel::Hit& hit, const Vec3f& dir) {
+    return accel::offset_ray_origin(hit.p, hit.p_error, hit.n, dir);
+  }
   static math::Ray spawn(const accel::Hit& hit, const Vec3f& dir) {
     math::Ray r;
-    r.o = accel::offset_ray_origin(hit.p, hit.p_error, hit.n, dir);
+    r.o = spawn_origin(hit, dir);
     r.d = dir;
     return r;
   }
@@ -744,7 +748,7 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
     if (a.from != nullptr) {
       // Tracer::spawn, written field by field into both copies: a ray built whole and then copied
       // made the copy's wide loads wait for the narrow stores that built it.
-      const Vec3f o = accel::offset_ray_origin(a.from->p, a.from->p_error, a.from->n, r.d);
+      const Vec3f o = T::spawn_origin(*a.from, r.d);
       r.o = o;
       r.t_min = 0.0f;
       r.t_max = std::numeric_limits<float>::infinity();
