@@ -4,13 +4,20 @@
 // Each simulated worker is a coroutine on one io_context thread. It loops until the run's time is
 // up: POST /v1/lease, then PUT /v1/jobs/{job}/tiles/{tile} with a valid payload for the leased
 // rectangle (constant, finite pixels), expecting "stored" or "already_done". By default the
-// requests go on kept-alive connections (one http::Client shared by all: at full speed each
-// simulated worker ends up with a connection of its own; in the farm modes below, where workers
-// pause, each has a client and so a connection of its own, as real workers do); with --no-keep-alive
-// every request is its own connection (Connection: close), as workers spoke before keep-alive,
-// so the cost of setting up a connection (and with https://, of a TLS handshake) is part of what
-// is measured. An https:// collector needs --ca-file. Nothing renders: by default the simulated
-// workers answer as fast as the collector lets them.
+// requests go on kept-alive connections, one per slot (below), as each real worker's slot has one
+// request in flight, under http::Client's rules (at most 500 requests a connection, none reused
+// after 15 s idle); with --no-keep-alive every request is its own connection (Connection: close),
+// as workers spoke before keep-alive, so the cost of setting up a connection (and with https://,
+// of a TLS handshake) is part of what is measured. An https:// collector needs --ca-file. Nothing
+// renders: by default the simulated workers answer as fast as the collector lets them.
+//
+// The generator has to be cheap per tile: it runs on one core against a collector on one other,
+// and is only a measure of the collector while it has CPU to spare. So a slot builds its requests
+// once and patches them (the lease request is constant; an upload's pixels stay in place and only
+// the tile's header, its SHA-256 and the request line change), sends each request as one buffer
+// (one TLS record, one write), and reads answers with a parser for exactly what the collector
+// sends, on a connection of its own (Wire) rather than through http::Client and Beast. The
+// payload is checked against protocol::encode_tile_payload's bytes before every run.
 //
 // With --slots N each simulated worker runs N lease/upload loops at once under one name, as the
 // real worker runs one slot per render thread (worker/worker.h): a worker of N threads has up to N
@@ -59,7 +66,12 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
+#include <bit>
+#include <cassert>
+#include <cctype>
 #include <cerrno>
+#include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -71,18 +83,26 @@
 #include <random>
 #include <string>
 #include <string_view>
+#include <tuple>
 #include <utility>
 #include <vector>
 
 #include <CLI/CLI.hpp>
 #include <boost/asio/co_spawn.hpp>
 #include <boost/asio/io_context.hpp>
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/asio/ssl/context.hpp>
+#include <boost/asio/ssl/stream.hpp>
 #include <boost/asio/steady_timer.hpp>
 #include <boost/asio/this_coro.hpp>
 #include <boost/asio/use_awaitable.hpp>
+#include <boost/asio/write.hpp>
 #include <boost/json/object.hpp>
 #include <fmt/format.h>
+#include <openssl/ssl.h>
+#include <openssl/x509v3.h>
 
+#include "async/async.h"
 #include "http/client.h"
 #include "http/types.h"
 #include "jsonio/write.h"
@@ -92,12 +112,17 @@
 #include "util/file.h"
 #include "util/log.h"
 #include "util/result.h"
+#include "util/sha256.h"
 
 namespace dtraced::bench {
 namespace {
 
 namespace net = boost::asio;
+namespace ssl = net::ssl;
 namespace bhttp = boost::beast::http;
+using tcp = net::ip::tcp;
+using async::kAwaitTuple;
+using boost::system::error_code;
 using Clock = std::chrono::steady_clock;
 
 // Each simulated worker holds a connection (a file descriptor) and a coroutine frame (a few KiB):
@@ -132,6 +157,22 @@ constexpr float kPixelValue = 0.5f;
 const http::ClientTimeouts kTimeouts{std::chrono::milliseconds(5'000), std::chrono::milliseconds(10'000),
                                      std::chrono::milliseconds(10'000), std::chrono::milliseconds(10'000)};
 constexpr std::uint64_t kMaxCaFileBytes = 1 << 20;
+// The simulated workers' own connections (Wire below) keep the rules of http::Client, the real
+// worker's: at most this many requests on a connection (the last says Connection: close), an
+// idle connection older than this is not reused, and a connect, handshake or exchange that takes
+// longer than this fails (a watchdog, checking every kWatchdogPeriod, closes its socket).
+const std::uint32_t kMaxRequestsPerConnection = http::ClientOptions{}.max_requests_per_connection;
+const Clock::duration kMaxIdle = http::ClientOptions{}.max_idle;
+constexpr Clock::duration kExchangeTimeout = std::chrono::seconds(10);
+constexpr Clock::duration kWatchdogPeriod = std::chrono::milliseconds(250);
+constexpr std::size_t kMaxAnswerHeaderBytes = http::kMaxResponseHeaderBytes;
+// Bytes read from a connection at once.
+constexpr std::size_t kReadChunk = 16 << 10;
+// Room for an upload's request line, Content-Length and Connection fields in front of the fields
+// every upload of a slot shares.
+constexpr std::size_t kRequestLineRoom = 256;
+// As http::Client: TLS 1.2 suites forward secret (ECDHE) and AEAD only; TLS 1.3's are all both.
+constexpr const char* kTls12Ciphers = "ECDHE+AESGCM:ECDHE+CHACHA20";
 
 struct Options {
   std::string collector;
@@ -193,12 +234,25 @@ struct Tally {
   Latencies upload;                  // PUT .../tiles/..., any complete answer
 };
 
+// Counters of the simulated workers' connections, summed over all slots.
+struct WireStats {
+  std::uint64_t connections_opened = 0;  // TCP connections connected (and TLS handshaken)
+  std::uint64_t tls_handshakes = 0;
+  std::uint64_t reuses = 0;   // exchanges sent on a kept-alive connection
+  std::uint64_t retries = 0;  // sent again after a reused connection failed before answering
+};
+
+class Wire;
+
 struct Run {
   http::Url url;
-  http::Client* client = nullptr;  // the job check, and every request unless own_clients
-  // Farm modes: one client (one connection, kept alive) per simulated worker, as each real worker
-  // has its own; empty when the workers share `client`.
-  std::vector<http::Client*> own_clients;
+  http::Client* client = nullptr;  // the job check
+  tcp::endpoint endpoint;          // the collector's address, resolved once
+  ssl::context* tls = nullptr;     // for an https:// collector
+  bool keep_alive = true;
+  std::vector<Wire*> wires;  // one connection per slot, in slot order; the watchdog's
+  std::uint32_t active = 0;  // slots still running
+  WireStats wire_stats;
   std::string authorization;
   std::uint64_t job = 0;  // 0: idle workers, no lease may be granted
   bool lease_only = false;
@@ -243,13 +297,15 @@ struct Run {
   }
 };
 
-std::string quote(const http::Response& res) {
-  std::string body = res.body().substr(0, kMaxQuotedBytes);
-  for (char& c : body) {
+std::string quote(unsigned status, std::string_view body) {
+  std::string text(body.substr(0, kMaxQuotedBytes));
+  for (char& c : text) {
     if (c < 0x20 || c > 0x7e) c = '?';
   }
-  return fmt::format("HTTP {}: {}", res.result_int(), body);
+  return fmt::format("HTTP {}: {}", status, text);
 }
+
+std::string quote(const http::Response& res) { return quote(res.result_int(), res.body()); }
 
 // The first line of the file, without surrounding blanks (the rule the dtraced CLI applies).
 util::Result<std::string> read_token(const std::string& path) {
@@ -294,12 +350,377 @@ net::awaitable<util::Status> check_job(const Run& run) {
   co_return util::Status();
 }
 
-// One slot of simulated worker `index`: its slots share its name and its connections.
-net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
+bool equals_icase(std::string_view a, std::string_view b) {
+  return a.size() == b.size() && std::equal(a.begin(), a.end(), b.begin(), [](char x, char y) {
+           return std::tolower(static_cast<unsigned char>(x)) == std::tolower(static_cast<unsigned char>(y));
+         });
+}
+
+bool contains_icase(std::string_view text, std::string_view word) {
+  for (std::size_t i = 0; i + word.size() <= text.size(); ++i) {
+    if (equals_icase(text.substr(i, word.size()), word)) return true;
+  }
+  return false;
+}
+
+std::string_view trim(std::string_view text) {
+  while (!text.empty() && (text.front() == ' ' || text.front() == '\t')) text.remove_prefix(1);
+  while (!text.empty() && (text.back() == ' ' || text.back() == '\t')) text.remove_suffix(1);
+  return text;
+}
+
+template <typename U>
+void put_le(char* at, U value) {
+  for (std::size_t i = 0; i < sizeof(U); ++i) at[i] = static_cast<char>((value >> (8 * i)) & 0xff);
+}
+
+// An answer as Wire::receive read it; the body is a view into the wire's buffer, valid until its
+// next receive.
+struct Answer {
+  unsigned status = 0;
+  std::string_view body;
+  bool close = false;  // the collector closes the connection after it
+};
+
+// The connection of one slot: plain TCP or TLS, with its read buffer kept from one answer to the
+// next. Why not http::Client: the generator must cost the collector's core's worth of tiles on one
+// core of its own, and a Beast message built, serialised (as two TLS records: Asio's TLS stream
+// writes 8 KiB of a gathered request at a time) and parsed for every tile cost about as much as
+// the collector spends storing it. A Wire sends a request that is one contiguous buffer in one
+// write (one TLS record, one sendmsg) and reads the answer with a parser for exactly what the
+// collector sends (a status line, fields, Content-Length); the rules that shape the collector's
+// load (kept-alive connections, kMaxRequestsPerConnection, kMaxIdle, the fields a worker sends)
+// are the client's.
+class Wire {
+ public:
+  explicit Wire(net::any_io_executor executor) : executor_(std::move(executor)) {}
+
+  bool is_open() const { return socket() != nullptr && socket()->is_open(); }
+  std::uint32_t requests() const { return requests_; }
+  Clock::time_point idle_since() const { return idle_since_; }
+
+  // Connects to `to` (and with `tls`, shakes hands and checks that the certificate names `host`);
+  // an empty string, or why not.
+  net::awaitable<std::string> open(const tcp::endpoint& to, ssl::context* tls, const std::string& host,
+                                   WireStats& stats) {
+    close();
+    plain_.reset();
+    tls_.reset();
+    have_ = consumed_ = 0;
+    requests_ = 0;
+    timed_out_ = false;
+    busy_since_ = Clock::now();
+    if (tls != nullptr) {
+      tls_ = std::make_unique<ssl::stream<tcp::socket>>(executor_, *tls);
+    } else {
+      plain_ = std::make_unique<tcp::socket>(executor_);
+    }
+    auto [connect_ec] = co_await socket()->async_connect(to, kAwaitTuple);
+    if (connect_ec) co_return problem("connecting", connect_ec);
+    error_code ignored;
+    socket()->set_option(tcp::no_delay(true), ignored);
+    ++stats.connections_opened;
+    if (tls_) {
+      SSL* handle = tls_->native_handle();
+      X509_VERIFY_PARAM* param = SSL_get0_param(handle);
+      X509_VERIFY_PARAM_set_hostflags(param, X509_CHECK_FLAG_NO_PARTIAL_WILDCARDS);
+      error_code not_ip;
+      net::ip::make_address(host, not_ip);
+      const bool set =
+          !not_ip ? X509_VERIFY_PARAM_set1_ip_asc(param, host.c_str()) == 1
+                  : SSL_set_tlsext_host_name(handle, host.c_str()) == 1 && SSL_set1_host(handle, host.c_str()) == 1;
+      if (!set) co_return fmt::format("cannot set up TLS for {}", host);
+      auto [handshake_ec] = co_await tls_->async_handshake(ssl::stream_base::client, kAwaitTuple);
+      if (handshake_ec) co_return problem("the TLS handshake", handshake_ec);
+      ++stats.tls_handshakes;
+    }
+    busy_since_ = {};
+    idle_since_ = Clock::now();
+    co_return std::string();
+  }
+
+  // Sends `request` and reads the whole answer into `answer`; an empty string, or why not.
+  // `started`: some byte of the answer came (a request that failed before is safe to send again).
+  net::awaitable<std::string> exchange(std::string_view request, Answer& answer, bool& started) {
+    ++requests_;
+    busy_since_ = Clock::now();
+    started = false;
+    error_code write_ec;
+    if (tls_) {
+      std::tie(write_ec, std::ignore) = co_await net::async_write(*tls_, net::buffer(request), kAwaitTuple);
+    } else {
+      std::tie(write_ec, std::ignore) = co_await net::async_write(*plain_, net::buffer(request), kAwaitTuple);
+    }
+    if (write_ec) co_return problem("sending the request", write_ec);
+    std::string failed = co_await receive(answer, started);
+    busy_since_ = {};
+    idle_since_ = Clock::now();
+    co_return failed;
+  }
+
+  void close() {
+    if (socket() == nullptr) return;
+    error_code ignored;
+    socket()->shutdown(tcp::socket::shutdown_both, ignored);
+    socket()->close(ignored);
+  }
+
+  // The watchdog: closes the connection when a connect, handshake or exchange has been going on
+  // for longer than `limit`; its operations then fail, as a timeout.
+  void expire_if_older(Clock::time_point now, Clock::duration limit) {
+    if (busy_since_ == Clock::time_point{} || now - busy_since_ <= limit || !is_open()) return;
+    timed_out_ = true;
+    close();
+  }
+
+ private:
+  const tcp::socket* socket() const { return tls_ ? &tls_->next_layer() : plain_.get(); }
+  tcp::socket* socket() { return tls_ ? &tls_->next_layer() : plain_.get(); }
+
+  std::string problem(std::string_view doing, const error_code& ec) const {
+    if (timed_out_) {
+      return fmt::format("{} timed out after {} s", doing,
+                         std::chrono::duration_cast<std::chrono::seconds>(kExchangeTimeout).count());
+    }
+    if (ec == net::error::eof || ec == ssl::error::stream_truncated) {
+      return fmt::format("{}: the collector closed the connection", doing);
+    }
+    return fmt::format("{}: {}", doing, ec.message());
+  }
+
+  // Appends what the connection has to in_; an empty string, or why not.
+  net::awaitable<std::string> read_more() {
+    if (in_.size() - have_ < kReadChunk) in_.resize(have_ + kReadChunk);
+    const net::mutable_buffer free = net::buffer(in_.data() + have_, in_.size() - have_);
+    error_code ec;
+    std::size_t n = 0;
+    if (tls_) {
+      std::tie(ec, n) = co_await tls_->async_read_some(free, kAwaitTuple);
+    } else {
+      std::tie(ec, n) = co_await plain_->async_read_some(free, kAwaitTuple);
+    }
+    if (ec) co_return problem("reading the answer", ec);
+    have_ += n;
+    co_return std::string();
+  }
+
+  net::awaitable<std::string> receive(Answer& answer, bool& started) {
+    // What came after the last answer (nothing, from a collector that answers one request at a
+    // time) stays for this one.
+    if (consumed_ > 0) {
+      std::memmove(in_.data(), in_.data() + consumed_, have_ - consumed_);
+      have_ -= consumed_;
+      consumed_ = 0;
+    }
+    std::size_t scanned = 0;
+    std::size_t header_end = std::string_view::npos;
+    for (;;) {
+      started = started || have_ > 0;
+      header_end = std::string_view(in_.data(), have_).find("\r\n\r\n", scanned);
+      if (header_end != std::string_view::npos) break;
+      if (have_ > kMaxAnswerHeaderBytes) co_return fmt::format("an answer header over {} bytes", kMaxAnswerHeaderBytes);
+      scanned = have_ >= 3 ? have_ - 3 : 0;
+      if (std::string failed = co_await read_more(); !failed.empty()) co_return failed;
+    }
+    const std::string_view head(in_.data(), header_end);
+    // "HTTP/1.1 200 OK": the status line, then one field a line.
+    if (head.size() < 12 || head.substr(0, 7) != "HTTP/1." || head[8] != ' ' ||
+        std::from_chars(head.data() + 9, head.data() + 12, answer.status).ptr != head.data() + 12) {
+      co_return fmt::format("not an HTTP answer: {}", quote(0, head.substr(0, head.find('\r'))));
+    }
+    answer.close = head[7] == '0';  // HTTP/1.0 closes unless it says otherwise
+    std::optional<std::size_t> length;
+    for (std::size_t at = head.find("\r\n"); at != std::string_view::npos;) {
+      at += 2;
+      const std::size_t end = head.find("\r\n", at);
+      const std::string_view line = head.substr(at, end == std::string_view::npos ? std::string_view::npos : end - at);
+      at = end;
+      const std::size_t colon = line.find(':');
+      if (colon == std::string_view::npos) co_return fmt::format("a malformed answer field: {}", quote(0, line));
+      const std::string_view name = line.substr(0, colon);
+      const std::string_view value = trim(line.substr(colon + 1));
+      if (equals_icase(name, "content-length")) {
+        std::size_t n = 0;
+        if (std::from_chars(value.data(), value.data() + value.size(), n).ptr != value.data() + value.size() ||
+            value.empty()) {
+          co_return fmt::format("a malformed Content-Length: {}", quote(0, value));
+        }
+        length = n;
+      } else if (equals_icase(name, "transfer-encoding")) {
+        co_return "an answer with Transfer-Encoding (the collector's answers have a Content-Length)";
+      } else if (equals_icase(name, "connection")) {
+        if (contains_icase(value, "close")) answer.close = true;
+        if (contains_icase(value, "keep-alive")) answer.close = false;
+      }
+    }
+    if (!length) co_return "an answer without Content-Length";
+    if (*length > kMaxAnswerBytes) co_return fmt::format("an answer body over {} bytes", kMaxAnswerBytes);
+    const std::size_t total = header_end + 4 + *length;
+    if (in_.size() < total) in_.resize(total);
+    while (have_ < total) {
+      if (std::string failed = co_await read_more(); !failed.empty()) co_return failed;
+    }
+    answer.body = std::string_view(in_.data() + header_end + 4, *length);
+    consumed_ = total;
+    co_return std::string();
+  }
+
+  net::any_io_executor executor_;
+  std::unique_ptr<tcp::socket> plain_;             // http://
+  std::unique_ptr<ssl::stream<tcp::socket>> tls_;  // https://
+  std::string in_;                                 // read buffer: [0, have_) came, [0, consumed_) was read
+  std::size_t have_ = 0;
+  std::size_t consumed_ = 0;
+  std::uint32_t requests_ = 0;    // on this connection
+  Clock::time_point busy_since_;  // a connect or exchange in flight since; zero when none
+  Clock::time_point idle_since_;
+  bool timed_out_ = false;  // the watchdog closed the connection
+};
+
+// The bytes of one slot's requests, built once and patched. A lease request is the same every
+// time. An upload's payload sits right behind room for its HTTP header, and its pixels (one
+// constant, kPixelValue) stay in place from one tile to the next of the same size: only the tile's
+// header (job, tile, rectangle), its checksum and the request line change, and the whole request
+// is one contiguous buffer. The fields are those http::Client and the real worker send.
+class Requests {
+ public:
+  Requests(const Run& run, std::string_view worker, std::string_view lease_body)
+      : common_(fmt::format("Host: {}\r\nUser-Agent: dtraced\r\nAuthorization: {}\r\n{}: {}\r\n{}: {}\r\n",
+                            run.url.host_header(), run.authorization, protocol::kWorkerHeader, worker,
+                            protocol::kPixelVersionHeader, protocol::kPixelVersion)),
+        upload_fields_(fmt::format("{}Content-Type: {}\r\n{}", common_, http::kBinaryContentType,
+                                   run.next_lease ? fmt::format("{}: 1\r\n", protocol::kNextLeaseHeader) : "")),
+        room_(upload_fields_.size() + kRequestLineRoom) {
+    for (const bool close : {false, true}) {
+      lease_[close] =
+          fmt::format("POST /v1/lease HTTP/1.1\r\n{}Content-Type: {}\r\nContent-Length: {}\r\n{}\r\n{}", common_,
+                      http::kJsonContentType, lease_body.size(), close ? "Connection: close\r\n" : "", lease_body);
+    }
+  }
+
+  // POST /v1/lease; `close`: the connection's last request.
+  std::string_view lease(bool close) const { return lease_[close]; }
+
+  // PUT /v1/jobs/{job}/tiles/{tile} with a payload for the lease's rectangle.
+  std::string_view upload(const protocol::Lease& lease, bool close) {
+    const std::string_view body = payload(lease);
+    head_.clear();
+    fmt::format_to(std::back_inserter(head_), "PUT /v1/jobs/{}/tiles/{} HTTP/1.1\r\n{}Content-Length: {}\r\n{}\r\n",
+                   lease.job, lease.tile, upload_fields_, body.size(), close ? "Connection: close\r\n" : "");
+    assert(head_.size() <= room_);
+    char* start = upload_.data() + room_ - head_.size();
+    std::memcpy(start, head_.data(), head_.size());
+    return {start, head_.size() + body.size()};
+  }
+
+  // The tile payload alone (protocol::encode_tile_payload's bytes for constant pixels); valid
+  // until the next call.
+  std::string_view payload(const protocol::Lease& lease) {
+    const std::uint32_t width = lease.rect.width;
+    const std::uint32_t height = lease.rect.height;
+    const std::size_t size = protocol::tile_payload_size(width, height);
+    if (width != width_ || height != height_) {
+      upload_.assign(room_ + size, '\0');
+      char* pixels = upload_.data() + room_ + protocol::kTileHeaderBytes;
+      const auto bits = std::bit_cast<std::uint32_t>(kPixelValue);
+      for (std::size_t i = 0; i < std::size_t{width} * height * 3; ++i) put_le(pixels + 4 * i, bits);
+      width_ = width;
+      height_ = height;
+    }
+    char* out = upload_.data() + room_;
+    std::memcpy(out, protocol::kTileMagic.data(), protocol::kTileMagic.size());
+    put_le<std::uint64_t>(out + 8, lease.job);
+    put_le<std::uint32_t>(out + 16, lease.tile);
+    put_le<std::uint32_t>(out + 20, lease.rect.x0);
+    put_le<std::uint32_t>(out + 24, lease.rect.y0);
+    put_le<std::uint32_t>(out + 28, width);
+    put_le<std::uint32_t>(out + 32, height);
+    put_le<std::uint32_t>(out + 36, 0);  // flags: no sample counts
+    const std::size_t summed = size - protocol::kTileChecksumBytes;
+    const util::Sha256Digest sum = util::sha256_bytes(std::string_view(out, summed));
+    std::memcpy(out + summed, sum.data(), sum.size());
+    return {out, size};
+  }
+
+ private:
+  std::string common_;         // the fields of every request
+  std::string upload_fields_;  // and of every upload
+  std::size_t room_;           // bytes in front of the payload for the HTTP header
+  std::array<std::string, 2> lease_;
+  std::string upload_;  // room_ bytes, then the payload
+  std::uint32_t width_ = 0, height_ = 0;
+  fmt::memory_buffer head_;
+};
+
+// The packed payload must be the protocol encoder's, byte for byte: checked once before a run, so
+// that a change of the format cannot leave the generator uploading something else.
+util::Status check_payload_encoding(const Run& run) {
+  protocol::Lease lease;
+  lease.job = 0x0102030405060708;
+  lease.tile = 77;
+  lease.rect = scene::TileRect{96, 64, 7, 5};
+  Requests requests(run, "check", "{}");
+  protocol::TilePayload expected;
+  expected.job = lease.job;
+  expected.tile = lease.tile;
+  expected.rect = lease.rect;
+  expected.rgb.assign(std::size_t{lease.rect.width} * lease.rect.height * 3, kPixelValue);
+  if (requests.payload(lease) != protocol::encode_tile_payload(expected)) {
+    return util::Error{"the generator's tile payload differs from protocol::encode_tile_payload's"};
+  }
+  return util::Status();
+}
+
+// One request on a slot's connection: opens one when there is none (or the last is too old, or
+// was closed), sends what `make(last)` builds (`last`: the connection's last request, which says
+// Connection: close) and reads the answer. As http::Client does, a request that failed on a
+// reused connection before any byte of the answer came is sent once more on a fresh one. An
+// empty string, or why not.
+template <typename Make>
+net::awaitable<std::string> exchange(Run& run, Wire& wire, Make make, Answer& answer) {
+  for (int attempt = 0;; ++attempt) {
+    const bool reused = attempt == 0 && wire.is_open() && Clock::now() - wire.idle_since() < kMaxIdle;
+    if (reused) {
+      ++run.wire_stats.reuses;
+    } else if (std::string failed = co_await wire.open(run.endpoint, run.tls, run.url.host, run.wire_stats);
+               !failed.empty()) {
+      wire.close();
+      co_return failed;
+    }
+    const bool last = !run.keep_alive || wire.requests() + 1 >= kMaxRequestsPerConnection;
+    bool started = false;
+    std::string failed = co_await wire.exchange(make(last), answer, started);
+    if (failed.empty()) {
+      if (last || answer.close) wire.close();
+      co_return failed;
+    }
+    wire.close();
+    if (reused && !started) {
+      ++run.wire_stats.retries;
+      continue;
+    }
+    co_return failed;
+  }
+}
+
+// Closes the connections whose exchange has taken too long, until every slot has ended (then its
+// timer is cancelled).
+net::awaitable<void> watchdog(Run& run, net::steady_timer& timer) {
+  while (run.active > 0) {
+    timer.expires_after(kWatchdogPeriod);
+    auto [ec] = co_await timer.async_wait(kAwaitTuple);
+    if (ec) co_return;
+    const Clock::time_point now = Clock::now();
+    for (Wire* wire : run.wires) wire->expire_if_older(now, kExchangeTimeout);
+  }
+}
+
+// One slot of simulated worker `index`: its slots share its name; each has its own connection.
+net::awaitable<void> simulated_worker(Run& run, std::uint32_t index, Wire& wire) {
   const std::string name = fmt::format("dtraced-load-{}-{}", ::getpid(), index);
-  const std::string lease_body = protocol::encode(protocol::LeaseRequest{name, run.slots});
+  Requests requests(run, name, protocol::encode(protocol::LeaseRequest{name, run.slots}));
+  Answer answer;
   net::steady_timer pause(co_await net::this_coro::executor);
-  http::Client& client = run.own_clients.empty() ? *run.client : *run.own_clients[index];
   if (run.ramp_ms > 0) {
     std::uniform_int_distribution<std::uint32_t> uniform(0, run.ramp_ms);
     co_await pause_for(pause, std::chrono::milliseconds(uniform(run.rng)));
@@ -316,25 +737,25 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
       reply = std::move(*offered);
       offered.reset();
     } else {
-      http::ClientResult r = co_await exchange(
-          run, client, http::make_request(http::Verb::post, "/v1/lease", lease_body, http::kJsonContentType), name);
+      const std::string failed = co_await exchange(
+          run, wire, [&requests](bool last) { return requests.lease(last); }, answer);
       Tally& t = *tp;
-      if (!r.ok()) {
+      if (!failed.empty()) {
         ++t.network_errors;
-        run.note_problem("POST /v1/lease: " + r.message);
+        run.note_problem("POST /v1/lease: " + failed);
         co_await pause_for(pause, kErrorPause);
         continue;
       }
       t.lease.add(Clock::now() - sent);
-      if (r.response.result() == http::Status::service_unavailable) {
+      if (answer.status == static_cast<unsigned>(http::Status::service_unavailable)) {
         ++t.busy;
         co_await pause_for(pause, kErrorPause);
         continue;
       }
-      auto decoded = protocol::decode_lease_reply(r.response.body());
-      if (r.response.result() != http::Status::ok || !decoded) {
+      auto decoded = protocol::decode_lease_reply(answer.body);
+      if (answer.status != static_cast<unsigned>(http::Status::ok) || !decoded) {
         ++t.http_errors;
-        run.note_problem("POST /v1/lease: " + quote(r.response));
+        run.note_problem("POST /v1/lease: " + quote(answer.status, answer.body));
         co_await pause_for(pause, kErrorPause);
         continue;
       }
@@ -370,48 +791,42 @@ net::awaitable<void> simulated_worker(Run& run, std::uint32_t index) {
     }
 
     // ---- upload ----
-    protocol::TilePayload payload;
-    payload.job = lease.job;
-    payload.tile = lease.tile;
-    payload.rect = lease.rect;
-    payload.rgb.assign(std::size_t{lease.rect.width} * lease.rect.height * 3, kPixelValue);
-    http::Request put = http::make_request(http::Verb::put, fmt::format("/v1/jobs/{}/tiles/{}", lease.job, lease.tile),
-                                           protocol::encode_tile_payload(payload), http::kBinaryContentType);
-    if (run.next_lease) put.set(protocol::kNextLeaseHeader, "1");
     sent = Clock::now();
     tp = &run.tally_for(sent);
-    http::ClientResult r = co_await exchange(run, client, std::move(put), name);
+    const std::string failed = co_await exchange(
+        run, wire, [&requests, &lease](bool last) { return requests.upload(lease, last); }, answer);
     Tally& u = *tp;
-    if (!r.ok()) {
+    if (!failed.empty()) {
       ++u.network_errors;
-      run.note_problem("PUT tile: " + r.message);
+      run.note_problem("PUT tile: " + failed);
       co_await pause_for(pause, kErrorPause);
       continue;
     }
     u.upload.add(Clock::now() - sent);
-    const http::Status status = r.response.result();
-    if (status == http::Status::service_unavailable) {
+    const unsigned status = answer.status;
+    if (status == static_cast<unsigned>(http::Status::service_unavailable)) {
       ++u.busy;
       co_await pause_for(pause, kErrorPause);
       continue;
     }
-    auto answer = protocol::decode_upload_answer(r.response.body());
-    if ((status != http::Status::ok && status != http::Status::gone) || !answer) {
+    auto decoded = protocol::decode_upload_answer(answer.body);
+    if ((status != static_cast<unsigned>(http::Status::ok) && status != static_cast<unsigned>(http::Status::gone)) ||
+        !decoded) {
       ++u.http_errors;
-      run.note_problem("PUT tile: " + quote(r.response));
+      run.note_problem("PUT tile: " + quote(status, answer.body));
       co_await pause_for(pause, kErrorPause);
       continue;
     }
-    if (answer.value().next) {
+    if (decoded.value().next) {
       if (!run.next_lease) {
         ++u.http_errors;
-        run.note_problem("PUT tile: a next lease nobody asked for: " + quote(r.response));
+        run.note_problem("PUT tile: a next lease nobody asked for: " + quote(status, answer.body));
       } else {
-        offered = std::move(answer.value().next);
+        offered = std::move(decoded.value().next);
         if (std::holds_alternative<protocol::Lease>(*offered)) ++u.upload_leases;
       }
     }
-    switch (answer.value().result) {
+    switch (decoded.value().result) {
       case protocol::SubmitResult::kStored:
         ++u.stored;
         break;
@@ -493,6 +908,7 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
     j["upload_p90_ms"] = ms(t.upload.percentile_ms(90));
     j["upload_p99_ms"] = ms(t.upload.percentile_ms(99));
     j["generator_cpu"] = elapsed_s > 0 ? cpu_s / elapsed_s : 0;
+    j["generator_us_per_tile"] = t.stored > 0 ? 1e6 * cpu_s / static_cast<double>(t.stored) : 0;
     j["generator_idle"] = ms(idle);
     j["stopped"] = run.reason;
     j["first_problem"] = t.first_problem;
@@ -524,8 +940,9 @@ void report(const Options& o, const Run& run, const http::ClientStats& client, d
   line("upload latency", t.upload);
   fmt::print("  connections     {:>10}  opened ({} TLS handshakes, {} requests reused a connection)\n",
              client.connections_opened, client.tls_handshakes, client.reuses);
-  fmt::print("  generator CPU   {:.2f} of one core, idle {:.2f} of the run\n", elapsed_s > 0 ? cpu_s / elapsed_s : 0,
-             idle);
+  fmt::print("  generator CPU   {:.2f} of one core, idle {:.2f} of the run, {:.0f} us a stored tile\n",
+             elapsed_s > 0 ? cpu_s / elapsed_s : 0, idle,
+             t.stored > 0 ? 1e6 * cpu_s / static_cast<double>(t.stored) : 0);
   if (!t.first_problem.empty()) fmt::print("  first problem: {}\n", t.first_problem);
   if (t.retry_after > 0 && o.job != 0 && o.render_ms == 0) {
     fmt::print(
@@ -580,6 +997,7 @@ int run_load(const Options& o) {
   }
   http::ClientOptions client_options;
   client_options.timeouts = kTimeouts;
+  std::optional<ssl::context> tls_context;
   if (url->tls) {
     if (o.ca_file.empty()) {
       fmt::print(stderr, "--ca-file: required for an https:// collector (its tls/ca.pem)\n");
@@ -590,18 +1008,29 @@ int run_load(const Options& o) {
       fmt::print(stderr, "--ca-file: {}\n", pem.error().to_string());
       return 2;
     }
-    http::ClientTls tls{std::move(pem).value(), o.ca_file, std::nullopt};
+    http::ClientTls tls{*pem, o.ca_file, std::nullopt};
     if (util::Status usable = http::check_client_tls(tls); !usable) {
       fmt::print(stderr, "--ca-file: {}\n", usable.error().to_string());
       return 2;
     }
     client_options.tls = std::move(tls);
+    // The simulated workers' context: http::Client's settings (see make_context in http/client.cpp).
+    tls_context.emplace(ssl::context::tls_client);
+    SSL_CTX* handle = tls_context->native_handle();
+    error_code ec;
+    tls_context->add_certificate_authority(net::buffer(*pem), ec);
+    if (ec || SSL_CTX_set_min_proto_version(handle, TLS1_2_VERSION) != 1 ||
+        SSL_CTX_set_cipher_list(handle, kTls12Ciphers) != 1) {
+      fmt::print(stderr, "--ca-file: cannot set up TLS with {}: {}\n", o.ca_file, ec ? ec.message() : "OpenSSL");
+      return 2;
+    }
+    SSL_CTX_set_options(handle, SSL_OP_NO_COMPRESSION | SSL_OP_NO_RENEGOTIATION);
+    SSL_CTX_set_verify(handle, SSL_VERIFY_PEER, nullptr);
   }
-  // Kept alive: every slot's connection may wait idle while it pauses.
-  client_options.max_idle_connections = o.keep_alive ? loops : 0;
-  client_options.max_requests_per_connection = o.keep_alive ? client_options.max_requests_per_connection : 1;
   Run run;
   run.url = *url;
+  run.tls = tls_context ? &*tls_context : nullptr;
+  run.keep_alive = o.keep_alive;
   run.authorization = "Bearer " + *token;
   run.job = o.job;
   run.lease_only = o.lease_only;
@@ -614,8 +1043,20 @@ int run_load(const Options& o) {
   net::io_context io{1};
   http::Client client(io.get_executor(), client_options);  // after io: destroyed before it
   run.client = &client;
-  // Farm modes' clients, one per simulated worker; after io, so destroyed before it.
-  std::vector<std::unique_ptr<http::Client>> own_clients;
+  {
+    tcp::resolver resolver(io);
+    error_code ec;
+    const tcp::resolver::results_type found = resolver.resolve(url->host, std::to_string(url->port), ec);
+    if (ec || found.empty()) {
+      fmt::print(stderr, "dtraced-load: cannot resolve {}: {}\n", url->host, ec ? ec.message() : "no address");
+      return 1;
+    }
+    run.endpoint = found.begin()->endpoint();
+  }
+  if (util::Status encoded = check_payload_encoding(run); !encoded) {
+    fmt::print(stderr, "dtraced-load: {}\n", encoded.error().to_string());
+    return 1;
+  }
   util::Status checked = util::Error{"the job check did not finish"};
   if (o.job == 0) checked = util::Status();  // idle workers: the first granted lease stops the run
   if (o.job != 0)
@@ -637,17 +1078,15 @@ int run_load(const Options& o) {
   }
 
   io.restart();
-  if (o.render_ms > 0 || o.job == 0) {
-    // A farm: each worker keeps its own connections (one per slot) between its requests, however
-    // long it pauses.
-    http::ClientOptions own = client_options;
-    own.max_idle_connections = o.keep_alive ? o.slots : 0;
-    own_clients.reserve(o.workers);
-    for (std::uint32_t i = 0; i < o.workers; ++i) {
-      own_clients.push_back(std::make_unique<http::Client>(io.get_executor(), own));
-      run.own_clients.push_back(own_clients.back().get());
-    }
+  // One connection per slot, kept alive between its requests however long it pauses (as each
+  // slot of a real worker has one request in flight at a time); after io, so destroyed before it.
+  std::vector<std::unique_ptr<Wire>> wires;
+  wires.reserve(loops);
+  for (std::uint32_t n = 0; n < loops; ++n) {
+    wires.push_back(std::make_unique<Wire>(io.get_executor()));
+    run.wires.push_back(wires.back().get());
   }
+  net::steady_timer watchdog_timer(io);
   const double cpu_before = cpu_seconds();
   const auto sched_before = sched_seconds();
   run.start = Clock::now();
@@ -661,10 +1100,12 @@ int run_load(const Options& o) {
       if (!ec) fmt::print(stderr, "dtraced-load: the measured window opens\n");
     });
   }
+  run.active = loops;
   for (std::uint32_t n = 0; n < loops; ++n) {
     const std::uint32_t i = n % o.workers;  // slot n / workers of worker i: first slots start first
-    net::co_spawn(io, simulated_worker(run, i), [&run, i](std::exception_ptr e) {
+    net::co_spawn(io, simulated_worker(run, i, *wires[n]), [&run, &watchdog_timer, i](std::exception_ptr e) {
       run.last_answer = std::max(run.last_answer, Clock::now());
+      if (--run.active == 0) watchdog_timer.cancel();
       if (!e) return;
       try {
         std::rethrow_exception(e);
@@ -674,6 +1115,7 @@ int run_load(const Options& o) {
       }
     });
   }
+  net::co_spawn(io, watchdog(run, watchdog_timer), async::log_failure("dtraced-load's watchdog"));
   io.run();
   const double elapsed = std::chrono::duration<double>(run.last_answer - run.measure_from).count();
   // CPU over the whole run, warm-up included, as a share of the measured window alone would
@@ -689,15 +1131,10 @@ int run_load(const Options& o) {
   run.tally.lease.finish();
   run.tally.upload.finish();
   http::ClientStats stats = client.stats();
-  for (const http::Client* own : run.own_clients) {
-    const http::ClientStats one = own->stats();
-    stats.requests += one.requests;
-    stats.connections_opened += one.connections_opened;
-    stats.reuses += one.reuses;
-    stats.retries += one.retries;
-    stats.tls_handshakes += one.tls_handshakes;
-    stats.tls_failures += one.tls_failures;
-  }
+  stats.connections_opened += run.wire_stats.connections_opened;
+  stats.tls_handshakes += run.wire_stats.tls_handshakes;
+  stats.reuses += run.wire_stats.reuses;
+  stats.retries += run.wire_stats.retries;
   report(o, run, stats, elapsed, cpu, idle);
   if (run.stopped) {
     fmt::print(stderr, "dtraced-load: stopped early: {}\n", run.reason);

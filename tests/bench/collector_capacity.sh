@@ -26,8 +26,9 @@
 # does now): one request per tile. A last table gives their ratio per transport and worker count.
 #
 # Alongside the rates it reports the CPU each side used (from /proc and getrusage: a side near
-# 1.00 of its core is the limit) and the store writer's group commit (tiles per transaction and
-# the share of wall time spent inside tile transactions, from the collector's /metrics).
+# 1.00 of its core is the limit) and per stored tile (a generator that needs as much CPU a tile
+# as the collector cannot load it from one core), and the store writer's group commit (tiles per
+# transaction and the share of wall time spent inside tile transactions, from /metrics).
 #
 # Usage, after the README's build (cmake -B build && cmake --build build):
 #   tests/bench/collector_capacity.sh
@@ -248,8 +249,10 @@ measure() {
       # A latency without samples (no POST /v1/lease in the window with the next lease) is null.
       p50 = p50 == "null" ? "-" : sprintf("%.2f", p50)
       p99 = p99 == "null" ? "-" : sprintf("%.2f", p99)
-      printf "| %d | %d | %s | %.0f | %s | %s | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.2f | %.1f | %.0f%% | %.0f%% |",
-        w, n, style, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, others, idle, gen, gidle, per_commit,
+      gen_us = 0
+      if (rate > 0) gen_us = 1e6 * gen / rate
+      printf "| %d | %d | %s | %.0f | %s | %s | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.0f | %.2f | %.1f | %.0f%% | %.0f%% |",
+        w, n, style, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, others, idle, gen, gen_us, gidle, per_commit,
         100 * (w1 - w0) / el, 100 * (q1 - q0) / el
     }')
   for key in busy http_errors network_errors retry_after; do
@@ -318,8 +321,8 @@ for mode in $MODES; do
     echo "plain: plain HTTP, one connection per request"
   fi
   echo
-  echo "| workers | slots | lease | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | loop idle | generator CPU | generator idle | tiles/commit | in tile txns | in checkpoints |"
-  echo "|--:|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+  echo "| workers | slots | lease | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | loop idle | generator CPU | generator us/tile | generator idle | tiles/commit | in tile txns | in checkpoints |"
+  echo "|--:|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
   for row in "${rows[@]}"; do echo "$row"; done
   [ -n "$floor" ] && echo && echo "HTTP floor, $FLOOR_WORKERS workers leasing without uploading: $floor"
 done
@@ -332,7 +335,9 @@ echo "lease and its upload). others on its core: busy time of the collector's co
 echo "(other processes, interrupts); well above 0.05 means the machine was not quiet enough for a one-core figure."
 echo "loop idle: share of the run the event loop slept waiting for work (neither on a CPU nor waiting for one);"
 echo "near 0 means the collector, not its workers, is the limit, however much of the core others took."
-echo "generator idle: the same for dtraced-load's one thread; near 0, the generator was the limit."
+echo "generator us/tile: dtraced-load's CPU time per stored tile, to set beside the collector's: a generator that"
+echo "needs as much as the collector cannot load it from one core of its own."
+echo "generator idle: the same as loop idle for dtraced-load's one thread; near 0, the generator was the limit."
 echo "in tile txns: wall time the store writer spent inside tile transactions (inserts + COMMIT with fsync), as a"
 echo "share of the run. in checkpoints: wall time the writer spent checkpointing or waiting for the checkpoint"
 echo "thread instead of committing, as a share of the run. Target (issue 16): >= 10000 stored/s over TLS with 64 workers."
