@@ -69,18 +69,18 @@
 #include <array>
 #include <bit>
 #include <cassert>
-#include <cctype>
 #include <cerrno>
-#include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
 #include <exception>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <random>
+#include <stdexcept>
 #include <string>
 #include <string_view>
 #include <tuple>
@@ -97,6 +97,11 @@
 #include <boost/asio/this_coro.hpp>
 #include <boost/asio/use_awaitable.hpp>
 #include <boost/asio/write.hpp>
+#include <boost/beast/core/buffers_range.hpp>
+#include <boost/beast/http/empty_body.hpp>
+#include <boost/beast/http/parser.hpp>
+#include <boost/beast/http/serializer.hpp>
+#include <boost/beast/http/string_body.hpp>
 #include <boost/json/object.hpp>
 #include <fmt/format.h>
 #include <openssl/ssl.h>
@@ -119,6 +124,7 @@ namespace {
 
 namespace net = boost::asio;
 namespace ssl = net::ssl;
+namespace beast = boost::beast;
 namespace bhttp = boost::beast::http;
 using tcp = net::ip::tcp;
 using async::kAwaitTuple;
@@ -168,9 +174,8 @@ constexpr Clock::duration kWatchdogPeriod = std::chrono::milliseconds(250);
 constexpr std::size_t kMaxAnswerHeaderBytes = http::kMaxResponseHeaderBytes;
 // Bytes read from a connection at once.
 constexpr std::size_t kReadChunk = 16 << 10;
-// Room for an upload's request line, Content-Length and Connection fields in front of the fields
-// every upload of a slot shares.
-constexpr std::size_t kRequestLineRoom = 256;
+// Room for an upload's HTTP header in front of its payload (a token is at most kMaxTokenBytes).
+constexpr std::size_t kUploadHeadRoom = kMaxTokenBytes + 1024;
 // As http::Client: TLS 1.2 suites forward secret (ECDHE) and AEAD only; TLS 1.3's are all both.
 constexpr const char* kTls12Ciphers = "ECDHE+AESGCM:ECDHE+CHACHA20";
 
@@ -350,31 +355,12 @@ net::awaitable<util::Status> check_job(const Run& run) {
   co_return util::Status();
 }
 
-bool equals_icase(std::string_view a, std::string_view b) {
-  return a.size() == b.size() && std::equal(a.begin(), a.end(), b.begin(), [](char x, char y) {
-           return std::tolower(static_cast<unsigned char>(x)) == std::tolower(static_cast<unsigned char>(y));
-         });
-}
-
-bool contains_icase(std::string_view text, std::string_view word) {
-  for (std::size_t i = 0; i + word.size() <= text.size(); ++i) {
-    if (equals_icase(text.substr(i, word.size()), word)) return true;
-  }
-  return false;
-}
-
-std::string_view trim(std::string_view text) {
-  while (!text.empty() && (text.front() == ' ' || text.front() == '\t')) text.remove_prefix(1);
-  while (!text.empty() && (text.back() == ' ' || text.back() == '\t')) text.remove_suffix(1);
-  return text;
-}
-
 template <typename U>
 void put_le(char* at, U value) {
   for (std::size_t i = 0; i < sizeof(U); ++i) at[i] = static_cast<char>((value >> (8 * i)) & 0xff);
 }
 
-// An answer as Wire::receive read it; the body is a view into the wire's buffer, valid until its
+// An answer as Wire::receive read it; the body is a view into the wire's parser, valid until its
 // next receive.
 struct Answer {
   unsigned status = 0;
@@ -387,8 +373,8 @@ struct Answer {
 // core of its own, and a Beast message built, serialised (as two TLS records: Asio's TLS stream
 // writes 8 KiB of a gathered request at a time) and parsed for every tile cost about as much as
 // the collector spends storing it. A Wire sends a request that is one contiguous buffer in one
-// write (one TLS record, one sendmsg) and reads the answer with a parser for exactly what the
-// collector sends (a status line, fields, Content-Length); the rules that shape the collector's
+// write (one TLS record, one sendmsg) and feeds what it reads to Beast's parser itself (no
+// composed read operations); the rules that shape the collector's
 // load (kept-alive connections, kMaxRequestsPerConnection, kMaxIdle, the fields a worker sends)
 // are the client's.
 class Wire {
@@ -504,6 +490,8 @@ class Wire {
     co_return std::string();
   }
 
+  // Reads one answer through Beast's parser, fed from in_ as bytes come (no composed read
+  // operation: one async_read_some a chunk).
   net::awaitable<std::string> receive(Answer& answer, bool& started) {
     // What came after the last answer (nothing, from a collector that answers one request at a
     // time) stays for this one.
@@ -512,63 +500,33 @@ class Wire {
       have_ -= consumed_;
       consumed_ = 0;
     }
-    std::size_t scanned = 0;
-    std::size_t header_end = std::string_view::npos;
+    parser_.emplace();
+    parser_->header_limit(static_cast<std::uint32_t>(kMaxAnswerHeaderBytes));
+    parser_->body_limit(kMaxAnswerBytes);
+    parser_->eager(true);
     for (;;) {
       started = started || have_ > 0;
-      header_end = std::string_view(in_.data(), have_).find("\r\n\r\n", scanned);
-      if (header_end != std::string_view::npos) break;
-      if (have_ > kMaxAnswerHeaderBytes) co_return fmt::format("an answer header over {} bytes", kMaxAnswerHeaderBytes);
-      scanned = have_ >= 3 ? have_ - 3 : 0;
-      if (std::string failed = co_await read_more(); !failed.empty()) co_return failed;
-    }
-    const std::string_view head(in_.data(), header_end);
-    // "HTTP/1.1 200 OK": the status line, then one field a line.
-    if (head.size() < 12 || head.substr(0, 7) != "HTTP/1." || head[8] != ' ' ||
-        std::from_chars(head.data() + 9, head.data() + 12, answer.status).ptr != head.data() + 12) {
-      co_return fmt::format("not an HTTP answer: {}", quote(0, head.substr(0, head.find('\r'))));
-    }
-    answer.close = head[7] == '0';  // HTTP/1.0 closes unless it says otherwise
-    std::optional<std::size_t> length;
-    for (std::size_t at = head.find("\r\n"); at != std::string_view::npos;) {
-      at += 2;
-      const std::size_t end = head.find("\r\n", at);
-      const std::string_view line = head.substr(at, end == std::string_view::npos ? std::string_view::npos : end - at);
-      at = end;
-      const std::size_t colon = line.find(':');
-      if (colon == std::string_view::npos) co_return fmt::format("a malformed answer field: {}", quote(0, line));
-      const std::string_view name = line.substr(0, colon);
-      const std::string_view value = trim(line.substr(colon + 1));
-      if (equals_icase(name, "content-length")) {
-        std::size_t n = 0;
-        if (std::from_chars(value.data(), value.data() + value.size(), n).ptr != value.data() + value.size() ||
-            value.empty()) {
-          co_return fmt::format("a malformed Content-Length: {}", quote(0, value));
-        }
-        length = n;
-      } else if (equals_icase(name, "transfer-encoding")) {
-        co_return "an answer with Transfer-Encoding (the collector's answers have a Content-Length)";
-      } else if (equals_icase(name, "connection")) {
-        if (contains_icase(value, "close")) answer.close = true;
-        if (contains_icase(value, "keep-alive")) answer.close = false;
+      if (consumed_ < have_) {
+        error_code ec;
+        consumed_ += parser_->put(net::buffer(in_.data() + consumed_, have_ - consumed_), ec);
+        if (ec && ec != bhttp::error::need_more) co_return fmt::format("a malformed answer: {}", ec.message());
+        if (parser_->is_done()) break;
       }
-    }
-    if (!length) co_return "an answer without Content-Length";
-    if (*length > kMaxAnswerBytes) co_return fmt::format("an answer body over {} bytes", kMaxAnswerBytes);
-    const std::size_t total = header_end + 4 + *length;
-    if (in_.size() < total) in_.resize(total);
-    while (have_ < total) {
+      if (consumed_ == have_) have_ = consumed_ = 0;  // the parser holds what it took
       if (std::string failed = co_await read_more(); !failed.empty()) co_return failed;
     }
-    answer.body = std::string_view(in_.data() + header_end + 4, *length);
-    consumed_ = total;
+    const auto& message = parser_->get();
+    answer.status = message.result_int();
+    answer.close = !message.keep_alive();
+    answer.body = message.body();
     co_return std::string();
   }
 
   net::any_io_executor executor_;
   std::unique_ptr<tcp::socket> plain_;             // http://
   std::unique_ptr<ssl::stream<tcp::socket>> tls_;  // https://
-  std::string in_;                                 // read buffer: [0, have_) came, [0, consumed_) was read
+  std::string in_;                                 // read buffer: [0, have_) came, [0, consumed_) was parsed
+  std::optional<bhttp::response_parser<bhttp::string_body>> parser_;  // the last answer's
   std::size_t have_ = 0;
   std::size_t consumed_ = 0;
   std::uint32_t requests_ = 0;    // on this connection
@@ -577,40 +535,72 @@ class Wire {
   bool timed_out_ = false;  // the watchdog closed the connection
 };
 
-// The bytes of one slot's requests, built once and patched. A lease request is the same every
-// time. An upload's payload sits right behind room for its HTTP header, and its pixels (one
-// constant, kPixelValue) stay in place from one tile to the next of the same size: only the tile's
-// header (job, tile, rectangle), its checksum and the request line change, and the whole request
-// is one contiguous buffer. The fields are those http::Client and the real worker send.
+// Appends `message` as Beast puts it on the wire to `out` (Beast's serializer, driven
+// synchronously); false when the serializer fails.
+template <bool isRequest, typename Body>
+bool serialise(bhttp::message<isRequest, Body>& message, std::string& out) {
+  bhttp::serializer<isRequest, Body> sr{message};
+  error_code ec;
+  while (!ec && !sr.is_done()) {
+    sr.next(ec, [&](error_code&, const auto& buffers) {
+      for (const auto b : beast::buffers_range_ref(buffers)) out.append(static_cast<const char*>(b.data()), b.size());
+      sr.consume(beast::buffer_bytes(buffers));
+    });
+  }
+  return !ec;
+}
+
+// The bytes of one slot's requests, serialised by Beast. A lease request is the same every time
+// (built once). An upload's payload sits right behind room for its HTTP header, and its pixels
+// (one constant, kPixelValue) stay in place from one tile to the next of the same size: only the
+// tile's header (job, tile, rectangle), its checksum and the request's header change, and the
+// whole request is one contiguous buffer. The fields are those http::Client and the real worker
+// send.
 class Requests {
  public:
-  Requests(const Run& run, std::string_view worker, std::string_view lease_body)
-      : common_(fmt::format("Host: {}\r\nUser-Agent: dtraced\r\nAuthorization: {}\r\n{}: {}\r\n{}: {}\r\n",
-                            run.url.host_header(), run.authorization, protocol::kWorkerHeader, worker,
-                            protocol::kPixelVersionHeader, protocol::kPixelVersion)),
-        upload_fields_(fmt::format("{}Content-Type: {}\r\n{}", common_, http::kBinaryContentType,
-                                   run.next_lease ? fmt::format("{}: 1\r\n", protocol::kNextLeaseHeader) : "")),
-        room_(upload_fields_.size() + kRequestLineRoom) {
+  Requests(const Run& run, std::string_view worker, std::string_view lease_body) {
+    const auto common = [&](auto& req) {
+      req.set(bhttp::field::host, run.url.host_header());
+      req.set(bhttp::field::user_agent, "dtraced");
+      req.set(bhttp::field::authorization, run.authorization);
+      req.set(protocol::kWorkerHeader, worker);
+      req.set(protocol::kPixelVersionHeader, std::to_string(protocol::kPixelVersion));
+    };
     for (const bool close : {false, true}) {
-      lease_[close] =
-          fmt::format("POST /v1/lease HTTP/1.1\r\n{}Content-Type: {}\r\nContent-Length: {}\r\n{}\r\n{}", common_,
-                      http::kJsonContentType, lease_body.size(), close ? "Connection: close\r\n" : "", lease_body);
+      bhttp::request<bhttp::string_body> req{bhttp::verb::post, "/v1/lease", 11};
+      common(req);
+      req.set(bhttp::field::content_type, http::kJsonContentType);
+      req.body() = std::string(lease_body);
+      req.prepare_payload();
+      req.keep_alive(!close);
+      if (!serialise(req, lease_[close])) throw std::runtime_error("cannot serialise a lease request");
     }
+    common(upload_head_);
+    upload_head_.version(11);
+    upload_head_.method(bhttp::verb::put);
+    upload_head_.set(bhttp::field::content_type, http::kBinaryContentType);
+    if (run.next_lease) upload_head_.set(protocol::kNextLeaseHeader, "1");
   }
 
   // POST /v1/lease; `close`: the connection's last request.
   std::string_view lease(bool close) const { return lease_[close]; }
 
-  // PUT /v1/jobs/{job}/tiles/{tile} with a payload for the lease's rectangle.
+  // PUT /v1/jobs/{job}/tiles/{tile} with a payload for the lease's rectangle. Throws when its
+  // header does not fit in front of the payload (check_payload_encoding tries the longest).
   std::string_view upload(const protocol::Lease& lease, bool close) {
     const std::string_view body = payload(lease);
+    target_.clear();
+    fmt::format_to(std::back_inserter(target_), "/v1/jobs/{}/tiles/{}", lease.job, lease.tile);
+    upload_head_.target(std::string_view(target_.data(), target_.size()));
+    upload_head_.content_length(body.size());
+    upload_head_.keep_alive(!close);
     head_.clear();
-    fmt::format_to(std::back_inserter(head_), "PUT /v1/jobs/{}/tiles/{} HTTP/1.1\r\n{}Content-Length: {}\r\n{}\r\n",
-                   lease.job, lease.tile, upload_fields_, body.size(), close ? "Connection: close\r\n" : "");
-    assert(head_.size() <= room_);
-    char* start = upload_.data() + room_ - head_.size();
+    if (!serialise(upload_head_, head_) || head_.size() > kUploadHeadRoom) {
+      throw std::runtime_error(fmt::format("an upload's HTTP header does not fit in {} bytes", kUploadHeadRoom));
+    }
+    char* start = upload_.data() + kUploadHeadRoom - head_.size();
     std::memcpy(start, head_.data(), head_.size());
-    return {start, head_.size() + body.size()};
+    return std::string_view{start, head_.size() + body.size()};
   }
 
   // The tile payload alone (protocol::encode_tile_payload's bytes for constant pixels); valid
@@ -620,14 +610,14 @@ class Requests {
     const std::uint32_t height = lease.rect.height;
     const std::size_t size = protocol::tile_payload_size(width, height);
     if (width != width_ || height != height_) {
-      upload_.assign(room_ + size, '\0');
-      char* pixels = upload_.data() + room_ + protocol::kTileHeaderBytes;
+      upload_.assign(kUploadHeadRoom + size, '\0');
+      char* pixels = upload_.data() + kUploadHeadRoom + protocol::kTileHeaderBytes;
       const auto bits = std::bit_cast<std::uint32_t>(kPixelValue);
       for (std::size_t i = 0; i < std::size_t{width} * height * 3; ++i) put_le(pixels + 4 * i, bits);
       width_ = width;
       height_ = height;
     }
-    char* out = upload_.data() + room_;
+    char* out = upload_.data() + kUploadHeadRoom;
     std::memcpy(out, protocol::kTileMagic.data(), protocol::kTileMagic.size());
     put_le<std::uint64_t>(out + 8, lease.job);
     put_le<std::uint32_t>(out + 16, lease.tile);
@@ -643,13 +633,12 @@ class Requests {
   }
 
  private:
-  std::string common_;         // the fields of every request
-  std::string upload_fields_;  // and of every upload
-  std::size_t room_;           // bytes in front of the payload for the HTTP header
   std::array<std::string, 2> lease_;
-  std::string upload_;  // room_ bytes, then the payload
+  bhttp::request<bhttp::empty_body> upload_head_;  // the fields every upload of the slot shares
+  std::string upload_;                             // kUploadHeadRoom bytes, then the payload
   std::uint32_t width_ = 0, height_ = 0;
-  fmt::memory_buffer head_;
+  fmt::memory_buffer target_;
+  std::string head_;
 };
 
 // The packed payload must be the protocol encoder's, byte for byte: checked once before a run, so
@@ -667,6 +656,14 @@ util::Status check_payload_encoding(const Run& run) {
   expected.rgb.assign(std::size_t{lease.rect.width} * lease.rect.height * 3, kPixelValue);
   if (requests.payload(lease) != protocol::encode_tile_payload(expected)) {
     return util::Error{"the generator's tile payload differs from protocol::encode_tile_payload's"};
+  }
+  // The longest upload header (the largest job and tile numbers) must fit in front of a payload.
+  lease.job = std::numeric_limits<std::uint64_t>::max();
+  lease.tile = std::numeric_limits<std::uint32_t>::max();
+  try {
+    requests.upload(lease, true);
+  } catch (const std::exception& e) {
+    return util::Error{e.what()};
   }
   return util::Status();
 }
