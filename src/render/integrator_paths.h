@@ -298,10 +298,11 @@ struct Tracer {
         const std::uint32_t base = dim;
         dim += 2 * a.samples;
         Vec3f acc{0, 0, 0};
+        const PixelSampler2 light_points(key, base);  // stratified_2d(key, base, .), hashed once
         for (std::uint32_t s = 0; s < a.samples; ++s) {
           // Point key.sample * samples + s of one stratified sequence: the light's samples of
           // one pixel sample, and of the pixel's first 2^k samples, are stratified together.
-          const Sample2 u = stratified_2d(key, base, key.sample * a.samples + s);
+          const Sample2 u = light_points.at(key.sample * a.samples + s);
           AreaSample as;
           if (!sample_area_light(a, hit.p, nf, u.u, u.v, as)) continue;
           float vis = 1.0f;

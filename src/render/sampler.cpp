@@ -28,9 +28,8 @@ std::uint32_t reverse_bits(std::uint32_t x) {
 // function of x's lower bits only: adding a constant, multiplying by an odd one and xoring in a
 // product with an even one all carry information upwards only. Applied to a binary fraction with
 // its bits reversed, that is a nested (Owen-type) scramble: each bit flipped by a function of
-// the more significant bits, with seed-drawn constants.
-inline std::uint32_t scramble_upwards(std::uint32_t x, std::uint64_t seed) {
-  const std::uint64_t a = math::mix64(seed);
+// the more significant bits, with constants drawn from `a` (mix64 of a seed).
+inline std::uint32_t scramble_upwards_mixed(std::uint32_t x, std::uint64_t a) {
   x += std::uint32_t(a);
   x *= std::uint32_t(a >> 32) | 1u;
   x ^= x * 0x6a5d39eau;
@@ -39,45 +38,65 @@ inline std::uint32_t scramble_upwards(std::uint32_t x, std::uint64_t seed) {
   return x;
 }
 
+// The same with the seed's constants drawn here (a = mix64(seed)).
+inline std::uint32_t scramble_upwards(std::uint32_t x, std::uint64_t seed) {
+  return scramble_upwards_mixed(x, math::mix64(seed));
+}
+
 float unit_float(std::uint32_t bits) { return float(bits >> 8) * 0x1.0p-24f; }
 
 inline std::uint32_t owen(std::uint32_t value, std::uint64_t seed) {
   return reverse_bits(scramble_upwards(reverse_bits(value), seed));
 }
 
-// Sobol' dimension 1 of an index below 2^24.
-inline std::uint32_t sobol1_24(std::uint32_t index) {
-  std::uint32_t y = 0, v = 1u << 31;
-  // Branch-free: the bits of a scrambled index are random, a branch on each would mispredict.
-  for (int bit = 0; bit < 24; ++bit, v ^= v >> 1) y ^= v & (0u - ((index >> bit) & 1u));
-  return y;
+// Sobol' dimension 1 with its bits reversed. Its direction numbers (primitive polynomial x + 1)
+// are the rows of Pascal's triangle mod 2: index bit b adds C(b, j) mod 2 to result bit 31 - j,
+// and by Lucas' theorem C(b, j) is odd exactly when the bits of j are a subset of those of b. So
+// bit j of the reversed result is the xor of the index bits b that are supersets of j: the
+// superset-sum transform over GF(2), one shift, mask and xor for each of the 5 bits of j
+// (instead of a step for each of the index's bits).
+inline std::uint32_t sobol1_reversed(std::uint32_t index) {
+  index ^= (index >> 1) & 0x55555555u;
+  index ^= (index >> 2) & 0x33333333u;
+  index ^= (index >> 4) & 0x0f0f0f0fu;
+  index ^= (index >> 8) & 0x00ff00ffu;
+  index ^= (index >> 16) & 0x0000ffffu;
+  return index;
 }
 
 }  // namespace
 
 void sobol2(std::uint32_t index, std::uint32_t& x, std::uint32_t& y) {
-  // Dimension 0 is the van der Corput sequence (the index's bits reversed). Dimension 1 has the
-  // primitive polynomial x + 1: direction number k is the previous one xor itself shifted by one.
+  // Dimension 0 is the van der Corput sequence (the index's bits reversed).
   x = reverse_bits(index);
-  y = 0;
-  // Branch-free: the bits of a scrambled index are random, a branch on each would mispredict.
-  std::uint32_t v = 1u << 31;
-  for (int bit = 0; bit < 32; ++bit, v ^= v >> 1) y ^= v & (0u - ((index >> bit) & 1u));
+  y = reverse_bits(sobol1_reversed(index));
 }
 
 std::uint32_t owen_scramble(std::uint32_t value, std::uint64_t seed) { return owen(value, seed); }
 
-Sample2 stratified_2d(const math::SampleKey& key, std::uint32_t dim, std::uint32_t index) {
+PixelSampler2::PixelSampler2(const math::SampleKey& key, std::uint32_t dim) {
   const std::uint64_t seed = pixel_seed(key, dim);
+  index_mix_ = math::mix64(seed ^ kIndexStream);
+  u_mix_ = math::mix64(seed ^ kUStream);
+  v_mix_ = math::mix64(seed ^ kVStream);
+}
+
+Sample2 PixelSampler2::at(std::uint32_t index) const {
   // Scrambling the index as a binary fraction maps the run [0, 2^k) onto one aligned run of 2^k
   // indices, and a run of a (0,2)-sequence is a net: the prefixes keep their stratification.
   // Indices are below 2^24, so the bits above are zero and their flips only choose the run: they
   // are dropped, which keeps the map a bijection of [0, 2^24).
-  const std::uint32_t shuffled = owen(index, seed ^ kIndexStream) & 0xffffffu;
+  const std::uint32_t shuffled = reverse_bits(scramble_upwards_mixed(reverse_bits(index), index_mix_)) & 0xffffffu;
   // Dimension 0 of the point is the shuffled index reversed; scrambling reverses it back.
-  const std::uint32_t u = reverse_bits(scramble_upwards(shuffled, seed ^ kUStream));
-  const std::uint32_t v = owen(sobol1_24(shuffled), seed ^ kVStream);
+  const std::uint32_t u = reverse_bits(scramble_upwards_mixed(shuffled, u_mix_));
+  // Dimension 1 is Sobol's second dimension, whose owen scramble reverses, scrambles and
+  // reverses back: the reversed form goes straight in.
+  const std::uint32_t v = reverse_bits(scramble_upwards_mixed(sobol1_reversed(shuffled), v_mix_));
   return Sample2{unit_float(u), unit_float(v)};
+}
+
+Sample2 stratified_2d(const math::SampleKey& key, std::uint32_t dim, std::uint32_t index) {
+  return PixelSampler2(key, dim).at(index);
 }
 
 }  // namespace dtraced::render

@@ -41,4 +41,18 @@ std::uint32_t owen_scramble(std::uint32_t value, std::uint64_t seed);
 // pixel and dimension pair with indices in an aligned run of 2^k form a (0,k,2)-net.
 Sample2 stratified_2d(const math::SampleKey& key, std::uint32_t dim, std::uint32_t index);
 
+// stratified_2d for many points of one pixel and dimension pair: the hashing of (seed, frame,
+// pixel, dimension) done once, at construction; at(index) is then a few integer operations and
+// gives stratified_2d(key, dim, index), bit for bit.
+class PixelSampler2 {
+ public:
+  PixelSampler2() = default;
+  PixelSampler2(const math::SampleKey& key, std::uint32_t dim);
+  Sample2 at(std::uint32_t index) const;  // index < 2^24
+
+ private:
+  // The scramble constants of the index permutation and of the two coordinates.
+  std::uint64_t index_mix_ = 0, u_mix_ = 0, v_mix_ = 0;
+};
+
 }  // namespace dtraced::render

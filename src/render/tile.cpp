@@ -21,15 +21,27 @@ math::SampleKey sample_key(const scene::RenderSettings& settings, std::uint32_t 
   return math::SampleKey{settings.seed, settings.frame, x, y, s};
 }
 
-math::Ray camera_ray(const RenderScene& scene, const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y,
-                     std::uint32_t s) {
+// The film sampler of pixel (x, y), for camera_ray: the pixel's hashing done once for all of its
+// samples. Only read when settings.samples > 1; left blank (no hashing) otherwise.
+PixelSampler2 film_sampler(const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y) {
+  return settings.samples > 1 ? PixelSampler2(sample_key(settings, x, y, 0), 0) : PixelSampler2{};
+}
+
+// Camera ray of sample s of pixel (x, y), whose film_sampler is `film`.
+math::Ray camera_ray(const RenderScene& scene, const scene::RenderSettings& settings, const PixelSampler2& film,
+                     std::uint32_t x, std::uint32_t y, std::uint32_t s) {
   double jx = 0.5, jy = 0.5;
   if (settings.samples > 1) {
-    const Sample2 u = stratified_2d(sample_key(settings, x, y, s), 0, s);
+    const Sample2 u = film.at(s);
     jx = u.u;
     jy = u.v;
   }
   return scene.camera().generate(x + jx, y + jy, settings.width, settings.height);
+}
+
+math::Ray camera_ray(const RenderScene& scene, const scene::RenderSettings& settings, std::uint32_t x, std::uint32_t y,
+                     std::uint32_t s) {
+  return camera_ray(scene, settings, film_sampler(settings, x, y), x, y, s);
 }
 
 // Groups of a pixel's samples for the adaptive error estimate: at checkpoint n they are the four
@@ -200,8 +212,9 @@ void render_pixels(const TileContext& ctx, TileSums& st, std::uint32_t until, Ti
       std::uint32_t local_n = 0;
       PixelSums& p = st.kept() ? st.sums[i] : local;
       std::uint32_t& n = st.kept() ? st.taken[i] : local_n;
+      const PixelSampler2 film = film_sampler(ctx.settings, x, y);
       while (n < until) {
-        accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, ctx.settings, x, y, n),
+        accumulate(trace_radiance(ctx.scene, camera_ray(ctx.scene, ctx.settings, film, x, y, n),
                                   sample_key(ctx.settings, x, y, n), ctx.limits, tile.stats),
                    n, ctx.span0, p, ctx.squares(), tile.stats);
         ++n;
@@ -247,6 +260,7 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
       PixelSums* sums[kBlockW * kBlockH];
       std::uint32_t* taken[kBlockW * kBlockH];
       std::uint32_t start = until;
+      PixelSampler2 film[kBlockW * kBlockH];
       for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
         const std::uint32_t tx = bx + i % kBlockW, ty = by + i / kBlockW;
         if (tx >= rect.width || ty >= rect.height) continue;
@@ -256,6 +270,7 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
         taken[i] = st.kept() ? &st.taken[index[i]] : &local_taken[i];
         if ((st.kept() && st.done[index[i]]) || *taken[i] >= until) continue;
         active |= 1u << i;
+        film[i] = film_sampler(settings, rect.x0 + tx, rect.y0 + ty);
         assert(start == until || start == *taken[i]);
         start = *taken[i];
       }
@@ -269,7 +284,7 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (active >> i & 1u) {
             const std::uint32_t x = rect.x0 + bx + i % kBlockW, y = rect.y0 + by + i / kBlockW;
-            rays[i] = camera_ray(ctx.scene, settings, x, y, s);
+            rays[i] = camera_ray(ctx.scene, settings, film[i], x, y, s);
             keys[i] = sample_key(settings, x, y, s);
           }
         }
@@ -324,10 +339,18 @@ void trace_jobs(const TileContext& ctx, TraceStats& stats, Next&& next, Take&& t
   math::Ray rays[kN];
   math::SampleKey keys[kN];
   Vec3f radiance[kN];
+  // Jobs come pixel after pixel (several samples of one in a row): its film sampler is kept.
+  PixelSampler2 film;
+  std::uint32_t film_x = 0, film_y = 0;
+  bool have_film = false;
   for (;;) {
     std::uint32_t n = 0;
     while (n < kN && next(jobs[n])) {
-      rays[n] = camera_ray(ctx.scene, ctx.settings, jobs[n].x, jobs[n].y, jobs[n].s);
+      if (!have_film || jobs[n].x != film_x || jobs[n].y != film_y) {
+        film = film_sampler(ctx.settings, jobs[n].x, jobs[n].y);
+        film_x = jobs[n].x, film_y = jobs[n].y, have_film = true;
+      }
+      rays[n] = camera_ray(ctx.scene, ctx.settings, film, jobs[n].x, jobs[n].y, jobs[n].s);
       keys[n] = sample_key(ctx.settings, jobs[n].x, jobs[n].y, jobs[n].s);
       ++n;
     }
