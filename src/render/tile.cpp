@@ -465,6 +465,26 @@ double residual_variance(const Neighbourhood& nb) {
   return dof > 0 ? std::max(0.0, residual / dof) : 0.0;
 }
 
+// residual_variance of a full 3x3 neighbourhood (offsets -1, 0, 1 in rows, then columns) whose
+// values are v, with its constants folded: the offsets' means are exactly 0, sxx = syy = 6 and 6
+// degrees of freedom are left. A product with an offset of 0 adds a zero to a sum, and one of
+// +-1 is exact, so every sum is the same float operations in the same order as the general
+// function's: the same bits.
+double residual_variance9(const double* v) {
+  double mv = 0.0;
+  for (int j = 0; j < 9; ++j) mv += v[j];
+  mv /= 9.0;
+  double d[9];
+  for (int j = 0; j < 9; ++j) d[j] = v[j] - mv;
+  double svv = 0.0;
+  for (int j = 0; j < 9; ++j) svv += d[j] * d[j];
+  double sxv = 0.0, syv = 0.0;
+  sxv -= d[0], sxv += d[2], sxv -= d[3], sxv += d[5], sxv -= d[6], sxv += d[8];
+  syv -= d[0], syv -= d[1], syv -= d[2], syv += d[6], syv += d[7], syv += d[8];
+  const double residual = svv - sxv * sxv / 6.0 - syv * syv / 6.0;
+  return std::max(0.0, residual / 6.0);
+}
+
 // The first checkpoint's neighbourhood rule. A pixel's own samples cannot see an edge that none
 // of them crossed: a pixel that an outline clips by a sliver has a fair chance that its first
 // min_samples samples all land on one side, agree exactly, and estimate a variance of zero; with
@@ -555,7 +575,7 @@ void first_checkpoint(const TileContext& ctx, bool packets, TileSums& st, Tile& 
       bool pass = true;
       for (int c = 0; c < 3; ++c) {
         for (std::uint32_t j = 0; j < nb.count; ++j) nb.value[j] = means[at[j] + std::size_t(c)];
-        double var = residual_variance(nb);
+        double var = nb.count == 9 ? residual_variance9(nb.value) : residual_variance(nb);
         st.prior[i * 3 + c] = float(var);
         if (n >= kMinOwnSamples) var = std::max(var, mean_variance(own, c, n));
         pass = pass && relative_error2(own.sum[c] / double(n), var) <= limit2;
