@@ -13,7 +13,8 @@
 // Peak RSS is the largest of the peaks of the parse, the build and the render (VmHWM, reset
 // between them, each printed to stderr), read before the extra timing builds.
 // The objects are loaded straight into render-ready arrays (render::RenderSceneBuilder).
-// Times are wall time (steady_clock); the build figures are the median of --runs builds.
+// Times are wall time (steady_clock); the build figures are the median of --runs builds, each
+// beside the CPU time of the build's threads.
 //
 // Exit codes: 0 done; 1 the scene could not be written, loaded or built; 2 usage error.
 // Threading: the main thread drives; Geometry::build and render_local start their own threads.
@@ -26,6 +27,8 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <system_error>
+#include <utility>
 #include <vector>
 
 #include <CLI/CLI.hpp>
@@ -85,6 +88,14 @@ double cpu_seconds() {
   return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) + 1e-6 * double(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
 }
 
+// Threads of this process now (entries of /proc/self/task); 0 where /proc has none.
+std::size_t thread_count() {
+  std::error_code ec;
+  std::size_t count = 0;
+  for (std::filesystem::directory_iterator it("/proc/self/task", ec), end; !ec && it != end; it.increment(ec)) ++count;
+  return count;
+}
+
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.empty() ? 0.0 : v[v.size() / 2];
@@ -107,7 +118,7 @@ int write_scene(std::uint32_t count, const std::string& path) {
 struct Figures {
   std::size_t spheres = 0;
   double load_s = 0, build1_s = 0, buildn_s = 0, render_s = 0, rss = 0;
-  double build1_cpu = 0, buildn_cpu = 0;  // CPU time of the builds (every thread), median
+  double build1_cpu = 0, buildn_cpu = 0;  // CPU time of the builds' threads, median
   double embree1_s = -1, embreen_s = -1;
 };
 
@@ -179,12 +190,21 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     // The build alone, on 1 thread and on `threads`, from the same shapes.
     const std::vector<accel::Shape>& shapes = rs.geometry().fixed()->geometry.shapes();
     // The CPU time beside the wall time: on a shared machine the wall time waits for a core, so
-    // two builds are best compared by their CPU (on 1 thread, the build's own).
+    // two builds are best compared by their CPU. It is the CPU of the build's threads alone: the
+    // shapes are copied before the call and the tree freed after it, and the build's own threads
+    // are joined before it returns (Linux then counts their time in the process's), so with no
+    // other thread in the process (checked) the process's CPU over the call is theirs.
+    const std::size_t idle_threads = thread_count();
+    if (idle_threads > 1) {
+      fmt::print(stderr, "  note: {} threads in the process before the builds; build cpu counts them too\n",
+                 idle_threads);
+    }
     std::vector<double> one, many, one_cpu, many_cpu;
     for (int i = 0; i < runs; ++i) {
       for (const std::uint32_t t : {1u, threads}) {
+        std::vector<accel::Shape> copy = shapes;
         const double cpu_before = cpu_seconds();
-        const accel::Geometry g = accel::Geometry::build(shapes, isa, t);
+        const accel::Geometry g = accel::Geometry::build(std::move(copy), isa, t);
         const double cpu = cpu_seconds() - cpu_before;
         (t == 1 ? one : many).push_back(g.stats().seconds + g.stats().wide_seconds);
         (t == 1 ? one_cpu : many_cpu).push_back(cpu);
