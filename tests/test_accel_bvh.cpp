@@ -458,6 +458,19 @@ TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the re
     const Geometry held = Geometry::build(with_box, isa, 2);
     REQUIRE(held.shapes().size() == with_box.size());
     CHECK(std::memcmp(held.shapes().data(), with_box.data(), with_box.size() * sizeof(Shape)) == 0);
+    // More planes than a scene may set aside (4096): held too, and the tree is the same one (the
+    // planes, last, are beside it; the spheres keep their ids).
+    std::vector<Shape> many_planes = shapes;
+    for (int i = 0; i < 4097; ++i) many_planes.push_back(plane({0, -30.0f - float(i) * 1e-3f, 0}, {0, 1, 0}));
+    for (const unsigned threads : {1u, 2u}) {
+      const Geometry planes_held = Geometry::build(many_planes, isa, threads);
+      INFO("isa " << isa_name(isa) << ", threads " << threads << ", tree " << std::hex
+                  << planes_held.stats().tree_hash);
+      CHECK(planes_held.stats().tree_hash == simd_hash);
+      CHECK(planes_held.stats().outside == 4 + 2 + 4097);
+      REQUIRE(planes_held.shapes().size() == many_planes.size());
+      CHECK(std::memcmp(planes_held.shapes().data(), many_planes.data(), many_planes.size() * sizeof(Shape)) == 0);
+    }
   }
 }
 
