@@ -56,10 +56,19 @@ constexpr unsigned kMaxBuildThreads = 64;
 // Ranges of at most this many prims take Splitter::split_sparse (same decisions, less fixed cost).
 constexpr std::uint32_t kSparseMax = 16;
 
+// No member is written by the default constructor (Bounds3f and Vec3f have default values, hence
+// the unions), so that sizing the array writes no memory: the threads that fill it touch its pages
+// first (a serial write of the default values took 0.02-0.17 s for 1M prims).
 struct BuildPrim {
-  Bounds3f bounds;
-  Vec3f centroid;
-  std::uint32_t id = 0;
+  BuildPrim() {}  // leaves every member unset
+  BuildPrim(const Bounds3f& b, const Vec3f& c, std::uint32_t i) : bounds(b), centroid(c), id(i) {}
+  union {
+    Bounds3f bounds;
+  };
+  union {
+    Vec3f centroid;
+  };
+  std::uint32_t id;
 };
 // BoxAccumulator reads 4 floats from each of bounds.lo, bounds.hi and centroid.
 static_assert(offsetof(BuildPrim, bounds) == 0 && offsetof(BuildPrim, centroid) == sizeof(Bounds3f) &&
@@ -647,15 +656,15 @@ struct SetAside {
 // Most shapes a scene may set aside (44 bytes each); a scene with more keeps its shapes.
 constexpr std::size_t kMaxSetAside = 4096;
 
-// Whether `shapes` are all spheres but for at most kMaxSetAside planes.
-bool can_set_aside(const std::vector<Shape>& shapes) {
-  std::size_t others = 0;
-  for (const Shape& s : shapes) {
-    if (s.type == ShapeType::kSphere) continue;
-    if (s.type != ShapeType::kPlane || ++others > kMaxSetAside) return false;
-  }
-  return true;
-}
+// A set-aside shape's sphere. The constructor writes nothing (SphereShape has default values,
+// hence the union), so that sizing the array writes no memory: the threads that copy the spheres
+// in touch its pages first.
+struct AsideSphere {
+  AsideSphere() {}  // leaves the sphere unset
+  union {
+    SphereShape sphere;
+  };
+};
 
 // The shapes again: the tree's spheres from `prims` or, once those are freed, from the wide tree's
 // sphere blocks, and the others from `a`.
@@ -694,19 +703,6 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   Geometry g;
   g.shapes_ = std::move(shapes);
 
-  // What each shape is (0 invalid, 1 plane, 2 bounded), in chunks (in parallel for large scenes).
-  const std::size_t n = g.shapes_.size();
-  const unsigned shape_threads = n >= kParallelGrain ? threads : 1;
-  std::vector<std::uint8_t> kind(n);
-  parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
-    const std::size_t end = std::min(n, (c + 1) * kChunk);
-    for (std::size_t id = c * kChunk; id < end; ++id) {
-      const Shape& s = g.shapes_[id];
-      kind[id] = !detail::shape_is_valid(s) ? 0 : s.type == ShapeType::kPlane ? 1 : 2;
-    }
-  });
-  const auto bounded = std::size_t(std::count(kind.begin(), kind.end(), std::uint8_t{2}));
-
   // A large scene of spheres (and a few planes) that gets a wide tree holds no Shape array while
   // its tree is built and collapsed (SetAside): only bare spheres (16 bytes where a Shape takes
   // 40) until the prims are made, then the prims and the wide tree's blocks hold them. They are
@@ -714,42 +710,84 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // build prims are never alive together. Enough spheres that, even after the huge ones leave
   // the tree (kMaxOutside at most), it is far above kMinWidePrims: it gets a wide tree. Whether
   // a scene is set aside changes its memory, not its tree or its shapes.
-  const bool aside = isa != Isa::kScalar && bounded >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) &&
-                     can_set_aside(g.shapes_);
-  SetAside set;
-  std::vector<SphereShape> spheres;  // aside: each shape's sphere, by id, until the prims are made
-  if (aside) {
-    set.count = n;
+  const std::size_t n = g.shapes_.size();
+  const unsigned shape_threads = n >= kParallelGrain ? threads : 1;
+  const bool may_set_aside = isa != Isa::kScalar && n >= std::max<std::size_t>(kMinWidePrims, kParallelGrain);
+  std::vector<AsideSphere> spheres;  // aside: each shape's sphere, by id, until the prims are made
+  if (may_set_aside) {
     spheres.reserve(n);
     util::advise_huge_pages_for(spheres);  // first touches are costly page faults (util/huge_pages.h)
-    for (std::uint32_t id = 0; id < n; ++id) {
+    spheres.resize(n);                     // writes nothing (AsideSphere)
+  }
+
+  // What each shape is (0 invalid, 1 plane, 2 bounded), in chunks (in parallel for large scenes);
+  // where the scene may be set aside, the same pass copies the spheres out (on the thread that
+  // reads them; only spheres, so a mesh touches none of that array, and only the bounded ones
+  // are read back) and counts the shapes that forbid it: more than kMaxSetAside planes, or any
+  // shape that is neither a sphere nor a plane. The copies are dropped if it may not.
+  struct ChunkCounts {
+    std::size_t bounded = 0, planes = 0, others = 0;
+  };
+  std::vector<std::uint8_t> kind(n);
+  std::vector<ChunkCounts> counts(chunks_of(n));
+  parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
+    const std::size_t end = std::min(n, (c + 1) * kChunk);
+    ChunkCounts k;
+    for (std::size_t id = c * kChunk; id < end; ++id) {
       const Shape& s = g.shapes_[id];
-      spheres.push_back(s.type == ShapeType::kSphere ? s.sphere : SphereShape{});
-      if (kind[id] != 2) set.others.push_back({id, s});  // planes and invalid spheres
+      const std::uint8_t what = !detail::shape_is_valid(s) ? 0 : s.type == ShapeType::kPlane ? 1 : 2;
+      kind[id] = what;
+      k.bounded += what == 2;
+      k.planes += s.type == ShapeType::kPlane;
+      k.others += s.type != ShapeType::kPlane && s.type != ShapeType::kSphere;
+      if (may_set_aside && s.type == ShapeType::kSphere) spheres[id].sphere = s.sphere;
+    }
+    counts[c] = k;
+  });
+  ChunkCounts all_counts;
+  for (const ChunkCounts& k : counts) {
+    all_counts.bounded += k.bounded;
+    all_counts.planes += k.planes;
+    all_counts.others += k.others;
+  }
+  const std::size_t bounded = all_counts.bounded;
+  const bool aside = may_set_aside && bounded >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) &&
+                     all_counts.others == 0 && all_counts.planes <= kMaxSetAside;
+  SetAside set;
+  if (aside) {
+    set.count = n;
+    for (std::uint32_t id = 0; id < n; ++id) {
+      if (kind[id] != 2) set.others.push_back({id, g.shapes_[id]});  // planes and invalid spheres
     }
     std::vector<Shape>().swap(g.shapes_);
+  } else {
+    std::vector<AsideSphere>().swap(spheres);
   }
   // The shape whose bounds a build prim takes: a set-aside sphere is made whole again for it.
   const auto bounds_of = [&](std::size_t id) {
     if (!aside) return shape_bounds(g.shapes_[id]);
     Shape s;
-    s.sphere = spheres[id];
+    s.sphere = spheres[id].sphere;
     return shape_bounds(s);
   };
 
-  // Bounds of every bounded shape, in chunks; the planes and invalid shapes are dropped after, in
-  // id order.
+  // Bounds of every bounded shape, in chunks, and their union per chunk; the planes and invalid
+  // shapes are dropped after, in id order.
   std::vector<BuildPrim> refs;
   refs.reserve(n);
   util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
-  refs.resize(n);
+  refs.resize(n);                     // writes nothing (BuildPrim)
+  std::vector<Bounds3f> chunk_bounds(chunks_of(n));
   parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
     const std::size_t end = std::min(n, (c + 1) * kChunk);
+    Bounds3f cb;
     for (std::size_t id = c * kChunk; id < end; ++id) {
       if (kind[id] != 2) continue;
       const Bounds3f b = bounds_of(id);
       refs[id] = {b, b.centroid(), std::uint32_t(id)};
+      cb.extend(b);
     }
+    chunk_bounds[c] = cb;
   });
   {
     std::size_t k = 0;
@@ -759,7 +797,8 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       if (kind[id] == 1) {
         g.outside_.push_back(id);
       } else {
-        refs[k++] = refs[id];
+        if (k != id) refs[k] = refs[id];
+        ++k;
       }
     }
     refs.resize(k);
@@ -771,14 +810,23 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // beside it. Huge: bounds with more than a quarter of the surface area of all shapes' bounds.
   // At most kMaxOutside are taken out, the largest first, so the linear part stays short.
   if (refs.size() > 1) {
+    // The union of the chunks' unions in chunk order: the bounds in id order, as one pass over
+    // the prims would extend them (a minimum keeps the value it holds on a tie, so the same bits).
     Bounds3f all;
-    for (const BuildPrim& ref : refs) all.extend(ref.bounds);
+    for (const Bounds3f& cb : chunk_bounds) all.extend(cb);
     const double limit = kHugeFraction * area(all);
+    // The shapes above the limit in index order (each chunk's in its own list, joined in order).
+    const std::size_t m = refs.size();
+    std::vector<std::vector<std::pair<double, std::uint32_t>>> huge_in(chunks_of(m));
+    parallel_for(chunks_of(m), m >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+      const std::size_t end = std::min(m, (c + 1) * kChunk);
+      for (std::size_t i = c * kChunk; i < end; ++i) {
+        const double a = area(refs[i].bounds);
+        if (a > limit) huge_in[c].push_back({a, std::uint32_t(i)});
+      }
+    });
     std::vector<std::pair<double, std::uint32_t>> huge;  // (area, index into refs)
-    for (std::uint32_t i = 0; i < refs.size(); ++i) {
-      const double a = area(refs[i].bounds);
-      if (a > limit) huge.push_back({a, i});
-    }
+    for (const auto& part : huge_in) huge.insert(huge.end(), part.begin(), part.end());
     std::sort(huge.begin(), huge.end(), [](const auto& x, const auto& y) { return x.first > y.first; });
     if (huge.size() > kMaxOutside) huge.resize(kMaxOutside);
     if (!huge.empty() && huge.size() < refs.size()) {
@@ -789,7 +837,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
         g.outside_.push_back(id);
         if (aside) {  // beside the tree, so not in its blocks: set aside whole
           Shape s;
-          s.sphere = spheres[id];
+          s.sphere = spheres[id].sphere;
           set.others.push_back({id, s});
         }
       }
@@ -852,7 +900,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       Prim& p = g.prims_[i];
       p.id = order[i];
       if (aside) {  // every prim is a sphere (planes and invalid shapes are not in the tree)
-        const SphereShape& sphere = spheres[order[i]];
+        const SphereShape& sphere = spheres[order[i]].sphere;
         p.type = ShapeType::kSphere;
         p.data[0] = sphere.center.x;
         p.data[1] = sphere.center.y;
@@ -885,7 +933,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   std::vector<std::uint32_t>().swap(order);
   // Until put_back nothing reads shapes_: the collapse reads prims (and shapes only for
   // triangles, which a scene set aside has none of).
-  std::vector<SphereShape>().swap(spheres);
+  std::vector<AsideSphere>().swap(spheres);
 
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
   std::uint64_t hash = 0xcbf29ce484222325ull;

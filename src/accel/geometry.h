@@ -158,11 +158,15 @@ class Geometry {
     std::uint32_t count : 30;  // number of shapes in a leaf; 0 for an interior node
     std::uint32_t axis : 2;    // split axis of an interior node (children ordered along it)
   };
-  // A bounded shape packed for traversal (32 bytes), in BVH leaf order.
+  // A bounded shape packed for traversal (32 bytes), in BVH leaf order. No member has a default
+  // value and the constructor writes nothing (`= default` would have vector::resize zero them),
+  // so that sizing prims_ writes no memory: the build's threads write every field, each touching
+  // its own chunk's pages first.
   struct Prim {
+    Prim() {}
     float data[6];  // sphere: centre x, y, z, radius; box: lo x, y, z, hi x, y, z
-    std::uint32_t id = 0;
-    ShapeType type = ShapeType::kSphere;
+    std::uint32_t id;
+    ShapeType type;
   };
 
   friend detail::WideBvh detail::collapse_to_wide(const Geometry& g, bool prims_read_once);
