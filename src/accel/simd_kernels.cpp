@@ -75,6 +75,17 @@
 // multiply, add before the slab arithmetic, on every node's path to its child), which the halved node memory did not
 // win back (a node's first load was 10 % of the walk); the packets' is mostly the looser boxes. Forcing triangles1
 // inline into leaf1 (it is called out of line, with a vzeroupper): secondary 0.99x (8 pairs).
+//
+// Issue 16, round 14 (single rays, after Embree's BVH8 walk, bvh_traverser1.h): traverse1 chooses each axis's near
+// and far planes once per ray (byte offsets into the node, NodeRay1) instead of per node, keeps the ray's constants in
+// vectors, and enters a lone hit child without a push or a sort, orders two with one comparison, and sorts only three
+// or more. Same visits, same bits. 1M-triangle mesh, avx512, 1 thread, old and new binaries alternated at load 8-13
+// (other builds): secondary rays 1.075x (4 pairs, --no-embree, medians of per-pair ratios; the unchanged scalar path
+// 1.01x), and against rtcIntersect1 in the same process 0.59 / 0.66 / 0.65 -> 0.77 / 0.72 / 0.78 (3 pairs). Tried and
+// dropped: the same offsets in the coherent walk's frustum and lane tests (Frustum): 16-ray shadow packets against
+// rtcOccluded16 0.79 (3 pairs) where the single-ray change alone gave 0.89, camera within noise. Leaf blocks on that
+// mesh: every leaf is one 4-lane block (leaves of at most 4 prims), 1,040,000 triangles in 337,571 leaves, 3.08 a block
+// (77 % full); packets test one triangle broadcast against their lanes (triangle8), as Embree's coherent packets do.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -137,22 +148,44 @@ inline Single make_single(const RayPre& r, float t_min) {
   return s;
 }
 
+// A single ray's node-test constants, made once per walk (Embree's habit): per axis the byte offsets
+// in a WideNode of the child planes the ray meets first and last (lo or hi by the direction's sign,
+// so no select per node and axis), and the origin, inverse direction and t_min as vectors.
+template <class D>
+struct NodeRay1 {
+  std::size_t near_off[3], far_off[3];
+  hn::Vec<D> o[3], inv[3], t_min;
+};
+template <class D>
+HWY_INLINE NodeRay1<D> make_node_ray1(D d, const Single& s) {
+  NodeRay1<D> nr;
+  for (int a = 0; a < 3; ++a) {
+    const std::size_t lo = offsetof(WideNode, lo) + std::size_t(a) * sizeof(WideNode::lo[0]);
+    const std::size_t hi = offsetof(WideNode, hi) + std::size_t(a) * sizeof(WideNode::hi[0]);
+    nr.near_off[a] = s.r.neg[a] ? hi : lo;
+    nr.far_off[a] = s.r.neg[a] ? lo : hi;
+    nr.o[a] = hn::Set(d, s.r.o[a]);
+    nr.inv[a] = hn::Set(d, s.r.inv_d[a]);
+  }
+  nr.t_min = hn::Set(d, s.t_min);
+  return nr;
+}
+inline const float* node_planes(const WideNode& node, std::size_t off) {
+  return reinterpret_cast<const float*>(reinterpret_cast<const char*>(&node) + off);
+}
+
 // Entry distances of the ray into the node's 8 child boxes (lanes whose bit is set in the
 // result pass node_hit against `cull`).
-inline std::uint32_t node_test1(const WideNode& node, const Single& s, float cull, float* t_near) {
-  const hn::CappedTag<float, kNodeWidth> d;
+template <class D>
+HWY_INLINE std::uint32_t node_test1(D d, const WideNode& node, const NodeRay1<D>& nr, float cull, float* t_near) {
   const std::size_t n = hn::Lanes(d);
   std::uint32_t bits = 0;
   for (std::size_t i = 0; i < std::size_t(kNodeWidth); i += n) {
-    auto t0 = hn::Set(d, s.t_min);
+    auto t0 = nr.t_min;
     auto tf = hn::Set(d, kInfF);
     for (int a = 0; a < 3; ++a) {
-      const float* nb = s.r.neg[a] ? node.hi[a] : node.lo[a];
-      const float* fb = s.r.neg[a] ? node.lo[a] : node.hi[a];
-      const auto o = hn::Set(d, s.r.o[a]);
-      const auto inv = hn::Set(d, s.r.inv_d[a]);
-      const auto tn = hn::Mul(hn::Sub(hn::LoadU(d, nb + i), o), inv);
-      const auto tfa = hn::Mul(hn::Sub(hn::LoadU(d, fb + i), o), inv);
+      const auto tn = hn::Mul(hn::Sub(hn::LoadU(d, node_planes(node, nr.near_off[a]) + i), nr.o[a]), nr.inv[a]);
+      const auto tfa = hn::Mul(hn::Sub(hn::LoadU(d, node_planes(node, nr.far_off[a]) + i), nr.o[a]), nr.inv[a]);
       // Max(tn, t0) is tn > t0 ? tn : t0 on x86 (maxps returns its second operand when one is
       // NaN) and skips NaN on Highway's scalar target: a NaN slab (0 * inf) never constrains.
       t0 = hn::Max(tn, t0);
@@ -463,6 +496,8 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
   std::uint32_t cur = start;
   bool improved = false;
   float cull = best_t * kFarScale;
+  const hn::CappedTag<float, kNodeWidth> d;
+  const NodeRay1 nr = make_node_ray1(d, s);
   while (true) {
     if (cur & kLeafBit) {
       if (leaf1<kAnyHit>(bvh, leaf_of(bvh, cur), s, best_t, best_id, uvw, slot)) {
@@ -473,14 +508,34 @@ bool traverse1(const WideBvh& bvh, const Single& s, std::uint32_t start, float& 
     } else {
       const WideNode& node = bvh.nodes[cur];
       alignas(32) float t_near[kNodeWidth];
-      std::uint32_t bits = node_test1(node, s, cull, t_near);
+      std::uint32_t bits = node_test1(d, node, nr, cull, t_near);
       if (bits != 0) {
-        // Nearest hits order the hit children by entry distance: the nearest is visited now, the
-        // others pushed farthest first. Any-hit queries keep the node's order: any blocker ends
-        // them, and skipping the sort made 16-ray shadow packets on the 1M-triangle mesh about 3-8 %
-        // faster (neutral on the sphere field).
+        // As Embree's single-ray walk: one child hit (the common case) is entered without a push
+        // or a sort, two are ordered by one comparison, more by insertion. Nearest hits visit the
+        // nearest child now and push the others farthest first. Any-hit queries keep the node's
+        // order: any blocker ends them, and skipping the sort made 16-ray shadow packets on the
+        // 1M-triangle mesh about 3-8 % faster (neutral on the sphere field).
+        const int i0 = std::countr_zero(bits);
+        bits &= bits - 1;
+        if (bits == 0) {
+          cur = node.child[i0];
+          continue;
+        }
+        const int i1 = std::countr_zero(bits);
+        bits &= bits - 1;
+        if (bits == 0) {
+          if (!kAnyHit && t_near[i0] < t_near[i1]) {
+            stack[sp++] = Entry{node.child[i1], t_near[i1]};
+            cur = node.child[i0];
+          } else {
+            stack[sp++] = Entry{node.child[i0], t_near[i0]};
+            cur = node.child[i1];
+          }
+          continue;
+        }
         Entry hit[kNodeWidth];
         int n = 0;
+        bits |= 1u << i0 | 1u << i1;
         while (bits != 0) {
           const int i = std::countr_zero(bits);
           bits &= bits - 1;
