@@ -81,11 +81,13 @@
 // vectors, and enters a lone hit child without a push or a sort, orders two with one comparison, and sorts only three
 // or more. Same visits, same bits. 1M-triangle mesh, avx512, 1 thread, old and new binaries alternated at load 8-13
 // (other builds): secondary rays 1.075x (4 pairs, --no-embree, medians of per-pair ratios; the unchanged scalar path
-// 1.01x), and against rtcIntersect1 in the same process 0.59 / 0.66 / 0.65 -> 0.77 / 0.72 / 0.78 (3 pairs). Tried and
-// dropped: the same offsets in the coherent walk's frustum and lane tests (Frustum): 16-ray shadow packets against
-// rtcOccluded16 0.79 (3 pairs) where the single-ray change alone gave 0.89, camera within noise. Leaf blocks on that
-// mesh: every leaf is one 4-lane block (leaves of at most 4 prims), 1,040,000 triangles in 337,571 leaves, 3.08 a block
-// (77 % full); packets test one triangle broadcast against their lanes (triangle8), as Embree's coherent packets do.
+// 1.01x), and against rtcIntersect1 in the same process 0.59 / 0.66 / 0.65 -> 0.77 / 0.72 / 0.78 (3 pairs). The sphere
+// field's secondary rays against rtcIntersect1: 0.84 / 0.82 -> 0.97 / 0.98 (2 pairs). Tried and dropped: the same
+// offsets in the coherent walk's frustum and lane tests (Frustum): 16-ray shadow packets against rtcOccluded16 0.79 (3
+// pairs) where the single-ray change alone gave 0.89, camera within noise. Leaf blocks on that mesh: a leaf of up to 4
+// prims (bvh.cpp's kMaxLeafSize) is one 4-lane block, and 1,040,000 triangles over 337,571 leaves (Geometry::stats)
+// is 3.08 a block, 77 % of the lanes (derived from the counts, not counted lane by lane); packets test one triangle
+// broadcast against their lanes (triangle8), as Embree's coherent packets do.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
