@@ -12,17 +12,9 @@ source "$(dirname "$0")/e2e_lib.sh"
 [ -x "${DTRACED_LOAD:-}" ] || die "DTRACED_LOAD is not an executable: ${DTRACED_LOAD:-unset}"
 
 printf 'load-smoke-%s\n' "$$" >"$work/token"
-# The cheapest valid scene: the collector validates and stores it, never renders it.
-cat >"$work/scene.json" <<'SCENE'
-{
-  "camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 40},
-  "render": {"width": 64, "height": 64, "samples": 1, "max_depth": 1, "background": [0, 0, 0], "seed": 1},
-  "scene_objects": [
-    {"type": "sphere", "loc": [0, 0, 0], "radius": 1, "material": {"color": [1, 1, 1], "diffuse": 1}}
-  ],
-  "scene_lights": [{"type": "point", "loc": [0, 5, 5], "color": [1, 1, 1], "intensity": 10}]
-}
-SCENE
+# The cheapest valid scene (tests/data/load_scene.json): the collector validates and stores it,
+# never renders it.
+cp "$(dirname "$0")/data/load_scene.json" "$work/scene.json"
 
 # json_get FILE KEY: one top-level value of the JSON object in FILE.
 json_get() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' "$1" "$2"; }

@@ -103,17 +103,9 @@ pin_cpus "$COLLECTOR_CPU" "$LOAD_CPU"
 
 printf 'scale-out-%s-token\n' "$$" >"$work/token"
 token=$(head -n1 "$work/token")
-# The cheapest valid scene: the collector validates and stores it, never renders it.
-cat >"$work/scene.json" <<'EOF'
-{
-  "camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "fov": 40},
-  "render": {"width": 64, "height": 64, "samples": 1, "max_depth": 1, "background": [0, 0, 0], "seed": 1},
-  "scene_objects": [
-    {"type": "sphere", "loc": [0, 0, 0], "radius": 1, "material": {"color": [1, 1, 1], "diffuse": 1}}
-  ],
-  "scene_lights": [{"type": "point", "loc": [0, 5, 5], "color": [1, 1, 1], "intensity": 10}]
-}
-EOF
+# The cheapest valid scene (tests/data/load_scene.json): the collector validates and stores it,
+# never renders it.
+cp "$root/tests/data/load_scene.json" "$work/scene.json"
 
 # start_collector: a fresh collector on a fresh state directory, pinned; sets collector_pid, url.
 collectors=0
