@@ -97,10 +97,8 @@
 #include <boost/asio/this_coro.hpp>
 #include <boost/asio/use_awaitable.hpp>
 #include <boost/asio/write.hpp>
-#include <boost/beast/core/buffers_range.hpp>
 #include <boost/beast/http/empty_body.hpp>
 #include <boost/beast/http/parser.hpp>
-#include <boost/beast/http/serializer.hpp>
 #include <boost/beast/http/string_body.hpp>
 #include <boost/json/object.hpp>
 #include <fmt/format.h>
@@ -109,6 +107,7 @@
 
 #include "async/async.h"
 #include "http/client.h"
+#include "http/serialise.h"
 #include "http/types.h"
 #include "jsonio/write.h"
 #include "protocol/messages.h"
@@ -535,21 +534,6 @@ class Wire {
   bool timed_out_ = false;  // the watchdog closed the connection
 };
 
-// Appends `message` as Beast puts it on the wire to `out` (Beast's serializer, driven
-// synchronously); false when the serializer fails.
-template <bool isRequest, typename Body>
-bool serialise(bhttp::message<isRequest, Body>& message, std::string& out) {
-  bhttp::serializer<isRequest, Body> sr{message};
-  error_code ec;
-  while (!ec && !sr.is_done()) {
-    sr.next(ec, [&](error_code&, const auto& buffers) {
-      for (const auto b : beast::buffers_range_ref(buffers)) out.append(static_cast<const char*>(b.data()), b.size());
-      sr.consume(beast::buffer_bytes(buffers));
-    });
-  }
-  return !ec;
-}
-
 // The bytes of one slot's requests, serialised by Beast. A lease request is the same every time
 // (built once). An upload's payload sits right behind room for its HTTP header, and its pixels
 // (one constant, kPixelValue) stay in place from one tile to the next of the same size: only the
@@ -573,7 +557,7 @@ class Requests {
       req.body() = std::string(lease_body);
       req.prepare_payload();
       req.keep_alive(!close);
-      if (!serialise(req, lease_[close])) throw std::runtime_error("cannot serialise a lease request");
+      if (!http::append_serialised(req, lease_[close])) throw std::runtime_error("cannot serialise a lease request");
     }
     common(upload_head_);
     upload_head_.version(11);
@@ -595,7 +579,7 @@ class Requests {
     upload_head_.content_length(body.size());
     upload_head_.keep_alive(!close);
     head_.clear();
-    if (!serialise(upload_head_, head_) || head_.size() > kUploadHeadRoom) {
+    if (!http::append_serialised(upload_head_, head_) || head_.size() > kUploadHeadRoom) {
       throw std::runtime_error(fmt::format("an upload's HTTP header does not fit in {} bytes", kUploadHeadRoom));
     }
     char* start = upload_.data() + kUploadHeadRoom - head_.size();

@@ -21,7 +21,6 @@
 #include <boost/asio/ssl/context.hpp>
 #include <boost/asio/ssl/stream_base.hpp>
 #include <boost/asio/write.hpp>
-#include <boost/beast/core/buffers_range.hpp>
 #include <boost/beast/core/detect_ssl.hpp>
 #include <boost/beast/core/error.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
@@ -32,7 +31,6 @@
 #include <boost/beast/http/field.hpp>
 #include <boost/beast/http/parser.hpp>
 #include <boost/beast/http/read.hpp>
-#include <boost/beast/http/serializer.hpp>
 #include <boost/beast/http/write.hpp>
 #include <boost/beast/ssl/ssl_stream.hpp>
 #include <openssl/ssl.h>
@@ -40,6 +38,7 @@
 
 #include "async/async.h"
 #include "http/names.h"
+#include "http/serialise.h"
 #include "util/log.h"
 
 namespace dtraced::http {
@@ -113,17 +112,9 @@ constexpr std::size_t kOneBufferBodyBytes = 8 * 1024;
 // when the body is over kOneBufferBodyBytes or chunked, or the serializer fails.
 std::optional<std::string> one_buffer(Response& res) {
   if (res.body().size() > kOneBufferBodyBytes || res.chunked()) return std::nullopt;
-  bhttp::serializer<false, bhttp::string_body> sr{res};
   std::string out;
   out.reserve(256 + res.body().size());
-  error_code ec;
-  while (!ec && !sr.is_done()) {
-    sr.next(ec, [&](error_code&, const auto& buffers) {
-      for (const auto b : beast::buffers_range_ref(buffers)) out.append(static_cast<const char*>(b.data()), b.size());
-      sr.consume(beast::buffer_bytes(buffers));
-    });
-  }
-  if (ec) return std::nullopt;
+  if (!append_serialised(res, out)) return std::nullopt;
   return out;
 }
 
