@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cassert>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 #include "accel/geometry.h"
@@ -340,15 +341,16 @@ void trace_jobs(const TileContext& ctx, TraceStats& stats, Next&& next, Take&& t
   math::SampleKey keys[kN];
   Vec3f radiance[kN];
   // Jobs come pixel after pixel (several samples of one in a row): its film sampler is kept.
+  // (No image is 2^32 - 1 pixels wide or tall: the first job's pixel differs from the start.)
   PixelSampler2 film;
-  std::uint32_t film_x = 0, film_y = 0;
-  bool have_film = false;
+  std::uint32_t film_x = std::numeric_limits<std::uint32_t>::max(), film_y = film_x;
   for (;;) {
     std::uint32_t n = 0;
     while (n < kN && next(jobs[n])) {
-      if (!have_film || jobs[n].x != film_x || jobs[n].y != film_y) {
+      if (jobs[n].x != film_x || jobs[n].y != film_y) {
         film = film_sampler(ctx.settings, jobs[n].x, jobs[n].y);
-        film_x = jobs[n].x, film_y = jobs[n].y, have_film = true;
+        film_x = jobs[n].x;
+        film_y = jobs[n].y;
       }
       rays[n] = camera_ray(ctx.scene, ctx.settings, film, jobs[n].x, jobs[n].y, jobs[n].s);
       keys[n] = sample_key(ctx.settings, jobs[n].x, jobs[n].y, jobs[n].s);
