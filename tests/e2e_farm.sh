@@ -209,7 +209,7 @@ ONESHOT=(--scene "$SCENE" --output "$work/out6/six.pfm" --width 384 --height 216
 start_farm_collector c6 "$work/state6" 127.0.0.1:0 "${ONESHOT[@]}"
 port6=$PORT
 start_worker w6 "$URL"
-id6=$(client list --json | sed -n 's/.*"id":\([0-9]*\).*/\1/p' | head -n1)
+id6=$(client list --json | jq -r '.jobs[0].id // empty')
 [ -n "$id6" ] || die "the one-shot job is not listed"
 total6=$(job_field "$id6" tiles_total)
 wait_tiles "$id6" $((total6 / 3))

@@ -49,7 +49,7 @@ port=$PORT
 body="{\"scene\": $(cat "$SCENE"), \"output\": \"snow-%04d.pfm\", \"width\": $W, \"height\": $H, \"samples\": $S,
   \"tile_size\": 16, \"frames\": {\"first\": $FIRST, \"last\": $LAST}}"
 id=$(curl -sf -H "Authorization: Bearer $TOKEN" -X POST --data-binary "$body" "$URL/v1/jobs" |
-  sed -n 's/.*"id":\([0-9]*\).*/\1/p')
+  jq -r '.id // empty')
 [ -n "$id" ] || die "submitting the frame range failed"
 [ "$(job_field "$id" frames_total)" = 4 ] && ok "the job holds 4 frames" || fail "frames_total is not 4"
 total=$(job_field "$id" tiles_total)

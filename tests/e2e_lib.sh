@@ -2,7 +2,7 @@
 # a temporary work directory, the list of processes started (killed with SIGKILL and waited for
 # on exit, whatever the outcome), the pass/fail counters, die, which shows the tail of every
 # log in the work directory before it gives up, start_collector, start_worker, client, job_field
-# and until_ok. Needs DTRACED and DEADLINE.
+# and until_ok. Needs DTRACED, DEADLINE and jq (JSON is read with jq, never with sed).
 work=$(mktemp -d)
 pids=()
 cleanup() {
@@ -79,7 +79,8 @@ start_worker() {
 # client VERB ARGS...: a client verb against the collector at $URL.
 client() { "$DTRACED" "$@" --collector "$URL" --token-file "$work/token"; }
 
-# job_field ID FIELD: one field of the job's JSON status (empty if the collector is unreachable).
+# job_field ID FIELD: one field of the job's JSON status (empty if the collector is unreachable
+# or the field is null or absent).
 job_field() {
-  client status "$1" --json 2>/dev/null | sed -n "s/.*\"$2\":\([^,}]*\).*/\1/p" | tr -d '"'
+  client status "$1" --json 2>/dev/null | jq -r --arg k "$2" '.[$k] // empty' 2>/dev/null
 }

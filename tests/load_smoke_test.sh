@@ -4,7 +4,7 @@
 # with kept-alive connections and the next lease in each upload's answer, 2 slots a simulated
 # worker. Each run must store tiles without an error, and the collector must count as done
 # exactly the tiles the generator says it stored. Its figures are not checked (benchmarks print
-# those). Needs DTRACED, DTRACED_LOAD and python3 (to read the JSON).
+# those). Needs DTRACED, DTRACED_LOAD and jq (to read the JSON).
 set -u
 DEADLINE=${DEADLINE:-60}
 # shellcheck source=e2e_lib.sh
@@ -16,8 +16,8 @@ printf 'load-smoke-%s\n' "$$" >"$work/token"
 # never renders it.
 cp "$(dirname "$0")/data/load_scene.json" "$work/scene.json"
 
-# json_get FILE KEY: one top-level value of the JSON object in FILE.
-json_get() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' "$1" "$2"; }
+# json_get FILE KEY: one top-level value of the JSON object in FILE (fails if it is absent).
+json_get() { jq -e -r --arg k "$2" '.[$k] // error("no \($k)")' "$1" 2>/dev/null; }
 
 # run NAME TLS(on|off) WIDTH HEIGHT LOAD_FLAGS...: a fresh collector, a WIDTH x HEIGHT job in
 # 32-px tiles, a 2 s load run.

@@ -29,7 +29,7 @@ pids+=("$WORKER_PID")
 b=$(client submit "$SCENE" --width 16 --height 16 -s 1 --tile-size 8 -o b.png) || die "submit failed"
 wait_done "$b" || die "job $b did not finish"
 ok "job $b finished while $a was paused"
-tiles=$(client status "$a" --json | sed -n 's/.*"tiles_done":\([0-9]*\).*/\1/p')
+tiles=$(client status "$a" --json | jq -r .tiles_done)
 [ "$tiles" = 0 ] && ok "the paused job got no tile while a worker was busy" || fail "paused job has $tiles tiles"
 
 # A restart on the same port: the pause is stored.

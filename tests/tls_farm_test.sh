@@ -101,7 +101,7 @@ worker() { # worker INSTANCE [extra flags]
 }
 worker w1
 worker w2 --name spoofed
-until_ok "$DEADLINE" sh -c "[ \"\$($DTRACED status $id --json --collector $URL --ca-file $CA --token-file $work/token | sed -n 's/.*\"tiles_done\":\([0-9]*\).*/\1/p')\" -ge 6 ]" ||
+until_ok "$DEADLINE" sh -c "[ \"\$($DTRACED status $id --json --collector $URL --ca-file $CA --token-file $work/token | jq -r '.tiles_done // empty')\" -ge 6 ]" ||
   die "no tiles within ${DEADLINE}s"
 client workers revoke w1 >"$work/revoke.out" 2>&1 && ok "workers revoke w1" || fail "revoke: $(cat "$work/revoke.out")"
 timeout "$DEADLINE" "$DTRACED" status "$id" --wait --collector "$URL" --ca-file "$CA" --token-file "$work/token" >/dev/null &&

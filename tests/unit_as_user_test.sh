@@ -225,7 +225,7 @@ id=$(client submit "$SCENES/snowman.json" -o farm.png --width 48 --height 32 -s 
   die "submit failed"
 state=
 for ((t = 0; t < DEADLINE * 10; t++)); do
-  state=$(client status "$id" --json 2>/dev/null | sed -n 's/.*"state": *"\([a-z]*\)".*/\1/p')
+  state=$(client status "$id" --json 2>/dev/null | jq -r '.state // empty' 2>/dev/null)
   [ "$state" = done ] && break
   if ! kill -0 "$worker_pid" 2>/dev/null; then
     wait "$worker_pid"

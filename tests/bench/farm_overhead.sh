@@ -111,7 +111,7 @@ outdir="$work/state/output"
 
 # job_state ID: "queued", "rendering", "done", ... (empty if the collector did not answer).
 job_state() {
-  curl -sf "${curl_ca[@]}" -H "Authorization: Bearer $token" "$url/v1/jobs/$1" | sed -n 's/.*"state":"\([a-z]*\)".*/\1/p'
+  curl -sf "${curl_ca[@]}" -H "Authorization: Bearer $token" "$url/v1/jobs/$1" | jq -r '.state // empty' 2>/dev/null
 }
 # pause SECONDS without forking a sleep process 20 times a second while the farm renders: a read
 # that times out on a pipe nobody writes to.

@@ -140,7 +140,7 @@ collector_rss() { awk '/^VmRSS:/ { print $2 }' "/proc/$collector_pid/status"; }
 core_busy() {
   awk -v c="cpu$1" -v t="$ticks" '$1 == c { printf "%.3f", ($2 + $3 + $4 + $7 + $8 + $9) / t }' /proc/stat
 }
-field() { sed -n "s/.*\"$1\":\([^,}]*\).*/\1/p" "$work/load.json" | tr -d '"'; }
+field() { jq -r --arg k "$1" '.[$k] // empty' "$work/load.json" 2>/dev/null; }
 load() {
   "${pin_load[@]}" "$DTRACED_LOAD" --collector "$url" --token-file "$work/token" --ca-file "$state/tls/ca.pem" "$@"
 }
