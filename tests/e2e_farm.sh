@@ -32,21 +32,8 @@ wait_tiles() {
   die "job $1 did not reach $2 stored tiles within ${DEADLINE}s (at ${done_:-?})"
 }
 
-# step_tiles ID N PID: lets the stopped process PID run in bursts of 20 ms, stopped between
-# them, until the job has at least N tiles stored; PID is stopped on return. However fast the
-# machine renders, the job moves by one burst at most between a check and what follows it.
-step_tiles() {
-  local t=0 done_
-  while [ $t -lt $((DEADLINE * 10)) ]; do
-    done_=$(job_field "$1" tiles_done)
-    [ -n "$done_" ] && [ "$done_" -ge "$2" ] && return 0
-    kill -CONT "$3"
-    sleep 0.02
-    kill -STOP "$3"
-    t=$((t + 1))
-  done
-  die "job $1 did not reach $2 stored tiles within $((DEADLINE * 10)) bursts (at ${done_:-?})"
-}
+# step_tiles ID N PID: step_field (e2e_lib.sh) on the job's stored tiles.
+step_tiles() { step_field "$1" tiles_done "$2" "$3"; }
 
 wait_done() {
   local t=0 state
@@ -209,17 +196,18 @@ ONESHOT=(--scene "$SCENE" --output "$work/out6/six.pfm" --width 384 --height 216
 start_farm_collector c6 "$work/state6" 127.0.0.1:0 "${ONESHOT[@]}"
 port6=$PORT
 start_worker w6 "$URL"
+kill -STOP "${WORKER_PIDS[0]}"
 id6=$(client list --json | jq -r '.jobs[0].id // empty')
 [ -n "$id6" ] || die "the one-shot job is not listed"
 total6=$(job_field "$id6" tiles_total)
-wait_tiles "$id6" $((total6 / 3))
-kill -STOP "${WORKER_PIDS[0]}"  # frozen until the restart: the job cannot finish before the kill
+# Frozen (until the restart) a third of the way: the job cannot finish before the kill.
+step_tiles "$id6" $((total6 / 3)) "${WORKER_PIDS[0]}"
 [ "$(job_field "$id6" tiles_done)" -lt "$total6" ] || die "the one-shot job finished before the kill; make it longer"
 kill -9 "$COLLECTOR_PID"
 wait "$COLLECTOR_PID" 2>/dev/null
 start_farm_collector c6b "$work/state6" "127.0.0.1:$port6" "${ONESHOT[@]}"
 kill -CONT "${WORKER_PIDS[0]}"
-[ "$(client list --json | grep -o '"id":' | wc -l)" = 1 ] && ok "one-shot restart resumes the job instead of enqueuing a copy" ||
+[ "$(client list --json | jq '.jobs | length')" = 1 ] && ok "one-shot restart resumes the job instead of enqueuing a copy" ||
   fail "one-shot restart enqueued another job"
 t=0
 while kill -0 "$COLLECTOR_PID" 2>/dev/null && [ $t -lt $((DEADLINE * 10)) ]; do

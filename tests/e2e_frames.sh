@@ -57,9 +57,9 @@ total=$(job_field "$id" tiles_total)
 
 start_worker w1 "$URL"
 start_worker w2 "$URL"
-wait_field "$id" frames_done 1
-# Frozen the moment the first frame is written: the kill lands mid-sequence.
+# Run in bursts and frozen the moment the first frame is written: the kill lands mid-sequence.
 kill -STOP "${WORKER_PIDS[@]}"
+step_field "$id" frames_done 1 "${WORKER_PIDS[@]}"
 acked=$(job_field "$id" tiles_done)
 [ "$acked" -lt "$total" ] || die "the job finished before the kill; make it longer"
 [ -f "$work/state/output/snow-00$FIRST.pfm" ] && ok "frame $FIRST is written while the others render" ||

@@ -1,8 +1,8 @@
 # Shared by the end-to-end scripts that start dtraced processes (sourced, never run on its own):
 # a temporary work directory, the list of processes started (killed with SIGKILL and waited for
 # on exit, whatever the outcome), the pass/fail counters, die, which shows the tail of every
-# log in the work directory before it gives up, start_collector, start_worker, client, job_field
-# and until_ok. Needs DTRACED, DEADLINE and jq (JSON is read with jq, never with sed).
+# log in the work directory before it gives up, start_collector, start_worker, client, job_field,
+# step_field and until_ok. Needs DTRACED, DEADLINE and jq (JSON is read with jq, never with sed).
 work=$(mktemp -d)
 pids=()
 cleanup() {
@@ -83,4 +83,22 @@ client() { "$DTRACED" "$@" --collector "$URL" --token-file "$work/token"; }
 # or the field is null or absent).
 job_field() {
   client status "$1" --json 2>/dev/null | jq -r --arg k "$2" '.[$k] // empty' 2>/dev/null
+}
+
+# step_field ID FIELD N PID...: lets the stopped processes PID... run in bursts of 20 ms, stopped
+# between them, until the job's FIELD is at least N; they are stopped on return. However fast the
+# machine renders and however slowly this script polls, the job moves by one burst at most between
+# a check and what follows it, so a test can stop a job part way without relying on timing.
+step_field() {
+  local id=$1 field=$2 want=$3 t=0 v
+  shift 3
+  while [ $t -lt $((DEADLINE * 10)) ]; do
+    v=$(job_field "$id" "$field")
+    [ -n "$v" ] && [ "$v" -ge "$want" ] && return 0
+    kill -CONT "$@"
+    sleep 0.02
+    kill -STOP "$@"
+    t=$((t + 1))
+  done
+  die "job $id: $field did not reach $want within $((DEADLINE * 10)) bursts (at ${v:-?})"
 }
