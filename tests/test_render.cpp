@@ -546,6 +546,47 @@ TEST_CASE("Mirror and refracted rays as packets give every lane the per-ray bits
   check_packets_match_per_pixel(lit);
 }
 
+// The packet path walks a packet's shadow rays through transparent surfaces crossing by
+// crossing, one packet query per crossing: shells around the light (alternately index-matched
+// and bending) make every shadow ray from the floor cross each of them, up to and past the
+// walk's bound of 64 crossings (a light behind more counts as blocked).
+TEST_CASE("Shadow rays through many transparent shells give every lane the per-ray bits", "[render][packets]") {
+  for (const int shells : {3, 40, 70}) {
+    scene::SceneDesc d;
+    d.objects.push_back(plane({0, 0, 0}, {0, 1, 0}, diffuse({0.7, 0.7, 0.7})));
+    for (int k = 0; k < shells; ++k) {
+      scene::Material m = diffuse({1, 1, 1});
+      m.diffuse = 0.2;
+      m.transparency = 0.99;
+      m.ior = k % 2 == 0 ? 1.0 : 1.2;
+      d.objects.push_back(sphere({0, 2.5, 0}, 0.3 + 0.02 * k, m));
+    }
+    d.lights.push_back({{0, 2.5, 0}, {1, 1, 1}, 40});
+    d.camera = {{0, 4.0, 7.0}, {0, 0.5, 0}, {0, 1, 0}, 50.0};
+    d.render.width = 24;
+    d.render.height = 16;
+    d.render.max_depth = 3;
+    for (const accel::Isa isa : accel::supported_isas()) {
+      INFO(shells << " shells, isa " << accel::isa_name(isa));
+      const render::RenderScene rs = render::RenderScene::build(d, isa);
+      for (const std::uint32_t valid : {0xffffu, 0x5a5au}) check_lanes_match(rs, d, valid);
+    }
+    // The floor under the light: lit through 3 or 40 shells, dark behind 70.
+    const render::RenderScene rs = render::RenderScene::build(d);
+    const render::TraceLimits limits{Vec3f(d.render.background), d.render.max_depth};
+    render::TraceStats stats;
+    math::Ray down;
+    down.o = {0.0f, 1.0f, 1.5f};
+    down.d = math::normalize(Vec3f{0.0f, -1.0f, 0.0f});
+    const Vec3f l = render::trace_radiance(rs, down, math::SampleKey{}, limits, stats);
+    if (shells <= 40) {
+      REQUIRE(l.x > 0.0f);
+    } else {
+      REQUIRE(l.x == 0.0f);
+    }
+  }
+}
+
 TEST_CASE("Packets match per pixel with misses, lights behind and on surfaces, and many lights", "[render][packets]") {
   scene::SceneDesc d;
   scene::Material shiny = diffuse({0.8, 0.6, 0.4});

@@ -162,42 +162,40 @@ struct Tracer {
       ++stats.rays;
       return scene.geometry().occluded(ray) ? 0.0f : 1.0f;
     }
-    return transmittance_walk(ray, media, nullptr);
+    return transmittance_walk(ray, media);
   }
 
-  // The crossings of a shadow ray through transparent surfaces. `first`, when given, is the
-  // outcome of the first intersection, already traced (and counted) by a packet: its `found`
-  // says whether it hit; the rest of the walk is the same code either way.
-  struct KnownHit {
-    bool found;
-    accel::Hit hit;
-  };
-  float transmittance_walk(math::Ray ray, MediumStack media, const KnownHit* first) {
-    float t = 1.0f;
-    for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
+  // The crossings of a shadow ray through transparent surfaces, one scalar query at a time: from
+  // crossing `first` on, `t` having passed the ones before (the packet path hands over there).
+  float transmittance_walk(math::Ray ray, MediumStack media, float t = 1.0f, int first = 0) {
+    for (int crossing = first; crossing < kMaxShadowCrossings; ++crossing) {
       accel::Hit hit;
-      if (crossing == 0 && first != nullptr) {
-        if (!first->found) return t;
-        hit = first->hit;
-      } else if (!intersect(ray, hit)) {
-        return t;
-      }
-      const MaterialF& m = scene.material(hit.shape);
-      if (m.transparency <= 0.0f) return 0.0f;
-      const float eta = cross_interface(media, hit.shape);
-      if (eta != 1.0f) {
-        const Vec3f wo = -ray.d;
-        const Vec3f nf = math::dot(wo, hit.n) >= 0.0f ? hit.n : -hit.n;
-        const Interface it = dielectric_interface(wo, nf, eta >= 1.0f ? eta : 1.0f / eta);
-        t *= m.transparency * (1.0f - it.fresnel);
-      } else {
-        t *= m.transparency;
-      }
-      if (t <= 0.0f) return 0.0f;
-      // Same origin and direction, only past this surface: no new rounding enters.
-      ray.t_min = hit.t;
+      if (!intersect(ray, hit)) return t;
+      if (!shadow_crossing(hit, ray, media, t)) return 0.0f;
     }
     return 0.0f;
+  }
+
+  // One crossing of a shadow ray at `hit` (the nearest hit of `ray`, which travels in `media`):
+  // multiplies `t` by what passes, updates `media`, and moves ray.t_min past the surface. False
+  // when nothing passes (an opaque surface, or a transmittance that rounds to 0). Shared by the
+  // scalar walk and the packet path's, so both give the same bits.
+  bool shadow_crossing(const accel::Hit& hit, math::Ray& ray, MediumStack& media, float& t) const {
+    const MaterialF& m = scene.material(hit.shape);
+    if (m.transparency <= 0.0f) return false;
+    const float eta = cross_interface(media, hit.shape);
+    if (eta != 1.0f) {
+      const Vec3f wo = -ray.d;
+      const Vec3f nf = math::dot(wo, hit.n) >= 0.0f ? hit.n : -hit.n;
+      const Interface it = dielectric_interface(wo, nf, eta >= 1.0f ? eta : 1.0f / eta);
+      t *= m.transparency * (1.0f - it.fresnel);
+    } else {
+      t *= m.transparency;
+    }
+    if (t <= 0.0f) return false;
+    // Same origin and direction, only past this surface: no new rounding enters.
+    ray.t_min = hit.t;
+    return true;
   }
 
   // Updates `media` for a path crossing transparent shape `shape` and returns the relative index
@@ -730,17 +728,29 @@ inline constexpr int kAheadPerLane = 16;
 // tracers (a packet costs about the same however few of its lanes are live).
 inline constexpr int kMinAheadRays = 4;
 
+// Whether every query tests each shape directly (a scene of under 64 shapes has no tree; see
+// accel::Geometry::build): a packet then costs the same whichever way its rays go.
+inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
+  for (const accel::Layer* layer : {geometry.fixed(), geometry.moving()}) {
+    if (layer != nullptr && layer->geometry.stats().wide_nodes > 1) return false;
+  }
+  return true;
+}
+
 // Traces n <= kN rays ahead as one packet, filling their Known records: the nearest hits, then the
 // hits' shadow rays towards each point light as packets, one per light: occluded8 when the scene
-// is opaque (a pure any-hit query); with transparent objects, intersect8 finds every lane's first
-// crossing and Tracer::transmittance_walk continues from it one lane at a time (most shadow rays
-// end there: they reach the light or meet an opaque surface). Area lights are left to the lanes'
-// tracers, which add them after this sum as the scalar path does.
+// is opaque (a pure any-hit query); with transparent objects, Tracer::transmittance_walk crossing
+// by crossing, each crossing's nearest hits as one intersect8 of the lanes still walking where
+// there is no tree (on whitted10, shadow rays through its glass spheres cross 2-4 surfaces); with
+// a tree, after the first crossing, lane by lane (measured: the few lanes that go on through a
+// 10,000-sphere field's glass cost more as packets than one by one). Area lights are left to the
+// lanes' tracers, which add them after this sum as the scalar path does.
 template <unsigned kF, int kN>
 void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   using T = Tracer<kF>;
   const RenderScene& scene = tracer.scene;
   const accel::LayeredGeometry& geometry = scene.geometry();
+  const bool flat = flat_geometry(geometry);
   math::Ray rays[kN];
   Scratch<accel::Hit, kN> hits;
   for (int i = 0; i < n; ++i) {
@@ -805,16 +815,47 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
       pl.add(light, lit, vis);
       continue;
     }
-    const std::uint32_t crossed = intersect_packet<kN>(geometry, shadow, cast, hits_scratch.data());
+    // Tracer::transmittance_walk for the entries in `cast`, crossing by crossing: each crossing's
+    // queries go as one packet of the entries still walking (the same queries, each entry's
+    // crossings in its order, through the same Tracer::shadow_crossing).
     std::uint32_t lit = 0;
-    for (std::uint32_t s = cast; s != 0; s &= s - 1) {
+    std::uint32_t walking = intersect_packet<kN>(geometry, shadow, cast, hits_scratch.data()) & cast;
+    for (std::uint32_t s = cast & ~walking; s != 0; s &= s - 1) vis[std::countr_zero(s)] = 1.0f;
+    lit |= cast & ~walking;
+    Scratch<MediumStack, kN> media;  // written for the entries that walk before they are read
+    for (std::uint32_t s = walking; s != 0; s &= s - 1) {
       const int j = std::countr_zero(s);
-      typename T::KnownHit first;
-      first.found = crossed >> j & 1u;
-      if (first.found) first.hit = hits_scratch[j];
       // The hit is seen from the media its ray travels in, as Tracer::trace has it.
-      vis[j] = tracer.transmittance_walk(shadow[j], ahead[pl.lane[j]]->media, &first);
-      if (vis[j] > 0.0f) lit |= 1u << j;
+      media[j] = ahead[pl.lane[j]]->media;
+      vis[j] = 1.0f;
+    }
+    for (int crossing = 0; walking != 0; ++crossing) {
+      std::uint32_t on = 0;  // the entries that pass this crossing
+      for (std::uint32_t s = walking; s != 0; s &= s - 1) {
+        const int j = std::countr_zero(s);
+        if (tracer.shadow_crossing(hits_scratch[j], shadow[j], media[j], vis[j])) {
+          on |= 1u << j;
+        } else {
+          vis[j] = 0.0f;
+        }
+      }
+      if (on == 0) break;
+      if (crossing + 1 >= kMaxShadowCrossings) {  // the walk's bound: counted as blocked
+        for (std::uint32_t s = on; s != 0; s &= s - 1) vis[std::countr_zero(s)] = 0.0f;
+        break;
+      }
+      if (!flat) {  // with a tree, the scalar walk goes on
+        for (std::uint32_t s = on; s != 0; s &= s - 1) {
+          const int j = std::countr_zero(s);
+          vis[j] = tracer.transmittance_walk(shadow[j], media[j], vis[j], crossing + 1);
+          if (vis[j] > 0.0f) lit |= 1u << j;
+        }
+        break;
+      }
+      tracer.stats.rays += std::popcount(on);
+      if (secondary) tracer.stats.secondary_packet_rays += std::popcount(on);
+      walking = intersect_packet<kN>(geometry, shadow, on, hits_scratch.data()) & on;
+      lit |= on & ~walking;  // reached the light through every crossing: vis[j] = t > 0
     }
     pl.add(light, lit, vis);
   }
@@ -830,15 +871,6 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
 // enough of them remain for a packet; then each lane's tracer follows its path with what was found
 // (Known), tracing the rest one ray at a time. The rays ahead are the ones Tracer::trace casts (the
 // same Tracer::branches decides them), so every lane gets the scalar path's bits and ray count.
-// Whether every query tests each shape directly (a scene of under 64 shapes has no tree; see
-// accel::Geometry::build): a packet then costs the same whichever way its rays go.
-inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
-  for (const accel::Layer* layer : {geometry.fixed(), geometry.moving()}) {
-    if (layer != nullptr && layer->geometry.stats().wide_nodes > 1) return false;
-  }
-  return true;
-}
-
 template <unsigned kF, int kN>
 void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys,
                        std::uint32_t valid, const TraceLimits& limits, TraceStats& stats, Vec3f* out) {
