@@ -88,6 +88,22 @@
 // prims (bvh.cpp's kMaxLeafSize) is one 4-lane block, and 1,040,000 triangles over 337,571 leaves (Geometry::stats)
 // is 3.08 a block, 77 % of the lanes (derived from the counts, not counted lane by lane); packets test one triangle
 // broadcast against their lanes (triangle8), as Embree's coherent packets do.
+//
+// Issue 16, round 15 (single rays; nothing kept). Measured in one process: the 1M-triangle mesh's secondary rays
+// through Geometry::intersect on avx512, two to four variants of traverse1 switched every 512 packets, 30-60 rounds,
+// medians of per-round ratios, load 5-9 on the 2-core AMD EPYC VM (separate processes drifted by 3-5 % between
+// pairs there). The node test without the Min chain after the Max chain (t0 compared with each axis's far distance
+// times kFarScale and with the cull distance; !(t0 > far) keeps the NaN rule, so the same children): 0.995x, and
+// 0.996x / 1.008x in coarser runs. Prefetching a node's child-reference line (the one its plane loads do not touch)
+// as it is entered: 1.00x. Prefetching the stack top's lines when a leaf is entered: 0.988x; with the node test
+// above: 0.994x. triangles1 skipping the error bound when no lane's t lies in (t_min, best_t] (the same answers: such
+// lanes could not win): 1.008x / 1.000x (both orders). For 16-ray camera packets, a shared origin's vertex
+// differences taken once per triangle in scalar (same bits): 1.000x / 0.986x (200 rounds each order). Not built: a
+// leaf without the edge functions (stored only when a lane passes the edge test; those stores hold 0.01 % of
+// triangles1's samples) and a smaller stack entry (already 8 bytes). Where a secondary ray's time goes (perf,
+// 2999 Hz): traverse1 54 % (10 % on a node's first load, 5 % on the branch taken when no child is hit), triangles1
+// 19 % (22 % of it on the block's first load), Geometry::intersect's ray set-up 6 %: waiting on memory and branches,
+// not the node test's arithmetic.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
