@@ -147,6 +147,12 @@ collector_cpu() { awk -v t="$ticks" '{ sub(/.*\) /, ""); printf "%.3f", ($12 + $
 # (/proc/PID/task/PID/schedstat, in ns): the rest of the wall time it slept, waiting for work. A
 # loop that never sleeps is the limit, whatever share of the core other processes took.
 loop_sched() { awk '{ printf "%.6f %.6f", $1 / 1e9, $2 / 1e9 }' "/proc/$collector_pid/task/$collector_pid/schedstat"; }
+# CPU seconds the store's threads (dtraced-writer and dtraced-ckpt: SQLite, its WAL and its
+# checkpoints) used so far: the store's share of the collector's CPU, apart from the event loop's.
+store_cpu() {
+  cat "/proc/$collector_pid"/task/*/stat 2>/dev/null | awk -v t="$ticks" '
+    /\(dtraced-(writer|ckpt)\)/ { sub(/.*\) /, ""); s += $12 + $13 } END { printf "%.3f", s / t }'
+}
 # Busy CPU seconds of one core so far, whoever ran there (/proc/stat: user nice system irq softirq
 # steal), so that the table can show how much of the collector's core other processes took.
 core_busy() {
@@ -165,7 +171,7 @@ problems=0
 # HEIGHT job, a warm-up, then the measured run. Sets ROW (a table row) or returns 1.
 measure() {
   local workers=$1 slots=$2 width=$3 height=$4 id rc cpu0 cpu1 core0 core1 b0 b1 s0 s1 w0 w1 key v first
-  local l0 l1 t0 t1 load_pid
+  local l0 l1 t0 t1 st0 st1 load_pid
   shift 4
   ROW=
   rm -f "$work/load.json"
@@ -197,6 +203,7 @@ measure() {
     t0=$(date +%s.%N)
     l0=$(loop_sched)
     cpu0=$(collector_cpu)
+    st0=$(store_cpu)
     core0=$(core_busy "$COLLECTOR_CPU")
     b0=$(metric dtraced_store_commit_batches_total)
     s0=$(metric dtraced_tiles_stored_total)
@@ -207,6 +214,7 @@ measure() {
     t1=$(date +%s.%N)
     l1=$(loop_sched)
     cpu1=$(collector_cpu)
+    st1=$(store_cpu)
     core1=$(core_busy "$COLLECTOR_CPU")
     b1=$(metric dtraced_store_commit_batches_total)
     s1=$(metric dtraced_tiles_stored_total)
@@ -224,13 +232,15 @@ measure() {
     -v p99="$(field lease_p99_ms)" -v u50="$(field upload_p50_ms)" -v u99="$(field upload_p99_ms)" \
     -v el="$(field elapsed_s)" -v c0="$cpu0" -v c1="$cpu1" -v gen="$(field generator_cpu)" -v gidle="$(field generator_idle)" \
     -v b0="$b0" -v b1="$b1" -v s0="$s0" -v s1="$s1" -v w0="$w0" -v w1="$w1" -v k0="$core0" -v k1="$core1" \
-    -v q0="${ck0:-0}" -v q1="${ck1:-0}" -v l0="$l0" -v l1="$l1" -v t0="$t0" -v t1="$t1" \
+    -v q0="${ck0:-0}" -v q1="${ck1:-0}" -v l0="$l0" -v l1="$l1" -v t0="$t0" -v t1="$t1" -v st0="$st0" -v st1="$st1" \
     'BEGIN {
       batches = b1 - b0
       per_commit = 0
       if (batches > 0) per_commit = (s1 - s0) / batches
       cpu_us = 0
       if (rate > 0) cpu_us = 1e6 * (c1 - c0) / (rate * el)
+      store_us = 0
+      if (rate > 0) store_us = 1e6 * (st1 - st0) / (rate * el)
       others = (k1 - k0 - (c1 - c0)) / el
       if (others < 0) others = 0
       split(l0, a, " ")
@@ -243,9 +253,9 @@ measure() {
       p99 = p99 == "null" ? "-" : sprintf("%.2f", p99)
       gen_us = 0
       if (rate > 0) gen_us = 1e6 * gen / rate
-      printf "| %d | %d | %s | %.0f | %s | %s | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.0f | %.2f | %.1f | %.0f%% | %.0f%% |",
+      printf "| %d | %d | %s | %.0f | %s | %s | %.2f | %.2f | %.2f | %.0f | %.2f | %.2f | %.2f | %.0f | %.2f | %.1f | %.0f%% | %.0f%% | %.0f |",
         w, n, style, rate, p50, p99, u50, u99, (c1 - c0) / el, cpu_us, others, idle, gen, gen_us, gidle, per_commit,
-        100 * (w1 - w0) / el, 100 * (q1 - q0) / el
+        100 * (w1 - w0) / el, 100 * (q1 - q0) / el, store_us
     }')
   for key in busy http_errors network_errors retry_after; do
     v=$(field "$key")
@@ -313,8 +323,8 @@ for mode in $MODES; do
     echo "plain: plain HTTP, one connection per request"
   fi
   echo
-  echo "| workers | slots | lease | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | loop idle | generator CPU | generator us/tile | generator idle | tiles/commit | in tile txns | in checkpoints |"
-  echo "|--:|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+  echo "| workers | slots | lease | stored/s | lease p50 ms | lease p99 ms | upload p50 ms | upload p99 ms | collector CPU | collector us/tile | others on its core | loop idle | generator CPU | generator us/tile | generator idle | tiles/commit | in tile txns | in checkpoints | store us/tile |"
+  echo "|--:|--:|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
   for row in "${rows[@]}"; do echo "$row"; done
   [ -n "$floor" ] && echo && echo "HTTP floor, $FLOOR_WORKERS workers leasing without uploading: $floor"
 done
@@ -332,7 +342,9 @@ echo "needs as much as the collector cannot load it from one core of its own."
 echo "generator idle: the same as loop idle for dtraced-load's one thread; near 0, the generator was the limit."
 echo "in tile txns: wall time the store writer spent inside tile transactions (inserts + COMMIT with fsync), as a"
 echo "share of the run. in checkpoints: wall time the writer spent checkpointing or waiting for the checkpoint"
-echo "thread instead of committing, as a share of the run. Target (issue 16): >= 10000 stored/s over TLS with 64 workers."
+echo "thread instead of committing, as a share of the run. store us/tile: the CPU time of the store's two threads"
+echo "(dtraced-writer, dtraced-ckpt) per stored tile, part of collector us/tile."
+echo "Target (issue 16): >= 10000 stored/s over TLS with 64 workers."
 if [[ " $LEASE_STYLES " == *" separate "* && " $LEASE_STYLES " == *" next "* ]]; then
   echo
   echo "| transport | workers | slots | separate: stored/s | next lease in the answer: stored/s | next / separate | >= 10000/s |"
