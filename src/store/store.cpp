@@ -13,6 +13,7 @@
 
 #include <fmt/format.h>
 
+#include "store/coalescing_vfs.h"
 #include "store/store_impl.h"
 #include "util/log.h"
 
@@ -362,9 +363,10 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
   }
 
   // Never SQLITE_OPEN_CREATE on an existing file: whatever is there gets inspected, not replaced.
+  // The coalescing VFS (coalescing_vfs.h) turns a commit's and a checkpoint's many writes into few.
   int flags = SQLITE_OPEN_READWRITE | SQLITE_OPEN_NOMUTEX | SQLITE_OPEN_EXRESCODE;
   if (!exists) flags |= SQLITE_OPEN_CREATE;
-  const int rc = sqlite3_open_v2(path.c_str(), &impl->db, flags, nullptr);
+  const int rc = sqlite3_open_v2(path.c_str(), &impl->db, flags, coalescing_vfs_name());
   if (rc != SQLITE_OK) {
     return Error{
         fmt::format("{}: cannot open: {}", path, impl->db != nullptr ? sqlite3_errmsg(impl->db) : sqlite3_errstr(rc))};
@@ -407,7 +409,8 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
     if (auto st = impl->check_schema(); !st) return st.error();
   }
 
-  // From here on the file is ours to write.
+  // From here on the file is ours to write. synchronous = FULL: every COMMIT syncs the WAL, which
+  // is also what makes the coalescing VFS's buffered writes visible to other connections.
   for (const char* pragma : {"PRAGMA query_only = OFF", "PRAGMA synchronous = FULL", "PRAGMA foreign_keys = ON"}) {
     if (auto st = impl->exec_rows(pragma); !st) return st.error();
   }
@@ -510,7 +513,7 @@ Result<Store> Store::open_checkpoint_connection() const {
   impl->path = impl_->path;
   impl->busy_timeout_ms = impl_->busy_timeout_ms;
   const int flags = SQLITE_OPEN_READWRITE | SQLITE_OPEN_NOMUTEX | SQLITE_OPEN_EXRESCODE;
-  if (const int rc = sqlite3_open_v2(impl->path.c_str(), &impl->db, flags, nullptr); rc != SQLITE_OK) {
+  if (const int rc = sqlite3_open_v2(impl->path.c_str(), &impl->db, flags, coalescing_vfs_name()); rc != SQLITE_OK) {
     return Error{fmt::format("{}: cannot open a checkpoint connection: {}", impl->path,
                              impl->db != nullptr ? sqlite3_errmsg(impl->db) : sqlite3_errstr(rc))};
   }

@@ -1,0 +1,273 @@
+#include "store/coalescing_vfs.h"
+
+#include <sqlite3.h>
+
+#include <algorithm>
+#include <cstddef>
+#include <mutex>
+#include <new>
+#include <vector>
+
+namespace dtraced::store {
+namespace {
+
+// At most this many bytes wait in a file's buffer (the frames of about 60 tiles, or 64 pages a
+// checkpoint copies); a write past it flushes the buffer first.
+constexpr std::size_t kMaxBufferBytes = std::size_t{1} << 20;
+// The default VFS for Unix writes at most 128 KiB - 1 bytes a call (it masks larger counts): the
+// buffer goes out in pieces of 31 pages of 4 KiB.
+constexpr std::size_t kMaxWriteBytes = 31 * 4096;
+// The WAL's checkpoint lock among the shared-memory locks (WAL_CKPT_LOCK in SQLite's wal.c, part
+// of its file format): held exclusively while a checkpoint copies pages into the database.
+constexpr int kCheckpointLock = 1;
+
+enum class Kind { kPassThrough, kWal, kDatabase };
+
+// What SQLite allocates for a file (sqlite3_vfs::szOsFile): this, then the default VFS's file.
+struct File {
+  sqlite3_file base;  // first: SQLite's view of the file
+  sqlite3_file* real = nullptr;
+  Kind kind = Kind::kPassThrough;
+  bool checkpointing = false;   // kDatabase: the connection holds the checkpoint lock
+  int deferred_rc = SQLITE_OK;  // a flush's failure that no call has reported yet
+  sqlite3_int64 start = 0;      // the file offset of buffer[0]
+  std::vector<char> buffer;     // consecutive bytes not written yet
+};
+constexpr int kFileBytes = static_cast<int>((sizeof(File) + 7) / 8 * 8);
+
+sqlite3_vfs* g_base = nullptr;
+sqlite3_vfs g_vfs;
+sqlite3_io_methods g_methods[3];  // the same methods, for each iVersion of the default VFS's files
+
+File& as_file(sqlite3_file* f) { return *reinterpret_cast<File*>(f); }
+const sqlite3_io_methods& real_methods(File& f) { return *f.real->pMethods; }
+
+bool gathers(const File& f) { return f.kind == Kind::kWal || (f.kind == Kind::kDatabase && f.checkpointing); }
+
+// Writes the buffer, in pieces the default VFS takes whole; keeps the first failure in
+// deferred_rc.
+void write_buffer(File& f) {
+  for (std::size_t at = 0; at < f.buffer.size();) {
+    const std::size_t n = std::min(kMaxWriteBytes, f.buffer.size() - at);
+    const int rc = real_methods(f).xWrite(f.real, f.buffer.data() + at, static_cast<int>(n),
+                                          f.start + static_cast<sqlite3_int64>(at));
+    if (rc != SQLITE_OK) {
+      if (f.deferred_rc == SQLITE_OK) f.deferred_rc = rc;
+      break;
+    }
+    at += n;
+  }
+  f.buffer.clear();
+}
+
+// Writes the buffer; returns its failure, or an earlier one not reported yet (once).
+int flush(File& f) {
+  write_buffer(f);
+  const int rc = f.deferred_rc;
+  f.deferred_rc = SQLITE_OK;
+  return rc;
+}
+
+int x_close(sqlite3_file* file) {
+  File& f = as_file(file);
+  const int flushed = flush(f);
+  const int rc = real_methods(f).xClose(f.real);
+  f.~File();
+  return rc != SQLITE_OK ? rc : flushed;
+}
+
+int x_read(sqlite3_file* file, void* out, int amount, sqlite3_int64 offset) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xRead(f.real, out, amount, offset);
+}
+
+int x_write(sqlite3_file* file, const void* data, int amount, sqlite3_int64 offset) {
+  File& f = as_file(file);
+  if (!gathers(f)) {
+    if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+    return real_methods(f).xWrite(f.real, data, amount, offset);
+  }
+  const auto bytes = static_cast<std::size_t>(amount);
+  const char* p = static_cast<const char*>(data);
+  if (!f.buffer.empty() && offset == f.start + static_cast<sqlite3_int64>(f.buffer.size()) &&
+      f.buffer.size() + bytes <= kMaxBufferBytes) {
+    f.buffer.insert(f.buffer.end(), p, p + bytes);
+    return SQLITE_OK;
+  }
+  // Not where the buffer ends (or no room): what is buffered goes first, so writes reach the file
+  // in the order SQLite made them.
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  if (bytes > kMaxWriteBytes) return real_methods(f).xWrite(f.real, data, amount, offset);
+  if (f.buffer.capacity() == 0) f.buffer.reserve(kMaxBufferBytes);
+  f.start = offset;
+  f.buffer.assign(p, p + bytes);
+  return SQLITE_OK;
+}
+
+int x_truncate(sqlite3_file* file, sqlite3_int64 size) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xTruncate(f.real, size);
+}
+
+int x_sync(sqlite3_file* file, int flags) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xSync(f.real, flags);
+}
+
+int x_file_size(sqlite3_file* file, sqlite3_int64* size) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xFileSize(f.real, size);
+}
+
+int x_lock(sqlite3_file* file, int level) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xLock(f.real, level);
+}
+
+int x_unlock(sqlite3_file* file, int level) {
+  File& f = as_file(file);
+  const int flushed = flush(f);
+  const int rc = real_methods(f).xUnlock(f.real, level);
+  return rc != SQLITE_OK ? rc : flushed;
+}
+
+int x_check_reserved_lock(sqlite3_file* file, int* out) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xCheckReservedLock(f.real, out);
+}
+
+int x_file_control(sqlite3_file* file, int op, void* arg) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xFileControl(f.real, op, arg);
+}
+
+int x_sector_size(sqlite3_file* file) {
+  File& f = as_file(file);
+  return real_methods(f).xSectorSize(f.real);
+}
+
+int x_device_characteristics(sqlite3_file* file) {
+  File& f = as_file(file);
+  return real_methods(f).xDeviceCharacteristics(f.real);
+}
+
+int x_shm_map(sqlite3_file* file, int page, int page_bytes, int extend, void volatile** out) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xShmMap(f.real, page, page_bytes, extend, out);
+}
+
+int x_shm_lock(sqlite3_file* file, int offset, int n, int flags) {
+  File& f = as_file(file);
+  const bool covers_checkpoint = offset <= kCheckpointLock && kCheckpointLock < offset + n;
+  // Whatever the lock tells other connections, the file holds what came before it.
+  const int flushed = flush(f);
+  if ((flags & SQLITE_SHM_UNLOCK) != 0 && covers_checkpoint) f.checkpointing = false;
+  const int rc = real_methods(f).xShmLock(f.real, offset, n, flags);
+  if (rc == SQLITE_OK && (flags & SQLITE_SHM_LOCK) != 0 && (flags & SQLITE_SHM_EXCLUSIVE) != 0 && covers_checkpoint) {
+    f.checkpointing = f.kind == Kind::kDatabase;
+  }
+  return rc != SQLITE_OK ? rc : flushed;
+}
+
+void x_shm_barrier(sqlite3_file* file) {
+  File& f = as_file(file);
+  // No result to fail: a failed write waits in deferred_rc for the next call that has one.
+  write_buffer(f);
+  real_methods(f).xShmBarrier(f.real);
+}
+
+int x_shm_unmap(sqlite3_file* file, int delete_flag) {
+  File& f = as_file(file);
+  const int flushed = flush(f);
+  const int rc = real_methods(f).xShmUnmap(f.real, delete_flag);
+  return rc != SQLITE_OK ? rc : flushed;
+}
+
+int x_fetch(sqlite3_file* file, sqlite3_int64 offset, int amount, void** out) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return real_methods(f).xFetch(f.real, offset, amount, out);
+}
+
+int x_unfetch(sqlite3_file* file, sqlite3_int64 offset, void* p) {
+  File& f = as_file(file);
+  return real_methods(f).xUnfetch(f.real, offset, p);
+}
+
+int x_open(sqlite3_vfs*, sqlite3_filename name, sqlite3_file* file, int flags, int* out_flags) {
+  File* f = new (file) File{};
+  f->real = reinterpret_cast<sqlite3_file*>(reinterpret_cast<char*>(file) + kFileBytes);
+  f->real->pMethods = nullptr;
+  if ((flags & SQLITE_OPEN_WAL) != 0) {
+    f->kind = Kind::kWal;
+  } else if ((flags & SQLITE_OPEN_MAIN_DB) != 0) {
+    f->kind = Kind::kDatabase;
+  }
+  const int rc = g_base->xOpen(g_base, name, f->real, flags, out_flags);
+  if (f->real->pMethods == nullptr) {
+    // Nothing to close: SQLite will not call xClose.
+    f->~File();
+    file->pMethods = nullptr;
+    return rc;
+  }
+  const int version = std::clamp(f->real->pMethods->iVersion, 1, 3);
+  file->pMethods = &g_methods[version - 1];
+  return rc;
+}
+
+const char* register_vfs() {
+  g_base = sqlite3_vfs_find(nullptr);
+  if (g_base == nullptr) return nullptr;
+  for (int v = 1; v <= 3; ++v) {
+    sqlite3_io_methods& m = g_methods[v - 1];
+    m.iVersion = v;
+    m.xClose = x_close;
+    m.xRead = x_read;
+    m.xWrite = x_write;
+    m.xTruncate = x_truncate;
+    m.xSync = x_sync;
+    m.xFileSize = x_file_size;
+    m.xLock = x_lock;
+    m.xUnlock = x_unlock;
+    m.xCheckReservedLock = x_check_reserved_lock;
+    m.xFileControl = x_file_control;
+    m.xSectorSize = x_sector_size;
+    m.xDeviceCharacteristics = x_device_characteristics;
+    if (v >= 2) {
+      m.xShmMap = x_shm_map;
+      m.xShmLock = x_shm_lock;
+      m.xShmBarrier = x_shm_barrier;
+      m.xShmUnmap = x_shm_unmap;
+    }
+    if (v >= 3) {
+      m.xFetch = x_fetch;
+      m.xUnfetch = x_unfetch;
+    }
+  }
+  // Everything but opening a file is the default VFS's own (its other calls ignore the VFS they
+  // are given beyond what this copy holds).
+  g_vfs = *g_base;
+  g_vfs.zName = "dtraced-coalesce";
+  g_vfs.szOsFile = kFileBytes + g_base->szOsFile;
+  g_vfs.pNext = nullptr;
+  g_vfs.xOpen = x_open;
+  if (sqlite3_vfs_register(&g_vfs, 0) != SQLITE_OK) return nullptr;
+  return g_vfs.zName;
+}
+
+}  // namespace
+
+const char* coalescing_vfs_name() {
+  static const char* const name = register_vfs();
+  return name;
+}
+
+}  // namespace dtraced::store
