@@ -6,6 +6,7 @@
 #include <cstddef>
 #include <mutex>
 #include <new>
+#include <type_traits>
 #include <vector>
 
 namespace dtraced::store {
@@ -35,9 +36,15 @@ struct File {
 };
 constexpr int kFileBytes = static_cast<int>((sizeof(File) + 7) / 8 * 8);
 
-sqlite3_vfs* g_base = nullptr;
-sqlite3_vfs g_vfs;
-sqlite3_io_methods g_methods[3];  // the same methods, for each iVersion of the default VFS's files
+// The VFS as SQLite sees it (first member, so SQLite's pointer to it is a pointer to this), the
+// default VFS it wraps, and its files' methods for each iVersion of the default VFS's files. Made
+// once by coalescing_vfs_name and never changed after: SQLite keeps the pointer for the process.
+struct Registration {
+  sqlite3_vfs vfs{};
+  sqlite3_vfs* base = nullptr;
+  sqlite3_io_methods methods[3]{};
+};
+static_assert(std::is_standard_layout_v<Registration>, "a pointer to its first member is a pointer to it");
 
 File& as_file(sqlite3_file* f) { return *reinterpret_cast<File*>(f); }
 const sqlite3_io_methods& real_methods(File& f) { return *f.real->pMethods; }
@@ -202,7 +209,7 @@ int x_unfetch(sqlite3_file* file, sqlite3_int64 offset, void* p) {
   return real_methods(f).xUnfetch(f.real, offset, p);
 }
 
-int x_open(sqlite3_vfs*, sqlite3_filename name, sqlite3_file* file, int flags, int* out_flags) {
+int x_open(sqlite3_vfs* self, sqlite3_filename name, sqlite3_file* file, int flags, int* out_flags) {
   File* f = new (file) File{};
   f->real = reinterpret_cast<sqlite3_file*>(reinterpret_cast<char*>(file) + kFileBytes);
   f->real->pMethods = nullptr;
@@ -211,7 +218,9 @@ int x_open(sqlite3_vfs*, sqlite3_filename name, sqlite3_file* file, int flags, i
   } else if ((flags & SQLITE_OPEN_MAIN_DB) != 0) {
     f->kind = Kind::kDatabase;
   }
-  const int rc = g_base->xOpen(g_base, name, f->real, flags, out_flags);
+  Registration& registration = *reinterpret_cast<Registration*>(self);
+  sqlite3_vfs* base = registration.base;
+  const int rc = base->xOpen(base, name, f->real, flags, out_flags);
   if (f->real->pMethods == nullptr) {
     // Nothing to close: SQLite will not call xClose.
     f->~File();
@@ -219,15 +228,15 @@ int x_open(sqlite3_vfs*, sqlite3_filename name, sqlite3_file* file, int flags, i
     return rc;
   }
   const int version = std::clamp(f->real->pMethods->iVersion, 1, 3);
-  file->pMethods = &g_methods[version - 1];
+  file->pMethods = &registration.methods[version - 1];
   return rc;
 }
 
-const char* register_vfs() {
-  g_base = sqlite3_vfs_find(nullptr);
-  if (g_base == nullptr) return nullptr;
+const char* register_vfs(Registration& r) {
+  r.base = sqlite3_vfs_find(nullptr);
+  if (r.base == nullptr) return nullptr;
   for (int v = 1; v <= 3; ++v) {
-    sqlite3_io_methods& m = g_methods[v - 1];
+    sqlite3_io_methods& m = r.methods[v - 1];
     m.iVersion = v;
     m.xClose = x_close;
     m.xRead = x_read;
@@ -254,19 +263,22 @@ const char* register_vfs() {
   }
   // Everything but opening a file is the default VFS's own (its other calls ignore the VFS they
   // are given beyond what this copy holds).
-  g_vfs = *g_base;
-  g_vfs.zName = "dtraced-coalesce";
-  g_vfs.szOsFile = kFileBytes + g_base->szOsFile;
-  g_vfs.pNext = nullptr;
-  g_vfs.xOpen = x_open;
-  if (sqlite3_vfs_register(&g_vfs, 0) != SQLITE_OK) return nullptr;
-  return g_vfs.zName;
+  r.vfs = *r.base;
+  r.vfs.zName = "dtraced-coalesce";
+  r.vfs.szOsFile = kFileBytes + r.base->szOsFile;
+  r.vfs.pNext = nullptr;
+  r.vfs.xOpen = x_open;
+  if (sqlite3_vfs_register(&r.vfs, 0) != SQLITE_OK) return nullptr;
+  return r.vfs.zName;
 }
 
 }  // namespace
 
 const char* coalescing_vfs_name() {
-  static const char* const name = register_vfs();
+  // Static storage because SQLite keeps a pointer to the VFS; written once, under the guard of
+  // the function-local static's initialisation, and only read after.
+  static Registration registration;
+  static const char* const name = register_vfs(registration);
   return name;
 }
 
