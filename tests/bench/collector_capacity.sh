@@ -159,7 +159,7 @@ core_busy() {
   awk -v c="cpu$1" -v t="$ticks" '$1 == c { printf "%.3f", ($2 + $3 + $4 + $7 + $8 + $9) / t }' /proc/stat
 }
 # field NAME: a number from dtraced-load's flat JSON line in $work/load.json.
-field() { sed -n "s/.*\"$1\":\([^,}]*\).*/\1/p" "$work/load.json" | tr -d '"'; }
+field() { jq -r --arg k "$1" '.[$k] // empty' "$work/load.json" 2>/dev/null; }
 
 echo "collector capacity: $(nproc) CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg), $pinning"
 echo "job per run: ${IMAGE_WIDTH}x${IMAGE_HEIGHT} in ${TILE_SIZE}-px tiles" \
