@@ -458,6 +458,12 @@ TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the re
     const Geometry held = Geometry::build(with_box, isa, 2);
     REQUIRE(held.shapes().size() == with_box.size());
     CHECK(std::memcmp(held.shapes().data(), with_box.data(), with_box.size() * sizeof(Shape)) == 0);
+    // Collapsed on two threads with prims of two kinds (the box takes a leaf record): exact queries,
+    // and as many wide nodes as on one thread.
+    const Agreement held_agreed = agree_with_brute_force(held, with_box, rng, 300);
+    CHECK(held_agreed.hits > 50);
+    CHECK(held_agreed.mismatches == 0);
+    CHECK(held.stats().wide_nodes == Geometry::build(with_box, isa, 1).stats().wide_nodes);
     // More planes than a scene may set aside (4096): held too, and the tree is the same one (the
     // planes, last, are beside it; the spheres keep their ids).
     std::vector<Shape> many_planes = shapes;

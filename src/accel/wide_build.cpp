@@ -4,16 +4,26 @@
 // the largest surface area until it has eight (Wald et al., "Getting rid of packets", 2008; the
 // usual collapse of Embree and tinybvh). The binary tree's SAH decisions are kept; only the
 // layout changes, so both trees hold exactly the same prims in their leaves.
+//
+// On several threads: the wide nodes near the root are walked first to cut the tree into dozens of
+// subtrees per thread (tasks); the threads count what each task makes (nodes, leaf records,
+// blocks, boxes), the counts give each task its place in every array, and the threads then fill
+// the tasks at those places. Every pass walks the nodes in the one-thread order, so the tree, its
+// leaf order and its block order are the same on any number of threads.
 #if defined(__linux__)
 #include <sys/mman.h>
 #include <unistd.h>
 #endif
 
 #include <algorithm>
+#include <atomic>
 #include <cassert>
 #include <cmath>
 #include <cstdlib>
+#include <exception>
 #include <limits>
+#include <mutex>
+#include <thread>
 #include <vector>
 
 #include "accel/geometry.h"
@@ -63,11 +73,11 @@ class ReadOnce {
     if (on && count * element_bytes >= kMinBytes) {
       end_ = begin_ + count * element_bytes;
       base_ = begin_ & ~(kBlock - 1);
-      left_.resize((end_ - 1 - base_) / kBlock + 1);
+      left_ = std::vector<std::atomic<std::uint32_t>>((end_ - 1 - base_) / kBlock + 1);
       for (std::size_t b = 0; b < left_.size(); ++b) {
         const std::uintptr_t lo = std::max(begin_, base_ + b * kBlock);
         const std::uintptr_t hi = std::min(end_, base_ + (b + 1) * kBlock);
-        left_[b] = std::uint32_t(hi - lo);
+        left_[b].store(std::uint32_t(hi - lo), std::memory_order_relaxed);
       }
       page_ = std::uintptr_t(sysconf(_SC_PAGESIZE));
     }
@@ -77,7 +87,8 @@ class ReadOnce {
 #endif
   }
 
-  // Elements [first, first + n) have been read, each once.
+  // Elements [first, first + n) have been read, each once. Threads may call it at once for
+  // different elements: the block whose last bytes a thread counts off is the one it gives back.
   void read(std::size_t first, std::size_t n) {
     if (left_.empty() || n == 0) return;
     std::uintptr_t lo = begin_ + first * element_bytes_;
@@ -85,9 +96,9 @@ class ReadOnce {
     while (lo < hi) {
       const std::size_t b = (lo - base_) / kBlock;
       const std::uintptr_t here = std::min(hi, base_ + (b + 1) * kBlock) - lo;
-      assert(left_[b] >= here);
-      left_[b] -= std::uint32_t(here);
-      if (left_[b] == 0) release(b);
+      const std::uint32_t before = left_[b].fetch_sub(std::uint32_t(here), std::memory_order_acq_rel);
+      assert(before >= here);
+      if (before == here) release(b);
       lo += here;
     }
   }
@@ -111,174 +122,212 @@ class ReadOnce {
   std::uintptr_t base_ = 0;             // the start of the block holding begin_
   std::size_t element_bytes_;
   std::uintptr_t page_ = 4096;
-  std::vector<std::uint32_t> left_;  // per block, the array's bytes in it not read yet
+  std::vector<std::atomic<std::uint32_t>> left_;  // per block, the array's bytes in it not read yet
 };
 
-}  // namespace
-
-WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once) {
-  WideBvh w;
-  const auto& nodes = g.nodes_;
-  if (nodes.empty()) return w;
-  // A leaf that its child reference describes (tri_leaf_ref: one block of spheres, or triangles
-  // only) is never looked up in `leaves`, so it gets no WideLeaf record (20 bytes a leaf: 6 MB
-  // of a scene of 1M spheres). Except in a tree of a few binary interior nodes, which may
-  // collapse to one wide node: the records then keep telling is_flat that it is no flat layout
-  // (a wide node takes at most seven binary interior nodes, so eight make two wide nodes).
-  const std::size_t binary_leaves =
-      std::size_t(std::count_if(nodes.begin(), nodes.end(), [](const auto& node) { return node.count > 0; }));
-  const bool every_record = nodes.size() - binary_leaves < 8;
-  // Exact sizes up front: growing these vectors by doubling copied and first-touched every block
-  // twice. Leaves and blocks are counted from the binary leaves (a pass over the prims, which
-  // are in leaf order); a wide node holds at least two binary interior nodes' children, so the
-  // binary interior count bounds the wide count. The records are counted for the leaves whose
-  // kind of content cannot be described by their reference (those whose first block lies past
-  // what a reference can name, 2^26 blocks in, grow the array).
-  {
-    std::size_t records = 0, sphere_blocks = 0, triangle_blocks = 0, boxes = 0;
-    for (const auto& node : nodes) {
-      if (node.count == 0) continue;
-      std::size_t ns = 0, nt = 0, nb = 0;
-      for (std::uint32_t k = 0; k < node.count; ++k) {
-        const ShapeType type = g.prims_[node.offset + k].type;
-        ns += type == ShapeType::kSphere;
-        nt += type == ShapeType::kTriangle;
-        nb += type == ShapeType::kBox;
-      }
-      const std::size_t sb = (ns + kWidth - 1) / kWidth, tb = (nt + kWidth - 1) / kWidth;
-      const bool described = nb == 0 && (sb != 0 ? sb == 1 && tb == 0 : tb != 0 && tb <= kTriLeafMaxBlocks);
-      records += every_record || !described;
-      sphere_blocks += sb;
-      triangle_blocks += tb;
-      boxes += nb;
-    }
-    w.nodes.reserve(nodes.size() - binary_leaves + 1);
-    w.leaves.reserve(records);
-    w.spheres.reserve(sphere_blocks);
-    w.triangles.reserve(triangle_blocks);
-    w.boxes.reserve(boxes);
-    // First touches are costly page faults (util/huge_pages.h): with 4 KiB pages they took more
-    // than half of the collapse of 1M spheres. Only pages that will be filled are advised, or a
-    // huge page at the end of an array would hold up to 2 MiB that is never used: the arrays
-    // reserved at their exact size whole, the nodes up to the fewest the collapse can make (a
-    // wide node takes at most seven binary interior nodes: the first and six it opens).
-    util::advise_huge_pages_for(w.leaves);
-    util::advise_huge_pages_for(w.spheres);
-    util::advise_huge_pages_for(w.triangles);
-    util::advise_huge_pages_for(w.boxes);
-    util::advise_huge_pages(w.nodes.data(), (nodes.size() - binary_leaves) / 7 * sizeof(WideNode));
+// Calls fn(i) for every i in [0, count) on up to `threads` threads, the caller's among them (as
+// bvh.cpp's parallel_for): fn(i) must write only what belongs to i; the first exception fn throws
+// is thrown here once every thread has stopped.
+template <typename Fn>
+void parallel_for(std::size_t count, unsigned threads, const Fn& fn) {
+  const auto n = unsigned(std::min<std::size_t>(threads, count));
+  if (n <= 1) {
+    for (std::size_t i = 0; i < count; ++i) fn(i);
+    return;
   }
-  // With prims_read_once nothing reads a prim after the collapse has, so the prims' pages go back
-  // as the leaves are made: the prims and the wide tree are then never held whole together (the
-  // 1M-sphere scene's build peaked there). Not for a tree that may collapse to one node (is_flat:
-  // the build then keeps its prims).
-  ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), prims_read_once && !every_record);
-
-  auto make_leaf = [&](std::uint32_t bin_index) {
-    const auto& node = nodes[bin_index];
-    WideLeaf leaf;
-    leaf.sphere_begin = std::uint32_t(w.spheres.size());
-    leaf.triangle_begin = std::uint32_t(w.triangles.size());
-    leaf.box_begin = std::uint32_t(w.boxes.size());
-    int ns = 0, nt = 0;
-    for (std::uint32_t k = 0; k < node.count; ++k) {
-      const auto& prim = g.prims_[node.offset + k];
-      switch (prim.type) {
-        case ShapeType::kSphere: {
-          // The prim holds the sphere (centre, radius), and prims are in leaf order: no random
-          // access into shapes_.
-          if (ns % kWidth == 0) w.spheres.push_back(empty_sphere_block());
-          SphereBlock& b = w.spheres.back();
-          const int lane = ns++ % kWidth;
-          b.cx[lane] = prim.data[0];
-          b.cy[lane] = prim.data[1];
-          b.cz[lane] = prim.data[2];
-          b.r[lane] = prim.data[3];
-          b.id[lane] = prim.id;
-          break;
-        }
-        case ShapeType::kTriangle: {
-          const Shape& shape = g.shapes_[prim.id];
-          w.has_triangles = true;
-          if (nt % kWidth == 0) w.triangles.push_back(empty_triangle_block());
-          TriangleBlock& b = w.triangles.back();
-          const int lane = nt++ % kWidth;
-          const Vec3f* v[3] = {&shape.triangle.v0, &shape.triangle.v1, &shape.triangle.v2};
-          for (int vert = 0; vert < 3; ++vert)
-            for (int axis = 0; axis < 3; ++axis) b.v[vert][axis][lane] = (*v[vert])[axis];
-          b.id[lane] = prim.id;
-          break;
-        }
-        default: {
-          BoxPrim bp;
-          std::copy(prim.data, prim.data + 6, bp.b);
-          bp.id = prim.id;
-          w.boxes.push_back(bp);
-          ++leaf.box_count;
-          break;
-        }
-      }
+  std::atomic<std::size_t> next{0};
+  std::mutex failed_mutex;
+  std::exception_ptr failed;
+  const auto work = [&]() noexcept {
+    try {
+      for (std::size_t i = next.fetch_add(1); i < count; i = next.fetch_add(1)) fn(i);
+    } catch (...) {
+      next.store(count);  // the others stop at their next item
+      std::lock_guard lock(failed_mutex);
+      if (!failed) failed = std::current_exception();
     }
-    prims_read.read(node.offset, node.count);
-    leaf.sphere_blocks = std::uint16_t((ns + kWidth - 1) / kWidth);
-    leaf.triangle_blocks = std::uint16_t((nt + kWidth - 1) / kWidth);
-    const std::uint32_t ref = tri_leaf_ref(leaf);
-    if (ref != 0 && !every_record) return ref;
-    w.leaves.push_back(leaf);
-    if (ref != 0) return ref;
-    // Plain leaf indices must stay below kTriLeaf (2^30 leaves: billions of prims).
-    if (w.leaves.size() > kTriLeaf) std::abort();
-    return kLeafBit | std::uint32_t(w.leaves.size() - 1);
   };
+  std::vector<std::thread> pool;
+  try {
+    pool.reserve(n - 1);
+    for (unsigned k = 0; k + 1 < n; ++k) pool.emplace_back(work);
+  } catch (const std::exception&) {
+    // std::system_error or std::bad_alloc: fewer helpers, same result.
+  }
+  work();
+  for (std::thread& t : pool) t.join();
+  if (failed) std::rethrow_exception(failed);
+}
 
-  auto children_of = [&](std::uint32_t bin_index) {
-    return std::pair<std::uint32_t, std::uint32_t>{bin_index + 1, nodes[bin_index].offset};
-  };
+// Prims below which the collapse stays on the calling thread.
+constexpr std::size_t kParallelPrims = std::size_t(1) << 15;
+// A task's fewest binary nodes, and how many tasks each thread gets (about).
+constexpr std::size_t kMinTaskNodes = 2048;
+constexpr std::size_t kTasksPerThread = 32;
 
-  // Recursion depth is bounded by the binary tree's depth (Geometry::kMaxDepth).
-  auto build_node = [&](auto&& self, std::uint32_t bin_index) -> std::uint32_t {
-    const std::uint32_t index = std::uint32_t(w.nodes.size());
-    w.nodes.emplace_back();
-    std::uint32_t slots[kNodeWidth];
-    int n = 0;
-    if (nodes[bin_index].count > 0) {
-      slots[n++] = bin_index;  // a leaf root: one child
+// Where the collapse writes next in each output array; counted from zero, what a subtree takes.
+struct Cursor {
+  std::size_t node = 0, leaf = 0, sphere = 0, triangle = 0, box = 0;
+  Cursor& operator+=(const Cursor& o) {
+    node += o.node;
+    leaf += o.leaf;
+    sphere += o.sphere;
+    triangle += o.triangle;
+    box += o.box;
+    return *this;
+  }
+};
+
+// A subtree collapsed by one thread: the binary node at its root (which becomes a wide node), the
+// room its output takes and where that starts in each array.
+// The binary nodes a wide node takes its children from (Collapse::slots_of).
+struct NodeSlots {
+  std::uint32_t slot[kNodeWidth];
+  int n;
+};
+
+struct Task {
+  std::uint32_t bin = 0;
+  Cursor size;                   // counted from zero
+  Cursor at, end;                // in the arrays
+  std::vector<NodeSlots> slots;  // its wide nodes' slots, in order, kept from the count for the write
+};
+
+// kPlan: finds the tasks below the top; kCount: moves the cursor as a write would, writing
+// nothing; kWrite: writes at the cursor into arrays already sized.
+enum class Pass { kPlan, kCount, kWrite };
+
+// The collapse of one binary tree (Node and Prim: Geometry's, private to it). Every pass walks the same wide nodes in
+// the same order (depth first, children in slot order), so the cursor reaches each node, leaf and block at the index
+// the one-pass collapse would have appended it at: the tree is the same whatever the tasks and threads.
+template <typename Node, typename Prim>
+class Collapse {
+ public:
+  Collapse(const Node* nodes, const Prim* prims, const std::vector<Shape>& shapes, WideBvh& w, bool spheres_only,
+           bool every_record, ReadOnce& prims_read)
+      : nodes_(nodes),
+        prims_(prims),
+        shapes_(shapes),
+        w_(w),
+        spheres_only_(spheres_only),
+        every_record_(every_record),
+        prims_read_(prims_read) {}
+
+  // The wide subtree whose root takes binary node `bin`, from cursor `at` (kCount or kWrite);
+  // returns the root's index. `made`, where given: the subtree's slots, which kCount appends and
+  // kWrite reads instead of opening the binary nodes again (its node `index` at made[index - first]).
+  template <Pass P>
+  std::uint32_t node(std::uint32_t bin, Cursor& at, std::vector<NodeSlots>* made = nullptr,
+                     std::size_t first = 0) const {
+    const auto index = std::uint32_t(at.node++);
+    NodeSlots own;
+    const NodeSlots* ns = &own;
+    if (P == Pass::kWrite && made != nullptr) {
+      ns = &(*made)[index - first];
     } else {
-      auto [a, b] = children_of(bin_index);
-      slots[n++] = a;
-      slots[n++] = b;
-      while (n < kNodeWidth) {
-        int open = -1;
-        double best = -1.0;
-        for (int i = 0; i < n; ++i) {
-          if (nodes[slots[i]].count > 0) continue;
-          const double area = node_area(nodes[slots[i]].bounds);
-          if (area > best) {
-            best = area;
-            open = i;
-          }
-        }
-        if (open < 0) break;
-        auto [c0, c1] = children_of(slots[open]);
-        slots[open] = c0;
-        slots[n++] = c1;
-      }
+      own.n = slots_of(bin, own.slot);
+      if (P == Pass::kCount && made != nullptr) made->push_back(own);
     }
+    const std::uint32_t* slots = ns->slot;
+    const int n = ns->n;
     std::uint32_t child[kNodeWidth];
-    for (int i = 0; i < kNodeWidth; ++i) {
-      if (i < n) {
-        child[i] = nodes[slots[i]].count > 0 ? make_leaf(slots[i]) : self(self, slots[i]);
-      } else {
-        child[i] = kEmptyChild;
-      }
+    for (int i = 0; i < n; ++i) {
+      child[i] = nodes_[slots[i]].count > 0 ? leaf<P>(slots[i], at) : node<P>(slots[i], at, made, first);
     }
-    WideNode& wn = w.nodes[index];  // re-fetched: recursion may have grown the vector
+    if constexpr (P == Pass::kWrite) write_node(index, slots, n, child);
+    return index;
+  }
+
+  // The wide nodes above the tasks (the root's among them), in the same order. kPlan appends to
+  // `tasks` the subtrees of at most `grain` binary nodes below them; kCount sets each task's place
+  // (and its size where `counted_apart` is false); kWrite writes the top's nodes and leaves. `next`
+  // is the next task to meet.
+  template <Pass P>
+  std::uint32_t top(std::uint32_t bin, Cursor& at, std::vector<Task>& tasks, std::size_t& next, std::size_t grain,
+                    bool counted_apart = true) const {
+    const auto index = std::uint32_t(at.node++);
+    std::uint32_t slots[kNodeWidth];
+    const int n = slots_of(bin, slots);
+    std::uint32_t child[kNodeWidth] = {};
+    for (int i = 0; i < n; ++i) {
+      const std::uint32_t s = slots[i];
+      if (nodes_[s].count > 0) {
+        if constexpr (P != Pass::kPlan) child[i] = leaf<P>(s, at);
+        continue;
+      }
+      const bool task = P == Pass::kPlan ? subtree_nodes(s) <= grain : next < tasks.size() && tasks[next].bin == s;
+      if (!task) {
+        child[i] = top<P>(s, at, tasks, next, grain, counted_apart);
+        continue;
+      }
+      if constexpr (P == Pass::kPlan) {
+        tasks.push_back({s, {}, {}, {}, {}});
+      } else {
+        Task& t = tasks[next];
+        if constexpr (P == Pass::kCount) {
+          t.at = at;
+          if (counted_apart) {
+            at += t.size;
+          } else {
+            node<Pass::kCount>(s, at);
+          }
+          t.end = at;
+        } else {
+          child[i] = std::uint32_t(t.at.node);
+          at = t.end;
+        }
+      }
+      ++next;
+    }
+    if constexpr (P == Pass::kWrite) write_node(index, slots, n, child);
+    return index;
+  }
+
+ private:
+  // The binary nodes a wide node takes its children from: a binary node's two children, then the
+  // interior child with the largest surface area opened until there are eight (a leaf root: one).
+  int slots_of(std::uint32_t bin, std::uint32_t* slots) const {
+    int n = 0;
+    if (nodes_[bin].count > 0) {
+      slots[n++] = bin;  // a leaf root: one child
+      return n;
+    }
+    slots[n++] = bin + 1;
+    slots[n++] = nodes_[bin].offset;
+    while (n < kNodeWidth) {
+      int open = -1;
+      double best = -1.0;
+      for (int i = 0; i < n; ++i) {
+        if (nodes_[slots[i]].count > 0) continue;
+        const double area = node_area(nodes_[slots[i]].bounds);
+        if (area > best) {
+          best = area;
+          open = i;
+        }
+      }
+      if (open < 0) break;
+      const std::uint32_t b = slots[open];
+      slots[open] = b + 1;
+      slots[n++] = nodes_[b].offset;
+    }
+    return n;
+  }
+
+  // Binary nodes in the subtree of `bin` (depth first: they follow it up to its last leaf).
+  std::size_t subtree_nodes(std::uint32_t bin) const {
+    std::uint32_t last = bin;
+    while (nodes_[last].count == 0) last = nodes_[last].offset;
+    return std::size_t(last) - bin + 1;
+  }
+
+  void write_node(std::uint32_t index, const std::uint32_t* slots, int n, const std::uint32_t* child) const {
+    WideNode& wn = w_.nodes[index];
     for (int i = 0; i < kNodeWidth; ++i) {
-      wn.child[i] = child[i];
+      wn.child[i] = i < n ? child[i] : kEmptyChild;
       for (int axis = 0; axis < 3; ++axis) {
         if (i < n) {
-          wn.lo[axis][i] = nodes[slots[i]].bounds[axis];
-          wn.hi[axis][i] = nodes[slots[i]].bounds[3 + axis];
+          wn.lo[axis][i] = nodes_[slots[i]].bounds[axis];
+          wn.hi[axis][i] = nodes_[slots[i]].bounds[3 + axis];
         } else {
           wn.lo[axis][i] = std::numeric_limits<float>::infinity();
           wn.hi[axis][i] = -std::numeric_limits<float>::infinity();
@@ -286,9 +335,166 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once) {
       }
     }
     for (std::uint32_t& p : wn.pad) p = 0;
-    return index;
+  }
+
+  // The leaf of binary leaf `bin`: its blocks and boxes at the cursor, and its child reference.
+  template <Pass P>
+  std::uint32_t leaf(std::uint32_t bin, Cursor& at) const {
+    const auto& node = nodes_[bin];
+    const auto* prims = prims_ + node.offset;
+    std::uint32_t ns = 0, nt = 0, nb = 0;
+    if constexpr (P == Pass::kWrite) {
+      SphereBlock* spheres = w_.spheres.data() + at.sphere;
+      TriangleBlock* triangles = w_.triangles.data() + at.triangle;
+      BoxPrim* boxes = w_.boxes.data() + at.box;
+      for (std::uint32_t k = 0; k < node.count; ++k) {
+        const auto& prim = prims[k];
+        assert(!spheres_only_ || prim.type == ShapeType::kSphere);
+        switch (prim.type) {
+          case ShapeType::kSphere: {
+            // The prim holds the sphere (centre, radius), and prims are in leaf order: no random
+            // access into shapes_.
+            if (ns % kWidth == 0) spheres[ns / kWidth] = empty_sphere_block();
+            SphereBlock& b = spheres[ns / kWidth];
+            const std::uint32_t lane = ns++ % kWidth;
+            b.cx[lane] = prim.data[0];
+            b.cy[lane] = prim.data[1];
+            b.cz[lane] = prim.data[2];
+            b.r[lane] = prim.data[3];
+            b.id[lane] = prim.id;
+            break;
+          }
+          case ShapeType::kTriangle: {
+            const Shape& shape = shapes_[prim.id];
+            if (nt % kWidth == 0) triangles[nt / kWidth] = empty_triangle_block();
+            TriangleBlock& b = triangles[nt / kWidth];
+            const std::uint32_t lane = nt++ % kWidth;
+            const Vec3f* v[3] = {&shape.triangle.v0, &shape.triangle.v1, &shape.triangle.v2};
+            for (int vert = 0; vert < 3; ++vert)
+              for (int axis = 0; axis < 3; ++axis) b.v[vert][axis][lane] = (*v[vert])[axis];
+            b.id[lane] = prim.id;
+            break;
+          }
+          default: {
+            BoxPrim& bp = boxes[nb++];
+            std::copy(prim.data, prim.data + 6, bp.b);
+            bp.id = prim.id;
+            break;
+          }
+        }
+      }
+      prims_read_.read(node.offset, node.count);
+    } else if (spheres_only_) {
+      ns = node.count;  // no prim read: a pass over the prims' types cost half the count pass
+    } else {
+      for (std::uint32_t k = 0; k < node.count; ++k) {
+        const ShapeType type = prims[k].type;
+        ns += type == ShapeType::kSphere;
+        nt += type == ShapeType::kTriangle;
+        nb += type != ShapeType::kSphere && type != ShapeType::kTriangle;
+      }
+    }
+    WideLeaf leaf;
+    leaf.sphere_begin = std::uint32_t(at.sphere);
+    leaf.triangle_begin = std::uint32_t(at.triangle);
+    leaf.box_begin = std::uint32_t(at.box);
+    leaf.sphere_blocks = std::uint16_t((ns + kWidth - 1) / kWidth);
+    leaf.triangle_blocks = std::uint16_t((nt + kWidth - 1) / kWidth);
+    leaf.box_count = nb;
+    at.sphere += leaf.sphere_blocks;
+    at.triangle += leaf.triangle_blocks;
+    at.box += nb;
+    const std::uint32_t ref = tri_leaf_ref(leaf);
+    if (ref != 0 && !every_record_) return ref;
+    const std::size_t record = at.leaf++;
+    if constexpr (P == Pass::kWrite) w_.leaves[record] = leaf;
+    if (ref != 0) return ref;
+    return kLeafBit | std::uint32_t(record);
+  }
+
+  const Node* nodes_;
+  const Prim* prims_;
+  const std::vector<Shape>& shapes_;
+  WideBvh& w_;
+  bool spheres_only_;
+  bool every_record_;
+  ReadOnce& prims_read_;
+};
+
+}  // namespace
+
+WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only, unsigned threads) {
+  WideBvh w;
+  if (g.nodes_.empty()) return w;
+  // A leaf that its child reference describes (tri_leaf_ref: one block of spheres, or triangles
+  // only) is never looked up in `leaves`, so it gets no WideLeaf record (20 bytes a leaf: 6 MB
+  // of a scene of 1M spheres). Except in a tree of a few binary interior nodes, which may
+  // collapse to one wide node: the records then keep telling is_flat that it is no flat layout
+  // (a wide node takes at most seven binary interior nodes, so eight make two wide nodes). Every
+  // interior node of the binary tree has two children: n nodes hold (n - 1) / 2 interior ones.
+  const bool every_record = (g.nodes_.size() - 1) / 2 < 8;
+  // With prims_read_once nothing reads a prim after the collapse has, so the prims' pages go back
+  // as the leaves are made: the prims and the wide tree are then never held whole together (the
+  // 1M-sphere scene's build peaked there). Not for a tree that may collapse to one node (is_flat:
+  // the build then keeps its prims).
+  ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), prims_read_once && !every_record);
+  Collapse c(g.nodes_.data(), g.prims_.data(), g.shapes_, w, spheres_only, every_record, prims_read);
+  // Threads for trees large enough to pay for starting them; the result does not depend on it.
+  if (g.prims_.size() < kParallelPrims) threads = 1;
+  // Tasks: subtrees of at most `grain` binary nodes under the top, dozens per thread so that the
+  // threads finish together (on one thread, every subtree below the root: the same passes).
+  const std::size_t grain =
+      threads <= 1 ? std::numeric_limits<std::size_t>::max()
+                   : std::max<std::size_t>(kMinTaskNodes, g.nodes_.size() / (std::size_t(threads) * kTasksPerThread));
+  std::vector<Task> tasks;
+  {
+    Cursor at;
+    std::size_t next = 0;
+    c.top<Pass::kPlan>(0, at, tasks, next, grain);
+  }
+  // Counting each task from zero gives the sizes its output takes wherever it lands, unless a
+  // leaf's first block may lie past what a child reference can name (then whether it needs a
+  // record depends on where it lands, and the tasks are counted in place, in order).
+  const bool counted_apart = g.prims_.size() <= kTriLeafBeginMask;
+  if (counted_apart) {
+    parallel_for(tasks.size(), threads, [&](std::size_t t) {
+      Cursor size;
+      c.node<Pass::kCount>(tasks[t].bin, size, &tasks[t].slots);
+      tasks[t].size = size;
+    });
+  }
+  Cursor total;
+  {
+    std::size_t next = 0;
+    c.top<Pass::kCount>(0, total, tasks, next, grain, counted_apart);
+  }
+  if (total.leaf > kTriLeaf) std::abort();  // plain leaf indices must stay below kTriLeaf
+  // Exact sizes, and no memory written by sizing the arrays but the few leaf records and boxes
+  // (WideNode and the blocks write nothing when made): each task's thread touches the pages of its
+  // own part first. First touches are costly page faults (util/huge_pages.h): with 4 KiB pages
+  // they took more than half of the collapse of 1M spheres.
+  const auto size = [](auto& v, std::size_t n) {
+    v.reserve(n);
+    util::advise_huge_pages_for(v);
+    v.resize(n);
   };
-  build_node(build_node, 0);
+  size(w.nodes, total.node);
+  size(w.leaves, total.leaf);
+  size(w.spheres, total.sphere);
+  size(w.triangles, total.triangle);
+  size(w.boxes, total.box);
+  w.has_triangles = total.triangle > 0;
+  parallel_for(tasks.size(), threads, [&](std::size_t t) {
+    Task& task = tasks[t];
+    Cursor at = task.at;
+    c.node<Pass::kWrite>(task.bin, at, task.slots.empty() ? nullptr : &task.slots, task.at.node);
+    std::vector<NodeSlots>().swap(task.slots);
+  });
+  {
+    Cursor at;
+    std::size_t next = 0;
+    c.top<Pass::kWrite>(0, at, tasks, next, grain);
+  }
   return w;
 }
 

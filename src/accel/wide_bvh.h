@@ -38,7 +38,11 @@ inline constexpr std::uint32_t kTriLeafBeginMask = (1u << kTriLeafShift) - 1;  /
 // One node, four cache lines. Per axis a, lo[a][i] / hi[a][i] bound child i; an empty slot has
 // lo = +inf, hi = -inf and child = kEmptyChild. Children are in the binary tree's depth-first
 // order, so a slot's index says nothing about distance: traversal sorts by entry distance.
+// The constructors of the node and the blocks write nothing, so that sizing an array of them writes
+// no memory (the collapse's threads touch their own parts' pages first); every member is set by
+// whoever makes one.
 struct alignas(64) WideNode {
+  WideNode() {}  // leaves every member unset
   float lo[3][kNodeWidth];
   float hi[3][kNodeWidth];
   std::uint32_t child[kNodeWidth];
@@ -59,6 +63,7 @@ struct WideLeaf {
 };
 
 struct alignas(16) SphereBlock {
+  SphereBlock() {}  // leaves every member unset
   float cx[kWidth], cy[kWidth], cz[kWidth], r[kWidth];
   std::uint32_t id[kWidth];
 };
@@ -66,6 +71,7 @@ struct alignas(16) SphereBlock {
 // Triangle vertices a, b, c as given (the watertight test needs the vertices themselves, relative
 // to the ray origin, not precomputed edges).
 struct alignas(16) TriangleBlock {
+  TriangleBlock() {}      // leaves every member unset
   float v[3][3][kWidth];  // v[vertex][axis][lane]
   std::uint32_t id[kWidth];
 };
@@ -148,6 +154,9 @@ const Kernels& kernels_for(Isa isa);
 // caller frees g's binary nodes and prims after it (a build with its shapes set aside, which reads
 // its spheres back from the wide tree's blocks), so the collapse gives the prims' pages back as it
 // reads them; it still keeps them for a tree that may collapse to one node (is_flat).
-WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once);
+// `spheres_only`: every prim is a sphere (the collapse then sizes its arrays without reading the
+// prims' types; a wrong claim writes out of bounds). Runs on up to `threads` threads (the caller's
+// among them); the tree is the same whatever their number.
+WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only, unsigned threads);
 
 }  // namespace dtraced::accel::detail
