@@ -29,6 +29,7 @@
 #include "accel/geometry.h"
 #include "accel/kernels.h"
 #include "util/huge_pages.h"
+#include "util/parallel_for.h"
 
 namespace dtraced::accel::detail {
 
@@ -125,39 +126,7 @@ class ReadOnce {
   std::vector<std::atomic<std::uint32_t>> left_;  // per block, the array's bytes in it not read yet
 };
 
-// Calls fn(i) for every i in [0, count) on up to `threads` threads, the caller's among them (as
-// bvh.cpp's parallel_for): fn(i) must write only what belongs to i; the first exception fn throws
-// is thrown here once every thread has stopped.
-template <typename Fn>
-void parallel_for(std::size_t count, unsigned threads, const Fn& fn) {
-  const auto n = unsigned(std::min<std::size_t>(threads, count));
-  if (n <= 1) {
-    for (std::size_t i = 0; i < count; ++i) fn(i);
-    return;
-  }
-  std::atomic<std::size_t> next{0};
-  std::mutex failed_mutex;
-  std::exception_ptr failed;
-  const auto work = [&]() noexcept {
-    try {
-      for (std::size_t i = next.fetch_add(1); i < count; i = next.fetch_add(1)) fn(i);
-    } catch (...) {
-      next.store(count);  // the others stop at their next item
-      std::lock_guard lock(failed_mutex);
-      if (!failed) failed = std::current_exception();
-    }
-  };
-  std::vector<std::thread> pool;
-  try {
-    pool.reserve(n - 1);
-    for (unsigned k = 0; k + 1 < n; ++k) pool.emplace_back(work);
-  } catch (const std::exception&) {
-    // std::system_error or std::bad_alloc: fewer helpers, same result.
-  }
-  work();
-  for (std::thread& t : pool) t.join();
-  if (failed) std::rethrow_exception(failed);
-}
+using util::parallel_for;
 
 // Prims below which the collapse stays on the calling thread.
 constexpr std::size_t kParallelPrims = std::size_t(1) << 15;
