@@ -75,6 +75,33 @@ int flush(File& f) {
   return rc;
 }
 
+// The default VFS's `method` on the same file and arguments, once the buffer is in the file; a
+// failed flush is the call's result.
+template <auto method, typename... Args>
+int flushed_then(sqlite3_file* file, Args... args) {
+  File& f = as_file(file);
+  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  return (real_methods(f).*method)(f.real, args...);
+}
+
+// The same for a call that must happen whatever the flush gave (it releases something): the
+// call's failure first, then the flush's.
+template <auto method, typename... Args>
+int flushing(sqlite3_file* file, Args... args) {
+  File& f = as_file(file);
+  const int flushed = flush(f);
+  const int rc = (real_methods(f).*method)(f.real, args...);
+  return rc != SQLITE_OK ? rc : flushed;
+}
+
+// The default VFS's `method`, the buffer left as it is (the call neither reads nor writes the
+// file's bytes).
+template <auto method, typename... Args>
+auto passed_on(sqlite3_file* file, Args... args) {
+  File& f = as_file(file);
+  return (real_methods(f).*method)(f.real, args...);
+}
+
 int x_close(sqlite3_file* file) {
   File& f = as_file(file);
   const int flushed = flush(f);
@@ -84,17 +111,12 @@ int x_close(sqlite3_file* file) {
 }
 
 int x_read(sqlite3_file* file, void* out, int amount, sqlite3_int64 offset) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xRead(f.real, out, amount, offset);
+  return flushed_then<&sqlite3_io_methods::xRead>(file, out, amount, offset);
 }
 
 int x_write(sqlite3_file* file, const void* data, int amount, sqlite3_int64 offset) {
   File& f = as_file(file);
-  if (!gathers(f)) {
-    if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-    return real_methods(f).xWrite(f.real, data, amount, offset);
-  }
+  if (!gathers(f)) return flushed_then<&sqlite3_io_methods::xWrite>(file, data, amount, offset);
   const auto bytes = static_cast<std::size_t>(amount);
   const char* p = static_cast<const char*>(data);
   if (!f.buffer.empty() && offset == f.start + static_cast<sqlite3_int64>(f.buffer.size()) &&
@@ -113,62 +135,35 @@ int x_write(sqlite3_file* file, const void* data, int amount, sqlite3_int64 offs
 }
 
 int x_truncate(sqlite3_file* file, sqlite3_int64 size) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xTruncate(f.real, size);
+  return flushed_then<&sqlite3_io_methods::xTruncate>(file, size);
 }
 
-int x_sync(sqlite3_file* file, int flags) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xSync(f.real, flags);
-}
+int x_sync(sqlite3_file* file, int flags) { return flushed_then<&sqlite3_io_methods::xSync>(file, flags); }
 
 int x_file_size(sqlite3_file* file, sqlite3_int64* size) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xFileSize(f.real, size);
+  return flushed_then<&sqlite3_io_methods::xFileSize>(file, size);
 }
 
-int x_lock(sqlite3_file* file, int level) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xLock(f.real, level);
-}
+int x_lock(sqlite3_file* file, int level) { return flushed_then<&sqlite3_io_methods::xLock>(file, level); }
 
-int x_unlock(sqlite3_file* file, int level) {
-  File& f = as_file(file);
-  const int flushed = flush(f);
-  const int rc = real_methods(f).xUnlock(f.real, level);
-  return rc != SQLITE_OK ? rc : flushed;
-}
+int x_unlock(sqlite3_file* file, int level) { return flushing<&sqlite3_io_methods::xUnlock>(file, level); }
 
 int x_check_reserved_lock(sqlite3_file* file, int* out) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xCheckReservedLock(f.real, out);
+  return flushed_then<&sqlite3_io_methods::xCheckReservedLock>(file, out);
 }
 
 int x_file_control(sqlite3_file* file, int op, void* arg) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xFileControl(f.real, op, arg);
+  return flushed_then<&sqlite3_io_methods::xFileControl>(file, op, arg);
 }
 
-int x_sector_size(sqlite3_file* file) {
-  File& f = as_file(file);
-  return real_methods(f).xSectorSize(f.real);
-}
+int x_sector_size(sqlite3_file* file) { return passed_on<&sqlite3_io_methods::xSectorSize>(file); }
 
 int x_device_characteristics(sqlite3_file* file) {
-  File& f = as_file(file);
-  return real_methods(f).xDeviceCharacteristics(f.real);
+  return passed_on<&sqlite3_io_methods::xDeviceCharacteristics>(file);
 }
 
 int x_shm_map(sqlite3_file* file, int page, int page_bytes, int extend, void volatile** out) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xShmMap(f.real, page, page_bytes, extend, out);
+  return flushed_then<&sqlite3_io_methods::xShmMap>(file, page, page_bytes, extend, out);
 }
 
 int x_shm_lock(sqlite3_file* file, int offset, int n, int flags) {
@@ -192,21 +187,15 @@ void x_shm_barrier(sqlite3_file* file) {
 }
 
 int x_shm_unmap(sqlite3_file* file, int delete_flag) {
-  File& f = as_file(file);
-  const int flushed = flush(f);
-  const int rc = real_methods(f).xShmUnmap(f.real, delete_flag);
-  return rc != SQLITE_OK ? rc : flushed;
+  return flushing<&sqlite3_io_methods::xShmUnmap>(file, delete_flag);
 }
 
 int x_fetch(sqlite3_file* file, sqlite3_int64 offset, int amount, void** out) {
-  File& f = as_file(file);
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
-  return real_methods(f).xFetch(f.real, offset, amount, out);
+  return flushed_then<&sqlite3_io_methods::xFetch>(file, offset, amount, out);
 }
 
 int x_unfetch(sqlite3_file* file, sqlite3_int64 offset, void* p) {
-  File& f = as_file(file);
-  return real_methods(f).xUnfetch(f.real, offset, p);
+  return passed_on<&sqlite3_io_methods::xUnfetch>(file, offset, p);
 }
 
 int x_open(sqlite3_vfs* self, sqlite3_filename name, sqlite3_file* file, int flags, int* out_flags) {
