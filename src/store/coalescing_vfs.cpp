@@ -224,31 +224,30 @@ int x_open(sqlite3_vfs* self, sqlite3_filename name, sqlite3_file* file, int fla
 const char* register_vfs(Registration& r) {
   r.base = sqlite3_vfs_find(nullptr);
   if (r.base == nullptr) return nullptr;
+  // One table for each iVersion a default-VFS file may have. SQLite reads the version-2 (shared
+  // memory) and version-3 (memory-mapped) entries only from a table that declares them.
+  const sqlite3_io_methods all{.iVersion = 3,
+                               .xClose = x_close,
+                               .xRead = x_read,
+                               .xWrite = x_write,
+                               .xTruncate = x_truncate,
+                               .xSync = x_sync,
+                               .xFileSize = x_file_size,
+                               .xLock = x_lock,
+                               .xUnlock = x_unlock,
+                               .xCheckReservedLock = x_check_reserved_lock,
+                               .xFileControl = x_file_control,
+                               .xSectorSize = x_sector_size,
+                               .xDeviceCharacteristics = x_device_characteristics,
+                               .xShmMap = x_shm_map,
+                               .xShmLock = x_shm_lock,
+                               .xShmBarrier = x_shm_barrier,
+                               .xShmUnmap = x_shm_unmap,
+                               .xFetch = x_fetch,
+                               .xUnfetch = x_unfetch};
   for (int v = 1; v <= 3; ++v) {
-    sqlite3_io_methods& m = r.methods[v - 1];
-    m.iVersion = v;
-    m.xClose = x_close;
-    m.xRead = x_read;
-    m.xWrite = x_write;
-    m.xTruncate = x_truncate;
-    m.xSync = x_sync;
-    m.xFileSize = x_file_size;
-    m.xLock = x_lock;
-    m.xUnlock = x_unlock;
-    m.xCheckReservedLock = x_check_reserved_lock;
-    m.xFileControl = x_file_control;
-    m.xSectorSize = x_sector_size;
-    m.xDeviceCharacteristics = x_device_characteristics;
-    if (v >= 2) {
-      m.xShmMap = x_shm_map;
-      m.xShmLock = x_shm_lock;
-      m.xShmBarrier = x_shm_barrier;
-      m.xShmUnmap = x_shm_unmap;
-    }
-    if (v >= 3) {
-      m.xFetch = x_fetch;
-      m.xUnfetch = x_unfetch;
-    }
+    r.methods[v - 1] = all;
+    r.methods[v - 1].iVersion = v;
   }
   // Everything but opening a file is the default VFS's own (its other calls ignore the VFS they
   // are given beyond what this copy holds).
