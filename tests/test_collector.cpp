@@ -237,6 +237,43 @@ TEST_CASE("duplicates are answered already_done, and different pixels count as f
   CHECK(stored_state(h.config).tiles[1].size() == kTiles);
 }
 
+namespace {
+// The process's resident memory, from /proc (Linux); 0 where it cannot be read.
+std::uint64_t resident_bytes() {
+  const auto text = dtraced::util::read_file_limited("/proc/self/status", 1 << 20);
+  if (!text.ok()) return 0;
+  const std::string& s = text.value();
+  const std::size_t at = s.find("VmRSS:");
+  if (at == std::string::npos) return 0;
+  return std::stoull(s.substr(at + 6)) * 1024;  // "VmRSS:   1234 kB"
+}
+}  // namespace
+
+TEST_CASE("a large job's stored tiles stay in the store: no framebuffer in memory", "[collector][service]") {
+  TempDir dir;
+  Harness h(dir);
+  // 16384 x 8192 pixels: a float framebuffer would be 1.5 GiB, filled at the first stored tile.
+  const Response res =
+      h.call(Verb::post, "/v1/jobs",
+             fmt::format(R"({{"scene": {}, "tile_size": 32, "width": 16384, "height": 8192}})", kScene));
+  REQUIRE(res.result() == Status::created);
+  const std::uint64_t job = protocol::decode_job_created(res.body()).value().id;
+  const auto first = h.lease();
+  REQUIRE(first);
+  const auto second = h.lease();
+  REQUIRE(second);
+  const std::uint64_t before = resident_bytes();
+  REQUIRE(before > 0);
+  REQUIRE(h.put_ok(*first) == protocol::SubmitResult::kStored);
+  REQUIRE(h.put_ok(*second) == protocol::SubmitResult::kStored);
+  const std::uint64_t after = resident_bytes();
+  CHECK(after < before + (std::uint64_t{256} << 20));
+  CHECK(h.status(job).tiles_done == 2);
+  // The pixels are read back from the store: a duplicate is compared there.
+  CHECK(h.put_ok(*first, /*salt=*/0.25f) == protocol::SubmitResult::kAlreadyDone);
+  CHECK(metric(h, &coll::CollectorCounters::faulty_results) == 1);
+}
+
 TEST_CASE("two uploads of one tile in flight at once: one stored, one already_done", "[collector][service]") {
   TempDir dir;
   Harness h(dir);

@@ -61,7 +61,7 @@ util::Result<CancelAction, Refusal> check_cancel(JobId id, const JobRecord* job,
 util::Result<protocol::TilePayload, Refusal> check_tile_payload(std::string_view body);
 
 enum class TileAction {
-  kStore,    // a new result, or a duplicate for the store or the framebuffer to compare
+  kStore,    // a new result, or a duplicate for the store to compare
   kJobGone,  // the job is unknown or cancelled: answer job_gone (410)
 };
 

@@ -28,8 +28,10 @@ inline constexpr std::size_t kMaxCpuThreads = 256;
 inline constexpr std::chrono::milliseconds kMaxShutdownGrace{10 * 60 * 1000};
 // Unfinished jobs (queued or rendering) at once; a submission past this gets 503.
 inline constexpr std::size_t kDefaultMaxUnfinishedJobs = 1000;
-// Pixels of unfinished jobs at once: each holds a float framebuffer of 12 bytes a pixel in memory
-// while it renders, so this bounds the collector's memory (2^28 pixels: 3 GiB, one 16384^2 image).
+// Pixels of unfinished jobs at once (2^28: one 16384^2 image). The pixels are in the store (12
+// bytes a pixel on disk), not in memory: an image is assembled from it a frame at a time on the
+// thread pool, so the pool's size bounds the frames in memory at once. This bounds the work the
+// collector holds and the per-tile state of its queue.
 inline constexpr std::uint64_t kDefaultMaxUnfinishedPixels = std::uint64_t{1} << 28;
 
 // The seed's one-shot use: `dtraced --role collector --scene S --output O` enqueues this job at

@@ -9,7 +9,6 @@
 #include <fmt/format.h>
 
 #include "image/sequence.h"
-#include "util/huge_pages.h"
 #include "util/sha256.h"
 
 namespace dtraced::collector {
@@ -237,46 +236,6 @@ bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, st
   return true;
 }
 
-namespace {
-
-// A frame's pixels, zero or a copy of `from`, filled on the loop (a frame is 1.5 GiB at 16384 x
-// 8192). Its first touch is a page fault per 4 KiB page, which on our virtual machines cost about
-// 5 s of CPU for 1.5 GiB, a stall of every request; huge pages make it one fault per 2 MiB.
-std::shared_ptr<image::ImageRGBf> new_framebuffer(std::uint32_t width, std::uint32_t height,
-                                                  const image::ImageRGBf* from) {
-  assert(width <= image::kMaxImageSide && height <= image::kMaxImageSide);
-  auto fb = std::make_shared<image::ImageRGBf>();
-  fb->width = width;
-  fb->height = height;
-  const std::size_t values = std::size_t{width} * height * 3;
-  fb->rgb.reserve(values);
-  util::advise_huge_pages_for(fb->rgb);
-  if (from == nullptr) {
-    fb->rgb.resize(values);
-  } else {
-    fb->rgb.assign(from->rgb.begin(), from->rgb.end());
-  }
-  return fb;
-}
-
-}  // namespace
-
-image::ImageRGBf& writable_framebuffer(JobRecord& job, std::uint32_t frame_index) {
-  std::shared_ptr<image::ImageRGBf>& fb = job.framebuffers[frame_index];
-  if (!fb) {
-    fb = new_framebuffer(job.settings.width, job.settings.height, nullptr);
-  } else if (fb.use_count() > 1) {
-    // A reader (an image being encoded) holds the current one: it keeps its snapshot.
-    fb = new_framebuffer(fb->width, fb->height, fb.get());
-  }
-  return *fb;
-}
-
-std::shared_ptr<const image::ImageRGBf> frame_snapshot(const JobRecord& job, std::uint32_t frame_index) {
-  const auto it = job.framebuffers.find(frame_index);
-  return it == job.framebuffers.end() ? nullptr : it->second;
-}
-
 bool frame_complete(const JobRecord& job, std::uint32_t frame_index) {
   return frame_index < job.frame_tiles_done.size() && job.frame_tiles_done[frame_index] == job.tiles_per_frame;
 }
@@ -337,35 +296,40 @@ std::string one_shot_client_key(std::string_view digest, const protocol::JobSett
 }
 
 util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec) {
-  auto tiles = s.get_all_tiles(static_cast<std::int64_t>(rec.id));
-  if (!tiles) return std::move(tiles).error();
+  auto indices = s.stored_tiles(static_cast<std::int64_t>(rec.id));
+  if (!indices) return std::move(indices).error();
   std::vector<TileIndex> stored;
+  stored.reserve(indices.value().size());
   rec.restored.assign(rec.tile_indices, false);
   rec.frame_tiles_done.assign(rec.frames_total, 0);
-  for (store::StoredTile& t : tiles.value()) {
-    if (t.tile >= rec.tile_indices) {
-      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
+  for (const std::uint32_t tile : indices.value()) {
+    if (tile >= rec.tile_indices) {
+      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, tile,
                                      rec.tile_indices));
     }
-    if (!tile_of_job(rec, t.tile)) {
-      return util::Error(
-          fmt::format("{}: job {}: stored tile {} lies outside the job's crop", s.path(), rec.id, t.tile));
+    if (!tile_of_job(rec, tile)) {
+      return util::Error(fmt::format("{}: job {}: stored tile {} lies outside the job's crop", s.path(), rec.id, tile));
     }
-    const TilePlace place = tile_place(rec, t.tile);
+    // One tile at a time: a large job's pixels (1.5 GiB at 16384 x 8192) are never all in memory.
+    auto read = s.get_tile(static_cast<std::int64_t>(rec.id), tile);
+    if (!read) return std::move(read).error();
+    if (!read.value()) {
+      return util::Error(fmt::format("{}: job {}: stored tile {} vanished while it was read", s.path(), rec.id, tile));
+    }
+    const TilePlace place = tile_place(rec, tile);
     const scene::TileRect& rect = place.rect;
     const std::size_t pixels = std::size_t{rect.width} * rect.height;
-    auto stored_tile = blob_to_tile(t.pixels, pixels);
+    const store::Blob& blob = read.value()->pixels;
+    auto stored_tile = blob_to_tile(blob, pixels);
     if (!stored_tile) {
       return util::Error(fmt::format(
           "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample counts)",
-          s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16));
+          s.path(), rec.id, tile, blob.size(), rect.width, rect.height, pixels * 12, pixels * 16));
     }
-    copy_tile(writable_framebuffer(rec, place.frame_index), rect, stored_tile->rgb);
     ++rec.frame_tiles_done[place.frame_index];
     count_samples(rec, stored_tile->spp);
-    t.pixels = {};  // free as we go: the framebuffer holds them now
-    stored.push_back(t.tile);
-    rec.restored[t.tile] = true;
+    stored.push_back(tile);
+    rec.restored[tile] = true;
   }
   return stored;
 }

@@ -1,16 +1,17 @@
 // dtraced::collector jobs: what the collector knows about each job, and the pure operations on it.
 //
 // Owns: JobRecord (a job's effective settings, output name, tiles, state, and while it is
-// unfinished its in-memory framebuffers and scene text), and the small pure functions around it:
+// unfinished its per-frame tile counts and scene text), and the small pure functions around it:
 // where each tile of a frame range lies (tile index = frame index x tiles per frame + tile in
 // the frame, so the queue's lowest indices are the lowest frames and frames complete in order),
-// tile pixels to and from the store's blobs, copying and comparing a tile against a framebuffer,
+// tile pixels to and from the store's blobs, copying and comparing a tile against an image,
 // the status a client sees, a job's default output name and the one-shot job key.
 //
-// The framebuffer is copy-on-write: readers (image encoding on the thread pool) hold a
-// shared_ptr<const ImageRGBf> that is copied and released on the event loop only, and a writer
-// on the loop clones the image first when anyone else holds it (writable_framebuffer), so no
-// thread ever reads pixels another thread is writing.
+// A job's pixels live in the store only, never in a framebuffer of the collector: an image (a
+// finished frame's file, GET image, the web page's tiles) is read back from the store on the
+// thread pool (StoreReader). So the collector's memory does not grow with the pixels it holds,
+// and nothing on the event loop allocates, zeroes or copies a whole frame (1.5 GiB at
+// 16384 x 8192).
 //
 // Thread safety: JobRecord is owned by the collector's event loop; the free functions are pure.
 #pragma once
@@ -93,9 +94,6 @@ struct JobRecord {
   std::uint32_t frames_written = 0;
 
   // Unfinished jobs only (released once done or cancelled).
-  // By frame index: the frames with stored tiles whose image is not written yet (a frame is
-  // absent until its first tile arrives, and dropped once written).
-  std::map<std::uint32_t, std::shared_ptr<image::ImageRGBf>> framebuffers;
   std::vector<TileIndex> frame_tiles_done;        // by frame index: tiles stored
   std::shared_ptr<const std::string> scene_json;  // canonical scene text, served to workers
   std::vector<bool> restored;                     // tiles already stored when this process started
@@ -104,7 +102,7 @@ struct JobRecord {
   bool finish_failed = false;                     // writing an image failed; retried later
   bool rendering_persisted = false;               // the store has been told the job is rendering
 
-  // The web page's view (handlers/web.cpp), of this process only; released with the framebuffers.
+  // The web page's view (handlers/web.cpp), of this process only; released with the scene text.
   // By tile index: the sequence number of each tile stored in memory (0: none), assigned as a
   // tile is stored and, for the tiles restored at start-up, when first needed (ascending index).
   // last_seq only grows, so a client's `since` stays meaningful.
@@ -213,18 +211,14 @@ void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<c
 // Whether `image` holds exactly these bits at `rect`.
 bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
 
-// The framebuffer of the job's frame `frame_index`, allocated (black) if missing and cloned if a
-// reader shares it. Call on the event loop only.
-image::ImageRGBf& writable_framebuffer(JobRecord& job, std::uint32_t frame_index);
-// The frame's framebuffer as it is now, or null (no tile of it stored in memory).
-std::shared_ptr<const image::ImageRGBf> frame_snapshot(const JobRecord& job, std::uint32_t frame_index);
 // Whether every tile of the frame is stored.
 bool frame_complete(const JobRecord& job, std::uint32_t frame_index);
 
-// Reads the job's stored tiles from `s` into `rec`: its frames' framebuffers (black where no tile
-// is stored), the per-frame counts, its sample tally and its `restored` flags; returns their indices, ascending. Fails,
-// naming the database, on a tile out of range or a blob of the wrong size. Runs wherever `s` may be
-// used (start-up; the store writer's thread for a requeue) on a record no other thread touches.
+// Reads the job's stored tiles from `s` into `rec`: the per-frame counts, its sample tally and its
+// `restored` flags (the pixels stay in the store); returns their indices, ascending. One tile is in
+// memory at a time. Fails, naming the database, on a tile out of range or a blob of the wrong size.
+// Runs wherever `s` may be used (start-up; the store writer's thread for a requeue) on a record no
+// other thread touches.
 util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec);
 
 // The status a client sees. `now_unix` for the elapsed time, `now` for the rate of this process.

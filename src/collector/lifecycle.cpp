@@ -75,21 +75,21 @@ void write_failed(Context& c, JobRecord& job, const std::string& error) {
 async::Awaitable<bool> write_frame(Context& c, JobId id, std::uint32_t frame_index) {
   JobRecord* job = c.find_job(id);
   if (!is_gif_sequence(*job)) {
-    std::shared_ptr<const image::ImageRGBf> image = frame_snapshot(*job, frame_index);
-    if (!image) image = std::make_shared<const image::ImageRGBf>(job->settings.width, job->settings.height);
     const std::string path = (fs::path(c.output_dir) / frame_output_name(*job, frame_index)).string();
     const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth),
                                       .display = job->settings.display};
-    auto write = [img = image.get(), crop = job->crop, path, options] {
+    // The frame's pixels from the store, one tile at a time, on the pool: the collector keeps no
+    // framebuffer. Every tile of the frame is committed before frame_complete says so.
+    auto write = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, crop = job->crop,
+                  frame_index, path, options] {
       Written w;
-      image::ImageRGBf cropped;
-      const util::Status st = write_output_image(path, output_pixels(*img, crop, cropped), options);
+      util::Result<image::ImageRGBf> image = reader.frame_image(id, settings, tile_size, crop, frame_index);
+      const util::Status st = image ? write_output_image(path, image.value(), options) : util::Status(image.error());
       w.ok = st.ok();
       if (!st) w.error = st.error().to_string();
       return w;
     };
     const Written written = co_await async::on_pool(c.pool, std::move(write));
-    image.reset();
     job = still_unfinished(c, id);
     if (job == nullptr) co_return false;
     if (!written.ok) {
@@ -103,7 +103,6 @@ async::Awaitable<bool> write_frame(Context& c, JobId id, std::uint32_t frame_ind
     }
   }
   ++job->frames_written;
-  job->framebuffers.erase(frame_index);
   co_return true;
 }
 
@@ -267,7 +266,6 @@ void apply_cancel(Context& c, JobRecord& job, std::int64_t when) {
 }
 
 void release(JobRecord& job) {
-  job.framebuffers.clear();
   job.scene_json.reset();
   job.restored = {};
   job.tile_seq = {};

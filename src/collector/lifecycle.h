@@ -5,7 +5,7 @@
 // clock), the one ordered path of job-state writes to the store, the informational "rendering"
 // state sent to it, a cancellation applied in
 // memory once the store recorded it, and the release of what an ended job no longer needs
-// (framebuffer, scene text). Durability: a job is marked done in the store only after its image
+// (scene text, the page view). Durability: a job is marked done in the store only after its image
 // was renamed into place.
 //
 // Thread safety: on the loop only.

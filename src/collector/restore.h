@@ -5,7 +5,7 @@
 // opens; a second collector on the directory is refused with a message naming the directory and
 // that PID), the database opened (a bad one stops start-up with a message and is left as it was),
 // the start counter ("epoch", in <state_dir>/collector.epoch) incremented, every stored job
-// restored (an unfinished one with its scene and its stored tiles, in its framebuffer and in the
+// restored (an unfinished one with its scene and its stored tiles, counted and put in the
 // queue as already done, so they are never leased again; a complete one whose image was not
 // written gets it written), the one-shot job found by its key and resumed, or stored and
 // enqueued; and, after start-up, the finished adaptive jobs' sample counts read back off the loop.

@@ -23,10 +23,10 @@
 // directory; a second one fails to open, naming the directory and the PID holding it), opens the
 // database (a bad one stops start-up with a message and is left as it was), increments the start
 // counter ("epoch", kept in <state_dir>/collector.epoch), and restores every unfinished job: its
-// scene and settings from the store, its stored tiles into its framebuffer and into the queue as
-// already done, so they are never leased again. Jobs whose tiles are all stored but whose image
-// was not written get it written. A one-shot job (config.h) is then found by its key and resumed,
-// or stored and enqueued. listen() binds, then tells systemd READY=1.
+// scene and settings from the store, its stored tiles counted (their pixels stay in the store)
+// and put into the queue as already done, so they are never leased again. Jobs whose tiles are all stored but whose
+// image was not written get it written. A one-shot job (config.h) is then found by its key and resumed, or stored and
+// enqueued. listen() binds, then tells systemd READY=1.
 //
 // Durability: a job is stored (scene and row, one transaction) before its 201; a tile is
 // acknowledged "stored" only after its transaction committed; a job is marked done in the store

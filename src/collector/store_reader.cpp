@@ -27,26 +27,10 @@ util::Result<std::string> StoreReader::encode_image(JobId id, const scene::Rende
                                                     std::uint32_t tile_size, const std::optional<scene::TileRect>& crop,
                                                     std::uint32_t frame_index, const image::WriteOptions& options,
                                                     image::ImageFormat format) {
-  image::ImageRGBf image(settings.width, settings.height);
-  {
-    std::lock_guard lock(mu_);
-    auto s = store_locked();
-    if (!s) return std::move(s).error();
-    auto tiles = s.value()->get_all_tiles(static_cast<std::int64_t>(id));
-    if (!tiles) return std::move(tiles).error();
-    const scene::TileGrid grid(settings, tile_size);
-    // Frame k's tiles are k x tiles-per-frame onwards (collector/jobs.h).
-    const std::uint64_t first = std::uint64_t{frame_index} * grid.count();
-    for (const store::StoredTile& t : tiles.value()) {
-      if (t.tile < first || t.tile - first >= grid.count()) continue;
-      const scene::TileRect rect = grid.rect(static_cast<TileIndex>(t.tile - first));
-      auto stored_tile = blob_to_tile(t.pixels, std::size_t{rect.width} * rect.height);
-      if (!stored_tile) return util::Error(fmt::format("stored tile {} has the wrong size", t.tile));
-      copy_tile(image, rect, stored_tile->rgb);
-    }
-  }
-  image::ImageRGBf holder;
-  return image::encode_image(format, output_pixels(image, crop, holder), options);
+  // The frame's tiles only, one at a time (a sequence's other frames are never read).
+  util::Result<image::ImageRGBf> image = frame_image(id, settings, tile_size, crop, frame_index);
+  if (!image) return std::move(image).error();
+  return image::encode_image(format, image.value(), options);
 }
 
 util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::RenderSettings& settings,
@@ -58,26 +42,32 @@ util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::R
   const TileIndex first = frame_index * static_cast<TileIndex>(grid.count());
   for (TileIndex t = 0; t < grid.count(); ++t) {
     if (!overlaps_crop(grid.rect(t), crop)) continue;  // no part of the job
-    std::optional<store::StoredTile> stored;
-    {
-      // One tile per lock, so that other reads go on in between.
-      std::lock_guard lock(mu_);
-      auto s = store_locked();
-      if (!s) return std::move(s).error();
-      auto tile = s.value()->get_tile(static_cast<std::int64_t>(id), first + t);
-      if (!tile) return std::move(tile).error();
-      stored = std::move(tile).value();
-    }
-    if (!stored) continue;
     const scene::TileRect rect = grid.rect(t);
-    auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);
-    if (!parsed) return util::Error(fmt::format("stored tile {} has the wrong size", first + t));
-    copy_tile(image, rect, parsed->rgb);
+    // One tile per lock (inside tile_rgb), so that other reads go on in between.
+    auto rgb = tile_rgb(id, first + t, std::size_t{rect.width} * rect.height);
+    if (!rgb) return std::move(rgb).error();
+    if (rgb.value()) copy_tile(image, rect, *rgb.value());
   }
   if (!crop) return image;
   image::ImageRGBf cropped;
   output_pixels(image, crop, cropped);
   return cropped;
+}
+
+util::Result<std::optional<std::vector<float>>> StoreReader::tile_rgb(JobId id, TileIndex tile, std::size_t pixels) {
+  std::optional<store::StoredTile> stored;
+  {
+    std::lock_guard lock(mu_);
+    auto s = store_locked();
+    if (!s) return std::move(s).error();
+    auto read = s.value()->get_tile(static_cast<std::int64_t>(id), tile);
+    if (!read) return std::move(read).error();
+    stored = std::move(read).value();
+  }
+  if (!stored) return std::optional<std::vector<float>>();
+  auto parsed = blob_to_tile(stored->pixels, pixels);
+  if (!parsed) return util::Error(fmt::format("stored tile {} of job {} has the wrong size", tile, id));
+  return std::optional(std::move(parsed->rgb));
 }
 
 util::Result<std::optional<std::string>> StoreReader::scene(const std::string& digest) {

@@ -2,9 +2,11 @@
 // for the event loop.
 //
 // Owns: a Store opened on first use (without the integrity check: the first connection ran it at
-// start-up) and the reads that go through it: a finished or cancelled job's image (or one frame
-// of it), assembled from its stored tiles and encoded; a scene by digest; a finished adaptive job's sample counts. The
-// store writer (store/tile_writer.h) has the other connection; WAL lets the two work at once.
+// start-up) and the reads that go through it: a job's image (or one frame of it), assembled from
+// its stored tiles and encoded, whether the job is finished or not (the collector keeps no
+// framebuffer); one stored tile's pixels; a scene by digest; a finished adaptive job's sample
+// counts. The store writer (store/tile_writer.h) has the other connection; WAL lets the two work
+// at once.
 //
 // Thread safety: every member function may be called from any thread (the thread pool's); the
 // connection is used by one caller at a time under a lock. The sample counts are read one tile
@@ -15,6 +17,7 @@
 #include <mutex>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "collector/jobs.h"
 #include "image/image_io.h"
@@ -40,6 +43,10 @@ class StoreReader {
   // memory at a time).
   util::Result<image::ImageRGBf> frame_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
                                              const std::optional<scene::TileRect>& crop, std::uint32_t frame_index);
+
+  // The rgb values of stored tile `tile` (`pixels` of them: width x height of its rectangle), or
+  // nullopt when it is not stored; fails on a read error or a blob of the wrong size.
+  util::Result<std::optional<std::vector<float>>> tile_rgb(JobId id, TileIndex tile, std::size_t pixels);
 
   // A scene's canonical text; nullopt when no scene has this digest.
   util::Result<std::optional<std::string>> scene(const std::string& digest);

@@ -46,7 +46,7 @@ store::StoredJob job_row(const PreparedJob& job, std::int64_t created_unix);
 util::Result<std::int64_t> insert_scene_and_job(store::Store& s, const store::StoredJob& row,
                                                 std::string_view scene_json);
 
-// A job record from its stored row (without framebuffer or scene text); the error names the job
+// A job record from its stored row (without its stored tiles or scene text); the error names the job
 // and the problem.
 util::Result<JobRecord> record_from_row(const store::StoredJob& row);
 

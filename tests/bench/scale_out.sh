@@ -164,10 +164,10 @@ farm_row() {
       exit 1
     }
     job_args=(--job "$id" --render-ms "$render")
-    # The job's first stored tile allocates its framebuffer (zeroed on the collector's event loop,
-    # a stall of its own); a few tiles stored now keep that out of the farm's figures.
+    # Warm-up: a few tiles stored now (the store's first pages, the TLS handshakes) keep the
+    # job's start out of the farm's figures.
     load --job "$id" --workers 4 --seconds 1 >/dev/null 2>"$work/load.err" || {
-      echo "the framebuffer warm-up failed:" >&2
+      echo "the warm-up failed:" >&2
       tail -n 5 "$work/load.err" >&2
       exit 1
     }
@@ -347,7 +347,7 @@ if [[ " $PARTS " == *" 3 "* ]]; then
   stop_collector
   echo "3. memory per job: $submitted unstarted 1920x1080 jobs in 64-px tiles (510 tiles each), collector RSS" \
     "$((r0 / 1024)) MiB -> $((r1 / 1024)) MiB: $(awk -v a="$r0" -v b="$r1" -v n="$submitted" 'BEGIN { if (n > 0) printf "%.1f", (b - a) / n }') KiB a job"
-  echo "   (a started job also holds its framebuffer: 12 bytes a pixel, 24 MiB for 1920x1080)"
+  echo "   (a started job's pixels are in the store, not in memory: 12 bytes a pixel on disk)"
   echo
 fi
 

@@ -24,7 +24,7 @@ struct Requeued {
   util::Status status;                       // the change and the reads; an error is logged, answered 503
   std::optional<std::string> refused_state;  // the job's stored state when the change was refused
   std::optional<std::string> scene_json;
-  JobRecord record;  // the framebuffers, sample tally and restored flags from the stored tiles
+  JobRecord record;  // the per-frame counts, sample tally and restored flags from the stored tiles
   std::vector<TileIndex> stored;
 };
 
@@ -121,9 +121,9 @@ async::Awaitable<http::Response> requeue_job(Context& c, JobId id) {
   if (auto checked = check_requeue(id, job, load_now(c), c.config); !checked) co_return respond(checked.error());
   // Cancelled while a frame of it was being written: that write ends first.
   if (job->writing) co_return respond(busy("a frame of the job is still being written; retry shortly"));
-  // A copy without the pixels (a cancelled job has released them): the writer fills it in.
+  // A copy without the counts of its stored tiles (a cancelled job has released them): the writer
+  // counts them again.
   JobRecord copy = *job;
-  copy.framebuffers.clear();
   copy.tile_seq = {};  // given again to the stored tiles, after last_seq
   copy.spp = {};       // counted again from the stored tiles
   copy.spp_pending = false;

@@ -1,4 +1,5 @@
-// GET /v1/scenes/{digest} and GET /v1/jobs/{id}/image: reads, from memory or, off the loop, the store.
+// GET /v1/scenes/{digest} and GET /v1/jobs/{id}/image: a scene from memory or, off the loop, the store;
+// an image from the store, off the loop.
 #include <algorithm>
 #include <memory>
 #include <optional>
@@ -49,31 +50,16 @@ async::Awaitable<http::Response> get_job_image(Context& c, JobId id, image::Imag
   // PNG at the job's bit depth and display transform, as its output files are written.
   const image::WriteOptions options{.png_bit_depth = static_cast<int>(job->png_bit_depth),
                                     .display = job->settings.display};
-  std::optional<util::Result<std::string>> encoded;  // optional: on_pool needs a default-constructible result
-  // A frame not written yet is in memory (black before its first tile); a written one, and every
-  // frame of a done or cancelled job, in the store only.
-  if (job->unfinished() && frame_index >= job->frames_written) {
-    // The framebuffer as it is now. The snapshot is held (and released) here, on the loop; the
-    // pool only reads through a plain pointer, so copy-on-write stays exact.
-    std::shared_ptr<const image::ImageRGBf> snapshot = frame_snapshot(*job, frame_index);
-    // A cropped job shows its crop only, as its output files do.
-    const std::uint32_t w = job->crop ? job->crop->width : job->settings.width;
-    const std::uint32_t h = job->crop ? job->crop->height : job->settings.height;
-    auto encode = [image = snapshot.get(), crop = job->crop, w, h, format, options] {
-      image::ImageRGBf cropped;
-      return std::optional(image != nullptr ? image::encode_image(format, output_pixels(*image, crop, cropped), options)
-                                            : image::encode_image(format, image::ImageRGBf(w, h), options));
-    };
-    encoded = co_await async::on_pool(c.pool, std::move(encode));
-  } else {
-    auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, crop = job->crop,
-                     frame_index, options, format] {
-      return std::optional(reader.encode_image(id, settings, tile_size, crop, frame_index, options, format));
-    };
-    encoded = co_await async::on_pool(c.pool, std::move(assemble));
-    // Deleted while its tiles were read: what was read may be incomplete.
-    if (c.find_job(id) == nullptr) co_return respond(job_not_found(id));
-  }
+  // Every frame from the store, black where no tile is stored yet (the collector keeps no
+  // framebuffer), read and encoded on the pool.
+  auto assemble = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, crop = job->crop,
+                   frame_index, options, format] {
+    return std::optional(reader.encode_image(id, settings, tile_size, crop, frame_index, options, format));
+  };
+  // In an optional: on_pool needs a default-constructible result.
+  std::optional<util::Result<std::string>> encoded = co_await async::on_pool(c.pool, std::move(assemble));
+  // Deleted while its tiles were read: what was read may be incomplete.
+  if (c.find_job(id) == nullptr) co_return respond(job_not_found(id));
   if (!encoded->ok()) {
     const std::string why = encoded->error().to_string();
     util::log_error("collector: job {}: cannot produce its image: {}", id, why);

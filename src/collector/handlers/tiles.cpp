@@ -113,7 +113,7 @@ void observe_render_time(Context& c, const http::Request& req) {
   if (ms) c.counters.tile_render_seconds.observe(double(*ms) / 1000.0);
 }
 
-// The store committed the tile: it leaves the queue and enters the framebuffer.
+// The store committed the tile: it leaves the queue (its pixels stay in the store only).
 Outcome on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payload, const WorkerId& worker) {
   const CompleteResult completed = c.queue.complete(id, payload.tile, c.clock.now());
   JobRecord* job = c.find_job(id);
@@ -132,7 +132,6 @@ Outcome on_tile_stored(Context& c, JobId id, const protocol::TilePayload& payloa
   note_tile_upload(c, worker, TileOutcome::kStored, tile_rays(payload, job->settings.samples));
   note_job_served(c, id);
   const std::uint32_t frame_index = tile_place(*job, payload.tile).frame_index;
-  copy_tile(writable_framebuffer(*job, frame_index), payload.rect, payload.rgb);
   note_page_stored(*job, payload.tile, worker.name);
   ++job->frame_tiles_done[frame_index];
   count_samples(*job, payload.spp);
@@ -209,14 +208,7 @@ async::Awaitable<Outcome> upload(Context& c, const Route& route, http::Request& 
     co_return verdict(protocol::SubmitResult::kJobGone);
   }
   if (!job->restored.empty() && job->restored[p.tile]) ++c.counters.restored_tile_submissions;
-  if (job->unfinished() && c.queue.tile_status(job->id, p.tile) == TileStatus::kStored) {
-    // The frame's framebuffer holds the stored pixels (until the frame is written): compare here,
-    // no store round trip. A frame already written counts as a plain duplicate.
-    const auto frame = frame_snapshot(*job, tile_place(*job, p.tile).frame_index);
-    const bool identical = !frame || tile_matches(*frame, p.rect, p.rgb);
-    co_return duplicate(c, identical, job->id, p.tile, worker);
-  }
-  // Not stored yet, or the job is done and its pixels are only in the store.
+  // The store decides whether it is new, and compares a duplicate with the stored result.
   if (!c.accepting_writes()) co_return other(respond(busy("the collector is stopping; retry later")));
   co_return co_await store_tile(c, route.job, p, std::move(body), worker);
 }

@@ -313,17 +313,26 @@ async::Awaitable<http::Response> get_job_tiles(Context& c, const Route& route, c
                                        {"ax", t.ax},
                                        {"ay", t.ay}});
     }
-    // On the pool, as GET image encodes: the snapshot is held here, on the loop.
-    std::shared_ptr<const image::ImageRGBf> snapshot = frame_snapshot(*job, frame_index);
+    // On the pool, as GET image encodes: each new tile's pixels from the store (the collector keeps
+    // no framebuffer). A tile the store cannot give stays black in the atlas, and is logged.
     const image::WriteOptions options{.png_bit_depth = 8, .display = job->settings.display};
-    auto encode = [image = snapshot.get(), &tiles, area, columns, rows, size = job->tile_size, options] {
+    auto encode = [&reader = c.reader, id = job->id, &tiles, area, columns, rows, size = job->tile_size, options] {
       image::ImageRGBf atlas(columns * size, rows * size);
-      if (image != nullptr) {
-        for (const DeltaTile& t : tiles) {
-          for (std::uint32_t y = 0; y < t.displayed.height; ++y) {
-            const float* from = image->pixel(area.x0 + t.displayed.x0, area.y0 + t.displayed.y0 + y);
-            std::copy(from, from + std::size_t{t.displayed.width} * 3, atlas.pixel(t.ax, t.ay + y));
-          }
+      for (const DeltaTile& t : tiles) {
+        const std::size_t pixels = std::size_t{t.full.width} * t.full.height;
+        util::Result<std::optional<std::vector<float>>> rgb = reader.tile_rgb(id, t.tile, pixels);
+        if (!rgb || !rgb.value()) {
+          if (!rgb)
+            util::log_warn("collector: job {}: the preview cannot read tile {}: {}", id, t.tile, rgb.error().message);
+          continue;
+        }
+        const std::vector<float>& from = *rgb.value();
+        // displayed is in the displayed area; full in the frame: the displayed part's offset in the tile.
+        const std::uint32_t dx = area.x0 + t.displayed.x0 - t.full.x0;
+        const std::uint32_t dy = area.y0 + t.displayed.y0 - t.full.y0;
+        for (std::uint32_t y = 0; y < t.displayed.height; ++y) {
+          const float* row = from.data() + (std::size_t{dy + y} * t.full.width + dx) * 3;
+          std::copy(row, row + std::size_t{t.displayed.width} * 3, atlas.pixel(t.ax, t.ay + y));
         }
       }
       return std::optional(image::encode_image(image::ImageFormat::kPng, atlas, options));
