@@ -503,6 +503,36 @@ TEST_CASE("the coalescing VFS writes a WAL file's bytes in order and shows them 
   CHECK(file_bytes(path) == model);
 }
 
+TEST_CASE("a WAL write that fails in the coalescing VFS fails the next sync, whichever call saw it first",
+          "[store][vfs]") {
+  StoreDir tmp;
+  std::ofstream(tmp.path() + "/file").put('\0');
+  const std::string path = tmp.path() + "/file-wal";
+  std::ofstream(path).put('\0');
+  sqlite3_vfs* vfs = sqlite3_vfs_find(dtraced::store::coalescing_vfs_name());
+  REQUIRE(vfs != nullptr);
+  std::vector<char> storage(static_cast<std::size_t>(vfs->szOsFile));
+  auto* file = reinterpret_cast<sqlite3_file*>(storage.data());
+  int out_flags = 0;
+  // Opened read-only: every write that reaches the file fails.
+  REQUIRE(vfs->xOpen(vfs, path.c_str(), file, SQLITE_OPEN_READONLY | SQLITE_OPEN_WAL, &out_flags) == SQLITE_OK);
+  const std::string frame(24 + 16384, 'f');
+  // Buffered: the write itself succeeds.
+  REQUIRE(file->pMethods->xWrite(file, frame.data(), static_cast<int>(frame.size()), 32) == SQLITE_OK);
+  // A call whose result SQLite may ignore flushes the buffer and reports the failure...
+  CHECK(file->pMethods->xFileControl(file, SQLITE_FCNTL_SYNC_OMITTED, nullptr) != SQLITE_OK);
+  // ...and the next sync fails all the same, so no commit can count the lost frame.
+  CHECK(file->pMethods->xSync(file, SQLITE_SYNC_NORMAL) != SQLITE_OK);
+  // Reported once: nothing more was lost since.
+  CHECK(file->pMethods->xSync(file, SQLITE_SYNC_NORMAL) == SQLITE_OK);
+  // A failure the write itself reports (the buffer flushed ahead of a non-consecutive write) is
+  // heeded there and does not fail a later sync.
+  REQUIRE(file->pMethods->xWrite(file, frame.data(), static_cast<int>(frame.size()), 32) == SQLITE_OK);
+  CHECK(file->pMethods->xWrite(file, frame.data(), 24, 1 << 20) != SQLITE_OK);
+  CHECK(file->pMethods->xSync(file, SQLITE_SYNC_NORMAL) == SQLITE_OK);
+  REQUIRE(file->pMethods->xClose(file) == SQLITE_OK);
+}
+
 TEST_CASE("through the coalescing VFS, a commit and a checkpoint reach the files before they return", "[store][vfs]") {
   StoreDir tmp;
   const std::string path = tmp.db();

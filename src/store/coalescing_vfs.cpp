@@ -12,27 +12,26 @@
 namespace dtraced::store {
 namespace {
 
-// At most this many bytes wait in a file's buffer (the frames of about 60 tiles, or 64 pages a
-// checkpoint copies); a write past it flushes the buffer first.
+// At most this many bytes wait in a file's buffer (the frames of about 60 tiles); a write past it
+// flushes the buffer first.
 constexpr std::size_t kMaxBufferBytes = std::size_t{1} << 20;
 // The default VFS for Unix writes at most 128 KiB - 1 bytes a call (it masks larger counts): the
 // buffer goes out in pieces of 31 pages of 4 KiB.
 constexpr std::size_t kMaxWriteBytes = 31 * 4096;
-// The WAL's checkpoint lock among the shared-memory locks (WAL_CKPT_LOCK in SQLite's wal.c, part
-// of its file format): held exclusively while a checkpoint copies pages into the database.
-constexpr int kCheckpointLock = 1;
-
-enum class Kind { kPassThrough, kWal, kDatabase };
+enum class Kind { kPassThrough, kWal };
 
 // What SQLite allocates for a file (sqlite3_vfs::szOsFile): this, then the default VFS's file.
 struct File {
   sqlite3_file base;  // first: SQLite's view of the file
   sqlite3_file* real = nullptr;
   Kind kind = Kind::kPassThrough;
-  bool checkpointing = false;   // kDatabase: the connection holds the checkpoint lock
   int deferred_rc = SQLITE_OK;  // a flush's failure that no call has reported yet
-  sqlite3_int64 start = 0;      // the file offset of buffer[0]
-  std::vector<char> buffer;     // consecutive bytes not written yet
+  // A flush's failure that no xWrite or xSync has reported yet: SQLite may ignore the result of
+  // the call that reported it (an unlock, a file control), so the next sync fails too, and no
+  // commit counts bytes that never reached the file.
+  int unsynced_rc = SQLITE_OK;
+  sqlite3_int64 start = 0;   // the file offset of buffer[0]
+  std::vector<char> buffer;  // consecutive bytes not written yet
 };
 constexpr int kFileBytes = static_cast<int>((sizeof(File) + 7) / 8 * 8);
 
@@ -49,7 +48,7 @@ static_assert(std::is_standard_layout_v<Registration>, "a pointer to its first m
 File& as_file(sqlite3_file* f) { return *reinterpret_cast<File*>(f); }
 const sqlite3_io_methods& real_methods(File& f) { return *f.real->pMethods; }
 
-bool gathers(const File& f) { return f.kind == Kind::kWal || (f.kind == Kind::kDatabase && f.checkpointing); }
+bool gathers(const File& f) { return f.kind == Kind::kWal; }
 
 // Writes the buffer, in pieces the default VFS takes whole; keeps the first failure in
 // deferred_rc.
@@ -60,6 +59,7 @@ void write_buffer(File& f) {
                                           f.start + static_cast<sqlite3_int64>(at));
     if (rc != SQLITE_OK) {
       if (f.deferred_rc == SQLITE_OK) f.deferred_rc = rc;
+      if (f.unsynced_rc == SQLITE_OK) f.unsynced_rc = rc;
       break;
     }
     at += n;
@@ -125,8 +125,11 @@ int x_write(sqlite3_file* file, const void* data, int amount, sqlite3_int64 offs
     return SQLITE_OK;
   }
   // Not where the buffer ends (or no room): what is buffered goes first, so writes reach the file
-  // in the order SQLite made them.
-  if (const int rc = flush(f); rc != SQLITE_OK) return rc;
+  // in the order SQLite made them. A failure here is this write's, which SQLite always heeds.
+  if (const int rc = flush(f); rc != SQLITE_OK) {
+    f.unsynced_rc = SQLITE_OK;
+    return rc;
+  }
   if (bytes > kMaxWriteBytes) return real_methods(f).xWrite(f.real, data, amount, offset);
   if (f.buffer.capacity() == 0) f.buffer.reserve(kMaxBufferBytes);
   f.start = offset;
@@ -138,7 +141,17 @@ int x_truncate(sqlite3_file* file, sqlite3_int64 size) {
   return flushed_then<&sqlite3_io_methods::xTruncate>(file, size);
 }
 
-int x_sync(sqlite3_file* file, int flags) { return flushed_then<&sqlite3_io_methods::xSync>(file, flags); }
+int x_sync(sqlite3_file* file, int flags) {
+  File& f = as_file(file);
+  const int flushed = flush(f);
+  // Any write since the last sync that did not reach the file fails this sync, whichever call
+  // reported it first.
+  const int lost = f.unsynced_rc;
+  f.unsynced_rc = SQLITE_OK;
+  if (flushed != SQLITE_OK) return flushed;
+  if (lost != SQLITE_OK) return lost;
+  return real_methods(f).xSync(f.real, flags);
+}
 
 int x_file_size(sqlite3_file* file, sqlite3_int64* size) {
   return flushed_then<&sqlite3_io_methods::xFileSize>(file, size);
@@ -167,16 +180,8 @@ int x_shm_map(sqlite3_file* file, int page, int page_bytes, int extend, void vol
 }
 
 int x_shm_lock(sqlite3_file* file, int offset, int n, int flags) {
-  File& f = as_file(file);
-  const bool covers_checkpoint = offset <= kCheckpointLock && kCheckpointLock < offset + n;
   // Whatever the lock tells other connections, the file holds what came before it.
-  const int flushed = flush(f);
-  if ((flags & SQLITE_SHM_UNLOCK) != 0 && covers_checkpoint) f.checkpointing = false;
-  const int rc = real_methods(f).xShmLock(f.real, offset, n, flags);
-  if (rc == SQLITE_OK && (flags & SQLITE_SHM_LOCK) != 0 && (flags & SQLITE_SHM_EXCLUSIVE) != 0 && covers_checkpoint) {
-    f.checkpointing = f.kind == Kind::kDatabase;
-  }
-  return rc != SQLITE_OK ? rc : flushed;
+  return flushing<&sqlite3_io_methods::xShmLock>(file, offset, n, flags);
 }
 
 void x_shm_barrier(sqlite3_file* file) {
@@ -202,11 +207,7 @@ int x_open(sqlite3_vfs* self, sqlite3_filename name, sqlite3_file* file, int fla
   File* f = new (file) File{};
   f->real = reinterpret_cast<sqlite3_file*>(reinterpret_cast<char*>(file) + kFileBytes);
   f->real->pMethods = nullptr;
-  if ((flags & SQLITE_OPEN_WAL) != 0) {
-    f->kind = Kind::kWal;
-  } else if ((flags & SQLITE_OPEN_MAIN_DB) != 0) {
-    f->kind = Kind::kDatabase;
-  }
+  if ((flags & SQLITE_OPEN_WAL) != 0) f->kind = Kind::kWal;
   Registration& registration = *reinterpret_cast<Registration*>(self);
   sqlite3_vfs* base = registration.base;
   const int rc = base->xOpen(base, name, f->real, flags, out_flags);
