@@ -1158,11 +1158,15 @@ std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* h
   for (int i = 0; i < N; ++i) {
     best_t[i] = rays[i].t_max;
     best_id[i] = 0;
-    if ((live >> i & 1u) && outside != Outside::kNone &&
-        outside_hit(
-            outside == Outside::kPlanes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
-            rays[i].t_min, best_t[i], best_id[i])) {
-      found |= 1u << i;
+  }
+  if (outside == Outside::kPlanes) {
+    found = outside_planes<N>(rays, live, best_t, best_id);
+  } else if (outside == Outside::kAny) {
+    for (int i = 0; i < N; ++i) {
+      if ((live >> i & 1u) &&
+          outside_hit(detail::precompute(rays[i], has_triangles_), rays[i].t_min, best_t[i], best_id[i])) {
+        found |= 1u << i;
+      }
     }
   }
   std::uint32_t finished = 0;
@@ -1218,14 +1222,21 @@ std::uint32_t Geometry::occluded_n(const Ray* rays, std::uint32_t valid) const {
   }
   std::uint32_t blocked = 0;
   const Outside outside = outside_kind(shapes_, outside_, wide_);
-  for (int i = 0; i < N; ++i) {
-    float t = rays[i].t_max;
-    std::uint32_t id = 0;
-    if ((live >> i & 1u) && outside != Outside::kNone &&
-        outside_hit(
-            outside == Outside::kPlanes ? detail::precompute_od(rays[i]) : detail::precompute(rays[i], has_triangles_),
-            rays[i].t_min, t, id)) {
-      blocked |= 1u << i;
+  if (outside == Outside::kPlanes) {
+    float t[N];
+    std::uint32_t id[N];
+    for (int i = 0; i < N; ++i) {
+      t[i] = rays[i].t_max;
+      id[i] = 0;
+    }
+    blocked = outside_planes<N>(rays, live, t, id);
+  } else if (outside == Outside::kAny) {
+    for (int i = 0; i < N; ++i) {
+      float t = rays[i].t_max;
+      std::uint32_t id = 0;
+      if ((live >> i & 1u) && outside_hit(detail::precompute(rays[i], has_triangles_), rays[i].t_min, t, id)) {
+        blocked |= 1u << i;
+      }
     }
   }
   const std::uint32_t rest = live & ~blocked;

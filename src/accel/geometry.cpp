@@ -395,6 +395,55 @@ Bounds3f shape_bounds(const Shape& shape) {
   return b;
 }
 
+template <int N>
+std::uint32_t Geometry::outside_planes(const Ray* rays, std::uint32_t live, float* best_t,
+                                       std::uint32_t* best_id) const {
+  // The lanes as arrays (dead lanes too: their answers are masked out), then per plane
+  // detail::plane_t and outside_hit's comparison, operation for operation, without branches.
+  float ox[N], oy[N], oz[N], dx[N], dy[N], dz[N], t_min[N], bt[N];
+  std::uint32_t bid[N], on[N], found[N];
+  for (int i = 0; i < N; ++i) {
+    ox[i] = rays[i].o.x, oy[i] = rays[i].o.y, oz[i] = rays[i].o.z;
+    dx[i] = rays[i].d.x, dy[i] = rays[i].d.y, dz[i] = rays[i].d.z;
+    t_min[i] = rays[i].t_min;
+    bt[i] = best_t[i];
+    bid[i] = best_id[i];
+    on[i] = live >> i & 1u;
+    found[i] = 0;
+  }
+  const bool flat = detail::is_flat(wide_);
+  for (const std::uint32_t id : outside_) {
+    if (flat && shapes_[id].type != ShapeType::kPlane) continue;
+    assert(shapes_[id].type == ShapeType::kPlane);
+    const PlaneShape& pl = shapes_[id].plane;
+    const float nx = pl.normal.x, ny = pl.normal.y, nz = pl.normal.z;
+    const float px = pl.point.x, py = pl.point.y, pz = pl.point.z;
+    for (int i = 0; i < N; ++i) {
+      const float dn = dx[i] * nx + dy[i] * ny + dz[i] * nz;
+      const float num = (px - ox[i]) * nx + (py - oy[i]) * ny + (pz - oz[i]) * nz;
+      const float t = num / dn;
+      // plane_t's NaN cases (dn == 0, t outside (t_min, inf)) never pass outside_hit's test.
+      const std::uint32_t ok =
+          std::uint32_t(dn != 0.0f) & std::uint32_t(t > t_min[i]) & std::uint32_t(t < detail::kInf);
+      const std::uint32_t take =
+          on[i] & ok & (std::uint32_t(t < bt[i]) | (found[i] & std::uint32_t(t == bt[i]) & std::uint32_t(id < bid[i])));
+      bt[i] = take != 0 ? t : bt[i];
+      bid[i] = take != 0 ? id : bid[i];
+      found[i] |= take;
+    }
+  }
+  std::uint32_t mask = 0;
+  for (int i = 0; i < N; ++i) {
+    best_t[i] = bt[i];
+    best_id[i] = bid[i];
+    mask |= found[i] << i;
+  }
+  return mask;
+}
+
+template std::uint32_t Geometry::outside_planes<kPacketSize>(const Ray*, std::uint32_t, float*, std::uint32_t*) const;
+template std::uint32_t Geometry::outside_planes<kPacketSize16>(const Ray*, std::uint32_t, float*, std::uint32_t*) const;
+
 Vec3f offset_ray_origin(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w) {
   const float d = dot(math::abs(n), p_error);
   Vec3f offset = d * n;
