@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <cstring>
 #include <numbers>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -16,6 +17,7 @@
 
 #include "accel/geometry.h"
 #include "shape_builders.h"
+#include "util/thread_pool.h"
 
 using namespace dtraced::accel;
 using namespace dtraced::testing;
@@ -333,6 +335,39 @@ TEST_CASE("BVH build: stats, degenerate inputs, depth cap", "[accel][bvh]") {
       mismatches += fa != fb || (fa && !same_hit(a, b));
     }
     CHECK(mismatches == 0);
+  }
+}
+
+TEST_CASE("BVH build's thread pool: every item once, loop after loop, and its exceptions", "[accel][bvh][threads]") {
+  // The build hands its pool a few hundred short loops (util/thread_pool.h); a worker that wakes
+  // late must neither miss a loop's item nor run one twice, nor look at a loop that has returned.
+  for (const unsigned size : {1u, 2u, 4u}) {
+    dtraced::util::ThreadPool pool(size);
+    INFO("pool of " << size);
+    CHECK(pool.size() >= 1);
+    CHECK(pool.size() <= size);
+    std::vector<int> runs(1000);
+    for (int loop = 0; loop < 300; ++loop) {
+      const std::size_t count = std::size_t(loop % 7 == 0 ? 1 : 1 + loop * 3);
+      pool.parallel_for(count, loop % 5 == 0 ? 1u : size, [&](std::size_t i) { ++runs[i]; });
+      bool each_once = true;
+      for (std::size_t i = 0; i < runs.size(); ++i) each_once = each_once && runs[i] == (i < count ? 1 : 0);
+      INFO("loop " << loop << ", items " << count);
+      REQUIRE(each_once);
+      std::fill(runs.begin(), runs.end(), 0);
+    }
+    pool.parallel_for(0, size, [&](std::size_t) { FAIL("no item"); });
+    // An exception stops the loop and is thrown to the caller; the pool runs the next loop whole.
+    CHECK_THROWS_AS(pool.parallel_for(500, size,
+                                      [](std::size_t i) {
+                                        if (i == 37) throw std::runtime_error("item 37");
+                                      }),
+                    std::runtime_error);
+    std::vector<int> after(500);
+    pool.parallel_for(after.size(), size, [&](std::size_t i) { after[i] = int(i); });
+    bool whole = true;
+    for (std::size_t i = 0; i < after.size(); ++i) whole = whole && after[i] == int(i);
+    CHECK(whole);
   }
 }
 

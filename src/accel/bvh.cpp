@@ -2,9 +2,10 @@
 // any-hit traversal with a fixed stack. Planes are infinite and tested linearly beside the tree.
 //
 // The build runs on up to the caller's thread count and gives the same node array whatever that
-// count: the levels above kParallelGrain prims are split one node at a time with their binning
-// cut into fixed-size chunks (merged in chunk order), the ranges below become independent
-// subtrees built one per thread, and the subtrees are stitched back in depth-first order.
+// count: the levels above kParallelGrain prims are split one node at a time with their bounds,
+// binning and partition cut into fixed-size chunks (merged in chunk order), the ranges below
+// become independent subtrees built one per thread, and the subtrees are stitched back in
+// depth-first order. The threads are started once per build (util::ThreadPool).
 #include <algorithm>
 #include <array>
 #include <atomic>
@@ -14,10 +15,15 @@
 #include <cstddef>
 #include <exception>
 #include <limits>
+#include <memory>
 #include <mutex>
 #include <thread>
 #include <tuple>
 #include <utility>
+
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
@@ -27,7 +33,7 @@
 #include "accel/kernels.h"
 #include "util/cpus.h"
 #include "util/huge_pages.h"
-#include "util/parallel_for.h"
+#include "util/thread_pool.h"
 
 namespace dtraced::accel {
 
@@ -107,8 +113,6 @@ int bin_of(float c, double lo, double scale) {
   const double x = (double(c) - lo) * scale;
   return std::clamp(int(x), 0, kBins - 1);
 }
-
-using util::parallel_for;
 
 std::size_t chunks_of(std::size_t n) { return (n + kChunk - 1) / kChunk; }
 
@@ -245,7 +249,13 @@ struct Split {
 // whatever the thread count.
 class Splitter {
  public:
-  Splitter(std::vector<BuildPrim>& refs, Isa isa) : refs_(refs), isa_(isa) {}
+  // Ranges of kParallelGrain prims or more are split on several threads with partition_chunked,
+  // whose scratch (2 bytes a prim, left unwritten until used) is made here once for the whole build.
+  Splitter(std::vector<BuildPrim>& refs, Isa isa, util::ThreadPool& pool)
+      : refs_(refs),
+        isa_(isa),
+        pool_(pool),
+        offsets_(refs.size() >= kParallelGrain && pool.size() > 1 ? new std::uint16_t[refs.size()] : nullptr) {}
 
   // `scratch` (when not chunked) holds at least end - begin prims.
   Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, bool chunked, unsigned threads,
@@ -316,15 +326,18 @@ class Splitter {
       out.mid = begin;
       for (int k = 0; k <= best_k; ++k) out.mid += bins.count[k];
       partition_by_bins(refs_.data(), begin, out.mid, end, scratch->bins.data(), best_k, scratch->misplaced.data());
-    } else {
-      // The top levels keep std::partition: partition_by_bins would need a scratch as large as
-      // the range (5 bytes a prim), which would raise the build's peak memory.
+    } else if (threads <= 1 || !offsets_) {
+      // One thread: std::partition's one pass (partition_chunked's two passes cost more there).
       auto* first = refs_.data() + begin;
       auto* last = refs_.data() + end;
       out.mid = std::uint32_t(
           std::partition(first, last,
                          [&](const BuildPrim& p) { return bin_of(p.centroid[axis], c_lo, scale) <= best_k; }) -
           refs_.data());
+    } else {
+      out.mid = begin;
+      for (int k = 0; k <= best_k; ++k) out.mid += bins.count[k];
+      partition_chunked(begin, out.mid, end, axis, c_lo, scale, best_k, threads);
     }
     assert(out.mid > begin && out.mid < end);
     return out;
@@ -411,6 +424,65 @@ class Splitter {
     return out;
   }
 
+  // std::partition of refs_[begin, end) by bin_of(centroid) <= best_k, in its order (see
+  // partition_by_bins: the k-th prim of [begin, mid) that belongs right trades places with the k-th
+  // prim of [mid, end), counted from the end, that belongs left), on `threads` threads. The left
+  // side is cut into kChunk pieces from `begin`, the right side from `end` down; a first pass
+  // finds each piece's misplaced prims (their offsets in the piece, 2 bytes each), a second swaps
+  // the k-th of the left with the k-th of the right, pieces of the left side in parallel. (The top
+  // levels used std::partition itself, on one thread while the others waited.)
+  void partition_chunked(std::uint32_t begin, std::uint32_t mid, std::uint32_t end, std::uint32_t axis, double c_lo,
+                         double scale, int best_k, unsigned threads) const {
+    static_assert(kChunk <= (std::size_t(1) << 16), "an offset in a piece is kept in 2 bytes");
+    const std::size_t left_n = mid - begin, right_n = end - mid;
+    const std::size_t left_chunks = chunks_of(left_n), right_chunks = chunks_of(right_n);
+    // Piece c of the left writes at offsets[c * kChunk...], piece j of the right at
+    // offsets[left_n + j * kChunk...]: each writes at most its own size.
+    std::uint16_t* const offsets = offsets_.get();
+    std::vector<std::uint32_t> misplaced(left_chunks + right_chunks);
+    BuildPrim* const prims = refs_.data();
+    pool_.parallel_for(left_chunks + right_chunks, threads, [&](std::size_t c) {
+      std::uint32_t count = 0;
+      if (c < left_chunks) {
+        const std::size_t lo = begin + c * kChunk, hi = std::min<std::size_t>(mid, lo + kChunk);
+        std::uint16_t* const out = offsets + c * kChunk;
+        for (std::size_t i = lo; i < hi; ++i) {
+          out[count] = std::uint16_t(i - lo);
+          count += bin_of(prims[i].centroid[axis], c_lo, scale) > best_k;
+        }
+      } else {
+        const std::size_t j = c - left_chunks;
+        const std::size_t hi = end - j * kChunk, lo = hi - std::min<std::size_t>(kChunk, hi - mid);
+        std::uint16_t* const out = offsets + left_n + j * kChunk;
+        for (std::size_t i = hi; i-- > lo;) {
+          out[count] = std::uint16_t(hi - 1 - i);
+          count += bin_of(prims[i].centroid[axis], c_lo, scale) <= best_k;
+        }
+      }
+      misplaced[c] = count;
+    });
+    // The first rank of each right piece (right_first[j]); the left pieces' in the loop below.
+    std::vector<std::size_t> right_first(right_chunks + 1, 0);
+    for (std::size_t j = 0; j < right_chunks; ++j) right_first[j + 1] = right_first[j] + misplaced[left_chunks + j];
+    std::vector<std::size_t> left_first(left_chunks + 1, 0);
+    for (std::size_t c = 0; c < left_chunks; ++c) left_first[c + 1] = left_first[c] + misplaced[c];
+    assert(left_first[left_chunks] == right_first[right_chunks]);
+    pool_.parallel_for(left_chunks, threads, [&](std::size_t c) {
+      const std::size_t first = left_first[c], count = misplaced[c];
+      if (count == 0) return;
+      const std::uint16_t* const from_left = offsets + c * kChunk;
+      const std::size_t left_base = begin + c * kChunk;
+      // The right piece that holds rank `first`.
+      std::size_t j =
+          std::size_t(std::upper_bound(right_first.begin(), right_first.end(), first) - right_first.begin()) - 1;
+      for (std::size_t t = 0, k = first; t < count; ++t, ++k) {
+        while (k >= right_first[j + 1]) ++j;
+        const std::size_t right = end - 1 - j * kChunk - offsets[left_n + j * kChunk + (k - right_first[j])];
+        std::swap(prims[left_base + from_left[t]], prims[right]);
+      }
+    });
+  }
+
   RangeBounds range_bounds(std::size_t begin, std::size_t end) const {
     BoxAccumulator bounds, centroids;
     for (std::size_t i = begin; i < end; ++i) {
@@ -422,7 +494,7 @@ class Splitter {
   }
   RangeBounds range_bounds_chunked(std::size_t begin, std::size_t end, unsigned threads) const {
     std::vector<RangeBounds> parts(chunks_of(end - begin));
-    parallel_for(parts.size(), threads, [&](std::size_t c) {
+    pool_.parallel_for(parts.size(), threads, [&](std::size_t c) {
       parts[c] = range_bounds(begin + c * kChunk, std::min(end, begin + (c + 1) * kChunk));
     });
     RangeBounds rb;
@@ -449,7 +521,7 @@ class Splitter {
   Bins bin_chunked(std::size_t begin, std::size_t end, std::uint32_t axis, double c_lo, double scale,
                    unsigned threads) const {
     std::vector<Bins> parts(chunks_of(end - begin));
-    parallel_for(parts.size(), threads, [&](std::size_t c) {
+    pool_.parallel_for(parts.size(), threads, [&](std::size_t c) {
       parts[c] = bin(begin + c * kChunk, std::min(end, begin + (c + 1) * kChunk), axis, c_lo, scale);
     });
     Bins bins;
@@ -464,6 +536,8 @@ class Splitter {
 
   std::vector<BuildPrim>& refs_;
   Isa isa_;
+  util::ThreadPool& pool_;
+  std::unique_ptr<std::uint16_t[]> offsets_;  // partition_chunked's, for refs_.size() prims
 };
 
 // A subtree built by one thread: nodes in depth-first order, `offset`s of interior nodes local to
@@ -633,13 +707,39 @@ struct AsideSphere {
   };
 };
 
+// Maps [data, data + bytes) writable now, on up to `threads` threads, each taking whole 2 MiB
+// pieces (aligned as huge pages are): the kernel zeroes fresh pages on the thread that faults them,
+// and a serial first write of a large array spent half its time there. Only where it pays (large
+// ranges, several threads) and where MADV_POPULATE_WRITE exists (Linux 5.14); otherwise the first
+// write faults the pages in as before. Writes no object: the bytes read as zero either way.
+void populate_in_parallel(const void* data, std::size_t bytes, util::ThreadPool& pool) {
+#if defined(__linux__) && defined(MADV_POPULATE_WRITE)
+  constexpr std::uintptr_t kPiece = std::uintptr_t(2) << 20;
+  if (pool.size() <= 1 || data == nullptr || bytes < 4 * kPiece) return;
+  const auto begin = reinterpret_cast<std::uintptr_t>(data);
+  const std::uintptr_t first = (begin + kPiece - 1) & ~(kPiece - 1);
+  const std::uintptr_t last = (begin + bytes) & ~(kPiece - 1);
+  if (last <= first) return;
+  pool.parallel_for((last - first) / kPiece, pool.size(), [&](std::size_t i) {
+    madvise(reinterpret_cast<void*>(first + i * kPiece), kPiece, MADV_POPULATE_WRITE);  // a hint: errors ignored
+  });
+#else
+  (void)data;
+  (void)bytes;
+  (void)pool;
+#endif
+}
+
 // The shapes again: the tree's spheres from `prims` or, once those are freed, from the wide tree's
-// sphere blocks, and the others from `a`.
+// sphere blocks, and the others from `a`. The sphere blocks are read in chunks on up to `threads`
+// threads (each writes the shapes of its own blocks; the ids are distinct), after their pages are
+// mapped on all of them (populate_in_parallel): only Shape's constructor runs on one thread.
 template <typename Prims>
-std::vector<Shape> put_back(SetAside& a, const detail::WideBvh& wide, const Prims& prims) {
+std::vector<Shape> put_back(SetAside& a, const detail::WideBvh& wide, const Prims& prims, util::ThreadPool& pool) {
   std::vector<Shape> shapes;
   shapes.reserve(a.count);
   util::advise_huge_pages_for(shapes);  // first touches are costly page faults (util/huge_pages.h)
+  populate_in_parallel(shapes.data(), shapes.capacity() * sizeof(Shape), pool);
   shapes.resize(a.count);
   const auto put = [&shapes](std::uint32_t id, float x, float y, float z, float r) {
     Shape& s = shapes[id];
@@ -649,11 +749,19 @@ std::vector<Shape> put_back(SetAside& a, const detail::WideBvh& wide, const Prim
   if (!prims.empty()) {
     for (const auto& p : prims) put(p.id, p.data[0], p.data[1], p.data[2], p.data[3]);
   } else {
-    for (const detail::SphereBlock& b : wide.spheres) {
-      for (int lane = 0; lane < detail::kWidth; ++lane) {
-        if (b.id[lane] != detail::kEmptyChild) put(b.id[lane], b.cx[lane], b.cy[lane], b.cz[lane], b.r[lane]);
-      }
-    }
+    constexpr std::size_t kBlocksPerChunk = kChunk / detail::kWidth;
+    const std::size_t blocks = wide.spheres.size();
+    pool.parallel_for((blocks + kBlocksPerChunk - 1) / kBlocksPerChunk, blocks >= kBlocksPerChunk ? pool.size() : 1,
+                      [&](std::size_t c) {
+                        const std::size_t end = std::min(blocks, (c + 1) * kBlocksPerChunk);
+                        for (std::size_t i = c * kBlocksPerChunk; i < end; ++i) {
+                          const detail::SphereBlock& b = wide.spheres[i];
+                          for (int lane = 0; lane < detail::kWidth; ++lane) {
+                            if (b.id[lane] != detail::kEmptyChild)
+                              put(b.id[lane], b.cx[lane], b.cy[lane], b.cz[lane], b.r[lane]);
+                          }
+                        }
+                      });
   }
   for (const auto& [id, shape] : a.others) shapes[id] = shape;
   a = SetAside();
@@ -679,6 +787,9 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // a scene is set aside changes its memory, not its tree or its shapes.
   const std::size_t n = g.shapes_.size();
   const unsigned shape_threads = n >= kParallelGrain ? threads : 1;
+  // The build's threads, started once for all its parallel passes (a scene too small to split
+  // across threads starts none).
+  util::ThreadPool pool(shape_threads);
   const bool may_set_aside = isa != Isa::kScalar && n >= std::max<std::size_t>(kMinWidePrims, kParallelGrain);
   std::vector<AsideSphere> spheres;  // aside: each shape's sphere, by id, until the prims are made
   if (may_set_aside) {
@@ -697,7 +808,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   };
   std::vector<std::uint8_t> kind(n);
   std::vector<ChunkCounts> counts(chunks_of(n));
-  parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
+  pool.parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
     const std::size_t end = std::min(n, (c + 1) * kChunk);
     ChunkCounts k;
     for (std::size_t id = c * kChunk; id < end; ++id) {
@@ -745,7 +856,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
   refs.resize(n);                     // writes nothing (BuildPrim)
   std::vector<Bounds3f> chunk_bounds(chunks_of(n));
-  parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
+  pool.parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
     const std::size_t end = std::min(n, (c + 1) * kChunk);
     Bounds3f cb;
     for (std::size_t id = c * kChunk; id < end; ++id) {
@@ -785,7 +896,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     // The shapes above the limit in index order (each chunk's in its own list, joined in order).
     const std::size_t m = refs.size();
     std::vector<std::vector<std::pair<double, std::uint32_t>>> huge_in(chunks_of(m));
-    parallel_for(chunks_of(m), m >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+    pool.parallel_for(chunks_of(m), m >= kParallelGrain ? threads : 1, [&](std::size_t c) {
       const std::size_t end = std::min(m, (c + 1) * kChunk);
       for (std::size_t i = c * kChunk; i < end; ++i) {
         const double a = area(refs[i].bounds);
@@ -828,7 +939,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   if (!refs.empty() && threads == 1) {
     // One thread: no subtrees to stitch, the nodes go straight into place (at most 2 n - 1 of
     // them: the reserved pages that are not used are never touched).
-    const Splitter splitter(refs, isa);
+    const Splitter splitter(refs, isa, pool);
     g.nodes_.reserve(2 * refs.size() - 1);
     util::advise_huge_pages_for(g.nodes_);
     {
@@ -837,11 +948,11 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
     order = take_ids(refs);
   } else if (!refs.empty()) {
-    const Splitter splitter(refs, isa);
+    const Splitter splitter(refs, isa, pool);
     std::vector<TopNode<Node>> top;
     std::vector<Subtree<Node>> subtrees;
     split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, top, subtrees);
-    parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
+    pool.parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
     order = take_ids(refs);
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
@@ -861,7 +972,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   g.prims_.reserve(order.size());
   util::advise_huge_pages_for(g.prims_);
   g.prims_.resize(order.size());
-  parallel_for(chunks_of(order.size()), order.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+  pool.parallel_for(chunks_of(order.size()), order.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
     const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
     for (std::size_t i = c * kChunk; i < end; ++i) {
       Prim& p = g.prims_[i];
@@ -950,7 +1061,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       }
       g.wide_ = detail::flat_wide(g.shapes_, groups);
     }
-    if (aside) g.shapes_ = put_back(set, g.wide_, g.prims_);  // after the nodes and prims are freed
+    if (aside) g.shapes_ = put_back(set, g.wide_, g.prims_, pool);  // after the nodes and prims are freed
     g.stats_.wide_nodes = std::uint32_t(g.wide_.nodes.size());
     g.stats_.wide_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - wide_start).count();
   }
