@@ -460,17 +460,13 @@ TEST_CASE("an adaptive job: counts checked, stored with the pixels, and their me
     CHECK(h.status(job).mean_spp == double(sum) / double(pixels));
     CHECK(h.status(uniform).mean_spp == 1.0);
   }
-  // A finished job's stored tile damaged behind the collector's back (cut short): start-up still
-  // succeeds, the job stays done and its mean is unknown rather than wrong.
+  // A finished job's stored tiles damaged behind the collector's back (their pixel file cut short,
+  // store/pixel_files.h): start-up still succeeds, the job stays done and its mean is unknown
+  // rather than wrong.
   {
-    sqlite3* db = nullptr;
-    const std::string path = (fs::path(config.state_dir) / store::kDatabaseFileName).string();
-    REQUIRE(sqlite3_open(path.c_str(), &db) == SQLITE_OK);
-    const std::string sql =
-        fmt::format("UPDATE tiles SET pixels = substr(pixels, 1, 100) WHERE job = {} AND tile = 1", job);
-    CHECK(sqlite3_exec(db, sql.c_str(), nullptr, nullptr, nullptr) == SQLITE_OK);
-    CHECK(sqlite3_changes(db) == 1);
-    sqlite3_close(db);
+    const fs::path file = fs::path(config.state_dir) / "pixels" / fmt::format("job-{}.pixels", job);
+    REQUIRE(fs::file_size(file) > 100);
+    fs::resize_file(file, 100);
   }
   Harness h(config);
   CHECK(h.status(job).state == protocol::JobState::kDone);

@@ -29,7 +29,7 @@ using dtraced::store::TilePixels;
 
 // ---------------------------------------------------------------------------------------------
 
-TEST_CASE("open creates the state directory and a WAL database with schema version 3", "[store]") {
+TEST_CASE("open creates the state directory and a WAL database with schema version 4", "[store]") {
   StoreDir tmp;
   const std::string dir = tmp.path() + "/nested/state";
   {
@@ -41,7 +41,7 @@ TEST_CASE("open creates the state directory and a WAL database with schema versi
   }
   CHECK(fs::is_regular_file(dir + "/dtraced.db"));
   CHECK(raw_query_text(dir + "/dtraced.db", "PRAGMA journal_mode") == "wal");
-  CHECK(raw_query_text(dir + "/dtraced.db", "SELECT value FROM meta WHERE key = 'schema_version'") == "3");
+  CHECK(raw_query_text(dir + "/dtraced.db", "SELECT value FROM meta WHERE key = 'schema_version'") == "4");
   CHECK(raw_query_text(dir + "/dtraced.db", "PRAGMA auto_vacuum") == "2");  // incremental
   // A second open of the same, now non-empty, file accepts it.
   Store again = open_ok(dir);
@@ -292,7 +292,7 @@ TEST_CASE("a database that is not dtraced's, or lacks parts of the schema, is re
       {"schema_version of the wrong type", true, "UPDATE meta SET value = '1'", "not an integer"},
       {"a table missing", true, "DROP TABLE tiles", "table 'tiles' is missing"},
       {"a column missing", true, "ALTER TABLE tiles DROP COLUMN worker",
-       "table 'tiles' has columns (job,tile,pixels,stored_unix)"},
+       "table 'tiles' has columns (job,tile,pixels,stored_unix,pixels_offset,pixels_length,pixels_crc)"},
   };
   for (const Damage& damage : damages) {
     DYNAMIC_SECTION(damage.what) {
@@ -400,7 +400,7 @@ std::optional<std::size_t> cached_pages(const std::string& path, std::size_t& pa
 
 TEST_CASE("a checkpoint leaves the pages it copied out of the page cache", "[store][wal]") {
   StoreDir tmp;
-  Store s = open_ok(tmp.path());
+  Store s = open_ok(tmp.path(), OpenOptions{.pixels_in_rows = true});  // tiles that weigh on the WAL
   const std::int64_t job = make_job(s);
   std::vector<TileWrite> w;
   for (std::uint32_t t = 0; t < 64; ++t) w.push_back(tile_write(job, t, kBenchTileBytes));

@@ -112,14 +112,15 @@ TEST_CASE("a version 2 database gets the credential tables in place and keeps it
     make_job(s);
   }
   raw_exec(tmp.db(),
-           "DROP TABLE credentials; DROP TABLE join_codes; UPDATE meta SET value = 2 WHERE key = "
-           "'schema_version'");
+           "DROP TABLE credentials; DROP TABLE join_codes; DROP TABLE pixel_files; "
+           "ALTER TABLE tiles DROP COLUMN pixels_offset; ALTER TABLE tiles DROP COLUMN pixels_length; "
+           "ALTER TABLE tiles DROP COLUMN pixels_crc; UPDATE meta SET value = 2 WHERE key = 'schema_version'");
   {
     Store s = open_ok(tmp.path());
     CHECK(s.list_jobs().value().size() == 1);
     CHECK(s.insert_credential(credential("w", "worker", 1)).value());
   }
-  CHECK(raw_query_text(tmp.db(), "SELECT value FROM meta WHERE key = 'schema_version'") == "3");
+  CHECK(raw_query_text(tmp.db(), "SELECT value FROM meta WHERE key = 'schema_version'") == "4");
   // A version 3 file without them is refused, naming the table.
   raw_exec(tmp.db(), "DROP TABLE join_codes");
   CHECK_THAT(open_error(tmp.path()), Contains("join_codes"));

@@ -364,7 +364,8 @@ TEST_CASE("a checkpoint connection copies the WAL while the writer's connection 
 TEST_CASE("under the bound nothing is checkpointed while tiles keep coming, not even by SQLite",
           "[store][writer][wal]") {
   StoreDir tmp;
-  auto [setup, job] = seeded(tmp);
+  Store setup = open_ok(tmp.path(), OpenOptions{.pixels_in_rows = true});  // tiles that weigh on the WAL
+  const std::int64_t job = make_job(setup);
   const std::string wal = setup.path() + "-wal";
   // 640 tiles of 16 KiB: 10.5 MB of pixels in about 1,260 frames of 16 KiB pages (a tile's row and
   // its overflow page), past SQLite's own automatic checkpoint (1000 frames), and under half the
@@ -430,7 +431,8 @@ TEST_CASE("a failing checkpoint is logged once and retried, and no acknowledged 
     const rlimit unlimited = limit;
     limit.rlim_cur = 1 << 20;
     if (::setrlimit(RLIMIT_FSIZE, &limit) != 0) ::_exit(4);
-    auto opened = Store::open(tmp.path(), OpenOptions{.verify_integrity = false});
+    // Tiles in their rows: the WAL and the database grow with them (store.h, pixels_in_rows).
+    auto opened = Store::open(tmp.path(), OpenOptions{.verify_integrity = false, .pixels_in_rows = true});
     if (!opened) ::_exit(5);
     std::optional<TileWriter> writer;
     writer.emplace(std::move(opened).value(), WriterLimits{.checkpoint_wal_bytes = 256 << 10});

@@ -14,6 +14,7 @@
 #include <fmt/format.h>
 
 #include "store/coalescing_vfs.h"
+#include "store/pixel_files.h"
 #include "store/store_impl.h"
 #include "util/log.h"
 
@@ -83,10 +84,14 @@ CREATE TABLE tiles(
   pixels BLOB NOT NULL,
   worker TEXT NOT NULL,
   stored_unix INTEGER NOT NULL,
+  pixels_offset INTEGER CHECK (pixels_offset >= 0),
+  pixels_length INTEGER CHECK (pixels_length >= 0),
+  pixels_crc INTEGER CHECK (pixels_crc BETWEEN 0 AND 4294967295),
   PRIMARY KEY (job, tile)
 ) STRICT;
 {}
-INSERT INTO meta(key, value) VALUES ('schema_version', 3);
+{}
+INSERT INTO meta(key, value) VALUES ('schema_version', 4);
 INSERT INTO meta(key, value) VALUES ('last_job_id', 0);
 )sql";
 
@@ -107,6 +112,27 @@ CREATE TABLE join_codes(
   used_unix INTEGER,
   used_by TEXT
 ) STRICT;
+)sql";
+
+// Version 4: tile pixels in files of their own (pixel_files.h). A tile row whose pixels_offset is
+// NULL keeps its pixels in the row (every tile of an older file, and OpenOptions::pixels_in_rows);
+// otherwise its pixels column is empty and the bytes lie in the job's pixel file. pixel_files
+// holds each job's file's committed length: bytes past it belong to no row.
+constexpr std::string_view kPixelFilesTableSql = R"sql(
+CREATE TABLE pixel_files(
+  job INTEGER PRIMARY KEY NOT NULL,
+  bytes INTEGER NOT NULL CHECK (bytes >= 0)
+) STRICT;
+)sql";
+
+// Version 3 -> 4: three columns (NULL in every existing row: its pixels stay in the row, and are
+// read from there) and the table of committed lengths. No row is rewritten.
+constexpr std::string_view kMigrateV3Sql = R"sql(
+ALTER TABLE tiles ADD COLUMN pixels_offset INTEGER CHECK (pixels_offset >= 0);
+ALTER TABLE tiles ADD COLUMN pixels_length INTEGER CHECK (pixels_length >= 0);
+ALTER TABLE tiles ADD COLUMN pixels_crc INTEGER CHECK (pixels_crc BETWEEN 0 AND 4294967295);
+{}
+UPDATE meta SET value = 4 WHERE key = 'schema_version';
 )sql";
 
 // Version 2 -> 3: the two new tables; nothing else changes.
@@ -132,14 +158,17 @@ UPDATE meta SET value = 2 WHERE key = 'schema_version';
 // What check_schema expects of an existing file: each table and its columns, in order.
 struct TableSpec {
   std::string_view name;
-  std::string_view columns;        // comma-separated, as joined by check_schema
-  std::int64_t since_version = 1;  // older files lack the table (their upgrade creates it)
+  std::string_view columns;                     // comma-separated, as joined by check_schema
+  std::int64_t since_version = 1;               // older files lack the table (their upgrade creates it)
+  std::int64_t until_version = kSchemaVersion;  // newer files have other columns (another entry)
 };
 constexpr TableSpec kTables[] = {
     {"meta", "key,value"},
     {"scenes", "digest,json"},
     {"jobs", "id,digest,settings_json,output,priority,tile_size,state,created_unix,finished_unix,client_key"},
-    {"tiles", "job,tile,pixels,worker,stored_unix"},
+    {"tiles", "job,tile,pixels,worker,stored_unix", 1, 3},
+    {"tiles", "job,tile,pixels,worker,stored_unix,pixels_offset,pixels_length,pixels_crc", 4},
+    {"pixel_files", "job,bytes", 4},
     {"credentials", "name,role,token_sha256,created_unix,revoked_unix", 3},
     {"join_codes", "secret_sha256,name_hint,created_unix,expires_unix,used_unix,used_by", 3},
 };
@@ -226,7 +255,7 @@ Status Store::Impl::check_schema() {
     found_version = version;
   }
   for (const TableSpec& spec : kTables) {
-    if (spec.since_version > found_version) continue;
+    if (spec.since_version > found_version || spec.until_version < found_version) continue;
     if (!has_table(spec.name)) {
       return Error{
           fmt::format("{}: schema version {} but table '{}' is missing; {}", path, found_version, spec.name, kRefuse)};
@@ -253,7 +282,8 @@ Status Store::Impl::check_schema() {
 Status Store::Impl::create_schema() {
   if (auto st = exec(kSqlBegin); !st) return st;
   char* message = nullptr;
-  const std::string sql = fmt::format(fmt::runtime(kCreateSchemaSql), kJobsColumnsSql, kCredentialTablesSql);
+  const std::string sql =
+      fmt::format(fmt::runtime(kCreateSchemaSql), kJobsColumnsSql, kCredentialTablesSql, kPixelFilesTableSql);
   const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
   if (rc != SQLITE_OK) {
     Error e{fmt::format("{}: creating the schema: {} (code {})", path, message != nullptr ? message : "?", rc)};
@@ -344,6 +374,26 @@ Status Store::Impl::migrate_v2() {
   return {};
 }
 
+Status Store::Impl::migrate_v3() {
+  if (auto st = exec(kSqlBegin); !st) return st;
+  char* message = nullptr;
+  const std::string sql = fmt::format(fmt::runtime(kMigrateV3Sql), kPixelFilesTableSql);
+  const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
+  if (rc != SQLITE_OK) {
+    Error e{fmt::format("{}: upgrading the schema from version 3 to 4: {} (code {}); the database is unchanged", path,
+                        message != nullptr ? message : "?", rc)};
+    sqlite3_free(message);
+    rollback();
+    return e;
+  }
+  if (auto st = exec(kSqlCommit); !st) {
+    rollback();
+    return st;
+  }
+  util::log_info("{}: upgraded the schema from version 3 to 4 (new tiles' pixels in files of their own)", path);
+  return {};
+}
+
 Result<Store> Store::open(const std::string& state_dir, const OpenOptions& options) {
   std::error_code ec;
   fs::create_directories(state_dir, ec);
@@ -352,6 +402,9 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
 
   auto impl = std::make_unique<Impl>();
   impl->path = (fs::path(state_dir) / kDatabaseFileName).string();
+  impl->pixel_dir = (fs::path(state_dir) / kPixelDirName).string();
+  impl->pixels_in_rows = options.pixels_in_rows;
+  impl->max_database_bytes = options.max_database_bytes;
   const std::string& path = impl->path;
   const fs::file_status status = fs::status(path, ec);
   if (ec && ec != std::errc::no_such_file_or_directory) {
@@ -441,6 +494,9 @@ Result<Store> Store::open(const std::string& state_dir, const OpenOptions& optio
     if (impl->found_version <= 2) {
       if (auto st = impl->migrate_v2(); !st) return st.error();
     }
+    if (impl->found_version <= 3) {
+      if (auto st = impl->migrate_v3(); !st) return st.error();
+    }
   }
   // Optional in every version (store.h): a file made before it existed gets it now, unchanged
   // otherwise; no foreign key, so a dtraced that does not know it can still delete jobs.
@@ -511,6 +567,7 @@ Status Store::manage_checkpoints() {
 Result<Store> Store::open_checkpoint_connection() const {
   auto impl = std::make_unique<Impl>();
   impl->path = impl_->path;
+  impl->pixel_dir = impl_->pixel_dir;
   impl->busy_timeout_ms = impl_->busy_timeout_ms;
   const int flags = SQLITE_OPEN_READWRITE | SQLITE_OPEN_NOMUTEX | SQLITE_OPEN_EXRESCODE;
   if (const int rc = sqlite3_open_v2(impl->path.c_str(), &impl->db, flags, coalescing_vfs_name()); rc != SQLITE_OK) {

@@ -4,14 +4,16 @@
 //
 // Owns: opening the database (and refusing a bad one), the schema, and every query.
 //
-// Schema (version 3, STRICT tables, documented in docs/http-api.md too):
-//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 3), ('last_job_id', N)
+// Schema (version 4, STRICT tables, documented in docs/http-api.md too):
+//   meta(key TEXT PRIMARY KEY, value ANY)            -- ('schema_version', 4), ('last_job_id', N)
 //   scenes(digest TEXT PRIMARY KEY, json TEXT)       -- immutable, content-addressed
 //   jobs(id INTEGER PRIMARY KEY, digest -> scenes, settings_json, output, priority, tile_size,
 //        state IN ('queued','rendering','done','cancelled','paused'), created_unix, finished_unix,
 //        client_key TEXT UNIQUE NULL)
-//   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, PRIMARY KEY(job, tile))
-//   (what a pixels blob holds is the collector's business: collector/jobs.h, pixels_to_blob)
+//   tiles(job -> jobs, tile, pixels BLOB, worker TEXT, stored_unix, pixels_offset NULL,
+//        pixels_length NULL, pixels_crc NULL, PRIMARY KEY(job, tile))
+//   (what a tile's pixels hold is the collector's business: collector/jobs.h, pixels_to_blob)
+//   pixel_files(job INTEGER PRIMARY KEY, bytes)   -- committed length of each job's pixel file
 //   job_tile_costs(job INTEGER PRIMARY KEY, costs BLOB)  -- optional per job (StoredJob::tile_costs);
 //        created at open when missing, in any version: a file without it reads as "no costs",
 //        and an older dtraced ignores it (no foreign key, so its delete_job still succeeds)
@@ -20,6 +22,19 @@
 //   join_codes(secret_sha256 BLOB PRIMARY KEY, name_hint NULL, created_unix, expires_unix,
 //        used_unix NULL, used_by NULL)            -- single use: enroll() marks it used
 //   (only digests of tokens and secrets are stored: the database never holds a usable one)
+//
+// Tile pixels (version 4): a tile's bytes are appended to its job's file
+// <state_dir>/pixels/job-<id>.pixels, which is fdatasync'ed before the COMMIT of the tile's row
+// (offset, length and CRC-32C there; its pixels column empty): they are written once, not into the
+// WAL and again by a checkpoint. A row with pixels_offset NULL holds its pixels itself (every tile
+// stored before version 4, and OpenOptions::pixels_in_rows). pixel_files.h has the file format,
+// the commit order and what a crash leaves. Reads check each tile's length and checksum: a tile
+// whose bytes are missing or damaged is an error naming the file, job and tile (get_tile), or is
+// left out of get_all_tiles with that error logged, so the job's other tiles are restored and the
+// damaged one is leased and rendered again (insert_tiles then replaces the damaged row). delete_job
+// deletes the job's file after its COMMIT (a crash in between leaves a file of no job, which
+// remove_orphan_pixel_files deletes); a cancelled or paused job keeps its file. On a full disk an
+// append fails, its transaction is rolled back and its tiles are not acknowledged (kFailed).
 //
 // Failures: every call returns a util::Result or util::Status. An expected failure (a bad
 // database file, a constraint violation, a full disk) is a util::Error whose message names the
@@ -35,6 +50,8 @@
 // on a full disk, start-up and reads work, and writes fail with a message until space frees.
 // checkpoint() keeps the WAL short.
 //
+// Version 3 (tile pixels only in rows) is upgraded in place by adding the three columns and
+// pixel_files; its tiles stay in their rows and are read from there, new tiles go to pixel files.
 // Version 2 (no credentials, no join_codes) is upgraded in place by creating the two tables.
 // Version 1 (no 'paused' state, no last_job_id) is upgraded in place, in one transaction, when
 // opened (then on to version 3); the upgrade also switches the file to incremental auto-vacuum when there is room for
@@ -71,7 +88,7 @@
 
 namespace dtraced::store {
 
-inline constexpr std::int64_t kSchemaVersion = 3;
+inline constexpr std::int64_t kSchemaVersion = 4;
 inline constexpr std::int64_t kOldestMigratedVersion = 1;  // opened and upgraded to kSchemaVersion
 inline constexpr std::string_view kDatabaseFileName = "dtraced.db";
 // How long a statement waits for another connection's lock before failing with SQLITE_BUSY.
@@ -261,7 +278,12 @@ struct OpenOptions {
   std::chrono::milliseconds busy_timeout = kBusyTimeout;
   // A cap on the database's size (PRAGMA max_page_count), 0 for none. A write that would grow it
   // further fails with "database or disk is full" and changes nothing, like a full disk.
+  // Also counts the bytes of the pixel files (pixel_files.bytes), so that it caps what the store
+  // holds on disk whether tiles are in rows or in files.
   std::uint64_t max_database_bytes = 0;
+  // Tiles inserted through this connection keep their pixels in their rows, as before version 4
+  // (for tests of the WAL and its checkpoints under the weight of tiles). Reads handle both.
+  bool pixels_in_rows = false;
 };
 
 class Store {
@@ -325,7 +347,14 @@ class Store {
   util::Result<std::vector<std::uint32_t>> stored_tiles(std::int64_t job);  // ascending tile index
   util::Result<std::uint64_t> count_tiles(std::int64_t job);
   util::Result<std::optional<StoredTile>> get_tile(std::int64_t job, std::uint32_t tile);
-  util::Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);  // ascending tile index
+  // Ascending tile index. A tile whose pixel file is missing, short or fails its checksum is left
+  // out, with an error logged that names the file, job and tile (see the top of this file).
+  util::Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);
+
+  // Deletes pixel files (<state_dir>/pixels/job-<id>.pixels) of jobs that no longer exist, left by
+  // a crash between a delete_job's COMMIT and its unlink; logs each. Returns how many. TileWriter
+  // calls it when it starts.
+  util::Result<std::size_t> remove_orphan_pixel_files();
 
   // Credentials. insert_credential: false (changing nothing) when the name or the token digest is
   // taken. revoke_credential: false when there is no such credential or it is revoked already

@@ -17,6 +17,7 @@
 
 #include <fmt/format.h>
 
+#include "store/pixel_files.h"
 #include "store/store.h"
 #include "util/log.h"
 
@@ -66,14 +67,33 @@ inline StoredJob read_job(sqlite3_stmt* s) {
   return job;
 }
 
-inline StoredTile read_tile(sqlite3_stmt* s) {
-  StoredTile t;
-  t.tile = static_cast<std::uint32_t>(sqlite3_column_int64(s, 0));
-  t.pixels = column_blob(s, 1);
-  t.worker = column_text(s, 2);
-  t.stored_unix = sqlite3_column_int64(s, 3);
-  return t;
+// The tile queries select the columns in the order Impl::read_tile expects.
+inline constexpr std::string_view kSelectTiles =
+    "SELECT tile, pixels, worker, stored_unix, pixels_offset, pixels_length, pixels_crc FROM tiles ";
+
+// Where a tile's pixels lie in its job's pixel file (pixel_files.h); for a row that holds them
+// itself, nothing.
+struct PixelExtent {
+  std::uint64_t offset = 0;
+  std::uint64_t length = 0;
+  std::uint32_t crc = 0;
+};
+inline std::optional<PixelExtent> read_extent(sqlite3_stmt* s, int first) {
+  if (sqlite3_column_type(s, first) == SQLITE_NULL) return std::nullopt;
+  return PixelExtent{static_cast<std::uint64_t>(sqlite3_column_int64(s, first)),
+                     static_cast<std::uint64_t>(sqlite3_column_int64(s, first + 1)),
+                     static_cast<std::uint32_t>(sqlite3_column_int64(s, first + 2))};
 }
+
+// What one insert_tiles call appends to one job's pixel file: the file's committed length (read
+// in the call's transaction) and the pieces after it, in order.
+struct PendingAppend {
+  std::int64_t job = 0;
+  std::uint64_t committed = 0;
+  std::uint64_t bytes = 0;
+  std::vector<iovec> pieces;
+  std::vector<std::uint64_t> offsets;  // of each piece in the file
+};
 
 // A cached statement in use: binds parameters in order and resets the statement (releasing its
 // read snapshot) when it goes out of scope. The first failing bind is reported by step().
@@ -129,6 +149,13 @@ struct Store::Impl {
   // Set by manage_checkpoints: the WAL's frames after the last commit (the hook's count) and the
   // bytes of one frame (the page and its 24-byte header).
   bool wal_hook_installed = false;
+  // Pixel files (pixel_files.h): their directory, whether tiles go there, the size cap
+  // (OpenOptions), and the files insert_tiles appends to, kept open between batches.
+  std::string pixel_dir;
+  bool pixels_in_rows = false;
+  std::uint64_t max_database_bytes = 0;
+  bool pixel_dir_ready = false;
+  std::unordered_map<std::int64_t, FileHandle> append_files;
   std::uint64_t wal_frames = 0;
   std::uint64_t wal_frame_bytes = 0;
 
@@ -234,13 +261,25 @@ struct Store::Impl {
     return std::optional<StoredJob>(read_job(q.value().get()));
   }
 
-  Result<CommitResult> insert_tile(const TileWrite& w);
+  Result<CommitResult> insert_tile(const TileWrite& w, std::vector<PendingAppend>& appends);
+  Result<PendingAppend*> pending_for(std::vector<PendingAppend>& appends, std::int64_t job);
+  // Writes and syncs every pending append and records the files' new committed lengths, inside the
+  // caller's transaction, before its COMMIT.
+  Status flush_appends(std::vector<PendingAppend>& appends);
+  // The job's pixel file, opened (and created) on first use and kept open; bytes past `committed`
+  // (a commit that did not finish) are truncated when it is opened.
+  Result<int> append_file(std::int64_t job, std::uint64_t committed);
+  // A row of kSelectTiles; the pixels read from `file` (opened on first use) when the row points
+  // into the job's pixel file.
+  Result<StoredTile> read_tile(sqlite3_stmt* s, std::int64_t job, FileHandle& file);
+  Result<Blob> read_file_pixels(std::int64_t job, std::uint32_t tile, const PixelExtent& extent, FileHandle& file);
   Status keep_wal_files();
   Status check_schema();
   Status verify_integrity();
   Status create_schema();
   Status migrate_v1();  // schema version 1 -> 2, on a verified file of version 1
   Status migrate_v2();  // schema version 2 -> 3: the credentials and join_codes tables
+  Status migrate_v3();  // schema version 3 -> 4: tile pixels in files
   Result<std::optional<StoredJoinCode>> find_join_code(std::span<const std::uint8_t> secret_sha256);
   Result<bool> name_taken(std::string_view name);
 };

@@ -1,17 +1,25 @@
 // Scenes, jobs and tiles: the row accessors of Store (store.h), on the connection and statement
 // cache of store_impl.h. Opening, the schema, transactions and checkpoints are in store.cpp.
+#include <fcntl.h>
 #include <sqlite3.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cassert>
+#include <cerrno>
+#include <cstring>
+#include <filesystem>
 #include <string>
 #include <utility>
 #include <vector>
 
 #include <fmt/format.h>
 
+#include "store/pixel_files.h"
 #include "store/store.h"
 #include "store/store_impl.h"
+#include "util/log.h"
 
 namespace dtraced::store {
 
@@ -168,6 +176,14 @@ Result<Deletion> Store::delete_job(std::int64_t id, std::span<const std::string_
       out.tiles = static_cast<std::uint64_t>(sqlite3_changes64(impl_->db));
     }
     {
+      constexpr std::string_view kSql = "DELETE FROM pixel_files WHERE job = ?1";
+      auto q = impl_->query(kSql);
+      if (!q) return q.error();
+      if (const int rc = q.value().bind(id).step(); rc != SQLITE_DONE) {
+        return impl_->error(fmt::format("deleting the pixel file length of job {}", id), rc);
+      }
+    }
+    {
       constexpr std::string_view kSql = "DELETE FROM job_tile_costs WHERE job = ?1";
       auto q = impl_->query(kSql);
       if (!q) return q.error();
@@ -195,6 +211,14 @@ Result<Deletion> Store::delete_job(std::int64_t id, std::span<const std::string_
     return {};
   });
   if (!st) return st.error();
+  if (out.deleted) {
+    // After the COMMIT: a crash before this leaves a file of no job (remove_orphan_pixel_files).
+    impl_->append_files.erase(id);
+    const std::string file = pixel_file_path(impl_->pixel_dir, id);
+    if (::unlink(file.c_str()) != 0 && errno != ENOENT) {
+      util::log_warn("{}: cannot remove the pixels of deleted job {}: {}", file, id, std::strerror(errno));
+    }
+  }
   return out;
 }
 
@@ -224,21 +248,184 @@ TilePixels::TilePixels(std::string payload, std::size_t offset, std::size_t size
   assert(offset <= payload_.size() && size <= payload_.size() - offset);
 }
 
-Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
-  {
+Result<PendingAppend*> Store::Impl::pending_for(std::vector<PendingAppend>& appends, std::int64_t job) {
+  for (PendingAppend& a : appends) {
+    if (a.job == job) return &a;
+  }
+  constexpr std::string_view kSql = "SELECT bytes FROM pixel_files WHERE job = ?1";
+  auto q = query(kSql);
+  if (!q) return q.error();
+  const int rc = q.value().bind(job).step();
+  if (rc != SQLITE_ROW && rc != SQLITE_DONE)
+    return error(fmt::format("reading the pixel file length of job {}", job), rc);
+  PendingAppend a;
+  a.job = job;
+  if (rc == SQLITE_ROW) a.committed = static_cast<std::uint64_t>(sqlite3_column_int64(q.value().get(), 0));
+  appends.push_back(std::move(a));
+  return &appends.back();
+}
+
+Result<int> Store::Impl::append_file(std::int64_t job, std::uint64_t committed) {
+  if (auto it = append_files.find(job); it != append_files.end()) {
+    // Still the file at its path? (Someone may have removed it: then it is opened, created, again.)
+    struct stat st {};
+    if (::fstat(it->second.get(), &st) == 0 && st.st_nlink > 0) return it->second.get();
+    append_files.erase(it);
+  }
+  // A collector appends to one or two jobs at a time; a store that wrote to many keeps few open.
+  constexpr std::size_t kMaxOpenAppendFiles = 16;
+  if (append_files.size() >= kMaxOpenAppendFiles) append_files.clear();
+  if (::mkdir(pixel_dir.c_str(), 0755) != 0 && errno != EEXIST) {
+    return Error{fmt::format("{}: cannot create the directory of tile pixels: {}", pixel_dir, std::strerror(errno))};
+  }
+  const std::string file = pixel_file_path(pixel_dir, job);
+  FileHandle fd(::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644));
+  if (fd.get() < 0)
+    return Error{fmt::format("{}: cannot open for appending tile pixels: {}", file, std::strerror(errno))};
+  struct stat st {};
+  if (::fstat(fd.get(), &st) != 0) return Error{fmt::format("{}: cannot stat: {}", file, std::strerror(errno))};
+  if (static_cast<std::uint64_t>(st.st_size) > committed) {
+    // Appended but never committed: a kill or a failed commit between an append and its COMMIT.
+    if (::ftruncate(fd.get(), static_cast<off_t>(committed)) != 0) {
+      return Error{
+          fmt::format("{}: cannot truncate to its committed {} bytes: {}", file, committed, std::strerror(errno))};
+    }
+    util::log_info("{}: dropped {} bytes past its committed length (appended by a commit that did not finish)", file,
+                   static_cast<std::uint64_t>(st.st_size) - committed);
+  }
+  if (!pixel_dir_ready) {
+    // The directory's entry (in the state directory) and the file's (in the directory) must be on
+    // disk before a row points into the file: the state directory once, the pixel directory for
+    // each file opened (it may have been created just now).
+    const std::string state_dir = std::filesystem::path(pixel_dir).parent_path().string();
+    FileHandle dir(::open(state_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    if (dir.get() < 0 || ::fsync(dir.get()) != 0) {
+      return Error{fmt::format("{}: cannot sync the directory: {}", state_dir, std::strerror(errno))};
+    }
+    pixel_dir_ready = true;
+  }
+  FileHandle dir(::open(pixel_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+  if (dir.get() < 0 || ::fsync(dir.get()) != 0) {
+    return Error{fmt::format("{}: cannot sync the directory: {}", pixel_dir, std::strerror(errno))};
+  }
+  const int raw = fd.get();
+  append_files.emplace(job, std::move(fd));
+  return raw;
+}
+
+Status Store::Impl::flush_appends(std::vector<PendingAppend>& appends) {
+  std::uint64_t adding = 0;
+  for (const PendingAppend& a : appends) adding += a.bytes;
+  if (adding == 0) return {};
+  if (max_database_bytes > 0) {
+    auto held = exec_rows(
+        "SELECT (SELECT coalesce(sum(bytes), 0) FROM pixel_files) + page_count * page_size "
+        "FROM pragma_page_count, pragma_page_size");
+    if (!held) return held.error();
+    const std::uint64_t bytes = held.value().empty() ? 0 : std::stoull(held.value()[0]);
+    if (bytes + adding > max_database_bytes) {
+      return Error{
+          fmt::format("{}: storing {} bytes of tile pixels would take the store past its cap of {} bytes "
+                      "({} held): database or disk is full",
+                      path, adding, max_database_bytes, bytes)};
+    }
+  }
+  for (PendingAppend& a : appends) {
+    if (a.bytes == 0) continue;
+    auto fd = append_file(a.job, a.committed);
+    if (!fd) return fd.error();
+    const std::string file = pixel_file_path(pixel_dir, a.job);
+    if (auto st = write_all(fd.value(), file, a.committed, a.pieces); !st) {
+      append_files.erase(a.job);  // opened again, and truncated back, by the next append
+      return st;
+    }
+    if (::fdatasync(fd.value()) != 0) {
+      const int e = errno;
+      append_files.erase(a.job);
+      return Error{fmt::format("{}: syncing appended tile pixels: {}", file, std::strerror(e))};
+    }
     constexpr std::string_view kSql =
-        "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix) VALUES (?1, ?2, ?3, ?4, ?5)";
+        "INSERT INTO pixel_files(job, bytes) VALUES (?1, ?2) ON CONFLICT(job) DO UPDATE SET bytes = excluded.bytes";
     auto q = query(kSql);
     if (!q) return q.error();
-    const int rc = q.value()
-                       .bind(w.job)
-                       .bind(std::int64_t{w.tile})
-                       .bind_blob(w.pixels.bytes())
-                       .bind(w.worker)
-                       .bind(w.stored_unix)
-                       .step();
+    if (const int rc = q.value().bind(a.job).bind(static_cast<std::int64_t>(a.committed + a.bytes)).step();
+        rc != SQLITE_DONE) {
+      return error(fmt::format("recording the pixel file length of job {}", a.job), rc);
+    }
+  }
+  return {};
+}
+
+Result<Blob> Store::Impl::read_file_pixels(std::int64_t job, std::uint32_t tile, const PixelExtent& extent,
+                                           FileHandle& file) {
+  const std::string name = pixel_file_path(pixel_dir, job);
+  if (file.get() < 0) {
+    auto opened = open_for_reading(name);
+    if (!opened) {
+      return Error{fmt::format("{} (tile {} of job {}, {} bytes at offset {})", opened.error().message, tile, job,
+                               extent.length, extent.offset)};
+    }
+    file = std::move(opened).value();
+  }
+  return read_checked(file.get(), name, job, tile, extent.offset, extent.length, extent.crc);
+}
+
+Result<StoredTile> Store::Impl::read_tile(sqlite3_stmt* s, std::int64_t job, FileHandle& file) {
+  StoredTile t;
+  t.tile = static_cast<std::uint32_t>(sqlite3_column_int64(s, 0));
+  t.worker = column_text(s, 2);
+  t.stored_unix = sqlite3_column_int64(s, 3);
+  if (const std::optional<PixelExtent> extent = read_extent(s, 4)) {
+    auto bytes = read_file_pixels(job, t.tile, *extent, file);
+    if (!bytes) return bytes.error();
+    t.pixels = std::move(bytes).value();
+  } else {
+    t.pixels = column_blob(s, 1);
+  }
+  return t;
+}
+
+Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w, std::vector<PendingAppend>& appends) {
+  const std::span<const std::uint8_t> bytes = w.pixels.bytes();
+  PendingAppend* append = nullptr;
+  if (!pixels_in_rows) {
+    auto a = pending_for(appends, w.job);
+    if (!a) return a.error();
+    append = a.value();
+  }
+  // Binds the tile's pixels, or where they will lie in the job's file, from parameter 3 on.
+  const auto bind_pixels = [&](Query& q) {
+    if (append == nullptr) {
+      q.bind_blob(bytes).bind(w.worker).bind(w.stored_unix).bind_optional(std::optional<std::int64_t>());
+      q.bind_optional(std::optional<std::int64_t>()).bind_optional(std::optional<std::int64_t>());
+    } else {
+      q.bind_blob({})
+          .bind(w.worker)
+          .bind(w.stored_unix)
+          .bind(static_cast<std::int64_t>(append->committed + append->bytes));
+      q.bind(static_cast<std::int64_t>(bytes.size())).bind(std::int64_t{crc32c(bytes)});
+    }
+  };
+  const auto appended = [&] {
+    if (append == nullptr) return;
+    append->offsets.push_back(append->committed + append->bytes);
+    append->pieces.push_back(iovec{const_cast<std::uint8_t*>(bytes.data()), bytes.size()});
+    append->bytes += bytes.size();
+  };
+  {
+    constexpr std::string_view kSql =
+        "INSERT OR IGNORE INTO tiles(job, tile, pixels, worker, stored_unix, pixels_offset, pixels_length, pixels_crc) "
+        "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)";
+    auto q = query(kSql);
+    if (!q) return q.error();
+    q.value().bind(w.job).bind(std::int64_t{w.tile});
+    bind_pixels(q.value());
+    const int rc = q.value().step();
     if (rc == SQLITE_DONE) {
-      if (sqlite3_changes64(db) == 1) return CommitResult{TileOutcome::kStored, false, {}};
+      if (sqlite3_changes64(db) == 1) {
+        appended();
+        return CommitResult{TileOutcome::kStored, false, {}};
+      }
     } else if ((rc & 0xff) == SQLITE_CONSTRAINT && sqlite3_get_autocommit(db) == 0) {
       // OR IGNORE covers the primary key; a missing job (foreign key) fails this statement only.
       return CommitResult{TileOutcome::kRejected, false,
@@ -248,16 +435,68 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w) {
     }
   }
   // Already present: compare the bytes (duplicates are rare, so the extra read is cheap overall).
-  constexpr std::string_view kSql = "SELECT pixels FROM tiles WHERE job = ?1 AND tile = ?2";
-  auto q = query(kSql);
-  if (!q) return q.error();
-  const int rc = q.value().bind(w.job).bind(std::int64_t{w.tile}).step();
-  if (rc != SQLITE_ROW) return error(fmt::format("reading back tile {} of job {}", w.tile, w.job), rc);
-  sqlite3_stmt* s = q.value().get();
-  const void* stored = sqlite3_column_blob(s, 0);
-  const auto n = static_cast<std::size_t>(sqlite3_column_bytes(s, 0));
-  const std::span<const std::uint8_t> bytes = w.pixels.bytes();
-  const bool identical = n == bytes.size() && (n == 0 || std::memcmp(stored, bytes.data(), n) == 0);
+  Blob from_file;
+  std::span<const std::uint8_t> stored;
+  bool damaged = false;
+  {
+    constexpr std::string_view kSql =
+        "SELECT pixels, pixels_offset, pixels_length, pixels_crc FROM tiles WHERE job = ?1 AND tile = ?2";
+    auto q = query(kSql);
+    if (!q) return q.error();
+    const int rc = q.value().bind(w.job).bind(std::int64_t{w.tile}).step();
+    if (rc != SQLITE_ROW) return error(fmt::format("reading back tile {} of job {}", w.tile, w.job), rc);
+    sqlite3_stmt* s = q.value().get();
+    const std::optional<PixelExtent> extent = read_extent(s, 1);
+    if (!extent) {
+      from_file = column_blob(s, 0);
+      stored = from_file;
+    } else {
+      auto pending = pending_for(appends, w.job);
+      if (!pending) return pending.error();
+      const PendingAppend& a = *pending.value();
+      if (extent->offset >= a.committed) {
+        // Stored earlier in this batch: its bytes are still the submitted ones, in memory.
+        for (std::size_t i = 0; i < a.offsets.size(); ++i) {
+          if (a.offsets[i] == extent->offset) {
+            stored = std::span(static_cast<const std::uint8_t*>(a.pieces[i].iov_base), a.pieces[i].iov_len);
+          }
+        }
+      } else {
+        FileHandle file;
+        auto read = read_file_pixels(w.job, w.tile, *extent, file);
+        if (read) {
+          from_file = std::move(read).value();
+          stored = from_file;
+        } else {
+          // Damaged or lost on disk: this result takes the row's place (the tile was leased again
+          // because reading it failed, see store.h).
+          util::log_warn("{}; replaced by the tile just submitted", read.error().message);
+          damaged = true;
+        }
+      }
+    }
+  }
+  if (damaged) {
+    constexpr std::string_view kReplace =
+        "UPDATE tiles SET pixels = ?3, worker = ?4, stored_unix = ?5, pixels_offset = ?6, pixels_length = ?7, "
+        "pixels_crc = ?8 WHERE job = ?1 AND tile = ?2";
+    if (append == nullptr) {
+      auto a = pending_for(appends, w.job);
+      if (!a) return a.error();
+      append = a.value();
+    }
+    auto r = query(kReplace);
+    if (!r) return r.error();
+    r.value().bind(w.job).bind(std::int64_t{w.tile});
+    bind_pixels(r.value());
+    if (const int rc = r.value().step(); rc != SQLITE_DONE) {
+      return error(fmt::format("replacing damaged tile {} of job {}", w.tile, w.job), rc);
+    }
+    appended();
+    return CommitResult{TileOutcome::kStored, false, {}};
+  }
+  const bool identical =
+      stored.size() == bytes.size() && (bytes.empty() || std::memcmp(stored.data(), bytes.data(), bytes.size()) == 0);
   return CommitResult{TileOutcome::kAlreadyPresent, identical, {}};
 }
 
@@ -268,19 +507,20 @@ Result<std::vector<CommitResult>> Store::insert_tiles(std::span<const TileWrite>
   }
   std::vector<CommitResult> results;
   results.reserve(writes.size());
+  std::vector<PendingAppend> appends;
+  const auto fail = [&](Error e) -> Result<std::vector<CommitResult>> {
+    if (own_transaction) impl_->rollback();
+    return e;
+  };
   for (const TileWrite& w : writes) {
-    auto r = impl_->insert_tile(w);
-    if (!r) {
-      if (own_transaction) impl_->rollback();
-      return r.error();
-    }
+    auto r = impl_->insert_tile(w, appends);
+    if (!r) return fail(std::move(r).error());
     results.push_back(std::move(r).value());
   }
+  // The pixels are on disk before the rows that point at them commit.
+  if (auto st = impl_->flush_appends(appends); !st) return fail(std::move(st).error());
   if (own_transaction) {
-    if (auto st = impl_->exec(kSqlCommit); !st) {
-      impl_->rollback();
-      return st.error();
-    }
+    if (auto st = impl_->exec(kSqlCommit); !st) return fail(std::move(st).error());
   }
   return results;
 }
@@ -309,25 +549,76 @@ Result<std::uint64_t> Store::count_tiles(std::int64_t job) {
 }
 
 Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_t tile) {
-  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 AND tile = ?2";
+  static const std::string kSql = std::string(kSelectTiles) + "WHERE job = ?1 AND tile = ?2";
   auto q = impl_->query(kSql);
   if (!q) return q.error();
   const int rc = q.value().bind(job).bind(std::int64_t{tile}).step();
   if (rc == SQLITE_DONE) return std::optional<StoredTile>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading tile {} of job {}", tile, job), rc);
-  return std::optional<StoredTile>(read_tile(q.value().get()));
+  FileHandle file;
+  auto t = impl_->read_tile(q.value().get(), job, file);
+  if (!t) return t.error();
+  return std::optional<StoredTile>(std::move(t).value());
 }
 
 Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
-  constexpr std::string_view kSql = "SELECT tile, pixels, worker, stored_unix FROM tiles WHERE job = ?1 ORDER BY tile";
+  static const std::string kSql = std::string(kSelectTiles) + "WHERE job = ?1 ORDER BY tile";
   auto q = impl_->query(kSql);
   if (!q) return q.error();
   q.value().bind(job);
   std::vector<StoredTile> tiles;
+  FileHandle file;
+  std::uint64_t unreadable = 0;
   int rc;
-  while ((rc = q.value().step()) == SQLITE_ROW) tiles.push_back(read_tile(q.value().get()));
+  while ((rc = q.value().step()) == SQLITE_ROW) {
+    auto t = impl_->read_tile(q.value().get(), job, file);
+    if (t) {
+      tiles.push_back(std::move(t).value());
+      continue;
+    }
+    // The others are still good: leave this one out so that it is rendered again.
+    constexpr std::uint64_t kMaxLogged = 8;
+    if (++unreadable <= kMaxLogged)
+      util::log_error("{}; the tile is left out and will be rendered again", t.error().message);
+  }
   if (rc != SQLITE_DONE) return impl_->error(fmt::format("reading the tiles of job {}", job), rc);
+  if (unreadable > 0) {
+    util::log_error("{}: job {}: {} stored tiles could not be read back and were left out", impl_->path, job,
+                    unreadable);
+  }
   return tiles;
+}
+
+Result<std::size_t> Store::remove_orphan_pixel_files() {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  if (!fs::is_directory(impl_->pixel_dir, ec)) return std::size_t{0};
+  std::vector<std::pair<std::int64_t, std::string>> files;
+  for (fs::directory_iterator it(impl_->pixel_dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    constexpr std::string_view kPrefix = "job-", kSuffix = ".pixels";
+    if (!name.starts_with(kPrefix) || !name.ends_with(kSuffix)) continue;
+    const std::string digits = name.substr(kPrefix.size(), name.size() - kPrefix.size() - kSuffix.size());
+    if (digits.empty() || digits.size() > 18 ||
+        !std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; })) {
+      continue;
+    }
+    files.emplace_back(std::stoll(digits), it->path().string());
+  }
+  if (ec) return Error{fmt::format("{}: cannot list: {}", impl_->pixel_dir, ec.message())};
+  std::size_t removed = 0;
+  for (const auto& [job, file] : files) {
+    auto found = get_job(job);
+    if (!found) return found.error();
+    if (found.value()) continue;
+    if (::unlink(file.c_str()) != 0 && errno != ENOENT) {
+      util::log_warn("{}: cannot remove the pixels of deleted job {}: {}", file, job, std::strerror(errno));
+      continue;
+    }
+    util::log_info("{}: removed the pixels of deleted job {}", file, job);
+    ++removed;
+  }
+  return removed;
 }
 
 // A clean close would otherwise delete the -wal and -shm files, and the next open would have to

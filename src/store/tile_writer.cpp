@@ -45,6 +45,10 @@ void name_thread(const char* name) { ::pthread_setname_np(::pthread_self(), name
 }  // namespace
 
 TileWriter::TileWriter(Store store, WriterLimits limits) : store_(std::move(store)), limits_(limits) {
+  // Pixel files of jobs whose delete_job committed but whose unlink a crash prevented.
+  if (auto removed = store_.remove_orphan_pixel_files(); !removed) {
+    util::log_warn("store writer: {} (pixel files of deleted jobs stay)", removed.error().message);
+  }
   // Without the hook SQLite keeps checkpointing inside COMMIT (every 4 MiB): slower, still bounded.
   if (auto st = store_.manage_checkpoints(); !st) {
     util::log_warn("store writer: {} (SQLite's own checkpoints stay on)", st.error().message);

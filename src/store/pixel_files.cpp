@@ -1,0 +1,140 @@
+#include "store/pixel_files.h"
+
+#include <fcntl.h>
+#include <limits.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <cstring>
+
+#include <fmt/format.h>
+
+#if defined(__x86_64__)
+#include <nmmintrin.h>
+#endif
+
+namespace dtraced::store {
+
+using util::Error;
+using util::Result;
+using util::Status;
+
+namespace {
+
+constexpr std::uint32_t kCastagnoliReflected = 0x82F63B78u;
+
+constexpr std::array<std::uint32_t, 256> make_crc_table() {
+  std::array<std::uint32_t, 256> table{};
+  for (std::uint32_t i = 0; i < 256; ++i) {
+    std::uint32_t c = i;
+    for (int k = 0; k < 8; ++k) c = (c & 1) != 0 ? (c >> 1) ^ kCastagnoliReflected : c >> 1;
+    table[i] = c;
+  }
+  return table;
+}
+constexpr std::array<std::uint32_t, 256> kCrcTable = make_crc_table();
+
+std::uint32_t crc32c_table(std::uint32_t crc, const std::uint8_t* p, std::size_t n) {
+  for (std::size_t i = 0; i < n; ++i) crc = kCrcTable[(crc ^ p[i]) & 0xff] ^ (crc >> 8);
+  return crc;
+}
+
+#if defined(__x86_64__)
+// About 8 bytes every 3 cycles: ~1.5 us for a 32-px tile, against ~8 us for its SHA-256.
+__attribute__((target("sse4.2"))) std::uint32_t crc32c_sse42(std::uint32_t crc, const std::uint8_t* p, std::size_t n) {
+  std::uint64_t c = crc;
+  for (; n >= 8; n -= 8, p += 8) {
+    std::uint64_t word;
+    std::memcpy(&word, p, 8);
+    c = _mm_crc32_u64(c, word);
+  }
+  auto c32 = static_cast<std::uint32_t>(c);
+  for (; n > 0; --n, ++p) c32 = _mm_crc32_u8(c32, *p);
+  return c32;
+}
+#endif
+
+}  // namespace
+
+std::uint32_t crc32c(std::span<const std::uint8_t> bytes) {
+  const std::uint32_t init = 0xffffffffu;
+#if defined(__x86_64__)
+  static const bool kHasSse42 = __builtin_cpu_supports("sse4.2");
+  if (kHasSse42) return ~crc32c_sse42(init, bytes.data(), bytes.size());
+#endif
+  return ~crc32c_table(init, bytes.data(), bytes.size());
+}
+
+std::string pixel_file_path(const std::string& pixel_dir, std::int64_t job) {
+  return fmt::format("{}/job-{}.pixels", pixel_dir, job);
+}
+
+Status write_all(int fd, const std::string& path, std::uint64_t offset, std::span<const iovec> pieces) {
+  std::vector<iovec> rest(pieces.begin(), pieces.end());
+  std::size_t first = 0;
+  while (first < rest.size()) {
+    const int count = static_cast<int>(std::min<std::size_t>(rest.size() - first, IOV_MAX));
+    const ssize_t n = ::pwritev(fd, rest.data() + first, count, static_cast<off_t>(offset));
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      return Error{fmt::format("{}: appending tile pixels at offset {}: {}", path, offset, std::strerror(errno))};
+    }
+    offset += static_cast<std::uint64_t>(n);
+    auto left = static_cast<std::size_t>(n);
+    while (first < rest.size() && left >= rest[first].iov_len) left -= rest[first++].iov_len;
+    if (first < rest.size()) {
+      rest[first].iov_base = static_cast<char*>(rest[first].iov_base) + left;
+      rest[first].iov_len -= left;
+    }
+  }
+  return {};
+}
+
+Result<Blob> read_checked(int fd, const std::string& path, std::int64_t job, std::uint32_t tile, std::uint64_t offset,
+                          std::uint64_t length, std::uint32_t crc) {
+  Blob bytes(length);
+  std::uint64_t done = 0;
+  while (done < length) {
+    const ssize_t n = ::pread(fd, bytes.data() + done, length - done, static_cast<off_t>(offset + done));
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      return Error{fmt::format("{}: reading tile {} of job {} ({} bytes at offset {}): {}", path, tile, job, length,
+                               offset, std::strerror(errno))};
+    }
+    if (n == 0) {
+      return Error{fmt::format("{}: tile {} of job {} lies at bytes {} to {}, but the file ends at {}: truncated", path,
+                               tile, job, offset, offset + length, offset + done)};
+    }
+    done += static_cast<std::uint64_t>(n);
+  }
+  if (const std::uint32_t got = crc32c(bytes); got != crc) {
+    return Error{
+        fmt::format("{}: tile {} of job {} ({} bytes at offset {}): checksum mismatch (CRC-32C {:08x}, "
+                    "stored {:08x}): the file is damaged",
+                    path, tile, job, length, offset, got, crc)};
+  }
+  return bytes;
+}
+
+FileHandle& FileHandle::operator=(FileHandle&& other) noexcept {
+  if (this != &other) {
+    if (fd_ >= 0) ::close(fd_);
+    fd_ = other.release();
+  }
+  return *this;
+}
+
+FileHandle::~FileHandle() {
+  if (fd_ >= 0) ::close(fd_);
+}
+
+Result<FileHandle> open_for_reading(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return Error{fmt::format("{}: cannot open the tile pixels: {}", path, std::strerror(errno))};
+  return FileHandle(fd);
+}
+
+}  // namespace dtraced::store
