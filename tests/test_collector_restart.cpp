@@ -82,6 +82,38 @@ TEST_CASE("a restart resumes the job with its stored tiles, which are never leas
   }
 }
 
+TEST_CASE("a restart leaves out a stored tile its pixel file lost, and it is rendered again", "[collector][service]") {
+  TempDir dir;
+  const coll::CollectorConfig config = make_config(dir);
+  std::vector<protocol::Lease> stored;
+  std::uint64_t job = 0;
+  {
+    Harness h(config);
+    job = h.submit();
+    auto leases = h.lease_all();
+    for (std::size_t i = 0; i < 3; ++i) {
+      REQUIRE(h.put_ok(leases[i]) == protocol::SubmitResult::kStored);
+      stored.push_back(leases[i]);
+    }
+  }
+  // The last stored tile's bytes are at the end of the job's pixel file: cut them short.
+  const fs::path file = fs::path(config.state_dir) / "pixels" / fmt::format("job-{}.pixels", job);
+  REQUIRE(fs::file_size(file) > 100);
+  fs::resize_file(file, fs::file_size(file) - 100);
+  Harness h(config);
+  CHECK(h.collector.metrics().restored_tiles == 2);
+  CHECK(h.status(job).tiles_done == 2);
+  // The damaged tile is leased again, and its new result replaces the damaged row.
+  auto leases = h.lease_all();
+  CHECK(leases.size() == kTiles - 2);
+  bool again = false;
+  for (const auto& l : leases) again = again || l.tile == stored[2].tile;
+  CHECK(again);
+  for (const auto& l : leases) REQUIRE(h.put_ok(l) == protocol::SubmitResult::kStored);
+  CHECK(h.status(job).state == protocol::JobState::kDone);
+  CHECK(fetch_pfm(h, job).rgb == expected_image(job, 32, 24, 8, all_tiles()).rgb);
+}
+
 TEST_CASE("after a SIGKILL, acknowledged tiles are restored and not leased again", "[collector][service][crash]") {
   TempDir dir;
   const coll::CollectorConfig config = make_config(dir);

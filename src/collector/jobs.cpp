@@ -296,41 +296,36 @@ std::string one_shot_client_key(std::string_view digest, const protocol::JobSett
 }
 
 util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec) {
-  auto indices = s.stored_tiles(static_cast<std::int64_t>(rec.id));
-  if (!indices) return std::move(indices).error();
   std::vector<TileIndex> stored;
-  stored.reserve(indices.value().size());
   rec.restored.assign(rec.tile_indices, false);
   rec.frame_tiles_done.assign(rec.frames_total, 0);
-  for (const std::uint32_t tile : indices.value()) {
-    if (tile >= rec.tile_indices) {
-      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, tile,
+  // One tile in memory at a time: a large job's pixels (1.5 GiB at 16384 x 8192) never are at once.
+  // A tile the store cannot read back is left out (and logged there), so it is rendered again.
+  const util::Status st = s.visit_tiles(static_cast<std::int64_t>(rec.id), [&](store::StoredTile&& t) -> util::Status {
+    if (t.tile >= rec.tile_indices) {
+      return util::Error(fmt::format("{}: job {}: stored tile {} is out of range ({} tiles)", s.path(), rec.id, t.tile,
                                      rec.tile_indices));
     }
-    if (!tile_of_job(rec, tile)) {
-      return util::Error(fmt::format("{}: job {}: stored tile {} lies outside the job's crop", s.path(), rec.id, tile));
+    if (!tile_of_job(rec, t.tile)) {
+      return util::Error(
+          fmt::format("{}: job {}: stored tile {} lies outside the job's crop", s.path(), rec.id, t.tile));
     }
-    // One tile at a time: a large job's pixels (1.5 GiB at 16384 x 8192) are never all in memory.
-    auto read = s.get_tile(static_cast<std::int64_t>(rec.id), tile);
-    if (!read) return std::move(read).error();
-    if (!read.value()) {
-      return util::Error(fmt::format("{}: job {}: stored tile {} vanished while it was read", s.path(), rec.id, tile));
-    }
-    const TilePlace place = tile_place(rec, tile);
+    const TilePlace place = tile_place(rec, t.tile);
     const scene::TileRect& rect = place.rect;
     const std::size_t pixels = std::size_t{rect.width} * rect.height;
-    const store::Blob& blob = read.value()->pixels;
-    auto stored_tile = blob_to_tile(blob, pixels);
+    auto stored_tile = blob_to_tile(t.pixels, pixels);
     if (!stored_tile) {
       return util::Error(fmt::format(
           "{}: job {}: stored tile {} holds {} bytes; its {}x{} rectangle needs {} (or {} with sample counts)",
-          s.path(), rec.id, tile, blob.size(), rect.width, rect.height, pixels * 12, pixels * 16));
+          s.path(), rec.id, t.tile, t.pixels.size(), rect.width, rect.height, pixels * 12, pixels * 16));
     }
     ++rec.frame_tiles_done[place.frame_index];
     count_samples(rec, stored_tile->spp);
-    stored.push_back(tile);
-    rec.restored[tile] = true;
-  }
+    stored.push_back(t.tile);
+    rec.restored[t.tile] = true;
+    return util::Status();
+  });
+  if (!st) return st.error();
   return stored;
 }
 

@@ -216,7 +216,8 @@ bool frame_complete(const JobRecord& job, std::uint32_t frame_index);
 
 // Reads the job's stored tiles from `s` into `rec`: the per-frame counts, its sample tally and its
 // `restored` flags (the pixels stay in the store); returns their indices, ascending. One tile is in
-// memory at a time. Fails, naming the database, on a tile out of range or a blob of the wrong size.
+// memory at a time; a tile the store cannot read back (store::Store::get_all_tiles) is left out, to
+// be rendered again. Fails, naming the database, on a tile out of range or a blob of the wrong size.
 // Runs wherever `s` may be used (start-up; the store writer's thread for a requeue) on a record no
 // other thread touches.
 util::Result<std::vector<TileIndex>> load_stored_tiles(store::Store& s, JobRecord& rec);

@@ -350,6 +350,10 @@ class Store {
   // Ascending tile index. A tile whose pixel file is missing, short or fails its checksum is left
   // out, with an error logged that names the file, job and tile (see the top of this file).
   util::Result<std::vector<StoredTile>> get_all_tiles(std::int64_t job);
+  // get_all_tiles one tile at a time (a large job's pixels are never all in memory): `visit` is
+  // called with each readable tile in ascending index; its first error stops the walk and is the
+  // result.
+  util::Status visit_tiles(std::int64_t job, const std::function<util::Status(StoredTile&&)>& visit);
 
   // Deletes pixel files (<state_dir>/pixels/job-<id>.pixels) of jobs that no longer exist, left by
   // a crash between a delete_job's COMMIT and its unlink; logs each. Returns how many. TileWriter

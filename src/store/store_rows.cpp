@@ -562,18 +562,27 @@ Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_
 }
 
 Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
+  std::vector<StoredTile> tiles;
+  const Status st = visit_tiles(job, [&](StoredTile&& t) {
+    tiles.push_back(std::move(t));
+    return Status();
+  });
+  if (!st) return st.error();
+  return tiles;
+}
+
+Status Store::visit_tiles(std::int64_t job, const std::function<Status(StoredTile&&)>& visit) {
   static const std::string kSql = std::string(kSelectTiles) + "WHERE job = ?1 ORDER BY tile";
   auto q = impl_->query(kSql);
   if (!q) return q.error();
   q.value().bind(job);
-  std::vector<StoredTile> tiles;
   FileHandle file;
   std::uint64_t unreadable = 0;
   int rc;
   while ((rc = q.value().step()) == SQLITE_ROW) {
     auto t = impl_->read_tile(q.value().get(), job, file);
     if (t) {
-      tiles.push_back(std::move(t).value());
+      if (Status st = visit(std::move(t).value()); !st) return st;
       continue;
     }
     // The others are still good: leave this one out so that it is rendered again.
@@ -586,7 +595,7 @@ Result<std::vector<StoredTile>> Store::get_all_tiles(std::int64_t job) {
     util::log_error("{}: job {}: {} stored tiles could not be read back and were left out", impl_->path, job,
                     unreadable);
   }
-  return tiles;
+  return Status();
 }
 
 Result<std::size_t> Store::remove_orphan_pixel_files() {
