@@ -6,10 +6,10 @@
 #include <unistd.h>
 
 #include <algorithm>
-#include <array>
 #include <cerrno>
 #include <cstring>
 
+#include <boost/crc.hpp>
 #include <fmt/format.h>
 
 #if defined(__x86_64__)
@@ -24,23 +24,9 @@ using util::Status;
 
 namespace {
 
-constexpr std::uint32_t kCastagnoliReflected = 0x82F63B78u;
-
-constexpr std::array<std::uint32_t, 256> make_crc_table() {
-  std::array<std::uint32_t, 256> table{};
-  for (std::uint32_t i = 0; i < 256; ++i) {
-    std::uint32_t c = i;
-    for (int k = 0; k < 8; ++k) c = (c & 1) != 0 ? (c >> 1) ^ kCastagnoliReflected : c >> 1;
-    table[i] = c;
-  }
-  return table;
-}
-constexpr std::array<std::uint32_t, 256> kCrcTable = make_crc_table();
-
-std::uint32_t crc32c_table(std::uint32_t crc, const std::uint8_t* p, std::size_t n) {
-  for (std::size_t i = 0; i < n; ++i) crc = kCrcTable[(crc ^ p[i]) & 0xff] ^ (crc >> 8);
-  return crc;
-}
+// CRC-32C as Boost.CRC computes it (polynomial 0x1EDC6F41, reflected, all ones in and out): the
+// fallback where the CPU has no SSE4.2, and what the instruction's result must equal.
+using Crc32c = boost::crc_optimal<32, 0x1EDC6F41u, 0xFFFFFFFFu, 0xFFFFFFFFu, true, true>;
 
 #if defined(__x86_64__)
 // About 8 bytes every 3 cycles: ~1.5 us for a 32-px tile, against ~8 us for its SHA-256.
@@ -60,12 +46,13 @@ __attribute__((target("sse4.2"))) std::uint32_t crc32c_sse42(std::uint32_t crc, 
 }  // namespace
 
 std::uint32_t crc32c(std::span<const std::uint8_t> bytes) {
-  const std::uint32_t init = 0xffffffffu;
 #if defined(__x86_64__)
   static const bool kHasSse42 = __builtin_cpu_supports("sse4.2");
-  if (kHasSse42) return ~crc32c_sse42(init, bytes.data(), bytes.size());
+  if (kHasSse42) return ~crc32c_sse42(0xffffffffu, bytes.data(), bytes.size());
 #endif
-  return ~crc32c_table(init, bytes.data(), bytes.size());
+  Crc32c crc;
+  crc.process_bytes(bytes.data(), bytes.size());
+  return crc.checksum();
 }
 
 std::string pixel_file_path(const std::string& pixel_dir, std::int64_t job) {

@@ -354,14 +354,13 @@ Status Store::Impl::migrate_v1() {
   return {};
 }
 
-Status Store::Impl::migrate_v2() {
+Status Store::Impl::migrate(int from, std::string_view sql, std::string_view what) {
   if (auto st = exec(kSqlBegin); !st) return st;
   char* message = nullptr;
-  const std::string sql = fmt::format(fmt::runtime(kMigrateV2Sql), kCredentialTablesSql);
-  const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
+  const int rc = sqlite3_exec(db, std::string(sql).c_str(), nullptr, nullptr, &message);
   if (rc != SQLITE_OK) {
-    Error e{fmt::format("{}: upgrading the schema from version 2 to 3: {} (code {}); the database is unchanged", path,
-                        message != nullptr ? message : "?", rc)};
+    Error e{fmt::format("{}: upgrading the schema from version {} to {}: {} (code {}); the database is unchanged", path,
+                        from, from + 1, message != nullptr ? message : "?", rc)};
     sqlite3_free(message);
     rollback();
     return e;
@@ -370,28 +369,17 @@ Status Store::Impl::migrate_v2() {
     rollback();
     return st;
   }
-  util::log_info("{}: upgraded the schema from version 2 to 3 (credentials and join codes)", path);
+  util::log_info("{}: upgraded the schema from version {} to {} ({})", path, from, from + 1, what);
   return {};
 }
 
+Status Store::Impl::migrate_v2() {
+  return migrate(2, fmt::format(fmt::runtime(kMigrateV2Sql), kCredentialTablesSql), "credentials and join codes");
+}
+
 Status Store::Impl::migrate_v3() {
-  if (auto st = exec(kSqlBegin); !st) return st;
-  char* message = nullptr;
-  const std::string sql = fmt::format(fmt::runtime(kMigrateV3Sql), kPixelFilesTableSql);
-  const int rc = sqlite3_exec(db, sql.c_str(), nullptr, nullptr, &message);
-  if (rc != SQLITE_OK) {
-    Error e{fmt::format("{}: upgrading the schema from version 3 to 4: {} (code {}); the database is unchanged", path,
-                        message != nullptr ? message : "?", rc)};
-    sqlite3_free(message);
-    rollback();
-    return e;
-  }
-  if (auto st = exec(kSqlCommit); !st) {
-    rollback();
-    return st;
-  }
-  util::log_info("{}: upgraded the schema from version 3 to 4 (new tiles' pixels in files of their own)", path);
-  return {};
+  return migrate(3, fmt::format(fmt::runtime(kMigrateV3Sql), kPixelFilesTableSql),
+                 "new tiles' pixels in files of their own");
 }
 
 Result<Store> Store::open(const std::string& state_dir, const OpenOptions& options) {

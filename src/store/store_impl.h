@@ -278,6 +278,9 @@ struct Store::Impl {
   Status verify_integrity();
   Status create_schema();
   Status migrate_v1();  // schema version 1 -> 2, on a verified file of version 1
+  // Runs `sql` in one transaction: schema version `from` -> from + 1 (`what`, for the log); on a
+  // failure the database is unchanged and the error says so.
+  Status migrate(int from, std::string_view sql, std::string_view what);
   Status migrate_v2();  // schema version 2 -> 3: the credentials and join_codes tables
   Status migrate_v3();  // schema version 3 -> 4: tile pixels in files
   Result<std::optional<StoredJoinCode>> find_join_code(std::span<const std::uint8_t> secret_sha256);
