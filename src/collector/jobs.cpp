@@ -223,19 +223,6 @@ void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<c
   }
 }
 
-bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb) {
-  assert(rect.x0 + rect.width <= image.width && rect.y0 + rect.height <= image.height);
-  if (rgb.size() != std::size_t{rect.width} * rect.height * 3) return false;
-  const std::size_t row_floats = std::size_t{rect.width} * 3;
-  for (std::uint32_t y = 0; y < rect.height; ++y) {
-    // Bits, not values: NaN payloads and signed zeros count, as the renderer is deterministic.
-    if (std::memcmp(image.pixel(rect.x0, rect.y0 + y), rgb.data() + y * row_floats, row_floats * sizeof(float)) != 0) {
-      return false;
-    }
-  }
-  return true;
-}
-
 bool frame_complete(const JobRecord& job, std::uint32_t frame_index) {
   return frame_index < job.frame_tiles_done.size() && job.frame_tiles_done[frame_index] == job.tiles_per_frame;
 }

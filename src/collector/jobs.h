@@ -4,8 +4,8 @@
 // unfinished its per-frame tile counts and scene text), and the small pure functions around it:
 // where each tile of a frame range lies (tile index = frame index x tiles per frame + tile in
 // the frame, so the queue's lowest indices are the lowest frames and frames complete in order),
-// tile pixels to and from the store's blobs, copying and comparing a tile against an image,
-// the status a client sees, a job's default output name and the one-shot job key.
+// tile pixels to and from the store's blobs, copying a tile into an image, the status a client
+// sees, a job's default output name and the one-shot job key.
 //
 // A job's pixels live in the store only, never in a framebuffer of the collector: an image (a
 // finished frame's file, GET image, the web page's tiles) is read back from the store on the
@@ -208,8 +208,6 @@ void count_samples(JobRecord& job, std::span<const std::uint32_t> spp);
 
 // Copies a tile's rgb (rect.width * rect.height * 3 floats) into `image` at `rect`.
 void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
-// Whether `image` holds exactly these bits at `rect`.
-bool tile_matches(const image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
 
 // Whether every tile of the frame is stored.
 bool frame_complete(const JobRecord& job, std::uint32_t frame_index);
