@@ -145,6 +145,12 @@ void TileWriter::run() {
       const bool idle = !wake_.wait_for(lock, limits_.checkpoint_when_idle, has_work) || queue_.empty();
       lock.unlock();
       if (idle) checkpoint(CheckpointMode::kTruncate);
+      if (idle && writes_since_checkpoint_ > 0) {
+        // Not emptied (a reader was in the way): another idle wait and another try, unless work
+        // came meanwhile or the writer is stopping.
+        std::lock_guard retry(mu_);
+        if (!stopping_ && queue_.empty()) continue;
+      }
     }
     {
       std::unique_lock lock(mu_);
@@ -265,9 +271,14 @@ void TileWriter::checkpoint(CheckpointMode mode) {
     checkpoint_cv_.wait(lock, [this] { return !checkpoint_wanted_; });
   }
   background_asked_ = false;
-  writes_since_checkpoint_ = 0;
+  // Only a TRUNCATE empties the file: after the copies that keep the WAL under its bound (kReuse),
+  // the writer still owes the idle one.
+  if (mode == CheckpointMode::kTruncate) writes_since_checkpoint_ = 0;
   auto result = store_.checkpoint(mode);
   const std::chrono::duration<double> took = std::chrono::steady_clock::now() - start;
+  // A TRUNCATE that could not empty the WAL (a reader in the way for the moment: the busy timeout
+  // is zero here) is tried again after the next idle wait, not only after the next writes.
+  if (mode == CheckpointMode::kTruncate && (!result || !result.value().complete)) writes_since_checkpoint_ = 1;
   count_checkpoint(result, false, took.count());
 }
 
