@@ -54,16 +54,17 @@ util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::R
   return cropped;
 }
 
+util::Result<std::optional<store::StoredTile>> StoreReader::stored_tile(JobId id, std::uint32_t tile) {
+  std::lock_guard lock(mu_);
+  auto s = store_locked();
+  if (!s) return std::move(s).error();
+  return s.value()->get_tile(static_cast<std::int64_t>(id), tile);
+}
+
 util::Result<std::optional<std::vector<float>>> StoreReader::tile_rgb(JobId id, TileIndex tile, std::size_t pixels) {
-  std::optional<store::StoredTile> stored;
-  {
-    std::lock_guard lock(mu_);
-    auto s = store_locked();
-    if (!s) return std::move(s).error();
-    auto read = s.value()->get_tile(static_cast<std::int64_t>(id), tile);
-    if (!read) return std::move(read).error();
-    stored = std::move(read).value();
-  }
+  auto read = stored_tile(id, tile);
+  if (!read) return std::move(read).error();
+  std::optional<store::StoredTile>& stored = read.value();
   if (!stored) return std::optional<std::vector<float>>();
   auto parsed = blob_to_tile(stored->pixels, pixels);
   if (!parsed) return util::Error(fmt::format("stored tile {} of job {} has the wrong size", tile, id));
@@ -92,15 +93,9 @@ util::Result<SampleTally> StoreReader::sample_counts(JobId id, const scene::Rend
   const scene::TileGrid grid(settings, tile_size);
   for (const std::uint32_t index : indices) {
     if (index >= tile_indices) continue;
-    std::optional<store::StoredTile> stored;
-    {
-      std::lock_guard lock(mu_);
-      auto s = store_locked();
-      if (!s) return std::move(s).error();
-      auto tile = s.value()->get_tile(static_cast<std::int64_t>(id), index);
-      if (!tile) return std::move(tile).error();
-      stored = std::move(tile).value();
-    }
+    auto read = stored_tile(id, index);
+    if (!read) return std::move(read).error();
+    const std::optional<store::StoredTile>& stored = read.value();
     if (!stored) continue;
     const scene::TileRect rect = grid.rect(index % grid.count());
     auto parsed = blob_to_tile(stored->pixels, std::size_t{rect.width} * rect.height);

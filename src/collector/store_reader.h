@@ -61,6 +61,8 @@ class StoreReader {
   void close();
 
  private:
+  // One stored tile, read under the lock (one tile per lock, so that other reads go on between).
+  util::Result<std::optional<store::StoredTile>> stored_tile(JobId id, std::uint32_t tile);
   // The connection, opened if need be; call with mu_ held.
   util::Result<store::Store*> store_locked();
 
