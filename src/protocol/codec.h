@@ -73,6 +73,10 @@ void read_object_array(Fields& f, std::string_view key, std::size_t max_items, s
   }
 }
 
+// A lease reply's members ({"lease": ...} or {"retry_after_ms": ...}) into `m`, and the keys it
+// may have: POST /v1/lease's answer, and the "next" lease of an upload's answer.
+void read_lease_reply(Fields& f, LeaseReply& m);
+inline constexpr std::array<std::string_view, 2> kLeaseReplyKeys = {"lease", "retry_after_ms"};
 // The object's required "digest": is_digest.
 void read_digest(Fields& f, std::string& out);
 // The object's "output": a file name (check_output_name).

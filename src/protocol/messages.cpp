@@ -26,7 +26,6 @@ using namespace detail;
 constexpr std::array<std::string_view, 3> kSubmitResultNames = {"stored", "already_done", "job_gone"};
 
 constexpr std::array<std::string_view, 2> kLeaseRequestKeys = {"worker", "threads"};
-constexpr std::array<std::string_view, 2> kLeaseReplyKeys = {"lease", "retry_after_ms"};
 constexpr std::array<std::string_view, 8> kLeaseKeys = {"job", "digest", "tile",   "x",
                                                         "y",   "width",  "height", "settings"};
 constexpr std::array<std::string_view, 1> kSubmitResultKeys = {"result"};
@@ -228,22 +227,23 @@ std::string encode(const LeaseReply& m) {
   return jsonio::to_text(o);
 }
 
+void detail::read_lease_reply(Fields& f, LeaseReply& m) {
+  const json::value* lease = f.get("lease", Need::kOptional);
+  if ((lease == nullptr) == !f.has("retry_after_ms")) {
+    f.reader().error(f.at(), "expected exactly one of \"lease\" and \"retry_after_ms\"");
+  } else if (lease == nullptr) {
+    RetryAfter retry;
+    f.integer("retry_after_ms", retry.ms, 0, kMaxRetryAfterMs);
+    m = retry;
+  } else {
+    Lease l;
+    read_lease(f.reader(), *lease, f.path("lease"), l);
+    m = std::move(l);
+  }
+}
+
 Decoded<LeaseReply> decode_lease_reply(std::string_view text) {
-  return decode_object<LeaseReply>(
-      text, kMaxMessageBytes, kMaxMessageDepth, kLeaseReplyKeys, [](Fields& f, LeaseReply& m) {
-        const json::value* lease = f.get("lease", Need::kOptional);
-        if ((lease == nullptr) == !f.has("retry_after_ms")) {
-          f.reader().error(f.at(), "expected exactly one of \"lease\" and \"retry_after_ms\"");
-        } else if (lease == nullptr) {
-          RetryAfter retry;
-          f.integer("retry_after_ms", retry.ms, 0, kMaxRetryAfterMs);
-          m = retry;
-        } else {
-          Lease l;
-          read_lease(f.reader(), *lease, f.path("lease"), l);
-          m = std::move(l);
-        }
-      });
+  return decode_object<LeaseReply>(text, kMaxMessageBytes, kMaxMessageDepth, kLeaseReplyKeys, read_lease_reply);
 }
 
 // ---- SubmitResult --------------------------------------------------------------------------

@@ -8,7 +8,6 @@
 
 #include <boost/json/array.hpp>
 #include <boost/json/object.hpp>
-#include <boost/json/serialize.hpp>
 
 #include "jsonio/parse.h"
 #include "protocol/codec.h"
@@ -118,9 +117,8 @@ std::string encode(const UploadAnswer& m) {
 }
 
 Decoded<UploadAnswer> decode_upload_answer(std::string_view text) {
-  std::optional<std::string> next_text;
-  auto decoded = decode_object<UploadAnswer>(
-      text, kMaxMessageBytes, kMaxMessageDepth, kUploadAnswerKeys, [&next_text](Fields& f, UploadAnswer& m) {
+  return decode_object<UploadAnswer>(
+      text, kMaxMessageBytes, kMaxMessageDepth, kUploadAnswerKeys, [](Fields& f, UploadAnswer& m) {
         std::string result;
         if (f.string("result", result, 32)) {
           const auto it = std::find_if(kSubmitResults.begin(), kSubmitResults.end(),
@@ -131,17 +129,17 @@ Decoded<UploadAnswer> decode_upload_answer(std::string_view text) {
             m.result = *it;
           }
         }
-        if (const json::value* next = f.get("next", Need::kOptional)) next_text = json::serialize(*next);
+        // The next lease is read from the same parse, its errors at /next/...
+        const json::value* next = f.get("next", Need::kOptional);
+        if (next == nullptr) return;
+        const jsonio::Path at = f.path("next");
+        const json::object* o = f.reader().object(*next, at);
+        if (o == nullptr) return;
+        Fields nf(f.reader(), *o, at, kLeaseReplyKeys);
+        LeaseReply reply;
+        read_lease_reply(nf, reply);
+        m.next = std::move(reply);
       });
-  if (!decoded || !next_text) return decoded;
-  auto next = decode_lease_reply(*next_text);
-  if (!next) {
-    util::Errors errors = std::move(next).error();
-    for (util::Error& e : errors) e.path = "/next" + e.path;
-    return errors;
-  }
-  decoded.value().next = std::move(next).value();
-  return decoded;
 }
 
 std::string encode(const WorkerList& m) {
