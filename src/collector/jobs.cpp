@@ -146,18 +146,6 @@ bool queue_job(WorkQueue& queue, const JobRecord& job, std::span<const TileIndex
   return queue.add_job(job.id, job.priority, job.tile_indices, stored, skipped_tiles(job), order);
 }
 
-const image::ImageRGBf& output_pixels(const image::ImageRGBf& full, const std::optional<scene::TileRect>& crop,
-                                      image::ImageRGBf& holder) {
-  if (!crop) return full;
-  const scene::TileRect& c = *crop;
-  assert(c.x0 + c.width <= full.width && c.y0 + c.height <= full.height);
-  holder = image::ImageRGBf(c.width, c.height);
-  for (std::uint32_t y = 0; y < c.height; ++y) {
-    std::memcpy(holder.pixel(0, y), full.pixel(c.x0, c.y0 + y), std::size_t{c.width} * 3 * sizeof(float));
-  }
-  return holder;
-}
-
 store::Blob pixels_to_blob(std::span<const float> rgb, std::span<const std::uint32_t> spp) {
   assert(spp.empty() || spp.size() * 3 == rgb.size());
   // Appended, not sized first: sizing would zero every byte before the copy overwrites it (a
@@ -215,11 +203,23 @@ void count_samples(JobRecord& job, std::span<const std::uint32_t> spp) {
 }
 
 void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb) {
-  assert(rect.x0 + rect.width <= image.width && rect.y0 + rect.height <= image.height);
+  copy_tile(image, scene::TileRect{0, 0, image.width, image.height}, rect, rgb);
+}
+
+void copy_tile(image::ImageRGBf& image, const scene::TileRect& window, const scene::TileRect& rect,
+               std::span<const float> rgb) {
+  assert(window.width == image.width && window.height == image.height);
   assert(rgb.size() == std::size_t{rect.width} * rect.height * 3);
+  const std::uint32_t x0 = std::max(rect.x0, window.x0);
+  const std::uint32_t y0 = std::max(rect.y0, window.y0);
+  const std::uint32_t x1 = std::min(rect.x0 + rect.width, window.x0 + window.width);
+  const std::uint32_t y1 = std::min(rect.y0 + rect.height, window.y0 + window.height);
+  if (x0 >= x1 || y0 >= y1) return;
   const std::size_t row_floats = std::size_t{rect.width} * 3;
-  for (std::uint32_t y = 0; y < rect.height; ++y) {
-    std::memcpy(image.pixel(rect.x0, rect.y0 + y), rgb.data() + y * row_floats, row_floats * sizeof(float));
+  const std::size_t copy_bytes = std::size_t{x1 - x0} * 3 * sizeof(float);
+  for (std::uint32_t y = y0; y < y1; ++y) {
+    const float* from = rgb.data() + (y - rect.y0) * row_floats + std::size_t{x0 - rect.x0} * 3;
+    std::memcpy(image.pixel(x0 - window.x0, y - window.y0), from, copy_bytes);
   }
 }
 

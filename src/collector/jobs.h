@@ -178,11 +178,6 @@ std::optional<std::vector<float>> blob_to_costs(const store::Blob& blob, TileInd
 // lease_order of its tile costs when it has them (and they fit its grid), else in row order.
 bool queue_job(WorkQueue& queue, const JobRecord& job, std::span<const TileIndex> stored = {});
 
-// The pixels an output shows of a full frame: `full` itself without a crop, else the crop's
-// pixels, copied into `holder`.
-const image::ImageRGBf& output_pixels(const image::ImageRGBf& full, const std::optional<scene::TileRect>& crop,
-                                      image::ImageRGBf& holder);
-
 // Tile pixels as the store keeps them (tiles.pixels): the float32 values' bytes in host order
 // (the collector only runs on little-endian hosts, asserted at compile time, so this is the
 // wire's order too), then, for an adaptive job, each pixel's u32 sample count. The blob's size
@@ -208,6 +203,10 @@ void count_samples(JobRecord& job, std::span<const std::uint32_t> spp);
 
 // Copies a tile's rgb (rect.width * rect.height * 3 floats) into `image` at `rect`.
 void copy_tile(image::ImageRGBf& image, const scene::TileRect& rect, std::span<const float> rgb);
+// Copies the part of a tile's rgb that lies inside `window` into `image`, which holds the
+// window's pixels (its (0, 0) is the frame's (window.x0, window.y0)): a cropped job's output.
+void copy_tile(image::ImageRGBf& image, const scene::TileRect& window, const scene::TileRect& rect,
+               std::span<const float> rgb);
 
 // Whether every tile of the frame is stored.
 bool frame_complete(const JobRecord& job, std::uint32_t frame_index);

@@ -37,7 +37,9 @@ util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::R
                                                         std::uint32_t tile_size,
                                                         const std::optional<scene::TileRect>& crop,
                                                         std::uint32_t frame_index) {
-  image::ImageRGBf image(settings.width, settings.height);
+  // Only the pixels the output shows are held: the crop's, or the whole frame without one.
+  const scene::TileRect window = crop.value_or(scene::TileRect{0, 0, settings.width, settings.height});
+  image::ImageRGBf image(window.width, window.height);
   const scene::TileGrid grid(settings, tile_size);
   const TileIndex first = frame_index * static_cast<TileIndex>(grid.count());
   for (TileIndex t = 0; t < grid.count(); ++t) {
@@ -46,12 +48,9 @@ util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::R
     // One tile per lock (inside tile_rgb), so that other reads go on in between.
     auto rgb = tile_rgb(id, first + t, std::size_t{rect.width} * rect.height);
     if (!rgb) return std::move(rgb).error();
-    if (rgb.value()) copy_tile(image, rect, *rgb.value());
+    if (rgb.value()) copy_tile(image, window, rect, *rgb.value());
   }
-  if (!crop) return image;
-  image::ImageRGBf cropped;
-  output_pixels(image, crop, cropped);
-  return cropped;
+  return image;
 }
 
 util::Result<std::optional<store::StoredTile>> StoreReader::stored_tile(JobId id, std::uint32_t tile) {
