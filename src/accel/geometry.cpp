@@ -4,6 +4,7 @@
 #include "accel/geometry.h"
 
 #include <algorithm>
+#include <bit>
 #include <cassert>
 #include <cmath>
 
@@ -398,45 +399,39 @@ Bounds3f shape_bounds(const Shape& shape) {
 template <int N>
 std::uint32_t Geometry::outside_planes(const Ray* rays, std::uint32_t live, float* best_t,
                                        std::uint32_t* best_id) const {
-  // The lanes as arrays (dead lanes too: their answers are masked out), then per plane
-  // detail::plane_t and outside_hit's comparison, operation for operation, without branches.
-  float ox[N], oy[N], oz[N], dx[N], dy[N], dz[N], t_min[N], bt[N];
-  std::uint32_t bid[N], on[N], found[N];
-  for (int i = 0; i < N; ++i) {
-    ox[i] = rays[i].o.x, oy[i] = rays[i].o.y, oz[i] = rays[i].o.z;
-    dx[i] = rays[i].d.x, dy[i] = rays[i].d.y, dz[i] = rays[i].d.z;
-    t_min[i] = rays[i].t_min;
-    bt[i] = best_t[i];
-    bid[i] = best_id[i];
-    on[i] = live >> i & 1u;
-    found[i] = 0;
-  }
+  // Lane by lane, read where the rays are: detail::plane_t and outside_hit's comparison, operation
+  // for operation, for each plane in turn (the lanes are independent, so the order of lanes does
+  // not matter). Copying the rays into arrays first, for loops across the lanes, cost more than the
+  // tests themselves: a scene has a plane or two, and the copies' wide loads waited on the narrow
+  // stores that wrote the rays.
   const bool flat = detail::is_flat(wide_);
-  for (const std::uint32_t id : outside_) {
-    if (flat && shapes_[id].type != ShapeType::kPlane) continue;
-    assert(shapes_[id].type == ShapeType::kPlane);
-    const PlaneShape& pl = shapes_[id].plane;
-    const float nx = pl.normal.x, ny = pl.normal.y, nz = pl.normal.z;
-    const float px = pl.point.x, py = pl.point.y, pz = pl.point.z;
-    for (int i = 0; i < N; ++i) {
-      const float dn = dx[i] * nx + dy[i] * ny + dz[i] * nz;
-      const float num = (px - ox[i]) * nx + (py - oy[i]) * ny + (pz - oz[i]) * nz;
+  std::uint32_t mask = 0;
+  for (std::uint32_t s = live; s != 0; s &= s - 1) {
+    const int i = std::countr_zero(s);
+    const Ray& r = rays[i];
+    const float ox = r.o.x, oy = r.o.y, oz = r.o.z, dx = r.d.x, dy = r.d.y, dz = r.d.z, t_min = r.t_min;
+    float bt = best_t[i];
+    std::uint32_t bid = best_id[i];
+    bool found = false;
+    for (const std::uint32_t id : outside_) {
+      if (flat && shapes_[id].type != ShapeType::kPlane) continue;
+      assert(shapes_[id].type == ShapeType::kPlane);
+      const PlaneShape& pl = shapes_[id].plane;
+      const float nx = pl.normal.x, ny = pl.normal.y, nz = pl.normal.z;
+      const float dn = dx * nx + dy * ny + dz * nz;
+      const float num = (pl.point.x - ox) * nx + (pl.point.y - oy) * ny + (pl.point.z - oz) * nz;
       const float t = num / dn;
       // plane_t's NaN cases (dn == 0, t outside (t_min, inf)) never pass outside_hit's test.
-      const std::uint32_t ok =
-          std::uint32_t(dn != 0.0f) & std::uint32_t(t > t_min[i]) & std::uint32_t(t < detail::kInf);
-      const std::uint32_t take =
-          on[i] & ok & (std::uint32_t(t < bt[i]) | (found[i] & std::uint32_t(t == bt[i]) & std::uint32_t(id < bid[i])));
-      bt[i] = take != 0 ? t : bt[i];
-      bid[i] = take != 0 ? id : bid[i];
-      found[i] |= take;
+      const bool ok = dn != 0.0f && t > t_min && t < detail::kInf;
+      if (ok && (t < bt || (found && t == bt && id < bid))) {
+        bt = t;
+        bid = id;
+        found = true;
+      }
     }
-  }
-  std::uint32_t mask = 0;
-  for (int i = 0; i < N; ++i) {
-    best_t[i] = bt[i];
-    best_id[i] = bid[i];
-    mask |= found[i] << i;
+    best_t[i] = bt;
+    best_id[i] = bid;
+    mask |= std::uint32_t(found) << i;
   }
   return mask;
 }

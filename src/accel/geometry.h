@@ -176,8 +176,8 @@ class Geometry {
   // the smaller id; updates best_t / best_id.
   bool outside_hit(const detail::RayPre& r, float t_min, float& best_t, std::uint32_t& best_id) const;
   // outside_hit for the lanes in `live` of a packet of N rays when the shapes it tests are all
-  // planes: the same answers (best_t, best_id and the mask of lanes it returns true for), each
-  // plane against all lanes at once in loops the compiler vectorises.
+  // planes: the same answers (best_t, best_id and the mask of lanes it returns true for), lane by
+  // lane without the per-ray set-up (RayPre) that outside_hit takes.
   template <int N>
   std::uint32_t outside_planes(const Ray* rays, std::uint32_t live, float* best_t, std::uint32_t* best_id) const;
   const detail::Kernels& wide_kernels() const;
