@@ -350,6 +350,20 @@ TEST_CASE("Packets render the bundled scenes bitwise like the per-pixel path on 
   }
 }
 
+// At one sample a pixel the packet path finds its camera rays' screen coordinates once per block
+// column and row; the per-pixel path finds them ray by ray. The showcase's ground plane is tested
+// beside the shapes (Geometry::outside_planes), huge_ground's huge shape beside the tree.
+TEST_CASE("Packets render pixel centres bitwise like the per-pixel path on every isa", "[render][packets]") {
+  for (const char* name : {"showcase.json", "hard/huge_ground.json"}) {
+    INFO(name);
+    scene::SceneDesc d = testing::load_bundled(name);
+    d.render.width = 37;
+    d.render.height = 23;
+    d.render.samples = 1;
+    check_packets_match_per_pixel(d);
+  }
+}
+
 TEST_CASE("Packets render a generated sphere field bitwise like the per-pixel path", "[render][packets]") {
   scene::SceneDesc d = scene::generate_sphere_field(2000, 11);
   d.render.width = 53;

@@ -222,10 +222,7 @@ std::string feature_names(const SceneFeatures& f) {
   return out.empty() ? "none" : out;
 }
 
-math::Ray CameraF::generate(double fx, double fy, std::uint32_t width, std::uint32_t height) const {
-  const double aspect = double(width) / double(height);
-  const double sx = (2.0 * fx / double(width) - 1.0) * tan_half_fov * aspect;
-  const double sy = (1.0 - 2.0 * fy / double(height)) * tan_half_fov;
+math::Ray CameraF::through(double sx, double sy) const {
   const Vec3d dir = math::normalize(forward + right * sx + up * sy);
   math::Ray ray;
   ray.o = Vec3f(position);

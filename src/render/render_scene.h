@@ -86,7 +86,17 @@ struct CameraF {
   Vec3d forward, right, up;  // orthonormal
   double tan_half_fov = 0.0;
   // Primary ray through film position (fx, fy) in pixels from the top-left corner.
-  math::Ray generate(double fx, double fy, std::uint32_t width, std::uint32_t height) const;
+  math::Ray generate(double fx, double fy, std::uint32_t width, std::uint32_t height) const {
+    return through(screen_x(fx, width, height), screen_y(fy, height));
+  }
+  // generate() in its parts, for callers that share a column's or a row's screen coordinate
+  // between rays (a packet's pixel block): the same operations, so the same bits.
+  double screen_x(double fx, std::uint32_t width, std::uint32_t height) const {
+    const double aspect = double(width) / double(height);
+    return (2.0 * fx / double(width) - 1.0) * tan_half_fov * aspect;
+  }
+  double screen_y(double fy, std::uint32_t height) const { return (1.0 - 2.0 * fy / double(height)) * tan_half_fov; }
+  math::Ray through(double sx, double sy) const;
 };
 
 // The shapes of an animation's objects that do not move, built once: one accel::Layer shared by

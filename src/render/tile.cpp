@@ -281,11 +281,24 @@ void render_packets(const TileContext& ctx, TileSums& st, std::uint32_t until, T
       math::Ray rays[kBlockW * kBlockH];
       math::SampleKey keys[kBlockW * kBlockH];
       Vec3f radiance[kBlockW * kBlockH];
+      // At one sample a pixel every ray goes through its pixel's centre (camera_ray): the block's
+      // columns and rows share their screen coordinates, found once each.
+      const bool centres = settings.samples <= 1 && active != 0;
+      double screen_x[kBlockW], screen_y[kBlockH];
+      if (centres) {
+        const CameraF& camera = ctx.scene.camera();
+        for (std::uint32_t c = 0; c < kBlockW; ++c) {
+          screen_x[c] = camera.screen_x(rect.x0 + bx + c + 0.5, settings.width, settings.height);
+        }
+        for (std::uint32_t r = 0; r < kBlockH; ++r)
+          screen_y[r] = camera.screen_y(rect.y0 + by + r + 0.5, settings.height);
+      }
       for (std::uint32_t s = start; s < until && active != 0; ++s) {
         for (std::uint32_t i = 0; i < kBlockW * kBlockH; ++i) {
           if (active >> i & 1u) {
             const std::uint32_t x = rect.x0 + bx + i % kBlockW, y = rect.y0 + by + i / kBlockW;
-            rays[i] = camera_ray(ctx.scene, settings, film[i], x, y, s);
+            rays[i] = centres ? ctx.scene.camera().through(screen_x[i % kBlockW], screen_y[i / kBlockW])
+                              : camera_ray(ctx.scene, settings, film[i], x, y, s);
             keys[i] = sample_key(settings, x, y, s);
           }
         }
