@@ -122,6 +122,22 @@
 // 0.744 -> 0.715), the mesh build 0.81 -> 0.66 s; kTraversalCost 1 with kMaxLeafSize 8 (4 pairs, load 11-12)
 // 16-ray 1.05x, secondary 0.96x. Fewer nodes at the price of more triangles is a wash for packets and a loss for single
 // rays: the tree is not the gap to Embree.
+//
+// Issue 16, round 17 (single rays). Single points at the caller's RayPre instead of copying it: the copy was a 64-byte
+// load over the scalar stores precompute() had just made (not forwardable: it waits for them to reach the cache)
+// and a wide store the walk then read with scalar loads; perf put about a third of Intersect1's samples there.
+// Measured in one process (the old copy and the pointer switched every 512 packets, 60 rounds, medians of per-round
+// ratios, avx512, load 7-9): 1M-triangle mesh secondary rays 1.020x, single shadow rays 1.019x, the mesh at 104k
+// triangles 1.033x, sphere field secondary rays 1.049x (40 rounds). Tried and dropped, the same way (1M mesh, 20-60
+// rounds): a leaf block's four nearest-hit comparisons skipped when no lane's t is <= best_t, two children ordered
+// without a branch (xor-select of reference and distance), and set_shear without a branch on the axis and the swap:
+// 0.983-1.003x each, 0.987-1.011x together, within the noise of a null A/B (0.995-1.003). Counted on the mesh: of a
+// secondary ray's node tests 11.4 % hit no child, 65.9 % one, 17.4 % two and 5.4 % three or more, so the order of
+// hit children is rarely worth more than one comparison. Embree's own statistics (device config verbose=2) for the
+// same 1M triangles: 60,646 wide nodes 65 % full and 255,262 leaves, against our 108,163 nodes (4.1 children, about
+// half full) and 337,571 leaves at 3.08 triangles a block; at 104k triangles 6,426 against 9,111 nodes, and the ratio
+// to rtcIntersect1 is the same there (0.72) as at 1M, so the gap is the number of nodes and leaves a ray visits, not
+// cache misses.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
@@ -169,17 +185,22 @@ constexpr float kInfF = std::numeric_limits<float>::infinity();
 // ---------------------------------------------------------------------------------------------
 // Single ray.
 
+// The ray's constants stay where the caller made them: Single points at them. A copy (as it was)
+// is one wide load over the caller's scalar stores of a RayPre just made, which cannot be
+// forwarded from them and waits for them to reach the cache, and a wide store read back by the
+// walk's scalar loads: perf put about a third of Intersect1's samples on the first use of the copy.
 struct Single {
-  RayPre r;
+  const RayPre* rp;
   float t_min;
   double a;  // |d|^2 in double, as sphere_roots computes it
+  const RayPre& r() const { return *rp; }
 };
 
 inline Single make_single(const RayPre& r, float t_min) {
   Single s;
-  s.r = r;
+  s.rp = &r;
   s.t_min = t_min;
-  const double dx = s.r.d[0], dy = s.r.d[1], dz = s.r.d[2];
+  const double dx = r.d[0], dy = r.d[1], dz = r.d[2];
   s.a = dx * dx + dy * dy + dz * dz;
   return s;
 }
@@ -198,10 +219,10 @@ HWY_INLINE NodeRay1<D> make_node_ray1(D d, const Single& s) {
   for (int a = 0; a < 3; ++a) {
     const std::size_t lo = offsetof(WideNode, lo) + std::size_t(a) * sizeof(WideNode::lo[0]);
     const std::size_t hi = offsetof(WideNode, hi) + std::size_t(a) * sizeof(WideNode::hi[0]);
-    nr.near_off[a] = s.r.neg[a] ? hi : lo;
-    nr.far_off[a] = s.r.neg[a] ? lo : hi;
-    nr.o[a] = hn::Set(d, s.r.o[a]);
-    nr.inv[a] = hn::Set(d, s.r.inv_d[a]);
+    nr.near_off[a] = s.r().neg[a] ? hi : lo;
+    nr.far_off[a] = s.r().neg[a] ? lo : hi;
+    nr.o[a] = hn::Set(d, s.r().o[a]);
+    nr.inv[a] = hn::Set(d, s.r().inv_d[a]);
   }
   nr.t_min = hn::Set(d, s.t_min);
   return nr;
@@ -297,8 +318,10 @@ inline void spheres1(const SphereBlock& b, const Single& s, float* t) {
   const hn::CappedTag<double, kWidth> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const std::size_t n = hn::Lanes(dd);
-  const auto ox = hn::Set(dd, double(s.r.o[0])), oy = hn::Set(dd, double(s.r.o[1])), oz = hn::Set(dd, double(s.r.o[2]));
-  const auto dx = hn::Set(dd, double(s.r.d[0])), dy = hn::Set(dd, double(s.r.d[1])), dz = hn::Set(dd, double(s.r.d[2]));
+  const auto ox = hn::Set(dd, double(s.r().o[0])), oy = hn::Set(dd, double(s.r().o[1])),
+             oz = hn::Set(dd, double(s.r().o[2]));
+  const auto dx = hn::Set(dd, double(s.r().d[0])), dy = hn::Set(dd, double(s.r().d[1])),
+             dz = hn::Set(dd, double(s.r().d[2]));
   const auto a = hn::Set(dd, s.a);
   const auto tmin = hn::Set(df, s.t_min);
   const auto k = sphere_consts(dd, df);
@@ -405,7 +428,7 @@ HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], floa
         out = &uvw->fb[off + k];
         uvw->fallback |= 1u << (off + k);
       }
-      t[k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], l[6][k], l[7][k], l[8][k], s.r,
+      t[k] = triangle_t_double(l[0][k], l[1][k], l[2][k], l[3][k], l[4][k], l[5][k], l[6][k], l[7][k], l[8][k], s.r(),
                                s.t_min, out);
     }
   }
@@ -417,7 +440,7 @@ HWY_INLINE void redo_zero_edges(D d, M zero_edge, const hn::Vec<D> (&v)[9], floa
 inline void triangles1(const TriangleBlock& b, const Single& s, float* t, LaneUvw* uvw) {
   const hn::CappedTag<float, kWidth> d;
   const std::size_t n = hn::Lanes(d);
-  const RayPre& r = s.r;
+  const RayPre& r = s.r();
   const auto ox = hn::Set(d, r.o[r.kx]), oy = hn::Set(d, r.o[r.ky]), oz = hn::Set(d, r.o[r.kz]);
   const auto sx = hn::Set(d, r.sx), sy = hn::Set(d, r.sy), sz = hn::Set(d, r.sz);
   const auto tmin = hn::Set(d, s.t_min);
@@ -503,7 +526,7 @@ inline bool leaf1(const WideBvh& bvh, const WideLeaf& leaf, const Single& s, flo
   }
   for (std::uint32_t k = 0; k < leaf.box_count; ++k) {
     const BoxPrim& bp = bvh.boxes[leaf.box_begin + k];
-    if (consider1<kAnyHit>(box_t(bp.b, s.r, s.t_min), bp.id, best_t, best_id, improved, slot)) return true;
+    if (consider1<kAnyHit>(box_t(bp.b, s.r(), s.t_min), bp.id, best_t, best_id, improved, slot)) return true;
   }
   return improved;
 }
@@ -675,11 +698,13 @@ struct alignas(64) Packet {
   // the bits precompute() and make_single() give: no division again.
   mutable std::uint32_t ready;  // lanes of `single` made
   mutable Single single[kP];
+  mutable RayPre single_pre[kP];  // what single[i] points at
 
   const Single& lane(int i) const {
+    single[i].rp = &single_pre[i];  // (again on every call: a copy of the packet points at its own)
     if (!(ready >> i & 1u)) {
       Single& s = single[i];
-      RayPre& r = s.r;
+      RayPre& r = single_pre[i];
       for (std::uint32_t a = 0; a < 3; ++a) {
         r.o[a] = o[a][i];
         r.d[a] = d[a][i];
