@@ -39,8 +39,8 @@ class StoreReader {
                                          const image::WriteOptions& options, image::ImageFormat format);
 
   // Frame `frame_index` of a job from its stored tiles, black where none is stored, cut to `crop`
-  // when set (only the crop's pixels are allocated); read one tile at a time (a sequence's GIF is assembled from these,
-  // one frame in memory at a time).
+  // when set (only the crop's pixels are allocated); read one tile at a time (a sequence's GIF
+  // is assembled from these, one frame in memory at a time).
   util::Result<image::ImageRGBf> frame_image(JobId id, const scene::RenderSettings& settings, std::uint32_t tile_size,
                                              const std::optional<scene::TileRect>& crop, std::uint32_t frame_index);
 

@@ -138,14 +138,14 @@ void TileWriter::run() {
   const auto has_work = [this] { return stopping_ || !queue_.empty(); };
   for (;;) {
     // Under load the WAL file is kept for the next writes; once idle (or stopping) it is emptied.
-    if (writes_since_checkpoint_ > 0) bound_wal();
-    if (writes_since_checkpoint_ > 0) {
+    if (truncate_owed_) bound_wal();
+    if (truncate_owed_) {
       std::unique_lock lock(mu_);
       // The queue stayed empty for checkpoint_when_idle, or a stop left nothing to write.
       const bool idle = !wake_.wait_for(lock, limits_.checkpoint_when_idle, has_work) || queue_.empty();
       lock.unlock();
       if (idle) checkpoint(CheckpointMode::kTruncate);
-      if (idle && writes_since_checkpoint_ > 0) {
+      if (idle && truncate_owed_) {
         // Not emptied (a reader was in the way): another idle wait and another try, unless work
         // came meanwhile or the writer is stopping.
         std::lock_guard retry(mu_);
@@ -170,7 +170,7 @@ void TileWriter::run() {
     // Submission order is kept: tasks run where they were posted, and each run of tiles between
     // them is one transaction.
     for (std::size_t i = 0; i < batch.size();) {
-      ++writes_since_checkpoint_;
+      truncate_owed_ = true;
       if (batch[i].task) {
         run_task(batch[i]);
         ++i;
@@ -273,12 +273,12 @@ void TileWriter::checkpoint(CheckpointMode mode) {
   background_asked_ = false;
   // Only a TRUNCATE empties the file: after the copies that keep the WAL under its bound (kReuse),
   // the writer still owes the idle one.
-  if (mode == CheckpointMode::kTruncate) writes_since_checkpoint_ = 0;
+  if (mode == CheckpointMode::kTruncate) truncate_owed_ = false;
   auto result = store_.checkpoint(mode);
   const std::chrono::duration<double> took = std::chrono::steady_clock::now() - start;
   // A TRUNCATE that could not empty the WAL (a reader in the way for the moment: the busy timeout
   // is zero here) is tried again after the next idle wait, not only after the next writes.
-  if (mode == CheckpointMode::kTruncate && (!result || !result.value().complete)) writes_since_checkpoint_ = 1;
+  if (mode == CheckpointMode::kTruncate && (!result || !result.value().complete)) truncate_owed_ = true;
   count_checkpoint(result, false, took.count());
 }
 

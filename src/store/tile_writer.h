@@ -172,9 +172,10 @@ class TileWriter {
   // 0 otherwise.
   std::size_t gather_target_ = 0;
 
-  // thread_ only: writes since its own last checkpoint; whether it asked for a background
-  // checkpoint it has not seen finish, and the WAL's bytes when it asked.
-  std::size_t writes_since_checkpoint_ = 0;
+  // thread_ only: whether it wrote since its last complete TRUNCATE (and so owes one when idle);
+  // whether it asked for a background checkpoint it has not seen finish, and the WAL's bytes when
+  // it asked.
+  bool truncate_owed_ = false;
   std::size_t last_batch_tiles_ = 0;  // tiles of the last batch taken
   bool background_asked_ = false;
   std::uint64_t background_asked_at_ = 0;
