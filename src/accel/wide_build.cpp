@@ -1,9 +1,19 @@
 // dtraced::accel: collapsing the binary BVH into the 8-wide SoA tree of wide_bvh.h.
 //
-// Each wide node takes a binary node's two children and keeps opening the interior child with
-// the largest surface area until it has eight (Wald et al., "Getting rid of packets", 2008; the
-// usual collapse of Embree and tinybvh). The binary tree's SAH decisions are kept; only the
-// layout changes, so both trees hold exactly the same prims in their leaves.
+// Which binary interior nodes become wide nodes is chosen by the least SAH cost, the sum of their
+// areas, by dynamic programming over the binary tree (Ylitie, Karras and Laine, HPG 2017; Planner
+// below). The binary tree's leaves stay the wide tree's leaves (same prims, same blocks), so every
+// hit is the same; only which binary nodes become wide nodes changes. Before round 18 each wide
+// node took a binary node's two children and kept opening the interior child with the largest
+// surface area until it had eight (Wald et al., "Getting rid of packets", 2008): on the 1M-triangle
+// mesh that made 108,163 wide nodes with 4.1 children each (23,393 full, 41,947 with two; SAH cost
+// of the nodes, root area 1: 31.95), the SAH collapse 67,543 with 6.0 (28,421 full, 7,877 with
+// two; 28.91; Embree's BVH8 60,646); the sphere field 13,850 against 9,845. One binary building
+// either tree, alternated (`dtraced-bench-rays --isa avx512 --threads 1 --runs 5`, load 4-6.3),
+// medians of per-pair ratios of the ratios to Embree: mesh (10 pairs) camera x16 1.06, shadow x16
+// 1.03, secondary 1.10, camera x8 / scalar 1.09; spheres (8 pairs) 0.97, 1.02, 0.97, 0.99 (noise
+// of +-10 % a pair). The plan takes 8 bytes a binary node while the collapse runs (1M spheres: peak
+// 131 -> 134 MiB) and no measurable time (collapse 0.071 -> 0.061 s on 1 thread, fewer nodes).
 //
 // On several threads: the wide nodes near the root are walked first to cut the tree into dozens of
 // subtrees per thread (tasks); the threads count what each task makes (nodes, leaf records,
@@ -16,12 +26,14 @@
 #endif
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cassert>
 #include <cmath>
 #include <cstdlib>
 #include <exception>
 #include <limits>
+#include <memory>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -166,6 +178,113 @@ struct Task {
 // nothing; kWrite: writes at the cursor into arrays already sized.
 enum class Pass { kPlan, kCount, kWrite };
 
+// The SAH collapse (Ylitie, Karras and Laine, "Efficient incoherent ray traversal on GPUs through
+// compressed wide BVHs", HPG 2017, without their leaf merging: the binary leaves stay as they are).
+// Every binary leaf is a slot of some wide node whatever the collapse, so the collapse's SAH cost
+// is the sum of the areas of the binary interior nodes that become wide nodes (the root always
+// does). For binary node n and j = 1..8, g(n, j) is the least cost of covering n's subtree with at
+// most j slots: a slot of n itself (a leaf: 0; an interior node: area(n) + f(n, 8), n a wide node)
+// or, for j >= 2, f(n, j) = min over k of g(left, k) + g(right, j - k), n opened. plan[n][j - 1]
+// (j = 2..8) holds that k, or 0 where n is better kept as one slot (for j = 8: n's own wide node).
+using Plan = std::array<std::uint8_t, kNodeWidth>;
+
+template <typename Node>
+class Planner {
+ public:
+  Planner(const Node* nodes, Plan* plan) : nodes_(nodes), plan_(plan) {}
+
+  // Fills the plan of the whole tree on up to `threads` threads: the subtrees of at most `grain`
+  // binary nodes each on one thread, then the nodes above them. Per node the same arithmetic in
+  // the same order whatever the split, so the same plan on any number of threads.
+  void plan_tree(unsigned threads, std::size_t grain) {
+    float g[kNodeWidth];
+    if (threads <= 1) {
+      plan(0, g);
+      return;
+    }
+    split(0, grain);
+    done_.resize(roots_.size());
+    parallel_for(roots_.size(), threads, [&](std::size_t t) { plan(roots_[t], done_[t].data()); });
+    plan_top(0, g);
+  }
+
+ private:
+  // Fills plan[n] for the subtree of `bin`, children first; g[j - 1] = g(bin, j).
+  void plan(std::uint32_t bin, float* g) const {
+    const Node& node = nodes_[bin];
+    if (node.count > 0) {
+      plan_[bin].fill(0);
+      std::fill(g, g + kNodeWidth, 0.0f);
+      return;
+    }
+    float gl[kNodeWidth], gr[kNodeWidth];
+    plan(bin + 1, gl);
+    plan(node.offset, gr);
+    combine(bin, gl, gr, g);
+  }
+
+  // The same above the subtrees that split found (their g in done_).
+  void plan_top(std::uint32_t bin, float* g) const {
+    const auto it = std::lower_bound(roots_.begin(), roots_.end(), bin);
+    if (it != roots_.end() && *it == bin) {
+      std::copy_n(done_[std::size_t(it - roots_.begin())].data(), kNodeWidth, g);
+      return;
+    }
+    float gl[kNodeWidth], gr[kNodeWidth];
+    plan_top(bin + 1, gl);
+    plan_top(nodes_[bin].offset, gr);
+    combine(bin, gl, gr, g);
+  }
+
+  // Binary interior node `bin`'s plan and g from its children's.
+  void combine(std::uint32_t bin, const float* gl, const float* gr, float* g) const {
+    Plan& p = plan_[bin];
+    p[0] = 0;
+    float f[kNodeWidth + 1];
+    for (int j = 2; j <= kNodeWidth; ++j) {
+      float best = std::numeric_limits<float>::infinity();
+      int best_k = 1;
+      for (int k = 1; k < j; ++k) {
+        const float c = gl[k - 1] + gr[j - k - 1];
+        if (c < best) {
+          best = c;
+          best_k = k;
+        }
+      }
+      f[j] = best;
+      p[j - 1] = std::uint8_t(best_k);
+    }
+    const float own = float(node_area(nodes_[bin].bounds)) + f[kNodeWidth];  // bin as a wide node
+    g[0] = own;
+    for (int j = 2; j < kNodeWidth; ++j) {
+      if (f[j] <= own) {  // ties open bin: one wide node fewer
+        g[j - 1] = f[j];
+      } else {
+        g[j - 1] = own;
+        p[j - 1] = 0;
+      }
+    }
+    g[kNodeWidth - 1] = std::min(f[kNodeWidth], own);
+  }
+
+  // The roots of subtrees of at most `grain` binary nodes (or leaves) below `bin`, depth first.
+  void split(std::uint32_t bin, std::size_t grain) {
+    std::uint32_t last = bin;
+    while (nodes_[last].count == 0) last = nodes_[last].offset;
+    if (std::size_t(last) - bin + 1 <= grain) {
+      roots_.push_back(bin);
+      return;
+    }
+    split(bin + 1, grain);
+    split(nodes_[bin].offset, grain);
+  }
+
+  const Node* nodes_;
+  Plan* plan_;
+  std::vector<std::uint32_t> roots_;                 // increasing: depth-first order
+  std::vector<std::array<float, kNodeWidth>> done_;  // g of each root
+};
+
 // The collapse of one binary tree (Node and Prim: Geometry's, private to it). Every pass walks the same wide nodes in
 // the same order (depth first, children in slot order), so the cursor reaches each node, leaf and block at the index
 // the one-pass collapse would have appended it at: the tree is the same whatever the tasks and threads.
@@ -173,8 +292,9 @@ template <typename Node, typename Prim>
 class Collapse {
  public:
   Collapse(const Node* nodes, const Prim* prims, const std::vector<Shape>& shapes, WideBvh& w, bool spheres_only,
-           bool every_record, ReadOnce& prims_read)
+           bool every_record, ReadOnce& prims_read, const Plan* plan)
       : nodes_(nodes),
+        plan_(plan),
         prims_(prims),
         shapes_(shapes),
         w_(w),
@@ -253,33 +373,28 @@ class Collapse {
   }
 
  private:
-  // The binary nodes a wide node takes its children from: a binary node's two children, then the
-  // interior child with the largest surface area opened until there are eight (a leaf root: one).
+  // The binary nodes a wide node takes its children from, as the plan chose (a leaf root: one).
   int slots_of(std::uint32_t bin, std::uint32_t* slots) const {
     int n = 0;
     if (nodes_[bin].count > 0) {
       slots[n++] = bin;  // a leaf root: one child
       return n;
     }
-    slots[n++] = bin + 1;
-    slots[n++] = nodes_[bin].offset;
-    while (n < kNodeWidth) {
-      int open = -1;
-      double best = -1.0;
-      for (int i = 0; i < n; ++i) {
-        if (nodes_[slots[i]].count > 0) continue;
-        const double area = node_area(nodes_[slots[i]].bounds);
-        if (area > best) {
-          best = area;
-          open = i;
-        }
-      }
-      if (open < 0) break;
-      const std::uint32_t b = slots[open];
-      slots[open] = b + 1;
-      slots[n++] = nodes_[b].offset;
-    }
+    const int left = plan_[bin][kNodeWidth - 1];
+    cover(bin + 1, left, slots, n);
+    cover(nodes_[bin].offset, kNodeWidth - left, slots, n);
     return n;
+  }
+
+  // Appends the slots that cover the subtree of `bin` with at most `j` of them, as the plan chose.
+  void cover(std::uint32_t bin, int j, std::uint32_t* slots, int& n) const {
+    const int left = j >= 2 && nodes_[bin].count == 0 ? plan_[bin][j - 1] : 0;
+    if (left == 0) {
+      slots[n++] = bin;
+      return;
+    }
+    cover(bin + 1, left, slots, n);
+    cover(nodes_[bin].offset, j - left, slots, n);
   }
 
   // Binary nodes in the subtree of `bin` (depth first: they follow it up to its last leaf).
@@ -382,6 +497,7 @@ class Collapse {
   }
 
   const Node* nodes_;
+  const Plan* plan_;  // the SAH collapse's choices per binary node (Planner)
   const Prim* prims_;
   const std::vector<Shape>& shapes_;
   WideBvh& w_;
@@ -407,7 +523,10 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_o
   // 1M-sphere scene's build peaked there). Not for a tree that may collapse to one node (is_flat:
   // the build then keeps its prims).
   ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), prims_read_once && !every_record);
-  Collapse c(g.nodes_.data(), g.prims_.data(), g.shapes_, w, spheres_only, every_record, prims_read);
+  // The SAH collapse's choices, 8 bytes a binary node, each written by the Planner below (not
+  // zeroed here: the planning threads touch their subtrees' pages first).
+  const std::unique_ptr<Plan[]> plan(new Plan[g.nodes_.size()]);
+  Collapse c(g.nodes_.data(), g.prims_.data(), g.shapes_, w, spheres_only, every_record, prims_read, plan.get());
   // Threads for trees large enough to pay for starting them; the result does not depend on it.
   if (g.prims_.size() < kParallelPrims) threads = 1;
   // Tasks: subtrees of at most `grain` binary nodes under the top, dozens per thread so that the
@@ -415,6 +534,7 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_o
   const std::size_t grain =
       threads <= 1 ? std::numeric_limits<std::size_t>::max()
                    : std::max<std::size_t>(kMinTaskNodes, g.nodes_.size() / (std::size_t(threads) * kTasksPerThread));
+  Planner(g.nodes_.data(), plan.get()).plan_tree(threads, grain);
   std::vector<Task> tasks;
   {
     Cursor at;
