@@ -372,9 +372,10 @@ TEST_CASE("BVH build's thread pool: every item once, loop after loop, and its ex
 }
 
 TEST_CASE("BVH build: the same tree on any number of threads", "[accel][bvh][threads]") {
-  // Large enough that the top levels are split by all threads and the rest by one thread per
-  // subtree (bvh.cpp's kParallelGrain is 2^15 prims): mixed shapes, duplicates, a cluster of
-  // coincident centres and a geometric cluster that drives one subtree deep.
+  // Large enough that the top level is split by all threads, the ranges of 2^15 prims or more
+  // (bvh.cpp's kParallelGrain) and at most a thread's share each by one thread, and the rest by one
+  // thread per subtree: mixed shapes, duplicates, a cluster of coincident centres and a geometric
+  // cluster that drives one subtree deep.
   TestRng rng{16};
   std::vector<Shape> shapes = random_scene(rng, 120000);
   for (int i = 0; i < 5000; ++i) shapes.push_back(sphere({3, 4, 5}, 0.25f + 0.001f * float(i % 7)));

@@ -3,7 +3,8 @@
 //
 // The build runs on up to the caller's thread count and gives the same node array whatever that
 // count: the levels above kParallelGrain prims are split one node at a time with their bounds,
-// binning and partition cut into fixed-size chunks (merged in chunk order), the ranges below
+// binning and partition cut into fixed-size chunks (merged in chunk order; the largest ranges by
+// all threads together, the others by one thread each, the same operations), the ranges below
 // become independent subtrees built one per thread, and the subtrees are stitched back in
 // depth-first order. The threads are started once per build (util::ThreadPool).
 #include <algorithm>
@@ -12,7 +13,9 @@
 #include <bit>
 #include <cassert>
 #include <chrono>
+#include <condition_variable>
 #include <cstddef>
+#include <deque>
 #include <exception>
 #include <limits>
 #include <memory>
@@ -596,7 +599,9 @@ std::pair<std::uint32_t, std::uint32_t> build_range(const Splitter& splitter, st
   return {leaves, max_depth};
 }
 
-// Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread.
+// Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread, with a scratch of its
+// own (one scratch a thread for all its subtrees raised the 1M-sphere build's peak by 8 MiB: the
+// allocator then kept the freed subtree nodes instead of handing their memory to the stitch).
 template <typename Node>
 void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
   t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
@@ -605,37 +610,107 @@ void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
 }
 
 // The levels above kParallelGrain: one node each (`subtree` < 0), or a range left to a subtree.
+// Kept in a std::deque: a thread holds on to its node while another appends.
 template <typename Node>
 struct TopNode {
   Node node;
   int first = -1, second = -1;  // children, indices into the top node list
   int subtree = -1;             // index into the subtree list
   std::uint32_t depth = 0;
+  std::uint32_t begin = 0, end = 0;  // the node's prims
 };
 
+// The top levels that all threads split together (each pass over a range cut in chunks): the
+// ranges of more than a thread's share of the prims (`shared_above`). The ranges below are left in
+// `pending` for split_pending. Returns the node's index.
 template <typename Node>
 int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, std::uint32_t depth, unsigned threads,
-              std::vector<TopNode<Node>>& top, std::vector<Subtree<Node>>& subtrees) {
+              std::size_t shared_above, std::deque<TopNode<Node>>& top, std::vector<TopNode<Node>*>& pending) {
   const int index = int(top.size());
-  top.emplace_back().depth = depth;
-  if (end - begin < kParallelGrain) {
-    top[index].subtree = int(subtrees.size());
-    Subtree<Node>& t = subtrees.emplace_back();
-    t.begin = begin;
-    t.end = end;
-    t.depth = depth;
+  TopNode<Node>& tn = top.emplace_back();
+  tn.depth = depth;
+  tn.begin = begin;
+  tn.end = end;
+  if (end - begin < kParallelGrain || end - begin <= shared_above) {
+    pending.push_back(&tn);
     return index;
   }
   const Split s = splitter.split(begin, end, depth, /* chunked = */ true, threads);
-  fill_node(top[index].node, s, begin, end);
+  fill_node(tn.node, s, begin, end);
   if (!s.leaf) {
     // Recursion depth is bounded by log2(prims / kParallelGrain) + 1: both children are smaller.
-    const int first = split_top(splitter, begin, s.mid, depth + 1, threads, top, subtrees);
-    const int second = split_top(splitter, s.mid, end, depth + 1, threads, top, subtrees);
-    top[index].first = first;
-    top[index].second = second;
+    const int first = split_top(splitter, begin, s.mid, depth + 1, threads, shared_above, top, pending);
+    const int second = split_top(splitter, s.mid, end, depth + 1, threads, shared_above, top, pending);
+    tn.first = first;
+    tn.second = second;
   }
   return index;
+}
+
+// The rest of the tree below split_top's levels, on `threads` threads: each thread takes the
+// largest pending range, splits it alone (the same chunked passes on one thread, so the same bits)
+// and leaves its two halves pending, or builds it as a subtree once it holds fewer than
+// kParallelGrain prims. (Splitting those levels with all threads at once made each pass wait for
+// the others: a few hundred short loops, most of whose items one thread took alone.) The nodes
+// and subtrees are linked as split_top links them, so stitch gives the same tree whichever thread
+// made what.
+template <typename Node>
+void split_pending(const Splitter& splitter, util::ThreadPool& pool, unsigned threads, std::deque<TopNode<Node>>& top,
+                   std::deque<Subtree<Node>>& subtrees, std::vector<TopNode<Node>*> pending) {
+  std::mutex mutex;
+  std::condition_variable wake;  // a range is pending, or nothing is left to do
+  std::size_t busy = 0;          // threads working on a range (they may leave two more)
+  bool failed = false;
+  pool.parallel_for(threads, threads, [&](std::size_t) {
+    std::unique_lock lock(mutex);
+    for (;;) {
+      wake.wait(lock, [&] { return failed || !pending.empty() || busy == 0; });
+      if (failed || pending.empty()) return;
+      const auto largest = std::max_element(pending.begin(), pending.end(), [](const auto* a, const auto* b) {
+        return a->end - a->begin < b->end - b->begin;
+      });
+      TopNode<Node>& tn = **largest;
+      *largest = pending.back();
+      pending.pop_back();
+      ++busy;
+      try {
+        if (tn.end - tn.begin < kParallelGrain) {
+          tn.subtree = int(subtrees.size());
+          Subtree<Node>& t = subtrees.emplace_back();
+          t.begin = tn.begin;
+          t.end = tn.end;
+          t.depth = tn.depth;
+          lock.unlock();
+          build_subtree(splitter, t);
+          lock.lock();
+        } else {
+          lock.unlock();
+          const Split s = splitter.split(tn.begin, tn.end, tn.depth, /* chunked = */ true, 1);
+          fill_node(tn.node, s, tn.begin, tn.end);
+          lock.lock();
+          if (!s.leaf) {
+            for (const auto& [b, e, link] :
+                 {std::tuple(tn.begin, s.mid, &tn.first), std::tuple(s.mid, tn.end, &tn.second)}) {
+              *link = int(top.size());
+              TopNode<Node>& child = top.emplace_back();
+              child.depth = tn.depth + 1;
+              child.begin = b;
+              child.end = e;
+              pending.push_back(&child);
+            }
+            wake.notify_all();
+          }
+        }
+      } catch (...) {
+        if (!lock.owns_lock()) lock.lock();
+        failed = true;  // the others stop; the pool throws this once they have
+        --busy;
+        wake.notify_all();
+        throw;
+      }
+      if (--busy == 0 && pending.empty()) wake.notify_all();
+    }
+  });
 }
 
 // On one thread: the tree split_top, build_subtree and stitch make, each node appended to `nodes`
@@ -668,7 +743,7 @@ void build_in_place(const Splitter& splitter, std::uint32_t begin, std::uint32_t
 // Each subtree's nodes are freed once copied, so that the two copies of the nodes are never all
 // alive at once.
 template <typename Node>
-std::uint32_t stitch(int t, const std::vector<TopNode<Node>>& top, std::vector<Subtree<Node>>& subtrees,
+std::uint32_t stitch(int t, const std::deque<TopNode<Node>>& top, std::deque<Subtree<Node>>& subtrees,
                      std::vector<Node>& nodes) {
   const auto index = std::uint32_t(nodes.size());
   const TopNode<Node>& tn = top[t];
@@ -951,10 +1026,11 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     order = take_ids(refs);
   } else if (!refs.empty()) {
     const Splitter splitter(refs, isa, pool);
-    std::vector<TopNode<Node>> top;
-    std::vector<Subtree<Node>> subtrees;
-    split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, top, subtrees);
-    pool.parallel_for(subtrees.size(), threads, [&](std::size_t i) { build_subtree(splitter, subtrees[i]); });
+    std::deque<TopNode<Node>> top;
+    std::deque<Subtree<Node>> subtrees;
+    std::vector<TopNode<Node>*> pending;
+    split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, refs.size() / threads, top, pending);
+    split_pending(splitter, pool, threads, top, subtrees, std::move(pending));
     order = take_ids(refs);
     std::size_t total = top.size();
     for (const auto& t : subtrees) total += t.nodes.size();
@@ -974,7 +1050,24 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   g.prims_.reserve(order.size());
   util::advise_huge_pages_for(g.prims_);
   g.prims_.resize(order.size());
-  pool.parallel_for(chunks_of(order.size()), order.size() >= kParallelGrain ? threads : 1, [&](std::size_t c) {
+  // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build): the nodes, then
+  // the prims' ids, read from `order` (order[i] is prims_[i].id) or from the prims.
+  const auto tree_hash = [&g](const auto& items, auto id_of) {
+    std::uint64_t hash = 0xcbf29ce484222325ull;
+    const auto mix = [&hash](std::uint32_t word) {
+      hash ^= word;
+      hash *= 0x100000001b3ull;
+    };
+    for (const Node& n : g.nodes_) {
+      for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
+      mix(n.offset);
+      mix(n.count);
+      mix(n.axis);
+    }
+    for (const auto& item : items) mix(id_of(item));
+    return hash;
+  };
+  const auto make_prims = [&](std::size_t c) {
     const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
     for (std::size_t i = c * kChunk; i < end; ++i) {
       Prim& p = g.prims_[i];
@@ -1009,25 +1102,30 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
         p.data[5] = s.box.hi.z;
       }
     }
-  });
+  };
+  const std::size_t prim_chunks = chunks_of(order.size());
+  const bool hash_beside = threads > 1 && order.size() >= kParallelGrain;
+  std::uint64_t hash = 0;
+  if (hash_beside) {
+    // The hash is one serial chain (8 ms for 1M prims): item 0 works it out while the other items
+    // make the prims.
+    pool.parallel_for(prim_chunks + 1, threads, [&](std::size_t c) {
+      if (c == 0) {
+        hash = tree_hash(order, [](std::uint32_t id) { return id; });
+      } else {
+        make_prims(c - 1);
+      }
+    });
+  } else {
+    for (std::size_t c = 0; c < prim_chunks; ++c) make_prims(c);
+  }
   std::vector<std::uint32_t>().swap(order);
   // Until put_back nothing reads shapes_: the collapse reads prims (and shapes only for
   // triangles, which a scene set aside has none of).
   std::vector<AsideSphere>().swap(spheres);
 
-  // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build).
-  std::uint64_t hash = 0xcbf29ce484222325ull;
-  const auto mix = [&hash](std::uint32_t word) {
-    hash ^= word;
-    hash *= 0x100000001b3ull;
-  };
-  for (const Node& n : g.nodes_) {
-    for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
-    mix(n.offset);
-    mix(n.count);
-    mix(n.axis);
-  }
-  for (const Prim& p : g.prims_) mix(p.id);
+  if (!hash_beside) hash = tree_hash(g.prims_, [](const Prim& p) { return p.id; });
+
   g.stats_.tree_hash = hash;
   g.stats_.nodes = std::uint32_t(g.nodes_.size());
   g.stats_.leaves = leaves;
