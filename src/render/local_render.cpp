@@ -6,6 +6,7 @@
 #include <condition_variable>
 #include <mutex>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "util/cpus.h"
@@ -52,7 +53,8 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   std::size_t done = 0;     // guarded by mu
   std::uint32_t ended = 0;  // render threads that have returned; guarded by mu
   TraceStats stats;         // guarded by mu
-  std::mutex tile_done_mu;  // one tile_done call at a time
+  // Tiles rendered and not yet handed to tile_done, which this thread calls (guarded by mu).
+  std::vector<std::pair<std::size_t, Tile>> finished;
 
   const auto start = std::chrono::steady_clock::now();
   auto worker = [&] {
@@ -62,11 +64,8 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
       Tile t = render_tile(scene, settings, all[tiles[i]], tile_options);
       paste_tile(t, settings.width, result);
       local.add(t.stats);
-      if (options.tile_done) {
-        std::lock_guard lock(tile_done_mu);
-        options.tile_done(tiles[i], t);
-      }
       std::lock_guard lock(mu);
+      if (options.tile_done) finished.emplace_back(tiles[i], std::move(t));
       ++done;
       cv.notify_one();
     }
@@ -79,16 +78,19 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
     std::vector<std::jthread> pool;
     pool.reserve(threads);
     for (std::uint32_t i = 0; i < threads; ++i) pool.emplace_back(worker);
+    std::vector<std::pair<std::size_t, Tile>> batch;
     std::unique_lock lock(mu);
-    // Until every thread has returned: all tiles done, or a stop.
-    while (ended < threads) {
-      cv.wait_for(lock, std::chrono::milliseconds(200));
-      if (options.progress) {
-        const std::size_t d = done;
-        lock.unlock();
-        options.progress(skipped + d, all.size());
-        lock.lock();
-      }
+    // Until every thread has returned (all tiles done, or a stop) and every tile it rendered has
+    // been through tile_done.
+    while (ended < threads || !finished.empty()) {
+      if (finished.empty()) cv.wait_for(lock, std::chrono::milliseconds(200));
+      batch.swap(finished);
+      const std::size_t d = done;
+      lock.unlock();
+      for (const auto& [index, t] : batch) options.tile_done(index, t);
+      batch.clear();
+      if (options.progress) options.progress(skipped + d, all.size());
+      lock.lock();
     }
   }  // joins the pool
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
