@@ -236,6 +236,28 @@ TEST_CASE("a large sphere scene's shapes come back from the build bit for bit, a
   CHECK(hits > 300);
 }
 
+TEST_CASE("RenderSceneBuilder's arrays hold what was added while their pages are mapped beside it",
+          "[scene][sink][render]") {
+  // reserve() past util::kPrefaultMinBytes of shapes maps their pages on a thread of its own while
+  // add() writes them; adding past the reservation moves the arrays (the thread is joined first).
+  // Either way the arrays must hold exactly what a builder that never reserved holds.
+  const SceneDesc desc = scene::generate_sphere_field(300000, 11);
+  REQUIRE(desc.objects.size() * sizeof(accel::Shape) > dtraced::util::kPrefaultMinBytes);
+  render::RenderSceneBuilder plain;
+  for (std::size_t i = 0; i < desc.objects.size(); ++i) plain.add(i, desc.objects[i]);
+  for (const std::size_t reserved : {desc.objects.size(), desc.objects.size() - 60000}) {
+    INFO("reserved " << reserved);
+    render::RenderSceneBuilder prefaulted;
+    prefaulted.reserve(reserved);
+    for (std::size_t i = 0; i < desc.objects.size(); ++i) prefaulted.add(i, desc.objects[i]);
+    const render::RenderSceneBuilder::Parts a = plain.parts(), b = prefaulted.parts();
+    REQUIRE(a.shapes.size() == b.shapes.size());
+    REQUIRE(a.materials.size() == b.materials.size());
+    CHECK(std::memcmp(a.shapes.data(), b.shapes.data(), a.shapes.size_bytes()) == 0);
+    CHECK(std::memcmp(a.materials.data(), b.materials.data(), a.materials.size_bytes()) == 0);
+  }
+}
+
 TEST_CASE("objects map to their shapes whether or not meshes come first, or have no triangles",
           "[scene][sink][render]") {
   const std::string empty_mesh = R"({"type": "mesh", "obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\n"})";

@@ -327,6 +327,8 @@ void RenderScene::finish(const scene::SceneDesc& desc, const std::vector<std::pa
 }
 
 void RenderSceneBuilder::reserve(std::size_t objects) {
+  if (objects <= materials_.capacity() && objects <= shapes_.capacity()) return;
+  prefault_.join();  // before the arrays move
   // Spheres, boxes and planes are one shape each; a mesh's triangles grow the shapes beyond.
   if (objects > materials_.capacity()) {
     materials_.reserve(objects);
@@ -336,11 +338,15 @@ void RenderSceneBuilder::reserve(std::size_t objects) {
     shapes_.reserve(objects);
     util::advise_huge_pages_for(shapes_);
   }
+  // The loader reserves once it can predict the object count (1M spheres: 80 MB); the arrays'
+  // pages are mapped on another thread while this one parses (util/prefault.h).
+  prefault_.start({util::capacity_range(shapes_), util::capacity_range(materials_)});
 }
 
 void RenderSceneBuilder::reserve_exact(std::size_t objects, std::size_t shapes) {
   reserve(objects);
   if (shapes > shapes_.capacity()) {
+    prefault_.join();  // before the shapes move
     shapes_.reserve(shapes);
     util::advise_huge_pages_for(shapes_);
   }
@@ -354,6 +360,7 @@ void RenderSceneBuilder::add(std::size_t index, const scene::Object& o) {
   assert(index == materials_.size());
   const std::size_t first = shapes_.size();
   const std::size_t count = shape_count_of(o);
+  if (first + count > shapes_.capacity()) prefault_.join();  // the shapes move
   if (!mapped_ && count != 1) {
     // The first object that is not one shape: the ids so far were the object indices.
     mapped_ = true;
@@ -410,6 +417,7 @@ util::Result<RenderSceneBuilder> RenderSceneBuilder::from_parts(std::vector<acce
 }
 
 RenderScene RenderSceneBuilder::build(const scene::SceneDesc& desc, accel::Isa isa, unsigned build_threads) && {
+  prefault_.join();
   for (const scene::Object& o : desc.objects) add(materials_.size(), o);
   // Shape ids are 32-bit (accel::Hit::shape); the loader's limits keep far below that.
   assert(shapes_.size() <= std::numeric_limits<std::uint32_t>::max());

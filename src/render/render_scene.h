@@ -21,6 +21,7 @@
 #include "math/vec.h"
 #include "scene/description.h"
 #include "scene/load.h"
+#include "util/prefault.h"
 #include "util/result.h"
 
 namespace dtraced::render {
@@ -231,6 +232,9 @@ class RenderSceneBuilder final : public scene::ObjectSink {
   // (object index, is a mesh) of each transparent object: what camera_media needs of them.
   std::vector<std::pair<std::uint32_t, bool>> transparent_;
   SceneFeatures features_;  // reflection and specular so far
+  // Maps the pages of the arrays reserve() made room for, on a thread of its own; joined before
+  // they move (reserve, a growing add, build, the builder's end).
+  util::Prefault prefault_;
 };
 
 // A scene description prepared for rendering any of its frames. Built once per description.
