@@ -1143,7 +1143,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     const auto wide_start = std::chrono::steady_clock::now();
     if (g.prims_.size() >= kMinWidePrims) {
       // A set-aside scene's prims are all spheres (planes and invalid shapes are not in the tree).
-      g.wide_ = detail::collapse_to_wide(g, aside, /* spheres_only = */ aside, threads);
+      g.wide_ = detail::collapse_to_wide(g, aside, /* spheres_only = */ aside, pool, threads);
       // Every query now walks the wide tree (intersect, occluded and the packets take the wide
       // path whenever it is not flat): the binary nodes and prims, 32 bytes a prim and as much
       // again a node, are never read again.

@@ -170,7 +170,7 @@ class Geometry {
   };
 
   friend detail::WideBvh detail::collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only,
-                                                  unsigned threads);
+                                                  util::ThreadPool& pool, unsigned threads);
 
   // Nearest hit below best_t among the shapes outside the tree (planes and huge shapes), ties to
   // the smaller id; updates best_t / best_id.

@@ -9,6 +9,10 @@
 #include "accel/isa.h"
 #include "math/ray.h"
 
+namespace dtraced::util {
+class ThreadPool;
+}  // namespace dtraced::util
+
 namespace dtraced::accel {
 struct Hit;
 class Geometry;
@@ -156,7 +160,8 @@ const Kernels& kernels_for(Isa isa);
 // reads them; it still keeps them for a tree that may collapse to one node (is_flat).
 // `spheres_only`: every prim is a sphere (the collapse then sizes its arrays without reading the
 // prims' types; a wrong claim writes out of bounds). Runs on up to `threads` threads (the caller's
-// among them); the tree is the same whatever their number.
-WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only, unsigned threads);
+// among them) of `pool`, the build's threads; the tree is the same whatever their number.
+WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only, util::ThreadPool& pool,
+                         unsigned threads);
 
 }  // namespace dtraced::accel::detail
