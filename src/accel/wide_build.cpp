@@ -103,6 +103,39 @@ class ReadOnce {
 #endif
   }
 
+  // Reads counted off together: a thread that reads runs of elements in order (a task of the
+  // collapse, leaf after leaf) counts off each run once, when the next read leaves the run's block
+  // or at flush, instead of each read at once. Counting off every leaf (1M spheres: 298k leaves)
+  // on the counter of the block the other thread also reads made both threads of the collapse's
+  // write pass take about as long as one thread took for all of it. Pages go back as late as the
+  // last read of their block, as without it.
+  class Batch {
+   public:
+    explicit Batch(ReadOnce& r) : r_(r) {}
+    Batch(const Batch&) = delete;
+    Batch& operator=(const Batch&) = delete;
+    ~Batch() { flush(); }
+
+    void read(std::size_t first, std::size_t n) {
+      if (r_.left_.empty() || n == 0) return;
+      if (n_ != 0 && first == first_ + n_ && r_.block_of(first + n - 1) == r_.block_of(first_)) {
+        n_ += n;
+        return;
+      }
+      flush();
+      first_ = first;
+      n_ = n;
+    }
+    void flush() {
+      r_.read(first_, n_);
+      n_ = 0;
+    }
+
+   private:
+    ReadOnce& r_;
+    std::size_t first_ = 0, n_ = 0;  // the run not counted off yet
+  };
+
   // Elements [first, first + n) have been read, each once. Threads may call it at once for
   // different elements: the block whose last bytes a thread counts off is the one it gives back.
   void read(std::size_t first, std::size_t n) {
@@ -122,6 +155,9 @@ class ReadOnce {
  private:
   static constexpr std::uintptr_t kBlock = std::uintptr_t(2) << 20;  // a huge page
   static constexpr std::size_t kMinBytes = std::size_t(1) << 20;     // a set-aside scene has more
+
+  // The block holding element i's first byte.
+  std::size_t block_of(std::size_t i) const { return (begin_ + i * element_bytes_ - base_) / kBlock; }
 
   // The pages of block b that hold the array and nothing else.
   void release(std::size_t b) const {
@@ -307,9 +343,10 @@ class Collapse {
   // The wide subtree whose root takes binary node `bin`, from cursor `at` (kCount or kWrite);
   // returns the root's index. `made`, where given: the subtree's slots, which kCount appends and
   // kWrite reads instead of opening the binary nodes again (its node `index` at made[index - first]).
+  // `read`, where given, counts off the prims kWrite reads (else ReadOnce::read, leaf by leaf).
   template <Pass P>
-  std::uint32_t node(std::uint32_t bin, Cursor& at, std::vector<NodeSlots>* made = nullptr,
-                     std::size_t first = 0) const {
+  std::uint32_t node(std::uint32_t bin, Cursor& at, std::vector<NodeSlots>* made = nullptr, std::size_t first = 0,
+                     ReadOnce::Batch* read = nullptr) const {
     const auto index = std::uint32_t(at.node++);
     NodeSlots own;
     const NodeSlots* ns = &own;
@@ -323,7 +360,7 @@ class Collapse {
     const int n = ns->n;
     std::uint32_t child[kNodeWidth];
     for (int i = 0; i < n; ++i) {
-      child[i] = nodes_[slots[i]].count > 0 ? leaf<P>(slots[i], at) : node<P>(slots[i], at, made, first);
+      child[i] = nodes_[slots[i]].count > 0 ? leaf<P>(slots[i], at, read) : node<P>(slots[i], at, made, first, read);
     }
     if constexpr (P == Pass::kWrite) write_node(index, slots, n, child);
     return index;
@@ -425,7 +462,7 @@ class Collapse {
 
   // The leaf of binary leaf `bin`: its blocks and boxes at the cursor, and its child reference.
   template <Pass P>
-  std::uint32_t leaf(std::uint32_t bin, Cursor& at) const {
+  std::uint32_t leaf(std::uint32_t bin, Cursor& at, ReadOnce::Batch* read = nullptr) const {
     const auto& node = nodes_[bin];
     const auto* prims = prims_ + node.offset;
     std::uint32_t ns = 0, nt = 0, nb = 0;
@@ -469,7 +506,11 @@ class Collapse {
           }
         }
       }
-      prims_read_.read(node.offset, node.count);
+      if (read != nullptr) {
+        read->read(node.offset, node.count);
+      } else {
+        prims_read_.read(node.offset, node.count);
+      }
     } else if (spheres_only_) {
       ns = node.count;  // no prim read: a pass over the prims' types cost half the count pass
     } else {
@@ -579,7 +620,8 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_o
   pool.parallel_for(tasks.size(), threads, [&](std::size_t t) {
     Task& task = tasks[t];
     Cursor at = task.at;
-    c.node<Pass::kWrite>(task.bin, at, task.slots.empty() ? nullptr : &task.slots, task.at.node);
+    ReadOnce::Batch read(prims_read);  // the task's prims: one run, counted off per block
+    c.node<Pass::kWrite>(task.bin, at, task.slots.empty() ? nullptr : &task.slots, task.at.node, &read);
     std::vector<NodeSlots>().swap(task.slots);
   });
   {
