@@ -1,9 +1,9 @@
 // dtraced::util::ThreadPool: threads started once and handed one loop at a time, for a computation
 // that runs many short parallel loops (the BVH build's top levels run a few hundred). Starting a
-// thread for each loop (util::parallel_for) cost ~35 us of CPU a thread, and the loop then waited
-// for that thread to be scheduled, start, find the work and be joined; here the workers sleep
-// between loops, and a loop whose items the caller has all taken does not wait for a worker that
-// has not woken yet.
+// thread for each loop (util::parallel_for, gone since the wide collapse took the pool too in
+// round 18) cost ~35 us of CPU a thread, and the loop then waited for that thread to be
+// scheduled, start, find the work and be joined; here the workers sleep between loops, and a loop
+// whose items the caller has all taken does not wait for a worker that has not woken yet.
 //
 // parallel_for(count, threads, fn) calls fn(i) for every i in [0, count) on up to `threads` of the
 // pool's threads, the caller's among them, and returns when every fn(i) has returned. Which thread
