@@ -3,17 +3,17 @@
 // Which binary interior nodes become wide nodes is chosen by the least SAH cost, the sum of their
 // areas, by dynamic programming over the binary tree (Ylitie, Karras and Laine, HPG 2017; Planner
 // below). The binary tree's leaves stay the wide tree's leaves (same prims, same blocks), so every
-// hit is the same; only which binary nodes become wide nodes changes. Before round 18 each wide
-// node took a binary node's two children and kept opening the interior child with the largest
-// surface area until it had eight (Wald et al., "Getting rid of packets", 2008): on the 1M-triangle
-// mesh that made 108,163 wide nodes with 4.1 children each (23,393 full, 41,947 with two; SAH cost
-// of the nodes, root area 1: 31.95), the SAH collapse 67,543 with 6.0 (28,421 full, 7,877 with
-// two; 28.91; Embree's BVH8 60,646); the sphere field 13,850 against 9,845. One binary building
-// either tree, alternated (`dtraced-bench-rays --isa avx512 --threads 1 --runs 5`, load 4-6.3),
-// medians of per-pair ratios of the ratios to Embree: mesh (10 pairs) camera x16 1.06, shadow x16
-// 1.03, secondary 1.10, camera x8 / scalar 1.09; spheres (8 pairs) 0.97, 1.02, 0.97, 0.99 (noise
-// of +-10 % a pair). The plan takes 8 bytes a binary node while the collapse runs (1M spheres: peak
-// 131 -> 134 MiB) and no measurable time (collapse 0.071 -> 0.061 s on 1 thread, fewer nodes).
+// hit is the same; only which binary nodes become wide nodes changes. The usual greedy collapse
+// (each wide node takes a binary node's two children and opens the interior child with the largest
+// surface area until it has eight: Wald et al., "Getting rid of packets", 2008) made 108,163 wide
+// nodes with 4.1 children each for the 1M-triangle mesh (23,393 full, 41,947 with two; SAH cost of
+// the nodes, root area 1: 31.95); the SAH collapse makes 67,543 with 6.0 (28,421 full, 7,877 with
+// two; 28.91; Embree's BVH8 has 60,646). One binary building either tree, alternated
+// (`dtraced-bench-rays --isa avx512 --threads 1 --runs 5`, load 4-6.3), medians of per-pair ratios
+// of the ratios to Embree: mesh (10 pairs) camera x16 1.06, shadow x16 1.03, secondary 1.10, camera
+// x8 / scalar 1.09; spheres (8 pairs) 0.97, 1.02, 0.97, 0.99 (noise of +-10 % a pair). The plan
+// takes 8 bytes a binary node while the collapse runs (1M spheres: peak 131 -> 134 MiB) and no
+// measurable time (collapse 0.071 -> 0.061 s on 1 thread: fewer nodes).
 //
 // On several threads: the wide nodes near the root are walked first to cut the tree into dozens of
 // subtrees per thread (tasks); the threads count what each task makes (nodes, leaf records,
@@ -34,11 +34,8 @@
 #include <cassert>
 #include <cmath>
 #include <cstdlib>
-#include <exception>
 #include <limits>
 #include <memory>
-#include <mutex>
-#include <thread>
 #include <vector>
 
 #include "accel/geometry.h"
