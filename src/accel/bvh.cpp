@@ -1051,8 +1051,8 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   util::advise_huge_pages_for(g.prims_);
   g.prims_.resize(order.size());
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build): the nodes, then
-  // the prims' ids, read from `order` (order[i] is prims_[i].id) or from the prims.
-  const auto tree_hash = [&g](const auto& items, auto id_of) {
+  // the prims' ids (order[i] is prims_[i].id).
+  const auto tree_hash = [&g, &order] {
     std::uint64_t hash = 0xcbf29ce484222325ull;
     const auto mix = [&hash](std::uint32_t word) {
       hash ^= word;
@@ -1064,7 +1064,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       mix(n.count);
       mix(n.axis);
     }
-    for (const auto& item : items) mix(id_of(item));
+    for (const std::uint32_t id : order) mix(id);
     return hash;
   };
   const auto make_prims = [&](std::size_t c) {
@@ -1111,20 +1111,19 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     // make the prims.
     pool.parallel_for(prim_chunks + 1, threads, [&](std::size_t c) {
       if (c == 0) {
-        hash = tree_hash(order, [](std::uint32_t id) { return id; });
+        hash = tree_hash();
       } else {
         make_prims(c - 1);
       }
     });
   } else {
     for (std::size_t c = 0; c < prim_chunks; ++c) make_prims(c);
+    hash = tree_hash();
   }
   std::vector<std::uint32_t>().swap(order);
   // Until put_back nothing reads shapes_: the collapse reads prims (and shapes only for
   // triangles, which a scene set aside has none of).
   std::vector<AsideSphere>().swap(spheres);
-
-  if (!hash_beside) hash = tree_hash(g.prims_, [](const Prim& p) { return p.id; });
 
   g.stats_.tree_hash = hash;
   g.stats_.nodes = std::uint32_t(g.nodes_.size());
