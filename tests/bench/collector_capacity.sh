@@ -29,6 +29,8 @@
 # 1.00 of its core is the limit) and per stored tile (a generator that needs as much CPU a tile
 # as the collector cannot load it from one core), and the store writer's group commit (tiles per
 # transaction and the share of wall time spent inside tile transactions, from /metrics).
+# Its header also gives the latency of one tile appended and fdatasync'ed in the work directory:
+# each group commit waits on such a sync, so the stored rate moves with that disk.
 #
 # Usage, after the README's build (cmake -B build && cmake --build build):
 #   tests/bench/collector_capacity.sh
@@ -161,7 +163,30 @@ core_busy() {
 # field NAME: a number from dtraced-load's flat JSON line in $work/load.json.
 field() { jq -r --arg k "$1" '.[$k] // empty' "$work/load.json" 2>/dev/null; }
 
+# disk_sync_latency DIR: median and p99 of appending one tile's bytes to a file in DIR and
+# fdatasync-ing it, 200 times. Every group commit waits on at least one such sync, so the stored
+# rate moves with the disk under the work directory; this line says what that disk gave this run.
+disk_sync_latency() {
+  python3 - "$1" "$((TILE_SIZE * TILE_SIZE * 12 + 72))" <<'PY' 2>/dev/null || echo "not measured (needs python3)"
+import os, sys, time
+path = os.path.join(sys.argv[1], "sync-probe")
+block = b"\0" * int(sys.argv[2])
+fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+times = []
+for _ in range(200):
+    start = time.perf_counter()
+    os.write(fd, block)
+    os.fdatasync(fd)
+    times.append(time.perf_counter() - start)
+os.close(fd)
+os.unlink(path)
+times.sort()
+print(f"median {times[len(times) // 2] * 1e6:.0f} us, p99 {times[int(len(times) * 0.99)] * 1e6:.0f} us")
+PY
+}
+
 echo "collector capacity: $(nproc) CPUs, load average $(cut -d' ' -f1-3 /proc/loadavg), $pinning"
+echo "disk under the work directory: append + fdatasync of one tile, $(disk_sync_latency "$work")"
 echo "job per run: ${IMAGE_WIDTH}x${IMAGE_HEIGHT} in ${TILE_SIZE}-px tiles" \
   "($(((IMAGE_WIDTH / TILE_SIZE) * (IMAGE_HEIGHT / TILE_SIZE))) tiles of $((TILE_SIZE * TILE_SIZE * 12 + 72)) bytes), ${RUN_SECONDS} s per run"
 echo
