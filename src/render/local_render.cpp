@@ -13,6 +13,19 @@
 
 namespace dtraced::render {
 
+namespace {
+
+// The calling thread takes the finished tiles (for tile_done and progress) in batches: it is woken
+// when kWakeTiles tiles have finished since it last took them, or when a render thread returns,
+// and otherwise takes what there is after kWakeAfter. So a tile reaches tile_done within about
+// kWakeAfter or kWakeTiles tiles' time. Woken for every tile instead, it preempted a render
+// thread at each wake-up: whitted10 at 1280x720 (920 tiles) on 2 threads of 2 cores took about
+// 2000 context switches against 420, and 2.5 % more CPU time.
+constexpr std::size_t kWakeTiles = 8;
+constexpr std::chrono::milliseconds kWakeAfter{20};
+
+}  // namespace
+
 void paste_tile(const Tile& t, std::uint32_t image_width, LocalResult& result) {
   for (std::uint32_t row = 0; row < t.rect.height; ++row) {
     const float* src = &t.rgb[std::size_t(row) * t.rect.width * 3];
@@ -51,6 +64,7 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
   std::mutex mu;
   std::condition_variable cv;
   std::size_t done = 0;     // guarded by mu
+  std::size_t taken = 0;    // `done` when this thread last took the finished tiles; guarded by mu
   std::uint32_t ended = 0;  // render threads that have returned; guarded by mu
   TraceStats stats;         // guarded by mu
   // Tiles rendered and not yet handed to tile_done, which this thread calls (guarded by mu).
@@ -66,8 +80,7 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
       local.add(t.stats);
       std::lock_guard lock(mu);
       if (options.tile_done) finished.emplace_back(tiles[i], std::move(t));
-      ++done;
-      cv.notify_one();
+      if (++done - taken >= kWakeTiles) cv.notify_one();
     }
     std::lock_guard lock(mu);
     stats.add(local);
@@ -82,9 +95,11 @@ LocalResult render_local(const RenderScene& scene, const scene::RenderSettings& 
     std::unique_lock lock(mu);
     // Until every thread has returned (all tiles done, or a stop) and every tile it rendered has
     // been through tile_done.
-    while (ended < threads || !finished.empty()) {
-      if (finished.empty()) cv.wait_for(lock, std::chrono::milliseconds(200));
+    for (bool last = false; !last;) {
+      cv.wait_for(lock, kWakeAfter, [&] { return done - taken >= kWakeTiles || ended == threads; });
+      last = ended == threads;  // then every tile rendered is in `finished`
       batch.swap(finished);
+      taken = done;
       const std::size_t d = done;
       lock.unlock();
       for (const auto& [index, t] : batch) options.tile_done(index, t);
