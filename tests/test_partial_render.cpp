@@ -18,13 +18,14 @@
 #include "scene/tiling.h"
 #include "temp_dir.h"
 #include "util/file.h"
+#include "util/sha256.h"
 
 using namespace dtraced;
 
 namespace {
 
 scene::SceneDesc showcase(bool adaptive) {
-  scene::LoadResult r = scene::load_scene_file(std::string(DTRACED_SOURCE_DIR) + "/scenes/showcase.json");
+  scene::LoadResult r = scene::load_scene_file(DTRACED_SOURCE_DIR "/scenes/showcase.json");
   REQUIRE(r.ok());
   scene::SceneDesc d = *r.scene;
   d.render.width = 40;
@@ -107,6 +108,7 @@ TEST_CASE("the partial file keeps tiles bit for bit, drops a torn end, and refus
   }
   auto read = cli::read_partial(path, key, d.render, 8);
   REQUIRE(read);
+  CHECK(read->version == 2);
   REQUIRE(read->tiles.size() == 3);
   CHECK(read->dropped_bytes == 0);
   CHECK(read->good_bytes == std::filesystem::file_size(path));
@@ -123,7 +125,7 @@ TEST_CASE("the partial file keeps tiles bit for bit, drops a torn end, and refus
   CHECK(torn->tiles.size() == 2);
   CHECK(torn->dropped_bytes > 0);
   {
-    auto w = cli::PartialWriter::reopen(path, torn->good_bytes);
+    auto w = cli::PartialWriter::reopen(path, torn->good_bytes, torn->version);
     REQUIRE(w);
     REQUIRE(w->append(static_cast<std::uint32_t>(kept[2].first), kept[2].second));
   }
@@ -153,4 +155,60 @@ TEST_CASE("the partial file keeps tiles bit for bit, drops a torn end, and refus
   // Not a partial file at all.
   REQUIRE(util::write_file_atomic(path, "hello"));
   CHECK_FALSE(cli::read_partial(path, key, d.render, 8));
+}
+
+TEST_CASE("the partial file's CRC-32C is the standard one, with or without the crc32 instruction", "[cli][resume]") {
+  CHECK(cli::partial_crc32c("123456789") == 0xE3069283u);
+  CHECK(cli::partial_crc32c("123456789", /* hardware = */ false) == 0xE3069283u);
+  CHECK(cli::partial_crc32c("") == 0u);
+  // Every length up to 64 (the 8-byte steps and their tails), at an odd offset.
+  std::string bytes(80, '\0');
+  for (std::size_t i = 0; i < bytes.size(); ++i) bytes[i] = static_cast<char>(i * 37 + 11);
+  for (std::size_t n = 0; n <= 64; ++n) {
+    const std::string_view piece = std::string_view(bytes).substr(3, n);
+    CHECK(cli::partial_crc32c(piece) == cli::partial_crc32c(piece, false));
+  }
+  CHECK(cli::partial_crc32c("123456788") != 0xE3069283u);
+}
+
+TEST_CASE("a version 1 partial file (SHA-256 records) still resumes, appended to in version 1", "[cli][resume]") {
+  testing::TempDir dir;
+  const std::string path = (dir.path() / "out.pfm.partial").string();
+  const scene::SceneDesc d = showcase(/* adaptive = */ true);
+  const render::RenderScene rs = render::RenderScene::build(d);
+  const std::string key = cli::partial_key(d, 8);
+  const auto kept = stopped_render(rs, d, 3);
+  // The file an earlier dtraced wrote: its header, then two records with their SHA-256.
+  std::string file = "dtraced-partial-v1\n" + key + "\n";
+  for (std::size_t k = 0; k < 2; ++k) {
+    const render::Tile& t = kept[k].second;
+    const auto index = static_cast<std::uint32_t>(kept[k].first);
+    const auto bytes = static_cast<std::uint32_t>(t.rgb.size() * 4 + t.spp.size() * 4);
+    std::string body(8, '\0');
+    std::memcpy(body.data(), &index, 4);
+    std::memcpy(body.data() + 4, &bytes, 4);
+    body.append(reinterpret_cast<const char*>(t.rgb.data()), t.rgb.size() * 4);
+    body.append(reinterpret_cast<const char*>(t.spp.data()), t.spp.size() * 4);
+    const util::Sha256Digest sum = util::sha256_bytes(body);
+    file += "TILE" + body + std::string(reinterpret_cast<const char*>(sum.data()), sum.size());
+  }
+  REQUIRE(util::write_file_atomic(path, file));
+  auto read = cli::read_partial(path, key, d.render, 8);
+  REQUIRE(read);
+  CHECK(read->version == 1);
+  CHECK(read->good_bytes == file.size());
+  REQUIRE(read->tiles.size() == 2);
+  CHECK(std::memcmp(read->tiles[1].rgb.data(), kept[1].second.rgb.data(), kept[1].second.rgb.size() * 4) == 0);
+  {
+    auto w = cli::PartialWriter::reopen(path, read->good_bytes, read->version);
+    REQUIRE(w);
+    REQUIRE(w->append(static_cast<std::uint32_t>(kept[2].first), kept[2].second));
+  }
+  auto more = cli::read_partial(path, key, d.render, 8);
+  REQUIRE(more);
+  CHECK(more->version == 1);
+  REQUIRE(more->tiles.size() == 3);
+  CHECK(more->dropped_bytes == 0);
+  CHECK(std::memcmp(more->tiles[2].rgb.data(), kept[2].second.rgb.data(), kept[2].second.rgb.size() * 4) == 0);
+  CHECK(more->tiles[2].spp == kept[2].second.spp);
 }

@@ -1,10 +1,15 @@
 #include "cli/partial_render.h"
 
+#include <fcntl.h>
+#include <sys/uio.h>
 #include <unistd.h>
 
+#include <array>
 #include <bit>
 #include <cerrno>
+#include <cstdio>
 #include <cstring>
+#include <memory>
 #include <string_view>
 
 #include <fmt/format.h>
@@ -20,13 +25,74 @@ namespace {
 // The records hold the host's floats and integers as they are in memory.
 static_assert(std::endian::native == std::endian::little, "the partial file format is little-endian");
 
-constexpr std::string_view kMagic = "dtraced-partial-v1\n";
+constexpr std::string_view kMagic = "dtraced-partial-v2\n";
+constexpr std::string_view kMagicV1 = "dtraced-partial-v1\n";  // same length as kMagic
 constexpr std::string_view kRecordTag = "TILE";
 constexpr std::size_t kKeyChars = 64;
 
-template <typename T>
-void put(std::string& out, const T& value) {
-  out.append(reinterpret_cast<const char*>(&value), sizeof value);
+// The checksum's bytes at the end of a record of format `version`.
+constexpr std::size_t sum_bytes(std::uint32_t version) { return version == 1 ? util::kSha256Bytes : 4; }
+
+// CRC-32C's table for bytewise updates (reflected polynomial 0x82F63B78).
+constexpr std::array<std::uint32_t, 256> crc32c_table() {
+  std::array<std::uint32_t, 256> t{};
+  for (std::uint32_t i = 0; i < 256; ++i) {
+    std::uint32_t c = i;
+    for (int k = 0; k < 8; ++k) c = (c >> 1) ^ ((c & 1) ? 0x82F63B78u : 0u);
+    t[i] = c;
+  }
+  return t;
+}
+
+std::uint32_t crc32c_bytewise(std::uint32_t crc, const unsigned char* p, std::size_t n) {
+  static constexpr std::array<std::uint32_t, 256> kTable = crc32c_table();
+  for (; n > 0; --n, ++p) crc = (crc >> 8) ^ kTable[(crc ^ *p) & 0xFF];
+  return crc;
+}
+
+#if defined(__x86_64__)
+// SSE4.2's crc32 instruction, 8 bytes at a time: about 7 GB/s here against SHA-256's 1.9 (SHA-NI).
+__attribute__((target("sse4.2"))) std::uint32_t crc32c_sse42(std::uint32_t crc, const unsigned char* p, std::size_t n) {
+  std::uint64_t c = crc;
+  for (; n >= 8; n -= 8, p += 8) {
+    std::uint64_t v = 0;
+    std::memcpy(&v, p, 8);
+    c = __builtin_ia32_crc32di(c, v);
+  }
+  std::uint32_t c32 = static_cast<std::uint32_t>(c);
+  for (; n > 0; --n, ++p) c32 = __builtin_ia32_crc32qi(c32, *p);
+  return c32;
+}
+#endif
+
+// A CRC-32C over pieces fed one after another (the same value as over their concatenation).
+class Crc32c {
+ public:
+  explicit Crc32c(bool hardware) : hardware_(hardware) {}
+  void update(const void* data, std::size_t size) {
+    const auto* p = static_cast<const unsigned char*>(data);
+#if defined(__x86_64__)
+    if (hardware_) {
+      state_ = crc32c_sse42(state_, p, size);
+      return;
+    }
+#endif
+    state_ = crc32c_bytewise(state_, p, size);
+  }
+  std::uint32_t value() const { return ~state_; }
+
+ private:
+  bool hardware_;
+  std::uint32_t state_ = 0xFFFFFFFFu;
+};
+
+bool has_crc32_instruction() {
+#if defined(__x86_64__)
+  static const bool has = __builtin_cpu_supports("sse4.2");
+  return has;
+#else
+  return false;
+#endif
 }
 
 util::Error file_error(const std::string& path, std::string message) {
@@ -39,10 +105,11 @@ std::uint64_t payload_bytes(const scene::TileRect& rect, bool adaptive) {
   return pixels * 3 * sizeof(float) + (adaptive ? pixels * sizeof(std::uint32_t) : 0);
 }
 
-// The next record of `f`, into `tile`; false at the end of the file or at a torn or damaged
-// record (the caller stops there). `error` is set for a whole record that does not fit the grid.
-bool read_record(std::FILE* f, const scene::TileGrid& grid, bool adaptive, std::uint32_t& index, render::Tile& tile,
-                 std::string& error) {
+// The next record of `f` (of format `version`), into `tile`; false at the end of the file or at a
+// torn or damaged record (the caller stops there). `error` is set for a whole record that does not
+// fit the grid.
+bool read_record(std::FILE* f, std::uint32_t version, const scene::TileGrid& grid, bool adaptive, std::uint32_t& index,
+                 render::Tile& tile, std::string& error) {
   char head[12];
   if (std::fread(head, 1, sizeof head, f) != sizeof head || std::string_view(head, 4) != kRecordTag) return false;
   std::uint32_t bytes = 0;
@@ -62,16 +129,50 @@ bool read_record(std::FILE* f, const scene::TileGrid& grid, bool adaptive, std::
   std::string body(head + 4, 8);
   body.resize(8 + bytes);
   unsigned char sum[util::kSha256Bytes];
-  if (std::fread(body.data() + 8, 1, bytes, f) != bytes || std::fread(sum, 1, sizeof sum, f) != sizeof sum)
-    return false;
-  const util::Sha256Digest expected = util::sha256_bytes(body);
-  if (std::memcmp(expected.data(), sum, sizeof sum) != 0) return false;
+  const std::size_t sum_size = sum_bytes(version);
+  if (std::fread(body.data() + 8, 1, bytes, f) != bytes || std::fread(sum, 1, sum_size, f) != sum_size) return false;
+  if (version == 1) {
+    const util::Sha256Digest expected = util::sha256_bytes(body);
+    if (std::memcmp(expected.data(), sum, sum_size) != 0) return false;
+  } else {
+    Crc32c crc(has_crc32_instruction());
+    crc.update(body.data(), body.size());
+    const std::uint32_t expected = crc.value();
+    if (std::memcmp(&expected, sum, sum_size) != 0) return false;
+  }
   const std::size_t pixels = std::size_t{tile.rect.width} * tile.rect.height;
   tile.rgb.resize(pixels * 3);
   std::memcpy(tile.rgb.data(), body.data() + 8, pixels * 3 * sizeof(float));
   if (adaptive) {
     tile.spp.resize(pixels);
     std::memcpy(tile.spp.data(), body.data() + 8 + pixels * 3 * sizeof(float), pixels * sizeof(std::uint32_t));
+  }
+  return true;
+}
+
+// Writes all of `iov` (`count` pieces) to `fd`, going on after a short write or an interrupted
+// one. False with errno set on an error.
+bool write_all(int fd, iovec* iov, int count) {
+  while (count > 0) {
+    const ssize_t n = ::writev(fd, iov, count);
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      return false;
+    }
+    if (n == 0 && iov->iov_len > 0) {  // no progress: give up rather than spin
+      errno = EIO;
+      return false;
+    }
+    auto left = static_cast<std::size_t>(n);
+    while (count > 0 && left >= iov->iov_len) {
+      left -= iov->iov_len;
+      ++iov;
+      --count;
+    }
+    if (count > 0) {
+      iov->iov_base = static_cast<char*>(iov->iov_base) + left;
+      iov->iov_len -= left;
+    }
   }
   return true;
 }
@@ -89,8 +190,8 @@ util::Result<PartialContents> read_partial(const std::string& path, const std::s
   std::unique_ptr<std::FILE, int (*)(std::FILE*)> f(std::fopen(path.c_str(), "rb"), &std::fclose);
   if (!f) return file_error(path, fmt::format("cannot open: {}", std::strerror(errno)));
   std::string header(kMagic.size() + kKeyChars + 1, '\0');
-  if (std::fread(header.data(), 1, header.size(), f.get()) != header.size() || !header.starts_with(kMagic) ||
-      header.back() != '\n') {
+  if (std::fread(header.data(), 1, header.size(), f.get()) != header.size() ||
+      !(header.starts_with(kMagic) || header.starts_with(kMagicV1)) || header.back() != '\n') {
     return file_error(path, "not a dtraced partial render file");
   }
   if (std::string_view(header).substr(kMagic.size(), kKeyChars) != key) {
@@ -101,13 +202,14 @@ util::Result<PartialContents> read_partial(const std::string& path, const std::s
   const scene::TileGrid grid(settings, tile_size);
   const bool adaptive = settings.error_target > 0;
   PartialContents out;
+  out.version = header.starts_with(kMagicV1) ? 1 : 2;
   out.good_bytes = header.size();
   std::vector<bool> seen(grid.count(), false);
   std::uint32_t index = 0;
   render::Tile tile;
   std::string error;
-  while (read_record(f.get(), grid, adaptive, index, tile, error)) {
-    out.good_bytes += 12 + payload_bytes(tile.rect, adaptive) + util::kSha256Bytes;
+  while (read_record(f.get(), out.version, grid, adaptive, index, tile, error)) {
+    out.good_bytes += 12 + payload_bytes(tile.rect, adaptive) + sum_bytes(out.version);
     if (seen[index]) continue;  // the same bits again (tiles are deterministic): harmless
     seen[index] = true;
     out.tiles.push_back(std::move(tile));
@@ -120,48 +222,77 @@ util::Result<PartialContents> read_partial(const std::string& path, const std::s
   return out;
 }
 
+PartialWriter::Fd::~Fd() {
+  if (fd >= 0) ::close(fd);
+}
+
 util::Result<PartialWriter> PartialWriter::create(const std::string& path, const std::string& key) {
-  std::FILE* f = std::fopen(path.c_str(), "wbx");  // x: never replaces a file
-  if (f == nullptr) return file_error(path, fmt::format("cannot create: {}", std::strerror(errno)));
-  PartialWriter w(path, f);
-  const std::string header = fmt::format("{}{}\n", kMagic, key);
-  if (std::fwrite(header.data(), 1, header.size(), f) != header.size() || std::fflush(f) != 0) {
-    return file_error(path, fmt::format("cannot write: {}", std::strerror(errno)));
-  }
+  // O_EXCL: never replaces a file.
+  const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_APPEND | O_CLOEXEC, 0666);
+  if (fd < 0) return file_error(path, fmt::format("cannot create: {}", std::strerror(errno)));
+  PartialWriter w(path, fd, 2);
+  std::string header = fmt::format("{}{}\n", kMagic, key);
+  iovec iov{header.data(), header.size()};
+  if (!write_all(fd, &iov, 1)) return file_error(path, fmt::format("cannot write: {}", std::strerror(errno)));
   return w;
 }
 
-util::Result<PartialWriter> PartialWriter::reopen(const std::string& path, std::uint64_t good_bytes) {
+util::Result<PartialWriter> PartialWriter::reopen(const std::string& path, std::uint64_t good_bytes,
+                                                  std::uint32_t version) {
   // A torn record at the end would hide everything appended after it.
   if (::truncate(path.c_str(), static_cast<off_t>(good_bytes)) != 0) {
     return file_error(path, fmt::format("cannot cut its torn end: {}", std::strerror(errno)));
   }
-  std::FILE* f = std::fopen(path.c_str(), "ab");
-  if (f == nullptr) return file_error(path, fmt::format("cannot open for appending: {}", std::strerror(errno)));
-  return PartialWriter(path, f);
+  const int fd = ::open(path.c_str(), O_WRONLY | O_APPEND | O_CLOEXEC);
+  if (fd < 0) return file_error(path, fmt::format("cannot open for appending: {}", std::strerror(errno)));
+  return PartialWriter(path, fd, version);
 }
 
 util::Status PartialWriter::append(std::uint32_t tile_index, const render::Tile& tile) {
-  const std::uint64_t bytes = (tile.rgb.size() * sizeof(float)) + (tile.spp.size() * sizeof(std::uint32_t));
-  std::string record(kRecordTag);
-  record.reserve(12 + bytes + util::kSha256Bytes);
-  put(record, tile_index);
-  put(record, static_cast<std::uint32_t>(bytes));
-  record.append(reinterpret_cast<const char*>(tile.rgb.data()), tile.rgb.size() * sizeof(float));
-  record.append(reinterpret_cast<const char*>(tile.spp.data()), tile.spp.size() * sizeof(std::uint32_t));
-  const util::Sha256Digest sum = util::sha256_bytes(std::string_view(record).substr(kRecordTag.size()));
-  record.append(reinterpret_cast<const char*>(sum.data()), sum.size());
-  if (std::fwrite(record.data(), 1, record.size(), file_.get()) != record.size() || std::fflush(file_.get()) != 0) {
+  const std::size_t rgb_bytes = tile.rgb.size() * sizeof(float);
+  const std::size_t spp_bytes = tile.spp.size() * sizeof(std::uint32_t);
+  const auto bytes = static_cast<std::uint32_t>(rgb_bytes + spp_bytes);
+  char head[12];
+  std::memcpy(head, kRecordTag.data(), 4);
+  std::memcpy(head + 4, &tile_index, 4);
+  std::memcpy(head + 8, &bytes, 4);
+  // The checksum covers index, bytes and payload, hashed where they are.
+  unsigned char sum[util::kSha256Bytes];
+  if (version_ == 1) {  // an earlier dtraced's file being resumed: the old way, with a copy
+    std::string body(head + 4, 8);
+    body.append(reinterpret_cast<const char*>(tile.rgb.data()), rgb_bytes);
+    body.append(reinterpret_cast<const char*>(tile.spp.data()), spp_bytes);
+    const util::Sha256Digest d = util::sha256_bytes(body);
+    std::memcpy(sum, d.data(), d.size());
+  } else {
+    Crc32c crc(has_crc32_instruction());
+    crc.update(head + 4, 8);
+    crc.update(tile.rgb.data(), rgb_bytes);
+    crc.update(tile.spp.data(), spp_bytes);
+    const std::uint32_t c = crc.value();
+    std::memcpy(sum, &c, 4);
+  }
+  // One writev of the pieces: with O_APPEND a record is one write at the file's end, and a kill
+  // leaves at most a torn last record (read_partial drops it).
+  iovec iov[4] = {{head, sizeof head},
+                  {const_cast<float*>(tile.rgb.data()), rgb_bytes},
+                  {const_cast<std::uint32_t*>(tile.spp.data()), spp_bytes},
+                  {sum, sum_bytes(version_)}};
+  if (!write_all(file_.fd, iov, 4)) {
     return file_error(path_, fmt::format("cannot append a tile: {}", std::strerror(errno)));
   }
   return {};
 }
 
 util::Status PartialWriter::sync() {
-  if (std::fflush(file_.get()) != 0 || ::fsync(::fileno(file_.get())) != 0) {
-    return file_error(path_, fmt::format("cannot flush: {}", std::strerror(errno)));
-  }
+  if (::fsync(file_.fd) != 0) return file_error(path_, fmt::format("cannot flush: {}", std::strerror(errno)));
   return {};
+}
+
+std::uint32_t partial_crc32c(std::string_view bytes, bool hardware) {
+  Crc32c crc(hardware && has_crc32_instruction());
+  crc.update(bytes.data(), bytes.size());
+  return crc.value();
 }
 
 }  // namespace dtraced::cli

@@ -196,7 +196,7 @@ int open_partial(const std::string& output, bool resume, bool say_fresh, const s
   for (const render::Tile& t : read->tiles)
     p.skip[t.rect.y0 / tile_size * grid.columns() + t.rect.x0 / tile_size] = true;
   p.resumed = std::move(read->tiles);
-  util::Result<PartialWriter> reopened = PartialWriter::reopen(p.path, read->good_bytes);
+  util::Result<PartialWriter> reopened = PartialWriter::reopen(p.path, read->good_bytes, read->version);
   if (!reported(reopened)) return kExitFailed;
   p.writer.emplace(std::move(reopened).value());
   return kExitOk;
