@@ -21,7 +21,7 @@ fail() {
 }
 ok() { passed=$((passed + 1)); }
 
-header_bytes=84 # "dtraced-partial-v1\n", 64 hex digits, "\n"
+header_bytes=84 # "dtraced-partial-v2\n" (v1 files: the same length), 64 hex digits, "\n"
 
 # interrupt SIGNAL OUT ARGS...: starts a render of ARGS to OUT, sends SIGNAL once OUT.partial
 # holds a tile, and leaves the exit code in $code.
