@@ -113,6 +113,86 @@ TEST_CASE("doubles are read correctly rounded: the shortest text of any double r
   CHECK(parse_ok("4.9e-324").get_double() == std::numeric_limits<double>::denorm_min());
 }
 
+TEST_CASE("a recorded double of any shape near where Boost's own value stops being exact reads as from_chars",
+          "[jsonio][parse][stream]") {
+  // EventLog::Cursor::double_value keeps Boost's value where the text shows it is correctly
+  // rounded (at most 16 digits, 16 only below 9 * 10^15, |exponent| <= 22) and asks from_chars
+  // otherwise. Texts of 1 to 19 digits, with and without a point, leading zeros, signs, 'e' and
+  // 'E', exponents of -30 to 30 with and without '+', so that both sides of each bound are met
+  // many times; each is recorded as an element and read back both ways (the cursor, and build()
+  // as the fallback reader does). Fixed seed: the same texts every run.
+  std::mt19937_64 random(20261205);
+  const auto pick = [&random](int lo, int hi) { return std::uniform_int_distribution<int>(lo, hi)(random); };
+  std::vector<std::string> texts = {"9.007199254740993E15",
+                                    "9007199254740993.0",
+                                    "9007199254740991.5",
+                                    "8.999999999999999E-22",
+                                    "1.234567890123457E-7",
+                                    "9.999999999999999E22",
+                                    "1.5E-23",
+                                    "4.9E-22",
+                                    "-0.0",
+                                    "0.000000000000000001",
+                                    "1E-0"};
+  while (texts.size() < 100000) {
+    std::string text;
+    if (pick(0, 1) == 1) text += '-';
+    const int digits = pick(1, 19);
+    const int point = pick(0, 2) == 0 ? 0 : pick(1, digits);  // digits before the point (0: none)
+    const bool zero_first = point == 1 && pick(0, 3) == 0;    // "0.000ddd" (JSON allows no other leading 0)
+    for (int i = 0; i < digits; ++i) {
+      if (i == point && point > 0 && point < digits) text += '.';
+      // Many 9s first, so that 16 digits above 9 * 10^15 and above 2^53 are met.
+      char c = static_cast<char>('0' + pick(0, 9));
+      if (i == 0) c = zero_first ? '0' : pick(0, 2) == 0 ? '9' : static_cast<char>('1' + pick(0, 8));
+      text += c;
+    }
+    if ((point == 0 || point == digits) && pick(0, 1) == 0) text += ".5";
+    if (pick(0, 3) != 0) {
+      text += pick(0, 1) == 0 ? 'E' : 'e';
+      const int e = pick(-30, 30);
+      if (e >= 0 && pick(0, 1) == 0) text += '+';
+      text += std::to_string(e);
+    }
+    texts.push_back(std::move(text));
+  }
+  std::string document = "{\"items\": [";
+  for (std::size_t i = 0; i < texts.size(); ++i) document += (i == 0 ? "" : ", ") + texts[i];
+  document += "]}";
+  jsonio::EventLog log;
+  jsonio::StrictParser parser(64, 10);
+  std::size_t doubles = 0, mismatches = 0;
+  parser.record_elements("items", &log, [&](std::size_t i, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
+    jsonio::EventLog::Cursor c(l, begin, l.mark());
+    REQUIRE(c.next());
+    if (c.kind() == jsonio::EventLog::Kind::kDouble) {
+      double expected = 0;
+      const std::string& t = texts[i];
+      const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), expected);
+      REQUIRE(ec == std::errc());
+      REQUIRE(end == t.data() + t.size());
+      const json::value built = l.build(begin, l.mark());
+      const auto bits = std::bit_cast<std::uint64_t>(expected);
+      if (std::bit_cast<std::uint64_t>(c.double_value()) != bits ||
+          std::bit_cast<std::uint64_t>(built.as_double()) != bits) {
+        UNSCOPED_INFO(t);
+        ++mismatches;
+      }
+      ++doubles;
+    }
+    log.clear();
+  });
+  // In pieces, so that some texts arrive in parts.
+  for (std::size_t at = 0; at < document.size(); at += 4093) {
+    if (!parser.write(std::string_view(document).substr(at, 4093))) break;
+  }
+  const jsonio::Document doc = parser.finish();
+  INFO((doc.errors.empty() ? std::string() : doc.errors[0].message));
+  REQUIRE(doc.parsed);
+  CHECK(doubles > 50000);
+  CHECK(mismatches == 0);
+}
+
 TEST_CASE("exact_number writes integral values as integers and others so they read back exactly", "[jsonio][write]") {
   CHECK(json::serialize(jsonio::exact_number(640.0)) == "640");
   CHECK(json::serialize(jsonio::exact_number(-0.0)) == "0");

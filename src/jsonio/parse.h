@@ -111,6 +111,11 @@ class EventLog {
     const Event& event() const { return *event_; }
     Kind kind() const { return event_->kind(); }
     std::string_view text() const { return std::string_view(log_.text_.data() + at_.text, text_size_); }
+    // A kDouble event's double: precise_double of its text and Boost's value, the same bits, but
+    // Boost's value is taken as it is where the text shows it is correctly rounded already (few
+    // enough digits and a small exponent: parse.cpp), which the log's padded texts let it see
+    // quickly.
+    double double_value() const;
 
    private:
     const EventLog& log_;
@@ -160,7 +165,7 @@ class EventLog {
   }
   // A part of the next key's, string's or double's text.
   void add_part(std::string_view part) {
-    if (text_.size() - text_size_ < part.size()) grow_text(part.size());
+    if (text_.size() - text_size_ < part.size() + kTextPadding) grow_text(part.size());
     std::memcpy(text_.data() + text_size_, part.data(), part.size());
     text_size_ += part.size();
     pending_ += part.size();
@@ -184,6 +189,8 @@ class EventLog {
     return e;
   }
   void grow_text(std::size_t more);
+  // Readable bytes kept after the texts: Cursor::double_value reads a text in two 16-byte blocks.
+  static constexpr std::size_t kTextPadding = 32;
 
   std::vector<Event> events_;
   // The texts, end to end: the first text_size_ bytes of text_ (whose size is its capacity, so

@@ -598,7 +598,7 @@ std::optional<double> plain_float(EventLog::Cursor& c) {
       d = static_cast<double>(c.event().u);
       break;
     case EventLog::Kind::kDouble:
-      d = jsonio::precise_double(c.text(), c.event().d);
+      d = c.double_value();
       break;
     default:
       return std::nullopt;
