@@ -115,8 +115,8 @@ TEST_CASE("doubles are read correctly rounded: the shortest text of any double r
 
 TEST_CASE("a recorded double of any shape near where Boost's own value stops being exact reads as from_chars",
           "[jsonio][parse][stream]") {
-  // EventLog::Cursor::double_value keeps Boost's value where the text shows it is correctly
-  // rounded (at most 16 digits, 16 only below 9 * 10^15, |exponent| <= 22) and asks from_chars
+  // EventLog::Cursor::double_value keeps Boost's value where it is provably correctly rounded
+  // (at most 16 digits, 16 only below 9 * 10^15, a value in [1e-6, 1e21)) and asks from_chars
   // otherwise. Texts of 1 to 19 digits, with and without a point, leading zeros, signs, 'e' and
   // 'E', exponents of -30 to 30 with and without '+', so that both sides of each bound are met
   // many times; each is recorded as an element and read back both ways (the cursor, and build()
@@ -133,7 +133,13 @@ TEST_CASE("a recorded double of any shape near where Boost's own value stops bei
                                     "4.9E-22",
                                     "-0.0",
                                     "0.000000000000000001",
-                                    "1E-0"};
+                                    "1E-0",
+                                    "0E400",
+                                    "-0.0e-400",
+                                    "9.99999999999999E20",
+                                    "1E21",
+                                    "1E-6",
+                                    "9.99999999999999E-7"};
   while (texts.size() < 100000) {
     std::string text;
     if (pick(0, 1) == 1) text += '-';

@@ -400,58 +400,48 @@ std::string describe_parse_error(const json::error_code& ec, std::size_t max_dep
 
 namespace {
 
-// Whether Boost's value of the JSON number `text` (whose log text is padded: see EventLog) is
-// correctly rounded already. Boost 1.81 (basic_parser_impl.hpp: parse_number, dec_to_float) keeps
-// the digits of the text in a 64-bit mantissa m, dropping digits only once m reaches 2^53, and
-// gives (double)m * 10^e, or (double)m / 10^-e for -22 <= e < 0, where e is the exponent written
-// less the digits after the point. With m <= 2^53 and |e| <= 22 both operands are exact doubles
-// (10^22 is the largest exact power of ten), so that one operation rounds the exact value once,
-// correctly: from_chars's result to the bit. m is bounded from the text alone: at most 15
-// digits, or 16 with the first below 9 (< 9 * 10^15 < 2^53); a leading zero counts as a digit,
-// which only makes the test stricter. 2 in 3 of the doubles of a generated sphere scene pass (16
-// digits or fewer: the shortest form that reads back), and from_chars took a fifth of its load.
-// The '.' and the 'e' are found with two 16-byte compares, not a loop over the characters: a
-// loop's exits, at lengths that vary from number to number, cost as much as from_chars saved.
-// Any other Boost version converts differently: every number goes to from_chars there.
-bool boost_value_is_exact(const char* p, std::size_t n) {
+// Whether Boost's value `boost_value` of the JSON number `p` (n bytes of a log's padded text: see
+// EventLog) is correctly rounded already. Boost 1.81 (basic_parser_impl.hpp: parse_number,
+// dec_to_float) keeps the digits of the text in a 64-bit mantissa m, dropping digits only once m
+// passes 2^53 - 1, and gives (double)m * 10^e, or (double)m / 10^-e for -22 <= e < 0, where e is
+// the exponent written less the digits after the point. With m <= 2^53 and |e| <= 22 both
+// operands are exact doubles (10^22 is the largest exact power of ten), so that one operation
+// rounds the exact value once, correctly: from_chars's result to the bit.
+//   m <= 2^53: at most 15 digits, or 16 with the first below 9 (< 9 * 10^15 < 2^53); leading
+// zeros count as digits, which only makes the test stricter. Then no digit was dropped.
+//   |e| <= 22: from Boost's value, not the text. With 1 <= m < 10^16, a value in [1e-6, 1e21)
+// means e is in [-22, 21] (a smaller e gives at most 9.01e15 * 10^-23 < 1e-6, a larger one at
+// least 1e22, or Inf; m = 0 gives 0, or NaN for an exponent past 308: rejected too).
+// 2 in 3 of the doubles of a generated sphere scene pass (16 digits or fewer: the shortest form
+// that reads back), and from_chars had taken a fifth of its load. The 'e' and the '.' are found
+// with two 16-byte compares and the exponent is never read: a loop over the characters (its exits
+// fall at lengths that vary from number to number), or reading the exponent's digits at the
+// position found, cost about what from_chars saved. Other Boost versions convert differently:
+// every number goes to from_chars there.
+bool boost_value_is_exact(const char* p, std::size_t n, double boost_value) {
 #if BOOST_VERSION == 108100 && defined(__SSE2__)
-  // The longest text that can pass: '-', 16 digits, '.', 'e', '-' and 2 exponent digits.
-  if (n > 22) return false;
+  const double magnitude = std::abs(boost_value);
+  if (!(magnitude >= 1e-6 && magnitude < 1e21) || n > 31) return false;
   const __m128i lo = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p));
   const __m128i hi = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + 16));
-  const auto find = [lo, hi, n](__m128i c) {
-    const auto low = static_cast<std::uint32_t>(_mm_movemask_epi8(_mm_cmpeq_epi8(lo, c)));
-    const auto high = static_cast<std::uint32_t>(_mm_movemask_epi8(_mm_cmpeq_epi8(hi, c)));
-    return (low | high << 16) & ((std::uint32_t{1} << n) - 1);
+  const auto find = [](__m128i a, __m128i b, __m128i c) {
+    const auto low = static_cast<std::uint32_t>(_mm_movemask_epi8(_mm_cmpeq_epi8(a, c)));
+    const auto high = static_cast<std::uint32_t>(_mm_movemask_epi8(_mm_cmpeq_epi8(b, c)));
+    return low | high << 16;
   };
-  const std::uint32_t dot = find(_mm_set1_epi8('.'));
+  const std::uint32_t in_text = (std::uint32_t{1} << n) - 1;
+  const std::uint32_t dot = find(lo, hi, _mm_set1_epi8('.')) & in_text;
   // 'E' | 0x20 is 'e', and no other character of a number becomes 'e' so.
   const __m128i case_bit = _mm_set1_epi8(0x20);
-  const std::uint32_t e = [&] {
-    const __m128i c = _mm_set1_epi8('e');
-    const auto low = static_cast<std::uint32_t>(_mm_movemask_epi8(_mm_cmpeq_epi8(_mm_or_si128(lo, case_bit), c)));
-    const auto high = static_cast<std::uint32_t>(_mm_movemask_epi8(_mm_cmpeq_epi8(_mm_or_si128(hi, case_bit), c)));
-    return (low | high << 16) & ((std::uint32_t{1} << n) - 1);
-  }();
-  // Few branches below: the lengths of the parts vary from number to number, so a branch on
-  // them is a coin toss for the predictor. The padding makes p[q + 1] readable.
+  const std::uint32_t e = find(_mm_or_si128(lo, case_bit), _mm_or_si128(hi, case_bit), _mm_set1_epi8('e')) & in_text;
   const int sign = p[0] == '-';
   const int mark = e != 0 ? std::countr_zero(e) : static_cast<int>(n);  // where the exponent starts
   const int digits = mark - sign - (dot != 0);
-  const bool few_digits = digits < 16 || (digits == 16 && p[sign] <= '8');
-  int exponent = dot != 0 ? std::countr_zero(dot) + 1 - mark : 0;  // less the digits after the point
-  int q = mark + 1;                                                // after the 'e', if any
-  const bool negative = p[q] == '-';
-  q += p[q] == '-' || p[q] == '+';
-  const int exponent_digits = static_cast<int>(n) - q;
-  const int first = p[q] - '0';
-  const int written = exponent_digits == 2 ? 10 * first + (p[q + 1] - '0') : first;
-  if (e != 0) exponent += negative ? -written : written;
-  const bool short_exponent = e == 0 || exponent_digits == 1 || exponent_digits == 2;
-  return few_digits & short_exponent & (exponent >= -22) & (exponent <= 22);
+  return digits < 16 || (digits == 16 && p[sign] <= '8');
 #else
   (void)p;
   (void)n;
+  (void)boost_value;
   return false;
 #endif
 }
@@ -460,7 +450,7 @@ bool boost_value_is_exact(const char* p, std::size_t n) {
 
 double EventLog::Cursor::double_value() const {
   const std::string_view t = text();
-  if (boost_value_is_exact(t.data(), t.size())) return event_->d;
+  if (boost_value_is_exact(t.data(), t.size(), event_->d)) return event_->d;
   return precise_double(t, event_->d);
 }
 
