@@ -165,38 +165,44 @@ TEST_CASE("a recorded double of any shape near where Boost's own value stops bei
   std::string document = "{\"items\": [";
   for (std::size_t i = 0; i < texts.size(); ++i) document += (i == 0 ? "" : ", ") + texts[i];
   document += "]}";
-  jsonio::EventLog log;
-  jsonio::StrictParser parser(64, 10);
-  std::size_t doubles = 0, mismatches = 0;
-  parser.record_elements("items", &log, [&](std::size_t i, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
-    jsonio::EventLog::Cursor c(l, begin, l.mark());
-    REQUIRE(c.next());
-    if (c.kind() == jsonio::EventLog::Kind::kDouble) {
-      double expected = 0;
-      const std::string& t = texts[i];
-      const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), expected);
-      REQUIRE(ec == std::errc());
-      REQUIRE(end == t.data() + t.size());
-      const json::value built = l.build(begin, l.mark());
-      const auto bits = std::bit_cast<std::uint64_t>(expected);
-      if (std::bit_cast<std::uint64_t>(c.double_value()) != bits ||
-          std::bit_cast<std::uint64_t>(built.as_double()) != bits) {
-        UNSCOPED_INFO(t);
-        ++mismatches;
+  // Both kinds of log: texts converted by the consumer (kDouble), and doubles converted by the
+  // parser as it reads them (kDoubleValue), in place or, near a piece's end or cut by it, copied.
+  for (const bool convert : {false, true}) {
+    INFO("convert_doubles " << convert);
+    jsonio::EventLog log(convert);
+    jsonio::StrictParser parser(64, 10);
+    std::size_t doubles = 0, mismatches = 0;
+    parser.record_elements("items", &log, [&](std::size_t i, const jsonio::EventLog& l, jsonio::EventLog::Mark begin) {
+      jsonio::EventLog::Cursor c(l, begin, l.mark());
+      REQUIRE(c.next());
+      if (c.kind() == jsonio::EventLog::Kind::kDouble || c.kind() == jsonio::EventLog::Kind::kDoubleValue) {
+        CHECK((c.kind() == jsonio::EventLog::Kind::kDoubleValue) == convert);
+        double expected = 0;
+        const std::string& t = texts[i];
+        const auto [end, ec] = std::from_chars(t.data(), t.data() + t.size(), expected);
+        REQUIRE(ec == std::errc());
+        REQUIRE(end == t.data() + t.size());
+        const json::value built = l.build(begin, l.mark());
+        const auto bits = std::bit_cast<std::uint64_t>(expected);
+        if (std::bit_cast<std::uint64_t>(c.double_value()) != bits ||
+            std::bit_cast<std::uint64_t>(built.as_double()) != bits) {
+          UNSCOPED_INFO(t);
+          ++mismatches;
+        }
+        ++doubles;
       }
-      ++doubles;
+      log.clear();
+    });
+    // In pieces, so that some texts arrive in parts.
+    for (std::size_t at = 0; at < document.size(); at += 4093) {
+      if (!parser.write(std::string_view(document).substr(at, 4093))) break;
     }
-    log.clear();
-  });
-  // In pieces, so that some texts arrive in parts.
-  for (std::size_t at = 0; at < document.size(); at += 4093) {
-    if (!parser.write(std::string_view(document).substr(at, 4093))) break;
+    const jsonio::Document doc = parser.finish();
+    INFO((doc.errors.empty() ? std::string() : doc.errors[0].message));
+    REQUIRE(doc.parsed);
+    CHECK(doubles > 50000);
+    CHECK(mismatches == 0);
   }
-  const jsonio::Document doc = parser.finish();
-  INFO((doc.errors.empty() ? std::string() : doc.errors[0].message));
-  REQUIRE(doc.parsed);
-  CHECK(doubles > 50000);
-  CHECK(mismatches == 0);
 }
 
 TEST_CASE("exact_number writes integral values as integers and others so they read back exactly", "[jsonio][write]") {

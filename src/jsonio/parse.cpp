@@ -1,6 +1,7 @@
 #include "jsonio/parse.h"
 
 #include <algorithm>
+#include <array>
 #include <bit>
 #include <charconv>
 #include <cmath>
@@ -35,6 +36,8 @@ namespace json = boost::json;
 // a handful of keys; past this many the object is wrong anyway (every extra key is an unknown-key
 // error later), so duplicate tracking stops instead of going quadratic on hostile input.
 constexpr std::size_t kMaxTrackedKeys = 64;
+
+bool boost_value_is_exact(const char* p, std::size_t n, double boost_value);
 
 // Where the parser is inside the document, so an error can name a JSON Pointer.
 struct Frame {
@@ -95,6 +98,9 @@ class StrictHandler {
     log_ = log;
   }
   void set_event_log(EventLog* log) { log_ = log; }
+  // The end of the piece being parsed: the text of a number that ends 32 bytes or more before it
+  // is read in place by boost_value_is_exact.
+  void set_piece_end(const char* end) { piece_end_ = end; }
   bool split_seen() const { return split_seen_; }
   void set_element_storage(json::monotonic_resource* memory) { element_storage_ = memory; }
 
@@ -211,7 +217,9 @@ class StrictHandler {
   }
   bool on_double(double boost_value, json::string_view s, json::error_code&) {
     begin_element();
-    if (recording()) {
+    if (recording() && log_->converts_doubles()) {
+      log_->add_double_value(converted(s, boost_value));
+    } else if (recording()) {
       // Converted by the consumer (precise_double), from the text.
       if (!number_part_.empty()) {
         log_->add_part(number_part_);
@@ -274,6 +282,28 @@ class StrictHandler {
 
  private:
   static std::string_view view(json::string_view s) { return std::string_view(s.data(), s.size()); }
+  // The double of the number whose text ends with `s` (after number_part_), as
+  // EventLog::Cursor::double_value gives it for a recorded text; clears number_part_.
+  double converted(json::string_view s, double boost_value) {
+    if (number_part_.empty() && piece_end_ != nullptr && piece_end_ - s.data() >= 32) {
+      if (boost_value_is_exact(s.data(), s.size(), boost_value)) return boost_value;
+      return precise_double(view(s), boost_value);
+    }
+    number_part_.append(s.data(), s.size());
+    // Copied with the padding the check reads.
+    std::array<char, 64> padded{};
+    double d = 0;
+    if (number_part_.size() <= 31) {
+      std::memcpy(padded.data(), number_part_.data(), number_part_.size());
+      d = boost_value_is_exact(padded.data(), number_part_.size(), boost_value)
+              ? boost_value
+              : precise_double(number_part_, boost_value);
+    } else {
+      d = precise_double(number_part_, boost_value);
+    }
+    number_part_.clear();
+    return d;
+  }
   // Whether the value being read is an element of the split array recorded as events.
   bool recording() const { return in_element_ && log_ != nullptr; }
 
@@ -370,6 +400,7 @@ class StrictHandler {
   StrictParser::ElementSink sink_;
   StrictParser::EventSink event_sink_;  // record_elements: the elements go here as events in log_
   EventLog* log_ = nullptr;
+  const char* piece_end_ = nullptr;  // set_piece_end
   EventLog::Mark element_begin_;
   bool split_seen_ = false;
   bool in_split_ = false;
@@ -449,6 +480,7 @@ bool boost_value_is_exact(const char* p, std::size_t n, double boost_value) {
 }  // namespace
 
 double EventLog::Cursor::double_value() const {
+  if (event_->kind() == Kind::kDoubleValue) return event_->d;
   const std::string_view t = text();
   if (boost_value_is_exact(t.data(), t.size(), event_->d)) return event_->d;
   return precise_double(t, event_->d);
@@ -500,6 +532,7 @@ json::value EventLog::build(Mark from, Mark to, json::storage_ptr storage, std::
         stack.push_uint64(e.u);
         break;
       case Kind::kDouble:
+      case Kind::kDoubleValue:
         stack.push_double(c.double_value());
         break;
       case Kind::kBool:
@@ -747,6 +780,7 @@ bool StrictParser::write(std::string_view piece) {
   Impl& im = *impl_;
   if (im.failed) return false;
   json::error_code ec;
+  im.parser.handler().set_piece_end(piece.data() + piece.size());
   const std::size_t consumed = im.parser.write_some(/* more = */ true, piece.data(), piece.size(), ec);
   if (!ec && consumed != piece.size()) ec = json::error::extra_data;
   if (ec) {

@@ -58,9 +58,13 @@ double precise_double(std::string_view text, double boost_value);
 // (StrictParser::record_elements): a consumer can read an element of a shape it knows straight
 // from the events, and build the value (build) of any other, the value parse_strict would have
 // built. Keys and strings are whole (their parts joined); a number keeps Boost's value, and a
-// double its text too, so that precise_double converts it on the consumer's thread.
+// double its text too, so that precise_double converts it on the consumer's thread (kDouble), or,
+// in a log made with convert_doubles, the parser converts it as it reads it and keeps no text
+// (kDoubleValue): for a consumer on the parser's own thread, which would convert it there anyway.
 class EventLog {
  public:
+  explicit EventLog(bool convert_doubles = false) : convert_doubles_(convert_doubles) {}
+  bool converts_doubles() const { return convert_doubles_; }
   enum class Kind : std::uint8_t {
     kObjectBegin,
     kObjectEnd,  // size(): the object's key count
@@ -73,6 +77,7 @@ class EventLog {
     kDouble,
     kBool,
     kNull,
+    kDoubleValue,  // a double converted already (a log made with convert_doubles): no text
   };
   struct Event {
     std::uint64_t kind_size = 0;  // the kind in the low 8 bits, the size above
@@ -111,7 +116,8 @@ class EventLog {
     const Event& event() const { return *event_; }
     Kind kind() const { return event_->kind(); }
     std::string_view text() const { return std::string_view(log_.text_.data() + at_.text, text_size_); }
-    // A kDouble event's double: precise_double of its text and Boost's value, the same bits, but
+    // A kDouble or kDoubleValue event's double: precise_double of its text and Boost's value, the
+    // same bits (kDoubleValue: converted so when it was recorded), but
     // Boost's value is taken as it is where the text shows it is correctly rounded already (few
     // enough digits and a small exponent: parse.cpp), which the log's padded texts let it see
     // quickly.
@@ -159,6 +165,11 @@ class EventLog {
     Event& e = events_.emplace_back(make(Kind::kUint64, 0));
     e.u = u;
   }
+  // A double converted already (kDoubleValue).
+  void add_double_value(double d) {
+    Event& e = events_.emplace_back(make(Kind::kDoubleValue, 0));
+    e.d = d;
+  }
   void add_bool(bool b) {
     Event& e = events_.emplace_back(make(Kind::kBool, 0));
     e.b = b;
@@ -193,6 +204,7 @@ class EventLog {
   static constexpr std::size_t kTextPadding = 32;
 
   std::vector<Event> events_;
+  bool convert_doubles_ = false;
   // The texts, end to end: the first text_size_ bytes of text_ (whose size is its capacity, so
   // that an append is one memcpy, not std::string's out-of-line append).
   std::vector<char> text_;

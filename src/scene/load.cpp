@@ -396,7 +396,7 @@ class ObjectPipeline {
   static void reuse(jsonio::EventLog& log) {
     constexpr std::size_t kKeepTextBytes = std::size_t(16) << 20;  // 2048 spheres: about 0.5 MiB
     if (log.mark().text > kKeepTextBytes) {
-      log = jsonio::EventLog();
+      log = jsonio::EventLog(log.converts_doubles());
     } else {
       log.clear();
     }
@@ -465,7 +465,9 @@ class ObjectPipeline {
 
   StreamedObjects& streamed_;  // touched only by the reader thread while it runs
   jsonio::StrictParser* parser_ = nullptr;
-  jsonio::EventLog inline_log_;  // not threaded: one element at a time
+  // Not threaded: one element at a time, its doubles converted by the parser (there is no other
+  // thread to leave them to).
+  jsonio::EventLog inline_log_{/* convert_doubles = */ true};
   std::array<std::unique_ptr<Batch>, kBatches> batches_ = {std::make_unique<Batch>(), std::make_unique<Batch>(),
                                                            std::make_unique<Batch>()};
   Batch* filling_ = nullptr;  // parser thread

@@ -598,6 +598,7 @@ std::optional<double> plain_float(EventLog::Cursor& c) {
       d = static_cast<double>(c.event().u);
       break;
     case EventLog::Kind::kDouble:
+    case EventLog::Kind::kDoubleValue:
       d = c.double_value();
       break;
     default:
