@@ -496,6 +496,8 @@ double precise_double(std::string_view text, double boost_value) {
   return d;
 }
 
+void EventLog::grow_events() { events_.resize(std::max(std::size_t(256), 2 * events_.size())); }
+
 void EventLog::grow_text(std::size_t more) {
   text_.resize(std::max({std::size_t(4096), 2 * text_.size(), text_size_ + more + kTextPadding}));
 }
