@@ -479,8 +479,7 @@ bool boost_value_is_exact(const char* p, std::size_t n, double boost_value) {
 
 }  // namespace
 
-double EventLog::Cursor::double_value() const {
-  if (event_->kind() == Kind::kDoubleValue) return event_->d;
+double EventLog::Cursor::text_double() const {
   const std::string_view t = text();
   if (boost_value_is_exact(t.data(), t.size(), event_->d)) return event_->d;
   return precise_double(t, event_->d);

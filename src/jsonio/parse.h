@@ -121,9 +121,10 @@ class EventLog {
     // Boost's value is taken as it is where the text shows it is correctly rounded already (few
     // enough digits and a small exponent: parse.cpp), which the log's padded texts let it see
     // quickly.
-    double double_value() const;
+    double double_value() const { return event_->kind() == Kind::kDoubleValue ? event_->d : text_double(); }
 
    private:
+    double text_double() const;  // double_value of a kDouble
     const EventLog& log_;
     Mark at_;
     std::size_t end_;
