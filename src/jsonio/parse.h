@@ -116,11 +116,10 @@ class EventLog {
     const Event& event() const { return *event_; }
     Kind kind() const { return event_->kind(); }
     std::string_view text() const { return std::string_view(log_.text_.data() + at_.text, text_size_); }
-    // A kDouble or kDoubleValue event's double: precise_double of its text and Boost's value, the
-    // same bits (kDoubleValue: converted so when it was recorded), but
-    // Boost's value is taken as it is where the text shows it is correctly rounded already (few
-    // enough digits and a small exponent: parse.cpp), which the log's padded texts let it see
-    // quickly.
+    // A kDouble or kDoubleValue event's double: precise_double of its text and Boost's value, to
+    // the bit. A kDoubleValue was converted so when it was recorded; of a kDouble, Boost's value
+    // is kept where it is provably correctly rounded already (parse.cpp: few enough digits, a
+    // value in [1e-6, 1e21)), which the log's padded texts let it see quickly.
     double double_value() const { return event_->kind() == Kind::kDoubleValue ? event_->d : text_double(); }
 
    private:
