@@ -6,7 +6,8 @@
 // binning and partition cut into fixed-size chunks (merged in chunk order; the largest ranges by
 // all threads together, the others by one thread each, the same operations), the ranges below
 // become independent subtrees built one per thread, and the subtrees are stitched back in
-// depth-first order. The threads are started once per build (util::ThreadPool).
+// depth-first order (each copied to its place by one of the threads). The threads are started once per build
+// (util::ThreadPool).
 #include <algorithm>
 #include <array>
 #include <atomic>
@@ -546,7 +547,7 @@ class Splitter {
 };
 
 // A subtree built by one thread: nodes in depth-first order, `offset`s of interior nodes local to
-// `nodes` (the stitch adds the subtree's place in the whole array), leaf offsets into refs.
+// `nodes` (copy_subtrees adds the subtree's place in the whole array), leaf offsets into refs.
 template <typename Node>
 struct Subtree {
   std::uint32_t begin = 0, end = 0, depth = 0;
@@ -601,7 +602,7 @@ std::pair<std::uint32_t, std::uint32_t> build_range(const Splitter& splitter, st
 
 // Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread, with a scratch of its
 // own (one scratch a thread for all its subtrees raised the 1M-sphere build's peak by 8 MiB: the
-// allocator then kept the freed subtree nodes instead of handing their memory to the stitch).
+// allocator then kept the freed subtree nodes instead of handing their memory to copy_subtrees).
 template <typename Node>
 void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
   t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
@@ -652,8 +653,8 @@ int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, 
 // and leaves its two halves pending, or builds it as a subtree once it holds fewer than
 // kParallelGrain prims. (Splitting those levels with all threads at once made each pass wait for
 // the others: a few hundred short loops, most of whose items one thread took alone.) The nodes
-// and subtrees are linked as split_top links them, so stitch gives the same tree whichever thread
-// made what.
+// and subtrees are linked as split_top links them, so the stitch (place and copy_subtrees) gives
+// the same tree whichever thread made what.
 template <typename Node>
 void split_pending(const Splitter& splitter, util::ThreadPool& pool, unsigned threads, std::deque<TopNode<Node>>& top,
                    std::deque<Subtree<Node>>& subtrees, std::vector<TopNode<Node>*> pending) {
@@ -713,8 +714,8 @@ void split_pending(const Splitter& splitter, util::ThreadPool& pool, unsigned th
   });
 }
 
-// On one thread: the tree split_top, build_subtree and stitch make, each node appended to `nodes`
-// as it is made, in the order stitch would copy it (split_top's levels chunked as there, so their
+// On one thread: the tree split_top, build_subtree and the stitch make, each node appended to
+// `nodes` as it is made, in the order place gives it (split_top's levels chunked as there, so their
 // bounds come out of the same operations): no subtree nodes to fill and copy. `nodes` should not
 // reallocate (reserve the most nodes the range can make).
 template <typename Node>
@@ -739,28 +740,50 @@ void build_in_place(const Splitter& splitter, std::uint32_t begin, std::uint32_t
   build_in_place(splitter, s.mid, end, depth + 1, nodes, scratch, leaves, max_depth);
 }
 
-// Appends top node `t` and everything below it to `nodes` in depth-first order; returns its index.
-// Each subtree's nodes are freed once copied, so that the two copies of the nodes are never all
-// alive at once.
+// Gives top node `t` and everything below it their places in the depth-first node array from
+// `next` on (depth first, each subtree's nodes one run): writes the top nodes there,
+// their second children's indices included, and each subtree's first index into `subtree_at`
+// for copy_subtrees. Returns t's index. Serial, but it touches only the top nodes (a few dozen).
 template <typename Node>
-std::uint32_t stitch(int t, const std::deque<TopNode<Node>>& top, std::deque<Subtree<Node>>& subtrees,
-                     std::vector<Node>& nodes) {
-  const auto index = std::uint32_t(nodes.size());
+std::uint32_t place(int t, const std::deque<TopNode<Node>>& top, const std::deque<Subtree<Node>>& subtrees,
+                    std::vector<std::uint32_t>& subtree_at, Node* nodes, std::uint32_t& next) {
+  const std::uint32_t index = next;
   const TopNode<Node>& tn = top[t];
   if (tn.subtree >= 0) {
-    for (Node n : subtrees[tn.subtree].nodes) {
-      if (n.count == 0) n.offset += index;
-      nodes.push_back(n);
-    }
-    std::vector<Node>().swap(subtrees[tn.subtree].nodes);
+    subtree_at[tn.subtree] = index;
+    next += std::uint32_t(subtrees[tn.subtree].nodes.size());
     return index;
   }
-  nodes.push_back(tn.node);
+  nodes[index] = tn.node;
+  ++next;
   if (tn.first >= 0) {
-    stitch(tn.first, top, subtrees, nodes);  // lands at index + 1
-    nodes[index].offset = stitch(tn.second, top, subtrees, nodes);
+    place(tn.first, top, subtrees, subtree_at, nodes, next);  // lands at index + 1
+    nodes[index].offset = place(tn.second, top, subtrees, subtree_at, nodes, next);
   }
   return index;
+}
+
+// Copies each subtree's nodes to its place (place's `subtree_at`), its interior nodes' offsets
+// moved by that place, the subtrees spread over `threads` threads (they write disjoint ranges);
+// each subtree's nodes are freed once copied, so that the two copies of the nodes are never all
+// alive at once. The same array as a serial depth-first copy, which ran on one thread while the
+// others waited (1M spheres on 2 threads, the stitch's wall time in one process, serial and
+// parallel alternated: median pair ratio 0.77 over 56 pairs at a load average of 6-8, where the
+// copy mostly waits for a core, so only 31 of them lower).
+template <typename Node>
+void copy_subtrees(std::deque<Subtree<Node>>& subtrees, const std::vector<std::uint32_t>& subtree_at, Node* nodes,
+                   util::ThreadPool& pool, unsigned threads) {
+  pool.parallel_for(subtrees.size(), threads, [&](std::size_t k) {
+    std::vector<Node>& from = subtrees[k].nodes;
+    const std::uint32_t at = subtree_at[k];
+    Node* const to = nodes + at;
+    for (std::size_t i = 0; i < from.size(); ++i) {
+      Node n = from[i];
+      if (n.count == 0) n.offset += at;
+      to[i] = n;
+    }
+    std::vector<Node>().swap(from);
+  });
 }
 
 // While a large sphere scene's tree is collapsed, its shapes (40 bytes a sphere) are not held: the
@@ -881,7 +904,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // are read back) and counts the shapes that forbid it: more than kMaxSetAside planes, or any
   // shape that is neither a sphere nor a plane. The copies are dropped if it may not.
   struct ChunkCounts {
-    std::size_t bounded = 0, planes = 0, others = 0;
+    std::size_t bounded = 0, planes = 0, others = 0, triangles = 0;  // triangles: valid ones
   };
   std::vector<std::uint8_t> kind(n);
   std::vector<ChunkCounts> counts(chunks_of(n));
@@ -890,11 +913,13 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     ChunkCounts k;
     for (std::size_t id = c * kChunk; id < end; ++id) {
       const Shape& s = g.shapes_[id];
-      const std::uint8_t what = !detail::shape_is_valid(s) ? 0 : s.type == ShapeType::kPlane ? 1 : 2;
+      const bool valid = s.type == ShapeType::kSphere ? sphere_is_valid(s.sphere) : detail::shape_is_valid(s);
+      const std::uint8_t what = !valid ? 0 : s.type == ShapeType::kPlane ? 1 : 2;
       kind[id] = what;
       k.bounded += what == 2;
       k.planes += s.type == ShapeType::kPlane;
       k.others += s.type != ShapeType::kPlane && s.type != ShapeType::kSphere;
+      k.triangles += what != 0 && s.type == ShapeType::kTriangle;
       if (may_set_aside && s.type == ShapeType::kSphere) spheres[id].sphere = s.sphere;
     }
     counts[c] = k;
@@ -904,6 +929,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     all_counts.bounded += k.bounded;
     all_counts.planes += k.planes;
     all_counts.others += k.others;
+    all_counts.triangles += k.triangles;
   }
   const std::size_t bounded = all_counts.bounded;
   const bool aside = may_set_aside && bounded >= std::max<std::size_t>(kMinWidePrims, kParallelGrain) &&
@@ -911,54 +937,60 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   SetAside set;
   if (aside) {
     set.count = n;
-    for (std::uint32_t id = 0; id < n; ++id) {
-      if (kind[id] != 2) set.others.push_back({id, g.shapes_[id]});  // planes and invalid spheres
+    // Planes and invalid spheres, from the chunks that hold any (a serial pass over the others).
+    for (std::size_t c = 0; c < counts.size(); ++c) {
+      const std::size_t end = std::min(n, (c + 1) * kChunk);
+      if (counts[c].bounded == end - c * kChunk) continue;
+      for (std::size_t id = c * kChunk; id < end; ++id) {
+        if (kind[id] != 2) set.others.push_back({std::uint32_t(id), g.shapes_[id]});
+      }
     }
     std::vector<Shape>().swap(g.shapes_);
   } else {
     std::vector<AsideSphere>().swap(spheres);
   }
-  // The shape whose bounds a build prim takes: a set-aside sphere is made whole again for it.
+  // The bounds of a bounded shape (kind 2, so valid): shape_bounds, or for a set-aside sphere
+  // sphere_bounds, which is what shape_bounds gives a valid sphere.
   const auto bounds_of = [&](std::size_t id) {
     if (!aside) return shape_bounds(g.shapes_[id]);
-    Shape s;
-    s.sphere = spheres[id].sphere;
-    return shape_bounds(s);
+    return sphere_bounds(spheres[id].sphere);
   };
 
-  // Bounds of every bounded shape, in chunks, and their union per chunk; the planes and invalid
-  // shapes are dropped after, in id order.
+  // Bounds of every bounded shape, in chunks, and their union per chunk, each written straight to
+  // its place among the bounded shapes in id order: chunk c's first place is the number of bounded
+  // shapes in the chunks before it (the kind pass counted them). Moving them down past the planes
+  // and invalid shapes afterwards was a serial pass over all of them (a scene whose first object
+  // is its ground plane moves every one).
   std::vector<BuildPrim> refs;
-  refs.reserve(n);
+  refs.reserve(bounded);
   util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
-  refs.resize(n);                     // writes nothing (BuildPrim)
+  refs.resize(bounded);               // writes nothing (BuildPrim)
   std::vector<Bounds3f> chunk_bounds(chunks_of(n));
-  pool.parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
-    const std::size_t end = std::min(n, (c + 1) * kChunk);
-    Bounds3f cb;
-    for (std::size_t id = c * kChunk; id < end; ++id) {
-      if (kind[id] != 2) continue;
-      const Bounds3f b = bounds_of(id);
-      refs[id] = {b, b.centroid(), std::uint32_t(id)};
-      cb.extend(b);
-    }
-    chunk_bounds[c] = cb;
-  });
   {
-    std::size_t k = 0;
-    for (std::uint32_t id = 0; id < n; ++id) {
-      if (kind[id] == 0) continue;
-      if (!aside) g.has_triangles_ = g.has_triangles_ || g.shapes_[id].type == ShapeType::kTriangle;
-      if (kind[id] == 1) {
-        g.outside_.push_back(id);
-      } else {
-        if (k != id) refs[k] = refs[id];
-        ++k;
+    std::vector<std::size_t> first(chunks_of(n) + 1, 0);
+    for (std::size_t c = 0; c < counts.size(); ++c) first[c + 1] = first[c] + counts[c].bounded;
+    pool.parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
+      const std::size_t end = std::min(n, (c + 1) * kChunk);
+      std::size_t at = first[c];
+      Bounds3f cb;
+      for (std::size_t id = c * kChunk; id < end; ++id) {
+        if (kind[id] != 2) continue;
+        const Bounds3f b = bounds_of(id);
+        refs[at++] = {b, b.centroid(), std::uint32_t(id)};
+        cb.extend(b);
       }
-    }
-    refs.resize(k);
-    std::vector<std::uint8_t>().swap(kind);
+      chunk_bounds[c] = cb;
+    });
   }
+  g.has_triangles_ = all_counts.triangles > 0;
+  for (std::size_t c = 0; c < counts.size(); ++c) {
+    if (counts[c].planes == 0) continue;  // the chunks without planes are not read again
+    const std::size_t end = std::min(n, (c + 1) * kChunk);
+    for (std::size_t id = c * kChunk; id < end; ++id) {
+      if (kind[id] == 1) g.outside_.push_back(std::uint32_t(id));
+    }
+  }
+  std::vector<std::uint8_t>().swap(kind);
 
   // Huge shapes (a floor or the walls of a room as boxes or big triangles) overlap every SAH
   // split and make the tree worse for everything else; like planes, they are tested one by one
@@ -1032,11 +1064,19 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, refs.size() / threads, top, pending);
     split_pending(splitter, pool, threads, top, subtrees, std::move(pending));
     order = take_ids(refs);
-    std::size_t total = top.size();
+    std::size_t total = 0;
+    for (const TopNode<Node>& t : top) total += t.subtree < 0;
     for (const auto& t : subtrees) total += t.nodes.size();
     g.nodes_.reserve(total);
     util::advise_huge_pages_for(g.nodes_);
-    stitch(0, top, subtrees, g.nodes_);
+    g.nodes_.resize(total);  // writes nothing (Node): copy_subtrees' threads touch the pages first
+    {
+      std::vector<std::uint32_t> subtree_at(subtrees.size());
+      std::uint32_t next = 0;
+      place(0, top, subtrees, subtree_at, g.nodes_.data(), next);
+      assert(next == total);
+      copy_subtrees(subtrees, subtree_at, g.nodes_.data(), pool, threads);
+    }
     for (const TopNode<Node>& t : top) {
       if (t.subtree >= 0) continue;
       max_depth = std::max(max_depth, t.depth);

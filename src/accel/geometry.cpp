@@ -21,15 +21,8 @@ namespace detail {
 
 bool shape_is_valid(const Shape& shape) {
   switch (shape.type) {
-    case ShapeType::kSphere: {
-      const SphereShape& s = shape.sphere;
-      if (!math::is_finite(s.center) || !std::isfinite(s.radius) || !(s.radius > 0.0f)) return false;
-      // The bounds must be finite too, or the SAH costs turn into inf - inf.
-      for (int i = 0; i < 3; ++i) {
-        if (!std::isfinite(float(std::abs(double(s.center[i])) + double(s.radius)))) return false;
-      }
-      return true;
-    }
+    case ShapeType::kSphere:
+      return sphere_is_valid(shape.sphere);
     case ShapeType::kBox: {
       const BoxShape& b = shape.box;
       return math::is_finite(b.lo) && math::is_finite(b.hi) && b.lo.x <= b.hi.x && b.lo.y <= b.hi.y && b.lo.z <= b.hi.z;
@@ -365,19 +358,8 @@ Bounds3f shape_bounds(const Shape& shape) {
   Bounds3f b;
   if (!detail::shape_is_valid(shape)) return b;
   switch (shape.type) {
-    case ShapeType::kSphere: {
-      // Rounded outward, with a pad far above the double rounding of the sphere test, so every
-      // point the double kernel reports lies inside the float box the BVH node tests see.
-      const SphereShape& s = shape.sphere;
-      for (int i = 0; i < 3; ++i) {
-        const double c = s.center[i];
-        const double r = s.radius;
-        const double pad = (std::abs(c) + r) * 0x1p-40;
-        b.lo[i] = next_float_down(float(c - r - pad));
-        b.hi[i] = next_float_up(float(c + r + pad));
-      }
-      return b;
-    }
+    case ShapeType::kSphere:
+      return sphere_bounds(shape.sphere);
     case ShapeType::kBox:
       b.lo = shape.box.lo;
       b.hi = shape.box.hi;
