@@ -1,8 +1,8 @@
 // Tests of dtraced::accel's BVH: traversal equals brute force over every shape (same shape, same
 // t bits), also where a sphere's extreme point meets a box face; hit records on the surface
 // within their error bound; build statistics and degenerate inputs; the same tree on any number
-// of threads and as recorded; a timing report. Pass/fail only on correctness; timings are
-// printed, never asserted.
+// of threads and as recorded; std::bad_alloc from a build that runs out of memory; a timing
+// report. Pass/fail only on correctness; timings are printed, never asserted.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -12,6 +12,16 @@
 #include <stdexcept>
 #include <string>
 #include <vector>
+
+#if defined(__linux__)
+#include <dlfcn.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <fstream>
+#include <new>
+#endif
 
 #include <catch2/catch.hpp>
 
@@ -414,6 +424,89 @@ TEST_CASE("BVH build: the same tree on any number of threads", "[accel][bvh][thr
   std::vector<Shape> fewer(shapes.begin(), shapes.end() - 1);
   CHECK(Geometry::build(fewer, Isa::kScalar, 2).stats().tree_hash != scalar_two_threads_hash);
 }
+
+#if defined(__linux__)
+namespace {
+// The address space this process has mapped (VmSize), in bytes; 0 if /proc has none.
+std::size_t mapped_bytes() {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind("VmSize:", 0) == 0) return std::size_t(std::stoull(line.substr(7))) * 1024;  // "VmSize: 123 kB"
+  }
+  return 0;
+}
+
+// Geometry::build(shapes, kScalar, 2) in a child process whose address space may grow by `extra`
+// bytes at most: 0 if it built `hash`'s tree, 2 if it threw std::bad_alloc, and anything else (another
+// exit code, or a signal such as the alarm that ends a build stuck waiting) as `status` shows it.
+int build_within(const std::vector<Shape>& shapes, std::size_t extra, std::uint64_t hash) {
+  const pid_t pid = fork();
+  if (pid == 0) {
+    alarm(60);  // a build that waits forever is killed (SIGALRM)
+    const std::size_t limit = mapped_bytes() + extra;
+    const rlimit r{limit, limit};
+    int code = 6;
+    if (setrlimit(RLIMIT_AS, &r) == 0) {
+      try {
+        code = Geometry::build(shapes, Isa::kScalar, 2).stats().tree_hash == hash ? 0 : 4;
+      } catch (const std::bad_alloc&) {
+        code = 2;
+      } catch (...) {
+        code = 5;
+      }
+    }
+    _exit(code);
+  }
+  int status = 0;
+  if (pid < 0 || waitpid(pid, &status, 0) != pid) return -1;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + (WIFSIGNALED(status) ? WTERMSIG(status) : 0);
+}
+}  // namespace
+
+TEST_CASE("BVH build: memory running out anywhere in a 2-thread build throws std::bad_alloc", "[accel][bvh][threads]") {
+  // Every allocation of the build may fail: on a worker of the pool, in the queue of ranges the
+  // threads split and build (bvh.cpp's split_pending: the failing thread wakes the others, they
+  // stop, the pool throws), or on the calling thread. Whatever fails, the build must throw
+  // std::bad_alloc, neither hang (a thread left waiting for a range), nor end the process, nor hand
+  // back a wrong tree. Each build runs in a child process whose address space is capped a little
+  // further each time, from where the first allocations fail up to where the build succeeds.
+  // AddressSanitizer's allocator aborts instead of throwing when it runs out: not under it.
+  if (dlsym(RTLD_DEFAULT, "__asan_init") != nullptr) {
+    WARN("skipped: AddressSanitizer aborts when an allocation fails");
+    return;
+  }
+  TestRng rng{5};
+  std::vector<Shape> shapes;
+  for (int i = 0; i < 100000; ++i) shapes.push_back(sphere(to_f(rng.in_cube(20.0)), float(rng.log_uniform(0.01, 1.0))));
+  const std::uint64_t hash = Geometry::build(shapes, Isa::kScalar, 1).stats().tree_hash;
+  // The least room in which the build succeeds, to within 64 KiB (a thread's stack alone is 8 MiB).
+  std::size_t low = 0, high = std::size_t(1) << 30;
+  REQUIRE(build_within(shapes, high, hash) == 0);
+  while (high - low > (std::size_t(64) << 10)) {
+    const std::size_t mid = low + (high - low) / 2;
+    const int code = build_within(shapes, mid, hash);
+    INFO("room " << mid << ", exit " << code);
+    REQUIRE((code == 0 || code == 2));
+    (code == 0 ? high : low) = mid;
+  }
+  // Below it, in steps of 128 KiB down to 12 MiB less, each allocation the build makes fails in
+  // some run (in the queue's, about 80 of the 96 runs while this test was written): each run must
+  // build the tree or throw. (A run with less room may still succeed: its pool may have started
+  // no worker, whose stack is the largest mapping of all.)
+  const std::size_t step = std::size_t(128) << 10;
+  int runs = 0, threw = 0;
+  for (std::size_t room = high - step; room >= step && high - room <= (std::size_t(12) << 20); room -= step) {
+    const int code = build_within(shapes, room, hash);
+    INFO("room " << room << ", exit " << code);
+    REQUIRE((code == 0 || code == 2));
+    ++runs;
+    threw += code == 2;
+  }
+  CHECK(runs > 0);
+  CHECK(threw > 0);
+}
+#endif
 
 TEST_CASE("BVH build: the 8-wide collapse fills its nodes on any number of threads", "[accel][bvh][threads]") {
   // wide_build.cpp picks the binary nodes that become 8-wide nodes by the least sum of their areas
