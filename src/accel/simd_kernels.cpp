@@ -379,10 +379,11 @@ struct LaneUvw {
 // NaN. Returns the lanes whose float edge function came out exactly zero, which the caller redoes
 // with the scalar triangle_t_double. Shared by the single-ray and the packet kernels, whose loops
 // make the constants 0, +Inf and NaN once and pass them in. With `uvw`, the lanes' edge functions
-// go to uvw->{u, v, w, det}[off ...] (unless every lane of `active` misses). Lanes outside
-// `active` are not wanted: when every wanted lane misses, t is all NaN and no lane is returned.
-// `full` (where given) is set when some wanted lane went past the edge test.
-template <class D, class V, class M>
+// go to uvw->{u, v, w, det}[off ...] (unless every wanted lane misses). kMasked: only the lanes of
+// `active` are wanted (else every lane, and `active` is not read): when every wanted lane misses,
+// t is all NaN and no lane is returned. `full` (where given) is set when some wanted lane went past
+// the edge test.
+template <bool kMasked, class D, class V, class M>
 HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V sby, V scx, V scy, V az, V bz, V cz,
                                V sz, V tmin, M active, float* t, LaneUvw* uvw, std::size_t off, bool* full = nullptr) {
   const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
@@ -392,9 +393,17 @@ HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V
   const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
   const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
   // The common case: every wanted lane outside.
-  if (hn::AllFalse(d, hn::And(active, hn::Or(zero_edge, hn::Not(hn::And(neg, pos)))))) {
-    hn::StoreU(nan, d, t);
-    return hn::And(zero_edge, active);  // no lane
+  if constexpr (kMasked) {
+    if (hn::AllFalse(d, hn::And(active, hn::Or(zero_edge, hn::Not(hn::And(neg, pos)))))) {
+      hn::StoreU(nan, d, t);
+      return hn::And(zero_edge, active);  // no lane
+    }
+  } else {
+    (void)active;
+    if (hn::AllTrue(d, hn::AndNot(zero_edge, hn::And(neg, pos)))) {
+      hn::StoreU(nan, d, t);
+      return zero_edge;  // no lane
+    }
   }
   if (full != nullptr) *full = true;
   const auto det = hn::Add(hn::Add(u, v), w);
@@ -462,8 +471,8 @@ inline void triangles1(const TriangleBlock& b, const Single& s, float* t, LaneUv
     const auto sax = hn::Sub(ax, hn::Mul(sx, az)), say = hn::Sub(ay, hn::Mul(sy, az));
     const auto sbx = hn::Sub(bx, hn::Mul(sx, bz)), sby = hn::Sub(by, hn::Mul(sy, bz));
     const auto scx = hn::Sub(cx, hn::Mul(sx, cz)), scy = hn::Sub(cy, hn::Mul(sy, cz));
-    const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz, tmin,
-                                          hn::Eq(zero, zero), t + i, uvw, i);
+    const auto zero_edge = triangle_lanes<false>(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz, tmin,
+                                                 hn::Eq(zero, zero), t + i, uvw, i);
     redo_zero_edges(
         d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
         [&s](std::size_t) -> const Single& { return s; }, uvw, i);
@@ -1105,16 +1114,20 @@ HWY_INLINE std::uint32_t sphere_apply(Packet<kP>& p, float cx, float cy, float c
 // One triangle (vertices v[vertex][axis]) against the 8 rays, exactly as triangle_t; each lane
 // picks its own shear axes. With `uvw`, the lanes' edge functions too. Forced inline: GCC left it
 // out of leaf8, whose candidate distances and edge functions then went through memory (16-ray
-// mesh camera packets 1.10x, shadow 1.04x inlined). Returns whether some lane went past the edge
-// test (else every t is NaN and the caller skips apply8). kMasked: only the lanes of `mask` (those
+// mesh camera packets 1.10x, shadow 1.04x inlined). kMasked: returns whether some lane of `mask`
+// went past the edge test (else every t is NaN and the caller skips apply8); only those lanes (those
 // that entered the leaf) decide the early exit after the edge test; a lane left out of the leaf (it
 // missed the leaf's box or has a nearer hit) may lie inside a triangle of it, and then took the
 // whole test, divisions and error bound, for nothing. A 16-ray mesh camera packet tests 8.9
-// triangles, 2.9 of them past the edge test, in 2.6 leaves of 7.9 lanes each (counted). Against all
+// triangles, 2.9 of them a candidate hit for a lane of the mask, in 2.6 leaves of 7.9 lanes each
+// (counted). Against all
 // lanes (dtraced-bench-rays, avx512, 1 thread, the binaries alternated, medians of per-pair ratios,
 // load 6-8): mesh camera x16 1.026x (6 pairs), sphere field camera x16 0.985x (10 pairs, both
 // orders; its secondary rays, code unchanged, 0.99x in the same pairs). Any-hit queries keep all
-// lanes: masked, mesh shadow x16 measured 0.98x (11 pairs); 0.2 tests a packet pass the edge test.
+// lanes (and return false): masked, mesh shadow x16 measured 0.98x (11 pairs); 0.2 tests a packet
+// find a candidate hit. Unmasked, triangle_lanes keeps its all-lanes exit as written before the
+// mask: through the masked form with an all-true mask, mesh shadow x16 measured 0.977x against the
+// code before the mask (5 pairs, load 3), this form 1.028x (5 pairs, load 2-3).
 template <int kP, bool kMasked>
 HWY_INLINE bool triangle8(const Packet<kP>& p, const float (&v)[3][3], std::uint32_t mask, float* t, LaneUvw* uvw) {
   const hn::CappedTag<float, kP> d;
@@ -1141,8 +1154,9 @@ HWY_INLINE bool triangle8(const Packet<kP>& p, const float (&v)[3][3], std::uint
       const auto scy = hn::Sub(hn::Sub(hn::Set(d, v[2][ky]), oy), hn::Mul(sy, cz));
       const auto active =
           kMasked ? hn::RebindMask(d, hn::TestBit(maskv, hn::Load(du, kLaneBit + i))) : hn::Eq(zero, zero);
-      const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz,
-                                            hn::LoadU(d, p.t_min + i), active, t + i, uvw, i, &full);
+      const auto zero_edge =
+          triangle_lanes<kMasked>(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, az, bz, cz, sz,
+                                  hn::LoadU(d, p.t_min + i), active, t + i, uvw, i, kMasked ? &full : nullptr);
       redo_zero_edges(
           d, zero_edge, {sax, say, sbx, sby, scx, scy, az, bz, cz}, t + i,
           [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); }, uvw, i);
@@ -1173,8 +1187,9 @@ HWY_INLINE bool triangle8(const Packet<kP>& p, const float (&v)[3][3], std::uint
     const auto scx = hn::Sub(rel[2][0], hn::Mul(sx, rel[2][2])), scy = hn::Sub(rel[2][1], hn::Mul(sy, rel[2][2]));
     const auto active =
         kMasked ? hn::RebindMask(d, hn::TestBit(maskv, hn::Load(du, kLaneBit + i))) : hn::Eq(zero, zero);
-    const auto zero_edge = triangle_lanes(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2],
-                                          rel[2][2], sz, hn::LoadU(d, p.t_min + i), active, t + i, uvw, i, &full);
+    const auto zero_edge =
+        triangle_lanes<kMasked>(d, zero, inf, nan, sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2], sz,
+                                hn::LoadU(d, p.t_min + i), active, t + i, uvw, i, kMasked ? &full : nullptr);
     redo_zero_edges(
         d, zero_edge, {sax, say, sbx, sby, scx, scy, rel[0][2], rel[1][2], rel[2][2]}, t + i,
         [&p, i](std::size_t k) -> const Single& { return p.lane(int(i + k)); }, uvw, i);
