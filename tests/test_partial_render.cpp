@@ -54,6 +54,17 @@ std::vector<std::pair<std::size_t, render::Tile>> stopped_render(const render::R
   return kept;
 }
 
+// The adaptive showcase stopped after 3 tiles of 8, with a partial file's path in a directory of
+// its own and the key that file carries.
+struct StoppedShowcase {
+  testing::TempDir dir;
+  std::string path = (dir.path() / "out.pfm.partial").string();
+  scene::SceneDesc d = showcase(/* adaptive = */ true);
+  render::RenderScene rs = render::RenderScene::build(d);
+  std::string key = cli::partial_key(d, 8);
+  std::vector<std::pair<std::size_t, render::Tile>> kept = stopped_render(rs, d, 3);
+};
+
 }  // namespace
 
 TEST_CASE("a render stopped between tiles and resumed is bitwise the straight render", "[render][resume]") {
@@ -92,12 +103,11 @@ TEST_CASE("a render stopped between tiles and resumed is bitwise the straight re
 }
 
 TEST_CASE("the partial file keeps tiles bit for bit, drops a torn end, and refuses other settings", "[cli][resume]") {
-  testing::TempDir dir;
-  const std::string path = (dir.path() / "out.pfm.partial").string();
-  const scene::SceneDesc d = showcase(/* adaptive = */ true);
-  const render::RenderScene rs = render::RenderScene::build(d);
-  const std::string key = cli::partial_key(d, 8);
-  const auto kept = stopped_render(rs, d, 3);
+  const StoppedShowcase f;
+  const std::string& path = f.path;
+  const scene::SceneDesc& d = f.d;
+  const std::string& key = f.key;
+  const auto& kept = f.kept;
   {
     auto w = cli::PartialWriter::create(path, key);
     REQUIRE(w);
@@ -172,12 +182,11 @@ TEST_CASE("the partial file's CRC-32C is the standard one, with or without the c
 }
 
 TEST_CASE("a version 1 partial file (SHA-256 records) still resumes, appended to in version 1", "[cli][resume]") {
-  testing::TempDir dir;
-  const std::string path = (dir.path() / "out.pfm.partial").string();
-  const scene::SceneDesc d = showcase(/* adaptive = */ true);
-  const render::RenderScene rs = render::RenderScene::build(d);
-  const std::string key = cli::partial_key(d, 8);
-  const auto kept = stopped_render(rs, d, 3);
+  const StoppedShowcase f;
+  const std::string& path = f.path;
+  const scene::SceneDesc& d = f.d;
+  const std::string& key = f.key;
+  const auto& kept = f.kept;
   // The file an earlier dtraced wrote: its header, then two records with their SHA-256.
   std::string file = "dtraced-partial-v1\n" + key + "\n";
   for (std::size_t k = 0; k < 2; ++k) {
