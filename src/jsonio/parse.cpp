@@ -39,6 +39,12 @@ constexpr std::size_t kMaxTrackedKeys = 64;
 
 bool boost_value_is_exact(const char* p, std::size_t n, double boost_value);
 
+// The double of the number `text` whose Boost value is `boost_value`: Boost's where it is exact,
+// else from_chars's. `text` must be readable 32 bytes past its start (boost_value_is_exact).
+double padded_double(std::string_view text, double boost_value) {
+  return boost_value_is_exact(text.data(), text.size(), boost_value) ? boost_value : precise_double(text, boost_value);
+}
+
 // Where the parser is inside the document, so an error can name a JSON Pointer.
 struct Frame {
   bool is_array = false;
@@ -286,8 +292,7 @@ class StrictHandler {
   // EventLog::Cursor::double_value gives it for a recorded text; clears number_part_.
   double converted(json::string_view s, double boost_value) {
     if (number_part_.empty() && piece_end_ != nullptr && piece_end_ - s.data() >= 32) {
-      if (boost_value_is_exact(s.data(), s.size(), boost_value)) return boost_value;
-      return precise_double(view(s), boost_value);
+      return padded_double(view(s), boost_value);
     }
     number_part_.append(s.data(), s.size());
     // Copied with the padding the check reads.
@@ -295,9 +300,7 @@ class StrictHandler {
     double d = 0;
     if (number_part_.size() <= 31) {
       std::memcpy(padded.data(), number_part_.data(), number_part_.size());
-      d = boost_value_is_exact(padded.data(), number_part_.size(), boost_value)
-              ? boost_value
-              : precise_double(number_part_, boost_value);
+      d = padded_double(std::string_view(padded.data(), number_part_.size()), boost_value);
     } else {
       d = precise_double(number_part_, boost_value);
     }
@@ -480,11 +483,7 @@ bool boost_value_is_exact(const char* p, std::size_t n, double boost_value) {
 
 }  // namespace
 
-double EventLog::Cursor::text_double() const {
-  const std::string_view t = text();
-  if (boost_value_is_exact(t.data(), t.size(), event_->d)) return event_->d;
-  return precise_double(t, event_->d);
-}
+double EventLog::Cursor::text_double() const { return padded_double(text(), event_->d); }
 
 double precise_double(std::string_view text, double boost_value) {
   // from_chars is correctly rounded; Boost 1.81's conversion is not (see the header).
