@@ -167,20 +167,6 @@ TEST_CASE("the partial file keeps tiles bit for bit, drops a torn end, and refus
   CHECK_FALSE(cli::read_partial(path, key, d.render, 8));
 }
 
-TEST_CASE("the partial file's CRC-32C is the standard one, with or without the crc32 instruction", "[cli][resume]") {
-  CHECK(cli::partial_crc32c("123456789") == 0xE3069283u);
-  CHECK(cli::partial_crc32c("123456789", /* hardware = */ false) == 0xE3069283u);
-  CHECK(cli::partial_crc32c("") == 0u);
-  // Every length up to 64 (the 8-byte steps and their tails), at an odd offset.
-  std::string bytes(80, '\0');
-  for (std::size_t i = 0; i < bytes.size(); ++i) bytes[i] = static_cast<char>(i * 37 + 11);
-  for (std::size_t n = 0; n <= 64; ++n) {
-    const std::string_view piece = std::string_view(bytes).substr(3, n);
-    CHECK(cli::partial_crc32c(piece) == cli::partial_crc32c(piece, false));
-  }
-  CHECK(cli::partial_crc32c("123456788") != 0xE3069283u);
-}
-
 TEST_CASE("a version 1 partial file (SHA-256 records) still resumes, appended to in version 1", "[cli][resume]") {
   const StoppedShowcase f;
   const std::string& path = f.path;

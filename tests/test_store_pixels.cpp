@@ -18,10 +18,12 @@
 
 #include "store/pixel_files.h"
 #include "store_testing.h"
+#include "util/crc32c.h"
 
 namespace {
 using namespace dtraced::testing;
 namespace store = dtraced::store;
+namespace util = dtraced::util;
 
 constexpr std::size_t kTileBytes = 12360;  // a 32-px tile of RGB float32 and its header
 
@@ -100,9 +102,10 @@ INSERT INTO tiles VALUES (1, 1, x'44556677', 'w2', 1700000060);
 }  // namespace
 
 TEST_CASE("CRC-32C gives the standard check value", "[store][pixels]") {
+  // util::crc32c: the checksum of the pixel files and of `dtraced render`'s resume file.
   const std::string_view check = "123456789";
-  CHECK(store::crc32c(std::span(reinterpret_cast<const std::uint8_t*>(check.data()), check.size())) == 0xE3069283u);
-  CHECK(store::crc32c({}) == 0u);
+  CHECK(util::crc32c(std::span(reinterpret_cast<const std::uint8_t*>(check.data()), check.size())) == 0xE3069283u);
+  CHECK(util::crc32c({}) == 0u);
   // The CPU's instruction (where it has SSE4.2) against Boost.CRC's CRC-32C, the fallback, at every
   // length around its 8-byte steps and at offsets that break their alignment.
   std::vector<std::uint8_t> bytes(300);
@@ -112,7 +115,7 @@ TEST_CASE("CRC-32C gives the standard check value", "[store][pixels]") {
       boost::crc_optimal<32, 0x1EDC6F41u, 0xFFFFFFFFu, 0xFFFFFFFFu, true, true> boost_crc;
       boost_crc.process_bytes(bytes.data() + at, n);
       INFO("offset " << at << ", " << n << " bytes");
-      CHECK(store::crc32c(std::span(bytes.data() + at, n)) == boost_crc.checksum());
+      CHECK(util::crc32c(std::span(bytes.data() + at, n)) == boost_crc.checksum());
     }
   }
 }

@@ -29,12 +29,12 @@
 
 #include <cstdint>
 #include <string>
-#include <string_view>
 #include <utility>
 #include <vector>
 
 #include "render/tile.h"
 #include "scene/description.h"
+#include "util/file.h"
 #include "util/result.h"
 
 namespace dtraced::cli {
@@ -58,11 +58,6 @@ struct PartialContents {
 util::Result<PartialContents> read_partial(const std::string& path, const std::string& key,
                                            const scene::RenderSettings& settings, std::uint32_t tile_size);
 
-// The CRC-32C (Castagnoli) of `bytes`, as version 2 records carry it: with the SSE4.2 crc32
-// instruction where the CPU has it and `hardware`, otherwise bytewise from a table (the same value;
-// the tests compare the two). "123456789" gives 0xE3069283.
-std::uint32_t partial_crc32c(std::string_view bytes, bool hardware = true);
-
 class PartialWriter {
  public:
   // A new file (replacing none: the caller checked) with the header of `key`.
@@ -79,21 +74,10 @@ class PartialWriter {
   const std::string& path() const { return path_; }
 
  private:
-  struct Fd {
-    int fd = -1;
-    Fd() = default;
-    explicit Fd(int f) : fd(f) {}
-    Fd(Fd&& o) noexcept : fd(std::exchange(o.fd, -1)) {}
-    Fd& operator=(Fd&& o) noexcept {
-      std::swap(fd, o.fd);
-      return *this;
-    }
-    ~Fd();
-  };
   PartialWriter(std::string path, int fd, std::uint32_t version)
       : path_(std::move(path)), file_(fd), version_(version) {}
   std::string path_;
-  Fd file_;
+  util::FileHandle file_;
   std::uint32_t version_ = 2;
 };
 

@@ -9,51 +9,15 @@
 #include <cerrno>
 #include <cstring>
 
-#include <boost/crc.hpp>
 #include <fmt/format.h>
 
-#if defined(__x86_64__)
-#include <nmmintrin.h>
-#endif
+#include "util/crc32c.h"
 
 namespace dtraced::store {
 
 using util::Error;
 using util::Result;
 using util::Status;
-
-namespace {
-
-// CRC-32C as Boost.CRC computes it (polynomial 0x1EDC6F41, reflected, all ones in and out): the
-// fallback where the CPU has no SSE4.2, and what the instruction's result must equal.
-using Crc32c = boost::crc_optimal<32, 0x1EDC6F41u, 0xFFFFFFFFu, 0xFFFFFFFFu, true, true>;
-
-#if defined(__x86_64__)
-// About 8 bytes every 3 cycles: ~1.5 us for a 32-px tile, against ~8 us for its SHA-256.
-__attribute__((target("sse4.2"))) std::uint32_t crc32c_sse42(std::uint32_t crc, const std::uint8_t* p, std::size_t n) {
-  std::uint64_t c = crc;
-  for (; n >= 8; n -= 8, p += 8) {
-    std::uint64_t word;
-    std::memcpy(&word, p, 8);
-    c = _mm_crc32_u64(c, word);
-  }
-  auto c32 = static_cast<std::uint32_t>(c);
-  for (; n > 0; --n, ++p) c32 = _mm_crc32_u8(c32, *p);
-  return c32;
-}
-#endif
-
-}  // namespace
-
-std::uint32_t crc32c(std::span<const std::uint8_t> bytes) {
-#if defined(__x86_64__)
-  static const bool kHasSse42 = __builtin_cpu_supports("sse4.2");
-  if (kHasSse42) return ~crc32c_sse42(0xffffffffu, bytes.data(), bytes.size());
-#endif
-  Crc32c crc;
-  crc.process_bytes(bytes.data(), bytes.size());
-  return crc.checksum();
-}
 
 std::string pixel_file_path(const std::string& pixel_dir, std::int64_t job) {
   return fmt::format("{}/job-{}.pixels", pixel_dir, job);
@@ -97,7 +61,7 @@ Result<Blob> read_checked(int fd, const std::string& path, std::int64_t job, std
     }
     done += static_cast<std::uint64_t>(n);
   }
-  if (const std::uint32_t got = crc32c(bytes); got != crc) {
+  if (const std::uint32_t got = util::crc32c(bytes); got != crc) {
     return Error{
         fmt::format("{}: tile {} of job {} ({} bytes at offset {}): checksum mismatch (CRC-32C {:08x}, "
                     "stored {:08x}): the file is damaged",
@@ -106,22 +70,10 @@ Result<Blob> read_checked(int fd, const std::string& path, std::int64_t job, std
   return bytes;
 }
 
-FileHandle& FileHandle::operator=(FileHandle&& other) noexcept {
-  if (this != &other) {
-    if (fd_ >= 0) ::close(fd_);
-    fd_ = other.release();
-  }
-  return *this;
-}
-
-FileHandle::~FileHandle() {
-  if (fd_ >= 0) ::close(fd_);
-}
-
-Result<FileHandle> open_for_reading(const std::string& path) {
+Result<util::FileHandle> open_for_reading(const std::string& path) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) return Error{fmt::format("{}: cannot open the tile pixels: {}", path, std::strerror(errno))};
-  return FileHandle(fd);
+  return util::FileHandle(fd);
 }
 
 }  // namespace dtraced::store

@@ -24,15 +24,12 @@
 #include <vector>
 
 #include "store/store.h"
+#include "util/file.h"
 #include "util/result.h"
 
 namespace dtraced::store {
 
 inline constexpr std::string_view kPixelDirName = "pixels";
-
-// CRC-32C (Castagnoli) of `bytes`: with SSE4.2's crc32 instruction where the CPU has it, else a
-// table; both give the same value.
-std::uint32_t crc32c(std::span<const std::uint8_t> bytes);
 
 // <pixel_dir>/job-<id>.pixels
 std::string pixel_file_path(const std::string& pixel_dir, std::int64_t job);
@@ -46,28 +43,7 @@ util::Status write_all(int fd, const std::string& path, std::uint64_t offset, st
 util::Result<Blob> read_checked(int fd, const std::string& path, std::int64_t job, std::uint32_t tile,
                                 std::uint64_t offset, std::uint64_t length, std::uint32_t crc);
 
-// An open file descriptor, closed when this goes out of scope.
-class FileHandle {
- public:
-  FileHandle() = default;
-  explicit FileHandle(int fd) : fd_(fd) {}
-  FileHandle(FileHandle&& other) noexcept : fd_(other.release()) {}
-  FileHandle& operator=(FileHandle&& other) noexcept;
-  FileHandle(const FileHandle&) = delete;
-  FileHandle& operator=(const FileHandle&) = delete;
-  ~FileHandle();
-  int get() const { return fd_; }
-  int release() {
-    const int fd = fd_;
-    fd_ = -1;
-    return fd;
-  }
-
- private:
-  int fd_ = -1;
-};
-
 // Opens `path` for reading; a missing file is an error naming it.
-util::Result<FileHandle> open_for_reading(const std::string& path);
+util::Result<util::FileHandle> open_for_reading(const std::string& path);
 
 }  // namespace dtraced::store

@@ -155,7 +155,7 @@ struct Store::Impl {
   bool pixels_in_rows = false;
   std::uint64_t max_database_bytes = 0;
   bool pixel_dir_ready = false;
-  std::unordered_map<std::int64_t, FileHandle> append_files;
+  std::unordered_map<std::int64_t, util::FileHandle> append_files;
   std::uint64_t wal_frames = 0;
   std::uint64_t wal_frame_bytes = 0;
 
@@ -271,8 +271,9 @@ struct Store::Impl {
   Result<int> append_file(std::int64_t job, std::uint64_t committed);
   // A row of kSelectTiles; the pixels read from `file` (opened on first use) when the row points
   // into the job's pixel file.
-  Result<StoredTile> read_tile(sqlite3_stmt* s, std::int64_t job, FileHandle& file);
-  Result<Blob> read_file_pixels(std::int64_t job, std::uint32_t tile, const PixelExtent& extent, FileHandle& file);
+  Result<StoredTile> read_tile(sqlite3_stmt* s, std::int64_t job, util::FileHandle& file);
+  Result<Blob> read_file_pixels(std::int64_t job, std::uint32_t tile, const PixelExtent& extent,
+                                util::FileHandle& file);
   Status keep_wal_files();
   Status check_schema();
   Status verify_integrity();

@@ -19,6 +19,7 @@
 #include "store/pixel_files.h"
 #include "store/store.h"
 #include "store/store_impl.h"
+#include "util/crc32c.h"
 #include "util/log.h"
 
 namespace dtraced::store {
@@ -279,7 +280,7 @@ Result<int> Store::Impl::append_file(std::int64_t job, std::uint64_t committed) 
     return Error{fmt::format("{}: cannot create the directory of tile pixels: {}", pixel_dir, std::strerror(errno))};
   }
   const std::string file = pixel_file_path(pixel_dir, job);
-  FileHandle fd(::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644));
+  util::FileHandle fd(::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644));
   if (fd.get() < 0)
     return Error{fmt::format("{}: cannot open for appending tile pixels: {}", file, std::strerror(errno))};
   struct stat st {};
@@ -298,13 +299,13 @@ Result<int> Store::Impl::append_file(std::int64_t job, std::uint64_t committed) 
     // disk before a row points into the file: the state directory once, the pixel directory for
     // each file opened (it may have been created just now).
     const std::string state_dir = std::filesystem::path(pixel_dir).parent_path().string();
-    FileHandle dir(::open(state_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    util::FileHandle dir(::open(state_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
     if (dir.get() < 0 || ::fsync(dir.get()) != 0) {
       return Error{fmt::format("{}: cannot sync the directory: {}", state_dir, std::strerror(errno))};
     }
     pixel_dir_ready = true;
   }
-  FileHandle dir(::open(pixel_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+  util::FileHandle dir(::open(pixel_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
   if (dir.get() < 0 || ::fsync(dir.get()) != 0) {
     return Error{fmt::format("{}: cannot sync the directory: {}", pixel_dir, std::strerror(errno))};
   }
@@ -357,7 +358,7 @@ Status Store::Impl::flush_appends(std::vector<PendingAppend>& appends) {
 }
 
 Result<Blob> Store::Impl::read_file_pixels(std::int64_t job, std::uint32_t tile, const PixelExtent& extent,
-                                           FileHandle& file) {
+                                           util::FileHandle& file) {
   const std::string name = pixel_file_path(pixel_dir, job);
   if (file.get() < 0) {
     auto opened = open_for_reading(name);
@@ -370,7 +371,7 @@ Result<Blob> Store::Impl::read_file_pixels(std::int64_t job, std::uint32_t tile,
   return read_checked(file.get(), name, job, tile, extent.offset, extent.length, extent.crc);
 }
 
-Result<StoredTile> Store::Impl::read_tile(sqlite3_stmt* s, std::int64_t job, FileHandle& file) {
+Result<StoredTile> Store::Impl::read_tile(sqlite3_stmt* s, std::int64_t job, util::FileHandle& file) {
   StoredTile t;
   t.tile = static_cast<std::uint32_t>(sqlite3_column_int64(s, 0));
   t.worker = column_text(s, 2);
@@ -403,7 +404,7 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w, std::vector<Pe
           .bind(w.worker)
           .bind(w.stored_unix)
           .bind(static_cast<std::int64_t>(append->committed + append->bytes));
-      q.bind(static_cast<std::int64_t>(bytes.size())).bind(std::int64_t{crc32c(bytes)});
+      q.bind(static_cast<std::int64_t>(bytes.size())).bind(std::int64_t{util::crc32c(bytes)});
     }
   };
   const auto appended = [&] {
@@ -462,7 +463,7 @@ Result<CommitResult> Store::Impl::insert_tile(const TileWrite& w, std::vector<Pe
           }
         }
       } else {
-        FileHandle file;
+        util::FileHandle file;
         auto read = read_file_pixels(w.job, w.tile, *extent, file);
         if (read) {
           from_file = std::move(read).value();
@@ -555,7 +556,7 @@ Result<std::optional<StoredTile>> Store::get_tile(std::int64_t job, std::uint32_
   const int rc = q.value().bind(job).bind(std::int64_t{tile}).step();
   if (rc == SQLITE_DONE) return std::optional<StoredTile>();
   if (rc != SQLITE_ROW) return impl_->error(fmt::format("reading tile {} of job {}", tile, job), rc);
-  FileHandle file;
+  util::FileHandle file;
   auto t = impl_->read_tile(q.value().get(), job, file);
   if (!t) return t.error();
   return std::optional<StoredTile>(std::move(t).value());
@@ -576,7 +577,7 @@ Status Store::visit_tiles(std::int64_t job, const std::function<Status(StoredTil
   auto q = impl_->query(kSql);
   if (!q) return q.error();
   q.value().bind(job);
-  FileHandle file;
+  util::FileHandle file;
   std::uint64_t unreadable = 0;
   int rc;
   while ((rc = q.value().step()) == SQLITE_ROW) {

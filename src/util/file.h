@@ -63,4 +63,25 @@ Result<NewFile> write_file_new(const std::string& path, std::string_view bytes);
 // The error names the directory or the path. For checks before long work, not a guarantee.
 Status check_output_path(const std::string& path);
 
+// An open file descriptor, closed when this goes out of scope (an fd of -1 holds nothing).
+class FileHandle {
+ public:
+  FileHandle() = default;
+  explicit FileHandle(int fd) : fd_(fd) {}
+  FileHandle(FileHandle&& other) noexcept : fd_(other.release()) {}
+  FileHandle& operator=(FileHandle&& other) noexcept;
+  FileHandle(const FileHandle&) = delete;
+  FileHandle& operator=(const FileHandle&) = delete;
+  ~FileHandle();
+  int get() const { return fd_; }
+  int release() {
+    const int fd = fd_;
+    fd_ = -1;
+    return fd;
+  }
+
+ private:
+  int fd_ = -1;
+};
+
 }  // namespace dtraced::util
