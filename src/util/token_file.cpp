@@ -11,26 +11,13 @@
 
 #include <fmt/format.h>
 
+#include "util/file.h"
+
 namespace dtraced::util {
 
 namespace {
 
 Error token_error(const std::string& path, std::string problem) { return Error(std::move(problem), "", path); }
-
-// Closes the descriptor on every path out of read_token_file.
-class FileDescriptor {
- public:
-  explicit FileDescriptor(int fd) : fd_(fd) {}
-  FileDescriptor(const FileDescriptor&) = delete;
-  FileDescriptor& operator=(const FileDescriptor&) = delete;
-  ~FileDescriptor() {
-    if (fd_ >= 0) ::close(fd_);
-  }
-  int get() const { return fd_; }
-
- private:
-  int fd_;
-};
 
 // The first line of `text` without the blanks around it.
 std::string first_line_trimmed(const std::string& text) {
@@ -44,7 +31,7 @@ std::string first_line_trimmed(const std::string& text) {
 }  // namespace
 
 Result<std::string> read_token_file(const std::string& path) {
-  const FileDescriptor fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
+  const FileHandle fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
   if (fd.get() < 0) return token_error(path, fmt::format("cannot open the token file: {}", std::strerror(errno)));
   struct stat st {};
   if (::fstat(fd.get(), &st) == 0 && S_ISDIR(st.st_mode)) {
