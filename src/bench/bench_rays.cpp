@@ -97,6 +97,7 @@ struct Options {
   std::uint32_t ground_quads = 200;  // mesh ground side; the spheres scene uses 128
   bool embree = true;
   std::string embree_quality = "medium";
+  std::string rays = "camera,shadow,secondary";  // the ray sets to time (perf of one path)
   bool render = false;
   bool render_only = false;
   std::string render_scene = std::string(DTRACED_SOURCE_DIR) + "/scenes/showcase.json";
@@ -448,8 +449,20 @@ using PacketFn = std::function<void(const Ray*, std::uint32_t, std::uint32_t*)>;
 struct Runner {
   const Options& opt;
   std::uint32_t threads;
+  const RaySets& sets;
+  // Whether --rays leaves `set` out: its cells stay unmeasured (and its answers all misses).
+  bool skipped(const RaySet& set) const {
+    const char* name = &set == &sets.camera ? "camera" : &set == &sets.shadow ? "shadow" : "secondary";
+    std::stringstream ss(opt.rays);
+    std::string item;
+    while (std::getline(ss, item, ',')) {
+      if (item == name) return false;
+    }
+    return true;
+  }
   Cell run(const std::string& method, const RaySet& set, const PacketFn& per_packet, Answers& out) const {
     out.assign(set.rays.size(), kMissId);
+    if (skipped(set)) return Cell{};
     const RangeFn fn = [&](std::size_t b, std::size_t e) {
       for (std::size_t p = b; p < e; ++p) per_packet(&set.rays[p * kLanes], set.valid[p], &out[p * kLanes]);
     };
@@ -465,6 +478,7 @@ struct Runner {
   // block. A last odd packet is padded with a copy of itself (lanes 8-15 invalid).
   Cell run_pairs(const std::string& method, const RaySet& set, const PacketFn& per_pair, Answers& out) const {
     out.assign(set.rays.size(), kMissId);
+    if (skipped(set)) return Cell{};
     const std::size_t n = set.packets();
     const RangeFn fn = [&](std::size_t b, std::size_t e) {
       for (std::size_t p = b; p < e; p += 2) {  // b is even: chunks are kChunkPackets long
@@ -879,7 +893,7 @@ void bench_scene(const BenchScene& s, const Options& opt, std::uint32_t threads,
       with_commas(sets.camera_hits), with_commas(sets.shadow.count), with_commas(sets.shadow.packets()), s.light.x,
       s.light.y, s.light.z, with_commas(sets.secondary.count), opt.seed);
 
-  SceneBench b{s, opt, Runner{opt, threads}, reference, sets, {}, {}};
+  SceneBench b{s, opt, Runner{opt, threads, sets}, reference, sets, {}, {}};
   const std::vector<std::string> build_lines = add_our_rows(b, isas);
   std::string embree_note;
 #ifdef DTRACED_BENCH_EMBREE
@@ -987,6 +1001,7 @@ int run(int argc, char** argv) {
   app.add_option("--mesh-spheres", opt.mesh_spheres, "Tessellated spheres (2,400 triangles each) of the 'mesh' scene")
       ->check(CLI::Range(1u, 100'000u));
   app.add_flag("!--no-embree", opt.embree, "Leave Embree out");
+  app.add_option("--rays", opt.rays, "Comma-separated ray sets to time (camera,shadow,secondary; default all)");
   app.add_option("--embree-quality", opt.embree_quality, "Embree build quality")
       ->check(CLI::IsMember({"low", "medium", "high"}));
   app.add_flag("--render", opt.render, "Also time whole renders (scalar vs best isa) with render::render_local");
