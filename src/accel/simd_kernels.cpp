@@ -140,6 +140,18 @@
 // cache misses. Then the single-ray stack as two arrays of words instead of 8-byte entries (the pop's 8-byte load
 // could not be forwarded from the push's two 4-byte stores; see traverse1): mesh secondary rays 1.012x / 1.046x, the
 // 104k-triangle mesh 1.028x, sphere field 1.023x, single shadow rays 1.008x.
+//
+// Any-hit packets take their blocked lanes from the triangle test itself (blocked_lanes, figures there). Tried and
+// dropped beside it (1M-triangle mesh, dtraced-bench-rays, avx512, 1 thread, binaries alternated, 5 pairs, medians of
+// per-pair ratios, load 4-6; paths whose code did not change moved by up to 1-2 % in the same pairs): nearest-hit
+// packets skipping the error bound when no wanted lane inside the triangle has t in (t_min, best]: camera x16 0.993x,
+// x8 1.013x; blocked_lanes' all-outside exit over the mask's lanes only: shadow x16 1.002x, x8 0.992x; prefetch_child
+// also asking for a triangle block's last line (a 160-byte block spans four lines unless it starts within 32 bytes
+// of one): camera x16 1.014x, shadow x16 1.004x, secondary rays (unchanged) 1.011x. A leaf holds at most one
+// triangle block (bvh.cpp's kMaxLeafSize 4), so a single ray's leaf test has no second block to take in the same
+// vector. Where a secondary ray's time goes on the Intel host (perf, cpu-clock, --rays secondary): traverse1 75 % of
+// the kernel's samples, triangles1 25 %; in traverse1 the first load of a node's planes about 14 %, the load of the
+// child reference after the test 5 %, in triangles1 the block's first load 14 % and the error bound's division 13 %.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
