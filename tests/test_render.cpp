@@ -2,6 +2,7 @@
 // renderer, and bitwise equality of the packet and the per-pixel paths on every isa.
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <iterator>
 #include <numbers>
@@ -189,6 +190,60 @@ TEST_CASE("Fresnel reflectance at normal incidence is ((n-1)/(n+1))^2", "[render
     REQUIRE(std::abs(it.wt.z + 1.0f) < 1e-6);
   }
   REQUIRE(std::abs(render::dielectric_interface(n, n, 1.5f).fresnel - 0.04) < 1e-6);
+}
+
+// The integrator takes the Fresnel term first (dielectric_fresnel) and the refracted direction
+// only for rays it spawns (refracted_direction): together they must be the one-piece computation
+// they were split from, bit for bit, at every angle, both ways through the surface, and under
+// total internal reflection. The reference below is that computation, operation for operation.
+TEST_CASE("dielectric_fresnel and refracted_direction give dielectric_interface's bits", "[render][fresnel]") {
+  const auto reference = [](const Vec3f& wo, const Vec3f& n, float eta) {
+    render::Interface out;
+    const float cos_i = std::clamp(math::dot(wo, n), 0.0f, 1.0f);
+    const float sin2_i = std::max(0.0f, 1.0f - cos_i * cos_i);
+    const float sin2_t = sin2_i / (eta * eta);
+    if (!(sin2_t < 1.0f)) return out;
+    const float cos_t = std::sqrt(1.0f - sin2_t);
+    const float r_parl = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+    const float r_perp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+    out.fresnel = std::clamp(0.5f * (r_parl * r_parl + r_perp * r_perp), 0.0f, 1.0f);
+    out.refracts = true;
+    out.wt = math::normalize((-wo) / eta + n * (cos_i / eta - cos_t));
+    return out;
+  };
+  const auto bits = [](float x) {
+    std::uint32_t u;
+    std::memcpy(&u, &x, sizeof u);
+    return u;
+  };
+  int refracted = 0, reflected = 0;
+  for (const float eta : {1.5f, 1.0f / 1.5f, 1.33f, 1.0f / 2.42f, 1.0f}) {
+    for (int i = 0; i <= 2000; ++i) {
+      const float a = float(i) / 2000.0f * 1.5707f;
+      const Vec3f n = math::normalize(Vec3f{0.3f, 0.2f, 0.9f});
+      const Vec3f wo = math::normalize(n * std::cos(a) + math::normalize(Vec3f{0.9f, -0.1f, -0.3f}) * std::sin(a));
+      const render::Interface want = reference(wo, n, eta);
+      const render::Interface got = render::dielectric_interface(wo, n, eta);
+      const render::Fresnel f = render::dielectric_fresnel(wo, n, eta);
+      INFO("eta " << eta << ", angle " << a);
+      REQUIRE(got.refracts == want.refracts);
+      REQUIRE(f.refracts == want.refracts);
+      REQUIRE(bits(got.fresnel) == bits(want.fresnel));
+      REQUIRE(bits(f.fresnel) == bits(want.fresnel));
+      if (!want.refracts) {
+        ++reflected;
+        continue;
+      }
+      ++refracted;
+      const Vec3f wt = render::refracted_direction(wo, n, eta, f);
+      for (int k = 0; k < 3; ++k) {
+        REQUIRE(bits(got.wt[k]) == bits(want.wt[k]));
+        REQUIRE(bits(wt[k]) == bits(want.wt[k]));
+      }
+    }
+  }
+  CHECK(refracted > 1000);
+  CHECK(reflected > 100);  // total internal reflection from the denser side
 }
 
 TEST_CASE("Fresnel and refraction agree about total internal reflection near the critical angle", "[render][fresnel]") {

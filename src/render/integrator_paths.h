@@ -191,7 +191,7 @@ struct Tracer {
     if (eta != 1.0f) {
       const Vec3f wo = -ray.d;
       const Vec3f nf = math::dot(wo, hit.n) >= 0.0f ? hit.n : -hit.n;
-      const Interface it = dielectric_interface(wo, nf, eta >= 1.0f ? eta : 1.0f / eta);
+      const Fresnel it = dielectric_fresnel(wo, nf, eta >= 1.0f ? eta : 1.0f / eta);
       t *= m.transparency * (1.0f - it.fresnel);
     } else {
       t *= m.transparency;
@@ -363,7 +363,10 @@ struct Tracer {
     MediumStack inside;  // the media past the surface (transparent only)
     float eta = 1.0f;    // n_after / n_before across it
     bool bends = false;  // transparent, eta != 1 and depth left: Fresnel reflection and refraction
-    Interface it;        // valid when bends
+    // Valid when bends. Without the refracted direction (refracted_direction(wo, nf, eta, it)),
+    // which only a ray not traced ahead needs: a lane's tracer computing it again for every glass
+    // hit whose refracted ray the packet path spawned cost up to seven divisions and a square root.
+    Fresnel it;
     float fresnel_w = 0.0f;
     bool reflective = false;  // the `reflectivity` lobe; its ray also carries the Fresnel reflection
     bool mirror = false;      // a mirror ray is cast, with branch weight mirror_weight
@@ -380,7 +383,7 @@ struct Tracer {
     b.transparent = kRefract && m.transparency > 0.0f;
     b.eta = b.transparent ? cross_interface(b.inside, hit.shape) : 1.0f;
     b.bends = b.transparent && b.eta != 1.0f && deeper;
-    if (b.bends) b.it = dielectric_interface(wo, nf, b.eta);
+    if (b.bends) b.it = dielectric_fresnel(wo, nf, b.eta);
     b.fresnel_w = b.bends ? m.transparency * b.it.fresnel : 0.0f;
     b.reflective = kReflect && m.reflectivity > 0.0f && deeper;
     if (b.reflective) {
@@ -467,7 +470,8 @@ struct Tracer {
       }
       if (b.refract) {
         const Known* kt = k != nullptr ? k->refracted : nullptr;
-        radiance += trace(kt != nullptr ? kt->ray : spawn(hit, b.it.wt), depth + 1, b.refract_weight, b.inside, kt) *
+        radiance += trace(kt != nullptr ? kt->ray : spawn(hit, refracted_direction(wo, nf, b.eta, b.it)), depth + 1,
+                          b.refract_weight, b.inside, kt) *
                     b.refract_w;
       }
       return radiance;
@@ -988,7 +992,7 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
       }
       if (b.refract && !pool.full()) {
         math::Ray r;
-        r.d = b.it.wt;
+        r.d = refracted_direction(wo, nf, b.eta, b.it);
         Ahead* c = pool.emplace(Known{r}, &k.hit, b.inside, a.depth + 1, b.refract_weight, &k.refracted);
         k.refracted = &c->known;
         refracts[nr++] = c;
