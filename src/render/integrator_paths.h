@@ -648,7 +648,9 @@ struct PacketLights {
     return ls;
   }
 
-  // light_setup for every entry: returns the entries that cast a shadow ray, written to shadow[j].
+  // light_setup for every entry: returns the entries that cast a shadow ray, written to shadow[j];
+  // the other entries' shadow[j] get a default ray, so that the packet queries, which load every
+  // lane, read initialised rays (the caller initialises the entries from m on).
   std::uint32_t setup(const PointLightF& light, math::Ray* shadow) {
     const float qx = light.position.x, qy = light.position.y, qz = light.position.z;
     std::uint32_t cast = 0;
@@ -660,13 +662,17 @@ struct PacketLights {
       if (!(dd >= kMinNormal)) {  // at the light, NaN, or unit_towards' double case
         slow |= 1u << j;
         lx[j] = ly[j] = lz[j] = 0.0f;  // read by add() (unused) unless light_setup sets it
+        shadow[j] = math::Ray{};
         continue;
       }
       const float dist = std::sqrt(dd);
       const float ux = vx / dist, uy = vy / dist, uz = vz / dist;
       const float c = fx[j] * ux + fy[j] * uy + fz[j] * uz;
       lx[j] = ux, ly[j] = uy, lz[j] = uz, cos_l[j] = c;
-      if (!(c > 0.0f)) continue;
+      if (!(c > 0.0f)) {
+        shadow[j] = math::Ray{};
+        continue;
+      }
       cast |= 1u << j;
       // shadow_ray: accel::offset_ray_origin, then the segment to the light (end 1).
       const float d = std::abs(gx[j]) * ex[j] + std::abs(gy[j]) * ey[j] + std::abs(gz[j]) * ez[j];
@@ -804,7 +810,11 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   const RenderScene& scene = tracer.scene;
   const accel::LayeredGeometry& geometry = scene.geometry();
   const bool flat = flat_geometry(geometry);
-  math::Ray rays[kN];
+  // The packet's rays: the first n written below, the rest default rays (the packet query loads
+  // every lane). Not a zeroed array: zeroing all kN rays (512 bytes with 16) on every call, and the
+  // shadow rays' below, cost a `rep stos` each, most of them overwritten at once.
+  Scratch<math::Ray, kN> rays;
+  for (int i = n; i < kN; ++i) rays[i] = math::Ray{};
   Scratch<accel::Hit, kN> hits;
   for (int i = 0; i < n; ++i) {
     Ahead& a = *ahead[i];
@@ -829,7 +839,7 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   const bool secondary = ahead[0]->depth > 0;
   tracer.stats.rays += std::uint32_t(n);
   if (secondary) tracer.stats.secondary_packet_rays += std::uint32_t(n);
-  const std::uint32_t hit_mask = intersect_packet<kN>(geometry, rays, valid, hits.data()) & valid;
+  const std::uint32_t hit_mask = intersect_packet<kN>(geometry, rays.data(), valid, hits.data()) & valid;
 
   PacketLights<kF, kN> pl;
   for (int i = 0; i < n; ++i) {
@@ -850,7 +860,11 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   }
   if (pl.m == 0) return;
   pl.pad();
-  math::Ray shadow[kN];  // initialised: the packet queries may load the lanes they do not test
+  // Entries below pl.m are written by every pl.setup (a default ray where none is cast), the rest
+  // here: the packet queries load every lane.
+  Scratch<math::Ray, kN> shadow_rays;
+  math::Ray* const shadow = shadow_rays.data();
+  for (int j = pl.m; j < kN; ++j) shadow[j] = math::Ray{};
   Scratch<accel::Hit, kN> hits_scratch;
   float vis[kN];
   const std::size_t point_lights = T::kPoint ? scene.lights().size() : 0;
