@@ -100,3 +100,31 @@ TEST_CASE("A float EXR holds the same linear pixels as the PFM of the same rende
   CHECK(p->width == e->width);
   CHECK(p->rgb == e->rgb);
 }
+
+TEST_CASE("An adaptive render in its default tiles has the bits and counts of 8-px tiles") {
+  // An adaptive render that names no tile size gets larger tiles than a uniform one (fewer
+  // first-checkpoint border rays); that may change only the time. 150x70 spans several of them.
+  const dtraced::testing::TempDir dir;
+  cli::RenderArgs a = small_render(dir.str() + "/default.pfm");
+  a.overrides.width = 150;
+  a.overrides.height = 70;
+  a.overrides.samples = 16;
+  a.overrides.min_samples = 1;
+  a.overrides.error_target = 0.05;
+  a.overrides.tile_size.reset();
+  a.spp_map = dir.str() + "/default-spp.pfm";
+  cli::RenderArgs b = a;
+  b.output = dir.str() + "/small.pfm";
+  b.spp_map = dir.str() + "/small-spp.pfm";
+  b.overrides.tile_size = 8;
+  REQUIRE(cli::run_render(a) == 0);
+  REQUIRE(cli::run_render(b) == 0);
+  const auto spp = image::read_image(a.spp_map);
+  REQUIRE(spp.ok());
+  bool refined = false, stopped = false;
+  for (const float n : spp->rgb) refined = refined || n > 1, stopped = stopped || n == 1;
+  CHECK(refined);  // both outcomes of the first checkpoint occur, so the test sees its border
+  CHECK(stopped);
+  CHECK(bytes_of(a.output) == bytes_of(b.output));
+  CHECK(bytes_of(a.spp_map) == bytes_of(b.spp_map));
+}
