@@ -156,9 +156,11 @@ void add_override_flags(CLI::App& app, scene::Overrides& o, const OverrideFlagOp
             ->check(CLI::Range(1u, scene::kMaxSamples)));
   }
   if (want(kOverrideTileSize)) {
-    added.push_back(app.add_option("--tile-size", o.tile_size,
-                                   help(fmt::format("Tile side in pixels (default {})", scene::kDefaultTileSize)))
-                        ->check(CLI::Range(scene::kMinTileSize, scene::kMaxTileSize)));
+    added.push_back(
+        app.add_option("--tile-size", o.tile_size,
+                       help(fmt::format("Tile side in pixels (default {}; `dtraced render` uses {} when adaptive)",
+                                        scene::kDefaultTileSize, scene::kDefaultAdaptiveTileSize)))
+            ->check(CLI::Range(scene::kMinTileSize, scene::kMaxTileSize)));
   }
   if (want(kOverridePngBitDepth)) {
     added.push_back(app.add_option("--bit-depth", o.png_bit_depth, help("PNG bit depth: 8 or 16 (default 8)"))

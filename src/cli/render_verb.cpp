@@ -223,7 +223,7 @@ void crop_result(const scene::TileRect& crop, std::uint32_t full_width, render::
   r.spp = std::move(spp);
 }
 
-// The tile side of an adaptive render that names none. Each tile also traces the first
+// scene::kDefaultAdaptiveTileSize, the tile side of an adaptive render that names none. Each tile also traces the first
 // checkpoint's samples of the one-pixel ring around it (render/tile.h), 4 s + 4 pixels for s^2 of
 // its own: 13 % more first-pass rays at 32 px, 6 % at 64. Adaptive images are the same bits under
 // any tiling, so this changes only the time: whitted10 at 1280x720 (-s 16 --min-samples 1
@@ -232,7 +232,6 @@ void crop_result(const scene::TileRect& crop, std::uint32_t full_width, render::
 // 4-7 % worse on a machine loaded 5-7 deep on 2 cores, where the fewer, larger tiles balance
 // worse). 128 px traced 9.05 M but took no less CPU time than 64 (cache), with 4 times fewer
 // tiles for the threads to share.
-constexpr std::uint32_t kAdaptiveTileSize = 64;
 
 // What every frame of one render shares: the arguments, the interruption flag and the progress.
 struct Run {
@@ -441,7 +440,7 @@ int run_render(const RenderArgs& args) {
   Run run{.args = args};
   run.load_s = load_s;
   run.tile_size = !args.overrides.tile_size && desc.render.error_target > 0
-                      ? kAdaptiveTileSize
+                      ? scene::kDefaultAdaptiveTileSize
                       : scene::tile_size_or_default(args.overrides);
   if (objects) run.objects_digest = objects->hex();
   run.crop = args.overrides.crop;

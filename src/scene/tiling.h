@@ -25,6 +25,8 @@ namespace dtraced::scene {
 inline constexpr std::uint32_t kMinTileSize = 1;
 inline constexpr std::uint32_t kMaxTileSize = 1024;
 inline constexpr std::uint32_t kDefaultTileSize = 32;
+// A local adaptive render's default (cli/render_verb.cpp says why).
+inline constexpr std::uint32_t kDefaultAdaptiveTileSize = 64;
 
 struct TileRect {
   std::uint32_t x0 = 0, y0 = 0;
