@@ -71,6 +71,8 @@ verdict() { awk -v r="$1" -v t="$2" 'BEGIN { print (r >= t) ? "MET" : "MISSED" }
 dtraced_line() {
   local scene=$1 out=$2 t=$3
   shift 3
+  # A run interrupted earlier may have left a resume file, which `render` would refuse to ignore.
+  rm -f "$out.partial"
   "$DTRACED" render "$scene" -o "$out" --width "$WIDTH" --height "$HEIGHT" --bit-depth 16 -t "$t" "$@" 2>&1 |
     grep '^rendered ' || fail "dtraced render $scene $* failed"
 }
