@@ -87,15 +87,6 @@ struct BuildPrim {
 static_assert(offsetof(BuildPrim, bounds) == 0 && offsetof(BuildPrim, centroid) == sizeof(Bounds3f) &&
               sizeof(Bounds3f) == 6 * sizeof(float) && sizeof(BuildPrim) >= sizeof(Bounds3f) + 4 * sizeof(float));
 
-// The build prims' shape ids in their final order; frees the prims (40 bytes each, against 4 for
-// the id), so that what comes after the tree is built runs with the smaller peak.
-std::vector<std::uint32_t> take_ids(std::vector<BuildPrim>& refs) {
-  std::vector<std::uint32_t> ids(refs.size());
-  for (std::size_t i = 0; i < refs.size(); ++i) ids[i] = refs[i].id;
-  std::vector<BuildPrim>().swap(refs);
-  return ids;
-}
-
 // A range of build prims still to become a node. `parent` is set for second children, whose index
 // must be written into their parent's `offset` when they are created; first children need no
 // patch because they directly follow their parent.
@@ -262,6 +253,11 @@ class Splitter {
         isa_(isa),
         pool_(pool),
         offsets_(refs.size() >= kParallelGrain && pool.size() > 1 ? new std::uint16_t[refs.size()] : nullptr) {}
+
+  // The shape ids of refs_[begin, end) into ids[begin, end).
+  void copy_ids(std::uint32_t begin, std::uint32_t end, std::uint32_t* ids) const {
+    for (std::uint32_t i = begin; i < end; ++i) ids[i] = refs_[i].id;
+  }
 
   // `scratch` (when not chunked) holds at least end - begin prims.
   Split split(std::uint32_t begin, std::uint32_t end, std::uint32_t depth, bool chunked, unsigned threads,
@@ -600,14 +596,16 @@ std::pair<std::uint32_t, std::uint32_t> build_range(const Splitter& splitter, st
   return {leaves, max_depth};
 }
 
-// Builds refs[t.begin, t.end) depth first into t.nodes, on the calling thread, with a scratch of its
-// own (one scratch a thread for all its subtrees raised the 1M-sphere build's peak by 8 MiB: the
-// allocator then kept the freed subtree nodes instead of handing their memory to copy_subtrees).
+// Builds refs[t.begin, t.end) depth first into t.nodes and copies their ids to ids[t.begin, t.end),
+// on the calling thread, with a scratch of its own (one scratch a thread for all its subtrees
+// raised the 1M-sphere build's peak by 8 MiB: the allocator then kept the freed subtree nodes
+// instead of handing their memory to copy_subtrees).
 template <typename Node>
-void build_subtree(const Splitter& splitter, Subtree<Node>& t) {
+void build_subtree(const Splitter& splitter, Subtree<Node>& t, std::uint32_t* ids) {
   t.nodes.reserve(std::size_t(t.end - t.begin) * 2 / 3 + 1);  // leaves hold about two prims
   Scratch scratch(t.end - t.begin);
   std::tie(t.leaves, t.max_depth) = build_range(splitter, t.begin, t.end, t.depth, t.nodes, scratch);
+  splitter.copy_ids(t.begin, t.end, ids);
 }
 
 // The levels above kParallelGrain: one node each (`subtree` < 0), or a range left to a subtree.
@@ -657,7 +655,7 @@ int split_top(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, 
 // the same tree whichever thread made what.
 template <typename Node>
 void split_pending(const Splitter& splitter, util::ThreadPool& pool, unsigned threads, std::deque<TopNode<Node>>& top,
-                   std::deque<Subtree<Node>>& subtrees, std::vector<TopNode<Node>*> pending) {
+                   std::deque<Subtree<Node>>& subtrees, std::vector<TopNode<Node>*> pending, std::uint32_t* ids) {
   std::mutex mutex;
   std::condition_variable wake;  // a range is pending, or nothing is left to do
   std::size_t busy = 0;          // threads working on a range (they may leave two more)
@@ -682,7 +680,7 @@ void split_pending(const Splitter& splitter, util::ThreadPool& pool, unsigned th
           t.end = tn.end;
           t.depth = tn.depth;
           lock.unlock();
-          build_subtree(splitter, t);
+          build_subtree(splitter, t, ids);
           lock.lock();
         } else {
           lock.unlock();
@@ -717,14 +715,16 @@ void split_pending(const Splitter& splitter, util::ThreadPool& pool, unsigned th
 // On one thread: the tree split_top, build_subtree and the stitch make, each node appended to
 // `nodes` as it is made, in the order place gives it (split_top's levels chunked as there, so their
 // bounds come out of the same operations): no subtree nodes to fill and copy. `nodes` should not
-// reallocate (reserve the most nodes the range can make).
+// reallocate (reserve the most nodes the range can make). Each range's ids go to `ids` once built.
 template <typename Node>
 void build_in_place(const Splitter& splitter, std::uint32_t begin, std::uint32_t end, std::uint32_t depth,
-                    std::vector<Node>& nodes, Scratch& scratch, std::uint32_t& leaves, std::uint32_t& max_depth) {
+                    std::vector<Node>& nodes, Scratch& scratch, std::uint32_t& leaves, std::uint32_t& max_depth,
+                    std::uint32_t* ids) {
   if (end - begin < kParallelGrain) {
     const auto [l, d] = build_range(splitter, begin, end, depth, nodes, scratch);
     leaves += l;
     max_depth = std::max(max_depth, d);
+    splitter.copy_ids(begin, end, ids);
     return;
   }
   const Split s = splitter.split(begin, end, depth, /* chunked = */ true, 1);
@@ -733,11 +733,12 @@ void build_in_place(const Splitter& splitter, std::uint32_t begin, std::uint32_t
   max_depth = std::max(max_depth, depth);
   if (s.leaf) {
     ++leaves;
+    splitter.copy_ids(begin, end, ids);
     return;
   }
-  build_in_place(splitter, begin, s.mid, depth + 1, nodes, scratch, leaves, max_depth);  // lands at index + 1
+  build_in_place(splitter, begin, s.mid, depth + 1, nodes, scratch, leaves, max_depth, ids);  // lands at index + 1
   nodes[index].offset = std::uint32_t(nodes.size());
-  build_in_place(splitter, s.mid, end, depth + 1, nodes, scratch, leaves, max_depth);
+  build_in_place(splitter, s.mid, end, depth + 1, nodes, scratch, leaves, max_depth, ids);
 }
 
 // Gives top node `t` and everything below it their places in the depth-first node array from
@@ -763,6 +764,19 @@ std::uint32_t place(int t, const std::deque<TopNode<Node>>& top, const std::dequ
   return index;
 }
 
+// Copies one subtree's nodes to their place `at`, its interior nodes' offsets moved by it, and
+// frees them.
+template <typename Node>
+void copy_subtree(std::vector<Node>& from, std::uint32_t at, Node* nodes) {
+  Node* const to = nodes + at;
+  for (std::size_t i = 0; i < from.size(); ++i) {
+    Node n = from[i];
+    if (n.count == 0) n.offset += at;
+    to[i] = n;
+  }
+  std::vector<Node>().swap(from);
+}
+
 // Copies each subtree's nodes to its place (place's `subtree_at`), its interior nodes' offsets
 // moved by that place, the subtrees spread over `threads` threads (they write disjoint ranges);
 // each subtree's nodes are freed once copied, so that the two copies of the nodes are never all
@@ -773,18 +787,15 @@ std::uint32_t place(int t, const std::deque<TopNode<Node>>& top, const std::dequ
 template <typename Node>
 void copy_subtrees(std::deque<Subtree<Node>>& subtrees, const std::vector<std::uint32_t>& subtree_at, Node* nodes,
                    util::ThreadPool& pool, unsigned threads) {
-  pool.parallel_for(subtrees.size(), threads, [&](std::size_t k) {
-    std::vector<Node>& from = subtrees[k].nodes;
-    const std::uint32_t at = subtree_at[k];
-    Node* const to = nodes + at;
-    for (std::size_t i = 0; i < from.size(); ++i) {
-      Node n = from[i];
-      if (n.count == 0) n.offset += at;
-      to[i] = n;
-    }
-    std::vector<Node>().swap(from);
-  });
+  pool.parallel_for(subtrees.size(), threads,
+                    [&](std::size_t k) { copy_subtree(subtrees[k].nodes, subtree_at[k], nodes); });
 }
+
+// A subtree whose copy into place runs beside the tree hash: its first node there, its index
+// among the subtrees and its node count.
+struct Stitch {
+  std::uint32_t at = 0, subtree = 0, size = 0;
+};
 
 // While a large sphere scene's tree is collapsed, its shapes (40 bytes a sphere) are not held: the
 // spheres of the tree are in its prims, and then in the wide tree's sphere blocks, from which they
@@ -1043,8 +1054,17 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   std::uint32_t max_depth = 0;
   // Once the tree is built only the ids of the build prims are left to use: those are kept (4
   // bytes a prim) and the rest (40) freed before the nodes are stitched and the prims (32) made,
-  // which lowers the build's peak.
-  std::vector<std::uint32_t> order;
+  // which lowers the build's peak. Each range's ids are copied out by the thread that built it,
+  // as it finishes (the prims are still in its cache), instead of in a serial pass over all the
+  // prims afterwards (3 ms of 1M spheres on 2 threads while the other thread waited).
+  std::vector<std::uint32_t> order(refs.size());
+  // On several threads the tree hash (serial) runs beside the making of the prims and, where the
+  // pool has a second thread to do them, beside the subtrees' copies into place (`stitch`, in
+  // node order; the hash waits for each as it comes to it).
+  const bool hash_beside = threads > 1 && refs.size() >= kParallelGrain;
+  const bool stitch_beside = hash_beside && pool.size() > 1;
+  std::deque<Subtree<Node>> subtrees;
+  std::vector<Stitch> stitch;
   if (!refs.empty() && threads == 1) {
     // One thread: no subtrees to stitch, the nodes go straight into place (at most 2 n - 1 of
     // them: the reserved pages that are not used are never touched).
@@ -1053,17 +1073,20 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     util::advise_huge_pages_for(g.nodes_);
     {
       Scratch scratch(std::min<std::size_t>(refs.size(), kParallelGrain));
-      build_in_place(splitter, 0, std::uint32_t(refs.size()), 0, g.nodes_, scratch, leaves, max_depth);
+      build_in_place(splitter, 0, std::uint32_t(refs.size()), 0, g.nodes_, scratch, leaves, max_depth, order.data());
     }
-    order = take_ids(refs);
+    std::vector<BuildPrim>().swap(refs);
   } else if (!refs.empty()) {
     const Splitter splitter(refs, isa, pool);
     std::deque<TopNode<Node>> top;
-    std::deque<Subtree<Node>> subtrees;
     std::vector<TopNode<Node>*> pending;
     split_top(splitter, 0, std::uint32_t(refs.size()), 0, threads, refs.size() / threads, top, pending);
-    split_pending(splitter, pool, threads, top, subtrees, std::move(pending));
-    order = take_ids(refs);
+    split_pending(splitter, pool, threads, top, subtrees, std::move(pending), order.data());
+    // The subtrees' ids are copied; a top node that is a leaf (not for valid spheres) has its own.
+    for (const TopNode<Node>& t : top) {
+      if (t.subtree < 0 && t.node.count > 0) splitter.copy_ids(t.begin, t.end, order.data());
+    }
+    std::vector<BuildPrim>().swap(refs);
     std::size_t total = 0;
     for (const TopNode<Node>& t : top) total += t.subtree < 0;
     for (const auto& t : subtrees) total += t.nodes.size();
@@ -1075,7 +1098,13 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       std::uint32_t next = 0;
       place(0, top, subtrees, subtree_at, g.nodes_.data(), next);
       assert(next == total);
-      copy_subtrees(subtrees, subtree_at, g.nodes_.data(), pool, threads);
+      if (stitch_beside) {
+        for (std::size_t k = 0; k < subtrees.size(); ++k)
+          stitch.push_back({subtree_at[k], std::uint32_t(k), std::uint32_t(subtrees[k].nodes.size())});
+        std::sort(stitch.begin(), stitch.end(), [](const Stitch& a, const Stitch& b) { return a.at < b.at; });
+      } else {
+        copy_subtrees(subtrees, subtree_at, g.nodes_.data(), pool, threads);
+      }
     }
     for (const TopNode<Node>& t : top) {
       if (t.subtree >= 0) continue;
@@ -1092,18 +1121,30 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   g.prims_.resize(order.size());
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build): the nodes, then
   // the prims' ids (order[i] is prims_[i].id).
-  const auto tree_hash = [&g, &order] {
+  std::vector<std::atomic<bool>> copied(stitch.size());  // stitch[k] is in place
+  const auto tree_hash = [&g, &order, &stitch, &copied] {
     std::uint64_t hash = 0xcbf29ce484222325ull;
     const auto mix = [&hash](std::uint32_t word) {
       hash ^= word;
       hash *= 0x100000001b3ull;
     };
-    for (const Node& n : g.nodes_) {
-      for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
-      mix(n.offset);
-      mix(n.count);
-      mix(n.axis);
+    const auto mix_nodes = [&](std::size_t from, std::size_t to) {
+      for (std::size_t i = from; i < to; ++i) {
+        const Node& n = g.nodes_[i];
+        for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
+        mix(n.offset);
+        mix(n.count);
+        mix(n.axis);
+      }
+    };
+    std::size_t done = 0;
+    for (std::size_t k = 0; k < stitch.size(); ++k) {
+      mix_nodes(done, stitch[k].at);
+      while (!copied[k].load(std::memory_order_acquire)) std::this_thread::yield();
+      done = std::size_t(stitch[k].at) + stitch[k].size;
+      mix_nodes(stitch[k].at, done);
     }
+    mix_nodes(done, g.nodes_.size());
     for (const std::uint32_t id : order) mix(id);
     return hash;
   };
@@ -1144,16 +1185,20 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
   };
   const std::size_t prim_chunks = chunks_of(order.size());
-  const bool hash_beside = threads > 1 && order.size() >= kParallelGrain;
   std::uint64_t hash = 0;
   if (hash_beside) {
     // The hash is one serial chain (8 ms for 1M prims): item 0 works it out while the other items
-    // make the prims.
-    pool.parallel_for(prim_chunks + 1, threads, [&](std::size_t c) {
+    // copy the subtrees into place (first, in node order: the hash reads each once it is there)
+    // and make the prims.
+    pool.parallel_for(prim_chunks + 1 + stitch.size(), threads, [&](std::size_t c) {
       if (c == 0) {
         hash = tree_hash();
+      } else if (c <= stitch.size()) {
+        const Stitch& st = stitch[c - 1];
+        copy_subtree(subtrees[st.subtree].nodes, st.at, g.nodes_.data());
+        copied[c - 1].store(true, std::memory_order_release);
       } else {
-        make_prims(c - 1);
+        make_prims(c - 1 - stitch.size());
       }
     });
   } else {
