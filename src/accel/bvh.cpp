@@ -976,9 +976,9 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   refs.reserve(bounded);
   util::advise_huge_pages_for(refs);  // first touches are costly page faults (util/huge_pages.h)
   refs.resize(bounded);               // writes nothing (BuildPrim)
-  // Also each chunk's largest surface area, so that the search for huge shapes below reads only
-  // the chunks that may hold one (a second pass over all the prims took 6-7 ms of 1M spheres on
-  // one thread, and none of them is huge).
+  // Also a bound on each chunk's largest surface area, so that the search for huge shapes below
+  // reads only the chunks that may hold one (a second pass over all the prims took 6-7 ms of 1M
+  // spheres on one thread, and none of them is huge).
   std::vector<Bounds3f> chunk_bounds(chunks_of(n));
   std::vector<double> chunk_area(chunks_of(n));
   std::vector<std::size_t> first(chunks_of(n) + 1, 0);  // chunk c's prims: refs[first[c], first[c + 1])
@@ -987,17 +987,21 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     const std::size_t end = std::min(n, (c + 1) * kChunk);
     std::size_t at = first[c];
     Bounds3f cb;
-    double largest = -std::numeric_limits<double>::infinity();
+    float extent[3] = {0.0f, 0.0f, 0.0f};  // the largest of each axis
     for (std::size_t id = c * kChunk; id < end; ++id) {
       if (kind[id] != 2) continue;
       const Bounds3f b = bounds_of(id);
       refs[at++] = {b, b.centroid(), std::uint32_t(id)};
       cb.extend(b);
-      const double a = area(b);
-      if (a > largest) largest = a;
+      for (int k = 0; k < 3; ++k) extent[k] = std::max(extent[k], b.hi[k] - b.lo[k]);
     }
     chunk_bounds[c] = cb;
-    chunk_area[c] = largest;
+    // At least the largest area() of the chunk: the area of its largest extents, each widened
+    // past its float rounding (2^-24 relative, 2^-150 below the normal range), the result 1e-5
+    // above the double rounding of area()'s operations. Infinite or NaN when an extent overflows.
+    const auto wide = [](float e) { return double(e) * (1.0 + 0x1p-20) + 0x1p-149; };
+    const double ex = wide(extent[0]), ey = wide(extent[1]), ez = wide(extent[2]);
+    chunk_area[c] = 2.0 * (ex * ey + ey * ez + ez * ex) * (1.0 + 1e-5);
   });
   g.has_triangles_ = all_counts.triangles > 0;
   for (std::size_t c = 0; c < counts.size(); ++c) {
@@ -1020,11 +1024,10 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     for (const Bounds3f& cb : chunk_bounds) all.extend(cb);
     const double limit = kHugeFraction * area(all);
     // The shapes above the limit in index order (each chunk's in its own list, joined in order),
-    // from the chunks whose largest area is above it (a NaN area is never above the limit, nor
-    // taken as a chunk's largest).
+    // from the chunks whose largest area may be above it.
     std::vector<std::vector<std::pair<double, std::uint32_t>>> huge_in(chunks_of(n));
     pool.parallel_for(chunks_of(n), shape_threads, [&](std::size_t c) {
-      if (!(chunk_area[c] > limit)) return;
+      if (chunk_area[c] <= limit) return;  // not for NaN
       for (std::size_t i = first[c]; i < first[c + 1]; ++i) {
         const double a = area(refs[i].bounds);
         if (a > limit) huge_in[c].push_back({a, std::uint32_t(i)});
