@@ -640,6 +640,55 @@ TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the re
   }
 }
 
+TEST_CASE("BVH build: huge shapes leave the tree from whichever chunk holds them", "[accel][bvh][threads]") {
+  // The build looks for huge shapes (surface area above a quarter of the scene's) only in the
+  // chunks of 2^14 shapes whose largest extents could give one; this scene has them in several
+  // chunks, huge by two long axes or by three, beside boxes long on one axis only (not huge) and
+  // boxes just below the limit, and the test counts the huge ones itself.
+  TestRng rng{23};
+  std::vector<Shape> shapes;
+  for (int i = 0; i < 40000; ++i) {
+    shapes.push_back(sphere(to_f(rng.in_cube(50.0)), float(rng.log_uniform(0.01, 0.5))));
+    switch (i) {
+      case 3:      // huge by two axes
+      case 20001:  // the second chunk
+        shapes.push_back(box({-60, -60, 0}, {60, 60, 0.01f}));
+        break;
+      case 37000:  // the third chunk: huge by three axes
+        shapes.push_back(box({-45, -45, -45}, {45, 45, 45}));
+        break;
+      case 9000:  // long on one axis only
+      case 30000:
+        shapes.push_back(box({-100, 0, 0}, {100, 0.01f, 0.01f}));
+        break;
+      case 25000:  // about half the limit
+        shapes.push_back(box({-41, -41, 0}, {41, 41, 0.01f}));
+        break;
+      default:
+        break;
+    }
+  }
+  const auto area = [](const Bounds3f& b) {
+    const double ex = double(b.hi.x) - b.lo.x, ey = double(b.hi.y) - b.lo.y, ez = double(b.hi.z) - b.lo.z;
+    return 2.0 * (ex * ey + ey * ez + ez * ex);
+  };
+  Bounds3f all;
+  for (const Shape& s : shapes) all.extend(shape_bounds(s));
+  std::uint32_t huge = 0;
+  for (const Shape& s : shapes) huge += area(shape_bounds(s)) > 0.25 * area(all);
+  REQUIRE(huge == 3);
+  for (const Isa isa : {Isa::kScalar, best_isa()}) {
+    for (const unsigned threads : {1u, 2u}) {
+      const Geometry geo = Geometry::build(shapes, isa, threads);
+      INFO("isa " << isa_name(isa) << ", threads " << threads);
+      CHECK(geo.stats().outside == huge);
+      const Agreement agreed = agree_with_brute_force(geo, shapes, rng, 300);
+      CHECK(agreed.hits > 50);
+      CHECK(agreed.mismatches == 0);
+    }
+  }
+}
+
 TEST_CASE("Timing: 1280x720 camera rays into 100,000 spheres (reported, not asserted)", "[accel][timing]") {
   TestRng rng{11};
   std::vector<Shape> shapes;
