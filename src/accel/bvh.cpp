@@ -1131,8 +1131,16 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   g.prims_.resize(order.size());
   // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build): the nodes, then
   // the prims' ids (order[i] is prims_[i].id).
-  std::vector<std::atomic<bool>> copied(stitch.size());  // stitch[k] is in place
-  const auto tree_hash = [&g, &order, &stitch, &copied] {
+  // stitch[k]'s copy: 0 not taken, 1 taken, 2 in place. Whichever thread takes it first copies it:
+  // the hash too, rather than wait for a thread that has not woken yet.
+  std::vector<std::atomic<int>> copied(stitch.size());
+  const auto copy_stitch = [&](std::size_t k) {
+    int untaken = 0;
+    if (!copied[k].compare_exchange_strong(untaken, 1, std::memory_order_relaxed)) return;
+    copy_subtree(subtrees[stitch[k].subtree].nodes, stitch[k].at, g.nodes_.data());
+    copied[k].store(2, std::memory_order_release);
+  };
+  const auto tree_hash = [&g, &order, &stitch, &copied, &copy_stitch] {
     std::uint64_t hash = 0xcbf29ce484222325ull;
     const auto mix = [&hash](std::uint32_t word) {
       hash ^= word;
@@ -1150,7 +1158,8 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     std::size_t done = 0;
     for (std::size_t k = 0; k < stitch.size(); ++k) {
       mix_nodes(done, stitch[k].at);
-      while (!copied[k].load(std::memory_order_acquire)) std::this_thread::yield();
+      copy_stitch(k);
+      while (copied[k].load(std::memory_order_acquire) != 2) std::this_thread::yield();
       done = std::size_t(stitch[k].at) + stitch[k].size;
       mix_nodes(stitch[k].at, done);
     }
@@ -1204,9 +1213,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       if (c == 0) {
         hash = tree_hash();
       } else if (c <= stitch.size()) {
-        const Stitch& st = stitch[c - 1];
-        copy_subtree(subtrees[st.subtree].nodes, st.at, g.nodes_.data());
-        copied[c - 1].store(true, std::memory_order_release);
+        copy_stitch(c - 1);
       } else {
         make_prims(c - 1 - stitch.size());
       }
