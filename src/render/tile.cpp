@@ -480,31 +480,10 @@ double residual_variance(const Neighbourhood& nb) {
   return dof > 0 ? std::max(0.0, residual / dof) : 0.0;
 }
 
-// residual_variance of a full 3x3 neighbourhood (offsets -1, 0, 1 in rows, then columns) whose
-// values are v, with its constants folded: the offsets' means are exactly 0, sxx = syy = 6 and 6
-// degrees of freedom are left. A product with an offset of 0 adds a zero to a sum, and one of
-// +-1 is exact, so every sum is the same float operations in the same order as the general
-// function's: the same bits.
-double residual_variance9(const double* v) {
-  double mv = 0.0;
-  for (int j = 0; j < 9; ++j) mv += v[j];
-  mv /= 9.0;
-  double d[9];
-  for (int j = 0; j < 9; ++j) d[j] = v[j] - mv;
-  double svv = 0.0;
-  for (int j = 0; j < 9; ++j) svv += d[j] * d[j];
-  double sxv = 0.0, syv = 0.0;
-  sxv -= d[0], sxv += d[2], sxv -= d[3], sxv += d[5], sxv -= d[6], sxv += d[8];
-  syv -= d[0], syv -= d[1], syv -= d[2], syv += d[6], syv += d[7], syv += d[8];
-  const double residual = svv - sxv * sxv / 6.0 - syv * syv / 6.0;
-  return std::max(0.0, residual / 6.0);
-}
-
-// residual_variance9 of `count` pixels of one image row at once: pixel k's neighbourhood is
-// columns k, k + 1, k + 2 of the rows above (r0), at (r1) and below (r2) it. The same operations
-// in the same order as residual_variance9 for each pixel (the same bits), written over the row so
-// that the compiler runs neighbouring pixels in one vector: called per pixel and channel, the
-// first checkpoint took about 6.5 % of an adaptive whitted10 render (-s 16 -N 1, target 0.1).
+// residual_variance9 (below) of `count` pixels of one image row at once: pixel k's neighbourhood
+// is columns k, k + 1, k + 2 of the rows above (r0), at (r1) and below (r2) it. Written over the
+// row so that the compiler runs neighbouring pixels in one vector: called per pixel and channel,
+// the first checkpoint took about 6.5 % of an adaptive whitted10 render (-s 16 -N 1, target 0.1).
 void residual_variance9_row(const double* r0, const double* r1, const double* r2, std::uint32_t count, double* out) {
   for (std::uint32_t k = 0; k < count; ++k) {
     const double v0 = r0[k], v1 = r0[k + 1], v2 = r0[k + 2];
@@ -525,6 +504,17 @@ void residual_variance9_row(const double* r0, const double* r1, const double* r2
     const double r = residual / 6.0;
     out[k] = 0.0 < r ? r : 0.0;  // std::max(0.0, r)
   }
+}
+
+// residual_variance of a full 3x3 neighbourhood (offsets -1, 0, 1 in rows, then columns) whose
+// values are v, with its constants folded: the offsets' means are exactly 0, sxx = syy = 6 and 6
+// degrees of freedom are left. A product with an offset of 0 adds a zero to a sum, and one of
+// +-1 is exact, so every sum is the same float operations in the same order as the general
+// function's: the same bits.
+double residual_variance9(const double* v) {
+  double r;
+  residual_variance9_row(v, v + 3, v + 6, 1, &r);
+  return r;
 }
 
 // The first checkpoint's neighbourhood rule. A pixel's own samples cannot see an edge that none
