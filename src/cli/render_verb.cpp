@@ -223,15 +223,15 @@ void crop_result(const scene::TileRect& crop, std::uint32_t full_width, render::
   r.spp = std::move(spp);
 }
 
-// scene::kDefaultAdaptiveTileSize, the tile side of an adaptive render that names none. Each tile also traces the first
-// checkpoint's samples of the one-pixel ring around it (render/tile.h), 4 s + 4 pixels for s^2 of
-// its own: 13 % more first-pass rays at 32 px, 6 % at 64. Adaptive images are the same bits under
-// any tiling, so this changes only the time: whitted10 at 1280x720 (-s 16 --min-samples 1
-// --error-target 0.1) traced 9.24 M rays against 9.60 M; at 1 thread 3.4 % less CPU time and
-// 2.8 % less wall time (12 pairs), at 2 threads 4.5 % less CPU time (wall within noise, and
-// 4-7 % worse on a machine loaded 5-7 deep on 2 cores, where the fewer, larger tiles balance
-// worse). 128 px traced 9.05 M but took no less CPU time than 64 (cache), with 4 times fewer
-// tiles for the threads to share.
+// scene::kDefaultAdaptiveTileSize is the tile side of an adaptive render that names none. Each
+// tile also traces the first checkpoint's samples of the one-pixel ring around it (render/tile.h),
+// 4 s + 4 pixels for s^2 of its own: 13 % more first-pass rays at 32 px, 6 % at 64. Adaptive
+// images are the same bits under any tiling, so this changes only the time: whitted10 at 1280x720
+// (-s 16 --min-samples 1 --error-target 0.1) traced 9.24 M rays against 9.60 M; at 1 thread
+// 3.4 % less CPU time and 2.8 % less wall time (12 pairs), at 2 threads 4.5 % less CPU time (wall
+// within noise, and 4-7 % worse on a machine loaded 5-7 deep on 2 cores, where the fewer, larger
+// tiles balance worse). 128 px traced 9.05 M but took no less CPU time than 64 (cache), with 4
+// times fewer tiles for the threads to share.
 
 // What every frame of one render shares: the arguments, the interruption flag and the progress.
 struct Run {
