@@ -1001,7 +1001,19 @@ int run(int argc, char** argv) {
   app.add_option("--mesh-spheres", opt.mesh_spheres, "Tessellated spheres (2,400 triangles each) of the 'mesh' scene")
       ->check(CLI::Range(1u, 100'000u));
   app.add_flag("!--no-embree", opt.embree, "Leave Embree out");
-  app.add_option("--rays", opt.rays, "Comma-separated ray sets to time (camera,shadow,secondary; default all)");
+  app.add_option("--rays", opt.rays, "Comma-separated ray sets to time (camera,shadow,secondary; default all)")
+      ->check(CLI::Validator(
+          [](const std::string& list) -> std::string {
+            std::stringstream ss(list);
+            std::string item;
+            while (std::getline(ss, item, ',')) {
+              if (item != "camera" && item != "shadow" && item != "secondary") {
+                return "unknown ray set '" + item + "' (camera, shadow or secondary)";
+              }
+            }
+            return {};
+          },
+          "LIST"));
   app.add_option("--embree-quality", opt.embree_quality, "Embree build quality")
       ->check(CLI::IsMember({"low", "medium", "high"}));
   app.add_flag("--render", opt.render, "Also time whole renders (scalar vs best isa) with render::render_local");
