@@ -109,19 +109,21 @@
 // 1M-triangle mesh (dtraced-bench-rays, avx512, tree of bvh.cpp's constants: kBins 32, kTraversalCost 0.5,
 // kSimdLeafSlope 0.3, kMaxLeafSize 4): per secondary ray 9.06 wide nodes, 2.04 leaves, 7.1 triangles; per 16-ray camera
 // packet 8.2 nodes (the coherent walk's and its single-ray lanes'), 0.35 leaves, 1.1 triangles; per 16-ray shadow
-// packet 9.9 nodes, 0.70 leaves, 2.3 triangles. The wide tree holds 4.1 children a node (108,163 nodes, 337,571
-// leaves); its SAH (root area 1, per node / block / triangle) 31.9 / 16.0 / 52.9. Packets pay for nodes, not leaves.
-// Tree variants against it (same bits: nearest by t, ties by id): kTraversalCost 0.25 or 1 alone moves the counts by
-// under 1 % (leaves of up to 4 prims are what the SAH takes anyway). kMaxLeafSize 8 (two blocks a leaf, which the
-// collapse and kernels handle) cuts nodes per secondary ray to 8.4 and per camera packet to 7.3, but triangles per
-// secondary ray rise to 12.7 (3.64 blocks); Embree's weights (traversal 1, leaves and children costed by blocks of 4,
-// up to 16 prims a leaf; needs the split sweeps' counts in blocks) give packets the same counts as kMaxLeafSize 8.
-// Measured, old and new trees alternated in separate processes (6 pairs, --runs 5, load average 11-13):
-// kTraversalCost 1.5 with kMaxLeafSize 8 gave 16-ray camera 1.007x, 16-ray shadow 1.010x, 8-ray camera 0.978x,
-// secondary 0.963x (ratios to Embree in the same runs: camera x16 0.761 -> 0.762, shadow x16 0.852 -> 0.848, secondary
-// 0.744 -> 0.715), the mesh build 0.81 -> 0.66 s; kTraversalCost 1 with kMaxLeafSize 8 (4 pairs, load 11-12)
-// 16-ray 1.05x, secondary 0.96x. Fewer nodes at the price of more triangles is a wash for packets and a loss for single
-// rays: the tree is not the gap to Embree.
+// packet 9.9 nodes, 0.70 leaves, 2.3 triangles (leaves and triangles tested by the packet's vector code only;
+// counting every leaf any lane enters, a later count of the same tree found 7.3 nodes, 2.64 leaves and 8.9 triangle
+// tests per camera packet, 8.6 / 3.3 / 11.3 per shadow packet: docs/figures.md, Kernels). The wide tree holds 4.1
+// children a node (108,163 nodes, 337,571 leaves); its SAH (root area 1, per node / block / triangle) 31.9 / 16.0
+// / 52.9. Packets pay for nodes, not leaves. Tree variants against it (same bits: nearest by t, ties by id):
+// kTraversalCost 0.25 or 1 alone moves the counts by under 1 % (leaves of up to 4 prims are what the SAH takes anyway).
+// kMaxLeafSize 8 (two blocks a leaf, which the collapse and kernels handle) cuts nodes per secondary ray to 8.4 and per
+// camera packet to 7.3, but triangles per secondary ray rise to 12.7 (3.64 blocks); Embree's weights (traversal 1,
+// leaves and children costed by blocks of 4, up to 16 prims a leaf; needs the split sweeps' counts in blocks) give
+// packets the same counts as kMaxLeafSize 8. Measured, old and new trees alternated in separate processes (6 pairs,
+// --runs 5, load average 11-13): kTraversalCost 1.5 with kMaxLeafSize 8 gave 16-ray camera 1.007x, 16-ray
+// shadow 1.010x, 8-ray camera 0.978x, secondary 0.963x (ratios to Embree in the same runs: camera x16 0.761 -> 0.762,
+// shadow x16 0.852 -> 0.848, secondary 0.744 -> 0.715), the mesh build 0.81 -> 0.66 s; kTraversalCost 1 with
+// kMaxLeafSize 8 (4 pairs, load 11-12) 16-ray 1.05x, secondary 0.96x. Fewer nodes at the price of more triangles is a
+// wash for packets and a loss for single rays: the tree is not the gap to Embree.
 //
 // Issue 16, round 17 (single rays). Single points at the caller's RayPre instead of copying it: the copy was a 64-byte
 // load over the scalar stores precompute() had just made (not forwardable: it waits for them to reach the cache)
