@@ -1428,7 +1428,43 @@ bool Geometry::outside_hit(const detail::RayPre& r, float t_min, float& best_t, 
 const detail::Kernels& Geometry::wide_kernels() const { return detail::kernels_for(isa_); }
 
 namespace {
-bool ray_ok(const Ray& ray) { return ray.t_min < ray.t_max && math::is_finite(ray.o) && math::is_finite(ray.d); }
+[[maybe_unused]] bool ray_ok(const Ray& ray) {
+  return ray.t_min < ray.t_max && math::is_finite(ray.o) && math::is_finite(ray.d);
+}
+
+// The lanes of `valid` whose rays pass ray_ok. With SSE2 four lanes at a time and without a
+// branch per value: the lane by lane test of 7 values was most of intersect_n's own time on
+// whitted10 (the render phase went down by 1.6 %). Each lane's values are loaded one by one where
+// the ray is (a wide load of the ray's narrow stores would wait for them). |x| < inf is
+// std::isfinite (false for NaN, as is t_min < t_max).
+template <int N>
+std::uint32_t live_lanes(const Ray* rays, std::uint32_t valid) {
+  std::uint32_t live = 0;
+#if defined(__SSE2__)
+  static_assert(N % 4 == 0);
+  const __m128 inf = _mm_set1_ps(detail::kInf), magnitude = _mm_castsi128_ps(_mm_set1_epi32(0x7fffffff));
+  for (int g = 0; g < N; g += 4) {
+    if ((valid >> g & 0xfu) == 0) continue;
+    const Ray &r0 = rays[g], &r1 = rays[g + 1], &r2 = rays[g + 2], &r3 = rays[g + 3];
+    const auto finite = [&](__m128 v) { return _mm_cmplt_ps(_mm_and_ps(v, magnitude), inf); };
+    __m128 ok = _mm_cmplt_ps(_mm_setr_ps(r0.t_min, r1.t_min, r2.t_min, r3.t_min),
+                             _mm_setr_ps(r0.t_max, r1.t_max, r2.t_max, r3.t_max));
+    ok = _mm_and_ps(ok, finite(_mm_setr_ps(r0.o.x, r1.o.x, r2.o.x, r3.o.x)));
+    ok = _mm_and_ps(ok, finite(_mm_setr_ps(r0.o.y, r1.o.y, r2.o.y, r3.o.y)));
+    ok = _mm_and_ps(ok, finite(_mm_setr_ps(r0.o.z, r1.o.z, r2.o.z, r3.o.z)));
+    ok = _mm_and_ps(ok, finite(_mm_setr_ps(r0.d.x, r1.d.x, r2.d.x, r3.d.x)));
+    ok = _mm_and_ps(ok, finite(_mm_setr_ps(r0.d.y, r1.d.y, r2.d.y, r3.d.y)));
+    ok = _mm_and_ps(ok, finite(_mm_setr_ps(r0.d.z, r1.d.z, r2.d.z, r3.d.z)));
+    live |= std::uint32_t(_mm_movemask_ps(ok)) << g;
+  }
+  live &= valid;
+#else
+  for (int i = 0; i < N; ++i) {
+    if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
+  }
+#endif
+  return live;
+}
 
 // What outside_hit tests for a packet's lanes: kNone, kPlanes (which need no division of the
 // ray's constants: precompute_od) or kAny. With the flat layout only the planes are outside it.
@@ -1451,10 +1487,7 @@ Outside outside_kind(const std::vector<Shape>& shapes, const std::vector<std::ui
 // intersect8 and intersect16: N lanes through the kernels of that width.
 template <int N>
 std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* hits) const {
-  std::uint32_t live = 0;
-  for (int i = 0; i < N; ++i) {
-    if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
-  }
+  const std::uint32_t live = live_lanes<N>(rays, valid);
   if (live == 0) return 0;
   if (wide_.empty()) {
     std::uint32_t found = 0;
@@ -1520,10 +1553,7 @@ std::uint32_t Geometry::intersect_n(const Ray* rays, std::uint32_t valid, Hit* h
 
 template <int N>
 std::uint32_t Geometry::occluded_n(const Ray* rays, std::uint32_t valid) const {
-  std::uint32_t live = 0;
-  for (int i = 0; i < N; ++i) {
-    if ((valid >> i & 1u) && ray_ok(rays[i])) live |= 1u << i;
-  }
+  const std::uint32_t live = live_lanes<N>(rays, valid);
   if (live == 0) return 0;
   if (wide_.empty()) {
     std::uint32_t blocked = 0;
