@@ -408,7 +408,18 @@ struct Tracer {
   // point-light direct sum), and through its children those of the secondary rays it spawns, by
   // what the packet traversal found; all else is unchanged, so the result has the same bits
   // either way.
-  Vec3f trace(math::Ray ray, std::uint32_t depth, float weight, MediumStack media, const Known* known = nullptr) {
+  Vec3f trace(const math::Ray& ray, std::uint32_t depth, float weight, const MediumStack& media,
+              const Known* known = nullptr) {
+    Vec3f out;
+    trace_to(out, ray, depth, weight, media, known);
+    return out;
+  }
+
+  // trace, written to `out`: a Vec3f returned from the recursion went through the stack, its
+  // components stored one by one and loaded back two at a time, and each such load waited for
+  // the stores to complete (whitted10's render phase went down by 2.3 %).
+  void trace_to(Vec3f& out, math::Ray ray, std::uint32_t depth, float weight, MediumStack media,
+                const Known* known = nullptr) {
     for (int pass = 0; pass <= kMaxPassThroughs; ++pass) {
       accel::Hit hit;
       // Only the ray as given is known: a continuation past an index-matched surface is not.
@@ -422,9 +433,15 @@ struct Tracer {
       }
       if constexpr (kArea) {
         Vec3f le;
-        if (emitter_before(ray, found ? hit.t : ray.t_max, le)) return le;
+        if (emitter_before(ray, found ? hit.t : ray.t_max, le)) {
+          out = le;
+          return;
+        }
       }
-      if (!found) return limits.background;
+      if (!found) {
+        out = limits.background;
+        return;
+      }
       const MaterialF& m = scene.material(hit.shape);
       const Vec3f wo = -ray.d;
       const bool front = math::dot(wo, hit.n) >= 0.0f;
@@ -442,8 +459,9 @@ struct Tracer {
       }
       if (b.mirror) {
         const Known* kr = k != nullptr ? k->mirror : nullptr;
-        const Vec3f lr = trace(kr != nullptr ? kr->ray : spawn(hit, mirror_direction(ray, nf)), depth + 1,
-                               b.mirror_weight, media, kr);
+        Vec3f lr;
+        trace_to(lr, kr != nullptr ? kr->ray : spawn(hit, mirror_direction(ray, nf)), depth + 1, b.mirror_weight, media,
+                 kr);
         if (b.reflective) {
           radiance += math::mul(m.color, lr) * m.reflectivity;
           if (b.bends) radiance += lr * b.fresnel_w;
@@ -451,7 +469,10 @@ struct Tracer {
           radiance += lr * b.fresnel_w;
         }
       }
-      if (!b.transparent) return radiance;
+      if (!b.transparent) {
+        out = radiance;
+        return;
+      }
 
       if (b.eta == 1.0f) {
         // Index-matched: the surface does not bend or reflect light. Continue the very same ray
@@ -463,20 +484,28 @@ struct Tracer {
         }
         // Partly transparent: recurse along the same ray. The branch weight shrinks by the
         // transparency at each such surface, so the cut-off bounds this recursion.
-        if (weight * m.transparency < limits.min_branch_weight) return radiance;
+        if (weight * m.transparency < limits.min_branch_weight) {
+          out = radiance;
+          return;
+        }
         math::Ray cont = ray;
         cont.t_min = hit.t;
-        return radiance + trace(cont, depth, weight * m.transparency, b.inside) * m.transparency;
+        Vec3f lc;
+        trace_to(lc, cont, depth, weight * m.transparency, b.inside);
+        out = radiance + lc * m.transparency;
+        return;
       }
       if (b.refract) {
         const Known* kt = k != nullptr ? k->refracted : nullptr;
-        radiance += trace(kt != nullptr ? kt->ray : spawn(hit, refracted_direction(wo, nf, b.eta, b.it)), depth + 1,
-                          b.refract_weight, b.inside, kt) *
-                    b.refract_w;
+        Vec3f lt;
+        trace_to(lt, kt != nullptr ? kt->ray : spawn(hit, refracted_direction(wo, nf, b.eta, b.it)), depth + 1,
+                 b.refract_weight, b.inside, kt);
+        radiance += lt * b.refract_w;
       }
-      return radiance;
+      out = radiance;
+      return;
     }
-    return Vec3f{0, 0, 0};
+    out = Vec3f{0, 0, 0};
   }
 };
 
@@ -1061,7 +1090,7 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
     if (!(valid >> i & 1u)) continue;
     // Each lane's own random numbers, from the first dimension on, as trace_radiance has them.
     T lane{scene, limits, stats, keys[i]};
-    out[i] = lane.trace(rays[i], 0, 1.0f, camera_media, lane_known[i]);
+    lane.trace_to(out[i], rays[i], 0, 1.0f, camera_media, lane_known[i]);
   }
 }
 
