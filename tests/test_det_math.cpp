@@ -115,6 +115,12 @@ TEST_CASE("det::powf over arrays gives each entry det::powf's bits", "[math][det
     x.push_back((static_cast<float>(i) + 0.5f) / 5000.0f);
     y.push_back(1.0f + static_cast<float>((i * 7919) % 1024));
   }
+  // Bases above 1 and exponents of either sign, next to each other (the array form takes two
+  // entries at a time): results past 2^160 (+inf) and below 2^-160 (0) as well as in between.
+  for (int i = 0; i < 2000; ++i) {
+    x.push_back(1.0f + static_cast<float>(i) / 500.0f);
+    y.push_back(static_cast<float>((i * 613) % 401) - 200.0f);
+  }
   std::vector<float> out(x.size()), in_place = x;
   det::powf(x.data(), y.data(), out.data(), static_cast<int>(x.size()));
   det::powf(in_place.data(), y.data(), in_place.data(), static_cast<int>(x.size()));
