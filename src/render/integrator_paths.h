@@ -823,7 +823,9 @@ struct PacketLights {
 
   // Adds light_contribution(vis[j]) to the sums of the entries in `lit` (set up by setup()).
   void add(const PointLightF& light, std::uint32_t lit, const float* vis) {
-    float fr[kN], fg[kN], fb[kN];
+    // Zeroed: the four-at-a-time loop below loads the entries that are not lit too (and discards
+    // their results), and a load of an unwritten float is undefined.
+    float fr[kN] = {}, fg[kN] = {}, fb[kN] = {};
     Scratch<float, kN> pow_x, pow_y;  // the first np entries are written before powf reads them
     int pow_of[kN];
     int np = 0;
@@ -986,7 +988,7 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   math::Ray* const shadow = shadow_rays.data();
   for (int j = pl.m; j < kN; ++j) shadow[j] = math::Ray{};
   Scratch<accel::Hit, kN> hits_scratch;
-  float vis[kN];
+  float vis[kN] = {};  // PacketLights::add loads the entries that are not lit too
   const std::size_t point_lights = T::kPoint ? scene.lights().size() : 0;
   for (std::size_t li = 0; li < point_lights; ++li) {
     const PointLightF& light = scene.lights()[li];
