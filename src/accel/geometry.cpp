@@ -478,20 +478,30 @@ std::uint32_t Geometry::outside_planes(const Ray* rays, std::uint32_t live, floa
 template std::uint32_t Geometry::outside_planes<kPacketSize>(const Ray*, std::uint32_t, float*, std::uint32_t*) const;
 template std::uint32_t Geometry::outside_planes<kPacketSize16>(const Ray*, std::uint32_t, float*, std::uint32_t*) const;
 
-Vec3f offset_ray_origin(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w) {
+void offset_ray_origin_to(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w, Vec3f& out) {
   const float d = dot(math::abs(n), p_error);
   Vec3f offset = d * n;
   if (dot(w, n) < 0.0f) offset = -offset;
-  Vec3f po = p + offset;
-  // Round away from p so that the offset survives the rounding of p + offset.
-  for (int i = 0; i < 3; ++i) {
-    if (offset[i] > 0.0f) {
-      po[i] = next_float_up(po[i]);
-    } else if (offset[i] < 0.0f) {
-      po[i] = next_float_down(po[i]);
-    }
-  }
-  return po;
+  // p + offset, rounded away from p so that the offset survives the rounding. Component by
+  // component in registers: a Vec3f indexed in a loop lived on the stack, and its components'
+  // 4-byte stores were reloaded 8 bytes at a time (a load that waits for the stores to retire).
+  const auto away = [](float v, float off) {
+    if (off > 0.0f) return next_float_up(v);
+    if (off < 0.0f) return next_float_down(v);
+    return v;
+  };
+  const float x = away(p.x + offset.x, offset.x);
+  const float y = away(p.y + offset.y, offset.y);
+  const float z = away(p.z + offset.z, offset.z);
+  out.x = x;
+  out.y = y;
+  out.z = z;
+}
+
+Vec3f offset_ray_origin(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w) {
+  Vec3f o;
+  offset_ray_origin_to(p, p_error, n, w, o);
+  return o;
 }
 
 }  // namespace dtraced::accel

@@ -243,5 +243,8 @@ inline Bounds3f sphere_bounds(const SphereShape& s) {
 // direction w: pushed along +-n past the error bound and rounded one more ulp away (pbrt-v4's
 // OffsetRayOrigin), so the new ray cannot re-hit the surface it leaves.
 Vec3f offset_ray_origin(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w);
+// The same, written to `out` component by component (a returned Vec3f is packed into registers
+// through the stack: two 4-byte stores reloaded as one 8-byte load, which waits for them).
+void offset_ray_origin_to(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w, Vec3f& out);
 
 }  // namespace dtraced::accel

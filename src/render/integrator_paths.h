@@ -649,7 +649,8 @@ struct PacketLights {
     // shadow_ray's origin, the same for every light: offset_ray_origin flips the offset where
     // dot(l, n) < 0, and a light that casts has dot(nf, l) > 0 with nf = +-n (exact negation, the
     // same products summed in the same order), so dot(l, n) has the sign of dot(nf, n).
-    const Vec3f o = accel::offset_ray_origin(h.p, h.p_error, h.n, nf);
+    Vec3f o;
+    accel::offset_ray_origin_to(h.p, h.p_error, h.n, nf, o);
     ox[j] = o.x, oy[j] = o.y, oz[j] = o.z;
     wx[j] = wo.x, wy[j] = wo.y, wz[j] = wo.z;
     const float kd = mt.diffuse * kInvPi;  // brdf's first line: color * (diffuse * kInvPi)
@@ -944,7 +945,8 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
     if (a.from != nullptr) {
       // Tracer::spawn, written field by field into both copies: a ray built whole and then copied
       // made the copy's wide loads wait for the narrow stores that built it.
-      const Vec3f o = T::spawn_origin(*a.from, r.d);
+      Vec3f o;
+      accel::offset_ray_origin_to(a.from->p, a.from->p_error, a.from->n, r.d, o);
       r.o = o;
       r.t_min = 0.0f;
       r.t_max = std::numeric_limits<float>::infinity();
