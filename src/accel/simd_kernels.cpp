@@ -387,6 +387,26 @@ struct LaneUvw {
   }
 };
 
+// The watertight test's float edge functions u, v, w of one vector of lanes (from the sheared
+// vertices sax ... scy), and which lanes have one below, above or exactly at zero.
+template <class V>
+struct EdgeFunctions {
+  V u, v, w;
+  decltype(hn::Lt(std::declval<V>(), std::declval<V>())) neg, pos, zero_edge;
+};
+template <class V>
+HWY_INLINE EdgeFunctions<V> edge_functions(V zero, V sax, V say, V sbx, V sby, V scx, V scy) {
+  const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
+  const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
+  const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
+  return {u,
+          v,
+          w,
+          hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero)),
+          hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero)),
+          hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero))};
+}
+
 // The watertight test of kernels.h (triangle_t, float part) on one vector of lanes, operation for
 // operation: from the vertices relative to the origin, already sheared in x and y (sax ... scy),
 // their z before the shear (az, bz, cz), the shear sz and t_min per lane, t gets each lane's t or
@@ -400,12 +420,7 @@ struct LaneUvw {
 template <bool kMasked, class D, class V, class M>
 HWY_INLINE auto triangle_lanes(D d, V zero, V inf, V nan, V sax, V say, V sbx, V sby, V scx, V scy, V az, V bz, V cz,
                                V sz, V tmin, M active, float* t, LaneUvw* uvw, std::size_t off, bool* full = nullptr) {
-  const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
-  const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
-  const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
-  const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
-  const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
-  const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
+  const auto [u, v, w, neg, pos, zero_edge] = edge_functions(zero, sax, say, sbx, sby, scx, scy);
   // The common case: every wanted lane outside.
   if constexpr (kMasked) {
     if (hn::AllFalse(d, hn::And(active, hn::Or(zero_edge, hn::Not(hn::And(neg, pos)))))) {
@@ -1143,12 +1158,7 @@ HWY_INLINE std::uint32_t blocked_lanes(D d, const Packet<kP>& p, std::size_t i, 
   const std::size_t n = hn::Lanes(d);
   const auto zero = hn::Zero(d);
   const auto sax = c[0], say = c[1], sbx = c[2], sby = c[3], scx = c[4], scy = c[5];
-  const auto u = hn::Sub(hn::Mul(scx, sby), hn::Mul(scy, sbx));
-  const auto v = hn::Sub(hn::Mul(sax, scy), hn::Mul(say, scx));
-  const auto w = hn::Sub(hn::Mul(sbx, say), hn::Mul(sby, sax));
-  const auto neg = hn::Or(hn::Or(hn::Lt(u, zero), hn::Lt(v, zero)), hn::Lt(w, zero));
-  const auto pos = hn::Or(hn::Or(hn::Gt(u, zero), hn::Gt(v, zero)), hn::Gt(w, zero));
-  const auto zero_edge = hn::Or(hn::Or(hn::Eq(u, zero), hn::Eq(v, zero)), hn::Eq(w, zero));
+  const auto [u, v, w, neg, pos, zero_edge] = edge_functions(zero, sax, say, sbx, sby, scx, scy);
   const auto outside = hn::Or(hn::And(neg, pos), zero_edge);
   if (hn::AllTrue(d, hn::AndNot(zero_edge, hn::And(neg, pos)))) return 0;  // triangle_lanes' exit
   const auto active = hn::RebindMask(d, hn::TestBit(hn::Set(du, mask), hn::Load(du, kLaneBit + i)));
