@@ -17,6 +17,7 @@
 #include <catch2/catch.hpp>
 #include <fmt/format.h>
 
+#include "image/codec.h"
 #include "image/image.h"
 #include "image/image_io.h"
 #include "image/metrics.h"
@@ -179,6 +180,41 @@ TEST_CASE("sRGB curves: known values and round trip", "[image]") {
     const float v = static_cast<float>(i) / 1000.0f;
     CHECK(srgb_to_linear(linear_to_srgb(v)) == Approx(v).epsilon(1e-5).margin(1e-7));
   }
+}
+
+TEST_CASE("Quantisation rounds halves away from zero, as std::round does", "[image]") {
+  using dtraced::image::detail::round_half_away;
+  // The largest double below one half, halves, and the doubles either side of them.
+  const double cases[] = {0.0,
+                          0.49999999999999994,
+                          0.5,
+                          0.5000000000000001,
+                          1.4999999999999998,
+                          1.5,
+                          2.5,
+                          std::nextafter(2.5, 0.0),
+                          254.5,
+                          std::nextafter(254.5, 0.0),
+                          65534.5,
+                          std::nextafter(65534.5, 1e9),
+                          65535.0,
+                          1e-300,
+                          4503599627370495.5};
+  for (const double x : cases) {
+    INFO("x " << fmt::format("{:.17g}", x));
+    CHECK(round_half_away(x) == std::round(x));
+  }
+  // Every 8- and 16-bit code the writers store: quantize against the same sRGB value rounded by
+  // std::round, over a sweep of displayed values that crosses every 8-bit code several times.
+  std::size_t differ = 0;
+  for (int i = 1; i < 1 << 16; ++i) {
+    const float v = static_cast<float>(i) / 65536.0f;
+    for (const std::uint32_t max : {255u, 65535u}) {
+      const double want = std::round(dtraced::image::detail::srgb_encode(v) * max);
+      if (dtraced::image::detail::quantize(v, max) != static_cast<std::uint32_t>(want)) ++differ;
+    }
+  }
+  CHECK(differ == 0);
 }
 
 TEST_CASE("format_from_path reads the extension, any case", "[image]") {

@@ -26,6 +26,8 @@ double srgb_decode(double v);
 // A displayed value (display.h: [0, 1], NaN already 0) -> sRGB -> nearest code in [0, max_code].
 // Values outside [0, 1] and NaN are clipped here too, so a caller can never produce a bad code.
 std::uint32_t quantize(float display01, std::uint32_t max_code);
+// std::round for 0 <= x < 2^52 (halves away from zero), without the libm call.
+double round_half_away(double x);
 
 // linear -> display transform -> sRGB -> code: what every 8- and 16-bit writer stores.
 inline std::uint32_t encode_sample(float linear, const DisplayTransform& display, std::uint32_t max_code) {

@@ -29,8 +29,17 @@ std::uint32_t quantize(float display01, std::uint32_t max_code) {
   // The negated test also sends NaN to black: it has no brightness, and the cast below would be UB.
   if (!(display01 > 0.0f)) return 0;
   if (display01 >= 1.0f) return max_code;
-  const double code = std::round(srgb_encode(display01) * max_code);
+  const double code = round_half_away(srgb_encode(display01) * max_code);
   return static_cast<std::uint32_t>(std::clamp(code, 0.0, static_cast<double>(max_code)));
+}
+
+double round_half_away(double x) {
+  // std::round is a libm call on the baseline instruction set (2 % of a 1280x720 render's process
+  // samples went to it in the PNG writer). The truncation is exact below 2^52, and so is
+  // x - whole (whole <= x < 2 * whole once whole >= 1: Sterbenz), so the half test is exact;
+  // truncating x + 0.5 instead would round 0.49999999999999994 up.
+  const double whole = static_cast<double>(static_cast<std::int64_t>(x));
+  return x - whole >= 0.5 ? whole + 1.0 : whole;
 }
 
 std::vector<float> decode_table(std::uint32_t max_code, const Transfer& transfer) {
