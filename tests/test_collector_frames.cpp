@@ -263,6 +263,38 @@ TEST_CASE("a sequence with a .gif output writes one GIF of every frame when the 
   CHECK(*written == std::string(expected->begin(), expected->end()));
 }
 
+TEST_CASE("with an image budget smaller than one frame, every frame is still written, served and put in a GIF",
+          "[collector][frames][memory]") {
+  TempDir dir;
+  coll::CollectorConfig config = make_config(dir);
+  config.image_memory_bytes = 1;  // a 32x24 frame is 9,216 bytes: each is assembled alone
+  Harness h(config);
+  const std::uint64_t pfms = h.submit(kFrames);
+  const std::uint64_t gif =
+      h.submit(R"(, "frames": {"first": 4, "last": 8, "step": 2}, "output": "seq.gif", "fps": 10, "tone": "reinhard")");
+  for (const auto& l : h.lease_all()) h.put_ok(l);
+  REQUIRE(h.status(pfms).state == protocol::JobState::kDone);
+  REQUIRE(h.status(gif).state == protocol::JobState::kDone);
+  std::set<std::uint32_t> all;
+  for (std::uint32_t t = 0; t < kTiles; ++t) all.insert(t);
+  for (std::uint32_t k = 0; k < kFrameCount; ++k) {
+    INFO("frame " << k);
+    CHECK(read_pfm(out_file(dir, 4 + 2 * k)) == expected_frame(pfms, k, all));
+    CHECK(fetch_frame(h, pfms, 4 + 2 * k) == expected_frame(pfms, k, all));
+  }
+  image::GifOptions options;
+  options.fps = 10;
+  options.display.tone = image::ToneCurve::kReinhard;
+  auto encoder = image::GifEncoder::create(32, 24, options);
+  REQUIRE(encoder);
+  for (std::uint32_t k = 0; k < kFrameCount; ++k) require_ok(encoder->add_frame(expected_image_of(gif, k, all)));
+  auto expected = encoder->finish();
+  REQUIRE(expected);
+  const auto written = dtraced::util::read_file_limited((dir.path() / "out" / "seq.gif").string(), 1 << 20);
+  REQUIRE(written);
+  CHECK(*written == std::string(expected->begin(), expected->end()));
+}
+
 TEST_CASE("the image route takes a frame number, once, in decimal", "[collector][frames][routes]") {
   const auto route = coll::match_route(Verb::get, "/v1/jobs/7/image?format=pfm&frame=12");
   REQUIRE(route.ok());

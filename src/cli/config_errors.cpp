@@ -31,6 +31,7 @@ constexpr FieldFlag kFieldFlags[] = {
     {"queue.max_copies", "--max-copies"},
     {"shutdown_grace", "--shutdown-grace-ms"},
     {"cpu_threads", "--cpu-threads"},
+    {"image_memory_bytes", "--image-memory-mb"},
     {"scene", "--scene"},
     {"output", "--output"},
     {"exit_when_done", "--exit-when-done"},

@@ -67,6 +67,7 @@ int run_collector_role(const CLI::App& app, const RoleArgs& a) {
   if (a.max_copies) c.queue.max_copies = *a.max_copies;
   if (a.shutdown_grace_ms) c.shutdown_grace = std::chrono::milliseconds(*a.shutdown_grace_ms);
   if (a.cpu_threads) c.cpu_threads = *a.cpu_threads;
+  if (a.image_memory_mb) c.image_memory_bytes = std::uint64_t{*a.image_memory_mb} << 20;
   if (a.worker_quiet_after_s) c.workers.quiet_after = std::chrono::seconds(*a.worker_quiet_after_s);
   if (a.worker_forget_after_s) c.workers.forget_after = std::chrono::seconds(*a.worker_forget_after_s);
   if (a.max_workers) c.workers.max_workers = *a.max_workers;
@@ -186,6 +187,9 @@ const NumberFlag kNumberFlags[] = {
     {kCollectorGroup, "--shutdown-grace-ms", &RoleArgs::shutdown_grace_ms, 0, 600000,
      "On SIGTERM, time for requests in flight"},
     {kCollectorGroup, "--cpu-threads", &RoleArgs::cpu_threads, 1, 256, "Threads for image encoding and payload checks"},
+    {kCollectorGroup, "--image-memory-mb", &RoleArgs::image_memory_mb, 1, 1048576,
+     "MiB of images assembled from the store at once, to write or serve them (12 bytes a pixel; default 3072: one "
+     "16384x16384 frame); a larger frame is still assembled, alone"},
     {kCollectorGroup, "--worker-quiet-after-s", &RoleArgs::worker_quiet_after_s, 1, 86400,
      "A worker unseen this long shows as quiet (default 60)"},
     {kCollectorGroup, "--worker-forget-after-s", &RoleArgs::worker_forget_after_s, 1, 2592000,

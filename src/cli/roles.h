@@ -27,7 +27,7 @@ struct RoleArgs {
   std::string output_dir;
   std::optional<std::uint32_t> max_connections, read_timeout_ms, write_timeout_ms, idle_timeout_ms, reoffer_floor_ms,
       max_copies, shutdown_grace_ms, cpu_threads, worker_quiet_after_s, worker_forget_after_s, max_idle_connections,
-      max_workers, max_idle_wait_ms;
+      max_workers, max_idle_wait_ms, image_memory_mb;
   bool no_web_ui = false;  // --no-web-ui: `/` and `/ui/...` are 404
   // TLS (cli/tls_flags.h): --tls auto|on|off, the operator's files, extra names, plain HTTP off
   // loopback only with --allow-plain-http.

@@ -92,6 +92,7 @@ util::Errors check_collector_config(const CollectorConfig& c) {
   }
   if (c.max_unfinished_jobs == 0) errors.push_back({"must be > 0", "max_unfinished_jobs"});
   if (c.max_unfinished_pixels == 0) errors.push_back({"must be > 0", "max_unfinished_pixels"});
+  if (c.image_memory_bytes == 0) errors.push_back({"must be > 0", "image_memory_bytes"});
   if (c.workers.quiet_after <= Duration::zero()) errors.push_back({"must be > 0", "workers.quiet_after"});
   if (c.workers.forget_after < c.workers.quiet_after) {
     errors.push_back({"must be at least workers.quiet_after", "workers.forget_after"});

@@ -30,9 +30,13 @@ inline constexpr std::chrono::milliseconds kMaxShutdownGrace{10 * 60 * 1000};
 inline constexpr std::size_t kDefaultMaxUnfinishedJobs = 1000;
 // Pixels of unfinished jobs at once (2^28: one 16384^2 image). The pixels are in the store (12
 // bytes a pixel on disk), not in memory: an image is assembled from it a frame at a time on the
-// thread pool, so the pool's size bounds the frames in memory at once. This bounds the work the
-// collector holds and the per-tile state of its queue.
+// thread pool. This bounds the work the collector holds and the per-tile state of its queue.
 inline constexpr std::uint64_t kDefaultMaxUnfinishedPixels = std::uint64_t{1} << 28;
+// Bytes of the frames assembled from the store at once (written, served or put into a GIF), 12 a
+// pixel: by default one frame of kDefaultMaxUnfinishedPixels (3 GiB), or many smaller ones. A
+// frame larger than the budget is still assembled, alone. Without it the bound was the thread
+// pool's size times the largest frame.
+inline constexpr std::uint64_t kDefaultImageMemoryBytes = kDefaultMaxUnfinishedPixels * 12;
 
 // The seed's one-shot use: `dtraced --role collector --scene S --output O` enqueues this job at
 // start. A restart with the same arguments finds the job by a key derived from them (the scene's
@@ -64,6 +68,7 @@ struct CollectorConfig {
   std::size_t cpu_threads = 2;                      // image encoding, scene parsing, large payloads
   std::size_t max_unfinished_jobs = kDefaultMaxUnfinishedJobs;
   std::uint64_t max_unfinished_pixels = kDefaultMaxUnfinishedPixels;
+  std::uint64_t image_memory_bytes = kDefaultImageMemoryBytes;
 
   // The worker registry's limits (a stopped worker shows quiet, then leaves the list).
   WorkerLimits workers;

@@ -12,7 +12,7 @@ Context::Context(CollectorConfig config_in, const util::Clock& clock_in)
       ioc(std::make_unique<async::net::io_context>(1)),
       pool(std::clamp<std::size_t>(config.cpu_threads, 1, kMaxCpuThreads)),
       stop_begun(std::in_place, ioc->get_executor()),
-      reader(config.state_dir),
+      reader(config.state_dir, config.image_memory_bytes),
       queue(config.queue),
       workers(config.workers),
       started(clock.now()) {}

@@ -83,8 +83,8 @@ async::Awaitable<bool> write_frame(Context& c, JobId id, std::uint32_t frame_ind
     auto write = [&reader = c.reader, id, settings = job->settings, tile_size = job->tile_size, crop = job->crop,
                   frame_index, path, options] {
       Written w;
-      util::Result<image::ImageRGBf> image = reader.frame_image(id, settings, tile_size, crop, frame_index);
-      const util::Status st = image ? write_output_image(path, image.value(), options) : util::Status(image.error());
+      util::Result<HeldImage> held = reader.frame_image(id, settings, tile_size, crop, frame_index);
+      const util::Status st = held ? write_output_image(path, held.value().image, options) : util::Status(held.error());
       w.ok = st.ok();
       if (!st) w.error = st.error().to_string();
       return w;

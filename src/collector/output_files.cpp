@@ -77,7 +77,7 @@ util::Result<std::string> sequence_gif(StoreReader& reader, const GifJob& job) {
   for (std::uint32_t f = 0; f < job.frames; ++f) {
     auto frame = reader.frame_image(job.id, job.settings, job.tile_size, job.crop, f);
     if (!frame) return std::move(frame).error();
-    if (util::Status added = encoder->add_frame(*frame); !added) return added.error();
+    if (util::Status added = encoder->add_frame(frame->image); !added) return added.error();
   }
   auto bytes = encoder->finish();
   if (!bytes) return std::move(bytes).error();

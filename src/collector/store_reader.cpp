@@ -9,7 +9,8 @@
 
 namespace dtraced::collector {
 
-StoreReader::StoreReader(std::string state_dir) : state_dir_(std::move(state_dir)) {}
+StoreReader::StoreReader(std::string state_dir, std::uint64_t image_memory_bytes)
+    : state_dir_(std::move(state_dir)), image_budget_(image_memory_bytes) {}
 
 util::Result<store::Store*> StoreReader::store_locked() {
   if (closed_) return util::Error("the collector is stopping");
@@ -28,18 +29,19 @@ util::Result<std::string> StoreReader::encode_image(JobId id, const scene::Rende
                                                     std::uint32_t frame_index, const image::WriteOptions& options,
                                                     image::ImageFormat format) {
   // The frame's tiles only, one at a time (a sequence's other frames are never read).
-  util::Result<image::ImageRGBf> image = frame_image(id, settings, tile_size, crop, frame_index);
-  if (!image) return std::move(image).error();
-  return image::encode_image(format, image.value(), options);
+  util::Result<HeldImage> held = frame_image(id, settings, tile_size, crop, frame_index);
+  if (!held) return std::move(held).error();
+  return image::encode_image(format, held.value().image, options);
 }
 
-util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::RenderSettings& settings,
-                                                        std::uint32_t tile_size,
-                                                        const std::optional<scene::TileRect>& crop,
-                                                        std::uint32_t frame_index) {
+util::Result<HeldImage> StoreReader::frame_image(JobId id, const scene::RenderSettings& settings,
+                                                 std::uint32_t tile_size, const std::optional<scene::TileRect>& crop,
+                                                 std::uint32_t frame_index) {
   // Only the pixels the output shows are held: the crop's, or the whole frame without one.
   const scene::TileRect window = crop.value_or(scene::TileRect{0, 0, settings.width, settings.height});
-  image::ImageRGBf image(window.width, window.height);
+  HeldImage held{image_budget_.acquire(std::uint64_t{window.width} * window.height * 3 * sizeof(float)), {}};
+  held.image = image::ImageRGBf(window.width, window.height);
+  image::ImageRGBf& image = held.image;
   const scene::TileGrid grid(settings, tile_size);
   const TileIndex first = frame_index * static_cast<TileIndex>(grid.count());
   for (TileIndex t = 0; t < grid.count(); ++t) {
@@ -50,7 +52,7 @@ util::Result<image::ImageRGBf> StoreReader::frame_image(JobId id, const scene::R
     if (!rgb) return std::move(rgb).error();
     if (rgb.value()) copy_tile(image, window, rect, *rgb.value());
   }
-  return image;
+  return held;
 }
 
 util::Result<std::optional<store::StoredTile>> StoreReader::stored_tile(JobId id, std::uint32_t tile) {
