@@ -8,8 +8,10 @@
 // triangle-only and one-sphere-block leaves in their child references (kTriLeaf), with a scene that
 // mixes such leaves, mixed leaves and an oversized leaf of duplicates.
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -18,6 +20,7 @@
 #include "accel/geometry.h"
 #include "accel/isa.h"
 #include "accel/wide_bvh.h"
+#include "math/float_util.h"
 #include "shape_builders.h"
 
 using namespace dtraced::accel;
@@ -514,4 +517,61 @@ TEST_CASE("planes beside a packet's shapes: ties, parallel rays and rays leaving
       CHECK(c.mismatches == 0);
     }
   }
+}
+
+// offset_ray_origin_to computes all three components at once with masks (SSE2): it must give the
+// bits of pbrt-v4's branch-by-branch form, written out here, for every sign of the offset and
+// every special sum (zeros of either sign, infinities, NaN, the largest and smallest floats).
+TEST_CASE("offset_ray_origin_to gives the bits of the branch-by-branch form", "[accel][offset]") {
+  using dtraced::math::next_float_down;
+  using dtraced::math::next_float_up;
+  const auto reference = [](const Vec3f& p, const Vec3f& e, const Vec3f& n, const Vec3f& w) {
+    const float d = dot(abs(n), e);
+    Vec3f offset = d * n;
+    if (dot(w, n) < 0.0f) offset = -offset;
+    const auto away = [](float v, float off) {
+      if (off > 0.0f) return next_float_up(v);
+      if (off < 0.0f) return next_float_down(v);
+      return v;
+    };
+    return Vec3f{away(p.x + offset.x, offset.x), away(p.y + offset.y, offset.y), away(p.z + offset.z, offset.z)};
+  };
+  // NaNs compare as NaNs: which operand's NaN an addition passes on (and so its sign) is the
+  // compiler's choice in either form, since it may swap the operands of a commutative operation.
+  const auto same_bits = [](float a, float b) {
+    return std::isnan(b) ? std::isnan(a) : std::bit_cast<std::uint32_t>(a) == std::bit_cast<std::uint32_t>(b);
+  };
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  const float special[] = {0.0f,  -0.0f,  1.0f,   -1.0f,   kInf,   -kInf, std::numeric_limits<float>::quiet_NaN(),
+                           3e38f, -3e38f, 1e-45f, -1e-45f, 1e-38f, 0.5f,  -2.5f};
+  const float normals[] = {0.0f, -0.0f, 1.0f, -1.0f, 0.6f, -0.8f, kInf};
+  const auto at = [](Vec3f& v, int c) -> float& { return c == 0 ? v.x : c == 1 ? v.y : v.z; };
+  TestRng rng{11};
+  int checked = 0, stepped = 0;
+  for (int trial = 0; trial < 4000; ++trial) {
+    const auto pick = [&](const float* values, int count) { return values[rng.index(count)]; };
+    Vec3f p, n;
+    for (int c = 0; c < 3; ++c) {
+      const bool random = rng.index(2) == 0;
+      at(p, c) = random ? float(rng.uniform(-100.0, 100.0)) : pick(special, 14);
+      at(n, c) = rng.index(3) == 0 ? pick(normals, 7) : float(rng.uniform(-1.0, 1.0));
+    }
+    const float err = rng.index(4) == 0 ? 0.0f : float(rng.log_uniform(1e-7, 1e-2));
+    const Vec3f e{err, err * 0.5f, err * 2.0f};
+    const Vec3f w{float(rng.uniform(-1.0, 1.0)), float(rng.uniform(-1.0, 1.0)), float(rng.uniform(-1.0, 1.0))};
+    Vec3f got;
+    offset_ray_origin_to(p, e, n, w, got);
+    Vec3f want = reference(p, e, n, w);
+    Vec3f ret = offset_ray_origin(p, e, n, w);
+    for (int c = 0; c < 3; ++c) {
+      const float g = at(got, c), r = at(ret, c), x = at(want, c);
+      INFO("trial " << trial << " component " << c << ": got " << g << ", want " << x);
+      CHECK(same_bits(g, x));
+      CHECK(same_bits(r, x));
+      ++checked;
+      if (!same_bits(x, at(p, c))) ++stepped;
+    }
+  }
+  CHECK(checked == 12000);
+  CHECK(stepped > 1000);  // most components do step away from p
 }

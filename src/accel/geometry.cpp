@@ -8,6 +8,7 @@
 #include <cassert>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
@@ -480,8 +481,45 @@ template std::uint32_t Geometry::outside_planes<kPacketSize16>(const Ray*, std::
 
 void offset_ray_origin_to(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w, Vec3f& out) {
   const float d = dot(math::abs(n), p_error);
+  const bool flip = dot(w, n) < 0.0f;
+#if defined(__SSE2__)
+  // The three components at once and without a branch: the scalar form's six data-dependent
+  // branches (the offset's sign, then next_float_up/down's cases) mispredicted; this function
+  // had 3.6 % of whitted10's samples. The same float operations (d * n, an exact negation, one
+  // addition), then next_float_up/down's integer steps chosen by masks, so the same bits.
+  const __m128 sign = _mm_set1_ps(-0.0f);
+  __m128 off = _mm_mul_ps(_mm_setr_ps(n.x, n.y, n.z, 0.0f), _mm_set1_ps(d));
+  if (flip) off = _mm_xor_ps(off, sign);  // -offset
+  const __m128 v = _mm_add_ps(_mm_setr_ps(p.x, p.y, p.z, 0.0f), off);
+  const __m128 zero = _mm_setzero_ps(), inf = _mm_set1_ps(std::numeric_limits<float>::infinity());
+  const __m128i up = _mm_castps_si128(_mm_cmpgt_ps(off, zero));    // next_float_up
+  const __m128i down = _mm_castps_si128(_mm_cmplt_ps(off, zero));  // next_float_down
+  // The lanes that step: not up at +inf, not down at -inf.
+  const __m128i step_lane =
+      _mm_or_si128(_mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, inf)), up),
+                   _mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, _mm_xor_ps(inf, sign))), down));
+  // The step: up, +1 where v >= 0 (+-0 too: it starts from +0), else -1 (NaN too); down, -1
+  // where v > 0, else +1 (+-0 too: it starts from -0). (~m | 1) and (m | 1) are -1 or +1.
+  const __m128i one = _mm_set1_epi32(1), ones = _mm_set1_epi32(-1);
+  const __m128i step_up = _mm_or_si128(_mm_xor_si128(_mm_castps_si128(_mm_cmpge_ps(v, zero)), ones), one);
+  const __m128i step_down = _mm_or_si128(_mm_castps_si128(_mm_cmpgt_ps(v, zero)), one);
+  const __m128i step =
+      _mm_and_si128(step_lane, _mm_or_si128(_mm_and_si128(up, step_up), _mm_andnot_si128(up, step_down)));
+  // The bits stepped from: v's, except a zero that steps starts from +0 up and from -0 down.
+  const __m128i bits = _mm_castps_si128(v);
+  const __m128i from_zero = _mm_and_si128(step_lane, _mm_castps_si128(_mm_cmpeq_ps(v, zero)));
+  const __m128i from = _mm_or_si128(_mm_andnot_si128(from_zero, bits),
+                                    _mm_and_si128(from_zero, _mm_and_si128(down, _mm_castps_si128(sign))));
+  const __m128 o = _mm_castsi128_ps(_mm_add_epi32(from, step));
+  // x and y in one 8-byte store, z in a 4-byte one: the callers copy the origin 8 and 4 bytes at
+  // a time, and an 8-byte load of two 4-byte stores waited for them to retire (16 % of
+  // trace_ahead's samples were on the load after the call).
+  static_assert(sizeof(Vec3f) == 12);
+  _mm_storel_epi64(reinterpret_cast<__m128i*>(&out), _mm_castps_si128(o));
+  _mm_store_ss(&out.z, _mm_shuffle_ps(o, o, _MM_SHUFFLE(2, 2, 2, 2)));
+#else
   Vec3f offset = d * n;
-  if (dot(w, n) < 0.0f) offset = -offset;
+  if (flip) offset = -offset;
   // p + offset, rounded away from p so that the offset survives the rounding. Component by
   // component in registers: a Vec3f indexed in a loop lived on the stack, and its components'
   // 4-byte stores were reloaded 8 bytes at a time (a load that waits for the stores to retire).
@@ -490,12 +528,10 @@ void offset_ray_origin_to(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, 
     if (off < 0.0f) return next_float_down(v);
     return v;
   };
-  const float x = away(p.x + offset.x, offset.x);
-  const float y = away(p.y + offset.y, offset.y);
-  const float z = away(p.z + offset.z, offset.z);
-  out.x = x;
-  out.y = y;
-  out.z = z;
+  out.x = away(p.x + offset.x, offset.x);
+  out.y = away(p.y + offset.y, offset.y);
+  out.z = away(p.z + offset.z, offset.z);
+#endif
 }
 
 Vec3f offset_ray_origin(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, const Vec3f& w) {
