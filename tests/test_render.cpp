@@ -1,10 +1,12 @@
 // Closed-form checks of the Whitted integrator, Fresnel edge cases, determinism of the tiled
 // renderer, and bitwise equality of the packet and the per-pixel paths on every isa.
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <iterator>
+#include <limits>
 #include <numbers>
 #include <optional>
 #include <utility>
@@ -12,6 +14,7 @@
 
 #include <catch2/catch.hpp>
 
+#include "accel/geometry.h"
 #include "math/float_util.h"
 #include "render/integrator.h"
 #include "render/local_render.h"
@@ -738,4 +741,66 @@ TEST_CASE("render_local gives the same image with and without packets", "[render
   REQUIRE(a.image.rgb.size() == b.image.rgb.size());
   REQUIRE(std::memcmp(a.image.rgb.data(), b.image.rgb.data(), a.image.rgb.size() * sizeof(float)) == 0);
   REQUIRE(a.stats.rays == b.stats.rays);
+}
+
+// The packet path computes its shadow-ray origins a component to an array, four entries at a
+// time without branches (render::offset_ray_origins): every entry must get
+// accel::offset_ray_origin's bits, for either sign of the offset and for the special sums (zeros
+// of either sign, infinities, the largest and smallest floats), whatever the count (n up to 13:
+// the last group of four part padding).
+TEST_CASE("offset_ray_origins gives offset_ray_origin's bits entry by entry", "[render][offset]") {
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  const float special[] = {0.0f, -0.0f, 1.0f, -1.0f, kInf, -kInf, 3e38f, -3e38f, 1e-45f, -1e-45f, 1e-38f, -2.5f};
+  const float normals[] = {0.0f, -0.0f, 1.0f, -1.0f, 0.6f, -0.8f};
+  std::uint64_t state = 17;
+  const auto next = [&] {  // splitmix64
+    std::uint64_t z = (state += 0x9e3779b97f4a7c15ull);
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+    return z ^ (z >> 31);
+  };
+  const auto uniform = [&](float a, float b) { return a + (b - a) * float(next() >> 40) * 0x1p-24f; };
+  int checked = 0, stepped = 0;
+  for (int trial = 0; trial < 3000; ++trial) {
+    const int n = 1 + trial % 13;
+    float a[15][16] = {};  // p, e, g, w and o, three components each, up to 16 entries
+    std::vector<Vec3f> ps, es, gs, ws;
+    for (int j = 0; j < n; ++j) {
+      Vec3f p, g, w;
+      for (int c = 0; c < 3; ++c) {
+        const float pc = next() % 3 == 0 ? special[next() % std::size(special)] : uniform(-100.0f, 100.0f);
+        const float gc = next() % 3 == 0 ? normals[next() % std::size(normals)] : uniform(-1.0f, 1.0f);
+        const float wc = uniform(-1.0f, 1.0f);
+        (c == 0 ? p.x : c == 1 ? p.y : p.z) = pc;
+        (c == 0 ? g.x : c == 1 ? g.y : g.z) = gc;
+        (c == 0 ? w.x : c == 1 ? w.y : w.z) = wc;
+      }
+      const float err = next() % 4 == 0 ? 0.0f : uniform(1e-7f, 1e-3f);
+      const Vec3f e{err, err * 0.5f, err * 2.0f};
+      const Vec3f* const vs[4] = {&p, &e, &g, &w};
+      for (int k = 0; k < 4; ++k) {
+        a[3 * k][j] = vs[k]->x, a[3 * k + 1][j] = vs[k]->y, a[3 * k + 2][j] = vs[k]->z;
+      }
+      ps.push_back(p), es.push_back(e), gs.push_back(g), ws.push_back(w);
+    }
+    const float* const p[3] = {a[0], a[1], a[2]};
+    const float* const e[3] = {a[3], a[4], a[5]};
+    const float* const g[3] = {a[6], a[7], a[8]};
+    const float* const w[3] = {a[9], a[10], a[11]};
+    float* const o[3] = {a[12], a[13], a[14]};
+    render::offset_ray_origins(n, p, e, g, w, o);
+    for (int j = 0; j < n; ++j) {
+      const auto sj = static_cast<std::size_t>(j);
+      const Vec3f want = accel::offset_ray_origin(ps[sj], es[sj], gs[sj], ws[sj]);
+      const float wants[3] = {want.x, want.y, want.z};
+      for (int c = 0; c < 3; ++c) {
+        INFO("trial " << trial << " entry " << j << " component " << c);
+        CHECK(std::bit_cast<std::uint32_t>(o[c][j]) == std::bit_cast<std::uint32_t>(wants[c]));
+        ++checked;
+        if (std::bit_cast<std::uint32_t>(wants[c]) != std::bit_cast<std::uint32_t>(p[c][j])) ++stepped;
+      }
+    }
+  }
+  CHECK(checked > 50000);
+  CHECK(stepped > checked / 2);  // most components do step away from p
 }

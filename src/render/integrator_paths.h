@@ -629,6 +629,8 @@ struct PacketLights {
   const MaterialF* mat[kN];
   // The shading points: p, nf and wo, and the origin o of their shadow rays.
   float px[kN], py[kN], pz[kN], fx[kN], fy[kN], fz[kN], wx[kN], wy[kN], wz[kN], ox[kN], oy[kN], oz[kN];
+  // The points' error bounds and geometric normals, for the origins.
+  float ex[kN], ey[kN], ez[kN], gx[kN], gy[kN], gz[kN];
   // Their materials: Lambert's color * (diffuse / pi), and for the entries in spec_mask the
   // specular lobe's factor specular * (shininess + 8) / (8 pi) and its exponent.
   float lam_r[kN], lam_g[kN], lam_b[kN], spec_scale[kN], shininess[kN];
@@ -646,12 +648,9 @@ struct PacketLights {
     mat[j] = &mt;
     px[j] = h.p.x, py[j] = h.p.y, pz[j] = h.p.z;
     fx[j] = nf.x, fy[j] = nf.y, fz[j] = nf.z;
-    // shadow_ray's origin, the same for every light: offset_ray_origin flips the offset where
-    // dot(l, n) < 0, and a light that casts has dot(nf, l) > 0 with nf = +-n (exact negation, the
-    // same products summed in the same order), so dot(l, n) has the sign of dot(nf, n).
-    Vec3f o;
-    accel::offset_ray_origin_to(h.p, h.p_error, h.n, nf, o);
-    ox[j] = o.x, oy[j] = o.y, oz[j] = o.z;
+    // For shadow_ray's origin (pad() computes it).
+    ex[j] = h.p_error.x, ey[j] = h.p_error.y, ez[j] = h.p_error.z;
+    gx[j] = h.n.x, gy[j] = h.n.y, gz[j] = h.n.z;
     wx[j] = wo.x, wy[j] = wo.y, wz[j] = wo.z;
     const float kd = mt.diffuse * kInvPi;  // brdf's first line: color * (diffuse * kInvPi)
     lam_r[j] = mt.color.x * kd, lam_g[j] = mt.color.y * kd, lam_b[j] = mt.color.z * kd;
@@ -664,11 +663,22 @@ struct PacketLights {
 
   // Gives the entries from m up to the next multiple of 4 (add() reads them four at a time) a
   // direction, wo and nf of 0; their results are never used. Once, after the last add_lane.
+  // Then every entry's shadow-ray origin.
   void pad() {
     for (int j = m; j < ((m + 3) & ~3); ++j) {
       lx[j] = ly[j] = lz[j] = wx[j] = wy[j] = wz[j] = fx[j] = fy[j] = fz[j] = 0.0f;
-      px[j] = py[j] = pz[j] = ox[j] = oy[j] = oz[j] = 0.0f;
+      px[j] = py[j] = pz[j] = ex[j] = ey[j] = ez[j] = gx[j] = gy[j] = gz[j] = 0.0f;
     }
+    // shadow_ray's origin, the same for every light: offset_ray_origin flips the offset where
+    // dot(l, n) < 0, and a light that casts has dot(nf, l) > 0 with nf = +-n (exact negation, the
+    // same products summed in the same order), so dot(l, n) has the sign of dot(nf, n): the
+    // origin leaving in direction nf.
+    const float* const p[3] = {px, py, pz};
+    const float* const e[3] = {ex, ey, ez};
+    const float* const g[3] = {gx, gy, gz};
+    const float* const w[3] = {fx, fy, fz};
+    float* const o[3] = {ox, oy, oz};
+    offset_ray_origins(m, p, e, g, w, o);
     // The sums start at 0, four entries to a store (add() loads them four at a time).
 #if defined(__SSE2__)
     for (int j = 0; j < m; j += 4) {

@@ -4,7 +4,13 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
+#include "math/float_util.h"
 #include "math/vec.h"
 
 namespace dtraced::render {
@@ -66,6 +72,66 @@ inline Interface dielectric_interface(const Vec3f& wo, const Vec3f& n, float eta
   out.refracts = true;
   out.wt = refracted_direction(wo, n, eta, f);
   return out;
+}
+
+// accel::offset_ray_origin for entries [0, n) of arrays, a component to an array: the origin
+// o[c][j] of a ray leaving the point p[c][j] (error bound e, geometric normal g) in direction w.
+// With SSE2 four entries at a time, without branches, reading and writing up to n rounded up to a
+// multiple of 4 (the caller gives those entries values: zeros leave o = p); every entry gets
+// offset_ray_origin's bits (the same float operations in the same order, then next_float_up or
+// next_float_down's integer step chosen by masks). For the packet path's shadow-ray origins:
+// called per lane, offset_ray_origin had 4.9 % of whitted10's samples; this took whitted10's
+// process CPU down by 1.1 %.
+inline void offset_ray_origins(int n, const float* const p[3], const float* const e[3], const float* const g[3],
+                               const float* const w[3], float* const o[3]) {
+#if defined(__SSE2__)
+  const __m128 zero = _mm_setzero_ps(), sign = _mm_set1_ps(-0.0f);
+  const __m128 inf = _mm_set1_ps(std::numeric_limits<float>::infinity()), minus_inf = _mm_xor_ps(inf, sign);
+  const __m128i one = _mm_set1_epi32(1), ones = _mm_set1_epi32(-1);
+  for (int j = 0; j < n; j += 4) {
+    const __m128 gx = _mm_loadu_ps(g[0] + j), gy = _mm_loadu_ps(g[1] + j), gz = _mm_loadu_ps(g[2] + j);
+    // d = dot(abs(g), e); the offset d * g, negated where dot(w, g) < 0.
+    const __m128 d = _mm_add_ps(_mm_add_ps(_mm_mul_ps(_mm_andnot_ps(sign, gx), _mm_loadu_ps(e[0] + j)),
+                                           _mm_mul_ps(_mm_andnot_ps(sign, gy), _mm_loadu_ps(e[1] + j))),
+                                _mm_mul_ps(_mm_andnot_ps(sign, gz), _mm_loadu_ps(e[2] + j)));
+    const __m128 wg =
+        _mm_add_ps(_mm_add_ps(_mm_mul_ps(_mm_loadu_ps(w[0] + j), gx), _mm_mul_ps(_mm_loadu_ps(w[1] + j), gy)),
+                   _mm_mul_ps(_mm_loadu_ps(w[2] + j), gz));
+    const __m128 flip = _mm_and_ps(_mm_cmplt_ps(wg, zero), sign);
+    const __m128 gc[3] = {gx, gy, gz};
+    for (int c = 0; c < 3; ++c) {
+      const __m128 off = _mm_xor_ps(_mm_mul_ps(gc[c], d), flip);
+      const __m128 v = _mm_add_ps(_mm_loadu_ps(p[c] + j), off);
+      const __m128i up = _mm_castps_si128(_mm_cmpgt_ps(off, zero));    // next_float_up
+      const __m128i down = _mm_castps_si128(_mm_cmplt_ps(off, zero));  // next_float_down
+      // The entries that step: not up at +inf, not down at -inf.
+      const __m128i step_lane = _mm_or_si128(_mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, inf)), up),
+                                             _mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, minus_inf)), down));
+      // Up: +1 where v >= 0 (+-0 too: it starts from +0), else -1 (NaN too); down: -1 where
+      // v > 0, else +1 (+-0 too: it starts from -0). (~m | 1) and (m | 1) are -1 or +1.
+      const __m128i step_up = _mm_or_si128(_mm_xor_si128(_mm_castps_si128(_mm_cmpge_ps(v, zero)), ones), one);
+      const __m128i step_down = _mm_or_si128(_mm_castps_si128(_mm_cmpgt_ps(v, zero)), one);
+      const __m128i step =
+          _mm_and_si128(step_lane, _mm_or_si128(_mm_and_si128(up, step_up), _mm_andnot_si128(up, step_down)));
+      // The bits stepped from: v's, except a zero that steps starts from +0 up and from -0 down.
+      const __m128i from_zero = _mm_and_si128(step_lane, _mm_castps_si128(_mm_cmpeq_ps(v, zero)));
+      const __m128i from = _mm_or_si128(_mm_andnot_si128(from_zero, _mm_castps_si128(v)),
+                                        _mm_and_si128(from_zero, _mm_and_si128(down, _mm_castps_si128(sign))));
+      _mm_storeu_ps(o[c] + j, _mm_castsi128_ps(_mm_add_epi32(from, step)));
+    }
+  }
+#else
+  for (int j = 0; j < n; ++j) {
+    const float d = std::abs(g[0][j]) * e[0][j] + std::abs(g[1][j]) * e[1][j] + std::abs(g[2][j]) * e[2][j];
+    const bool flip = w[0][j] * g[0][j] + w[1][j] * g[1][j] + w[2][j] * g[2][j] < 0.0f;
+    for (int c = 0; c < 3; ++c) {
+      float off = g[c][j] * d;
+      if (flip) off = -off;
+      const float v = p[c][j] + off;
+      o[c][j] = off > 0.0f ? math::next_float_up(v) : off < 0.0f ? math::next_float_down(v) : v;
+    }
+  }
+#endif
 }
 
 }  // namespace dtraced::render
