@@ -48,10 +48,9 @@
 // from 7.2 to 1.65 per node, yet made 16-ray camera packets 7 % and 8-ray ones 15 % slower. In the first version of
 // the coherent traversal, a scalar loop over the lanes for the largest cull distance at every node (now kept up to
 // date only when a lane's hit improves) and a scalar frustum set-up made it 4 % (camera) and 6 % (shadow) slower than
-// the per-lane one. Prefetching the children a node pushes in the per-lane traversal (the coherent one
-// prefetches every child it enters: prefetch_child), and leaving 16-ray packets at 1 or 3 live lanes (or, in
-// the coherent traversal, 0 or 1) instead of 2: within noise (the coherent traversal now leaves at 1:
-// kSwitchCoherent).
+// the per-lane one. Prefetching the children a node pushes in the per-lane traversal (no prefetch was emitted then: see
+// prefetch_child), and leaving 16-ray packets at 1 or 3 live lanes (or, in the coherent traversal, 0 or 1) instead of
+// 2: within noise (the coherent traversal now leaves at 1: kSwitchCoherent).
 //
 // Tried and dropped (Dec 4, sphere field, avx512, 16-ray camera packets against the same code without the change,
 // processes alternated, 8-10 rounds each, medians of per-round ratios, load average 4-7): in the coherent traversal
@@ -1627,10 +1626,15 @@ inline std::uint32_t lanes_within(float t, const float* cull) {
 }
 
 // Asks for the cache lines of a child some lane enters, as soon as the lane test says so: a node's
-// 4 lines, or a triangle leaf's first block (3 lines). The nearest child is visited next, and its
-// misses then overlap the rest of this node's work (16-ray mesh packets, avx512, alternated in
-// one process, 8 rounds each: camera 1.02-1.05x, shadow 1.06-1.09x; the sphere field 1.01x).
-inline void prefetch_child(const WideBvh& bvh, std::uint32_t ref) {
+// 4 lines, or a triangle leaf's first block (3 lines), so that its misses overlap the rest of this
+// node's work. Forced inline: as a plain inline function GCC 12 deleted every call of it (a
+// function that only calls it compiled to a bare ret), so no prefetch was emitted at all (objdump
+// of this object: 0 prefetcht0), and the figures once measured for it were noise. Emitted, for any-hit packets only
+// (dtraced-bench-rays, avx512, 1 thread, binaries alternated, medians of per-pair ratios, load 4-5): 1M-triangle mesh
+// shadow x16 1.017x (8 pairs, 7 above 1; against rtcOccluded16 in the same runs 0.93-0.97 -> 0.95-1.00), x8 1.002x;
+// sphere field shadow x16 1.001x, x8 0.989x (5 pairs). Nearest-hit packets do not call it: mesh camera x16 0.994x and
+// x8 0.988x (6 pairs; x8 below 1 in all 6), 1.033x / 0.990x in 5 more pairs.
+HWY_INLINE void prefetch_child(const WideBvh& bvh, std::uint32_t ref) {
   if (!(ref & kLeafBit)) {
     const char* q = reinterpret_cast<const char*>(&bvh.nodes[ref]);
     for (int k = 0; k < 4; ++k) __builtin_prefetch(q + 64 * k);
@@ -1677,7 +1681,7 @@ std::uint32_t traverse_coherent(const WideBvh& bvh, Packet<kP>& p, std::uint32_t
         const std::uint32_t bits = child_lanes(node, p, c, mask);
         if (bits == 0) continue;
         EntryC e{node.child[c], bits, t_near[c]};
-        prefetch_child(bvh, e.ref);
+        if (kAnyHit) prefetch_child(bvh, e.ref);
         int j = n++;
         while (!kAnyHit && j > 0 && hit[j - 1].t_near < e.t_near) {
           hit[j] = hit[j - 1];
