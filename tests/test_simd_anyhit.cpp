@@ -88,3 +88,58 @@ TEST_CASE("packet any-hit tests block rays through a mesh's edges and vertices a
     }
   }
 }
+
+// Packets whose lanes share their direction signs but each lie in a plane x, y or z = const (a
+// direction component +0): every axis has a lane with an infinite inverse, so the coherent walk's
+// frustum constrains no axis and passes every slot of a node, empty ones (child kEmptyChild)
+// included; only the lane tests keep the walk out of those. The answers must be the scalar
+// path's, for nearest and any hits, on a field of small triangles (a tree of several levels
+// whose nodes have empty slots).
+TEST_CASE("packets with a zero direction component on every axis walk the tree as the scalar path", "[simd]") {
+  std::vector<Shape> shapes;
+  for (int i = 0; i < 12; ++i) {
+    for (int j = 0; j < 12; ++j) {
+      for (int k = 0; k < 6; ++k) {
+        const Vec3f c{float(i), float(j), float(2 * k) + 0.25f * float((i + j) % 3)};
+        shapes.push_back(triangle(c, c + Vec3f{0.8f, 0.1f, 0.3f}, c + Vec3f{0.2f, 0.9f, -0.4f}));
+      }
+    }
+  }
+  const Geometry ref = Geometry::build(shapes, Isa::kScalar);
+  std::vector<Ray> rays;
+  for (int q = 0; q < 16 * 24; ++q) {
+    const float s = 0.37f * float(q % 16), u = 0.11f * float(q / 16);
+    const Vec3f o{-1.0f + s, -1.0f + u, -2.0f + 0.5f * s};
+    Vec3f d{1.0f + 0.01f * s, 0.7f + 0.02f * u, 0.9f};
+    // Lanes 0-2 of every 4 zero one axis each (+0: the sign stays that of the other lanes).
+    if (q % 4 == 0) d.x = 0.0f;
+    if (q % 4 == 1) d.y = 0.0f;
+    if (q % 4 == 2) d.z = 0.0f;
+    rays.push_back(make_ray(o, d, 0.0f, q % 3 == 0 ? 8.0f : kInf));
+  }
+  for (const Isa isa : supported_isas()) {
+    const Geometry geo = Geometry::build(shapes, isa);
+    int wrong = 0, hits = 0;
+    for (std::size_t base = 0; base + kPacketSize16 <= rays.size(); base += kPacketSize16) {
+      Hit h16[kPacketSize16], h8[kPacketSize16];
+      const std::uint32_t f16 = geo.intersect16(&rays[base], 0xffffu, h16);
+      const std::uint32_t f8 = geo.intersect8(&rays[base], 0xffu, h8) | geo.intersect8(&rays[base + 8], 0xffu, h8 + 8)
+                                                                            << 8;
+      const std::uint32_t b16 = geo.occluded16(&rays[base], 0xffffu);
+      const std::uint32_t b8 = geo.occluded8(&rays[base], 0xffu) | geo.occluded8(&rays[base + 8], 0xffu) << 8;
+      for (int i = 0; i < kPacketSize16; ++i) {
+        Hit want;
+        const bool found = ref.intersect(rays[base + std::size_t(i)], want);
+        hits += found;
+        wrong += found != bool(f16 >> i & 1u) || found != bool(f8 >> i & 1u);
+        if (found && (f16 >> i & 1u)) wrong += h16[i].shape != want.shape || h16[i].t != want.t;
+        if (found && (f8 >> i & 1u)) wrong += h8[i].shape != want.shape || h8[i].t != want.t;
+        const bool blocked = ref.occluded(rays[base + std::size_t(i)]);
+        wrong += blocked != bool(b16 >> i & 1u) || blocked != bool(b8 >> i & 1u);
+      }
+    }
+    INFO("isa " << isa_name(isa) << ", " << rays.size() << " rays, " << hits << " hit");
+    CHECK(hits > 0);
+    CHECK(wrong == 0);
+  }
+}
