@@ -791,7 +791,7 @@ void copy_subtrees(std::deque<Subtree<Node>>& subtrees, const std::vector<std::u
                     [&](std::size_t k) { copy_subtree(subtrees[k].nodes, subtree_at[k], nodes); });
 }
 
-// A subtree whose copy into place runs beside the tree hash: its first node there, its index
+// A subtree whose copy into place runs in the tree hash's loop: its first node there, its index
 // among the subtrees and its node count.
 struct Stitch {
   std::uint32_t at = 0, subtree = 0, size = 0;
@@ -839,6 +839,51 @@ void populate_in_parallel(const void* data, std::size_t bytes, util::ThreadPool&
   (void)bytes;
   (void)pool;
 #endif
+}
+
+// The tree hash (BuildStats::tree_hash): FNV-1a steps over 32-bit words, in pieces of kHashPiece
+// nodes and kHashPiece prim ids (a constant: the same pieces whatever the thread count), each
+// piece's hash folded in order into the tree's. Within a piece each of a node's nine words has a
+// chain of its own (and the ids eight chains, id i in chain i % 8): one chain over every word was
+// bound by the multiply's latency (9.5-10 ms of 1M spheres, the critical path of a 2-thread build
+// after its split), independent chains by its throughput, and the pieces run in parallel. Still a
+// pure function of the tree, and as sensitive: each step is a bijection of its chain's value, so a
+// word that differs changes its chain's value, and then its piece's and the tree's hash but for a
+// 64-bit collision.
+constexpr std::size_t kHashPiece = kChunk;
+constexpr std::uint64_t kFnvBasis = 0xcbf29ce484222325ull;
+inline std::uint64_t fnv_step(std::uint64_t hash, std::uint32_t word) { return (hash ^ word) * 0x100000001b3ull; }
+inline std::uint64_t fnv_fold(std::uint64_t hash, std::uint64_t value) {
+  return fnv_step(fnv_step(hash, std::uint32_t(value)), std::uint32_t(value >> 32));
+}
+
+template <typename Node>
+std::uint64_t hash_nodes(const Node* nodes, std::size_t count) {
+  std::uint64_t chain[9];
+  for (std::uint64_t& c : chain) c = kFnvBasis;
+  for (std::size_t i = 0; i < count; ++i) {
+    const Node& n = nodes[i];
+    for (int k = 0; k < 6; ++k) chain[k] = fnv_step(chain[k], std::bit_cast<std::uint32_t>(n.bounds[k]));
+    chain[6] = fnv_step(chain[6], n.offset);
+    chain[7] = fnv_step(chain[7], n.count);
+    chain[8] = fnv_step(chain[8], n.axis);
+  }
+  std::uint64_t hash = kFnvBasis;
+  for (const std::uint64_t c : chain) hash = fnv_fold(hash, c);
+  return hash;
+}
+
+inline std::uint64_t hash_ids(const std::uint32_t* ids, std::size_t count) {
+  std::uint64_t chain[8];
+  for (std::uint64_t& c : chain) c = kFnvBasis;
+  std::size_t i = 0;
+  for (; i + 8 <= count; i += 8) {
+    for (int k = 0; k < 8; ++k) chain[k] = fnv_step(chain[k], ids[i + k]);
+  }
+  for (; i < count; ++i) chain[i % 8] = fnv_step(chain[i % 8], ids[i]);
+  std::uint64_t hash = kFnvBasis;
+  for (const std::uint64_t c : chain) hash = fnv_fold(hash, c);
+  return hash;
 }
 
 // The shapes again: the tree's spheres from `prims` or, once those are freed, from the wide tree's
@@ -1068,9 +1113,9 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // as it finishes (the prims are still in its cache), instead of in a serial pass over all the
   // prims afterwards (3 ms of 1M spheres on 2 threads while the other thread waited).
   std::vector<std::uint32_t> order(refs.size());
-  // On several threads the tree hash (serial) runs beside the making of the prims and, where the
-  // pool has a second thread to do them, beside the subtrees' copies into place (`stitch`, in
-  // node order; the hash waits for each as it comes to it).
+  // On several threads the tree hash's pieces run in one pool loop with the making of the prims
+  // and, where the pool has a second thread to do them, the subtrees' copies into place (`stitch`,
+  // in node order; a piece of the nodes waits for the copies it reads).
   const bool hash_beside = threads > 1 && refs.size() >= kParallelGrain;
   const bool stitch_beside = hash_beside && pool.size() > 1;
   std::deque<Subtree<Node>> subtrees;
@@ -1129,10 +1174,14 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   g.prims_.reserve(order.size());
   util::advise_huge_pages_for(g.prims_);
   g.prims_.resize(order.size());
-  // FNV-1a over 32-bit words (not bytes: a byte loop cost 15% of a 1M-prim build): the nodes, then
-  // the prims' ids (order[i] is prims_[i].id).
+  // The tree hash's pieces (hash_nodes, hash_ids), folded in order once all are done: node piece k
+  // reads nodes [k kHashPiece, (k + 1) kHashPiece), id piece c the ids of prim chunk c.
+  static_assert(kHashPiece == kChunk, "make_prims hashes the ids of its own chunk");
+  const std::size_t prim_chunks = chunks_of(order.size());
+  const std::size_t node_pieces = (g.nodes_.size() + kHashPiece - 1) / kHashPiece;
+  std::vector<std::uint64_t> node_hash(node_pieces), id_hash(prim_chunks);
   // stitch[k]'s copy: 0 not taken, 1 taken, 2 in place. Whichever thread takes it first copies it:
-  // the hash too, rather than wait for a thread that has not woken yet.
+  // a node piece's hash too, rather than wait for a thread that has not woken yet.
   std::vector<std::atomic<int>> copied(stitch.size());
   const auto copy_stitch = [&](std::size_t k) {
     int untaken = 0;
@@ -1140,32 +1189,17 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     copy_subtree(subtrees[stitch[k].subtree].nodes, stitch[k].at, g.nodes_.data());
     copied[k].store(2, std::memory_order_release);
   };
-  const auto tree_hash = [&g, &order, &stitch, &copied, &copy_stitch] {
-    std::uint64_t hash = 0xcbf29ce484222325ull;
-    const auto mix = [&hash](std::uint32_t word) {
-      hash ^= word;
-      hash *= 0x100000001b3ull;
-    };
-    const auto mix_nodes = [&](std::size_t from, std::size_t to) {
-      for (std::size_t i = from; i < to; ++i) {
-        const Node& n = g.nodes_[i];
-        for (const float b : n.bounds) mix(std::bit_cast<std::uint32_t>(b));
-        mix(n.offset);
-        mix(n.count);
-        mix(n.axis);
-      }
-    };
-    std::size_t done = 0;
-    for (std::size_t k = 0; k < stitch.size(); ++k) {
-      mix_nodes(done, stitch[k].at);
-      copy_stitch(k);
-      while (copied[k].load(std::memory_order_acquire) != 2) std::this_thread::yield();
-      done = std::size_t(stitch[k].at) + stitch[k].size;
-      mix_nodes(stitch[k].at, done);
+  const auto hash_node_piece = [&](std::size_t k) {
+    const std::size_t from = k * kHashPiece, to = std::min(g.nodes_.size(), from + kHashPiece);
+    // The subtrees copied into [from, to) (stitch is in node order) must be in place first.
+    auto s = std::partition_point(stitch.begin(), stitch.end(),
+                                  [from](const Stitch& t) { return std::size_t(t.at) + t.size <= from; });
+    for (; s != stitch.end() && s->at < to; ++s) {
+      const auto j = std::size_t(s - stitch.begin());
+      copy_stitch(j);
+      while (copied[j].load(std::memory_order_acquire) != 2) std::this_thread::yield();
     }
-    mix_nodes(done, g.nodes_.size());
-    for (const std::uint32_t id : order) mix(id);
-    return hash;
+    node_hash[k] = hash_nodes(g.nodes_.data() + from, to - from);
   };
   const auto make_prims = [&](std::size_t c) {
     const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
@@ -1202,26 +1236,27 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
         p.data[5] = s.box.hi.z;
       }
     }
+    id_hash[c] = hash_ids(order.data() + c * kChunk, end - c * kChunk);  // order[i] is prims_[i].id
   };
-  const std::size_t prim_chunks = chunks_of(order.size());
-  std::uint64_t hash = 0;
   if (hash_beside) {
-    // The hash is one serial chain (8 ms for 1M prims): item 0 works it out while the other items
-    // copy the subtrees into place (first, in node order: the hash reads each once it is there)
-    // and make the prims.
-    pool.parallel_for(prim_chunks + 1 + stitch.size(), threads, [&](std::size_t c) {
-      if (c == 0) {
-        hash = tree_hash();
-      } else if (c <= stitch.size()) {
-        copy_stitch(c - 1);
+    // The subtrees' copies into place first (in node order), then the prims with their ids' hashes,
+    // then the nodes' hashes, each of which waits for the copies it reads (taken by earlier items).
+    pool.parallel_for(stitch.size() + prim_chunks + node_pieces, threads, [&](std::size_t c) {
+      if (c < stitch.size()) {
+        copy_stitch(c);
+      } else if (c < stitch.size() + prim_chunks) {
+        make_prims(c - stitch.size());
       } else {
-        make_prims(c - 1 - stitch.size());
+        hash_node_piece(c - stitch.size() - prim_chunks);
       }
     });
   } else {
     for (std::size_t c = 0; c < prim_chunks; ++c) make_prims(c);
-    hash = tree_hash();
+    for (std::size_t k = 0; k < node_pieces; ++k) hash_node_piece(k);
   }
+  std::uint64_t hash = fnv_fold(fnv_fold(kFnvBasis, g.nodes_.size()), order.size());
+  for (const std::uint64_t h : node_hash) hash = fnv_fold(hash, h);
+  for (const std::uint64_t h : id_hash) hash = fnv_fold(hash, h);
   std::vector<std::uint32_t>().swap(order);
   // Until put_back nothing reads shapes_: the collapse reads prims (and shapes only for
   // triangles, which a scene set aside has none of).
