@@ -105,8 +105,8 @@ struct BuildStats {
   std::uint32_t wide_nodes = 0;  // 8-wide nodes after collapsing (SIMD isa only)
   double wide_seconds = 0.0;     // collapsing and packing the leaves (SIMD isa only)
   std::uint32_t outside = 0;     // shapes tested beside the tree: planes and huge shapes
-  // FNV-1a over the binary tree's node array (as 32-bit words) and leaf order: equal hashes, same tree (what the
-  // tests compare between thread counts).
+  // A hash of the binary tree's node array (as 32-bit words) and leaf order, in fixed pieces of independent FNV-1a
+  // chains folded in order (bvh.cpp): equal hashes, same tree (what the tests compare between thread counts).
   std::uint64_t tree_hash = 0;
 };
 
