@@ -60,7 +60,8 @@
 // lane enters skip their lane tests, with the smallest cull distance kept beside the largest: 0.95x; copying a lane's
 // edge functions out only when its best is a triangle (a separate mask for the single-ray ones): 0.98x; prefetching
 // every child the frustum test passes, before the lane tests: 1.00x. For single rays (mesh secondary rays, 16
-// rounds), prefetching every child a node test passes: 1.00-1.02x.
+// rounds), prefetching every child a node test passes: 1.00-1.02x. (These prefetches went through a plain inline
+// helper, which GCC 12 drops in this file: likely not emitted. See prefetch_child, and the emitted ones below.)
 //
 // Tried and dropped (issue 16, round 13): quantised nodes (wide_bvh.h's WideNode) of two cache lines (Embree's
 // compressed node: per axis a float origin and a power-of-two step, 8-bit child planes origin + float(q) * step, each q
@@ -95,14 +96,14 @@
 // times kFarScale and with the cull distance; !(t0 > far) keeps the NaN rule, so the same children): 0.995x, and
 // 0.996x / 1.008x in coarser runs. Prefetching a node's child-reference line (the one its plane loads do not touch)
 // as it is entered: 1.00x. Prefetching the stack top's lines when a leaf is entered: 0.988x; with the node test
-// above: 0.994x. triangles1 skipping the error bound when no lane's t lies in (t_min, best_t] (the same answers: such
-// lanes could not win): 1.008x / 1.000x (both orders). For 16-ray camera packets, a shared origin's vertex
-// differences taken once per triangle in scalar (same bits): 1.000x / 0.986x (200 rounds each order). Not built: a
-// leaf without the edge functions (stored only when a lane passes the edge test; those stores hold 0.01 % of
-// triangles1's samples) and a smaller stack entry (already 8 bytes). Where a secondary ray's time goes (perf,
-// 2999 Hz): traverse1 54 % (10 % on a node's first load, 5 % on the branch taken when no child is hit), triangles1
-// 19 % (22 % of it on the block's first load), Geometry::intersect's ray set-up 6 %: waiting on memory and branches,
-// not the node test's arithmetic.
+// above: 0.994x. (Neither prefetch was emitted: see prefetch_child; redone with emitted prefetches below.) triangles1
+// skipping the error bound when no lane's t lies in (t_min, best_t] (the same answers: such lanes could not
+// win): 1.008x / 1.000x (both orders). For 16-ray camera packets, a shared origin's vertex differences taken once per
+// triangle in scalar (same bits): 1.000x / 0.986x (200 rounds each order). Not built: a leaf without the edge functions
+// (stored only when a lane passes the edge test; those stores hold 0.01 % of triangles1's samples) and a smaller stack
+// entry (already 8 bytes). Where a secondary ray's time goes (perf, 2999 Hz): traverse1 54 % (10 % on a node's first
+// load, 5 % on the branch taken when no child is hit), triangles1 19 % (22 % of it on the block's first load),
+// Geometry::intersect's ray set-up 6 %: waiting on memory and branches, not the node test's arithmetic.
 //
 // Issue 16, round 16 (the tree the mesh walks; nothing kept). Counted with temporary counters in these kernels, the
 // 1M-triangle mesh (dtraced-bench-rays, avx512, tree of bvh.cpp's constants: kBins 32, kTraversalCost 0.5,
@@ -153,6 +154,20 @@
 // vector. Where a secondary ray's time goes on the Intel host (perf, cpu-clock, --rays secondary): traverse1 75 % of
 // the kernel's samples, triangles1 25 %; in traverse1 the first load of a node's planes about 14 %, the load of the
 // child reference after the test 5 %, in triangles1 the block's first load 14 % and the error bound's division 13 %.
+//
+// Issue 16 (single rays, prefetches that are emitted; nothing kept). The single-ray prefetches above redone with
+// prefetch_child (forced inline; objdump of this object: 72 prefetch instructions before, 252 with the first variant).
+// dtraced-bench-rays --rays secondary, avx512, 1 thread, --no-embree, base and variant binaries alternated, medians of
+// per-pair ratios, load average 3-4, 0 disagreements on every path. prefetch_child on every child traverse1 pushes (a
+// node's 4 lines, a leaf's block; so the stack top when a leaf is entered, and earlier), in all its callers:
+// 1M-triangle mesh 1.010x and 1.017x (6 + 6 pairs), sphere field 0.999x (6 pairs); mesh 16-ray camera packets, whose
+// lanes may finish as single rays, 0.994x, 8-ray 0.988x, 16-ray shadow 0.997x. The same for Intersect1 and Occluded1
+// only: mesh 1.014x (12 pairs, 8 above 1), sphere field 0.992x (6 pairs). A pushed node's 4 lines only (no leaf block):
+// mesh 1.009x, then 1.000x (6 + 8 pairs), sphere field 1.004x, then 0.992x. Adding a prefetch of the entered node's
+// child-reference line to the push prefetch: 0.985x against it (6 pairs). All within the pairs' noise. Our reading (not
+// counted): a pushed child has rarely left the cache by the time it is popped, and the misses perf sees lie on the
+// dependent chain node planes -> test -> child reference -> next node (66 % of node tests hit one child, entered at
+// once), which a prefetch cannot start any earlier.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
