@@ -114,13 +114,29 @@ struct LightSample {
 // refracted ray its tracer will cast): whether and where it hits, the point-light direct light
 // there when the shadow rays went as packets, and the same for the mirror and refracted rays that
 // hit spawns. A nullptr child (and has_direct false) leaves that part to the tracer.
+// `hit` and `direct` are left unset until trace_ahead writes them (each is read only when its flag
+// says so): zeroing them in every record was part of the records' construction, about 23 % of
+// trace_packet_with's own time on whitted10.
 struct Known {
   explicit Known(const math::Ray& r) : ray(r) {}
+  // A secondary ray, its direction only (trace_ahead finds its origin), written component by
+  // component where it stays: a ray built whole on the stack and then copied in made the copy's
+  // wide loads wait for the narrow stores that built the direction (30 % of trace_packet_with's own
+  // time on whitted10; with the records' construction trimmed, its process CPU went down 1.8 %).
+  explicit Known(const Vec3f& d) {
+    ray.d.x = d.x;
+    ray.d.y = d.y;
+    ray.d.z = d.z;
+  }
   math::Ray ray;       // the ray itself, as trace() would spawn it (a secondary ray's tracer takes it)
   bool found = false;  // the ray hits; `hit` is its nearest hit
   bool has_direct = false;
-  accel::Hit hit;
-  Vec3f direct;  // the point lights' sum (Tracer::point_direct) at the hit, when has_direct
+  union {
+    accel::Hit hit;  // set when found
+  };
+  union {
+    Vec3f direct;  // the point lights' sum (Tracer::point_direct) at the hit, when has_direct
+  };
   const Known* mirror = nullptr;
   const Known* refracted = nullptr;
 };
@@ -566,13 +582,36 @@ std::uint32_t occluded_packet(const accel::LayeredGeometry& geometry, const math
 // (nullptr for a camera ray), cleared when the ray is left to the tracer after all.
 // A secondary ray's origin is found (Tracer::spawn) only once the ray goes into a packet: until
 // then `from` is the hit it leaves and known.ray.d its direction.
+// The media are a pointer: the camera rays share the packet's camera media and a mirror ray those
+// of its parent, so only a refracted ray, which goes into a medium, has its own copy (`inside`),
+// left unset otherwise (copying the 68-byte stack into every record was the other part of their
+// construction's cost).
 struct Ahead {
+  // `r`: the camera ray, or a secondary ray's direction (see Known).
+  template <typename R>
+  Ahead(const R& r, const accel::Hit* from_hit, const MediumStack* ray_media, std::uint32_t ray_depth, float ray_weight,
+        const Known** parent_link)
+      : known(r), from(from_hit), media(ray_media), depth(ray_depth), weight(ray_weight), link(parent_link) {}
+  Ahead(const Vec3f& r, const accel::Hit* from_hit, const MediumStack& own_media, std::uint32_t ray_depth,
+        float ray_weight, const Known** parent_link)
+      : known(r),
+        from(from_hit),
+        media(&inside),
+        depth(ray_depth),
+        weight(ray_weight),
+        link(parent_link),
+        inside(own_media) {}
+  Ahead(const Ahead&) = delete;
+  Ahead& operator=(const Ahead&) = delete;
   Known known;
   const accel::Hit* from;
-  MediumStack media;
+  const MediumStack* media;  // the media the ray travels in
   std::uint32_t depth;
   float weight;
   const Known** link;
+  union {
+    MediumStack inside;  // a refracted ray's media (then `media` points here)
+  };
 };
 
 // Room for up to N objects of type T, constructed one by one as they are needed (a packet's
@@ -1028,7 +1067,7 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
     for (std::uint32_t s = walking; s != 0; s &= s - 1) {
       const int j = std::countr_zero(s);
       // The hit is seen from the media its ray travels in, as Tracer::trace has it.
-      media[j] = ahead[pl.lane[j]]->media;
+      media[j] = *ahead[pl.lane[j]]->media;
       vis[j] = 1.0f;
     }
     for (int crossing = 0; walking != 0; ++crossing) {
@@ -1091,7 +1130,7 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
   int count = 0;
   for (int i = 0; i < kN; ++i) {
     if (!(valid >> i & 1u)) continue;
-    Ahead* a = pool.emplace(Known{rays[i]}, nullptr, camera_media, 0u, 1.0f, nullptr);
+    Ahead* a = pool.emplace(rays[i], nullptr, &camera_media, 0u, 1.0f, nullptr);
     lane_known[i] = &a->known;
     level[count++] = a;
   }
@@ -1130,18 +1169,16 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
       const MaterialF& m = scene.material(k.hit.shape);
       const Vec3f wo = -k.ray.d;
       const Vec3f nf = math::dot(wo, k.hit.n) >= 0.0f ? k.hit.n : -k.hit.n;
-      const typename T::Branches b = tracer.branches(k.hit, m, wo, nf, a.depth, a.weight, a.media);
+      const typename T::Branches b = tracer.branches(k.hit, m, wo, nf, a.depth, a.weight, *a.media);
       if (b.mirror && !pool.full()) {
-        math::Ray r;
-        r.d = T::mirror_direction(k.ray, nf);
-        Ahead* c = pool.emplace(Known{r}, &k.hit, a.media, a.depth + 1, b.mirror_weight, &k.mirror);
+        Ahead* c =
+            pool.emplace(T::mirror_direction(k.ray, nf), &k.hit, a.media, a.depth + 1, b.mirror_weight, &k.mirror);
         k.mirror = &c->known;
         mirrors[nm++] = c;
       }
       if (b.refract && !pool.full()) {
-        math::Ray r;
-        r.d = refracted_direction(wo, nf, b.eta, b.it);
-        Ahead* c = pool.emplace(Known{r}, &k.hit, b.inside, a.depth + 1, b.refract_weight, &k.refracted);
+        Ahead* c = pool.emplace(refracted_direction(wo, nf, b.eta, b.it), &k.hit, b.inside, a.depth + 1,
+                                b.refract_weight, &k.refracted);
         k.refracted = &c->known;
         refracts[nr++] = c;
       }
