@@ -8,7 +8,6 @@
 #include <cassert>
 #include <cmath>
 #include <cstdint>
-#include <limits>
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
@@ -491,26 +490,7 @@ void offset_ray_origin_to(const Vec3f& p, const Vec3f& p_error, const Vec3f& n, 
   __m128 off = _mm_mul_ps(_mm_setr_ps(n.x, n.y, n.z, 0.0f), _mm_set1_ps(d));
   if (flip) off = _mm_xor_ps(off, sign);  // -offset
   const __m128 v = _mm_add_ps(_mm_setr_ps(p.x, p.y, p.z, 0.0f), off);
-  const __m128 zero = _mm_setzero_ps(), inf = _mm_set1_ps(std::numeric_limits<float>::infinity());
-  const __m128i up = _mm_castps_si128(_mm_cmpgt_ps(off, zero));    // next_float_up
-  const __m128i down = _mm_castps_si128(_mm_cmplt_ps(off, zero));  // next_float_down
-  // The lanes that step: not up at +inf, not down at -inf.
-  const __m128i step_lane =
-      _mm_or_si128(_mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, inf)), up),
-                   _mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, _mm_xor_ps(inf, sign))), down));
-  // The step: up, +1 where v >= 0 (+-0 too: it starts from +0), else -1 (NaN too); down, -1
-  // where v > 0, else +1 (+-0 too: it starts from -0). (~m | 1) and (m | 1) are -1 or +1.
-  const __m128i one = _mm_set1_epi32(1), ones = _mm_set1_epi32(-1);
-  const __m128i step_up = _mm_or_si128(_mm_xor_si128(_mm_castps_si128(_mm_cmpge_ps(v, zero)), ones), one);
-  const __m128i step_down = _mm_or_si128(_mm_castps_si128(_mm_cmpgt_ps(v, zero)), one);
-  const __m128i step =
-      _mm_and_si128(step_lane, _mm_or_si128(_mm_and_si128(up, step_up), _mm_andnot_si128(up, step_down)));
-  // The bits stepped from: v's, except a zero that steps starts from +0 up and from -0 down.
-  const __m128i bits = _mm_castps_si128(v);
-  const __m128i from_zero = _mm_and_si128(step_lane, _mm_castps_si128(_mm_cmpeq_ps(v, zero)));
-  const __m128i from = _mm_or_si128(_mm_andnot_si128(from_zero, bits),
-                                    _mm_and_si128(from_zero, _mm_and_si128(down, _mm_castps_si128(sign))));
-  const __m128 o = _mm_castsi128_ps(_mm_add_epi32(from, step));
+  const __m128 o = math::step_away4(v, off);
   // x and y in one 8-byte store, z in a 4-byte one: the callers copy the origin 8 and 4 bytes at
   // a time, and an 8-byte load of two 4-byte stores waited for them to retire (16 % of
   // trace_ahead's samples were on the load after the call).

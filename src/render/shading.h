@@ -4,7 +4,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
@@ -86,8 +85,6 @@ inline void offset_ray_origins(int n, const float* const p[3], const float* cons
                                const float* const w[3], float* const o[3]) {
 #if defined(__SSE2__)
   const __m128 zero = _mm_setzero_ps(), sign = _mm_set1_ps(-0.0f);
-  const __m128 inf = _mm_set1_ps(std::numeric_limits<float>::infinity()), minus_inf = _mm_xor_ps(inf, sign);
-  const __m128i one = _mm_set1_epi32(1), ones = _mm_set1_epi32(-1);
   for (int j = 0; j < n; j += 4) {
     const __m128 gx = _mm_loadu_ps(g[0] + j), gy = _mm_loadu_ps(g[1] + j), gz = _mm_loadu_ps(g[2] + j);
     // d = dot(abs(g), e); the offset d * g, negated where dot(w, g) < 0.
@@ -102,22 +99,7 @@ inline void offset_ray_origins(int n, const float* const p[3], const float* cons
     for (int c = 0; c < 3; ++c) {
       const __m128 off = _mm_xor_ps(_mm_mul_ps(gc[c], d), flip);
       const __m128 v = _mm_add_ps(_mm_loadu_ps(p[c] + j), off);
-      const __m128i up = _mm_castps_si128(_mm_cmpgt_ps(off, zero));    // next_float_up
-      const __m128i down = _mm_castps_si128(_mm_cmplt_ps(off, zero));  // next_float_down
-      // The entries that step: not up at +inf, not down at -inf.
-      const __m128i step_lane = _mm_or_si128(_mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, inf)), up),
-                                             _mm_andnot_si128(_mm_castps_si128(_mm_cmpeq_ps(v, minus_inf)), down));
-      // Up: +1 where v >= 0 (+-0 too: it starts from +0), else -1 (NaN too); down: -1 where
-      // v > 0, else +1 (+-0 too: it starts from -0). (~m | 1) and (m | 1) are -1 or +1.
-      const __m128i step_up = _mm_or_si128(_mm_xor_si128(_mm_castps_si128(_mm_cmpge_ps(v, zero)), ones), one);
-      const __m128i step_down = _mm_or_si128(_mm_castps_si128(_mm_cmpgt_ps(v, zero)), one);
-      const __m128i step =
-          _mm_and_si128(step_lane, _mm_or_si128(_mm_and_si128(up, step_up), _mm_andnot_si128(up, step_down)));
-      // The bits stepped from: v's, except a zero that steps starts from +0 up and from -0 down.
-      const __m128i from_zero = _mm_and_si128(step_lane, _mm_castps_si128(_mm_cmpeq_ps(v, zero)));
-      const __m128i from = _mm_or_si128(_mm_andnot_si128(from_zero, _mm_castps_si128(v)),
-                                        _mm_and_si128(from_zero, _mm_and_si128(down, _mm_castps_si128(sign))));
-      _mm_storeu_ps(o[c] + j, _mm_castsi128_ps(_mm_add_epi32(from, step)));
+      _mm_storeu_ps(o[c] + j, math::step_away4(v, off));
     }
   }
 #else
