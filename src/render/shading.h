@@ -9,6 +9,7 @@
 #include <emmintrin.h>
 #endif
 
+#include "accel/geometry.h"
 #include "math/float_util.h"
 #include "math/vec.h"
 
@@ -104,14 +105,12 @@ inline void offset_ray_origins(int n, const float* const p[3], const float* cons
   }
 #else
   for (int j = 0; j < n; ++j) {
-    const float d = std::abs(g[0][j]) * e[0][j] + std::abs(g[1][j]) * e[1][j] + std::abs(g[2][j]) * e[2][j];
-    const bool flip = w[0][j] * g[0][j] + w[1][j] * g[1][j] + w[2][j] * g[2][j] < 0.0f;
-    for (int c = 0; c < 3; ++c) {
-      float off = g[c][j] * d;
-      if (flip) off = -off;
-      const float v = p[c][j] + off;
-      o[c][j] = off > 0.0f ? math::next_float_up(v) : off < 0.0f ? math::next_float_down(v) : v;
-    }
+    Vec3f origin;
+    accel::offset_ray_origin_to(Vec3f{p[0][j], p[1][j], p[2][j]}, Vec3f{e[0][j], e[1][j], e[2][j]},
+                                Vec3f{g[0][j], g[1][j], g[2][j]}, Vec3f{w[0][j], w[1][j], w[2][j]}, origin);
+    o[0][j] = origin.x;
+    o[1][j] = origin.y;
+    o[2][j] = origin.z;
   }
 #endif
 }
