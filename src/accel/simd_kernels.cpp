@@ -109,21 +109,21 @@
 // 1M-triangle mesh (dtraced-bench-rays, avx512, tree of bvh.cpp's constants: kBins 32, kTraversalCost 0.5,
 // kSimdLeafSlope 0.3, kMaxLeafSize 4): per secondary ray 9.06 wide nodes, 2.04 leaves, 7.1 triangles; per 16-ray camera
 // packet 8.2 nodes (the coherent walk's and its single-ray lanes'), 0.35 leaves, 1.1 triangles; per 16-ray shadow
-// packet 9.9 nodes, 0.70 leaves, 2.3 triangles (leaves and triangles tested by the packet's vector code only;
-// counting every leaf any lane enters, a later count of the same tree found 7.3 nodes, 2.64 leaves and 8.9 triangle
-// tests per camera packet, 8.6 / 3.3 / 11.3 per shadow packet: docs/figures.md, Kernels). The wide tree holds 4.1
-// children a node (108,163 nodes, 337,571 leaves); its SAH (root area 1, per node / block / triangle) 31.9 / 16.0
-// / 52.9. Packets pay for nodes, not leaves. Tree variants against it (same bits: nearest by t, ties by id):
-// kTraversalCost 0.25 or 1 alone moves the counts by under 1 % (leaves of up to 4 prims are what the SAH takes anyway).
-// kMaxLeafSize 8 (two blocks a leaf, which the collapse and kernels handle) cuts nodes per secondary ray to 8.4 and per
-// camera packet to 7.3, but triangles per secondary ray rise to 12.7 (3.64 blocks); Embree's weights (traversal 1,
-// leaves and children costed by blocks of 4, up to 16 prims a leaf; needs the split sweeps' counts in blocks) give
-// packets the same counts as kMaxLeafSize 8. Measured, old and new trees alternated in separate processes (6 pairs,
-// --runs 5, load average 11-13): kTraversalCost 1.5 with kMaxLeafSize 8 gave 16-ray camera 1.007x, 16-ray
-// shadow 1.010x, 8-ray camera 0.978x, secondary 0.963x (ratios to Embree in the same runs: camera x16 0.761 -> 0.762,
-// shadow x16 0.852 -> 0.848, secondary 0.744 -> 0.715), the mesh build 0.81 -> 0.66 s; kTraversalCost 1 with
-// kMaxLeafSize 8 (4 pairs, load 11-12) 16-ray 1.05x, secondary 0.96x. Fewer nodes at the price of more triangles is a
-// wash for packets and a loss for single rays: the tree is not the gap to Embree.
+// packet 9.9 nodes, 0.70 leaves, 2.3 triangles (leaves and triangles tested by the packet's vector code only; counting
+// every leaf any lane enters, a later count of the same tree found 7.3 nodes, 2.64 leaves and 8.9 triangle tests per
+// camera packet, 8.6 / 3.3 / 11.3 per shadow packet: docs/figures.md, Kernels). The wide tree then held 4.1 children a
+// node (108,163 nodes, 337,571 leaves; the SAH collapse has since made it 67,543 nodes); its SAH (root area 1, per node
+// / block / triangle) 31.9 / 16.0 / 52.9. Packets pay for nodes, not leaves. Tree variants against it (same bits:
+// nearest by t, ties by id): kTraversalCost 0.25 or 1 alone moves the counts by under 1 % (leaves of up to 4 prims are
+// what the SAH takes anyway). kMaxLeafSize 8 (two blocks a leaf, which the collapse and kernels handle) cuts nodes per
+// secondary ray to 8.4 and per camera packet to 7.3, but triangles per secondary ray rise to 12.7 (3.64 blocks);
+// Embree's weights (traversal 1, leaves and children costed by blocks of 4, up to 16 prims a leaf; needs the split
+// sweeps' counts in blocks) give packets the same counts as kMaxLeafSize 8. Measured, old and new trees alternated in
+// separate processes (6 pairs, --runs 5, load average 11-13): kTraversalCost 1.5 with kMaxLeafSize 8 gave 16-ray camera
+// 1.007x, 16-ray shadow 1.010x, 8-ray camera 0.978x, secondary 0.963x (ratios to Embree in the same runs: camera x16
+// 0.761 -> 0.762, shadow x16 0.852 -> 0.848, secondary 0.744 -> 0.715), the mesh build 0.81 -> 0.66 s; kTraversalCost 1
+// with kMaxLeafSize 8 (4 pairs, load 11-12) 16-ray 1.05x, secondary 0.96x. Fewer nodes at the price of more triangles
+// is a wash for packets and a loss for single rays: the tree is not the gap to Embree.
 //
 // Issue 16, round 17 (single rays). Single points at the caller's RayPre instead of copying it: the copy was a 64-byte
 // load over the scalar stores precompute() had just made (not forwardable: it waits for them to reach the cache)
@@ -136,12 +136,12 @@
 // 0.983-1.003x each, 0.987-1.011x together, within the noise of a null A/B (0.995-1.003). Counted on the mesh: of a
 // secondary ray's node tests 11.4 % hit no child, 65.9 % one, 17.4 % two and 5.4 % three or more, so the order of
 // hit children is rarely worth more than one comparison. Embree's own statistics (device config verbose=2) for the
-// same 1M triangles: 60,646 wide nodes 65 % full and 255,262 leaves, against our 108,163 nodes (4.1 children, about
-// half full) and 337,571 leaves at 3.08 triangles a block; at 104k triangles 6,426 against 9,111 nodes, and the ratio
-// to rtcIntersect1 is the same there (0.72) as at 1M, so the gap is the number of nodes and leaves a ray visits, not
-// cache misses. Then the single-ray stack as two arrays of words instead of 8-byte entries (the pop's 8-byte load
-// could not be forwarded from the push's two 4-byte stores; see traverse1): mesh secondary rays 1.012x / 1.046x, the
-// 104k-triangle mesh 1.028x, sphere field 1.023x, single shadow rays 1.008x.
+// same 1M triangles: 60,646 wide nodes 65 % full and 255,262 leaves, against our 108,163 nodes then (4.1 children,
+// about half full; 67,543 since the SAH collapse) and 337,571 leaves at 3.08 triangles a block; at 104k triangles 6,426
+// against 9,111 nodes, and the ratio to rtcIntersect1 is the same there (0.72) as at 1M, so the gap is the number of
+// nodes and leaves a ray visits, not cache misses. Then the single-ray stack as two arrays of words instead of 8-byte
+// entries (the pop's 8-byte load could not be forwarded from the push's two 4-byte stores; see traverse1): mesh
+// secondary rays 1.012x / 1.046x, the 104k-triangle mesh 1.028x, sphere field 1.023x, single shadow rays 1.008x.
 //
 // Any-hit packets take their blocked lanes from the triangle test itself (blocked_lanes, figures there). Tried and
 // dropped beside it (1M-triangle mesh, dtraced-bench-rays, avx512, 1 thread, binaries alternated, 5 pairs, medians of
@@ -168,6 +168,21 @@
 // counted): a pushed child has rarely left the cache by the time it is popped, and the misses perf sees lie on the
 // dependent chain node planes -> test -> child reference -> next node (66 % of node tests hit one child, entered at
 // once), which a prefetch cannot start any earlier.
+//
+// Issue 16 (single rays walked several at once; nothing kept). traverse1's loop cut into steps (a node test with its
+// choice of child, or a leaf test and a pop) over a state per ray (NodeRay1, stack, cull distance), and K lanes of a
+// packet stepped round-robin from the root, each with traverse1's visits and answer (0 disagreements). In one process
+// on the 1M-triangle mesh's secondary rays in their packets (dtraced-bench-rays, avx512, 1 thread, variants
+// alternated, 20 rounds, medians of per-round ratios, load 1-2), against the same lanes walked by traverse1 one after
+// another behind the same packet set-up: K = 16 1.048x and 1.032x, K = 8 1.024x, K = 4 1.008x, K = 2 0.99x; two or
+// four steps per ray per turn (K = 16) 0.987x / 0.944x; a prefetch of the node or leaf a step moves to (used K - 1
+// steps later) 0.95-0.99x. Sphere field, K = 16: 1.09x. Setting a packet's lanes up as single rays costs 12 % over
+// Geometry::intersect's own set-up, so the walk would not even beat single rays. The per-lane packet walk (traverse8)
+// on the same packets beats all of it: per ray against traverse1 one ray at a time, mesh 1.19x (8-ray packets) and
+// 1.37x (16), sphere field 1.38x / 1.68x (the bench's secondary rays leave neighbouring pixels' hits and share the
+// upper part of their walks). Our reading (not counted): every step ends in data-dependent branches (children hit,
+// node or leaf, pop), and a mispredicted one discards the other rays' steps issued after it, so little of one ray's
+// latency overlaps another's; the tree's 17 MB of nodes stay in this host's caches.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
