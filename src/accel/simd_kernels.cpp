@@ -183,6 +183,16 @@
 // upper part of their walks). Our reading (not counted): every step ends in data-dependent branches (children hit,
 // node or leaf, pop), and a mispredicted one discards the other rays' steps issued after it, so little of one ray's
 // latency overlaps another's; the tree's 17 MB of nodes stay in this host's caches.
+//
+// Issue 16 (packets; nothing kept). 1M-triangle mesh, dtraced-bench-rays, avx512, 1 thread, --no-embree, base and
+// variant binaries alternated, 6 pairs (4 for kSwitch), medians of per-pair ratios, load 1.2-1.7; a null pair (two
+// builds of the same kernel) gave 0.965-1.028 per pair, median 1.011. Coherent any-hit walk, shadow x16: the frustum
+// made again over the lanes still unblocked whenever a leaf blocks some (and the cull bound with it) 0.995x; hit
+// children visited nearest first 0.984x, farthest first 0.985x, in node order (first slot first) 0.989x;
+// kSwitchCoherent 2 for any-hit 0.983x; no lane test for inner children (the frustum alone; leaves keep theirs) 0.63x,
+// none at all 0.32x. The per-lane walk (traverse8) on the secondary rays in packets, x16 / x8: kSwitch 1 1.013x /
+// 1.017x, 3 0.961x / 0.981x, 4 0.988x / 0.971x, 6 0.921x / 0.892x; prefetch_child on every child a lane enters 1.011x
+// / 0.976x.
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "simd_kernels.cpp"
 #include <algorithm>
