@@ -965,6 +965,10 @@ inline constexpr int kAheadPerLane = 16;
 // Secondary rays go as a packet only this many or more at a time; fewer are left to the lanes'
 // tracers (a packet costs about the same however few of its lanes are live).
 inline constexpr int kMinAheadRays = 4;
+// The same where the scene has a tree, whose packet walk pays only for fuller packets: half of a
+// 16-ray packet (on scenes/mesh.json, AVX-512, 1 thread, render phase against camera rays only:
+// 1.11x at 8, 1.10x at 6 and 12, 1.09x at 4; 10-12 pairs each; on AVX2, 4 against 8: 0.99x).
+inline constexpr int kMinTreeAheadRays = 8;
 
 // Whether every query tests each shape directly (a scene of under 64 shapes has no tree; see
 // accel::Geometry::build): a packet then costs the same whichever way its rays go.
@@ -1126,6 +1130,15 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
   T tracer{scene, limits, stats};
   const MediumStack camera_media = tracer.camera_media();
   const bool flat = flat_geometry(scene.geometry());
+  // Secondary levels go as packets where there is no tree, and in a scene with one on the 16-ray
+  // path (AVX2 and AVX-512). Measured against camera rays only, render phase, 1 thread, median of
+  // per-pair ratios: scenes/mesh.json 1.11x on AVX-512 (12 pairs), 1.05x on AVX2 (8); the
+  // 10,000-sphere field 1.01x and 1.02x (9 and 6). The 8-ray path (SSE4) lost 1.5-2.5 % on
+  // scenes/mesh.json, so it leaves them to the lanes' tracers. Stopping after the first bounce
+  // gave 1.06-1.08x; grouping a level's rays by direction octant first, against this: 1.00x on
+  // scenes/mesh.json, 0.96x on the sphere field (-s 16 adaptive).
+  const bool ahead_levels = flat || kN == accel::kPacketSize16;
+  const int min_secondary = flat ? kMinAheadRays : kMinTreeAheadRays;
   constexpr int kCapacity = kN * kAheadPerLane;
 
   Slots<Ahead, kCapacity> pool;
@@ -1142,16 +1155,13 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
     level[count++] = a;
   }
   while (count > 0) {
-    // Packets of the level's rays: the camera rays always; secondary rays only where there is no
-    // tree (measured: in a scene with one, a packet's reflections and refractions part ways,
-    // and even grouped by direction octant they rarely fill a packet and cost more than they
-    // save), and then only when enough of them go together. The rest are left to the lanes'
-    // tracers.
+    // Packets of the level's rays: the camera rays always; secondary rays (see ahead_levels) only
+    // when enough of them go together. The rest are left to the lanes' tracers.
     int kept = 0;
     for (int j = 0; j < count;) {
       const int end = std::min(count, j + kN);
       const int n = end - j;
-      if (level[j]->depth > 0 && n < kMinAheadRays) {
+      if (level[j]->depth > 0 && n < min_secondary) {
         for (int r = j; r < end; ++r) *level[r]->link = nullptr;
       } else {
         trace_ahead<kF, kN>(tracer, level + j, n);
@@ -1161,7 +1171,7 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
       j = end;
     }
     count = kept;
-    if (!flat) break;
+    if (!ahead_levels) break;
 
     // The rays the hits cast, mirror rays first, then refracted ones: rays of one kind together.
     int nm = 0, nr = 0;
