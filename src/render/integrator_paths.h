@@ -185,10 +185,11 @@ struct Tracer {
     return transmittance_walk(ray, media);
   }
 
-  // The crossings of a shadow ray through transparent surfaces, one scalar query at a time: from
-  // crossing `first` on, `t` having passed the ones before (the packet path hands over there).
-  float transmittance_walk(math::Ray ray, MediumStack media, float t = 1.0f, int first = 0) {
-    for (int crossing = first; crossing < kMaxShadowCrossings; ++crossing) {
+  // The crossings of a shadow ray through transparent surfaces, one scalar query at a time (the
+  // packet path walks the same crossings as packets: trace_ahead).
+  float transmittance_walk(math::Ray ray, MediumStack media) {
+    float t = 1.0f;
+    for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
       accel::Hit hit;
       if (!intersect(ray, hit)) return t;
       if (!shadow_crossing(hit, ray, media, t)) return 0.0f;
@@ -982,17 +983,22 @@ inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
 // Traces n <= kN rays ahead as one packet, filling their Known records: the nearest hits, then the
 // hits' shadow rays towards each point light as packets, one per light: occluded8 when the scene
 // is opaque (a pure any-hit query); with transparent objects, Tracer::transmittance_walk crossing
-// by crossing, each crossing's nearest hits as one intersect8 of the lanes still walking where
-// there is no tree (on whitted10, shadow rays through its glass spheres cross 2-4 surfaces); with
-// a tree, after the first crossing, lane by lane (measured: the few lanes that go on through a
-// 10,000-sphere field's glass cost more as packets than one by one). Area lights are left to the
-// lanes' tracers, which add them after this sum as the scalar path does.
+// by crossing, each crossing's nearest hits as one packet query of the lanes still walking (on
+// whitted10, shadow rays through its glass spheres cross 2-4 surfaces). With a tree too: walking
+// the lanes that go on after the first crossing one by one instead was measured slower on
+// scenes/mesh.json, whose glass sphere is a mesh (render phase, 1 thread, AVX-512: 1.036x, 1.051x
+// and 1.039x in three runs of 8-10 pairs; 2 threads 1.073x and 0.975x; SSE4 1.00x-1.02x), and
+// no faster on a 10,000-sphere field's glass (1.02x-1.05x AVX-512, 0.95x-1.03x SSE4). Nearest-hit
+// queries are kept for every shadow ray here: an any-hit query first (taking the walk only for
+// the rays it finds blocked) was measured slower on scenes/mesh.json (0.89x-0.92x, 8 pairs per
+// isa and thread count), as 17 % of its shadow rays are blocked and pay both queries while a ray
+// nothing blocks costs the same either way. Area lights are left to the lanes' tracers, which add
+// them after this sum as the scalar path does.
 template <unsigned kF, int kN>
 void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   using T = Tracer<kF>;
   const RenderScene& scene = tracer.scene;
   const accel::LayeredGeometry& geometry = scene.geometry();
-  const bool flat = flat_geometry(geometry);
   // The packet's rays: the first n written below, the rest default rays (the packet query loads
   // every lane). Not a zeroed array: zeroing all kN rays (512 bytes with 16) on every call, and the
   // shadow rays' below, cost a `rep stos` each, most of them overwritten at once.
@@ -1094,14 +1100,6 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
       if (on == 0) break;
       if (crossing + 1 >= kMaxShadowCrossings) {  // the walk's bound: counted as blocked
         for (std::uint32_t s = on; s != 0; s &= s - 1) vis[std::countr_zero(s)] = 0.0f;
-        break;
-      }
-      if (!flat) {  // with a tree, the scalar walk goes on
-        for (std::uint32_t s = on; s != 0; s &= s - 1) {
-          const int j = std::countr_zero(s);
-          vis[j] = tracer.transmittance_walk(shadow[j], media[j], vis[j], crossing + 1);
-          if (vis[j] > 0.0f) lit |= 1u << j;
-        }
         break;
       }
       tracer.stats.rays += std::popcount(on);
