@@ -826,16 +826,6 @@ struct SetAside {
 // Most shapes a scene may set aside (44 bytes each); a scene with more keeps its shapes.
 constexpr std::size_t kMaxSetAside = 4096;
 
-// A set-aside shape's sphere. The constructor writes nothing (SphereShape has default values,
-// hence the union), so that sizing the array writes no memory: the threads that copy the spheres
-// in touch its pages first.
-struct AsideSphere {
-  AsideSphere() {}  // leaves the sphere unset
-  union {
-    SphereShape sphere;
-  };
-};
-
 // Maps [data, data + bytes) writable now, on up to `threads` threads, each taking whole 2 MiB
 // pieces (aligned as huge pages are): the kernel zeroes fresh pages on the thread that faults them,
 // and a serial first write of a large array spent half its time there. Only where it pays (large
@@ -1270,9 +1260,19 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       max_depth = std::max(max_depth, t.max_depth);
     }
   }
-  g.prims_.reserve(order.size());
-  util::advise_huge_pages_for(g.prims_);
-  g.prims_.resize(order.size());
+  // A set-aside scene whose tree is collapsed makes no prims (32 bytes a sphere, written and read
+  // once): the collapse reads each sphere by id from `spheres` in the order of `order`, which the
+  // prims were made from (the same random reads, now in the collapse). 1M spheres, the first build
+  // of separate processes, ABBA: 1 thread 1.056 (8 of 8 pairs; base against base 1.031, 4 of 8).
+  // Only for a tree large enough to be collapsed; should the wide tree come out flat, the prims
+  // are made after it.
+  const std::size_t prim_count = order.size();
+  const bool prims_later = aside && prim_count >= kMinWidePrims;
+  if (!prims_later) {
+    g.prims_.reserve(prim_count);
+    util::advise_huge_pages_for(g.prims_);
+    g.prims_.resize(prim_count);
+  }
   // The tree hash's pieces (hash_nodes, hash_ids), folded in order once all are done: node piece k
   // reads nodes [k kHashPiece, (k + 1) kHashPiece), id piece c the ids of prim chunk c.
   static_assert(kHashPiece == kChunk, "make_prims hashes the ids of its own chunk");
@@ -1300,21 +1300,27 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     }
     node_hash[k] = hash_nodes(g.nodes_.data() + from, to - from);
   };
+  // Prim i of a set-aside scene: every prim is a sphere (planes and invalid shapes are not in the tree).
+  const auto sphere_prim = [&](std::size_t i) {
+    const SphereShape& sphere = spheres[order[i]].sphere;
+    Prim& p = g.prims_[i];
+    p.id = order[i];
+    p.type = ShapeType::kSphere;
+    p.data[0] = sphere.center.x;
+    p.data[1] = sphere.center.y;
+    p.data[2] = sphere.center.z;
+    p.data[3] = sphere.radius;
+    p.data[4] = p.data[5] = 0.0f;
+  };
   const auto make_prims = [&](std::size_t c) {
     const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
-    for (std::size_t i = c * kChunk; i < end; ++i) {
-      Prim& p = g.prims_[i];
-      p.id = order[i];
-      if (aside) {  // every prim is a sphere (planes and invalid shapes are not in the tree)
-        const SphereShape& sphere = spheres[order[i]].sphere;
-        p.type = ShapeType::kSphere;
-        p.data[0] = sphere.center.x;
-        p.data[1] = sphere.center.y;
-        p.data[2] = sphere.center.z;
-        p.data[3] = sphere.radius;
-        p.data[4] = p.data[5] = 0.0f;
+    for (std::size_t i = c * kChunk; !prims_later && i < end; ++i) {
+      if (aside) {
+        sphere_prim(i);
         continue;
       }
+      Prim& p = g.prims_[i];
+      p.id = order[i];
       const Shape& s = g.shapes_[order[i]];
       p.type = s.type;
       if (s.type == ShapeType::kTriangle) {
@@ -1356,10 +1362,16 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   std::uint64_t hash = fnv_fold(fnv_fold(kFnvBasis, g.nodes_.size()), order.size());
   for (const std::uint64_t h : node_hash) hash = fnv_fold(hash, h);
   for (const std::uint64_t h : id_hash) hash = fnv_fold(hash, h);
-  std::vector<std::uint32_t>().swap(order);
-  // Until put_back nothing reads shapes_: the collapse reads prims (and shapes only for
-  // triangles, which a scene set aside has none of).
-  std::vector<AsideSphere>().swap(spheres);
+  // Until put_back nothing reads shapes_: the collapse reads prims, or the set-aside spheres (and
+  // shapes only for triangles, which a scene set aside has none of).
+  const auto drop_aside = [&] {
+    std::vector<std::uint32_t>().swap(order);
+    std::vector<AsideSphere>().swap(spheres);
+    g.aside_spheres_ = nullptr;
+    g.aside_order_ = nullptr;
+    g.aside_count_ = 0;
+  };
+  if (!prims_later) drop_aside();
 
   g.stats_.tree_hash = hash;
   g.stats_.nodes = std::uint32_t(g.nodes_.size());
@@ -1374,11 +1386,22 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // against 8 rays at once (detail::flat_wide), with the same bits as the scalar walk. Single
   // rays are faster on the scalar walk there (measured: 19 vs 12 Mrays/s for secondary rays of
   // 10 spheres), which answers with the same bits.
-  if (isa != Isa::kScalar && !g.prims_.empty()) {
+  if (isa != Isa::kScalar && prim_count > 0) {
     const auto wide_start = std::chrono::steady_clock::now();
-    if (g.prims_.size() >= kMinWidePrims) {
+    if (prim_count >= kMinWidePrims) {
       // A set-aside scene's prims are all spheres (planes and invalid shapes are not in the tree).
+      if (prims_later) {
+        g.aside_spheres_ = spheres.data();
+        g.aside_order_ = order.data();
+        g.aside_count_ = prim_count;
+      }
       g.wide_ = detail::collapse_to_wide(g, aside, /* spheres_only = */ aside, pool, threads);
+      if (prims_later && (g.wide_.empty() || detail::is_flat(g.wide_))) {
+        // The walks that are not wide read the prims (the collapse then kept the ids' pages).
+        g.prims_.resize(prim_count);
+        for (std::size_t i = 0; i < prim_count; ++i) sphere_prim(i);
+      }
+      if (prims_later) drop_aside();
       // Every query now walks the wide tree (intersect, occluded and the packets take the wide
       // path whenever it is not flat): the binary nodes and prims, 32 bytes a prim and as much
       // again a node, are never read again.

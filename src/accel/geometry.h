@@ -31,6 +31,7 @@
 #pragma once
 
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <vector>
 
@@ -192,6 +193,16 @@ class Geometry {
   template <int N>
   std::uint32_t occluded_n(const Ray* rays, std::uint32_t valid) const;
 
+  // A set-aside shape's sphere (the build, bvh.cpp). The constructor writes nothing (SphereShape has
+  // default values, hence the union), so that sizing the array writes no memory: the threads that
+  // copy the spheres in touch its pages first.
+  struct AsideSphere {
+    AsideSphere() {}
+    union {
+      SphereShape sphere;
+    };
+  };
+
   std::vector<Shape> shapes_;
   std::vector<Prim> prims_;             // bounded shapes in BVH leaf order
   std::vector<std::uint32_t> outside_;  // shape ids tested beside the tree: planes and huge shapes
@@ -200,6 +211,11 @@ class Geometry {
   Isa isa_ = Isa::kScalar;
   bool has_triangles_ = false;  // rays then need the triangle test's shear constants
   detail::WideBvh wide_;        // empty for Isa::kScalar
+  // Only while a set-aside scene's tree is collapsed (null otherwise): prims_ is left empty and the
+  // collapse reads prim i's sphere as aside_spheres_[aside_order_[i]].sphere, i < aside_count_.
+  const AsideSphere* aside_spheres_ = nullptr;
+  const std::uint32_t* aside_order_ = nullptr;
+  std::size_t aside_count_ = 0;
 };
 
 // Nearest hit of one shape with t in (ray.t_min, ray.t_max); fills every field of `hit` (with

@@ -323,14 +323,19 @@ class Planner {
 // The collapse of one binary tree (Node and Prim: Geometry's, private to it). Every pass walks the same wide nodes in
 // the same order (depth first, children in slot order), so the cursor reaches each node, leaf and block at the index
 // the one-pass collapse would have appended it at: the tree is the same whatever the tasks and threads.
-template <typename Node, typename Prim>
+// Prim i is prims[i], or where `aside_order` is given (a set-aside scene, whose prims are all
+// spheres) the sphere aside_spheres[aside_order[i]].sphere with id aside_order[i].
+template <typename Node, typename Prim, typename Aside>
 class Collapse {
  public:
-  Collapse(const Node* nodes, const Prim* prims, const std::vector<Shape>& shapes, WideBvh& w, bool spheres_only,
-           bool every_record, ReadOnce& prims_read, const Plan* plan)
+  Collapse(const Node* nodes, const Prim* prims, const Aside* aside_spheres, const std::uint32_t* aside_order,
+           const std::vector<Shape>& shapes, WideBvh& w, bool spheres_only, bool every_record, ReadOnce& prims_read,
+           const Plan* plan)
       : nodes_(nodes),
         plan_(plan),
         prims_(prims),
+        aside_spheres_(aside_spheres),
+        aside_order_(aside_order),
         shapes_(shapes),
         w_(w),
         spheres_only_(spheres_only),
@@ -461,13 +466,29 @@ class Collapse {
   template <Pass P>
   std::uint32_t leaf(std::uint32_t bin, Cursor& at, ReadOnce::Batch* read = nullptr) const {
     const auto& node = nodes_[bin];
-    const auto* prims = prims_ + node.offset;
+    const Prim* prims = aside_order_ == nullptr ? prims_ + node.offset : nullptr;
     std::uint32_t ns = 0, nt = 0, nb = 0;
     if constexpr (P == Pass::kWrite) {
       SphereBlock* spheres = w_.spheres.data() + at.sphere;
       TriangleBlock* triangles = w_.triangles.data() + at.triangle;
       BoxPrim* boxes = w_.boxes.data() + at.box;
-      for (std::uint32_t k = 0; k < node.count; ++k) {
+      if (aside_order_ != nullptr) {
+        // Each sphere read by id (a random access, as making the prims in leaf order took) instead
+        // of from a prims array of 32 bytes a sphere written and read once.
+        const std::uint32_t* ids = aside_order_ + node.offset;
+        for (std::uint32_t k = 0; k < node.count; ++k) {
+          const SphereShape& sphere = aside_spheres_[ids[k]].sphere;
+          if (ns % kWidth == 0) spheres[ns / kWidth] = empty_sphere_block();
+          SphereBlock& b = spheres[ns / kWidth];
+          const std::uint32_t lane = ns++ % kWidth;
+          b.cx[lane] = sphere.center.x;
+          b.cy[lane] = sphere.center.y;
+          b.cz[lane] = sphere.center.z;
+          b.r[lane] = sphere.radius;
+          b.id[lane] = ids[k];
+        }
+      }
+      for (std::uint32_t k = 0; aside_order_ == nullptr && k < node.count; ++k) {
         const auto& prim = prims[k];
         assert(!spheres_only_ || prim.type == ShapeType::kSphere);
         switch (prim.type) {
@@ -539,6 +560,8 @@ class Collapse {
   const Node* nodes_;
   const Plan* plan_;  // the SAH collapse's choices per binary node (Planner)
   const Prim* prims_;
+  const Aside* aside_spheres_;
+  const std::uint32_t* aside_order_;
   const std::vector<Shape>& shapes_;
   WideBvh& w_;
   bool spheres_only_;
@@ -563,13 +586,19 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_o
   // as the leaves are made: the prims and the wide tree are then never held whole together (the
   // 1M-sphere scene's build peaked there). Not for a tree that may collapse to one node (is_flat:
   // the build then keeps its prims).
-  ReadOnce prims_read(g.prims_.data(), g.prims_.size(), sizeof(g.prims_[0]), prims_read_once && !every_record);
+  // A set-aside scene's prims are its spheres by id in leaf order (Geometry::aside_order_): then the
+  // ids' pages go back.
+  const bool aside = g.aside_order_ != nullptr;
+  const std::size_t prim_count = aside ? g.aside_count_ : g.prims_.size();
+  ReadOnce prims_read(aside ? static_cast<const void*>(g.aside_order_) : g.prims_.data(), prim_count,
+                      aside ? sizeof(g.aside_order_[0]) : sizeof(g.prims_[0]), prims_read_once && !every_record);
   // The SAH collapse's choices, 8 bytes a binary node, each written by the Planner below (not
   // zeroed here: the planning threads touch their subtrees' pages first).
   const std::unique_ptr<Plan[]> plan(new Plan[g.nodes_.size()]);
-  Collapse c(g.nodes_.data(), g.prims_.data(), g.shapes_, w, spheres_only, every_record, prims_read, plan.get());
+  Collapse c(g.nodes_.data(), g.prims_.data(), g.aside_spheres_, g.aside_order_, g.shapes_, w, spheres_only || aside,
+             every_record, prims_read, plan.get());
   // Threads for trees large enough to pay for starting them; the result does not depend on it.
-  if (g.prims_.size() < kParallelPrims) threads = 1;
+  if (prim_count < kParallelPrims) threads = 1;
   // Tasks: subtrees of at most `grain` binary nodes under the top, dozens per thread so that the
   // threads finish together (on one thread, every subtree below the root: the same passes).
   const std::size_t grain =
@@ -585,7 +614,7 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_o
   // Counting each task from zero gives the sizes its output takes wherever it lands, unless a
   // leaf's first block may lie past what a child reference can name (then whether it needs a
   // record depends on where it lands, and the tasks are counted in place, in order).
-  const bool counted_apart = g.prims_.size() <= kTriLeafBeginMask;
+  const bool counted_apart = prim_count <= kTriLeafBeginMask;
   if (counted_apart) {
     pool.parallel_for(tasks.size(), threads, [&](std::size_t t) {
       Cursor size;
