@@ -1009,11 +1009,11 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // across threads starts none).
   util::ThreadPool pool(shape_threads);
   const bool may_set_aside = isa != Isa::kScalar && n >= std::max<std::size_t>(kMinWidePrims, kParallelGrain);
-  std::vector<AsideSphere> spheres;  // aside: each shape's sphere, by id, until the prims are made
+  std::vector<detail::AsideSphere> spheres;  // aside: each shape's sphere, by id, until the collapse
   if (may_set_aside) {
     spheres.reserve(n);
     util::advise_huge_pages_for(spheres);  // first touches are costly page faults (util/huge_pages.h)
-    spheres.resize(n);                     // writes nothing (AsideSphere)
+    spheres.resize(n);                     // writes nothing (detail::AsideSphere)
   }
 
   // What each shape is (0 invalid, 1 plane, 2 bounded), in chunks (in parallel for large scenes);
@@ -1070,7 +1070,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     // mapped ahead of its writes.
     if (!drop_pages(g.shapes_.data(), g.shapes_.capacity() * sizeof(Shape))) std::vector<Shape>().swap(g.shapes_);
   } else {
-    std::vector<AsideSphere>().swap(spheres);
+    std::vector<detail::AsideSphere>().swap(spheres);
   }
   // The bounds of a bounded shape (kind 2, so valid): shape_bounds, or for a set-aside sphere
   // sphere_bounds, which is what shape_bounds gives a valid sphere.
@@ -1260,15 +1260,18 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
       max_depth = std::max(max_depth, t.max_depth);
     }
   }
-  // A set-aside scene whose tree is collapsed makes no prims (32 bytes a sphere, written and read
-  // once): the collapse reads each sphere by id from `spheres` in the order of `order`, which the
-  // prims were made from (the same random reads, now in the collapse). 1M spheres, the first build
-  // of separate processes, ABBA: 1 thread 1.056 (8 of 8 pairs; base against base 1.031, 4 of 8).
-  // Only for a tree large enough to be collapsed; should the wide tree come out flat, the prims
-  // are made after it (a guard: a set-aside scene has 2^15 prims or more, and leaves of at most 4
-  // prims, so its wide tree has more than one node; the test of coinciding spheres gets 1,305).
+  // A set-aside scene makes no prims (32 bytes a sphere, written and read once): the collapse
+  // reads each sphere by id from `spheres` in the order of `order`, which the prims were made from
+  // (the same random reads, now in the collapse). 1M spheres, the first build of separate
+  // processes, ABBA: 1 thread 1.056 (8 of 8 pairs; base against base 1.031, 4 of 8); in
+  // dtraced-bench-scale's repeated builds, which inherit the heap the build before left, 1 thread
+  // 0.91 and 2 threads 1.08-1.12. Such a scene always gets a collapsed tree: it has 2^15 bounded
+  // shapes or more, of which at most kMaxOutside leave the tree. Should its wide tree come out
+  // flat, the prims are made after it (a guard: with leaves of at most 4 prims it has more than
+  // one node; 33,000 coinciding spheres, which the splits cannot separate, give 1,305).
+  static_assert(kParallelGrain >= kMinWidePrims + kMaxOutside, "a set-aside scene's tree is collapsed");
   const std::size_t prim_count = order.size();
-  const bool prims_later = aside && prim_count >= kMinWidePrims;
+  const bool prims_later = aside;
   if (!prims_later) {
     g.prims_.reserve(prim_count);
     util::advise_huge_pages_for(g.prims_);
@@ -1316,10 +1319,6 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   const auto make_prims = [&](std::size_t c) {
     const std::size_t end = std::min(order.size(), (c + 1) * kChunk);
     for (std::size_t i = c * kChunk; !prims_later && i < end; ++i) {
-      if (aside) {
-        sphere_prim(i);
-        continue;
-      }
       Prim& p = g.prims_[i];
       p.id = order[i];
       const Shape& s = g.shapes_[order[i]];
@@ -1367,10 +1366,7 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
   // shapes only for triangles, which a scene set aside has none of).
   const auto drop_aside = [&] {
     std::vector<std::uint32_t>().swap(order);
-    std::vector<AsideSphere>().swap(spheres);
-    g.aside_spheres_ = nullptr;
-    g.aside_order_ = nullptr;
-    g.aside_count_ = 0;
+    std::vector<detail::AsideSphere>().swap(spheres);
   };
   if (!prims_later) drop_aside();
 
@@ -1391,12 +1387,9 @@ Geometry Geometry::build(std::vector<Shape> shapes, Isa isa, unsigned threads) {
     const auto wide_start = std::chrono::steady_clock::now();
     if (prim_count >= kMinWidePrims) {
       // A set-aside scene's prims are all spheres (planes and invalid shapes are not in the tree).
-      if (prims_later) {
-        g.aside_spheres_ = spheres.data();
-        g.aside_order_ = order.data();
-        g.aside_count_ = prim_count;
-      }
-      g.wide_ = detail::collapse_to_wide(g, aside, /* spheres_only = */ aside, pool, threads);
+      const detail::AsideSpheres aside_spheres{spheres.data(), order.data(), prim_count};
+      g.wide_ = detail::collapse_to_wide(g, aside, /* spheres_only = */ aside, pool, threads,
+                                         prims_later ? &aside_spheres : nullptr);
       if (prims_later && (g.wide_.empty() || detail::is_flat(g.wide_))) {
         // The walks that are not wide read the prims (the collapse then kept the ids' pages).
         g.prims_.resize(prim_count);

@@ -111,6 +111,29 @@ struct BuildStats {
   std::uint64_t tree_hash = 0;
 };
 
+namespace detail {
+
+// A set-aside shape's sphere (the build, bvh.cpp). The constructor writes nothing (SphereShape has
+// default values, hence the union), so that sizing the array writes no memory: the threads that
+// copy the spheres in touch its pages first.
+struct AsideSphere {
+  AsideSphere() {}
+  union {
+    SphereShape sphere;
+  };
+};
+
+// A set-aside scene's prims as the collapse reads them (collapse_to_wide), in place of Geometry's
+// prims, which such a build does not make: prim i is the sphere spheres[order[i]].sphere with id
+// order[i], i < count. Both arrays belong to the build and outlive the collapse.
+struct AsideSpheres {
+  const AsideSphere* spheres = nullptr;
+  const std::uint32_t* order = nullptr;
+  std::size_t count = 0;
+};
+
+}  // namespace detail
+
 class Geometry {
  public:
   // Deepest node level (root = 0) is kMaxDepth - 1; a range reaching it becomes a leaf whatever its
@@ -177,7 +200,8 @@ class Geometry {
   };
 
   friend detail::WideBvh detail::collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only,
-                                                  util::ThreadPool& pool, unsigned threads);
+                                                  util::ThreadPool& pool, unsigned threads,
+                                                  const detail::AsideSpheres* aside);
 
   // Nearest hit below best_t among the shapes outside the tree (planes and huge shapes), ties to
   // the smaller id; updates best_t / best_id.
@@ -193,16 +217,6 @@ class Geometry {
   template <int N>
   std::uint32_t occluded_n(const Ray* rays, std::uint32_t valid) const;
 
-  // A set-aside shape's sphere (the build, bvh.cpp). The constructor writes nothing (SphereShape has
-  // default values, hence the union), so that sizing the array writes no memory: the threads that
-  // copy the spheres in touch its pages first.
-  struct AsideSphere {
-    AsideSphere() {}
-    union {
-      SphereShape sphere;
-    };
-  };
-
   std::vector<Shape> shapes_;
   std::vector<Prim> prims_;             // bounded shapes in BVH leaf order
   std::vector<std::uint32_t> outside_;  // shape ids tested beside the tree: planes and huge shapes
@@ -211,11 +225,6 @@ class Geometry {
   Isa isa_ = Isa::kScalar;
   bool has_triangles_ = false;  // rays then need the triangle test's shear constants
   detail::WideBvh wide_;        // empty for Isa::kScalar
-  // Only while a set-aside scene's tree is collapsed (null otherwise): prims_ is left empty and the
-  // collapse reads prim i's sphere as aside_spheres_[aside_order_[i]].sphere, i < aside_count_.
-  const AsideSphere* aside_spheres_ = nullptr;
-  const std::uint32_t* aside_order_ = nullptr;
-  std::size_t aside_count_ = 0;
 };
 
 // Nearest hit of one shape with t in (ray.t_min, ray.t_max); fills every field of `hit` (with

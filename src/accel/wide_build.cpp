@@ -151,7 +151,9 @@ class ReadOnce {
 
  private:
   static constexpr std::uintptr_t kBlock = std::uintptr_t(2) << 20;  // a huge page
-  static constexpr std::size_t kMinBytes = std::size_t(1) << 20;     // a set-aside scene has more
+  // Smaller arrays are not worth it. A set-aside scene's ids (4 bytes a sphere) reach it from
+  // 262,144 spheres on.
+  static constexpr std::size_t kMinBytes = std::size_t(1) << 20;
 
   // The block holding element i's first byte.
   std::size_t block_of(std::size_t i) const { return (begin_ + i * element_bytes_ - base_) / kBlock; }
@@ -572,7 +574,7 @@ class Collapse {
 }  // namespace
 
 WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only, util::ThreadPool& pool,
-                         unsigned threads) {
+                         unsigned threads, const AsideSpheres* aside_spheres) {
   WideBvh w;
   if (g.nodes_.empty()) return w;
   // A leaf that its child reference describes (tri_leaf_ref: one block of spheres, or triangles
@@ -586,17 +588,18 @@ WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_o
   // as the leaves are made: the prims and the wide tree are then never held whole together (the
   // 1M-sphere scene's build peaked there). Not for a tree that may collapse to one node (is_flat:
   // the build then keeps its prims).
-  // A set-aside scene's prims are its spheres by id in leaf order (Geometry::aside_order_): then the
-  // ids' pages go back.
-  const bool aside = g.aside_order_ != nullptr;
-  const std::size_t prim_count = aside ? g.aside_count_ : g.prims_.size();
-  ReadOnce prims_read(aside ? static_cast<const void*>(g.aside_order_) : g.prims_.data(), prim_count,
-                      aside ? sizeof(g.aside_order_[0]) : sizeof(g.prims_[0]), prims_read_once && !every_record);
+  // A set-aside scene's prims are its spheres by id in leaf order (`aside_spheres`): then the ids'
+  // pages go back.
+  const bool aside = aside_spheres != nullptr;
+  const std::uint32_t* const aside_order = aside ? aside_spheres->order : nullptr;
+  const std::size_t prim_count = aside ? aside_spheres->count : g.prims_.size();
+  ReadOnce prims_read(aside ? static_cast<const void*>(aside_order) : g.prims_.data(), prim_count,
+                      aside ? sizeof(aside_order[0]) : sizeof(g.prims_[0]), prims_read_once && !every_record);
   // The SAH collapse's choices, 8 bytes a binary node, each written by the Planner below (not
   // zeroed here: the planning threads touch their subtrees' pages first).
   const std::unique_ptr<Plan[]> plan(new Plan[g.nodes_.size()]);
-  Collapse c(g.nodes_.data(), g.prims_.data(), g.aside_spheres_, g.aside_order_, g.shapes_, w, spheres_only || aside,
-             every_record, prims_read, plan.get());
+  Collapse c(g.nodes_.data(), g.prims_.data(), aside ? aside_spheres->spheres : nullptr, aside_order, g.shapes_, w,
+             spheres_only || aside, every_record, prims_read, plan.get());
   // Threads for trees large enough to pay for starting them; the result does not depend on it.
   if (prim_count < kParallelPrims) threads = 1;
   // Tasks: subtrees of at most `grain` binary nodes under the top, dozens per thread so that the

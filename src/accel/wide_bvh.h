@@ -154,14 +154,18 @@ struct Kernels {
 // The kernels compiled for `isa` (a SIMD isa that supported_isas() lists).
 const Kernels& kernels_for(Isa isa);
 
-// The 8-wide tree of a built Geometry (collapsed from its binary BVH). `prims_read_once`: the
-// caller frees g's binary nodes and prims after it (a build with its shapes set aside, which reads
-// its spheres back from the wide tree's blocks), so the collapse gives the prims' pages back as it
-// reads them; it still keeps them for a tree that may collapse to one node (is_flat).
-// `spheres_only`: every prim is a sphere (the collapse then sizes its arrays without reading the
-// prims' types; a wrong claim writes out of bounds). Runs on up to `threads` threads (the caller's
-// among them) of `pool`, the build's threads; the tree is the same whatever their number.
+struct AsideSpheres;  // geometry.h
+
+// The 8-wide tree of a built Geometry (collapsed from its binary BVH). `aside`, where given: the
+// prims are those set-aside spheres by id (a set-aside scene makes no Geometry prims).
+// `prims_read_once`: the caller frees what the collapse reads the prims from after it (a build
+// with its shapes set aside, which reads its spheres back from the wide tree's blocks), so the
+// collapse gives those pages back as it reads them (the prims', or with `aside` the ids'); it
+// keeps them for a tree that may collapse to one node (is_flat). `spheres_only`: every prim is a
+// sphere (the collapse then sizes its arrays without reading the prims' types; a wrong claim
+// writes out of bounds). Runs on up to `threads` threads (the caller's among them) of `pool`, the
+// build's threads; the tree is the same whatever their number.
 WideBvh collapse_to_wide(const Geometry& g, bool prims_read_once, bool spheres_only, util::ThreadPool& pool,
-                         unsigned threads);
+                         unsigned threads, const AsideSpheres* aside = nullptr);
 
 }  // namespace dtraced::accel::detail
