@@ -25,8 +25,9 @@
 // - The secondary rays are timed one at a time (the secondary target's cell) and also in packets: 8 per
 //   call (the set's packets) and 16 (pairs of them), ours with intersect8 / intersect16 (their direction
 //   signs are mixed: the per-lane walk), Embree's with rtcIntersect8 / rtcIntersect16 and the INCOHERENT
-//   flag. Their ratios to rtcIntersect1 are judged against the secondary target; those to Embree's packet
-//   calls are printed without a target.
+//   flag. Their ratios to rtcIntersect1 and to Embree's call of the same width are both judged against
+//   the secondary target, which packets meet only where both are MET (against the faster of Embree's
+//   calls, as for camera and shadow rays).
 // - Hit/miss (and, among hits, shape id) of every tracer are compared with our scalar single-ray
 //   path, the reference; our SIMD paths must agree exactly, Embree up to ties at shared edges.
 //
@@ -663,12 +664,10 @@ const Row* find_row(const std::vector<Row>& rows, std::string_view name) {
   return nullptr;
 }
 
-// A target of 0 prints the ratio alone (a comparison the issue sets no target for).
 void print_ratio(std::string_view label, const Row* num, const Row* den, SetKind set, double target) {
   const std::size_t k = std::size_t(set);
-  const std::string goal = target > 0 ? fmt::format("target >= {:.1f}", target) : std::string("(no target)");
   if (!num || !den || !num->cells[k].measured || !den->cells[k].measured) {
-    fmt::print("  {:<68} {:>8}   {}   (not measured)\n", label, "-", goal);
+    fmt::print("  {:<68} {:>8}   target >= {:.1f}   (not measured)\n", label, "-", target);
     return;
   }
   const double r1 = num->cells[k].one.median / den->cells[k].one.median;
@@ -676,8 +675,7 @@ void print_ratio(std::string_view label, const Row* num, const Row* den, SetKind
   if (num->cells[k].all.valid && den->cells[k].all.valid) {
     all = fmt::format("   (all threads {:.2f}x)", num->cells[k].all.median / den->cells[k].all.median);
   }
-  const std::string verdict = target > 0 ? (r1 >= target ? "   MET" : "   MISSED") : std::string();
-  fmt::print("  {:<68} {:>7.2f}x   {}{}{}\n", label, r1, goal, verdict, all);
+  fmt::print("  {:<68} {:>7.2f}x   target >= {:.1f}   {}{}\n", label, r1, target, r1 >= target ? "MET" : "MISSED", all);
 }
 
 // ---------------------------------------------------------------- the ray benchmark of one scene
@@ -808,7 +806,8 @@ std::string add_embree_rows(SceneBench& b) {
       "RTC_GEOMETRY_TYPE_TRIANGLE: the same primitives as ours{}; build {:.3f} s wall on Embree's own threads.\n"
       "  What differs: Embree accepts hits in [tnear, tfar], ours in the open (t_min, t_max); Embree tests "
       "spheres in float, ours in double; our triangle test is watertight, Embree's default build is not. "
-      "'embree 1' passes the COHERENT flag for camera and shadow rays, INCOHERENT for secondary ones",
+      "'embree 1' passes the COHERENT flag for camera and shadow rays, INCOHERENT for secondary ones, as "
+      "'embree 8' and 'embree 16' do for the secondary packets",
       EmbreeTracer::version(),
       opt.embree_quality == "high"  ? "HIGH"
       : opt.embree_quality == "low" ? "LOW"
@@ -892,14 +891,14 @@ void print_targets(const BenchScene& s, const std::vector<Isa>& isas, const std:
                   SetKind::kSecondary, 0.8);
     }
   }
-  // The secondary rays in packets of 8 and 16 against the same single-ray anchor, and (for
-  // comparison only: no target) against Embree's packet calls on the same packets.
+  // The secondary rays in packets of 8 and 16 against the same single-ray anchor and against
+  // Embree's packet call of the same width on the same packets: met only where both are.
   const Row* best8 = best_row ? find_row(rows, best_row->tracer + " x8") : nullptr;
   for (const auto& [ours, width, embree] : {std::tuple{best8, 8, e8}, std::tuple{best16, 16, e16}}) {
     print_ratio(fmt::format("secondary: {} intersect{} / embree rtcIntersect1 (incoherent)", best_name, width), ours,
                 e1, SetKind::kSecondary, 0.8);
     print_ratio(fmt::format("secondary: {} intersect{} / embree rtcIntersect{} (incoherent)", best_name, width, width),
-                ours, embree, SetKind::kSecondary, 0.0);
+                ours, embree, SetKind::kSecondary, 0.8);
   }
   std::fflush(stdout);
 }
