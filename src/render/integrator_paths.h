@@ -987,7 +987,7 @@ inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
 // whitted10, shadow rays through its glass spheres cross 2-4 surfaces). With a tree too: walking
 // the lanes that go on after the first crossing one by one instead was measured slower on
 // scenes/mesh.json, whose glass sphere is a mesh (render phase, 1 thread, AVX-512: 1.036x, 1.051x
-// and 1.039x in three runs of 8-10 pairs; 2 threads 1.073x and 0.975x; SSE4 1.00x-1.02x), and
+// and 1.039x in three runs of 8-10 pairs; 2 threads 1.073x and 0.975x; SSE4 0.99x-1.02x), and
 // no faster on a 10,000-sphere field's glass (1.02x-1.05x AVX-512, 0.95x-1.03x SSE4). Nearest-hit
 // queries are kept for every shadow ray here: an any-hit query first (taking the walk only for
 // the rays it finds blocked) was measured slower on scenes/mesh.json (0.89x-0.92x, 8 pairs per
@@ -1130,8 +1130,10 @@ void trace_packet_with(const RenderScene& scene, const math::Ray* rays, const ma
   const bool flat = flat_geometry(scene.geometry());
   // Secondary levels go as packets where there is no tree, and in a scene with one on the 16-ray
   // path (AVX2 and AVX-512). Measured against camera rays only, render phase, 1 thread, median of
-  // per-pair ratios: scenes/mesh.json 1.11x on AVX-512 (12 pairs), 1.05x on AVX2 (8); the
-  // 10,000-sphere field 1.01x and 1.02x (9 and 6). The 8-ray path (SSE4) lost 1.5-2.5 % on
+  // per-pair ratios: scenes/mesh.json 1.11x on AVX-512 (12 pairs), 1.03x on AVX2 (process CPU
+  // 1.05x; 8 pairs); the 10,000-sphere field 1.02x at 1 spp (11 pairs) and 1.07x adaptive (-s 16,
+  // 5 pairs). On a quiet machine, base and this alternated, 6 pairs: scenes/mesh.json 1.14x on 1
+  // and 2 threads, with the shadow walk below. The 8-ray path (SSE4) lost 1.5-2.5 % on
   // scenes/mesh.json, so it leaves them to the lanes' tracers. Stopping after the first bounce
   // gave 1.06-1.08x; grouping a level's rays by direction octant first, against this: 1.00x on
   // scenes/mesh.json, 0.96x on the sphere field (-s 16 adaptive).
