@@ -76,6 +76,17 @@ Agreement agree_with_brute_force(const Geometry& geo, const std::vector<Shape>& 
   return out;
 }
 
+// A build gives back the very shapes it was given (every byte), and `rays` random rays through it
+// answer as brute force does, more than `min_hits` of them hitting.
+void check_shapes_back_and_exact(const Geometry& geo, const std::vector<Shape>& shapes, TestRng& rng, int rays,
+                                 long min_hits) {
+  REQUIRE(geo.shapes().size() == shapes.size());
+  CHECK(std::memcmp(geo.shapes().data(), shapes.data(), shapes.size() * sizeof(Shape)) == 0);
+  const Agreement agreed = agree_with_brute_force(geo, shapes, rng, rays);
+  CHECK(agreed.hits > min_hits);
+  CHECK(agreed.mismatches == 0);
+}
+
 }  // namespace
 
 TEST_CASE("BVH equals brute force: same shape, same t bits", "[accel][bvh]") {
@@ -690,20 +701,12 @@ TEST_CASE("BVH build: a large sphere scene gets back its very shapes, and the re
       INFO("isa " << isa_name(isa) << ", threads " << threads << ", tree " << std::hex << geo.stats().tree_hash);
       CHECK(geo.stats().tree_hash == simd_hash);
       CHECK(geo.stats().outside == 4 + 2);  // the planes and the huge spheres
-      REQUIRE(geo.shapes().size() == shapes.size());
-      CHECK(std::memcmp(geo.shapes().data(), shapes.data(), shapes.size() * sizeof(Shape)) == 0);
-      const Agreement agreed = agree_with_brute_force(geo, shapes, rng, 500);
-      CHECK(agreed.hits > 100);
-      CHECK(agreed.mismatches == 0);
+      check_shapes_back_and_exact(geo, shapes, rng, 500, 100);
     }
+    // Collapsed on two threads with prims of two kinds (the box takes a leaf record): the shapes
+    // back, exact queries, and as many wide nodes as on one thread.
     const Geometry held = Geometry::build(with_box, isa, 2);
-    REQUIRE(held.shapes().size() == with_box.size());
-    CHECK(std::memcmp(held.shapes().data(), with_box.data(), with_box.size() * sizeof(Shape)) == 0);
-    // Collapsed on two threads with prims of two kinds (the box takes a leaf record): exact queries,
-    // and as many wide nodes as on one thread.
-    const Agreement held_agreed = agree_with_brute_force(held, with_box, rng, 300);
-    CHECK(held_agreed.hits > 50);
-    CHECK(held_agreed.mismatches == 0);
+    check_shapes_back_and_exact(held, with_box, rng, 300, 50);
     CHECK(held.stats().wide_nodes == Geometry::build(with_box, isa, 1).stats().wide_nodes);
     // More planes than a scene may set aside (4096): held too, and the tree is the same one (the
     // planes, last, are beside it; the spheres keep their ids).
@@ -735,7 +738,7 @@ TEST_CASE("BVH build: a set-aside scene large enough to give its ids' pages back
     shapes.push_back(sphere(to_f(rng.in_cube(25.0)), float(rng.log_uniform(0.005, 0.5))));
   std::vector<Shape> kept = shapes;
   for (int i = 0; i < 4097; ++i) kept.push_back(plane({0, -40.0f - float(i) * 1e-3f, 0}, {0, 1, 0}));
-  const Isa isa = supported_isas().back();
+  const Isa isa = best_isa();
   REQUIRE(isa != Isa::kScalar);
   for (const unsigned threads : {1u, 2u}) {
     INFO("isa " << isa_name(isa) << ", threads " << threads);
@@ -743,11 +746,7 @@ TEST_CASE("BVH build: a set-aside scene large enough to give its ids' pages back
     const Geometry held = Geometry::build(kept, isa, threads);
     CHECK(aside.stats().tree_hash == held.stats().tree_hash);
     CHECK(aside.stats().wide_nodes == held.stats().wide_nodes);
-    REQUIRE(aside.shapes().size() == shapes.size());
-    CHECK(std::memcmp(aside.shapes().data(), shapes.data(), shapes.size() * sizeof(Shape)) == 0);
-    const Agreement agreed = agree_with_brute_force(aside, shapes, rng, 100);
-    CHECK(agreed.hits > 20);
-    CHECK(agreed.mismatches == 0);
+    check_shapes_back_and_exact(aside, shapes, rng, 100, 20);
   }
 }
 
@@ -764,11 +763,7 @@ TEST_CASE("BVH build: a set-aside sphere scene whose spheres all coincide", "[ac
       const Geometry geo = Geometry::build(shapes, isa, threads);
       INFO("isa " << isa_name(isa) << ", threads " << threads);
       CHECK(geo.stats().wide_nodes > 1);
-      REQUIRE(geo.shapes().size() == shapes.size());
-      CHECK(std::memcmp(geo.shapes().data(), shapes.data(), shapes.size() * sizeof(Shape)) == 0);
-      const Agreement agreed = agree_with_brute_force(geo, shapes, rng, 200);
-      CHECK(agreed.hits > 20);
-      CHECK(agreed.mismatches == 0);
+      check_shapes_back_and_exact(geo, shapes, rng, 200, 20);
     }
   }
 }
