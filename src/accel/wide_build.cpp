@@ -322,6 +322,19 @@ class Planner {
   std::vector<std::array<float, kNodeWidth>> done_;  // g of each root
 };
 
+// Sphere `ns` of a leaf's blocks (centre, radius, shape id), a fresh block begun at each kWidth-th;
+// counts it in ns.
+void put_sphere(SphereBlock* spheres, std::uint32_t& ns, float x, float y, float z, float r, std::uint32_t id) {
+  if (ns % kWidth == 0) spheres[ns / kWidth] = empty_sphere_block();
+  SphereBlock& b = spheres[ns / kWidth];
+  const std::uint32_t lane = ns++ % kWidth;
+  b.cx[lane] = x;
+  b.cy[lane] = y;
+  b.cz[lane] = z;
+  b.r[lane] = r;
+  b.id[lane] = id;
+}
+
 // The collapse of one binary tree (Node and Prim: Geometry's, private to it). Every pass walks the same wide nodes in
 // the same order (depth first, children in slot order), so the cursor reaches each node, leaf and block at the index
 // the one-pass collapse would have appended it at: the tree is the same whatever the tasks and threads.
@@ -480,14 +493,7 @@ class Collapse {
         const std::uint32_t* ids = aside_order_ + node.offset;
         for (std::uint32_t k = 0; k < node.count; ++k) {
           const SphereShape& sphere = aside_spheres_[ids[k]].sphere;
-          if (ns % kWidth == 0) spheres[ns / kWidth] = empty_sphere_block();
-          SphereBlock& b = spheres[ns / kWidth];
-          const std::uint32_t lane = ns++ % kWidth;
-          b.cx[lane] = sphere.center.x;
-          b.cy[lane] = sphere.center.y;
-          b.cz[lane] = sphere.center.z;
-          b.r[lane] = sphere.radius;
-          b.id[lane] = ids[k];
+          put_sphere(spheres, ns, sphere.center.x, sphere.center.y, sphere.center.z, sphere.radius, ids[k]);
         }
       }
       for (std::uint32_t k = 0; aside_order_ == nullptr && k < node.count; ++k) {
@@ -497,14 +503,7 @@ class Collapse {
           case ShapeType::kSphere: {
             // The prim holds the sphere (centre, radius), and prims are in leaf order: no random
             // access into shapes_.
-            if (ns % kWidth == 0) spheres[ns / kWidth] = empty_sphere_block();
-            SphereBlock& b = spheres[ns / kWidth];
-            const std::uint32_t lane = ns++ % kWidth;
-            b.cx[lane] = prim.data[0];
-            b.cy[lane] = prim.data[1];
-            b.cz[lane] = prim.data[2];
-            b.r[lane] = prim.data[3];
-            b.id[lane] = prim.id;
+            put_sphere(spheres, ns, prim.data[0], prim.data[1], prim.data[2], prim.data[3], prim.id);
             break;
           }
           case ShapeType::kTriangle: {
