@@ -5,7 +5,7 @@
 //
 // Two modes, so that the process that measures memory holds nothing but the pipeline:
 //   dtraced-bench-scale --write N FILE   writes scene::generate_sphere_field(N, 1) as canonical JSON
-//   dtraced-bench-scale FILE             loads FILE, builds, renders, prints one line of figures
+//   dtraced-bench-scale FILE             loads FILE, builds, renders, prints its figures
 //   dtraced-bench-scale FILE --load-only only parses FILE (time and peak RSS), for profiles
 //   dtraced-bench-scale FILE --cache-dir DIR   a worker's preparation of FILE (canonical JSON, as
 //                                        --write writes it) from its JSON, which writes the binary
@@ -13,19 +13,37 @@
 // Peak RSS is the largest of the peaks of the parse, the build and the render (VmHWM, reset
 // between them, each printed to stderr), read before the extra timing builds.
 // The objects are loaded straight into render-ready arrays (render::RenderSceneBuilder).
-// Times are wall time (steady_clock); the build figures are the median of --runs builds, each
-// beside the CPU time of the build's threads.
 //
-// Exit codes: 0 done; 1 the scene could not be written, loaded or built; 2 usage error.
+// The build is timed two ways, ours and Embree's alike, each the median of its runs:
+//  - fresh processes (what a render sees): the program runs itself again (the hidden
+//    --fresh-build ours|embree) once per build; the child loads FILE as the pipeline does and
+//    builds once, the first build of its process, and prints one line the parent reads. Ours is
+//    RenderSceneBuilder::build, as `dtraced render` calls it; Embree's builds the same shapes.
+//    --fresh-runs sets the count (default --runs; 0 leaves them out). The runs alternate ours and
+//    Embree's, 1 thread and N, so both see the machine's same minutes.
+//  - repeated builds in one process (--runs of each, after the render): each build inherits the
+//    heap the build before left, so glibc's allocator state (which freed pages the next build
+//    reuses without faults) moves them; they are printed for comparison with earlier rounds.
+// Times are wall time (steady_clock), each beside the CPU time of the build's threads (ours).
+//
+// Exit codes: 0 done; 1 the scene could not be written, loaded or built (or a child failed);
+// 2 usage error.
 // Threading: the main thread drives; Geometry::build and render_local start their own threads.
+#include <spawn.h>
 #include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cstdint>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <optional>
+#include <span>
 #include <string>
 #include <system_error>
 #include <utility>
@@ -96,6 +114,14 @@ std::size_t thread_count() {
   return count;
 }
 
+// The load average over 1, 5 and 15 minutes as /proc/loadavg gives it; "?" where it has none.
+std::string load_average() {
+  std::ifstream in("/proc/loadavg");
+  std::string one, five, fifteen;
+  if (!(in >> one >> five >> fifteen)) return "?";
+  return one + " " + five + " " + fifteen;
+}
+
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.empty() ? 0.0 : v[v.size() / 2];
@@ -117,38 +143,213 @@ int write_scene(std::uint32_t count, const std::string& path) {
 
 struct Figures {
   std::size_t spheres = 0;
-  double load_s = 0, build1_s = 0, buildn_s = 0, render_s = 0, rss = 0;
-  double build1_cpu = 0, buildn_cpu = 0;  // CPU time of the builds' threads, median
+  double load_s = 0, render_s = 0, rss = 0;
+  // Medians of the repeated builds in one process, and of the builds in fresh processes; -1 where
+  // none ran. CPU: of ours, the build's threads.
+  double build1_s = 0, buildn_s = 0, build1_cpu = 0, buildn_cpu = 0;
   double embree1_s = -1, embreen_s = -1;
+  double fresh1_s = -1, freshn_s = -1, fresh1_cpu = -1, freshn_cpu = -1, fresh_load_s = -1;
+  double fresh_embree1_s = -1, fresh_embreen_s = -1;
+  int fresh_runs = 0;
 };
 
-int measure(const std::string& path, std::uint32_t threads, int runs, std::uint32_t width, std::uint32_t height,
-            bool load_only, bool threaded_load) {
+// Loads `path` as `dtraced render` does: its objects go straight into `builder`'s render-ready
+// arrays, so the scene's description objects are never held. Prints why on failure (including an
+// animated scene) and returns nothing.
+std::optional<scene::LoadResult> load_into(const std::string& path, render::RenderSceneBuilder& builder,
+                                           bool threaded_load) {
+  scene::LoadOptions load_options;
+  load_options.object_sink = &builder;
+  // The objects read on a second thread while the first parses (scene::kParallelLoadBytes says
+  // why that is not the default): for comparing the two on another machine.
+  if (threaded_load) load_options.parallel_min_bytes = 0;
+  scene::LoadResult loaded = scene::load_scene_file(path, load_options);
+  if (!loaded.ok()) {
+    fmt::print(stderr, "{}", scene::format_errors(loaded.errors));
+    return std::nullopt;
+  }
+  if (scene::is_animated(*loaded.scene)) {
+    fmt::print(stderr, "dtraced-bench-scale: {} is animated; give it a static scene\n", path);
+    return std::nullopt;
+  }
+  return loaded;
+}
+
+// One fresh process's build, as its --fresh-build line gives it.
+struct FreshBuild {
+  double seconds = 0, cpu = -1, load_s = -1;
+  std::uint64_t tree_hash = 0;
+};
+
+// --fresh-build: loads `path` as the pipeline does and builds once, the first build of this
+// process, as a render's is: ours through RenderSceneBuilder::build (what `dtraced render`
+// calls), or Embree's of the same shapes (copied out of the builder before the clock; Embree's
+// figure is rtcCommitScene alone). Prints one line on stdout for the parent:
+//   fresh ENGINE THREADS SECONDS CPU TREE_HASH LOAD
+// CPU (ours only, else -1) is the process's over the call, which also joins the builder's
+// page-mapping thread and puts the camera and lights around the tree (the load's threads are
+// joined before it).
+// LOAD is the load's time as the main figures count it (ours only, else -1).
+int fresh_build(const std::string& path, const std::string& engine, std::uint32_t threads, bool threaded_load) {
+  auto start = Clock::now();
+  render::RenderSceneBuilder builder;
+  std::optional<scene::LoadResult> loaded = load_into(path, builder, threaded_load);
+  if (!loaded) return 1;
+  const double parse_s = since(start);
+  FreshBuild b;
+  if (engine == "ours") {
+    start = Clock::now();
+    const double cpu_before = cpu_seconds();
+    const render::RenderScene rs = std::move(builder).build(*loaded->scene, accel::best_isa(), threads);
+    b.cpu = cpu_seconds() - cpu_before;
+    const double scene_s = since(start);
+    const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
+    b.seconds = st.seconds + st.wide_seconds;
+    b.tree_hash = st.tree_hash;
+    b.load_s = parse_s + (scene_s - b.seconds);
+  } else {
+#ifdef DTRACED_BENCH_EMBREE
+    const std::span<const accel::Shape> parts = builder.parts().shapes;
+    const std::vector<accel::Shape> shapes(parts.begin(), parts.end());
+    auto tracer = EmbreeTracer::build(shapes, EmbreeQuality::kMedium, threads);
+    if (!tracer) {
+      fmt::print(stderr, "embree: {}\n", tracer.error().to_string());
+      return 1;
+    }
+    b.seconds = (*tracer)->build_seconds();
+#else
+    fmt::print(stderr, "dtraced-bench-scale: built without Embree\n");
+    return 1;
+#endif
+  }
+  fmt::print("fresh {} {} {:.6f} {:.6f} {:016x} {:.6f}\n", engine, threads, b.seconds, b.cpu, b.tree_hash, b.load_s);
+  return 0;
+}
+
+// Runs this program again as `--fresh-build engine --threads threads` on `path` and reads the
+// line it prints; nothing (and a message) when it fails.
+std::optional<FreshBuild> run_fresh(const std::string& path, const std::string& engine, std::uint32_t threads,
+                                    bool threaded_load) {
+  const std::string threads_text = std::to_string(threads);
+  std::vector<std::string> args = {"dtraced-bench-scale", path, "--fresh-build", engine, "--threads", threads_text};
+  if (threaded_load) args.emplace_back("--threaded-load");
+  std::vector<char*> argv;
+  for (std::string& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  int fds[2];
+  if (::pipe(fds) != 0) {
+    fmt::print(stderr, "dtraced-bench-scale: pipe: {}\n", std::strerror(errno));
+    return std::nullopt;
+  }
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_adddup2(&actions, fds[1], STDOUT_FILENO);
+  posix_spawn_file_actions_addclose(&actions, fds[0]);
+  posix_spawn_file_actions_addclose(&actions, fds[1]);
+  pid_t pid = 0;
+  const int rc = ::posix_spawn(&pid, "/proc/self/exe", &actions, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&actions);
+  ::close(fds[1]);
+  std::string out;
+  if (rc == 0) {
+    char buf[512];
+    for (ssize_t n; (n = ::read(fds[0], buf, sizeof buf)) != 0;) {
+      if (n > 0)
+        out.append(buf, std::size_t(n));
+      else if (errno != EINTR)
+        break;
+    }
+  }
+  ::close(fds[0]);
+  if (rc != 0) {
+    fmt::print(stderr, "dtraced-bench-scale: cannot run itself again: {}\n", std::strerror(rc));
+    return std::nullopt;
+  }
+  int status = 0;
+  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  }
+  FreshBuild b;
+  char name[16] = {};
+  unsigned t = 0;
+  unsigned long long hash = 0;
+  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0 ||
+      std::sscanf(out.c_str(), "fresh %15s %u %lf %lf %llx %lf", name, &t, &b.seconds, &b.cpu, &hash, &b.load_s) != 6 ||
+      engine != name || t != threads) {
+    fmt::print(stderr, "dtraced-bench-scale: the fresh {} build on {} threads failed (status {}): {}\n", engine,
+               threads, status, out);
+    return std::nullopt;
+  }
+  b.tree_hash = hash;
+  return b;
+}
+
+// The fresh-process builds of `path`: `runs` of each engine on 1 and `threads` threads, in
+// rounds that alternate the engines' order (ours first in even rounds), so that both see the
+// same minutes of a shared machine. Fills f's fresh figures; false when a child failed or ours
+// built trees of different hashes (`hash`: the repeated builds' tree).
+bool measure_fresh(const std::string& path, std::uint32_t threads, int runs, bool threaded_load, std::uint64_t hash,
+                   Figures& f) {
+  std::vector<std::uint32_t> counts = {1u};
+  if (threads != 1) counts.push_back(threads);
+  std::vector<std::string> engines = {"ours"};
+#ifdef DTRACED_BENCH_EMBREE
+  engines.emplace_back("embree");
+#endif
+  std::vector<double> ours[2], ours_cpu[2], embree[2], load;
+  for (int r = 0; r < runs; ++r) {
+    for (std::size_t c = 0; c < counts.size(); ++c) {
+      for (std::size_t k = 0; k < engines.size(); ++k) {
+        const std::string& engine = engines[r % 2 == 0 ? k : engines.size() - 1 - k];
+        const std::optional<FreshBuild> b = run_fresh(path, engine, counts[c], threaded_load);
+        if (!b) return false;
+        if (engine == "ours") {
+          if (b->tree_hash != hash) {
+            fmt::print(stderr,
+                       "dtraced-bench-scale: a fresh build's tree {:016x} is not the repeated builds' {:016x}\n",
+                       b->tree_hash, hash);
+            return false;
+          }
+          ours[c].push_back(b->seconds);
+          ours_cpu[c].push_back(b->cpu);
+          load.push_back(b->load_s);
+          fmt::print(stderr, "  fresh process, ours on {} thread{}: {:.3f} s, cpu {:.3f} s (load {:.3f} s)\n",
+                     counts[c], counts[c] == 1 ? "" : "s", b->seconds, b->cpu, b->load_s);
+        } else {
+          embree[c].push_back(b->seconds);
+          fmt::print(stderr, "  fresh process, embree on {} thread{}: {:.3f} s\n", counts[c], counts[c] == 1 ? "" : "s",
+                     b->seconds);
+        }
+      }
+    }
+  }
+  const std::size_t n = counts.size() - 1;  // the `threads` figures (the 1-thread ones when threads is 1)
+  f.fresh_runs = runs;
+  f.fresh1_s = median(ours[0]);
+  f.freshn_s = median(ours[n]);
+  f.fresh1_cpu = median(ours_cpu[0]);
+  f.freshn_cpu = median(ours_cpu[n]);
+  f.fresh_load_s = median(load);
+  if (!embree[0].empty()) {
+    f.fresh_embree1_s = median(embree[0]);
+    f.fresh_embreen_s = median(embree[n]);
+  }
+  return true;
+}
+
+int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_runs, std::uint32_t width,
+            std::uint32_t height, bool load_only, bool threaded_load) {
   Figures f;
   const accel::Isa isa = accel::best_isa();
   double pipeline_build_s = 0.0;
+  std::uint64_t tree_hash = 0;
   {
     // The pipeline as `dtraced render` runs it: load, build, render.
     auto start = Clock::now();
     const double cpu_start = cpu_seconds();
-    // The objects go straight into the render-ready arrays (render::RenderSceneBuilder): the
-    // scene's description objects are never held.
     render::RenderSceneBuilder builder;
-    scene::LoadOptions load_options;
-    load_options.object_sink = &builder;
-    // The objects read on a second thread while the first parses (scene::kParallelLoadBytes says
-    // why that is not the default): for comparing the two on another machine.
-    if (threaded_load) load_options.parallel_min_bytes = 0;
     reset_peak_rss();
-    scene::LoadResult loaded = scene::load_scene_file(path, load_options);
-    if (!loaded.ok()) {
-      fmt::print(stderr, "{}", scene::format_errors(loaded.errors));
-      return 1;
-    }
-    if (scene::is_animated(*loaded.scene)) {
-      fmt::print(stderr, "dtraced-bench-scale: {} is animated; give it a static scene\n", path);
-      return 1;
-    }
+    std::optional<scene::LoadResult> loaded = load_into(path, builder, threaded_load);
+    if (!loaded) return 1;
     const double parse_s = since(start);
     const double parse_cpu = cpu_seconds() - cpu_start;
     const double parse_rss = phase_peak_bytes();
@@ -159,15 +360,16 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     }
     reset_peak_rss();
     start = Clock::now();
-    const render::RenderScene rs = std::move(builder).build(*loaded.scene, isa, threads);
+    const render::RenderScene rs = std::move(builder).build(*loaded->scene, isa, threads);
     const double scene_s = since(start);
     const double build_rss = phase_peak_bytes();
     for (const accel::Shape& s : rs.geometry().fixed()->geometry.shapes())
       f.spheres += s.type == accel::ShapeType::kSphere;
     const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
     pipeline_build_s = st.seconds + st.wide_seconds;
+    tree_hash = st.tree_hash;
     f.load_s = parse_s + (scene_s - pipeline_build_s);
-    scene::RenderSettings settings = loaded.scene->render;
+    scene::RenderSettings settings = loaded->scene->render;
     settings.width = width;
     settings.height = height;
     settings.samples = 1;
@@ -236,24 +438,39 @@ int measure(const std::string& path, std::uint32_t threads, int runs, std::uint3
     if (!en.empty()) f.embreen_s = median(en);
 #endif
   }
+  // After the block: this process holds nothing of the scene while the children load and build.
+  if (fresh_runs > 0 && !measure_fresh(path, threads, fresh_runs, threaded_load, tree_hash, f)) return 1;
 
   const double per_sphere = f.spheres ? f.rss / double(f.spheres) : 0.0;
-  fmt::print(
-      "spheres {:>9}  load {:7.3f} s  build 1t {:6.3f} s  {}t {:6.3f} s  render {:6.3f} s  peak RSS {:7.1f} MiB"
-      "  {:6.1f} B/sphere",
-      f.spheres, f.load_s, f.build1_s, threads, f.buildn_s, f.render_s, f.rss / (1 << 20), per_sphere);
-  fmt::print("  build cpu 1t {:6.3f} s  {}t {:6.3f} s", f.build1_cpu, threads, f.buildn_cpu);
+  fmt::print("spheres {:>9}  load {:7.3f} s  render {:6.3f} s  peak RSS {:7.1f} MiB  {:6.1f} B/sphere\n", f.spheres,
+             f.load_s, f.render_s, f.rss / (1 << 20), per_sphere);
+  if (f.fresh_runs > 0) {
+    fmt::print(
+        "  build, fresh processes ({} runs, what a render sees): 1t {:6.3f} s (cpu {:6.3f})  {}t {:6.3f} s (cpu "
+        "{:6.3f})",
+        f.fresh_runs, f.fresh1_s, f.fresh1_cpu, threads, f.freshn_s, f.freshn_cpu);
+    if (f.fresh_embree1_s >= 0)
+      fmt::print("  embree 1t {:6.3f} s  {}t {:6.3f} s", f.fresh_embree1_s, threads, f.fresh_embreen_s);
+    fmt::print("  load {:6.3f} s\n", f.fresh_load_s);
+  }
+  fmt::print("  build, repeated in one process ({} runs): 1t {:6.3f} s (cpu {:6.3f})  {}t {:6.3f} s (cpu {:6.3f})",
+             runs, f.build1_s, f.build1_cpu, threads, f.buildn_s, f.buildn_cpu);
   if (f.embree1_s >= 0) fmt::print("  embree 1t {:6.3f} s  {}t {:6.3f} s", f.embree1_s, threads, f.embreen_s);
   fmt::print("\n");
   if (f.spheres >= 1'000'000) {
     fmt::print("  target load <= 1 s: {}; bytes/sphere <= 150: {}", verdict(f.load_s <= 1.0),
                verdict(per_sphere <= 150));
+    if (f.fresh_embree1_s >= 0) {
+      fmt::print("; build <= embree, fresh processes (1t): {}; ({}t): {}", verdict(f.fresh1_s <= f.fresh_embree1_s),
+                 threads, verdict(f.freshn_s <= f.fresh_embreen_s));
+    }
     if (f.embree1_s >= 0) {
-      fmt::print("; build <= embree (1t): {}; ({}t): {}", verdict(f.build1_s <= f.embree1_s), threads,
+      fmt::print("; repeated builds (1t): {}; ({}t): {}", verdict(f.build1_s <= f.embree1_s), threads,
                  verdict(f.buildn_s <= f.embreen_s));
     }
     fmt::print("\n");
   }
+  fmt::print("  load average {}\n", load_average());
   return 0;
 }
 
@@ -305,7 +522,12 @@ int main(int argc, char** argv) {
   app.add_option("--write", write_count, "Write a scene of this many spheres to FILE instead")
       ->check(CLI::Range(1u, 9'999'999u));  // with the plane, the loader's 10M objects
   app.add_option("--threads", threads, "Threads of the parallel build and of the render")->check(CLI::Range(1u, 256u));
-  app.add_option("--runs", runs, "Timed builds per thread count (median)")->check(CLI::Range(1, 100));
+  app.add_option("--runs", runs, "Timed builds per thread count (median), repeated in this process")
+      ->check(CLI::Range(1, 100));
+  int fresh_runs = -1;
+  app.add_option("--fresh-runs", fresh_runs,
+                 "Builds per thread count and engine, each in a fresh process (median; default --runs, 0: none)")
+      ->check(CLI::Range(0, 100));
   app.add_option("--width", width, "Render width")->check(CLI::Range(1u, 8192u));
   app.add_option("--height", height, "Render height")->check(CLI::Range(1u, 8192u));
   bool load_only = false;
@@ -315,8 +537,13 @@ int main(int argc, char** argv) {
   std::string cache_dir;
   app.add_option("--cache-dir", cache_dir,
                  "Measure a worker's load of FILE from its JSON and then from the binary scene cache it writes here");
+  // The child of a fresh-process build (see the header); not for use by hand.
+  std::string fresh_engine;
+  app.add_option("--fresh-build", fresh_engine)->check(CLI::IsMember({"ours", "embree"}))->group("");
   CLI11_PARSE(app, argc, argv);
+  if (!fresh_engine.empty()) return dtraced::bench::fresh_build(file, fresh_engine, threads, threaded_load);
   if (write_count > 0) return dtraced::bench::write_scene(write_count, file);
   if (!cache_dir.empty()) return dtraced::bench::measure_cache(file, cache_dir, threads);
-  return dtraced::bench::measure(file, threads, runs, width, height, load_only, threaded_load);
+  return dtraced::bench::measure(file, threads, runs, fresh_runs < 0 ? runs : fresh_runs, width, height, load_only,
+                                 threaded_load);
 }
