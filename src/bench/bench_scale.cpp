@@ -401,9 +401,11 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
       fmt::print(stderr, "  note: {} threads in the process before the builds; build cpu counts them too\n",
                  idle_threads);
     }
+    // 1 thread and `threads` (once where that is 1).
+    const std::vector<std::uint32_t> counts = threads == 1 ? std::vector{1u} : std::vector{1u, threads};
     std::vector<double> one, many, one_cpu, many_cpu;
     for (int i = 0; i < runs; ++i) {
-      for (const std::uint32_t t : {1u, threads}) {
+      for (const std::uint32_t t : counts) {
         std::vector<accel::Shape> copy = shapes;
         const double cpu_before = cpu_seconds();
         const accel::Geometry g = accel::Geometry::build(std::move(copy), isa, t);
@@ -419,13 +421,13 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
       }
     }
     f.build1_s = median(one);
-    f.buildn_s = median(many);
+    f.buildn_s = threads == 1 ? f.build1_s : median(many);
     f.build1_cpu = median(one_cpu);
-    f.buildn_cpu = median(many_cpu);
+    f.buildn_cpu = threads == 1 ? f.build1_cpu : median(many_cpu);
 #ifdef DTRACED_BENCH_EMBREE
     std::vector<double> e1, en;
     for (int i = 0; i < runs; ++i) {
-      for (const std::uint32_t t : {1u, threads}) {
+      for (const std::uint32_t t : counts) {
         auto tracer = EmbreeTracer::build(shapes, EmbreeQuality::kMedium, t);
         if (!tracer) {
           fmt::print(stderr, "embree: {}\n", tracer.error().to_string());
@@ -436,6 +438,7 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
     }
     if (!e1.empty()) f.embree1_s = median(e1);
     if (!en.empty()) f.embreen_s = median(en);
+    if (threads == 1) f.embreen_s = f.embree1_s;
 #endif
   }
   // After the block: this process holds nothing of the scene while the children load and build.
@@ -444,29 +447,37 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
   const double per_sphere = f.spheres ? f.rss / double(f.spheres) : 0.0;
   fmt::print("spheres {:>9}  load {:7.3f} s  render {:6.3f} s  peak RSS {:7.1f} MiB  {:6.1f} B/sphere\n", f.spheres,
              f.load_s, f.render_s, f.rss / (1 << 20), per_sphere);
+  // "1t A s (cpu B)  Nt C s (cpu D)", the second only where `threads` is not 1; likewise Embree's.
+  const auto print_builds = [threads](double s1, double cpu1, double sn, double cpun, double e1, double en) {
+    fmt::print("1t {:6.3f} s (cpu {:6.3f})", s1, cpu1);
+    if (threads != 1) fmt::print("  {}t {:6.3f} s (cpu {:6.3f})", threads, sn, cpun);
+    if (e1 < 0) return;
+    fmt::print("  embree 1t {:6.3f} s", e1);
+    if (threads != 1) fmt::print("  {}t {:6.3f} s", threads, en);
+  };
   if (f.fresh_runs > 0) {
-    fmt::print(
-        "  build, fresh processes ({} runs, what a render sees): 1t {:6.3f} s (cpu {:6.3f})  {}t {:6.3f} s (cpu "
-        "{:6.3f})",
-        f.fresh_runs, f.fresh1_s, f.fresh1_cpu, threads, f.freshn_s, f.freshn_cpu);
-    if (f.fresh_embree1_s >= 0)
-      fmt::print("  embree 1t {:6.3f} s  {}t {:6.3f} s", f.fresh_embree1_s, threads, f.fresh_embreen_s);
+    fmt::print("  build, fresh processes ({} runs, what a render sees): ", f.fresh_runs);
+    print_builds(f.fresh1_s, f.fresh1_cpu, f.freshn_s, f.freshn_cpu, f.fresh_embree1_s, f.fresh_embreen_s);
     fmt::print("  load {:6.3f} s\n", f.fresh_load_s);
   }
-  fmt::print("  build, repeated in one process ({} runs): 1t {:6.3f} s (cpu {:6.3f})  {}t {:6.3f} s (cpu {:6.3f})",
-             runs, f.build1_s, f.build1_cpu, threads, f.buildn_s, f.buildn_cpu);
-  if (f.embree1_s >= 0) fmt::print("  embree 1t {:6.3f} s  {}t {:6.3f} s", f.embree1_s, threads, f.embreen_s);
+  fmt::print("  build, repeated in one process ({} runs): ", runs);
+  print_builds(f.build1_s, f.build1_cpu, f.buildn_s, f.buildn_cpu, f.embree1_s, f.embreen_s);
   fmt::print("\n");
   if (f.spheres >= 1'000'000) {
     fmt::print("  target load <= 1 s: {}; bytes/sphere <= 150: {}", verdict(f.load_s <= 1.0),
                verdict(per_sphere <= 150));
+    // "(1t): MET; (Nt): MISSED", the second only where `threads` is not 1.
+    const auto print_verdicts = [threads](double s1, double e1, double sn, double en) {
+      fmt::print(" (1t): {}", verdict(s1 <= e1));
+      if (threads != 1) fmt::print("; ({}t): {}", threads, verdict(sn <= en));
+    };
     if (f.fresh_embree1_s >= 0) {
-      fmt::print("; build <= embree, fresh processes (1t): {}; ({}t): {}", verdict(f.fresh1_s <= f.fresh_embree1_s),
-                 threads, verdict(f.freshn_s <= f.fresh_embreen_s));
+      fmt::print("; build <= embree, fresh processes");
+      print_verdicts(f.fresh1_s, f.fresh_embree1_s, f.freshn_s, f.fresh_embreen_s);
     }
     if (f.embree1_s >= 0) {
-      fmt::print("; repeated builds (1t): {}; ({}t): {}", verdict(f.build1_s <= f.embree1_s), threads,
-                 verdict(f.buildn_s <= f.embreen_s));
+      fmt::print("; repeated builds");
+      print_verdicts(f.build1_s, f.embree1_s, f.buildn_s, f.embreen_s);
     }
     fmt::print("\n");
   }
