@@ -4,6 +4,7 @@
 // search over all the shapes does; a frame built on a shared static layer renders the same bits as
 // the same frame built whole, alone or after other frames; a static scene keeps its one Geometry.
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <vector>
 
@@ -160,6 +161,170 @@ TEST_CASE("a layered geometry with one empty layer answers as the other alone", 
       const Split s = split(shapes, std::vector<bool>(shapes.size(), all_moving), isa);
       const LayeredGeometry g(s.fixed, s.moving, shapes.size());
       check_against_brute_force(g, shapes, 7, 800);
+    }
+  }
+}
+
+namespace {
+
+// A static scene split by transparency (LayeredGeometry's third constructor): the opaque layer
+// holds every shape at its id with the transparent ones holes, the transparent layer those with
+// their ids. `clear` flags the transparent shapes.
+LayeredGeometry split_by(const std::vector<Shape>& shapes, const std::vector<bool>& clear, Isa isa) {
+  std::vector<Shape> opaque = shapes, glass;
+  std::vector<std::uint32_t> ids;
+  for (std::uint32_t i = 0; i < shapes.size(); ++i) {
+    if (!clear[i]) continue;
+    glass.push_back(shapes[i]);
+    ids.push_back(i);
+    opaque[i] = LayeredGeometry::hole();
+  }
+  return LayeredGeometry(accel::Geometry::build(std::move(opaque), isa),
+                         Layer::build(std::move(glass), std::move(ids), isa));
+}
+
+// Every query of a split geometry, 1, 8 and 16 rays at a time, against brute force: the queries
+// over both layers against all the shapes, occluded_opaque against the opaque ones and
+// intersect_transparent against the transparent ones (ids scene-wide). Rays start near the
+// transparent part or anywhere, so that its bounding sphere both culls rays and lets rays through
+// that pass just inside it. Returns how many rays the transparent layer's queries hit.
+int check_split(const LayeredGeometry& g, const std::vector<Shape>& shapes, const std::vector<bool>& clear,
+                const Vec3f& near, std::uint64_t seed, int rays) {
+  std::vector<Shape> opaque = shapes, glass = shapes;
+  for (std::size_t i = 0; i < shapes.size(); ++i) (clear[i] ? opaque : glass)[i] = LayeredGeometry::hole();
+  TestRng rng{seed};
+  int hits = 0, glass_hits = 0;
+  for (int n = 0; n < rays; n += accel::kPacketSize16) {
+    Ray packet[accel::kPacketSize16];
+    Hit want[accel::kPacketSize16], want_glass[accel::kPacketSize16];
+    bool found[accel::kPacketSize16], blocked[accel::kPacketSize16], crossed[accel::kPacketSize16];
+    for (int i = 0; i < accel::kPacketSize16; ++i) {
+      packet[i] = random_ray(rng);
+      if (rng.index(2) == 0) {  // aimed at the transparent part, now and then off by a little
+        packet[i].d = unit_f(Vec3d(near - packet[i].o) + rng.in_cube(rng.index(2) == 0 ? 0.05 : 2.0));
+      }
+      found[i] = brute_force(shapes, packet[i], want[i]);
+      Hit unused;
+      blocked[i] = brute_force(opaque, packet[i], unused);
+      crossed[i] = brute_force(glass, packet[i], want_glass[i]);
+      INFO(describe(packet[i]));
+      Hit got;
+      REQUIRE(g.intersect(packet[i], got) == found[i]);
+      if (found[i]) REQUIRE(same_hit(got, want[i]));
+      REQUIRE(g.occluded(packet[i]) == found[i]);
+      REQUIRE(g.occluded_opaque(packet[i]) == blocked[i]);
+      REQUIRE(g.intersect_transparent(packet[i], got) == crossed[i]);
+      if (crossed[i]) REQUIRE(same_hit(got, want_glass[i]));
+      hits += found[i] ? 1 : 0;
+      glass_hits += crossed[i] ? 1 : 0;
+    }
+    const std::uint32_t valid = rng.index(3) == 0 ? std::uint32_t(rng.next() & 0xffffu) : 0xffffu;
+    for (const int width : {accel::kPacketSize, accel::kPacketSize16}) {
+      for (int base = 0; base < accel::kPacketSize16; base += width) {
+        const std::uint32_t lanes = (valid >> base) & ((1u << width) - 1);
+        const Ray* r = packet + base;
+        Hit got[accel::kPacketSize16], got_glass[accel::kPacketSize16];
+        std::uint32_t hit_mask, occluded, opaque_mask, glass_mask;
+        if (width == accel::kPacketSize) {
+          hit_mask = g.intersect8(r, lanes, got) & lanes;
+          occluded = g.occluded8(r, lanes);
+          opaque_mask = g.occluded_opaque<accel::kPacketSize>(r, lanes);
+          glass_mask = g.intersect_transparent<accel::kPacketSize>(r, lanes, got_glass);
+        } else {
+          hit_mask = g.intersect16(r, lanes, got) & lanes;
+          occluded = g.occluded16(r, lanes);
+          opaque_mask = g.occluded_opaque<accel::kPacketSize16>(r, lanes);
+          glass_mask = g.intersect_transparent<accel::kPacketSize16>(r, lanes, got_glass);
+        }
+        for (int i = 0; i < width; ++i) {
+          const int k = base + i;
+          if (!(lanes >> i & 1u)) continue;
+          INFO(width << "-ray packet, lane " << i << ": " << describe(packet[k]));
+          REQUIRE(bool(hit_mask >> i & 1u) == found[k]);
+          if (found[k]) REQUIRE(same_hit(got[i], want[k]));
+          REQUIRE(bool(occluded >> i & 1u) == found[k]);
+          REQUIRE(bool(opaque_mask >> i & 1u) == blocked[k]);
+          REQUIRE(bool(glass_mask >> i & 1u) == crossed[k]);
+          if (crossed[k]) REQUIRE(same_hit(got_glass[i], want_glass[k]));
+        }
+      }
+    }
+  }
+  CHECK(hits > rays / 4);
+  return glass_hits;
+}
+
+}  // namespace
+
+TEST_CASE("a static scene split by transparency answers every query as one Geometry over all shapes",
+          "[accel][layers]") {
+  // 400 shapes with copies (ties in t, across the layers too); the transparent ones those within
+  // 4.5 of a point (a compact part, so its bounding sphere culls), or every fifth shape with the
+  // plane among them (the bounds unbounded: nothing culled).
+  const std::vector<Shape> shapes = mixed_shapes(23, 400);
+  const Vec3f near{1.5f, -2.0f, 0.5f};
+  for (const Isa isa : accel::supported_isas()) {
+    for (const bool compact : {true, false}) {
+      CAPTURE(accel::isa_name(isa), compact);
+      std::vector<bool> clear(shapes.size());
+      int count = 0;
+      for (std::size_t i = 0; i < shapes.size(); ++i) {
+        const math::Bounds3f b = accel::shape_bounds(shapes[i]);
+        clear[i] = compact ? !b.empty() && math::length(b.centroid() - near) < 4.5f : i % 5 == 0;
+        count += clear[i] ? 1 : 0;
+      }
+      REQUIRE(count > 4);
+      const LayeredGeometry g = split_by(shapes, clear, isa);
+      REQUIRE(g.transparent() != nullptr);
+      REQUIRE(g.moving() == nullptr);
+      REQUIRE(g.fixed()->ids.empty());
+      REQUIRE(g.fixed()->geometry.shapes().size() == shapes.size());
+      for (std::uint32_t id = 0; id < shapes.size(); ++id) {
+        REQUIRE(std::memcmp(&g.shape(id), &shapes[id], sizeof(Shape)) == 0);
+      }
+      const int glass_hits = check_split(g, shapes, clear, near, compact ? 31 : 37, 4000);
+      CHECK(glass_hits > 100);
+    }
+  }
+}
+
+// The transparent part one glass box (and a triangle across its diagonal): its bounding sphere
+// is tightest at the box's corners, where the rays aimed at them graze it.
+TEST_CASE("a split scene's culled transparent layer keeps the rays that graze its corners", "[accel][layers]") {
+  std::vector<Shape> shapes = mixed_shapes(29, 200);
+  const Vec3f lo{1.0f, -1.0f, 0.5f}, hi{2.5f, 0.25f, 3.0f};
+  shapes.push_back(testing::box(lo, hi));
+  shapes.push_back(testing::triangle(lo, hi, Vec3f{lo.x, hi.y, lo.z}));
+  shapes.push_back(testing::box(lo, hi));  // an opaque copy: ties across the layers
+  std::vector<bool> clear(shapes.size(), false);
+  clear[200] = clear[201] = true;
+  for (const Isa isa : accel::supported_isas()) {
+    CAPTURE(accel::isa_name(isa));
+    const LayeredGeometry g = split_by(shapes, clear, isa);
+    int glass_hits = 0;
+    for (int c = 0; c < 8; ++c) {
+      const Vec3f corner{c & 1 ? hi.x : lo.x, c & 2 ? hi.y : lo.y, c & 4 ? hi.z : lo.z};
+      glass_hits += check_split(g, shapes, clear, corner, 50 + std::uint64_t(c), 800);
+    }
+    CHECK(glass_hits > 200);
+  }
+}
+
+TEST_CASE("a split scene's hit at the same t in both layers goes to the smaller scene-wide id", "[accel][layers]") {
+  const std::vector<Shape> shapes = {testing::sphere({0, 0, 5}, 1), testing::sphere({0, 0, 5}, 1)};
+  for (const Isa isa : accel::supported_isas()) {
+    for (const bool first_clear : {false, true}) {
+      const LayeredGeometry g = split_by(shapes, {first_clear, !first_clear}, isa);
+      Hit hit;
+      REQUIRE(g.intersect(make_ray({0, 0, 0}, {0, 0, 1}), hit));
+      CHECK(hit.shape == 0);
+      Ray rays[accel::kPacketSize16];
+      for (Ray& r : rays) r = make_ray({0, 0, 0}, {0, 0, 1});
+      Hit hits[accel::kPacketSize16];
+      REQUIRE(g.intersect16(rays, 0xffffu, hits) == 0xffffu);
+      for (const Hit& h : hits) CHECK(h.shape == 0);
+      REQUIRE(g.intersect8(rays, 0xffu, hits) == 0xffu);
+      for (int i = 0; i < accel::kPacketSize; ++i) CHECK(hits[i].shape == 0);
     }
   }
 }

@@ -43,10 +43,16 @@ struct TraceStats {
   // traced as packets (trace_radiance8/16); 0 on the per-ray path. What the packets reach, for
   // tests and profiles; not part of a render's result.
   std::uint64_t secondary_packet_rays = 0;
+  // Of `rays`: the shadow rays of a scene split by transparency (accel::LayeredGeometry) that
+  // first asked the opaque layer for any hit. Each counts as one ray with its first query of the
+  // transparent layer, and one more for each crossing after which it goes on, as the walk over
+  // every shape counts its segments; a blocked ray is one. The same on both paths.
+  std::uint64_t opaque_first_rays = 0;
   std::uint64_t all_rays() const { return rays + border_rays; }
   void add(const TraceStats& o) {
     rays += o.rays;
     secondary_packet_rays += o.secondary_packet_rays;
+    opaque_first_rays += o.opaque_first_rays;
     nan_samples += o.nan_samples;
     inf_samples += o.inf_samples;
     border_rays += o.border_rays;

@@ -182,16 +182,34 @@ struct Tracer {
       ++stats.rays;
       return scene.geometry().occluded(ray) ? 0.0f : 1.0f;
     }
-    return transmittance_walk(ray, media);
+    if (scene.geometry().transparent() == nullptr) return transmittance_walk(ray, media, false);
+    // A scene split by transparency: an opaque surface anywhere on the ray blocks the light
+    // whatever the crossings before it let through, so one any-hit query over the opaque layer
+    // answers the blocked rays, and the others walk the transparent layer only. The same value as
+    // the walk over every shape, but where an opaque and a transparent surface meet the ray at the
+    // same t and the transparent one has the smaller id (that walk crosses it and starts past both).
+    // Counted as one ray with the walk's first query, which goes on where it found nothing: the
+    // rays counted are the segments cast between crossings, as for the walk over every shape, but
+    // a blocked ray is one segment however many crossings lie before its opaque surface.
+    ++stats.rays;
+    ++stats.opaque_first_rays;
+    if (scene.geometry().occluded_opaque(ray)) return 0.0f;
+    return transmittance_walk(ray, media, true);
   }
 
   // The crossings of a shadow ray through transparent surfaces, one scalar query at a time (the
-  // packet path walks the same crossings as packets: trace_ahead).
-  float transmittance_walk(math::Ray ray, MediumStack media) {
+  // packet path walks the same crossings as packets: trace_ahead): over every shape, or over the
+  // transparent layer alone (`clear`: the opaque one found nothing).
+  float transmittance_walk(math::Ray ray, MediumStack media, bool clear) {
     float t = 1.0f;
     for (int crossing = 0; crossing < kMaxShadowCrossings; ++crossing) {
       accel::Hit hit;
-      if (!intersect(ray, hit)) return t;
+      if (!clear) {
+        if (!intersect(ray, hit)) return t;
+      } else {
+        if (crossing > 0) ++stats.rays;  // the first query's ray is the opaque query's
+        if (!scene.geometry().intersect_transparent(ray, hit)) return t;
+      }
       if (!shadow_crossing(hit, ray, media, t)) return 0.0f;
     }
     return 0.0f;
@@ -555,10 +573,8 @@ std::uint32_t intersect_packet(const accel::LayeredGeometry& geometry, const mat
     return geometry.intersect8(rays, valid, hits);
   } else {
     static_assert(kN == 2 * accel::kPacketSize);
-    const accel::Layer* whole = geometry.fixed();
-    if (geometry.moving() == nullptr && whole != nullptr && whole->ids.empty()) {
-      return whole->geometry.intersect16(rays, valid, hits);
-    }
+    // One layer, or a static scene split by transparency: 16 rays at once over each layer.
+    if (geometry.moving() == nullptr) return geometry.intersect16(rays, valid, hits);
     constexpr int kH = accel::kPacketSize;
     constexpr std::uint32_t kHalf = (1u << kH) - 1;
     const std::uint32_t lo = (valid & kHalf) != 0 ? geometry.intersect8(rays, valid & kHalf, hits) : 0;
@@ -573,10 +589,7 @@ std::uint32_t occluded_packet(const accel::LayeredGeometry& geometry, const math
     return geometry.occluded8(rays, valid);
   } else {
     static_assert(kN == 2 * accel::kPacketSize);
-    const accel::Layer* whole = geometry.fixed();
-    if (geometry.moving() == nullptr && whole != nullptr && whole->ids.empty()) {
-      return whole->geometry.occluded16(rays, valid);
-    }
+    if (geometry.moving() == nullptr) return geometry.occluded16(rays, valid);
     constexpr int kH = accel::kPacketSize;
     constexpr std::uint32_t kHalf = (1u << kH) - 1;
     const std::uint32_t lo = (valid & kHalf) != 0 ? geometry.occluded8(rays, valid & kHalf) : 0;
@@ -974,7 +987,7 @@ inline constexpr int kMinTreeAheadRays = 8;
 // Whether every query tests each shape directly (a scene of under 64 shapes has no tree; see
 // accel::Geometry::build): a packet then costs the same whichever way its rays go.
 inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
-  for (const accel::Layer* layer : {geometry.fixed(), geometry.moving()}) {
+  for (const accel::Layer* layer : {geometry.fixed(), geometry.moving(), geometry.transparent()}) {
     if (layer != nullptr && layer->geometry.stats().wide_nodes > 1) return false;
   }
   return true;
@@ -988,12 +1001,15 @@ inline bool flat_geometry(const accel::LayeredGeometry& geometry) {
 // the lanes that go on after the first crossing one by one instead was measured slower on
 // scenes/mesh.json, whose glass sphere is a mesh (render phase, 1 thread, AVX-512: 1.036x, 1.051x
 // and 1.039x in three runs of 8-10 pairs; 2 threads 1.073x and 0.975x; SSE4 0.99x-1.02x), and
-// no faster on a 10,000-sphere field's glass (1.02x-1.05x AVX-512, 0.95x-1.03x SSE4). Nearest-hit
-// queries are kept for every shadow ray here: an any-hit query first (taking the walk only for
-// the rays it finds blocked) was measured slower on scenes/mesh.json (0.89x-0.92x, 8 pairs per
-// isa and thread count), as 17 % of its shadow rays are blocked and pay both queries while a ray
-// nothing blocks costs the same either way. Area lights are left to the lanes' tracers, which add
-// them after this sum as the scalar path does.
+// no faster on a 10,000-sphere field's glass (1.02x-1.05x AVX-512, 0.95x-1.03x SSE4). Over one
+// layer of every shape, nearest-hit queries are kept for every shadow ray: an any-hit query over
+// everything first (taking the walk only for the rays it found blocked) was measured slower on
+// scenes/mesh.json (0.89x-0.92x, 8 pairs per isa and thread count), as 17 % of its shadow rays
+// are blocked and pay both queries while a ray nothing blocks costs the same either way. A scene
+// split by transparency (RenderScene::build, accel::LayeredGeometry) asks its opaque layer alone
+// for any hit, and walks only the rays nothing opaque blocks, over its transparent layer alone.
+// Area lights are left to the lanes' tracers, which add them after this sum as the scalar path
+// does.
 template <unsigned kF, int kN>
 void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
   using T = Tracer<kF>;
@@ -1075,11 +1091,27 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
     }
     // Tracer::transmittance_walk for the entries in `cast`, crossing by crossing: each crossing's
     // queries go as one packet of the entries still walking (the same queries, each entry's
-    // crossings in its order, through the same Tracer::shadow_crossing).
+    // crossings in its order, through the same Tracer::shadow_crossing). In a scene split by
+    // transparency, as Tracer::transmittance: the opaque layer's any-hit query first, then the
+    // walk of the entries it leaves over the transparent layer only.
+    const bool clear = geometry.transparent() != nullptr;
+    std::uint32_t open = cast;
+    if (clear) {
+      tracer.stats.opaque_first_rays += std::popcount(cast);
+      open = cast & ~geometry.template occluded_opaque<kN>(shadow, cast);
+      // The walk's first query of an entry is counted with its opaque query (Tracer::transmittance).
+      if (open == 0) continue;  // every entry blocked: the light adds nothing
+    }
+    // The nearest hits of the entries in `on` (a query over every shape, or the transparent layer's
+    // with its ids made the scene's).
+    const auto nearest = [&](std::uint32_t on) {
+      if (!clear) return intersect_packet<kN>(geometry, shadow, on, hits_scratch.data()) & on;
+      return geometry.template intersect_transparent<kN>(shadow, on, hits_scratch.data()) & on;
+    };
     std::uint32_t lit = 0;
-    std::uint32_t walking = intersect_packet<kN>(geometry, shadow, cast, hits_scratch.data()) & cast;
-    for (std::uint32_t s = cast & ~walking; s != 0; s &= s - 1) vis[std::countr_zero(s)] = 1.0f;
-    lit |= cast & ~walking;
+    std::uint32_t walking = nearest(open);
+    for (std::uint32_t s = open & ~walking; s != 0; s &= s - 1) vis[std::countr_zero(s)] = 1.0f;
+    lit |= open & ~walking;
     Scratch<MediumStack, kN> media;  // written for the entries that walk before they are read
     for (std::uint32_t s = walking; s != 0; s &= s - 1) {
       const int j = std::countr_zero(s);
@@ -1104,7 +1136,7 @@ void trace_ahead(Tracer<kF>& tracer, Ahead* const* ahead, int n) {
       }
       tracer.stats.rays += std::popcount(on);
       if (secondary) tracer.stats.secondary_packet_rays += std::popcount(on);
-      walking = intersect_packet<kN>(geometry, shadow, on, hits_scratch.data()) & on;
+      walking = nearest(on);
       lit |= on & ~walking;  // reached the light through every crossing: vis[j] = t > 0
     }
     pl.add(light, lit, vis);
