@@ -3,6 +3,7 @@
 // (single rays and 8-ray packets, every instruction set this machine has) exactly as a brute-force
 // search over all the shapes does; a frame built on a shared static layer renders the same bits as
 // the same frame built whole, alone or after other frames; a static scene keeps its one Geometry.
+#include <bit>
 #include <cstdint>
 #include <cstring>
 #include <memory>
@@ -335,6 +336,50 @@ TEST_CASE("a large split sphere scene answers every query as one Geometry over a
   const LayeredGeometry g = split_by(shapes, clear, isa);
   REQUIRE(g.fixed()->geometry.stats().wide_nodes > 1);
   CHECK(check_split(g, shapes, clear, near, 61, 480) > 20);
+}
+
+// Directions far from unit length, down to where their squares are subnormal: the transparent
+// layer's bounding-sphere cull must keep every ray that one Geometry over all shapes would send
+// into it (a cull that trusted a subnormal dd dropped rays aimed straight at the glass).
+TEST_CASE("a split scene answers rays with tiny and huge directions as one Geometry", "[accel][layers]") {
+  const std::vector<Shape> shapes = mixed_shapes(23, 400);
+  const Vec3f near{1.5f, -2.0f, 0.5f};
+  std::vector<bool> clear(shapes.size());
+  for (std::size_t i = 0; i < shapes.size(); ++i) {
+    const math::Bounds3f b = accel::shape_bounds(shapes[i]);
+    clear[i] = !b.empty() && math::length(b.centroid() - near) < 4.5f;
+  }
+  for (const Isa isa : accel::supported_isas()) {
+    CAPTURE(accel::isa_name(isa));
+    const accel::Geometry whole = accel::Geometry::build(shapes, isa);
+    const LayeredGeometry g = split_by(shapes, clear, isa);
+    REQUIRE(g.transparent() != nullptr);
+    TestRng rng{71};
+    int hits = 0;
+    for (const float scale : {1e-21f, 3e-23f, 1e-30f, 1e-12f, 1e12f}) {
+      CAPTURE(scale);
+      for (int n = 0; n < 400; n += accel::kPacketSize16) {
+        Ray packet[accel::kPacketSize16];
+        for (Ray& r : packet) {
+          const Vec3f o = to_f(rng.in_cube(12));
+          const Vec3f d = unit_f(Vec3d(near - o) + rng.in_cube(rng.index(2) == 0 ? 0.05 : 2.0));
+          r = make_ray(o, d * scale, 0.0f, kInf);
+        }
+        Hit want[accel::kPacketSize16], got[accel::kPacketSize16];
+        const std::uint32_t found = whole.intersect16(packet, 0xffffu, want) & 0xffffu;
+        REQUIRE((g.intersect16(packet, 0xffffu, got) & 0xffffu) == found);
+        for (int i = 0; i < accel::kPacketSize16; ++i) {
+          INFO("lane " << i << ": " << describe(packet[i]));
+          if (found >> i & 1u) REQUIRE(same_hit(got[i], want[i]));
+          Hit one, all;
+          REQUIRE(g.intersect(packet[i], one) == whole.intersect(packet[i], all));
+          if (found >> i & 1u) REQUIRE(same_hit(one, all));
+        }
+        hits += std::popcount(found);
+      }
+    }
+    CHECK(hits > 1000);
+  }
 }
 
 TEST_CASE("a split scene's hit at the same t in both layers goes to the smaller scene-wide id", "[accel][layers]") {
