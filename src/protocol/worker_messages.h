@@ -58,7 +58,7 @@ inline constexpr std::string_view kNextLeaseHeader = "X-Dtraced-Next-Lease";
 // version and refuses tiles that name another, so a farm in the middle of an upgrade never mixes
 // two renderers' pixels in one image.
 inline constexpr std::string_view kPixelVersionHeader = "X-Dtraced-Pixel-Version";
-inline constexpr std::uint32_t kPixelVersion = 4;
+inline constexpr std::uint32_t kPixelVersion = 5;
 // GET /v1/workers lists at most this many (the collector's registry cap is below it).
 inline constexpr std::size_t kMaxListedWorkers = 10'000;
 inline constexpr std::size_t kMaxWorkerListBytes = 16 << 20;
