@@ -823,7 +823,9 @@ struct SetAside {
   std::vector<std::pair<std::uint32_t, Shape>> others;  // (id, shape), in id order
   std::size_t count = 0;                                // shapes in all
 };
-// Most shapes a scene may set aside (44 bytes each); a scene with more keeps its shapes.
+// Most planes a scene may set aside (44 bytes each); a scene with more keeps its shapes. Invalid
+// spheres (a scene split by transparency holds one for each transparent shape, render_scene.cpp)
+// are set aside however many there are: at most the scene's shape count.
 constexpr std::size_t kMaxSetAside = 4096;
 
 // Maps [data, data + bytes) writable now, on up to `threads` threads, each taking whole 2 MiB

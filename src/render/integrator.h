@@ -97,8 +97,9 @@ void trace_radiance8(const RenderScene& scene, const math::Ray* rays, const math
                      const TraceLimits& limits, TraceStats& stats, Vec3f* out);
 
 // The same for up to 16 rays (bits >= kPacketSize16 ignored), e.g. a 4x4 pixel block: one
-// accel::Geometry::intersect16 / occluded16 query per packet on a static scene (AVX-512 tests a
-// node against 16 rays in one vector), two 8-ray halves on a frame with moving objects.
+// accel::Geometry::intersect16 / occluded16 query per packet and layer on a static scene (one
+// layer, or an opaque and a transparent one; AVX-512 tests a node against 16 rays in one
+// vector), two 8-ray halves on a frame with moving objects.
 void trace_radiance16(const RenderScene& scene, const math::Ray* rays, const math::SampleKey* keys, std::uint32_t valid,
                       const TraceLimits& limits, TraceStats& stats, Vec3f* out);
 

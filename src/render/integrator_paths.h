@@ -564,8 +564,9 @@ Vec3f trace_radiance_with(const RenderScene& scene, const math::Ray& ray, const 
 }
 
 // A packet of kN (8 or 16) rays through the geometry. 16-ray packets go to the one layer of a
-// static scene; two layers (an animated frame) have 8-ray queries only, so their 16 rays are
-// traced as two 8-ray halves: the same answers either way.
+// static scene, or to both layers of a static scene split by transparency (each layer's 16-ray
+// query, then the merge); an animated frame's two layers have 8-ray queries only, so their 16
+// rays are traced as two 8-ray halves: the same answers either way.
 template <int kN>
 std::uint32_t intersect_packet(const accel::LayeredGeometry& geometry, const math::Ray* rays, std::uint32_t valid,
                                accel::Hit* hits) {
