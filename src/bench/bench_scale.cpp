@@ -19,15 +19,20 @@
 //    --fresh-build ours|embree) once per build; the child loads FILE as the pipeline does and
 //    builds once, the first build of its process, and prints one line the parent reads. Ours is
 //    RenderSceneBuilder::build, as `dtraced render` calls it; Embree's builds the same shapes.
-//    --fresh-runs sets the count (default --runs; 0 leaves them out). The runs alternate ours and
-//    Embree's, 1 thread and N, so both see the machine's same minutes.
+//    --fresh-runs sets the count (default --runs; 0 leaves them out). Each run builds on 1 thread,
+//    then N, ours and Embree's in an order that alternates between runs, so both see the
+//    machine's same minutes.
 //  - repeated builds in one process (--runs of each, after the render): each build inherits the
 //    heap the build before left, so glibc's allocator state (which freed pages the next build
 //    reuses without faults) moves them; they are printed for comparison with earlier rounds.
 // Times are wall time (steady_clock), each beside the CPU time of the build's threads (ours).
 //
-// Exit codes: 0 done; 1 the scene could not be written, loaded or built (or a child failed);
-// 2 usage error.
+// The scene must be one tree: a static scene that RenderSceneBuilder splits into an opaque and a
+// transparent layer (a compact glass part among opaque shapes) is refused, as the figures are
+// those of one Geometry.
+//
+// Exit codes: 0 done; 1 the scene could not be written, loaded or built, or is split (or a child
+// failed); 2 usage error.
 // Threading: the main thread drives; Geometry::build and render_local start their own threads.
 #include <spawn.h>
 #include <sys/resource.h>
@@ -175,6 +180,19 @@ std::optional<scene::LoadResult> load_into(const std::string& path, render::Rend
   return loaded;
 }
 
+// The scene's one tree, or null (and why, on stderr) where RenderSceneBuilder split it into an
+// opaque and a transparent layer: its figures would then be the opaque layer's alone.
+const accel::Geometry* one_tree(const render::RenderScene& rs, const std::string& path) {
+  if (rs.geometry().transparent() != nullptr) {
+    fmt::print(stderr,
+               "dtraced-bench-scale: {}: the scene splits into an opaque and a transparent layer (a compact glass "
+               "part); this benchmark measures one tree: give it a scene without one\n",
+               path);
+    return nullptr;
+  }
+  return &rs.geometry().fixed()->geometry;
+}
+
 // One fresh process's build, as its --fresh-build line gives it.
 struct FreshBuild {
   double seconds = 0, cpu = -1, load_s = -1;
@@ -203,7 +221,9 @@ int fresh_build(const std::string& path, const std::string& engine, std::uint32_
     const render::RenderScene rs = std::move(builder).build(*loaded->scene, accel::best_isa(), threads);
     b.cpu = cpu_seconds() - cpu_before;
     const double scene_s = since(start);
-    const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
+    const accel::Geometry* tree = one_tree(rs, path);
+    if (tree == nullptr) return 1;
+    const accel::BuildStats& st = tree->stats();
     b.seconds = st.seconds + st.wide_seconds;
     b.tree_hash = st.tree_hash;
     b.load_s = parse_s + (scene_s - b.seconds);
@@ -250,12 +270,15 @@ std::optional<FreshBuild> run_fresh(const std::string& path, const std::string& 
   const int rc = ::posix_spawn(&pid, "/proc/self/exe", &actions, nullptr, argv.data(), environ);
   posix_spawn_file_actions_destroy(&actions);
   ::close(fds[1]);
+  // The child prints one short line; more than this is kept only up to the limit (and then the
+  // line does not parse).
+  constexpr std::size_t kMaxChildOutput = 4096;
   std::string out;
   if (rc == 0) {
     char buf[512];
     for (ssize_t n; (n = ::read(fds[0], buf, sizeof buf)) != 0;) {
       if (n > 0)
-        out.append(buf, std::size_t(n));
+        out.append(buf, std::min(std::size_t(n), kMaxChildOutput - std::min(out.size(), kMaxChildOutput)));
       else if (errno != EINTR)
         break;
     }
@@ -275,8 +298,11 @@ std::optional<FreshBuild> run_fresh(const std::string& path, const std::string& 
   if (!WIFEXITED(status) || WEXITSTATUS(status) != 0 ||
       std::sscanf(out.c_str(), "fresh %15s %u %lf %lf %llx %lf", name, &t, &b.seconds, &b.cpu, &hash, &b.load_s) != 6 ||
       engine != name || t != threads) {
-    fmt::print(stderr, "dtraced-bench-scale: the fresh {} build on {} threads failed (status {}): {}\n", engine,
-               threads, status, out);
+    const std::string how = WIFEXITED(status)     ? fmt::format("exit code {}", WEXITSTATUS(status))
+                            : WIFSIGNALED(status) ? fmt::format("signal {}", WTERMSIG(status))
+                                                  : fmt::format("wait status {}", status);
+    fmt::print(stderr, "dtraced-bench-scale: the fresh {} build on {} threads failed ({}): {}\n", engine, threads, how,
+               out);
     return std::nullopt;
   }
   b.tree_hash = hash;
@@ -363,9 +389,10 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
     const render::RenderScene rs = std::move(builder).build(*loaded->scene, isa, threads);
     const double scene_s = since(start);
     const double build_rss = phase_peak_bytes();
-    for (const accel::Shape& s : rs.geometry().fixed()->geometry.shapes())
-      f.spheres += s.type == accel::ShapeType::kSphere;
-    const accel::BuildStats& st = rs.geometry().fixed()->geometry.stats();
+    const accel::Geometry* tree = one_tree(rs, path);
+    if (tree == nullptr) return 1;
+    for (const accel::Shape& s : tree->shapes()) f.spheres += s.type == accel::ShapeType::kSphere;
+    const accel::BuildStats& st = tree->stats();
     pipeline_build_s = st.seconds + st.wide_seconds;
     tree_hash = st.tree_hash;
     f.load_s = parse_s + (scene_s - pipeline_build_s);
@@ -390,7 +417,7 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
                build_rss / (1 << 20), render_rss / (1 << 20));
 
     // The build alone, on 1 thread and on `threads`, from the same shapes.
-    const std::vector<accel::Shape>& shapes = rs.geometry().fixed()->geometry.shapes();
+    const std::vector<accel::Shape>& shapes = tree->shapes();
     // The CPU time beside the wall time: on a shared machine the wall time waits for a core, so
     // two builds are best compared by their CPU. It is the CPU of the build's threads alone: the
     // shapes are copied before the call and the tree freed after it, and the build's own threads
@@ -506,7 +533,9 @@ int measure_cache(const std::string& path, const std::string& dir, std::uint32_t
       fmt::print(stderr, "dtraced-bench-scale: {}{}\n", prepared.error, prepared.warning);
       return 1;
     }
-    const accel::BuildStats& st = prepared.scene->frame(0)->geometry().fixed()->geometry.stats();
+    const accel::Geometry* tree = one_tree(*prepared.scene->frame(0), path);
+    if (tree == nullptr) return 1;
+    const accel::BuildStats& st = tree->stats();
     load[pass] = all_s - (st.seconds + st.wide_seconds);
     fmt::print(stderr, "{}: prepare {:.3f} s (cpu {:.3f} s), of which the BVH build {:.3f} s\n",
                pass == 0 ? "from JSON (and writing the cache)" : "from the cache file", all_s, cpu[pass],
