@@ -27,6 +27,7 @@
 #include <catch2/catch.hpp>
 
 #include "accel/geometry.h"
+#include "accel/isa.h"
 #include "shape_builders.h"
 #include "util/thread_pool.h"
 
@@ -250,6 +251,79 @@ TEST_CASE("BVH equals brute force where a sphere's extreme point meets a box fac
   }
   INFO(rays << " rays");
   CHECK(mismatches == 0);
+}
+
+TEST_CASE("Triangle hit records of every scale: packets and single rays give the scalar bits", "[accel][bvh][shapes]") {
+  // The SIMD kernels build a triangle hit's record themselves (finish_triangles for packets, a
+  // vector of lanes at a time; finish_triangle_hit for single rays), from the winning test's edge
+  // functions and the leaf block's vertices; the scalar path tests the triangle again. Meshes at
+  // scales from 1e-6 to 1e6, at the origin or far from it, with slivers (a vertex a few float steps
+  // off the line of the other two), tiny triangles beside large ones, and zero-area triangles (not
+  // prims: they must not shift the others' slots). Rays aimed at every triangle, in 16-ray packets
+  // from one eye (the coherent walk) and from scattered origins (the per-lane walk), through
+  // intersect, intersect8 and intersect16 on every SIMD isa: every hit record (point, its error
+  // bound, normal) must have the scalar path's bits.
+  TestRng rng{1616};
+  for (const double scale : {1e-6, 1e-3, 1.0, 1e3, 1e6}) {
+    for (const double offset : {0.0, 1e3}) {
+      INFO("scale " << scale << " offset " << offset);
+      const Vec3d base{offset * scale, -0.5 * offset * scale, 0.25 * offset * scale};
+      std::vector<Shape> shapes;
+      std::vector<Vec3d> aims;  // a point inside each valid triangle
+      for (int y = 0; y < 12; ++y) {
+        for (int x = 0; x < 12; ++x) {
+          const Vec3d corner = base + Vec3d{x * scale, y * scale, rng.uniform(-0.1, 0.1) * scale};
+          const double size = scale * (rng.uniform() < 0.3 ? rng.log_uniform(1e-4, 1e-1) : rng.uniform(0.5, 0.9));
+          const Vec3f a = to_f(corner), b = to_f(corner + Vec3d{size, rng.uniform(-0.2, 0.2) * size, 0.0});
+          Vec3f c = to_f(corner + Vec3d{rng.uniform(-0.2, 0.2) * size, size, rng.uniform(-0.3, 0.3) * size});
+          const int kind = (x + 5 * y) % 7;
+          if (kind == 3) {
+            // A sliver: c a few float steps off the midpoint of a and b.
+            const Vec3f mid = to_f((to_d(a) + to_d(b)) * 0.5);
+            c = {std::nextafter(std::nextafter(mid.x, kInf), kInf), mid.y, std::nextafter(mid.z, kInf)};
+          } else if (kind == 5) {
+            shapes.push_back(triangle(a, b, to_f((to_d(a) + to_d(b)) * 0.5)));  // zero area: never hit
+          }
+          shapes.push_back(triangle(a, b, c));
+          aims.push_back((to_d(a) + to_d(b) + to_d(c)) / 3.0);
+        }
+      }
+      const Vec3d eye = base + Vec3d{6.0 * scale, 6.0 * scale, 8.0 * scale};
+      std::vector<Ray> rays;
+      for (const Vec3d& aim : aims) {
+        rays.push_back(make_ray(to_f(eye), unit_f(aim - to_d(to_f(eye)))));
+        const Vec3f o = to_f(aim + Vec3d{rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(1, 4)} * scale);
+        rays.push_back(make_ray(o, unit_f(aim - to_d(o))));
+      }
+      // The eye's rays first, then the scattered ones: packets of one kind each.
+      std::stable_partition(rays.begin(), rays.end(), [&](const Ray& r) { return r.o == to_f(eye); });
+      while (rays.size() % 16 != 0) rays.push_back(rays.front());
+      const Geometry ref = Geometry::build(shapes, Isa::kScalar);
+      for (const Isa isa : supported_isas()) {
+        if (isa == Isa::kScalar) continue;
+        INFO("isa " << isa_name(isa));
+        const Geometry geo = Geometry::build(shapes, isa);
+        long hits = 0, mismatches = 0;
+        for (std::size_t at = 0; at < rays.size(); at += 16) {
+          Hit h16[16], h8[16];
+          const std::uint32_t f16 = geo.intersect16(&rays[at], 0xffffu, h16);
+          const std::uint32_t f8_lo = geo.intersect8(&rays[at], 0xffu, h8);
+          const std::uint32_t f8 = f8_lo | geo.intersect8(&rays[at + 8], 0xffu, h8 + 8) << 8;
+          for (int i = 0; i < 16; ++i) {
+            Hit want, one;
+            const bool w = ref.intersect(rays[at + std::size_t(i)], want);
+            const bool g = geo.intersect(rays[at + std::size_t(i)], one);
+            hits += w;
+            const bool bad = g != w || bool(f16 >> i & 1u) != w || bool(f8 >> i & 1u) != w ||
+                             (w && (!same_hit(want, one) || !same_hit(want, h16[i]) || !same_hit(want, h8[i])));
+            if (bad && ++mismatches <= 3) UNSCOPED_INFO("mismatch " << describe(rays[at + std::size_t(i)]));
+          }
+        }
+        CHECK(hits > long(rays.size()) * 3 / 4);
+        CHECK(mismatches == 0);
+      }
+    }
+  }
 }
 
 TEST_CASE("Hit records: on the surface within p_error, unit normals", "[accel][shapes]") {
