@@ -138,19 +138,30 @@ TEST_CASE("two layers answer every ray as a brute-force search over all the shap
   }
 }
 
+namespace {
+
+// `g` holds two copies of one sphere, ids 0 and 1, one in each layer: every query, single and 8
+// and 16 rays at a time, must hit id 0.
+void check_tie_to_smaller_id(const LayeredGeometry& g) {
+  Hit hit;
+  REQUIRE(g.intersect(make_ray({0, 0, 0}, {0, 0, 1}), hit));
+  CHECK(hit.shape == 0);
+  Ray rays[accel::kPacketSize16];
+  for (Ray& r : rays) r = make_ray({0, 0, 0}, {0, 0, 1});
+  Hit hits[accel::kPacketSize16];
+  REQUIRE(g.intersect16(rays, 0xffffu, hits) == 0xffffu);
+  for (const Hit& h : hits) CHECK(h.shape == 0);
+  REQUIRE(g.intersect8(rays, 0xffu, hits) == 0xffu);
+  for (int i = 0; i < accel::kPacketSize; ++i) CHECK(hits[i].shape == 0);
+}
+
+}  // namespace
+
 TEST_CASE("a hit at the same t in both layers goes to the smaller scene-wide id", "[accel][layers]") {
   const std::vector<Shape> shapes = {testing::sphere({0, 0, 5}, 1), testing::sphere({0, 0, 5}, 1)};
   for (const bool first_moves : {false, true}) {
     const Split s = split(shapes, {first_moves, !first_moves}, Isa::kScalar);
-    const LayeredGeometry g(s.fixed, s.moving, shapes.size());
-    Hit hit;
-    REQUIRE(g.intersect(make_ray({0, 0, 0}, {0, 0, 1}), hit));
-    CHECK(hit.shape == 0);
-    Ray rays[accel::kPacketSize];
-    for (Ray& r : rays) r = make_ray({0, 0, 0}, {0, 0, 1});
-    Hit hits[accel::kPacketSize];
-    REQUIRE(g.intersect8(rays, 0xffu, hits) == 0xffu);
-    for (const Hit& h : hits) CHECK(h.shape == 0);
+    check_tie_to_smaller_id(LayeredGeometry(s.fixed, s.moving, shapes.size()));
   }
 }
 
@@ -385,19 +396,8 @@ TEST_CASE("a split scene answers rays with tiny and huge directions as one Geome
 TEST_CASE("a split scene's hit at the same t in both layers goes to the smaller scene-wide id", "[accel][layers]") {
   const std::vector<Shape> shapes = {testing::sphere({0, 0, 5}, 1), testing::sphere({0, 0, 5}, 1)};
   for (const Isa isa : accel::supported_isas()) {
-    for (const bool first_clear : {false, true}) {
-      const LayeredGeometry g = split_by(shapes, {first_clear, !first_clear}, isa);
-      Hit hit;
-      REQUIRE(g.intersect(make_ray({0, 0, 0}, {0, 0, 1}), hit));
-      CHECK(hit.shape == 0);
-      Ray rays[accel::kPacketSize16];
-      for (Ray& r : rays) r = make_ray({0, 0, 0}, {0, 0, 1});
-      Hit hits[accel::kPacketSize16];
-      REQUIRE(g.intersect16(rays, 0xffffu, hits) == 0xffffu);
-      for (const Hit& h : hits) CHECK(h.shape == 0);
-      REQUIRE(g.intersect8(rays, 0xffu, hits) == 0xffu);
-      for (int i = 0; i < accel::kPacketSize; ++i) CHECK(hits[i].shape == 0);
-    }
+    for (const bool first_clear : {false, true})
+      check_tie_to_smaller_id(split_by(shapes, {first_clear, !first_clear}, isa));
   }
 }
 
