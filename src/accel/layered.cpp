@@ -97,9 +97,11 @@ LayeredGeometry::LayeredGeometry(Geometry opaque, std::shared_ptr<const Layer> t
 }
 
 namespace {
-// The smallest dd and ww dd the bounding-sphere test trusts (reach()): products of normal floats
-// this large keep their relative rounding, and limit * dd (>= ww dd 2^-14) stays normal too.
-constexpr float kMinNormalProduct = 0x1p-100f;
+// The range of dd and ww dd the bounding-sphere test trusts (reach()): products of normal floats
+// this large keep their relative rounding, and limit * dd (>= ww dd 2^-14) stays normal too; below
+// 2^100, wd^2 (at most ww dd) and ww dd cannot overflow.
+constexpr float kMinProduct = 0x1p-100f;
+constexpr float kMaxProduct = 0x1p100f;
 }  // namespace
 
 bool LayeredGeometry::may_reach_second(const Ray& ray) const {
@@ -113,16 +115,18 @@ bool LayeredGeometry::may_reach_second(const Ray& ray) const {
 // radius2_) + ww * 2^-14, covers by far the roundings of this test (each w relative 2^-24, the
 // difference ww dd - wd^2 within 2^-20 ww dd) and a box kernel's conservative slab test, which
 // lets through rays missing a box by a few ulps of their t. That bound needs dd and ww dd well
-// above the subnormals (kMinNormalProduct; a direction of length 1e-21 made dd subnormal and
-// culled rays aimed at the layer): below it the line test keeps the ray. A NaN compares false:
-// kept.
+// inside the normal floats (kMinProduct, kMaxProduct: a direction of length 1e-21 made dd
+// subnormal, and one of 2^50 from 16,383 away made ww dd overflow to infinity while wd^2 did not,
+// each culling rays aimed at the layer): outside them the line test keeps the ray. A NaN compares
+// false: kept.
 bool LayeredGeometry::reach(float ox, float oy, float oz, float dx, float dy, float dz, float t_min) const {
   const float wx = center_[0] - ox, wy = center_[1] - oy, wz = center_[2] - oz;
   const float ww = wx * wx + wy * wy + wz * wz;
   const float dd = dx * dx + dy * dy + dz * dz;
   const float wd = wx * dx + wy * dy + wz * dz;
   const float limit = radius2_ + ww * 0x1p-14f;
-  if (dd >= kMinNormalProduct && ww * dd >= kMinNormalProduct && ww * dd - wd * wd > limit * dd) return false;
+  const float wwdd = ww * dd;
+  if (dd >= kMinProduct && wwdd >= kMinProduct && wwdd <= kMaxProduct && wwdd - wd * wd > limit * dd) return false;
   if (t_min >= 0.0f && wd < 0.0f && ww > limit) return false;
   return true;
 }
@@ -137,7 +141,7 @@ std::uint32_t LayeredGeometry::reach_second(const Ray* rays, std::uint32_t valid
   static_assert(sizeof(Ray) == 32 && N % 4 == 0);
   const __m128 cx = _mm_set1_ps(center_[0]), cy = _mm_set1_ps(center_[1]), cz = _mm_set1_ps(center_[2]);
   const __m128 r2 = _mm_set1_ps(radius2_), k = _mm_set1_ps(0x1p-14f), zero = _mm_setzero_ps();
-  const __m128 floor = _mm_set1_ps(kMinNormalProduct);
+  const __m128 floor = _mm_set1_ps(kMinProduct), ceiling = _mm_set1_ps(kMaxProduct);
   std::uint32_t miss = 0;
   for (int g = 0; g < N; g += 4) {
     if ((valid >> g & 0xfu) == 0) continue;
@@ -153,7 +157,8 @@ std::uint32_t LayeredGeometry::reach_second(const Ray* rays, std::uint32_t valid
     const __m128 wd = _mm_add_ps(_mm_add_ps(_mm_mul_ps(wx, dx), _mm_mul_ps(wy, dy)), _mm_mul_ps(wz, dz));
     const __m128 limit = _mm_add_ps(r2, _mm_mul_ps(ww, k));
     const __m128 wwdd = _mm_mul_ps(ww, dd);
-    const __m128 normal = _mm_and_ps(_mm_cmpge_ps(dd, floor), _mm_cmpge_ps(wwdd, floor));
+    const __m128 normal =
+        _mm_and_ps(_mm_and_ps(_mm_cmpge_ps(dd, floor), _mm_cmpge_ps(wwdd, floor)), _mm_cmple_ps(wwdd, ceiling));
     const __m128 off_line =
         _mm_and_ps(normal, _mm_cmpgt_ps(_mm_sub_ps(wwdd, _mm_mul_ps(wd, wd)), _mm_mul_ps(limit, dd)));
     const __m128 away =
