@@ -42,8 +42,8 @@ const std::map<std::uint32_t, std::string_view> kDigests = {
     {4, "9889f122b5736f9f0b97caaed0c60bc9ef502994c597fd1663d8a2fbbd86889a"},
     // Static scenes with glass split into an opaque and a transparent layer (render_scene.cpp): the
     // references render the same bits, but where a shadow ray meets an opaque and a transparent
-    // surface at exactly the same t (a glass face level with an opaque plane), version 4 let light
-    // through and version 5 blocks it.
+    // surface at exactly the same t and the transparent one has the smaller shape id (a glass face
+    // level with an opaque plane), version 4 let light through and version 5 blocks it.
     {5, "9889f122b5736f9f0b97caaed0c60bc9ef502994c597fd1663d8a2fbbd86889a"},
 };
 

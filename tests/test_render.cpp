@@ -676,7 +676,7 @@ TEST_CASE("Shadow rays through many transparent shells give every lane the per-r
 
 namespace {
 
-// A static scene of 80 shapes with a compact glass part (a sphere with an index-matched one inside
+// A static scene of 77 shapes with a compact glass part (a sphere with an index-matched one inside
 // it, a box, and a glass that also shades, so shadow rays leave glass too) among opaque spheres on
 // a floor, under two point lights and an area light: RenderScene::build splits it into an opaque
 // and a transparent layer.
@@ -752,7 +752,8 @@ TEST_CASE("A static scene split by transparency renders the walk's bits, packets
   CHECK(render_tiled(opaque, d.render, 16, 16, true).rgb != reference.rgb);
 }
 
-// Where a glass surface and an opaque one cross a shadow ray at exactly the same t, the split
+// Where a glass surface and an opaque one cross a shadow ray at exactly the same t, the glass with
+// the smaller id, the split
 // scene's shadow rays are blocked: the opaque layer's any-hit query sees the opaque surface. The
 // walk over every shape (an animation frame's) crosses the glass first (the smaller id) and
 // starts its next segment just past that t, so it passes the opaque surface and lets light
@@ -799,6 +800,21 @@ TEST_CASE("A split scene's shadow rays are blocked by an opaque surface level wi
     const Rendered walk = render_tiled(frame, d.render, 32, 32, true);
     REQUIRE(walk.rgb.size() == dark.rgb.size());
     CHECK(std::memcmp(walk.rgb.data(), dark.rgb.data(), walk.rgb.size() * sizeof(float)) != 0);
+    // Without the opaque plane, light comes through the slab: the split scene renders the walk's
+    // bits, and they are not the dark image's (so the split does not block shadow rays through glass
+    // that no opaque surface meets).
+    scene::SceneDesc open = d;
+    open.objects.erase(open.objects.begin() + 2);
+    const render::RenderScene open_split = render::RenderScene::build(open, isa);
+    REQUIRE(open_split.geometry().transparent() != nullptr);
+    std::vector<bool> open_moving(open.objects.size(), false);
+    open_moving[2] = true;
+    const auto open_part = render::StaticPart::build(open, open_moving, isa);
+    const Rendered lit = render_tiled(open_split, d.render, 32, 32, true);
+    const Rendered lit_walk = render_tiled(render::RenderScene::build_frame(open, *open_part), d.render, 32, 32, true);
+    REQUIRE(lit.rgb.size() == lit_walk.rgb.size());
+    CHECK(std::memcmp(lit.rgb.data(), lit_walk.rgb.data(), lit.rgb.size() * sizeof(float)) == 0);
+    CHECK(std::memcmp(lit.rgb.data(), dark.rgb.data(), lit.rgb.size() * sizeof(float)) != 0);
   }
 }
 

@@ -137,21 +137,19 @@ bool solid_contains(const accel::Shape& s, const Vec3f& o) {
 // (`clear`: the ids of the transparent ones, sorted). Only with a tree for the opaque shapes (at
 // least 64 bounded ones: Geometry::build gives a scene of under 64 shapes none) and a transparent
 // part that is small beside the scene, its bounding box's diagonal at most a quarter of the opaque
-// shapes' (their bounds from up to 65,536 of them, evenly spaced in id order): every camera and
-// secondary ray then queries both layers,
-// which pays only where most rays can skip the transparent one (LayeredGeometry culls them by its
-// bounding sphere). Measured, render phase against one layer (medians of base and split
-// alternated, 1 thread): scenes/mesh.json (one glass mesh, diagonal ratio 0.05) 1.05x on AVX-512
-// and 1.07x on SSE4 (10 pairs each; 2 threads 1.08x and 1.06x); split as well, whitted10 (11
-// shapes, no tree) 0.92x and 0.91x, spheres10k (glass spheres over the whole field, ratio about
-// 1) 0.90x and 0.85x (5 pairs each).
+// shapes' (their bounds from at most 65,536 of them, evenly spaced in id order): every camera and
+// secondary ray then queries both layers, which pays only where most rays can skip the
+// transparent one (LayeredGeometry culls them by its bounding sphere). Measured, render phase against one layer
+// (medians of base and split alternated, 1 thread): scenes/mesh.json (one glass mesh, diagonal ratio 0.05) 1.05x on
+// AVX-512 and 1.07x on SSE4 (10 pairs each; 2 threads 1.08x and 1.06x); split as well, whitted10 (11 shapes, no tree)
+// 0.92x and 0.91x, spheres10k (glass spheres over the whole field, ratio about 1) 0.90x and 0.85x (5 pairs each).
 bool split_pays(const std::vector<accel::Shape>& shapes, const std::vector<std::uint32_t>& clear) {
   constexpr std::size_t kMinShapes = 64;
   constexpr std::size_t kSample = 65536;
   if (clear.empty() || shapes.size() - clear.size() < kMinShapes) return false;
   math::Bounds3f glass;
   for (const std::uint32_t id : clear) glass.extend(accel::shape_bounds(shapes[id]));
-  const std::size_t step = std::max<std::size_t>(1, shapes.size() / kSample);
+  const std::size_t step = (shapes.size() + kSample - 1) / kSample;
   math::Bounds3f all;
   std::size_t bounded = 0;  // opaque shapes of the sample with finite bounds
   std::size_t next = 0;     // the index into `clear` of the first transparent id >= i
@@ -163,8 +161,8 @@ bool split_pays(const std::vector<accel::Shape>& shapes, const std::vector<std::
     all.extend(b);
     ++bounded;
   }
-  // Every shape was looked at where step is 1; past 65,536 shapes a sample of 65,536 stands for
-  // them.
+  // Every shape was looked at where step is 1; past 65,536 shapes a sample of at most 65,536
+  // stands for them.
   if (glass.empty() || bounded < kMinShapes) return false;
   const Vec3f g = glass.extent(), a = all.extent();
   const float g2 = math::dot(g, g), a2 = math::dot(a, a);

@@ -130,8 +130,9 @@ class RenderScene {
   // from): the shapes of moving objects are built now, the others are part's shared layer.
   // Renders the same bits as build(frame, part.isa), shape ids staying the description's, but
   // where build splits a static scene by transparency and a shadow ray meets an opaque and a
-  // transparent surface at exactly the same t: a frame's walk over every shape passes the opaque
-  // one there, the split scene's opaque query does not (pixel version 5).
+  // transparent surface at exactly the same t, the transparent one with the smaller shape id: a
+  // frame's walk over every shape passes the opaque one there, the split scene's opaque query
+  // does not (pixel version 5).
   static RenderScene build_frame(const scene::SceneDesc& frame, const StaticPart& part);
 
   // Ray queries over the scene's shapes, one layer or two (accel/layered.h); shape ids are
