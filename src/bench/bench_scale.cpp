@@ -24,7 +24,7 @@
 //    machine's same minutes.
 //  - repeated builds in one process (--runs of each, after the render): each build inherits the
 //    heap the build before left, so glibc's allocator state (which freed pages the next build
-//    reuses without faults) moves them; they are printed for comparison with earlier rounds.
+//    reuses without faults) moves them; they are printed beside figures measured that way.
 // Times are wall time (steady_clock), each beside the CPU time of the build's threads (ours).
 //
 // The scene must be one tree: a static scene that RenderSceneBuilder splits into an opaque and a
@@ -310,7 +310,7 @@ std::optional<FreshBuild> run_fresh(const std::string& path, const std::string& 
 }
 
 // The fresh-process builds of `path`: `runs` of each engine on 1 and `threads` threads, in
-// rounds that alternate the engines' order (ours first in even rounds), so that both see the
+// runs that alternate the engines' order (ours first in even runs), so that both see the
 // same minutes of a shared machine. Fills f's fresh figures; false when a child failed or ours
 // built trees of different hashes (`hash`: the repeated builds' tree).
 bool measure_fresh(const std::string& path, std::uint32_t threads, int runs, bool threaded_load, std::uint64_t hash,
