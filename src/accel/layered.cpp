@@ -184,18 +184,20 @@ bool LayeredGeometry::intersect_transparent(const Ray& ray, Hit& hit) const {
 }
 
 template <int N>
-std::uint32_t LayeredGeometry::intersect_transparent(const Ray* rays, std::uint32_t valid, Hit* hits) const {
-  assert(transparent_);
-  const std::uint32_t reach = reach_second<N>(rays, valid);
+std::uint32_t LayeredGeometry::second_hits(const Ray* rays, std::uint32_t reach, Hit* hits) const {
   if (reach == 0) return 0;
-  const std::uint32_t found = (N == kPacketSize16 ? second_->geometry.intersect16(rays, reach, hits)
-                                                  : second_->geometry.intersect8(rays, reach, hits)) &
-                              reach;
+  const std::uint32_t found = detail::intersect_n<N>(second_->geometry, rays, reach, hits) & reach;
   for (std::uint32_t s = found; s != 0; s &= s - 1) {
     const int i = std::countr_zero(s);
     hits[i].shape = second_->scene_id(hits[i].shape);
   }
   return found;
+}
+
+template <int N>
+std::uint32_t LayeredGeometry::intersect_transparent(const Ray* rays, std::uint32_t valid, Hit* hits) const {
+  assert(transparent_);
+  return second_hits<N>(rays, reach_second<N>(rays, valid), hits);
 }
 
 template std::uint32_t LayeredGeometry::intersect_transparent<kPacketSize>(const Ray*, std::uint32_t, Hit*) const;
@@ -230,9 +232,7 @@ bool LayeredGeometry::occluded_layers(const Ray& ray) const {
 
 template <int N>
 std::uint32_t LayeredGeometry::intersect_n_layers(const Ray* rays, std::uint32_t valid, Hit* hits) const {
-  const std::uint32_t found = (N == kPacketSize16 ? first_->geometry.intersect16(rays, valid, hits)
-                                                  : first_->geometry.intersect8(rays, valid, hits)) &
-                              valid;
+  const std::uint32_t found = detail::intersect_n<N>(first_->geometry, rays, valid, hits) & valid;
   if (!first_->ids.empty()) {
     for (std::uint32_t s = found; s != 0; s &= s - 1) {
       const int i = std::countr_zero(s);
@@ -249,12 +249,9 @@ std::uint32_t LayeredGeometry::intersect_n_layers(const Ray* rays, std::uint32_t
     if (found >> i & 1u) rest[i].t_max = math::next_float_up(hits[i].t);
   }
   Hit other[N];
-  const std::uint32_t more = (N == kPacketSize16 ? second_->geometry.intersect16(rest, reach, other)
-                                                 : second_->geometry.intersect8(rest, reach, other)) &
-                             reach;
+  const std::uint32_t more = second_hits<N>(rest, reach, other);
   for (std::uint32_t s = more; s != 0; s &= s - 1) {
     const int i = std::countr_zero(s);
-    other[i].shape = second_->scene_id(other[i].shape);
     if (!(found >> i & 1u) || better(other[i], hits[i])) hits[i] = other[i];
   }
   return found | more;
@@ -262,14 +259,9 @@ std::uint32_t LayeredGeometry::intersect_n_layers(const Ray* rays, std::uint32_t
 
 template <int N>
 std::uint32_t LayeredGeometry::occluded_n_layers(const Ray* rays, std::uint32_t valid) const {
-  std::uint32_t blocked =
-      (N == kPacketSize16 ? first_->geometry.occluded16(rays, valid) : first_->geometry.occluded8(rays, valid)) & valid;
+  std::uint32_t blocked = detail::occluded_n<N>(first_->geometry, rays, valid) & valid;
   const std::uint32_t rest = reach_second<N>(rays, valid & ~blocked);
-  if (rest != 0) {
-    blocked |=
-        (N == kPacketSize16 ? second_->geometry.occluded16(rays, rest) : second_->geometry.occluded8(rays, rest)) &
-        rest;
-  }
+  if (rest != 0) blocked |= detail::occluded_n<N>(second_->geometry, rays, rest) & rest;
   return blocked;
 }
 

@@ -30,6 +30,28 @@
 
 namespace dtraced::accel {
 
+namespace detail {
+// Geometry's nearest-hit and any-hit queries of N rays (kPacketSize or kPacketSize16) at once.
+template <int N>
+std::uint32_t intersect_n(const Geometry& g, const Ray* rays, std::uint32_t valid, Hit* hits) {
+  static_assert(N == kPacketSize || N == kPacketSize16);
+  if constexpr (N == kPacketSize16) {
+    return g.intersect16(rays, valid, hits);
+  } else {
+    return g.intersect8(rays, valid, hits);
+  }
+}
+template <int N>
+std::uint32_t occluded_n(const Geometry& g, const Ray* rays, std::uint32_t valid) {
+  static_assert(N == kPacketSize || N == kPacketSize16);
+  if constexpr (N == kPacketSize16) {
+    return g.occluded16(rays, valid);
+  } else {
+    return g.occluded8(rays, valid);
+  }
+}
+}  // namespace detail
+
 // Shapes of some of a scene's objects, with their BVH.
 struct Layer {
   // `ids[i]` is the scene-wide id of shapes[i]; strictly increasing, so that a layer's own tie
@@ -91,7 +113,7 @@ class LayeredGeometry {
   bool occluded_opaque(const Ray& ray) const { return first_->geometry.occluded(ray); }
   template <int N>
   std::uint32_t occluded_opaque(const Ray* rays, std::uint32_t valid) const {
-    return N == kPacketSize16 ? first_->geometry.occluded16(rays, valid) : first_->geometry.occluded8(rays, valid);
+    return detail::occluded_n<N>(first_->geometry, rays, valid);
   }
   bool intersect_transparent(const Ray& ray, Hit& hit) const;
   template <int N>
@@ -119,6 +141,10 @@ class LayeredGeometry {
   std::uint32_t intersect_n_layers(const Ray* rays, std::uint32_t valid, Hit* hits) const;
   template <int N>
   std::uint32_t occluded_n_layers(const Ray* rays, std::uint32_t valid) const;
+  // The second layer's nearest hits of the lanes `reach` (already past its cull), with scene-wide
+  // ids: the transparent layer's query, and the second half of the queries over both layers.
+  template <int N>
+  std::uint32_t second_hits(const Ray* rays, std::uint32_t reach, Hit* hits) const;
   // Whether the ray may meet the second layer's bounding sphere (always true unless cull_): a
   // query of that layer for a ray that cannot is skipped.
   bool may_reach_second(const Ray& ray) const;
