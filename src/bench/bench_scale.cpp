@@ -490,7 +490,11 @@ int measure(const std::string& path, std::uint32_t threads, int runs, int fresh_
   fmt::print("  build, repeated in one process ({} runs): ", runs);
   print_builds(f.build1_s, f.build1_cpu, f.buildn_s, f.buildn_cpu, f.embree1_s, f.embreen_s);
   fmt::print("\n");
-  if (f.spheres >= 1'000'000) {
+  // Issue 16's targets: the load, bytes and build ones are the 1M scene's; of 10M only that it
+  // renders (it did, to get here).
+  if (f.spheres >= 2'000'000) {
+    fmt::print("  target renders: MET (the load, bytes and build targets are the 1M scene's)\n");
+  } else if (f.spheres >= 1'000'000) {
     fmt::print("  target load <= 1 s: {}; bytes/sphere <= 150: {}", verdict(f.load_s <= 1.0),
                verdict(per_sphere <= 150));
     // "(1t): MET; (Nt): MISSED", the second only where `threads` is not 1.
